@@ -1,0 +1,195 @@
+"""Orchestration: overlaps once, then one match per (class, difficulty, metric, IoU threshold).
+
+Step 1 computes the overlaps of every detection with every ground-truth box of its own frame, for the
+three overlap metrics at once. Step 2 derives, per class and difficulty, which boxes count (the protocol's
+rules, vectorised here), matches, and reduces the counts to curves and AP. No I/O, no printing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from .frames import Annotations, dimension_order_warnings
+from .geometry import frame_overlaps
+from .matching import pr_counts
+from .metrics import Curve, average_precision, curve_from_counts
+from .protocol import (
+    DONTCARE,
+    INVALID_ALPHA,
+    MISSING_COORD,
+    NEIGHBOURS,
+    OVERLAP_METRICS,
+    RECALL_MODES,
+    Difficulty,
+    DifficultyLimits,
+    EvalConfig,
+    Metric,
+    Protocol,
+)
+from .result import EvalResult
+
+__all__ = ["evaluate", "ignore_codes", "aos_enabled", "scored_metrics"]
+
+
+def ignore_codes(gt: Annotations, dt: Annotations, cls: str, difficulty: Difficulty,
+                 limits: DifficultyLimits) -> tuple[npt.NDArray[np.int8], npt.NDArray[np.int8]]:
+    """The devkit's ``cleanData``: which boxes count for ``cls`` at ``difficulty``.
+
+    Ground truth: 0 = counts, 1 = ignored (a neighbour class such as Van for Car, or the class itself but
+    too occluded, truncated, or with 2D height ``y2 - y1 <= min_height``), -1 = another class.
+    Detections: 1 = too small (``|y2 - y1| < min_height``, whatever the class: such a detection can still
+    absorb a ground-truth box), else 0 for the class, -1 for others.
+    """
+    target = cls.lower()
+    gt_names = np.char.lower(gt.name.astype("U")) if gt.num_boxes else gt.name
+    dt_names = np.char.lower(dt.name.astype("U")) if dt.num_boxes else dt.name
+    d = int(difficulty)
+    own = gt_names == target
+    neighbour = np.isin(gt_names, NEIGHBOURS.get(target, ()))
+    height = gt.bbox[:, 3] - gt.bbox[:, 1]
+    hard = ((gt.occluded > limits.max_occlusion[d]) | (gt.truncated > limits.max_truncation[d])
+            | (height <= limits.min_height[d]))
+    ig = np.full(gt.num_boxes, -1, dtype=np.int8)
+    ig[neighbour | (own & hard)] = 1
+    ig[own & ~hard] = 0
+    idet = np.full(dt.num_boxes, -1, dtype=np.int8)
+    idet[dt_names == target] = 0
+    idet[np.abs(dt.bbox[:, 3] - dt.bbox[:, 1]) < limits.min_height[d]] = 1
+    return ig, idet
+
+
+def aos_enabled(dt: Annotations, protocol: Protocol) -> bool:
+    """Whether orientation similarity is computed at all.
+
+    official: no detection anywhere has alpha == -10. openpcdet: the first detection of the first frame
+    that has any is not -10 (and False when there are no detections).
+    """
+    if protocol.aos_rule == "all_valid":
+        return not bool(np.any(dt.alpha == INVALID_ALPHA))
+    if dt.num_boxes == 0:
+        return False
+    return bool(dt.alpha[0] != INVALID_ALPHA)
+
+
+def scored_metrics(dt: Annotations, cls: str) -> dict[Metric, bool]:
+    """The devkit evaluates a class in a metric only if some detection of it can be scored there.
+
+    2D: a detection with x1 >= 0; BEV: with x and z given (not -1000) and w, l > 0; 3D: also y given and
+    h > 0.
+    """
+    names = np.char.lower(dt.name.astype("U")) if dt.num_boxes else dt.name
+    sel = names == cls.lower()
+    x, y, z = dt.location[sel].T
+    ell, h, w = dt.dimensions[sel].T
+    ground = (x != MISSING_COORD) & (z != MISSING_COORD) & (w > 0) & (ell > 0)
+    return {
+        Metric.BBOX: bool(np.any(dt.bbox[sel, 0] >= 0)),
+        Metric.BEV: bool(np.any(ground)),
+        Metric.THREE_D: bool(np.any(ground & (y != MISSING_COORD) & (h > 0))),
+    }
+
+
+@dataclass(frozen=True)
+class _Overlaps:
+    pair_offsets: npt.NDArray[np.int64]
+    by_metric: dict[Metric, npt.NDArray[np.float64]]
+
+
+def _dontcare_rows(gt: Annotations, protocol: Protocol) -> npt.NDArray[np.bool_]:
+    if gt.num_boxes == 0:
+        return np.zeros(0, dtype=np.bool_)
+    if protocol.dontcare_case_insensitive:
+        return np.char.lower(gt.name.astype("U")) == DONTCARE.lower()
+    return gt.name == DONTCARE
+
+
+def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None, *,
+             keep_curves: bool = False) -> EvalResult:
+    """Evaluate detections against ground truth.
+
+    Parameters
+    ----------
+    gt : ground truth (DontCare rows included); its frames define the evaluated set
+    dt : detections; matched to ``gt`` by frame id. A ground-truth frame without detections counts as
+        empty and is listed in ``frames_without_predictions``; a detection frame unknown to ``gt`` raises
+        :class:`~kitti_eval.errors.InputError`.
+    config : classes, protocol, IoU thresholds (default: Car, Pedestrian, Cyclist; official protocol)
+    keep_curves : keep the 41-point curves in the result
+    """
+    config = config or EvalConfig()
+    protocol = config.protocol
+    if gt.kind != "ground_truth" or dt.kind != "detections":
+        raise ValueError("evaluate(gt, dt): expected ground truth then detections")
+    dt, missing = dt.aligned_to(gt.frame_ids)
+    warnings = dimension_order_warnings(gt) + dimension_order_warnings(dt)
+    if missing:
+        shown = ", ".join(missing[:10]) + (f" and {len(missing) - 10} more" if len(missing) > 10 else "")
+        warnings.append(f"{len(missing)} of {gt.num_frames} frames have no predictions and count as empty: "
+                        f"{shown}")
+    dontcare = _dontcare_rows(gt, protocol)
+    fo = frame_overlaps(dt.bbox, dt.boxes_camera, dt.offsets, gt.bbox, gt.boxes_camera, gt.offsets, dontcare)
+    overlaps = _Overlaps(fo.pair_offsets, {Metric.BBOX: fo.bbox, Metric.BEV: fo.bev, Metric.THREE_D: fo.d3})
+    compute_aos = aos_enabled(dt, protocol)
+
+    ap: dict[str, dict[str, dict[str, dict[str, dict[str, float | None]]]]] = {
+        oset: {r: {} for r in RECALL_MODES} for oset in config.threshold_sets}
+    curves: dict[str, dict[str, dict[str, dict[str, Curve]]]] = {oset: {} for oset in config.threshold_sets}
+    num_gt: dict[str, dict[str, int]] = {}
+    num_det: dict[str, int] = {}
+    for cls in config.classes:
+        scored = scored_metrics(dt, cls)
+        evaluated = {m: (scored[m] or not protocol.skip_undetected) for m in OVERLAP_METRICS}
+        evaluated[Metric.AOS] = evaluated[Metric.BBOX] and compute_aos
+        names = np.char.lower(dt.name.astype("U")) if dt.num_boxes else dt.name
+        num_det[cls] = int(np.sum(names == cls.lower()))
+        num_gt[cls] = {}
+        for oset in config.threshold_sets:
+            for r in RECALL_MODES:
+                ap[oset][r][cls] = {m.value: {} for m in (*OVERLAP_METRICS, Metric.AOS)}
+            curves[oset][cls] = {m.value: {} for m in (*OVERLAP_METRICS, Metric.AOS)}
+        for difficulty in Difficulty:
+            ig, idet = ignore_codes(gt, dt, cls, difficulty, config.difficulty)
+            num_gt[cls][difficulty.label] = int(np.sum(ig == 0))
+            done: dict[tuple[Metric, float], tuple[Curve, Curve | None]] = {}
+            for metric in OVERLAP_METRICS:
+                with_aos = metric is Metric.BBOX and evaluated[Metric.AOS]
+                for oset in config.threshold_sets:
+                    thr = config.overlap(cls, oset, metric)
+                    if not evaluated[metric]:
+                        pair: tuple[Curve, Curve | None] | None = None
+                    elif (metric, thr) in done:
+                        pair = done[(metric, thr)]
+                    else:
+                        counts = pr_counts(
+                            overlaps.pair_offsets, overlaps.by_metric[metric], gt.offsets, dt.offsets, ig, idet,
+                            dontcare if metric in protocol.dontcare_metrics else None, dt.score, gt.alpha,
+                            dt.alpha, thr, with_aos)
+                        curve = curve_from_counts(counts)
+                        pair = done[(metric, thr)] = (curve, curve if with_aos else None)
+                    targets = [(metric, pair[0] if pair else None, "precision")]
+                    if metric is Metric.BBOX:
+                        targets.append((Metric.AOS, pair[1] if pair else None, "orientation"))
+                    for m, curve_, attr in targets:
+                        for r in RECALL_MODES:
+                            ap[oset][r][cls][m.value][difficulty.label] = (
+                                None if curve_ is None else average_precision(getattr(curve_, attr), r))
+                        if curve_ is not None:
+                            curves[oset][cls][m.value][difficulty.label] = curve_
+    return EvalResult(
+        protocol=protocol.name,
+        classes=tuple(config.classes),
+        threshold_sets=tuple(config.threshold_sets),
+        overlaps={cls: {oset: {m.value: config.overlap(cls, oset, m) for m in OVERLAP_METRICS}
+                        for oset in config.threshold_sets} for cls in config.classes},
+        ap=ap,
+        num_gt=num_gt,
+        num_det=num_det,
+        frames=gt.num_frames,
+        frames_without_predictions=tuple(missing),
+        aos_evaluated=compute_aos,
+        warnings=tuple(warnings),
+        curves=curves if keep_curves else None,
+    )

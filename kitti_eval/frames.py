@@ -1,0 +1,284 @@
+"""Annotations of many frames in one columnar, validated container.
+
+Every loader ends here: it hands :meth:`Annotations.from_frames` a list of ``(frame_id, fields)`` pairs,
+and gets back flat float64 arrays with frame offsets (CSR layout), or an :class:`InputError` that names
+the frame and the field. Nothing downstream re-checks the data.
+
+Coordinate frame: KITTI rectified camera (x right, y down, z forward). ``location`` is the bottom centre
+of the box (the box spans ``y - h`` .. ``y``); ``dimensions`` are **(l, h, w)** in metres, the order all
+pickle formats use (the txt files write h, w, l; the txt loader reorders); ``rotation_y`` is the yaw about
+the camera y axis; ``bbox`` is the 2D image box (x1, y1, x2, y2) in pixels.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from .errors import InputError
+
+__all__ = ["Annotations", "normalize_frame_id", "dimension_order_warnings"]
+
+Kind = Literal["ground_truth", "detections"]
+
+#: field -> trailing shape of one box
+_NUMERIC_FIELDS: Mapping[str, tuple[int, ...]] = {
+    "truncated": (),
+    "occluded": (),
+    "alpha": (),
+    "bbox": (4,),
+    "dimensions": (3,),
+    "location": (3,),
+    "rotation_y": (),
+    "score": (),
+}
+_REQUIRED = {
+    "ground_truth": ("name", "truncated", "occluded", "alpha", "bbox", "dimensions", "location", "rotation_y"),
+    "detections": ("name", "alpha", "bbox", "dimensions", "location", "rotation_y", "score"),
+}
+
+
+def normalize_frame_id(value: object) -> str:
+    """A frame's key: digits are zero-padded to six (``15``, ``'15'`` and ``'000015'`` are one frame)."""
+    if isinstance(value, (bool, np.bool_)):
+        raise TypeError("a frame id cannot be a boolean")
+    if isinstance(value, (int, np.integer)):
+        if value < 0:
+            raise ValueError(f"negative frame id {value}")
+        return f"{int(value):06d}"
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", "replace")
+    if isinstance(value, (str, np.str_)):
+        text = str(value).strip()
+        if not text:
+            raise ValueError("empty frame id")
+        return text.zfill(6) if text.isdigit() else text
+    raise TypeError(f"a frame id must be a string or an integer, got {type(value).__name__}")
+
+
+def _names(value: Any, n_hint: int | None, where: dict[str, str]) -> npt.NDArray[np.str_]:
+    arr = np.asarray(value) if not isinstance(value, np.ndarray) else value
+    if arr.size == 0:
+        return np.zeros(0, dtype="<U1")
+    if arr.ndim != 1:
+        raise InputError(f"expected a 1-D array of class names, got shape {arr.shape}", **where)
+    if arr.dtype.kind == "U":
+        return arr
+    if arr.dtype.kind == "S":
+        return arr.astype("U")
+    if arr.dtype.kind == "O" and all(isinstance(v, (str, np.str_)) for v in arr):
+        return arr.astype("U")
+    raise InputError(f"expected class names as strings, got dtype {arr.dtype}", **where)
+
+
+def _numeric(value: Any, trailing: tuple[int, ...], n: int, where: dict[str, str]) -> npt.NDArray[np.float64]:
+    arr = value if isinstance(value, np.ndarray) else np.asarray(value)
+    if arr.dtype.kind not in "iuf":
+        if arr.size == 0 and arr.dtype.kind in "bOU":
+            arr = np.zeros(0)
+        else:
+            raise InputError(f"expected numbers, got dtype {arr.dtype}", **where)
+    if arr.size == 0 and n == 0:
+        return np.zeros((0, *trailing), dtype=np.float64)
+    if arr.shape != (n, *trailing):
+        raise InputError(f"expected shape {(n, *trailing)}, got {arr.shape}", **where)
+    out = np.array(arr, dtype=np.float64)  # a copy: inputs are never aliased or mutated
+    bad = ~np.isfinite(out)
+    if bad.any():
+        row = int(np.argwhere(bad)[0][0])
+        raise InputError(f"non-finite value {out.reshape(n, -1)[row].tolist()} in box {row}", **where)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Annotations:
+    """Boxes of ``F`` frames, concatenated frame after frame (``N`` boxes in all).
+
+    Attributes
+    ----------
+    kind : "ground_truth" or "detections"
+    source : where the boxes came from (a path), for messages
+    frame_ids : (F,) normalised frame ids, unique
+    offsets : (F + 1,) int64; frame ``f`` owns rows ``offsets[f]:offsets[f + 1]``
+    name : (N,) str, class names as written (ground truth keeps its DontCare rows)
+    truncated, occluded, alpha, rotation_y, score : (N,) float64 (score is -1 for ground truth)
+    bbox : (N, 4) float64 image box x1, y1, x2, y2 (pixels)
+    dimensions : (N, 3) float64 l, h, w (metres)
+    location : (N, 3) float64 x, y, z of the bottom centre, camera frame (metres)
+    """
+
+    kind: Kind
+    source: str
+    frame_ids: tuple[str, ...]
+    offsets: npt.NDArray[np.int64]
+    name: npt.NDArray[np.str_]
+    truncated: npt.NDArray[np.float64]
+    occluded: npt.NDArray[np.float64]
+    alpha: npt.NDArray[np.float64]
+    bbox: npt.NDArray[np.float64]
+    dimensions: npt.NDArray[np.float64]
+    location: npt.NDArray[np.float64]
+    rotation_y: npt.NDArray[np.float64]
+    score: npt.NDArray[np.float64]
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.frame_ids)
+
+    @property
+    def num_boxes(self) -> int:
+        return int(self.offsets[-1])
+
+    @property
+    def counts(self) -> npt.NDArray[np.int64]:
+        """(F,) boxes per frame."""
+        return np.diff(self.offsets)
+
+    @property
+    def boxes_camera(self) -> npt.NDArray[np.float64]:
+        """(N, 7) x, y, z, l, h, w, ry in the camera frame: the layout of :mod:`kitti_eval.geometry`."""
+        return np.concatenate([self.location, self.dimensions, self.rotation_y[:, None]], axis=1)
+
+    def frame_index(self) -> dict[str, int]:
+        return {fid: i for i, fid in enumerate(self.frame_ids)}
+
+    def frame(self, frame_id: str) -> dict[str, np.ndarray]:
+        """The boxes of one frame as a dict of arrays (copies)."""
+        idx = self.frame_index().get(normalize_frame_id(frame_id))
+        if idx is None:
+            raise InputError("no such frame", source=self.source, frame=str(frame_id))
+        lo, hi = int(self.offsets[idx]), int(self.offsets[idx + 1])
+        return {f: getattr(self, f)[lo:hi].copy() for f in ("name", *_NUMERIC_FIELDS)}
+
+    @classmethod
+    def from_frames(cls, kind: Kind, source: str, frames: Iterable[tuple[object, Mapping[str, Any]]]) -> Annotations:
+        """Validate per-frame field dicts and concatenate them.
+
+        Parameters
+        ----------
+        kind : "ground_truth" or "detections"
+        source : a name for messages (usually the path)
+        frames : pairs of (frame id, fields); fields hold ``name`` (N,), ``bbox`` (N, 4),
+            ``dimensions`` (N, 3) as l, h, w, ``location`` (N, 3), ``rotation_y`` (N,), ``alpha`` (N,),
+            and ``score`` (N,) for detections or ``truncated``/``occluded`` (N,) for ground truth.
+            Empty frames may use any empty arrays (OpenPCDet writes float zeros for ``name``).
+        """
+        if kind not in _REQUIRED:
+            raise ValueError(f"kind must be 'ground_truth' or 'detections', got {kind!r}")
+        ids: list[str] = []
+        seen: dict[str, int] = {}
+        cols: dict[str, list[np.ndarray]] = {f: [] for f in ("name", *_NUMERIC_FIELDS)}
+        counts: list[int] = []
+        for pos, (raw_id, fields) in enumerate(frames):
+            try:
+                fid = normalize_frame_id(raw_id)
+            except (TypeError, ValueError) as e:
+                raise InputError(f"bad frame id {raw_id!r}: {e}", source=source, frame=f"#{pos}",
+                                 field="frame_id") from None
+            if fid in seen:
+                raise InputError(f"frame appears twice (entries #{seen[fid]} and #{pos})", source=source,
+                                 frame=fid)
+            seen[fid] = pos
+            if not isinstance(fields, Mapping):
+                raise InputError(f"expected a dict of arrays, got {type(fields).__name__}", source=source,
+                                 frame=fid)
+            missing = [f for f in _REQUIRED[kind] if f not in fields]
+            if missing:
+                raise InputError(f"missing field(s) {', '.join(missing)}", source=source, frame=fid,
+                                 field=missing[0])
+            names = _names(fields["name"], None, {"source": source, "frame": fid, "field": "name"})
+            n = len(names)
+            cols["name"].append(names)
+            for f, trailing in _NUMERIC_FIELDS.items():
+                where = {"source": source, "frame": fid, "field": f}
+                if f in fields:
+                    cols[f].append(_numeric(fields[f], trailing, n, where))
+                elif f == "score":
+                    cols[f].append(np.full(n, -1.0))
+                else:
+                    cols[f].append(np.zeros((n, *trailing)))
+            ids.append(fid)
+            counts.append(n)
+        offsets = np.zeros(len(counts) + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        joined = {f: (np.concatenate(v) if v else np.zeros((0, *_NUMERIC_FIELDS.get(f, ())))) for f, v in
+                  cols.items()}
+        if not cols["name"]:
+            joined["name"] = np.zeros(0, dtype="<U1")
+        return cls(kind=kind, source=source, frame_ids=tuple(ids), offsets=offsets, **joined)
+
+    def aligned_to(self, frame_ids: Sequence[str], *, reference: str = "ground truth") -> tuple[Annotations, list[str]]:
+        """These boxes re-ordered to ``frame_ids`` (frames absent here become empty).
+
+        Returns the aligned annotations and the ids of frames that had no entry here. A frame of ours
+        that is not in ``frame_ids`` is an error: it cannot be scored, and it usually means the wrong
+        ground truth.
+        """
+        mine = self.frame_index()
+        wanted = set(frame_ids)
+        unknown = [fid for fid in self.frame_ids if fid not in wanted]
+        if unknown:
+            more = f" and {len(unknown) - 1} more" if len(unknown) > 1 else ""
+            raise InputError(f"predictions for a frame that is not in the {reference}{more}", source=self.source,
+                             frame=unknown[0])
+        missing = [fid for fid in frame_ids if fid not in mine]
+        if not missing and tuple(frame_ids) == self.frame_ids:
+            return self, []
+        rows: list[np.ndarray] = []
+        counts = np.zeros(len(frame_ids), dtype=np.int64)
+        for k, fid in enumerate(frame_ids):
+            idx = mine.get(fid)
+            if idx is not None:
+                lo, hi = int(self.offsets[idx]), int(self.offsets[idx + 1])
+                rows.append(np.arange(lo, hi))
+                counts[k] = hi - lo
+        take = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
+        offsets = np.zeros(len(frame_ids) + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        fields = {f: getattr(self, f)[take] for f in ("name", *_NUMERIC_FIELDS)}
+        return Annotations(kind=self.kind, source=self.source, frame_ids=tuple(frame_ids), offsets=offsets,
+                           **fields), missing
+
+
+#: Typical (l, h, w) of KITTI classes, metres; used only to spot a swapped dimension order.
+_TYPICAL_LHW: Mapping[str, tuple[float, float, float]] = {
+    "car": (3.88, 1.53, 1.63),
+    "pedestrian": (0.84, 1.76, 0.66),
+    "cyclist": (1.76, 1.74, 0.60),
+}
+_ORDERS = {"lhw": (0, 1, 2), "hwl": (1, 2, 0), "lwh": (0, 2, 1), "hlw": (1, 0, 2), "whl": (2, 1, 0),
+           "wlh": (2, 0, 1)}
+
+
+def dimension_order_warnings(annos: Annotations, min_boxes: int = 5) -> list[str]:
+    """Warn when a class's median dimensions fit another order than (l, h, w) much better.
+
+    The column whose median is compared is the order as stored; a result written with (h, w, l)
+    (the txt order) into a pickle shows Cars about 1.5 m long and 3.9 m wide.
+    """
+    out: list[str] = []
+    lower = np.char.lower(annos.name.astype("U")) if annos.num_boxes else annos.name
+    for cls, typical in _TYPICAL_LHW.items():
+        sel = lower == cls
+        if int(sel.sum()) < min_boxes:
+            continue
+        med = np.median(annos.dimensions[sel], axis=0)
+        if not np.all(med > 0):
+            continue
+        errs = {}
+        for order, perm in _ORDERS.items():
+            # if the data were stored in `order`, column k holds dimension perm[k] of (l, h, w)
+            expect = np.array([typical[p] for p in perm])
+            errs[order] = float(np.sum(np.log(med / expect) ** 2))
+        best = min(errs, key=errs.__getitem__)
+        if best != "lhw" and errs[best] * 4 < errs["lhw"]:
+            kind = "predictions" if annos.kind == "detections" else "ground truth"
+            out.append(
+                f"{annos.source}: {kind} of class {cls!r} have median dimensions "
+                f"{tuple(round(float(v), 2) for v in med)} which look like ({', '.join(best)}) "
+                f"rather than (l, h, w); pickles store dimensions as l, h, w (txt files as h, w, l)")
+    return out

@@ -1,0 +1,222 @@
+"""The KITTI evaluation protocol as data: every rule the evaluator applies is named here, once.
+
+Two protocols share these tables and differ only in the flags of :class:`Protocol`:
+
+* ``official``: what the KITTI devkit's C++ ``evaluate_object`` computes (DontCare regions suppress false
+  positives in 2D, BEV and 3D; AOS is dropped when any detection has alpha = -10; a class, or one of its
+  metrics, that no detection could be scored on is not evaluated: ``None``).
+* ``openpcdet``: what OpenPCDet's ``get_official_eval_result`` prints (DontCare in 2D only; AOS decided by
+  the first detection of the first non-empty frame; every requested class is reported, 0.0 when empty),
+  but with exact float64 rotated IoU instead of its float32 GPU kernel.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from enum import Enum, IntEnum
+from types import MappingProxyType
+from typing import Literal
+
+from .errors import ConfigError
+
+__all__ = [
+    "Metric", "Difficulty", "DifficultyLimits", "Protocol", "EvalConfig",
+    "OVERLAP_METRICS", "ALL_METRICS", "THRESHOLD_SETS", "RECALL_MODES", "DEFAULT_CLASSES", "KNOWN_CLASSES",
+    "CLASS_OVERLAPS", "NEIGHBOURS", "DONTCARE", "N_SAMPLE_PTS", "RECALL_SAMPLE_INDICES", "INVALID_ALPHA",
+    "KITTI_DIFFICULTY", "OFFICIAL", "OPENPCDET", "PROTOCOLS", "get_protocol",
+]
+
+
+class Metric(str, Enum):
+    """What a detection is scored on."""
+
+    BBOX = "bbox"      # 2D image box IoU
+    BEV = "bev"        # bird's-eye-view rotated-rectangle IoU in the camera (x, z) plane
+    THREE_D = "3d"     # 3D IoU: BEV intersection x overlap of [y - h, y]
+    AOS = "aos"        # average orientation similarity, on the 2D matching
+
+    def __str__(self) -> str:
+        return self.value
+
+
+#: Metrics that have their own overlap measure (AOS rides on the 2D matching).
+OVERLAP_METRICS: tuple[Metric, ...] = (Metric.BBOX, Metric.BEV, Metric.THREE_D)
+ALL_METRICS: tuple[Metric, ...] = (Metric.BBOX, Metric.BEV, Metric.THREE_D, Metric.AOS)
+
+
+class Difficulty(IntEnum):
+    """KITTI difficulty levels; cumulative (moderate includes easy, hard includes both)."""
+
+    EASY = 0
+    MODERATE = 1
+    HARD = 2
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
+@dataclass(frozen=True)
+class DifficultyLimits:
+    """Per-difficulty limits, indexed by :class:`Difficulty`.
+
+    A ground-truth box is *ignored* (neither a hit nor a miss) when occlusion > max_occlusion, or
+    truncation > max_truncation, or its 2D height ``y2 - y1`` (no abs) is **<=** min_height.
+    A detection is *ignored* when its 2D height ``|y2 - y1|`` is **<** min_height.
+    """
+
+    min_height: tuple[float, float, float] = (40.0, 25.0, 25.0)
+    max_occlusion: tuple[float, float, float] = (0.0, 1.0, 2.0)
+    max_truncation: tuple[float, float, float] = (0.15, 0.30, 0.50)
+
+
+KITTI_DIFFICULTY = DifficultyLimits()
+
+#: The two IoU threshold sets OpenPCDet prints: the official one and a looser one.
+THRESHOLD_SETS: tuple[str, ...] = ("strict", "loose")
+
+#: IoU a match must *exceed* (strictly), per class and threshold set, as (bbox, bev, 3d).
+CLASS_OVERLAPS: Mapping[str, Mapping[str, tuple[float, float, float]]] = MappingProxyType({
+    "Car": {"strict": (0.7, 0.7, 0.7), "loose": (0.7, 0.5, 0.5)},
+    "Pedestrian": {"strict": (0.5, 0.5, 0.5), "loose": (0.5, 0.25, 0.25)},
+    "Cyclist": {"strict": (0.5, 0.5, 0.5), "loose": (0.5, 0.25, 0.25)},
+    "Van": {"strict": (0.7, 0.7, 0.7), "loose": (0.7, 0.5, 0.5)},
+    "Person_sitting": {"strict": (0.5, 0.5, 0.5), "loose": (0.5, 0.25, 0.25)},
+    "Truck": {"strict": (0.7, 0.7, 0.7), "loose": (0.5, 0.5, 0.5)},
+})
+DEFAULT_CLASSES: tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")
+KNOWN_CLASSES: tuple[str, ...] = tuple(CLASS_OVERLAPS)
+
+#: Ground truth of a neighbour class is ignored for the evaluated class: never a miss, and a detection
+#: matched to it is neither a hit nor a false positive. Names compare case-insensitively.
+NEIGHBOURS: Mapping[str, tuple[str, ...]] = MappingProxyType({
+    "car": ("van",),
+    "pedestrian": ("person_sitting",),
+})
+DONTCARE = "DontCare"
+
+#: Precision is sampled at 41 recall steps (0, 1/40, ..., 1).
+N_SAMPLE_PTS = 41
+#: Which of the 41 samples each AP averages: R40 = samples 1..40, R11 = samples 0, 4, ..., 40.
+RECALL_SAMPLE_INDICES: Mapping[str, tuple[int, ...]] = MappingProxyType({
+    "R11": tuple(range(0, N_SAMPLE_PTS, 4)),
+    "R40": tuple(range(1, N_SAMPLE_PTS)),
+})
+RECALL_MODES: tuple[str, ...] = ("R11", "R40")
+#: alpha value meaning "no orientation given".
+INVALID_ALPHA = -10.0
+#: Coordinate meaning "not given" in a KITTI result line (BEV-only or 2D-only submissions).
+MISSING_COORD = -1000.0
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """The rules on which the two reference evaluators differ."""
+
+    name: str
+    #: Metrics in which detections covered by a DontCare region (intersection / detection area above the
+    #: class threshold) are not counted as false positives.
+    dontcare_metrics: frozenset[Metric]
+    #: "all_valid": AOS only if no detection at all has alpha == -10 (devkit);
+    #: "first_detection": AOS only if the first detection of the first non-empty frame has alpha != -10.
+    aos_rule: Literal["all_valid", "first_detection"]
+    #: True: a class/metric no detection can be scored on is not evaluated (None), as the devkit does;
+    #: False: it is reported as 0.0.
+    skip_undetected: bool
+    #: DontCare recognised case-insensitively (devkit) or only as the exact string "DontCare".
+    dontcare_case_insensitive: bool
+
+
+OFFICIAL = Protocol(
+    name="official",
+    dontcare_metrics=frozenset(OVERLAP_METRICS),
+    aos_rule="all_valid",
+    skip_undetected=True,
+    dontcare_case_insensitive=True,
+)
+OPENPCDET = Protocol(
+    name="openpcdet",
+    dontcare_metrics=frozenset({Metric.BBOX}),
+    aos_rule="first_detection",
+    skip_undetected=False,
+    dontcare_case_insensitive=False,
+)
+PROTOCOLS: Mapping[str, Protocol] = MappingProxyType({p.name: p for p in (OFFICIAL, OPENPCDET)})
+
+
+def get_protocol(name: str | Protocol) -> Protocol:
+    """Look a protocol up by name (``official`` or ``openpcdet``)."""
+    if isinstance(name, Protocol):
+        return name
+    try:
+        return PROTOCOLS[name]
+    except KeyError:
+        raise ConfigError(f"unknown protocol {name!r}; expected one of {sorted(PROTOCOLS)}") from None
+
+
+def _check_overlap(cls: str, oset: str, values: object) -> tuple[float, float, float]:
+    try:
+        triple = tuple(float(v) for v in values)  # type: ignore[attr-defined]
+    except (TypeError, ValueError):
+        raise ConfigError(f"IoU thresholds for {cls}/{oset} must be three numbers (bbox, bev, 3d)") from None
+    if len(triple) != 3 or not all(0.0 <= v < 1.0 for v in triple):
+        raise ConfigError(
+            f"IoU thresholds for {cls}/{oset} must be three numbers in [0, 1) (bbox, bev, 3d), got {values!r}")
+    return triple  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """What to evaluate: classes, protocol, thresholds, difficulty limits.
+
+    ``overlaps`` overrides :data:`CLASS_OVERLAPS` per class and threshold set, e.g.
+    ``{"Car": {"strict": (0.7, 0.6, 0.6)}}``; a class outside the KITTI six needs both sets given
+    or one set that is then used for both.
+    """
+
+    classes: tuple[str, ...] = DEFAULT_CLASSES
+    protocol: Protocol = OFFICIAL
+    overlaps: Mapping[str, Mapping[str, tuple[float, float, float]]] = field(default_factory=dict)
+    difficulty: DifficultyLimits = KITTI_DIFFICULTY
+    threshold_sets: tuple[str, ...] = THRESHOLD_SETS
+
+    def __post_init__(self) -> None:
+        if isinstance(self.classes, str):
+            object.__setattr__(self, "classes", (self.classes,))
+        object.__setattr__(self, "protocol", get_protocol(self.protocol))
+        if not self.classes:
+            raise ConfigError("no classes to evaluate")
+        if len({c.lower() for c in self.classes}) != len(self.classes):
+            raise ConfigError(f"classes repeat: {list(self.classes)}")
+        for s in self.threshold_sets:
+            if s not in THRESHOLD_SETS:
+                raise ConfigError(f"unknown threshold set {s!r}; expected one of {list(THRESHOLD_SETS)}")
+        canonical = {c.lower(): c for c in CLASS_OVERLAPS}
+        resolved: dict[str, dict[str, tuple[float, float, float]]] = {}
+        given = {k.lower(): v for k, v in self.overlaps.items()}
+        unknown = set(given) - {c.lower() for c in self.classes}
+        if unknown:
+            raise ConfigError(f"IoU thresholds given for classes not evaluated: {sorted(unknown)}")
+        for cls in self.classes:
+            base = dict(CLASS_OVERLAPS.get(canonical.get(cls.lower(), cls), {}))
+            user = {k: _check_overlap(cls, k, v) for k, v in given.get(cls.lower(), {}).items()}
+            for k in user:
+                if k not in THRESHOLD_SETS:
+                    raise ConfigError(f"unknown threshold set {k!r} for {cls}; expected one of "
+                                      f"{list(THRESHOLD_SETS)}")
+            if not base and len(user) == 1:
+                (only,) = user.values()
+                user = dict.fromkeys(THRESHOLD_SETS, only)
+            base.update(user)
+            if not base:
+                raise ConfigError(
+                    f"class {cls!r} has no default IoU thresholds (known: {', '.join(KNOWN_CLASSES)}); "
+                    f"give them, e.g. --iou {cls}=0.7,0.7,0.7")
+            resolved[cls] = base
+        object.__setattr__(self, "overlaps", MappingProxyType(resolved))
+
+    def overlap(self, cls: str, oset: str, metric: Metric) -> float:
+        """The IoU a match of class ``cls`` must exceed in ``metric`` (AOS uses the bbox threshold)."""
+        m = Metric.BBOX if metric is Metric.AOS else metric
+        return self.overlaps[cls][oset][OVERLAP_METRICS.index(m)]
