@@ -1,0 +1,238 @@
+"""Hand-computed AP scenarios: each expected value is written as the arithmetic that produces it.
+
+Reading guide. With ``n`` valid ground-truth boxes all found, the score thresholds are one per true
+positive while ``n <= 41`` (recall steps of 1/n are at most 1/40 apart... and at least as wide), so the
+41-sample precision curve holds ``n`` filled samples and zeros after: R40 averages samples 1..40, R11
+samples 0, 4, ..., 40. With n = 40 the last sample is empty: R40 = 39/40, R11 = 10/11. With n = 41 every
+sample is filled: 100.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from builders import annotations, box, dontcare, hits, one_car_per_frame
+from kitti_eval.evaluation import evaluate
+from kitti_eval.protocol import OFFICIAL, OPENPCDET, EvalConfig
+
+CAR = EvalConfig(classes=("Car",))
+CAR_PCDET = EvalConfig(classes=("Car",), protocol=OPENPCDET)
+
+
+def run(gt_frames, dt_frames, config=CAR, ids=None):
+    gt = annotations("ground_truth", gt_frames, ids)
+    dt = annotations("detections", dt_frames, ids)
+    return evaluate(gt, dt, config)
+
+
+def test_all_found_forty():
+    r = run(one_car_per_frame(40), hits(40))
+    for metric in ("bbox", "bev", "3d", "aos"):
+        assert r.get("Car", metric, "moderate", "R40") == pytest.approx(39 / 40 * 100)
+        assert r.get("Car", metric, "moderate", "R11") == pytest.approx(10 / 11 * 100)
+    assert r.num_gt["Car"] == {"easy": 40, "moderate": 40, "hard": 40}
+
+
+def test_all_found_forty_one_fills_every_sample():
+    r = run(one_car_per_frame(41), hits(41))
+    for metric in ("bbox", "bev", "3d", "aos"):
+        assert r.get("Car", metric, "hard", "R40") == pytest.approx(100.0)
+        assert r.get("Car", metric, "hard", "R11") == pytest.approx(100.0)
+
+
+def test_single_hit_fills_only_sample_zero():
+    # one ground truth, one perfect detection: one threshold, precision 1 at sample 0 only
+    r = run(one_car_per_frame(1), hits(1))
+    assert r.get("Car", "3d", "easy", "R11") == pytest.approx(1 / 11 * 100)
+    assert r.get("Car", "3d", "easy", "R40") == pytest.approx(0.0)
+
+
+def test_one_false_positive_above_every_hit():
+    dets = hits(40)
+    dets[0].append(box("Car", x=-15.0, z=40.0, x1=900.0, score=1.0))  # overlaps nothing, scores highest
+    r = run(one_car_per_frame(40), dets)
+    # at the k-th threshold: k+1 TP and 1 FP -> precision (k+1)/(k+2), rising; its envelope is 40/41
+    assert r.get("Car", "bbox", "easy", "R40") == pytest.approx(39 * (40 / 41) / 40 * 100)
+    assert r.get("Car", "bbox", "easy", "R11") == pytest.approx(10 * (40 / 41) / 11 * 100)
+
+
+def test_one_false_positive_below_every_hit_costs_nothing():
+    dets = hits(40)
+    dets[0].append(box("Car", x=-15.0, z=40.0, x1=900.0, score=0.01))
+    r = run(one_car_per_frame(40), dets)
+    assert r.get("Car", "bbox", "easy", "R40") == pytest.approx(39 / 40 * 100)
+
+
+def test_van_absorbs_a_car_detection():
+    gts = one_car_per_frame(40)
+    gts[0].append(box("Van", x=-15.0, z=40.0, x1=900.0))
+    dets = hits(40)
+    dets[0].append(box("Car", x=-15.0, z=40.0, x1=900.0, score=1.0))  # a Car detection on the Van
+    r = run(gts, dets)
+    assert r.get("Car", "3d", "moderate", "R40") == pytest.approx(39 / 40 * 100)  # neither TP nor FP
+    # a Truck is not a neighbour of Car: the same detection is a false positive
+    gts[0][-1]["name"] = "Truck"
+    r = run(gts, dets)
+    assert r.get("Car", "3d", "moderate", "R40") == pytest.approx(39 / 41 * 100)
+
+
+def test_person_sitting_is_ignored_for_pedestrian_not_counted():
+    ped = dict(dims=(0.8, 1.7, 0.6), width_px=30.0, height_px=80.0)
+    gts = [[box("Pedestrian", **ped)] for _ in range(40)]
+    gts[0].append(box("Person_sitting", x=5.0, x1=700.0, **ped))
+    dets = [[box("Pedestrian", score=0.9 - i / 1000, **ped)] for i in range(40)]
+    r = run(gts, dets, EvalConfig(classes=("Pedestrian",)))
+    assert r.num_gt["Pedestrian"]["easy"] == 40  # the sitting person is no miss
+    assert r.get("Pedestrian", "bbox", "easy", "R40") == pytest.approx(39 / 40 * 100)
+
+
+def test_dontcare_region_suppresses_a_false_positive():
+    gts = one_car_per_frame(40)
+    gts[0].append(dontcare([880.0, 140.0, 1000.0, 220.0]))
+    dets = hits(40)
+    dets[0].append(box("Car", x=-15.0, z=40.0, x1=900.0, score=1.0))  # inside the DontCare region in 2D
+    for config in (CAR, CAR_PCDET):
+        r = run(gts, dets, config)
+        assert r.get("Car", "bbox", "easy", "R40") == pytest.approx(39 / 40 * 100)  # suppressed in 2D
+        # the DontCare line has no 3D box (-1000): no suppression in BEV/3D in either protocol
+        assert r.get("Car", "bev", "easy", "R40") == pytest.approx(39 / 41 * 100)
+
+
+def test_dontcare_with_a_real_3d_box_suppresses_bev_only_in_official():
+    gts = one_car_per_frame(40)
+    gts[0].append(dontcare([880.0, 140.0, 1000.0, 220.0], location=(-15.0, 1.6, 40.0), dims=(8.0, 3.0, 8.0)))
+    dets = hits(40)
+    dets[0].append(box("Car", x=-15.0, z=40.0, x1=900.0, score=1.0))
+    official = run(gts, dets, CAR)
+    pcdet = run(gts, dets, CAR_PCDET)
+    assert official.get("Car", "bev", "easy", "R40") == pytest.approx(39 / 40 * 100)
+    assert pcdet.get("Car", "bev", "easy", "R40") == pytest.approx(39 / 41 * 100)
+
+
+def test_dontcare_must_cover_more_than_the_threshold_of_the_detection():
+    gts = one_car_per_frame(40)
+    # covers 60 of the detection's 80 px width: 0.75 > 0.7 suppresses; 50 px: 0.625 does not
+    dets = hits(40)
+    dets[0].append(box("Car", x=-15.0, z=40.0, x1=900.0, score=1.0))
+    gts[0].append(dontcare([920.0, 150.0, 1200.0, 210.0]))
+    assert run(gts, dets).get("Car", "bbox", "easy", "R40") == pytest.approx(39 / 40 * 100)
+    gts[0][-1] = dontcare([930.0, 150.0, 1200.0, 210.0])
+    assert run(gts, dets).get("Car", "bbox", "easy", "R40") == pytest.approx(39 / 41 * 100)
+
+
+def test_height_exactly_forty_pixels_is_not_easy():
+    gts = one_car_per_frame(40)
+    gts[0].append(box("Car", x=-15.0, z=40.0, x1=900.0, height_px=40.0))
+    dets = hits(40)
+    dets[0].append(box("Car", x=-15.0, z=40.0, x1=900.0, height_px=40.0, score=0.5))
+    r = run(gts, dets)
+    # easy: y2 - y1 <= 40 ignores the box, and the detection matched to it is neither TP nor FP
+    assert r.num_gt["Car"]["easy"] == 40
+    assert r.get("Car", "bbox", "easy", "R40") == pytest.approx(39 / 40 * 100)
+    # moderate: 41 boxes, all found: every sample filled
+    assert r.num_gt["Car"]["moderate"] == 41
+    assert r.get("Car", "bbox", "moderate", "R40") == pytest.approx(100.0)
+
+
+def test_a_detection_under_the_height_limit_is_ignored_not_false():
+    dets = hits(40)
+    dets[0].append(box("Car", x=-15.0, z=40.0, x1=900.0, height_px=24.5, score=1.0))  # < 25 px
+    r = run(one_car_per_frame(40), dets)
+    assert r.get("Car", "bbox", "hard", "R40") == pytest.approx(39 / 40 * 100)
+
+
+def test_truncation_and_occlusion_limits_are_inclusive():
+    gts = one_car_per_frame(40)
+    gts[0][0]["truncated"] = 0.15  # == easy limit: still easy
+    gts[1][0]["occluded"] = 1.0    # > easy limit 0: not easy, but moderate
+    r = run(gts, hits(40))
+    assert r.num_gt["Car"] == {"easy": 39, "moderate": 40, "hard": 40}
+
+
+def test_orientation_similarity_of_a_quarter_turn_is_one_half():
+    dets = hits(40, alpha=math.pi / 2)
+    r = run(one_car_per_frame(40), dets)
+    # (1 + cos(pi/2)) / 2 = 0.5 at every filled sample
+    assert r.get("Car", "aos", "easy", "R40") == pytest.approx(39 * 0.5 / 40 * 100)
+    assert r.get("Car", "bbox", "easy", "R40") == pytest.approx(39 / 40 * 100)
+
+
+def test_alpha_minus_ten_drops_aos_officially_anywhere_but_openpcdet_only_first():
+    dets = hits(40)
+    dets[5][0]["alpha"] = -10.0
+    official = run(one_car_per_frame(40), dets, CAR)
+    assert official.aos_evaluated is False
+    assert official.get("Car", "aos", "easy") is None
+    assert official.get("Car", "bbox", "easy") == pytest.approx(39 / 40 * 100)
+    pcdet = run(one_car_per_frame(40), dets, CAR_PCDET)
+    assert pcdet.aos_evaluated is True  # OpenPCDet only looks at the first detection
+    # the -10 detection's similarity is (1 + cos(0 - (-10))) / 2; the envelope keeps the best sample
+    assert pcdet.get("Car", "aos", "easy") is not None
+    dets[0][0]["alpha"] = -10.0
+    assert run(one_car_per_frame(40), dets, CAR_PCDET).get("Car", "aos", "easy") is None
+
+
+def test_class_without_detections_is_skipped_officially_and_zero_in_openpcdet():
+    config = EvalConfig(classes=("Car", "Cyclist"))
+    r = run(one_car_per_frame(40), hits(40), config)
+    assert all(r.get("Cyclist", m, "easy") is None for m in ("bbox", "bev", "3d", "aos"))
+    r = run(one_car_per_frame(40), hits(40), EvalConfig(classes=("Car", "Cyclist"), protocol=OPENPCDET))
+    assert all(r.get("Cyclist", m, "easy") == 0.0 for m in ("bbox", "bev", "3d", "aos"))
+
+
+def test_class_with_detections_but_no_ground_truth_scores_zero():
+    dets = hits(40)
+    dets[0].append(box("Cyclist", x=-15.0, z=40.0, x1=900.0, dims=(1.8, 1.7, 0.6), score=0.7))
+    r = run(one_car_per_frame(40), dets, EvalConfig(classes=("Car", "Cyclist")))
+    assert r.num_gt["Cyclist"]["hard"] == 0
+    assert r.get("Cyclist", "3d", "hard") == 0.0
+
+
+def test_bev_only_detections_are_not_scored_in_3d_officially():
+    dets = [[box("Car", score=0.9 - i / 1000, dims=(3.9, -1.0, 1.6))] for i in range(40)]  # h <= 0
+    r = run(one_car_per_frame(40), dets)
+    assert r.get("Car", "bev", "easy") == pytest.approx(39 / 40 * 100)
+    assert r.get("Car", "3d", "easy") is None
+    assert run(one_car_per_frame(40), dets, CAR_PCDET).get("Car", "3d", "easy") == 0.0
+
+
+def test_match_needs_overlap_strictly_above_threshold():
+    # 2D: ground truth [0, 0, 10, 100] (area 1000), detection [3, 0, 10, 100] (area 700):
+    # IoU = 700 / (1000 + 700 - 700) = 0.7 exactly, which is not above 0.7
+    gts = [[box("Car", bbox=[0.0, 0.0, 10.0, 100.0])] for _ in range(40)]
+    at = [[box("Car", bbox=[3.0, 0.0, 10.0, 100.0], score=0.9 - i / 1000)] for i in range(40)]
+    assert run(gts, at).get("Car", "bbox", "easy") == 0.0
+    # [2.9, 0, 10, 100]: IoU = 710 / 1000 = 0.71 > 0.7
+    above = [[box("Car", bbox=[2.9, 0.0, 10.0, 100.0], score=0.9 - i / 1000)] for i in range(40)]
+    assert run(gts, above).get("Car", "bbox", "easy") == pytest.approx(39 / 40 * 100)
+
+
+def test_frames_without_predictions_count_as_empty_and_are_reported():
+    gt = annotations("ground_truth", one_car_per_frame(41))
+    dt = annotations("detections", hits(40))  # frame 000040 has no entry
+    r = evaluate(gt, dt, CAR)
+    assert r.frames_without_predictions == ("000040",)
+    assert any("no predictions" in w for w in r.warnings)
+    # 41 valid boxes, 40 found: thresholds at recall k/41 -> samples of recall 1..40/41 filled
+    assert r.num_gt["Car"]["easy"] == 41
+    assert r.get("Car", "bbox", "easy", "R40") == pytest.approx(39 / 40 * 100)
+
+
+def test_ground_truth_against_itself_is_perfect_in_every_metric():
+    # 41 identical-box pairs, including yaw at +-pi and rotated boxes: exact IoU is 1
+    gts = [[box("Car", ry=r, alpha=r) for r in (math.pi, -math.pi, 0.3, -1.2)][k % 4:k % 4 + 1]
+           for k in range(41)]
+    dets = [[{**g[0], "score": 0.5 + k / 100}] for k, g in enumerate(gts)]
+    for config in (CAR, CAR_PCDET):
+        r = run(gts, dets, config)
+        for metric in ("bbox", "bev", "3d", "aos"):
+            for d in ("easy", "moderate", "hard"):
+                assert r.get("Car", metric, d, "R40") == pytest.approx(100.0)
+                assert r.get("Car", metric, d, "R11") == pytest.approx(100.0)
+
+
+def test_official_is_default_and_protocols_differ_only_where_documented():
+    assert EvalConfig().protocol is OFFICIAL
+    assert OFFICIAL.dontcare_metrics > OPENPCDET.dontcare_metrics
