@@ -1,0 +1,98 @@
+"""Renderings of an :class:`EvalResult`: OpenPCDet's text table, versioned JSON, Markdown."""
+
+from __future__ import annotations
+
+import enum
+import json
+import math
+
+from .protocol import Difficulty
+from .result import EvalResult
+
+__all__ = ["OutputFormat", "render", "render_table", "render_json", "render_markdown"]
+
+
+class OutputFormat(str, enum.Enum):
+    TABLE = "table"
+    JSON = "json"
+    MARKDOWN = "markdown"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+_DIFFS = [d.label for d in Difficulty]
+_ROW_LABELS = (("bbox", "bbox AP:"), ("bev", "bev  AP:"), ("3d", "3d   AP:"))
+
+
+def _num(value: float | None, digits: int) -> str:
+    return "n/a" if value is None else f"{value:.{digits}f}"
+
+
+def render_table(result: EvalResult) -> str:
+    """OpenPCDet's printed table, line for line.
+
+    Per class and threshold set: an ``AP@`` (R11) block then an ``AP_R40@`` block; the header triple is
+    the IoU thresholds for bbox, bev and 3d; each row holds easy, moderate, hard. AOS rows appear when
+    AOS was evaluated. Values the protocol does not evaluate print as ``n/a``.
+    """
+    lines: list[str] = []
+    for cls in result.classes:
+        for oset in result.threshold_sets:
+            ious = result.overlaps[cls][oset]
+            triple = f"{ious['bbox']:.2f}, {ious['bev']:.2f}, {ious['3d']:.2f}"
+            for recall, tag in (("R11", "AP"), ("R40", "AP_R40")):
+                by_metric = result.ap[oset][recall][cls]
+                lines.append(f"{cls} {tag}@{triple}:")
+                for metric, label in _ROW_LABELS:
+                    lines.append(label + ", ".join(_num(by_metric[metric][d], 4) for d in _DIFFS))
+                if result.aos_evaluated:
+                    lines.append("aos  AP:" + ", ".join(_num(by_metric["aos"][d], 2) for d in _DIFFS))
+    return "\n".join(lines) + "\n"
+
+
+def _finite_or_none(obj: object) -> object:
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: _finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_finite_or_none(v) for v in obj]
+    return obj
+
+
+def render_json(result: EvalResult, *, include_curves: bool = False) -> str:
+    """The versioned JSON document (see :meth:`EvalResult.to_dict`)."""
+    return json.dumps(_finite_or_none(result.to_dict(include_curves=include_curves)), indent=2,
+                      allow_nan=False) + "\n"
+
+
+def render_markdown(result: EvalResult) -> str:
+    """GitHub-flavoured Markdown tables (one per threshold set and recall mode), for CI job summaries."""
+    out: list[str] = [f"## KITTI evaluation ({result.protocol} protocol, {result.frames} frames)", ""]
+    for oset in result.threshold_sets:
+        for recall in ("R40", "R11"):
+            out.append(f"### AP {recall}, {oset} IoU thresholds")
+            out.append("")
+            out.append("| Class | Metric | IoU | Easy | Moderate | Hard |")
+            out.append("|---|---|---:|---:|---:|---:|")
+            for cls in result.classes:
+                for metric in ("bbox", "bev", "3d", "aos"):
+                    iou = result.overlaps[cls][oset]["bbox" if metric == "aos" else metric]
+                    vals = " | ".join(_num(result.ap[oset][recall][cls][metric][d], 2) for d in _DIFFS)
+                    out.append(f"| {cls} | {metric} | {iou:.2f} | {vals} |")
+            out.append("")
+    gt_line = ", ".join(f"{cls} {result.num_gt[cls]['moderate']}" for cls in result.classes)
+    out.append(f"Ground truth boxes that count (moderate): {gt_line}.")
+    for w in result.warnings:
+        out.append(f"\n> warning: {w}")
+    return "\n".join(out) + "\n"
+
+
+def render(result: EvalResult, fmt: OutputFormat | str, *, include_curves: bool = False) -> str:
+    fmt = OutputFormat(fmt)
+    if fmt is OutputFormat.JSON:
+        return render_json(result, include_curves=include_curves)
+    if fmt is OutputFormat.MARKDOWN:
+        return render_markdown(result)
+    return render_table(result)
