@@ -43,12 +43,9 @@ def ignore_codes(gt: Annotations, dt: Annotations, cls: str, difficulty: Difficu
     Detections: 1 = too small (``|y2 - y1| < min_height``, whatever the class: such a detection can still
     absorb a ground-truth box), else 0 for the class, -1 for others.
     """
-    target = cls.lower()
-    gt_names = np.char.lower(gt.name.astype("U")) if gt.num_boxes else gt.name
-    dt_names = np.char.lower(dt.name.astype("U")) if dt.num_boxes else dt.name
     d = int(difficulty)
-    own = gt_names == target
-    neighbour = np.isin(gt_names, NEIGHBOURS.get(target, ()))
+    own = gt.is_class(cls)
+    neighbour = gt.is_class(*NEIGHBOURS.get(cls.lower(), ()))
     height = gt.bbox[:, 3] - gt.bbox[:, 1]
     hard = ((gt.occluded > limits.max_occlusion[d]) | (gt.truncated > limits.max_truncation[d])
             | (height <= limits.min_height[d]))
@@ -56,7 +53,7 @@ def ignore_codes(gt: Annotations, dt: Annotations, cls: str, difficulty: Difficu
     ig[neighbour | (own & hard)] = 1
     ig[own & ~hard] = 0
     idet = np.full(dt.num_boxes, -1, dtype=np.int8)
-    idet[dt_names == target] = 0
+    idet[dt.is_class(cls)] = 0
     idet[np.abs(dt.bbox[:, 3] - dt.bbox[:, 1]) < limits.min_height[d]] = 1
     return ig, idet
 
@@ -80,8 +77,7 @@ def scored_metrics(dt: Annotations, cls: str) -> dict[Metric, bool]:
     2D: a detection with x1 >= 0; BEV: with x and z given (not -1000) and w, l > 0; 3D: also y given and
     h > 0.
     """
-    names = np.char.lower(dt.name.astype("U")) if dt.num_boxes else dt.name
-    sel = names == cls.lower()
+    sel = dt.is_class(cls)
     x, y, z = dt.location[sel].T
     ell, h, w = dt.dimensions[sel].T
     ground = (x != MISSING_COORD) & (z != MISSING_COORD) & (w > 0) & (ell > 0)
@@ -102,7 +98,7 @@ def _dontcare_rows(gt: Annotations, protocol: Protocol) -> npt.NDArray[np.bool_]
     if gt.num_boxes == 0:
         return np.zeros(0, dtype=np.bool_)
     if protocol.dontcare_case_insensitive:
-        return np.char.lower(gt.name.astype("U")) == DONTCARE.lower()
+        return gt.is_class(DONTCARE)
     return gt.name == DONTCARE
 
 
@@ -143,8 +139,7 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
         scored = scored_metrics(dt, cls)
         evaluated = {m: (scored[m] or not protocol.skip_undetected) for m in OVERLAP_METRICS}
         evaluated[Metric.AOS] = evaluated[Metric.BBOX] and compute_aos
-        names = np.char.lower(dt.name.astype("U")) if dt.num_boxes else dt.name
-        num_det[cls] = int(np.sum(names == cls.lower()))
+        num_det[cls] = int(np.sum(dt.is_class(cls)))
         num_gt[cls] = {}
         for oset in config.threshold_sets:
             for r in RECALL_MODES:

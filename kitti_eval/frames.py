@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, Literal
 
 import numpy as np
@@ -143,6 +144,18 @@ class Annotations:
         """(N, 7) x, y, z, l, h, w, ry in the camera frame: the layout of :mod:`kitti_eval.geometry`."""
         return np.concatenate([self.location, self.dimensions, self.rotation_y[:, None]], axis=1)
 
+    @cached_property
+    def _name_vocabulary(self) -> tuple[npt.NDArray[np.intp], tuple[str, ...]]:
+        """(N,) codes into the sorted distinct names, and those names lower-cased."""
+        uniq, codes = np.unique(self.name, return_inverse=True)
+        return codes.reshape(-1), tuple(str(u).lower() for u in uniq)
+
+    def is_class(self, *names: str) -> npt.NDArray[np.bool_]:
+        """(N,) bool: rows whose name is one of ``names``, compared case-insensitively (as the devkit does)."""
+        codes, vocab = self._name_vocabulary
+        wanted = {n.lower() for n in names}
+        return np.isin(codes, [k for k, v in enumerate(vocab) if v in wanted])
+
     def frame_index(self) -> dict[str, int]:
         return {fid: i for i, fid in enumerate(self.frame_ids)}
 
@@ -261,9 +274,8 @@ def dimension_order_warnings(annos: Annotations, min_boxes: int = 5) -> list[str
     (the txt order) into a pickle shows Cars about 1.5 m long and 3.9 m wide.
     """
     out: list[str] = []
-    lower = np.char.lower(annos.name.astype("U")) if annos.num_boxes else annos.name
     for cls, typical in _TYPICAL_LHW.items():
-        sel = lower == cls
+        sel = annos.is_class(cls)
         if int(sel.sum()) < min_boxes:
             continue
         med = np.median(annos.dimensions[sel], axis=0)

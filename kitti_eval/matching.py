@@ -137,34 +137,74 @@ def _match_frame(ov: np.ndarray, base: int, n_gt: int, gts: np.ndarray, dts: np.
 
 
 @njit(cache=True, nogil=True)
-def _relevant(codes: np.ndarray, lo: int, hi: int) -> np.ndarray:
-    """Frame-local indices of rows in [lo, hi) whose ignore code is not -1."""
-    n = 0
-    for k in range(lo, hi):
-        if codes[k] != -1:
-            n += 1
-    out = np.empty(n, dtype=np.int64)
-    n = 0
-    for k in range(lo, hi):
-        if codes[k] != -1:
-            out[n] = k - lo
-            n += 1
-    return out
+def _candidates(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray,
+                ignored_gt: np.ndarray, ignored_det: np.ndarray, dontcare: np.ndarray, score: np.ndarray,
+                min_overlap: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                             np.ndarray, np.ndarray, np.ndarray]:
+    """Sort each frame's rows by the part they can play in this matching.
 
-
-@njit(cache=True, nogil=True)
-def _flagged(flags: np.ndarray, lo: int, hi: int) -> np.ndarray:
-    n = 0
-    for k in range(lo, hi):
-        if flags[k]:
-            n += 1
-    out = np.empty(n, dtype=np.int64)
-    n = 0
-    for k in range(lo, hi):
-        if flags[k]:
-            out[n] = k - lo
-            n += 1
-    return out
+    Returns, as frame-local indices in CSR form (``*_ptr`` has F + 1 entries):
+    ``gt_idx``: ground truth that takes part (ignore code != -1); ``det_idx``: detections overlapping one
+    of those above the threshold, the only ones that can be matched; ``dc_idx``: DontCare rows. Also
+    ``valid``: (F,) valid ground truth per frame, and ``free_fp``: scores of valid detections that can
+    match nothing and that no DontCare region covers -- false positives at every threshold up to their
+    score, with no need to re-match them.
+    """
+    n_frames = gt_offsets.shape[0] - 1
+    gt_idx = np.empty(gt_offsets[n_frames], dtype=np.int64)
+    det_idx = np.empty(dt_offsets[n_frames], dtype=np.int64)
+    dc_idx = np.empty(gt_offsets[n_frames], dtype=np.int64)
+    free_fp = np.empty(dt_offsets[n_frames], dtype=np.float64)
+    gt_ptr = np.zeros(n_frames + 1, dtype=np.int64)
+    det_ptr = np.zeros(n_frames + 1, dtype=np.int64)
+    dc_ptr = np.zeros(n_frames + 1, dtype=np.int64)
+    valid = np.zeros(n_frames, dtype=np.int64)
+    ng_all = 0
+    nd_all = 0
+    nc_all = 0
+    n_free = 0
+    for f in range(n_frames):
+        g0, g1 = gt_offsets[f], gt_offsets[f + 1]
+        d0, d1 = dt_offsets[f], dt_offsets[f + 1]
+        n_gt = g1 - g0
+        base = pair_offsets[f]
+        first_gt = ng_all
+        first_dc = nc_all
+        for i in range(n_gt):
+            code = ignored_gt[g0 + i]
+            if code != -1:
+                gt_idx[ng_all] = i
+                ng_all += 1
+                if code == 0:
+                    valid[f] += 1
+            if dontcare[g0 + i]:
+                dc_idx[nc_all] = i
+                nc_all += 1
+        for j in range(d1 - d0):
+            code = ignored_det[d0 + j]
+            if code == -1:
+                continue
+            matchable = False
+            for k in range(first_gt, ng_all):
+                if ov[base + j * n_gt + gt_idx[k]] > min_overlap:
+                    matchable = True
+                    break
+            if matchable:
+                det_idx[nd_all] = j
+                nd_all += 1
+            elif code == 0:
+                covered = False
+                for k in range(first_dc, nc_all):
+                    if ov[base + j * n_gt + dc_idx[k]] > min_overlap:
+                        covered = True
+                        break
+                if not covered:
+                    free_fp[n_free] = score[d0 + j]
+                    n_free += 1
+        gt_ptr[f + 1] = ng_all
+        det_ptr[f + 1] = nd_all
+        dc_ptr[f + 1] = nc_all
+    return gt_idx, gt_ptr, det_idx, det_ptr, dc_idx, dc_ptr, valid, free_fp[:n_free]
 
 
 @njit(cache=True, nogil=True)
@@ -173,58 +213,76 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
                gt_alpha: np.ndarray, dt_alpha: np.ndarray, min_overlap: float, compute_aos: bool,
                n_sample_pts: int) -> tuple[np.ndarray, np.ndarray, int]:
     n_frames = gt_offsets.shape[0] - 1
+    gt_idx, gt_ptr, det_idx, det_ptr, dc_idx, dc_ptr, valid, free_fp = _candidates(
+        pair_offsets, ov, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score, min_overlap)
     n_valid_gt = 0
-    for k in range(ignored_gt.shape[0]):
-        if ignored_gt[k] == 0:
-            n_valid_gt += 1
+    for f in range(n_frames):
+        n_valid_gt += valid[f]
+    no_dc = dc_idx[:0]
     # pass 1: scores of true positives
-    tp_scores = np.empty(dt_offsets[n_frames], dtype=np.float64)
+    tp_scores = np.empty(det_idx.shape[0], dtype=np.float64)
     n_tp = 0
     for f in range(n_frames):
-        g0, g1 = gt_offsets[f], gt_offsets[f + 1]
-        d0, d1 = dt_offsets[f], dt_offsets[f + 1]
-        gts = _relevant(ignored_gt, g0, g1)
-        dts = _relevant(ignored_det, d0, d1)
-        if gts.shape[0] == 0 or dts.shape[0] == 0:
+        if det_ptr[f] == det_ptr[f + 1]:
             continue
-        dcs = np.empty(0, dtype=np.int64)
-        _, _, _, _, n_tp = _match_frame(ov, pair_offsets[f], g1 - g0, gts, dts, dcs, ignored_gt, ignored_det,
-                                        score, gt_alpha, dt_alpha, g0, d0, min_overlap, False, 0.0, False,
-                                        tp_scores, n_tp)
+        g0, d0 = gt_offsets[f], dt_offsets[f]
+        _, _, _, _, n_tp = _match_frame(ov, pair_offsets[f], gt_offsets[f + 1] - g0,
+                                        gt_idx[gt_ptr[f]:gt_ptr[f + 1]], det_idx[det_ptr[f]:det_ptr[f + 1]],
+                                        no_dc, ignored_gt, ignored_det, score, gt_alpha, dt_alpha, g0, d0,
+                                        min_overlap, False, 0.0, False, tp_scores, n_tp)
     if n_tp == 0:
         return np.empty(0, dtype=np.float64), np.zeros((0, 4), dtype=np.float64), n_valid_gt
     thresholds = _score_thresholds(-np.sort(-tp_scores[:n_tp]), n_valid_gt, n_sample_pts)
     n_thr = thresholds.shape[0]
     # pass 2: counts at each threshold, matching each frame once per distinct above-threshold set
     pr = np.zeros((n_thr, 4), dtype=np.float64)
+    fn_unmatchable = 0
     for f in range(n_frames):
-        g0, g1 = gt_offsets[f], gt_offsets[f + 1]
-        d0, d1 = dt_offsets[f], dt_offsets[f + 1]
-        gts = _relevant(ignored_gt, g0, g1)
-        dts = _relevant(ignored_det, d0, d1)
-        dcs = _flagged(dontcare, g0, g1)
-        if gts.shape[0] == 0 and dts.shape[0] == 0:
+        lo, hi = det_ptr[f], det_ptr[f + 1]
+        if lo == hi:
+            fn_unmatchable += valid[f]
             continue
+        g0, d0 = gt_offsets[f], dt_offsets[f]
+        gts = gt_idx[gt_ptr[f]:gt_ptr[f + 1]]
+        dts = det_idx[lo:hi]
+        dcs = dc_idx[dc_ptr[f]:dc_ptr[f + 1]]
         last_active = -1
         tp = 0
         fp = 0
-        fn = 0
+        fn = valid[f]
         sim = 0.0
         for t in range(n_thr):
             active = 0
-            for a in range(dts.shape[0]):
+            for a in range(hi - lo):
                 if score[d0 + dts[a]] >= thresholds[t]:
                     active += 1
-            if active != last_active:
-                tp, fp, fn, sim, _ = _match_frame(ov, pair_offsets[f], g1 - g0, gts, dts, dcs, ignored_gt,
-                                                  ignored_det, score, gt_alpha, dt_alpha, g0, d0, min_overlap,
-                                                  True, thresholds[t], compute_aos, tp_scores, 0)
-                last_active = active
+            if active != last_active and active > 0:
+                tp, fp, fn, sim, _ = _match_frame(ov, pair_offsets[f], gt_offsets[f + 1] - g0, gts, dts, dcs,
+                                                  ignored_gt, ignored_det, score, gt_alpha, dt_alpha, g0, d0,
+                                                  min_overlap, True, thresholds[t], compute_aos, tp_scores, 0)
+            last_active = active
             pr[t, 0] += tp
             pr[t, 1] += fp
             pr[t, 2] += fn
             if sim != -1.0:
                 pr[t, 3] += sim
+    # detections that can match nothing: false positives at every threshold up to their score
+    # (thresholds descend: a score s counts from the first threshold t <= s on)
+    starts = np.zeros(n_thr + 1, dtype=np.int64)
+    for k in range(free_fp.shape[0]):
+        lo, hi = 0, n_thr
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if thresholds[mid] <= free_fp[k]:
+                hi = mid
+            else:
+                lo = mid + 1
+        starts[lo] += 1
+    running = 0
+    for t in range(n_thr):
+        running += starts[t]
+        pr[t, 1] += running
+        pr[t, 2] += fn_unmatchable
     return thresholds, pr, n_valid_gt
 
 
