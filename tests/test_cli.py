@@ -1,0 +1,154 @@
+"""The command line: formats, exit codes, errors on stderr, the demo."""
+
+from __future__ import annotations
+
+import json
+import pickle
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kitti_eval.cli import main
+
+GOLDEN = Path(__file__).parent / "data" / "golden" / "small"
+GT, PRED = GOLDEN / "kitti_infos_val.pkl", GOLDEN / "result.pkl"
+
+
+def run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_table_reproduces_openpcdet_layout(capsys):
+    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--protocol", "openpcdet")
+    assert code == 0
+    lines = out.splitlines()
+    # per class: strict AP, strict AP_R40, loose AP, loose AP_R40; each a header and 4 rows
+    assert len(lines) == 3 * 4 * 5
+    assert lines[0] == "Car AP@0.70, 0.70, 0.70:"
+    assert lines[5] == "Car AP_R40@0.70, 0.70, 0.70:"
+    assert lines[10] == "Car AP@0.70, 0.50, 0.50:"
+    assert lines[20] == "Pedestrian AP@0.50, 0.50, 0.50:"
+    assert lines[30] == "Pedestrian AP@0.50, 0.25, 0.25:"
+    expected = json.loads((GOLDEN / "expected.json").read_text())["python_pcdet"]["pkl"]["ret_dict"]
+    r40 = lines[6:10]
+    assert r40[0] == "bbox AP:" + ", ".join(f"{expected[f'Car_image/{d}_R40']:.4f}" for d in ("easy", "moderate", "hard"))
+    assert r40[1] == "bev  AP:" + ", ".join(f"{expected[f'Car_bev/{d}_R40']:.4f}" for d in ("easy", "moderate", "hard"))
+    assert r40[2] == "3d   AP:" + ", ".join(f"{expected[f'Car_3d/{d}_R40']:.4f}" for d in ("easy", "moderate", "hard"))
+    assert r40[3] == "aos  AP:" + ", ".join(f"{expected[f'Car_aos/{d}_R40']:.2f}" for d in ("easy", "moderate", "hard"))
+
+
+def test_json_schema_has_every_key(capsys):
+    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--format", "json")
+    assert code == 0
+    doc = json.loads(out)
+    assert doc["schema_version"] == 1 and doc["protocol"] == "official"
+    for oset in ("strict", "loose"):
+        for recall in ("R11", "R40"):
+            for cls in ("Car", "Pedestrian", "Cyclist"):
+                for metric in ("bbox", "bev", "3d", "aos"):
+                    assert set(doc["ap"][oset][recall][cls][metric]) == {"easy", "moderate", "hard"}
+    assert doc["num_gt"]["Car"]["moderate"] > 0
+    assert doc["overlaps"]["Pedestrian"]["loose"] == {"bbox": 0.5, "bev": 0.25, "3d": 0.25}
+    assert "curves" not in doc
+    assert doc["frames"] == 50
+
+
+def test_markdown_has_a_row_per_class_and_metric(capsys):
+    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--format", "markdown")
+    assert code == 0
+    assert "| Class | Metric | IoU | Easy | Moderate | Hard |" in out
+    assert len(re.findall(r"^\| Car \| 3d \|", out, flags=re.M)) == 4  # 2 sets x 2 recall modes
+
+
+def test_custom_iou_and_classes(capsys):
+    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--format", "json", "--classes", "Car",
+                       "--iou", "Car:strict=0.5,0.5,0.5")
+    doc = json.loads(out)
+    assert code == 0 and doc["classes"] == ["Car"]
+    assert doc["overlaps"]["Car"]["strict"] == {"bbox": 0.5, "bev": 0.5, "3d": 0.5}
+    # a looser threshold can only find more matches
+    default = json.loads(run(capsys, "--gt", GT, "--pred", PRED, "--format", "json")[1])
+    assert doc["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"] >= default["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"]
+
+
+@pytest.mark.parametrize("argv", [
+    [],
+    ["--gt", "x"],
+    ["--gt", "a", "--pred", "b", "--protocol", "nope"],
+    ["--gt", "a", "--pred", "b", "--iou", "Car=0.7"],
+    ["--gt", "a", "--pred", "b", "--format", "xml"],
+])
+def test_usage_errors_exit_2(capsys, argv):
+    code, out, err = run(capsys, *argv)
+    assert code == 2 and out == ""
+    assert "usage:" in err or "error" in err
+
+
+def test_unknown_class_without_thresholds_is_a_usage_error(capsys):
+    code, _, err = run(capsys, "--gt", GT, "--pred", PRED, "--classes", "Bus")
+    assert code == 2 and "Bus" in err and "Traceback" not in err
+    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--classes", "Car,Bus", "--iou", "Bus=0.7,0.7,0.7",
+                       "--format", "json")
+    assert code == 0 and json.loads(out)["ap"]["strict"]["R40"]["Bus"]["3d"]["easy"] is None
+
+
+def test_missing_file_exits_1(capsys, tmp_path):
+    code, out, err = run(capsys, "--gt", tmp_path / "nope.pkl", "--pred", PRED)
+    assert code == 1 and out == "" and "nope.pkl" in err and "Traceback" not in err
+
+
+def test_hostile_pickle_exits_1_without_running(capsys, tmp_path):
+    canary = tmp_path / "canary"
+
+    class Evil:
+        def __reduce__(self):
+            import os
+            return (os.system, (f"touch {canary}",))
+
+    bad = tmp_path / "result.pkl"
+    bad.write_bytes(pickle.dumps([Evil()]))
+    code, _, err = run(capsys, "--gt", GT, "--pred", bad)
+    assert code == 1 and "os" in err and not canary.exists()
+
+
+def test_prediction_for_unknown_frame_names_it(capsys, tmp_path):
+    results = pickle.loads(PRED.read_bytes())  # trusted test fixture
+    results[3] = dict(results[3], frame_id="999999")
+    bad = tmp_path / "result.pkl"
+    bad.write_bytes(pickle.dumps(results))
+    code, _, err = run(capsys, "--gt", GT, "--pred", bad)
+    assert code == 1 and "999999" in err
+
+
+def test_wrong_shape_names_frame_and_field(capsys, tmp_path):
+    results = pickle.loads(PRED.read_bytes())
+    results[2] = dict(results[2], bbox=np.zeros((len(results[2]["score"]), 3), np.float32))
+    bad = tmp_path / "result.pkl"
+    bad.write_bytes(pickle.dumps(results))
+    code, _, err = run(capsys, "--gt", GT, "--pred", bad)
+    assert code == 1 and "000002" in err and "bbox" in err
+
+
+def test_missing_frames_are_reported_on_stderr(capsys, tmp_path):
+    results = pickle.loads(PRED.read_bytes())
+    short = tmp_path / "result.pkl"
+    short.write_bytes(pickle.dumps(results[:-2]))
+    code, _, err = run(capsys, "--gt", GT, "--pred", short)
+    assert code == 0 and "2 of 50 frames have no predictions" in err and "000049" in err
+
+
+def test_output_file(capsys, tmp_path):
+    out = tmp_path / "r.json"
+    code, stdout, _ = run(capsys, "--gt", GT, "--pred", PRED, "--format", "json", "--output", out)
+    assert code == 0 and stdout == "" and json.loads(out.read_text())["frames"] == 50
+
+
+def test_demo_runs_on_bundled_data(capsys):
+    code, out, _ = run(capsys, "demo", "--format", "json")
+    doc = json.loads(out)
+    assert code == 0 and doc["frames"] == 200
+    assert 0 < doc["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"] < 100
