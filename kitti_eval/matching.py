@@ -59,18 +59,18 @@ def _score_thresholds(scores_desc: np.ndarray, n_gt: int, n_sample_pts: int) -> 
 def _match_frame(ov: np.ndarray, base: int, n_gt: int, gts: np.ndarray, dts: np.ndarray, dcs: np.ndarray,
                  ignored_gt: np.ndarray, ignored_det: np.ndarray, score: np.ndarray, gt_alpha: np.ndarray,
                  dt_alpha: np.ndarray, g0: int, d0: int, min_overlap: float, compute_fp: bool, thresh: float,
-                 compute_aos: bool, tp_scores: np.ndarray, n_tp_scores: int) -> tuple[int, int, int, float, int]:
+                 compute_aos: bool, tp_scores: np.ndarray, n_tp_scores: int, assigned: np.ndarray,
+                 below: np.ndarray) -> tuple[int, int, int, float, int]:
     """One frame, one threshold. ``gts``/``dts``/``dcs`` are frame-local indices of the relevant rows.
 
     Returns (tp, fp, fn, similarity, n_tp_scores); in pass 1 (``compute_fp`` False) true-positive scores
-    are appended to ``tp_scores`` from position ``n_tp_scores``.
+    are appended to ``tp_scores`` from position ``n_tp_scores``. ``assigned`` and ``below`` are scratch
+    space of at least ``len(dts)`` entries.
     """
     nd = dts.shape[0]
-    assigned = np.zeros(nd, dtype=np.bool_)
-    below = np.zeros(nd, dtype=np.bool_)
-    if compute_fp:
-        for a in range(nd):
-            below[a] = score[d0 + dts[a]] < thresh
+    for a in range(nd):
+        assigned[a] = False
+        below[a] = compute_fp and score[d0 + dts[a]] < thresh
     tp = 0
     fp = 0
     fn = 0
@@ -219,6 +219,11 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
     for f in range(n_frames):
         n_valid_gt += valid[f]
     no_dc = dc_idx[:0]
+    widest = 0
+    for f in range(n_frames):
+        widest = max(widest, det_ptr[f + 1] - det_ptr[f])
+    assigned = np.empty(widest, dtype=np.bool_)
+    below = np.empty(widest, dtype=np.bool_)
     # pass 1: scores of true positives
     tp_scores = np.empty(det_idx.shape[0], dtype=np.float64)
     n_tp = 0
@@ -229,7 +234,7 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
         _, _, _, _, n_tp = _match_frame(ov, pair_offsets[f], gt_offsets[f + 1] - g0,
                                         gt_idx[gt_ptr[f]:gt_ptr[f + 1]], det_idx[det_ptr[f]:det_ptr[f + 1]],
                                         no_dc, ignored_gt, ignored_det, score, gt_alpha, dt_alpha, g0, d0,
-                                        min_overlap, False, 0.0, False, tp_scores, n_tp)
+                                        min_overlap, False, 0.0, False, tp_scores, n_tp, assigned, below)
     if n_tp == 0:
         return np.empty(0, dtype=np.float64), np.zeros((0, 4), dtype=np.float64), n_valid_gt
     thresholds = _score_thresholds(-np.sort(-tp_scores[:n_tp]), n_valid_gt, n_sample_pts)
@@ -259,7 +264,8 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
             if active != last_active and active > 0:
                 tp, fp, fn, sim, _ = _match_frame(ov, pair_offsets[f], gt_offsets[f + 1] - g0, gts, dts, dcs,
                                                   ignored_gt, ignored_det, score, gt_alpha, dt_alpha, g0, d0,
-                                                  min_overlap, True, thresholds[t], compute_aos, tp_scores, 0)
+                                                  min_overlap, True, thresholds[t], compute_aos, tp_scores, 0,
+                                                  assigned, below)
             last_active = active
             pr[t, 0] += tp
             pr[t, 1] += fp
