@@ -7,19 +7,18 @@ rules, vectorised here), matches, and reduces the counts to curves and AP. No I/
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import numpy.typing as npt
 
 from .frames import Annotations, dimension_order_warnings
 from .geometry import frame_overlaps
-from .matching import pr_counts
+from .matching import MatchJob, pr_counts_many
 from .metrics import Curve, average_precision, curve_from_counts
 from .protocol import (
     DONTCARE,
     INVALID_ALPHA,
     MISSING_COORD,
+    ALL_METRICS,
     NEIGHBOURS,
     OVERLAP_METRICS,
     RECALL_MODES,
@@ -88,12 +87,6 @@ def scored_metrics(dt: Annotations, cls: str) -> dict[Metric, bool]:
     }
 
 
-@dataclass(frozen=True)
-class _Overlaps:
-    pair_offsets: npt.NDArray[np.int64]
-    by_metric: dict[Metric, npt.NDArray[np.float64]]
-
-
 def _dontcare_rows(gt: Annotations, protocol: Protocol) -> npt.NDArray[np.bool_]:
     if gt.num_boxes == 0:
         return np.zeros(0, dtype=np.bool_)
@@ -127,52 +120,62 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
                         f"{shown}")
     dontcare = _dontcare_rows(gt, protocol)
     fo = frame_overlaps(dt.bbox, dt.boxes_camera, dt.offsets, gt.bbox, gt.boxes_camera, gt.offsets, dontcare)
-    overlaps = _Overlaps(fo.pair_offsets, {Metric.BBOX: fo.bbox, Metric.BEV: fo.bev, Metric.THREE_D: fo.d3})
     compute_aos = aos_enabled(dt, protocol)
 
-    ap: dict[str, dict[str, dict[str, dict[str, dict[str, float | None]]]]] = {
-        oset: {r: {} for r in RECALL_MODES} for oset in config.threshold_sets}
-    curves: dict[str, dict[str, dict[str, dict[str, Curve]]]] = {oset: {} for oset in config.threshold_sets}
+    # step 1: the matchings needed, one per (class, difficulty, metric, distinct IoU threshold)
+    ig_rows: list[npt.NDArray[np.int8]] = []
+    idet_rows: list[npt.NDArray[np.int8]] = []
+    jobs: list[MatchJob] = []
+    job_of: dict[tuple[int, Metric, float], int] = {}
+    slots: list[tuple[str, Difficulty, Metric, str, int | None, bool]] = []
     num_gt: dict[str, dict[str, int]] = {}
     num_det: dict[str, int] = {}
     for cls in config.classes:
         scored = scored_metrics(dt, cls)
         evaluated = {m: (scored[m] or not protocol.skip_undetected) for m in OVERLAP_METRICS}
-        evaluated[Metric.AOS] = evaluated[Metric.BBOX] and compute_aos
+        with_aos = evaluated[Metric.BBOX] and compute_aos
         num_det[cls] = int(np.sum(dt.is_class(cls)))
         num_gt[cls] = {}
-        for oset in config.threshold_sets:
-            for r in RECALL_MODES:
-                ap[oset][r][cls] = {m.value: {} for m in (*OVERLAP_METRICS, Metric.AOS)}
-            curves[oset][cls] = {m.value: {} for m in (*OVERLAP_METRICS, Metric.AOS)}
         for difficulty in Difficulty:
             ig, idet = ignore_codes(gt, dt, cls, difficulty, config.difficulty)
             num_gt[cls][difficulty.label] = int(np.sum(ig == 0))
-            done: dict[tuple[Metric, float], tuple[Curve, Curve | None]] = {}
+            row = len(ig_rows)
+            ig_rows.append(ig)
+            idet_rows.append(idet)
             for metric in OVERLAP_METRICS:
-                with_aos = metric is Metric.BBOX and evaluated[Metric.AOS]
                 for oset in config.threshold_sets:
-                    thr = config.overlap(cls, oset, metric)
-                    if not evaluated[metric]:
-                        pair: tuple[Curve, Curve | None] | None = None
-                    elif (metric, thr) in done:
-                        pair = done[(metric, thr)]
-                    else:
-                        counts = pr_counts(
-                            overlaps.pair_offsets, overlaps.by_metric[metric], gt.offsets, dt.offsets, ig, idet,
-                            dontcare if metric in protocol.dontcare_metrics else None, dt.score, gt.alpha,
-                            dt.alpha, thr, with_aos)
-                        curve = curve_from_counts(counts)
-                        pair = done[(metric, thr)] = (curve, curve if with_aos else None)
-                    targets = [(metric, pair[0] if pair else None, "precision")]
-                    if metric is Metric.BBOX:
-                        targets.append((Metric.AOS, pair[1] if pair else None, "orientation"))
-                    for m, curve_, attr in targets:
-                        for r in RECALL_MODES:
-                            ap[oset][r][cls][m.value][difficulty.label] = (
-                                None if curve_ is None else average_precision(getattr(curve_, attr), r))
-                        if curve_ is not None:
-                            curves[oset][cls][m.value][difficulty.label] = curve_
+                    job = None
+                    if evaluated[metric]:
+                        thr = config.overlap(cls, oset, metric)
+                        job = job_of.get((row, metric, thr))
+                        if job is None:
+                            job = job_of[(row, metric, thr)] = len(jobs)
+                            jobs.append(MatchJob(metric=OVERLAP_METRICS.index(metric), codes=row, min_overlap=thr,
+                                                 compute_aos=metric is Metric.BBOX and with_aos,
+                                                 dontcare=metric in protocol.dontcare_metrics))
+                    slots.append((cls, difficulty, metric, oset, job, with_aos))
+    counts = pr_counts_many(fo.pair_offsets, (fo.bbox, fo.bev, fo.d3), gt.offsets, dt.offsets,
+                            np.stack(ig_rows), np.stack(idet_rows), dontcare, dt.score, gt.alpha, dt.alpha,
+                            jobs) if jobs else []
+    job_curves = [curve_from_counts(c) for c in counts]
+
+    # step 2: curves to AP
+    ap: dict[str, dict[str, dict[str, dict[str, dict[str, float | None]]]]] = {
+        oset: {r: {cls: {m.value: {} for m in ALL_METRICS} for cls in config.classes} for r in RECALL_MODES}
+        for oset in config.threshold_sets}
+    curves: dict[str, dict[str, dict[str, dict[str, Curve]]]] = {
+        oset: {cls: {m.value: {} for m in ALL_METRICS} for cls in config.classes} for oset in config.threshold_sets}
+    for cls, difficulty, metric, oset, job, with_aos in slots:
+        curve = None if job is None else job_curves[job]
+        targets = [(metric, curve, "precision")]
+        if metric is Metric.BBOX:
+            targets.append((Metric.AOS, curve if with_aos else None, "orientation"))
+        for m, curve_, attr in targets:
+            for r in RECALL_MODES:
+                ap[oset][r][cls][m.value][difficulty.label] = (
+                    None if curve_ is None else average_precision(getattr(curve_, attr), r))
+            if curve_ is not None:
+                curves[oset][cls][m.value][difficulty.label] = curve_
     return EvalResult(
         protocol=protocol.name,
         classes=tuple(config.classes),

@@ -23,13 +23,15 @@ matched once per distinct set of above-threshold detections rather than once per
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
+from numba import njit, prange
 
-__all__ = ["PRCounts", "pr_counts", "score_thresholds"]
+__all__ = ["PRCounts", "MatchJob", "pr_counts", "pr_counts_many", "score_thresholds"]
 
 _NO_DETECTION = -10000000.0
 
@@ -137,6 +139,19 @@ def _match_frame(ov: np.ndarray, base: int, n_gt: int, gts: np.ndarray, dts: np.
 
 
 @njit(cache=True, nogil=True)
+def _first_at_or_below(thresholds: np.ndarray, value: float) -> int:
+    """Index of the first of the descending ``thresholds`` that is <= value (len if none)."""
+    lo, hi = 0, thresholds.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if thresholds[mid] <= value:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+@njit(cache=True, nogil=True)
 def _candidates(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray,
                 ignored_gt: np.ndarray, ignored_det: np.ndarray, dontcare: np.ndarray, score: np.ndarray,
                 min_overlap: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
@@ -239,57 +254,108 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
         return np.empty(0, dtype=np.float64), np.zeros((0, 4), dtype=np.float64), n_valid_gt
     thresholds = _score_thresholds(-np.sort(-tp_scores[:n_tp]), n_valid_gt, n_sample_pts)
     n_thr = thresholds.shape[0]
-    # pass 2: counts at each threshold, matching each frame once per distinct above-threshold set
-    pr = np.zeros((n_thr, 4), dtype=np.float64)
-    fn_unmatchable = 0
+    # pass 2: counts at each threshold. A frame's counts change only where another of its detections
+    # rises above the threshold, so it is matched once per such step, and the change is recorded there
+    # (``delta``) and summed up over the thresholds at the end.
+    delta = np.zeros((n_thr, 4), dtype=np.float64)
+    ranked = np.empty(widest, dtype=np.float64)
     for f in range(n_frames):
+        delta[0, 2] += valid[f]  # above every detection's score, every valid box is missed
         lo, hi = det_ptr[f], det_ptr[f + 1]
         if lo == hi:
-            fn_unmatchable += valid[f]
             continue
         g0, d0 = gt_offsets[f], dt_offsets[f]
         gts = gt_idx[gt_ptr[f]:gt_ptr[f + 1]]
         dts = det_idx[lo:hi]
         dcs = dc_idx[dc_ptr[f]:dc_ptr[f + 1]]
-        last_active = -1
-        tp = 0
-        fp = 0
-        fn = valid[f]
-        sim = 0.0
-        for t in range(n_thr):
-            active = 0
-            for a in range(hi - lo):
-                if score[d0 + dts[a]] >= thresholds[t]:
-                    active += 1
-            if active != last_active and active > 0:
-                tp, fp, fn, sim, _ = _match_frame(ov, pair_offsets[f], gt_offsets[f + 1] - g0, gts, dts, dcs,
-                                                  ignored_gt, ignored_det, score, gt_alpha, dt_alpha, g0, d0,
-                                                  min_overlap, True, thresholds[t], compute_aos, tp_scores, 0,
-                                                  assigned, below)
-            last_active = active
-            pr[t, 0] += tp
-            pr[t, 1] += fp
-            pr[t, 2] += fn
-            if sim != -1.0:
-                pr[t, 3] += sim
-    # detections that can match nothing: false positives at every threshold up to their score
-    # (thresholds descend: a score s counts from the first threshold t <= s on)
-    starts = np.zeros(n_thr + 1, dtype=np.int64)
+        m = hi - lo
+        for a in range(m):  # insertion sort, descending: a handful of detections
+            s = score[d0 + dts[a]]
+            b = a
+            while b > 0 and ranked[b - 1] < s:
+                ranked[b] = ranked[b - 1]
+                b -= 1
+            ranked[b] = s
+        prev_tp, prev_fp, prev_fn, prev_sim = 0.0, 0.0, float(valid[f]), 0.0
+        a = 0
+        while a < m:
+            t = _first_at_or_below(thresholds, ranked[a])
+            if t == n_thr:
+                break  # this and the remaining detections never reach a threshold
+            while a < m and ranked[a] >= thresholds[t]:
+                a += 1
+            tp, fp, fn, sim, _ = _match_frame(ov, pair_offsets[f], gt_offsets[f + 1] - g0, gts, dts, dcs,
+                                              ignored_gt, ignored_det, score, gt_alpha, dt_alpha, g0, d0,
+                                              min_overlap, True, thresholds[t], compute_aos, tp_scores, 0,
+                                              assigned, below)
+            if sim == -1.0:
+                sim = 0.0
+            delta[t, 0] += tp - prev_tp
+            delta[t, 1] += fp - prev_fp
+            delta[t, 2] += fn - prev_fn
+            delta[t, 3] += sim - prev_sim
+            prev_tp, prev_fp, prev_fn, prev_sim = tp, fp, fn, sim
+    # detections that can match nothing: false positives from the first threshold at or below their score
+    # (scanned from the lowest threshold up: most such detections score below all or most thresholds)
+    lowest = thresholds[n_thr - 1]
     for k in range(free_fp.shape[0]):
-        lo, hi = 0, n_thr
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if thresholds[mid] <= free_fp[k]:
-                hi = mid
-            else:
-                lo = mid + 1
-        starts[lo] += 1
-    running = 0
-    for t in range(n_thr):
-        running += starts[t]
-        pr[t, 1] += running
-        pr[t, 2] += fn_unmatchable
+        s = free_fp[k]
+        if s < lowest:
+            continue
+        t = n_thr - 1
+        while t > 0 and thresholds[t - 1] <= s:
+            t -= 1
+        delta[t, 1] += 1.0
+    pr = np.empty((n_thr, 4), dtype=np.float64)
+    for c in range(4):
+        running = 0.0
+        for t in range(n_thr):
+            running += delta[t, c]
+            pr[t, c] = running
     return thresholds, pr, n_valid_gt
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _pr_counts_many(pair_offsets: np.ndarray, ov_0: np.ndarray, ov_1: np.ndarray, ov_2: np.ndarray,
+                    gt_offsets: np.ndarray, dt_offsets: np.ndarray, ignored_gt: np.ndarray,
+                    ignored_det: np.ndarray, dontcare: np.ndarray, score: np.ndarray, gt_alpha: np.ndarray,
+                    dt_alpha: np.ndarray, job_metric: np.ndarray, job_codes: np.ndarray, job_overlap: np.ndarray,
+                    job_aos: np.ndarray, job_dontcare: np.ndarray,
+                    n_sample_pts: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Independent matchings in parallel, one per job (metric, ignore-code row, threshold, flags)."""
+    n_jobs = job_metric.shape[0]
+    thr_out = np.zeros((n_jobs, n_sample_pts), dtype=np.float64)
+    pr_out = np.zeros((n_jobs, n_sample_pts, 4), dtype=np.float64)
+    n_thr = np.zeros(n_jobs, dtype=np.int64)
+    n_valid = np.zeros(n_jobs, dtype=np.int64)
+    no_dontcare = np.zeros(dontcare.shape[0], dtype=np.bool_)
+    for c in prange(n_jobs):
+        m = job_metric[c]
+        ov = ov_0 if m == 0 else (ov_1 if m == 1 else ov_2)
+        dc = dontcare if job_dontcare[c] else no_dontcare
+        thresholds, pr, valid = _pr_counts(pair_offsets, ov, gt_offsets, dt_offsets, ignored_gt[job_codes[c]],
+                                           ignored_det[job_codes[c]], dc, score, gt_alpha, dt_alpha,
+                                           job_overlap[c], job_aos[c], n_sample_pts)
+        t = thresholds.shape[0]
+        n_thr[c] = t
+        n_valid[c] = valid
+        for k in range(min(t, n_sample_pts)):
+            thr_out[c, k] = thresholds[k]
+            for q in range(4):
+                pr_out[c, k, q] = pr[k, q]
+    return thr_out, pr_out, n_thr, n_valid
+
+
+@dataclass(frozen=True)
+class MatchJob:
+    """One matching: which overlaps (index into ``overlaps``), which ignore-code row, the IoU a match must
+    exceed, whether to sum orientation similarity, and whether DontCare rows suppress false positives."""
+
+    metric: int
+    codes: int
+    min_overlap: float
+    compute_aos: bool
+    dontcare: bool
 
 
 @dataclass(frozen=True)
@@ -340,23 +406,72 @@ def pr_counts(pair_offsets: npt.NDArray[np.int64], overlaps: npt.NDArray[np.floa
     min_overlap : a match needs overlap strictly above this
     compute_aos : also sum orientation similarity
     """
-    n_gt = int(gt_offsets[-1])
-    if dontcare is None:
-        dontcare = np.zeros(n_gt, dtype=np.bool_)
-    args = (np.ascontiguousarray(pair_offsets, np.int64), np.ascontiguousarray(overlaps, np.float64),
-            np.ascontiguousarray(gt_offsets, np.int64), np.ascontiguousarray(dt_offsets, np.int64),
-            np.ascontiguousarray(ignored_gt, np.int8), np.ascontiguousarray(ignored_det, np.int8),
-            np.ascontiguousarray(dontcare, np.bool_), np.ascontiguousarray(score, np.float64),
-            np.ascontiguousarray(gt_alpha, np.float64), np.ascontiguousarray(dt_alpha, np.float64))
-    if args[0].shape != args[2].shape or args[2].shape != args[3].shape:
+    n_gt = int(np.asarray(gt_offsets)[-1])
+    use_dc = dontcare is not None
+    dc = dontcare if use_dc else np.zeros(n_gt, dtype=np.bool_)
+    (counts,) = pr_counts_many(pair_offsets, [overlaps], gt_offsets, dt_offsets, np.asarray(ignored_gt)[None],
+                               np.asarray(ignored_det)[None], dc, score, gt_alpha, dt_alpha,
+                               [MatchJob(0, 0, float(min_overlap), bool(compute_aos), use_dc)], n_sample_pts)
+    return counts
+
+
+#: numba's default thread pool must not be entered from two Python threads at once
+_PARALLEL_LOCK = threading.Lock()
+
+
+def pr_counts_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.NDArray[np.float64]],
+                   gt_offsets: npt.NDArray[np.int64], dt_offsets: npt.NDArray[np.int64],
+                   ignored_gt: npt.NDArray[np.int8], ignored_det: npt.NDArray[np.int8],
+                   dontcare: npt.NDArray[np.bool_], score: npt.NDArray[np.float64],
+                   gt_alpha: npt.NDArray[np.float64], dt_alpha: npt.NDArray[np.float64],
+                   jobs: Sequence[MatchJob], n_sample_pts: int = 41) -> list[PRCounts]:
+    """Run many independent matchings over the same frames, in parallel across jobs.
+
+    Parameters
+    ----------
+    overlaps : one to three (P,) arrays in the layout of :func:`pr_counts`, e.g. bbox, bev, 3d
+    ignored_gt : (K, M) int8, one row of ignore codes per (class, difficulty)
+    ignored_det : (K, N) int8, the matching rows for detections
+    dontcare : (M,) bool, DontCare ground-truth rows (used by jobs with ``dontcare`` set)
+    jobs : what to match; see :class:`MatchJob`
+    """
+    pair_offsets = np.ascontiguousarray(pair_offsets, np.int64)
+    gt_offsets = np.ascontiguousarray(gt_offsets, np.int64)
+    dt_offsets = np.ascontiguousarray(dt_offsets, np.int64)
+    if not pair_offsets.shape == gt_offsets.shape == dt_offsets.shape or pair_offsets.ndim != 1:
         raise ValueError("Expected `pair_offsets`, `gt_offsets` and `dt_offsets` with the same shape (F + 1,)")
-    if args[4].shape != (n_gt,) or args[6].shape != (n_gt,) or args[8].shape != (n_gt,):
+    n_gt, n_dt, n_pairs = int(gt_offsets[-1]), int(dt_offsets[-1]), int(pair_offsets[-1])
+    ovs = [np.ascontiguousarray(o, np.float64) for o in overlaps]
+    if not 1 <= len(ovs) <= 3 or any(o.shape != (n_pairs,) for o in ovs):
+        raise ValueError(f"Expected one to three `overlaps` arrays with shape ({n_pairs},)")
+    ig = np.ascontiguousarray(ignored_gt, np.int8)
+    idet = np.ascontiguousarray(ignored_det, np.int8)
+    if ig.ndim != 2 or ig.shape[1] != n_gt or idet.shape != (ig.shape[0], n_dt):
+        raise ValueError(f"Expected `ignored_gt` (K, {n_gt}) and `ignored_det` (K, {n_dt}), "
+                         f"got {ig.shape} and {idet.shape}")
+    dc = np.ascontiguousarray(dontcare, np.bool_)
+    gt_alpha = np.ascontiguousarray(gt_alpha, np.float64)
+    score = np.ascontiguousarray(score, np.float64)
+    dt_alpha = np.ascontiguousarray(dt_alpha, np.float64)
+    if dc.shape != (n_gt,) or gt_alpha.shape != (n_gt,):
         raise ValueError(f"Expected ground-truth arrays with shape ({n_gt},)")
-    n_dt = int(dt_offsets[-1])
-    if args[5].shape != (n_dt,) or args[7].shape != (n_dt,) or args[9].shape != (n_dt,):
+    if score.shape != (n_dt,) or dt_alpha.shape != (n_dt,):
         raise ValueError(f"Expected detection arrays with shape ({n_dt},)")
-    thresholds, pr, n_valid = _pr_counts(*args, float(min_overlap), bool(compute_aos), int(n_sample_pts))
-    if thresholds.shape[0] > n_sample_pts:
-        raise RuntimeError(f"{thresholds.shape[0]} score thresholds for {n_sample_pts} recall samples")
-    return PRCounts(thresholds=thresholds, tp=pr[:, 0].copy(), fp=pr[:, 1].copy(), fn=pr[:, 2].copy(),
-                    similarity=pr[:, 3].copy(), num_valid_gt=int(n_valid))
+    for job in jobs:
+        if not (0 <= job.metric < len(ovs) and 0 <= job.codes < ig.shape[0]):
+            raise ValueError(f"{job} refers to overlaps or ignore codes that were not given")
+    ov3 = (ovs + [ovs[0]] * 3)[:3]
+    with _PARALLEL_LOCK:
+        thr, pr, n_thr, n_valid = _pr_counts_many(
+            pair_offsets, ov3[0], ov3[1], ov3[2], gt_offsets, dt_offsets, ig, idet, dc, score, gt_alpha, dt_alpha,
+            np.array([j.metric for j in jobs], np.int64), np.array([j.codes for j in jobs], np.int64),
+            np.array([j.min_overlap for j in jobs], np.float64), np.array([j.compute_aos for j in jobs], np.bool_),
+            np.array([j.dontcare for j in jobs], np.bool_), int(n_sample_pts))
+    out = []
+    for c in range(len(jobs)):
+        t = int(n_thr[c])
+        if t > n_sample_pts:
+            raise RuntimeError(f"{t} score thresholds for {n_sample_pts} recall samples")
+        out.append(PRCounts(thresholds=thr[c, :t].copy(), tp=pr[c, :t, 0].copy(), fp=pr[c, :t, 1].copy(),
+                            fn=pr[c, :t, 2].copy(), similarity=pr[c, :t, 3].copy(), num_valid_gt=int(n_valid[c])))
+    return out
