@@ -15,10 +15,10 @@ from .geometry import frame_overlaps
 from .matching import MatchJob, pr_counts_many
 from .metrics import Curve, average_precision, curve_from_counts
 from .protocol import (
+    ALL_METRICS,
     DONTCARE,
     INVALID_ALPHA,
     MISSING_COORD,
-    ALL_METRICS,
     NEIGHBOURS,
     OVERLAP_METRICS,
     RECALL_MODES,

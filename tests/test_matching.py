@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from naive_matching import pr_counts_naive, thresholds_naive
 
 from kitti_eval.matching import pr_counts, score_thresholds
-from naive_matching import pr_counts_naive, thresholds_naive
 
 
 def random_frames(rng, n_frames, max_gt=6, max_dt=12):

@@ -12,8 +12,8 @@ from __future__ import annotations
 import math
 
 import pytest
-
 from builders import annotations, box, dontcare, hits, one_car_per_frame
+
 from kitti_eval.evaluation import evaluate
 from kitti_eval.protocol import OFFICIAL, OPENPCDET, EvalConfig
 
