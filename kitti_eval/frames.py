@@ -76,7 +76,8 @@ def _names(value: Any, n_hint: int | None, where: dict[str, str]) -> npt.NDArray
     raise InputError(f"expected class names as strings, got dtype {arr.dtype}", **where)
 
 
-def _numeric(value: Any, trailing: tuple[int, ...], n: int, where: dict[str, str]) -> npt.NDArray[np.float64]:
+def _numeric(value: Any, trailing: tuple[int, ...], n: int, where: dict[str, str]) -> np.ndarray:
+    """Check dtype and shape of one frame's field; returned as is (copied later, when concatenated)."""
     arr = value if isinstance(value, np.ndarray) else np.asarray(value)
     if arr.dtype.kind not in "iuf":
         if arr.size == 0 and arr.dtype.kind in "bOU":
@@ -87,12 +88,7 @@ def _numeric(value: Any, trailing: tuple[int, ...], n: int, where: dict[str, str
         return np.zeros((0, *trailing), dtype=np.float64)
     if arr.shape != (n, *trailing):
         raise InputError(f"expected shape {(n, *trailing)}, got {arr.shape}", **where)
-    out = np.array(arr, dtype=np.float64)  # a copy: inputs are never aliased or mutated
-    bad = ~np.isfinite(out)
-    if bad.any():
-        row = int(np.argwhere(bad)[0][0])
-        raise InputError(f"non-finite value {out.reshape(n, -1)[row].tolist()} in box {row}", **where)
-    return out
+    return arr
 
 
 @dataclass(frozen=True, eq=False)
@@ -218,10 +214,19 @@ class Annotations:
             counts.append(n)
         offsets = np.zeros(len(counts) + 1, dtype=np.int64)
         np.cumsum(counts, out=offsets[1:])
-        joined = {f: (np.concatenate(v) if v else np.zeros((0, *_NUMERIC_FIELDS.get(f, ())))) for f, v in
-                  cols.items()}
-        if not cols["name"]:
-            joined["name"] = np.zeros(0, dtype="<U1")
+        joined: dict[str, np.ndarray] = {
+            "name": np.concatenate(cols["name"]) if cols["name"] else np.zeros(0, dtype="<U1")}
+        for f, trailing in _NUMERIC_FIELDS.items():
+            # a fresh float64 array: inputs are never aliased or mutated
+            arr = (np.concatenate(cols[f], dtype=np.float64) if cols[f]
+                   else np.zeros((0, *trailing), dtype=np.float64))
+            finite = np.isfinite(arr)
+            if not finite.all():
+                row = int(np.argwhere(~finite)[0][0])
+                frame = int(np.searchsorted(offsets, row, side="right")) - 1
+                raise InputError(f"non-finite value {arr.reshape(len(arr), -1)[row].tolist()} in box "
+                                 f"{row - int(offsets[frame])}", source=source, frame=ids[frame], field=f)
+            joined[f] = arr
         return cls(kind=kind, source=source, frame_ids=tuple(ids), offsets=offsets, **joined)
 
     def aligned_to(self, frame_ids: Sequence[str], *, reference: str = "ground truth") -> tuple[Annotations, list[str]]:
