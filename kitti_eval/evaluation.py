@@ -77,11 +77,11 @@ def scored_metrics(dt: Annotations, cls: str) -> dict[Metric, bool]:
     h > 0.
     """
     sel = dt.is_class(cls)
-    x, y, z = dt.location[sel].T
-    ell, h, w = dt.dimensions[sel].T
-    ground = (x != MISSING_COORD) & (z != MISSING_COORD) & (w > 0) & (ell > 0)
+    x, y, z = dt.location.T
+    ell, h, w = dt.dimensions.T
+    ground = sel & (x != MISSING_COORD) & (z != MISSING_COORD) & (w > 0) & (ell > 0)
     return {
-        Metric.BBOX: bool(np.any(dt.bbox[sel, 0] >= 0)),
+        Metric.BBOX: bool(np.any(sel & (dt.bbox[:, 0] >= 0))),
         Metric.BEV: bool(np.any(ground)),
         Metric.THREE_D: bool(np.any(ground & (y != MISSING_COORD) & (h > 0))),
     }

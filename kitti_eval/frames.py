@@ -135,7 +135,7 @@ class Annotations:
         """(F,) boxes per frame."""
         return np.diff(self.offsets)
 
-    @property
+    @cached_property
     def boxes_camera(self) -> npt.NDArray[np.float64]:
         """(N, 7) x, y, z, l, h, w, ry in the camera frame: the layout of :mod:`kitti_eval.geometry`."""
         return np.concatenate([self.location, self.dimensions, self.rotation_y[:, None]], axis=1)
@@ -147,10 +147,19 @@ class Annotations:
         return codes.reshape(-1), tuple(str(u).lower() for u in uniq)
 
     def is_class(self, *names: str) -> npt.NDArray[np.bool_]:
-        """(N,) bool: rows whose name is one of ``names``, compared case-insensitively (as the devkit does)."""
-        codes, vocab = self._name_vocabulary
-        wanted = {n.lower() for n in names}
-        return np.isin(codes, [k for k, v in enumerate(vocab) if v in wanted])
+        """(N,) bool: rows whose name is one of ``names``, compared case-insensitively (as the devkit does).
+
+        Answers are remembered per set of names; treat the returned array as read-only.
+        """
+        wanted = frozenset(n.lower() for n in names)
+        cache: dict[frozenset[str], npt.NDArray[np.bool_]] = self.__dict__.setdefault("_is_class_cache", {})
+        hit = cache.get(wanted)
+        if hit is None:
+            codes, vocab = self._name_vocabulary
+            member = np.array([v in wanted for v in vocab] or [False], dtype=np.bool_)
+            hit = cache[wanted] = member[codes] if len(codes) else np.zeros(0, dtype=np.bool_)
+            hit.flags.writeable = False
+        return hit
 
     def frame_index(self) -> dict[str, int]:
         return {fid: i for i, fid in enumerate(self.frame_ids)}
@@ -268,6 +277,8 @@ _TYPICAL_LHW: Mapping[str, tuple[float, float, float]] = {
     "pedestrian": (0.84, 1.76, 0.66),
     "cyclist": (1.76, 1.74, 0.60),
 }
+#: boxes per class the median is taken over (the first ones; plenty for a warning)
+_MEDIAN_SAMPLE = 5000
 _ORDERS = {"lhw": (0, 1, 2), "hwl": (1, 2, 0), "lwh": (0, 2, 1), "hlw": (1, 0, 2), "whl": (2, 1, 0),
            "wlh": (2, 0, 1)}
 
@@ -283,7 +294,7 @@ def dimension_order_warnings(annos: Annotations, min_boxes: int = 5) -> list[str
         sel = annos.is_class(cls)
         if int(sel.sum()) < min_boxes:
             continue
-        med = np.median(annos.dimensions[sel], axis=0)
+        med = np.median(annos.dimensions[np.flatnonzero(sel)[:_MEDIAN_SAMPLE]], axis=0)
         if not np.all(med > 0):
             continue
         errs = {}

@@ -58,28 +58,28 @@ def _score_thresholds(scores_desc: np.ndarray, n_gt: int, n_sample_pts: int) -> 
 
 
 @njit(cache=True, nogil=True)
-def _match_frame(ov: np.ndarray, base: int, n_gt: int, gts: np.ndarray, dts: np.ndarray, dcs: np.ndarray,
-                 ignored_gt: np.ndarray, ignored_det: np.ndarray, score: np.ndarray, gt_alpha: np.ndarray,
-                 dt_alpha: np.ndarray, g0: int, d0: int, min_overlap: float, compute_fp: bool, thresh: float,
-                 compute_aos: bool, tp_scores: np.ndarray, n_tp_scores: int, assigned: np.ndarray,
-                 below: np.ndarray) -> tuple[int, int, int, float, int]:
-    """One frame, one threshold. ``gts``/``dts``/``dcs`` are frame-local indices of the relevant rows.
+def _match_frame(sub: np.ndarray, o0: int, n_g: int, n_c: int, g_code: np.ndarray, g_alpha: np.ndarray,
+                 d_score: np.ndarray, d_code: np.ndarray, d_alpha: np.ndarray, min_overlap: float,
+                 compute_fp: bool, thresh: float, compute_aos: bool, tp_scores: np.ndarray, n_tp_scores: int,
+                 assigned: np.ndarray, below: np.ndarray) -> tuple[int, int, int, float, int]:
+    """One frame, one threshold, on the frame's compacted rows (see :func:`_candidates`).
 
-    Returns (tp, fp, fn, similarity, n_tp_scores); in pass 1 (``compute_fp`` False) true-positive scores
-    are appended to ``tp_scores`` from position ``n_tp_scores``. ``assigned`` and ``below`` are scratch
-    space of at least ``len(dts)`` entries.
+    ``sub[o0 + a * (n_g + n_c) + k]`` is the overlap of detection ``a`` with ground truth ``k`` (k < n_g)
+    or with DontCare region ``k - n_g``. ``g_*`` hold the n_g ground-truth rows, ``d_*`` the detections,
+    all in file order. Returns (tp, fp, fn, similarity, n_tp_scores); in pass 1 (``compute_fp`` False)
+    true-positive scores are appended to ``tp_scores`` from position ``n_tp_scores``. ``assigned`` and
+    ``below`` are scratch space of at least ``len(d_score)`` entries.
     """
-    nd = dts.shape[0]
+    nd = d_score.shape[0]
+    width = n_g + n_c
     for a in range(nd):
         assigned[a] = False
-        below[a] = compute_fp and score[d0 + dts[a]] < thresh
+        below[a] = compute_fp and d_score[a] < thresh
     tp = 0
     fp = 0
     fn = 0
     similarity = 0.0
-    for gi in range(gts.shape[0]):
-        i = gts[gi]
-        ig = ignored_gt[g0 + i]
+    for i in range(n_g):
         det_a = -1
         valid_detection = _NO_DETECTION
         max_overlap = 0.0
@@ -87,49 +87,43 @@ def _match_frame(ov: np.ndarray, base: int, n_gt: int, gts: np.ndarray, dts: np.
         for a in range(nd):
             if assigned[a] or below[a]:
                 continue
-            j = dts[a]
-            overlap = ov[base + j * n_gt + i]
-            idet = ignored_det[d0 + j]
-            s = score[d0 + j]
-            if not compute_fp and overlap > min_overlap and s > valid_detection:
+            overlap = sub[o0 + a * width + i]
+            if not compute_fp and overlap > min_overlap and d_score[a] > valid_detection:
                 det_a = a
-                valid_detection = s
+                valid_detection = d_score[a]
             elif (compute_fp and overlap > min_overlap and (overlap > max_overlap or assigned_ignored_det)
-                  and idet == 0):
+                  and d_code[a] == 0):
                 max_overlap = overlap
                 det_a = a
                 valid_detection = 1.0
                 assigned_ignored_det = False
-            elif compute_fp and overlap > min_overlap and valid_detection == _NO_DETECTION and idet == 1:
+            elif compute_fp and overlap > min_overlap and valid_detection == _NO_DETECTION and d_code[a] == 1:
                 det_a = a
                 valid_detection = 1.0
                 assigned_ignored_det = True
         if valid_detection == _NO_DETECTION:
-            if ig == 0:
+            if g_code[i] == 0:
                 fn += 1
-        elif ig == 1 or ignored_det[d0 + dts[det_a]] == 1:
+        elif g_code[i] == 1 or d_code[det_a] == 1:
             assigned[det_a] = True
         else:
             tp += 1
-            j = dts[det_a]
             if not compute_fp:
-                tp_scores[n_tp_scores] = score[d0 + j]
+                tp_scores[n_tp_scores] = d_score[det_a]
                 n_tp_scores += 1
             if compute_aos:
-                similarity += (1.0 + np.cos(gt_alpha[g0 + i] - dt_alpha[d0 + j])) / 2.0
+                similarity += (1.0 + np.cos(g_alpha[i] - d_alpha[det_a])) / 2.0
             assigned[det_a] = True
     if compute_fp:
         for a in range(nd):
-            if not (assigned[a] or ignored_det[d0 + dts[a]] == 1 or below[a]):
+            if not (assigned[a] or d_code[a] == 1 or below[a]):
                 fp += 1
         nstuff = 0
-        for c in range(dcs.shape[0]):
-            i = dcs[c]
+        for c in range(n_c):
             for a in range(nd):
-                j = dts[a]
-                if assigned[a] or ignored_det[d0 + j] == 1 or below[a]:
+                if assigned[a] or d_code[a] == 1 or below[a]:
                     continue
-                if ov[base + j * n_gt + i] > min_overlap:
+                if sub[o0 + a * width + n_g + c] > min_overlap:
                     assigned[a] = True
                     nstuff += 1
         fp -= nstuff
@@ -152,104 +146,151 @@ def _first_at_or_below(thresholds: np.ndarray, value: float) -> int:
 
 
 @njit(cache=True, nogil=True)
-def _candidates(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray,
-                ignored_gt: np.ndarray, ignored_det: np.ndarray, dontcare: np.ndarray, score: np.ndarray,
-                min_overlap: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                             np.ndarray, np.ndarray, np.ndarray]:
-    """Sort each frame's rows by the part they can play in this matching.
-
-    Returns, as frame-local indices in CSR form (``*_ptr`` has F + 1 entries):
-    ``gt_idx``: ground truth that takes part (ignore code != -1); ``det_idx``: detections overlapping one
-    of those above the threshold, the only ones that can be matched; ``dc_idx``: DontCare rows. Also
-    ``valid``: (F,) valid ground truth per frame, and ``free_fp``: scores of valid detections that can
-    match nothing and that no DontCare region covers -- false positives at every threshold up to their
-    score, with no need to re-match them.
-    """
+def _best_overlaps(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray,
+                   groups: np.ndarray) -> np.ndarray:
+    """(G, N): each detection's largest overlap with the ground-truth rows of each group (0 if none)."""
     n_frames = gt_offsets.shape[0] - 1
-    gt_idx = np.empty(gt_offsets[n_frames], dtype=np.int64)
-    det_idx = np.empty(dt_offsets[n_frames], dtype=np.int64)
-    dc_idx = np.empty(gt_offsets[n_frames], dtype=np.int64)
-    free_fp = np.empty(dt_offsets[n_frames], dtype=np.float64)
-    gt_ptr = np.zeros(n_frames + 1, dtype=np.int64)
-    det_ptr = np.zeros(n_frames + 1, dtype=np.int64)
-    dc_ptr = np.zeros(n_frames + 1, dtype=np.int64)
-    valid = np.zeros(n_frames, dtype=np.int64)
-    ng_all = 0
-    nd_all = 0
-    nc_all = 0
-    n_free = 0
+    n_groups = groups.shape[0]
+    best = np.zeros((n_groups, dt_offsets[n_frames]), dtype=np.float64)
     for f in range(n_frames):
         g0, g1 = gt_offsets[f], gt_offsets[f + 1]
         d0, d1 = dt_offsets[f], dt_offsets[f + 1]
         n_gt = g1 - g0
         base = pair_offsets[f]
-        first_gt = ng_all
-        first_dc = nc_all
-        for i in range(n_gt):
+        for j in range(d1 - d0):
+            row = base + j * n_gt
+            for i in range(n_gt):
+                o = ov[row + i]
+                if o > 0.0:
+                    for g in range(n_groups):
+                        if groups[g, g0 + i] and o > best[g, d0 + j]:
+                            best[g, d0 + j] = o
+    return best
+
+
+@njit(cache=True, nogil=True)
+def _candidates(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray,
+                ignored_gt: np.ndarray, ignored_det: np.ndarray, dontcare: np.ndarray, score: np.ndarray,
+                gt_alpha: np.ndarray, dt_alpha: np.ndarray, best_gt: np.ndarray, best_dc: np.ndarray,
+                min_overlap: float):  # noqa: ANN202 - a tuple of compact arrays, see the docstring
+    """Compact each frame to the rows that can play a part in this matching.
+
+    ``best_gt``/``best_dc`` are each detection's largest overlap with the ground truth taking part
+    (ignore code != -1) and with the DontCare rows. Kept, per frame and in file order: the ground truth
+    taking part (``g_code``, ``g_alpha``; CSR pointer ``g_ptr``), the detections overlapping one of those
+    above the threshold -- the only ones that can be matched (``d_score``, ``d_code``, ``d_alpha``;
+    ``d_ptr``) -- the number of DontCare rows (``c_cnt``), and their overlaps as one (detections x (ground
+    truth + DontCare)) block per frame in ``sub`` at ``sub_ptr``. Also ``valid``: (F,) valid ground truth
+    per frame, and ``free_fp``: scores of valid detections that can match nothing and that no DontCare
+    region covers -- false positives at every threshold up to their score, with no need to match them.
+    """
+    n_frames = gt_offsets.shape[0] - 1
+    n_gt_all = gt_offsets[n_frames]
+    n_dt_all = dt_offsets[n_frames]
+    g_code = np.empty(n_gt_all, dtype=np.int8)
+    g_alpha = np.empty(n_gt_all, dtype=np.float64)
+    d_score = np.empty(n_dt_all, dtype=np.float64)
+    d_code = np.empty(n_dt_all, dtype=np.int8)
+    d_alpha = np.empty(n_dt_all, dtype=np.float64)
+    free_fp = np.empty(n_dt_all, dtype=np.float64)
+    g_ptr = np.zeros(n_frames + 1, dtype=np.int64)
+    d_ptr = np.zeros(n_frames + 1, dtype=np.int64)
+    c_cnt = np.zeros(n_frames, dtype=np.int64)
+    sub_ptr = np.zeros(n_frames + 1, dtype=np.int64)
+    valid = np.zeros(n_frames, dtype=np.int64)
+    cols = np.empty(max(1, int(np.max(np.diff(gt_offsets))) if n_frames else 1), dtype=np.int64)
+    ng = 0
+    nd = 0
+    n_free = 0
+    # first pass: which rows take part, and the size of the overlap blocks
+    for f in range(n_frames):
+        g0, g1 = gt_offsets[f], gt_offsets[f + 1]
+        d0, d1 = dt_offsets[f], dt_offsets[f + 1]
+        n_c = 0
+        for i in range(g1 - g0):
             code = ignored_gt[g0 + i]
             if code != -1:
-                gt_idx[ng_all] = i
-                ng_all += 1
+                g_code[ng] = code
+                g_alpha[ng] = gt_alpha[g0 + i]
+                ng += 1
                 if code == 0:
                     valid[f] += 1
             if dontcare[g0 + i]:
-                dc_idx[nc_all] = i
-                nc_all += 1
+                n_c += 1
+        c_cnt[f] = n_c
+        first = nd
         for j in range(d1 - d0):
             code = ignored_det[d0 + j]
             if code == -1:
                 continue
-            matchable = False
-            for k in range(first_gt, ng_all):
-                if ov[base + j * n_gt + gt_idx[k]] > min_overlap:
-                    matchable = True
-                    break
-            if matchable:
-                det_idx[nd_all] = j
-                nd_all += 1
-            elif code == 0:
-                covered = False
-                for k in range(first_dc, nc_all):
-                    if ov[base + j * n_gt + dc_idx[k]] > min_overlap:
-                        covered = True
-                        break
-                if not covered:
-                    free_fp[n_free] = score[d0 + j]
-                    n_free += 1
-        gt_ptr[f + 1] = ng_all
-        det_ptr[f + 1] = nd_all
-        dc_ptr[f + 1] = nc_all
-    return gt_idx, gt_ptr, det_idx, det_ptr, dc_idx, dc_ptr, valid, free_fp[:n_free]
+            if best_gt[d0 + j] > min_overlap:
+                d_score[nd] = score[d0 + j]
+                d_code[nd] = code
+                d_alpha[nd] = dt_alpha[d0 + j]
+                nd += 1
+            elif code == 0 and not best_dc[d0 + j] > min_overlap:
+                free_fp[n_free] = score[d0 + j]
+                n_free += 1
+        g_ptr[f + 1] = ng
+        d_ptr[f + 1] = nd
+        sub_ptr[f + 1] = sub_ptr[f] + (nd - first) * (g_ptr[f + 1] - g_ptr[f] + n_c)
+    # second pass: copy the overlaps of the kept detections with the kept ground truth and DontCare
+    sub = np.empty(sub_ptr[n_frames], dtype=np.float64)
+    for f in range(n_frames):
+        m = d_ptr[f + 1] - d_ptr[f]
+        if m == 0:
+            continue
+        g0, g1 = gt_offsets[f], gt_offsets[f + 1]
+        d0, d1 = dt_offsets[f], dt_offsets[f + 1]
+        n_gt = g1 - g0
+        width = 0
+        for i in range(n_gt):
+            if ignored_gt[g0 + i] != -1:
+                cols[width] = i
+                width += 1
+        for i in range(n_gt):
+            if dontcare[g0 + i]:
+                cols[width] = i
+                width += 1
+        k = sub_ptr[f]
+        base = pair_offsets[f]
+        for j in range(d1 - d0):
+            if ignored_det[d0 + j] != -1 and best_gt[d0 + j] > min_overlap:
+                for c in range(width):
+                    sub[k] = ov[base + j * n_gt + cols[c]]
+                    k += 1
+    return (g_code, g_alpha, g_ptr, d_score, d_code, d_alpha, d_ptr, c_cnt, sub, sub_ptr, valid,
+            free_fp[:n_free])
 
 
 @njit(cache=True, nogil=True)
 def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray,
                ignored_gt: np.ndarray, ignored_det: np.ndarray, dontcare: np.ndarray, score: np.ndarray,
-               gt_alpha: np.ndarray, dt_alpha: np.ndarray, min_overlap: float, compute_aos: bool,
-               n_sample_pts: int) -> tuple[np.ndarray, np.ndarray, int]:
+               gt_alpha: np.ndarray, dt_alpha: np.ndarray, best_gt: np.ndarray, best_dc: np.ndarray,
+               min_overlap: float, compute_aos: bool, n_sample_pts: int) -> tuple[np.ndarray, np.ndarray, int]:
     n_frames = gt_offsets.shape[0] - 1
-    gt_idx, gt_ptr, det_idx, det_ptr, dc_idx, dc_ptr, valid, free_fp = _candidates(
-        pair_offsets, ov, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score, min_overlap)
+    (g_code, g_alpha, g_ptr, d_score, d_code, d_alpha, d_ptr, c_cnt, sub, sub_ptr, valid,
+     free_fp) = _candidates(pair_offsets, ov, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score,
+                            gt_alpha, dt_alpha, best_gt, best_dc, min_overlap)
     n_valid_gt = 0
     for f in range(n_frames):
         n_valid_gt += valid[f]
-    no_dc = dc_idx[:0]
     widest = 0
     for f in range(n_frames):
-        widest = max(widest, det_ptr[f + 1] - det_ptr[f])
+        widest = max(widest, d_ptr[f + 1] - d_ptr[f])
     assigned = np.empty(widest, dtype=np.bool_)
     below = np.empty(widest, dtype=np.bool_)
-    # pass 1: scores of true positives
-    tp_scores = np.empty(det_idx.shape[0], dtype=np.float64)
+    # pass 1: scores of true positives (DontCare plays no part)
+    tp_scores = np.empty(d_ptr[n_frames], dtype=np.float64)
     n_tp = 0
     for f in range(n_frames):
-        if det_ptr[f] == det_ptr[f + 1]:
+        lo, hi = d_ptr[f], d_ptr[f + 1]
+        if lo == hi:
             continue
-        g0, d0 = gt_offsets[f], dt_offsets[f]
-        _, _, _, _, n_tp = _match_frame(ov, pair_offsets[f], gt_offsets[f + 1] - g0,
-                                        gt_idx[gt_ptr[f]:gt_ptr[f + 1]], det_idx[det_ptr[f]:det_ptr[f + 1]],
-                                        no_dc, ignored_gt, ignored_det, score, gt_alpha, dt_alpha, g0, d0,
-                                        min_overlap, False, 0.0, False, tp_scores, n_tp, assigned, below)
+        ga, gb = g_ptr[f], g_ptr[f + 1]
+        _, _, _, _, n_tp = _match_frame(sub, sub_ptr[f], gb - ga, c_cnt[f], g_code[ga:gb], g_alpha[ga:gb],
+                                        d_score[lo:hi], d_code[lo:hi], d_alpha[lo:hi], min_overlap, False, 0.0,
+                                        False, tp_scores, n_tp, assigned, below)
     if n_tp == 0:
         return np.empty(0, dtype=np.float64), np.zeros((0, 4), dtype=np.float64), n_valid_gt
     thresholds = _score_thresholds(-np.sort(-tp_scores[:n_tp]), n_valid_gt, n_sample_pts)
@@ -261,16 +302,13 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
     ranked = np.empty(widest, dtype=np.float64)
     for f in range(n_frames):
         delta[0, 2] += valid[f]  # above every detection's score, every valid box is missed
-        lo, hi = det_ptr[f], det_ptr[f + 1]
+        lo, hi = d_ptr[f], d_ptr[f + 1]
         if lo == hi:
             continue
-        g0, d0 = gt_offsets[f], dt_offsets[f]
-        gts = gt_idx[gt_ptr[f]:gt_ptr[f + 1]]
-        dts = det_idx[lo:hi]
-        dcs = dc_idx[dc_ptr[f]:dc_ptr[f + 1]]
+        ga, gb = g_ptr[f], g_ptr[f + 1]
         m = hi - lo
         for a in range(m):  # insertion sort, descending: a handful of detections
-            s = score[d0 + dts[a]]
+            s = d_score[lo + a]
             b = a
             while b > 0 and ranked[b - 1] < s:
                 ranked[b] = ranked[b - 1]
@@ -284,10 +322,9 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
                 break  # this and the remaining detections never reach a threshold
             while a < m and ranked[a] >= thresholds[t]:
                 a += 1
-            tp, fp, fn, sim, _ = _match_frame(ov, pair_offsets[f], gt_offsets[f + 1] - g0, gts, dts, dcs,
-                                              ignored_gt, ignored_det, score, gt_alpha, dt_alpha, g0, d0,
-                                              min_overlap, True, thresholds[t], compute_aos, tp_scores, 0,
-                                              assigned, below)
+            tp, fp, fn, sim, _ = _match_frame(sub, sub_ptr[f], gb - ga, c_cnt[f], g_code[ga:gb], g_alpha[ga:gb],
+                                              d_score[lo:hi], d_code[lo:hi], d_alpha[lo:hi], min_overlap, True,
+                                              thresholds[t], compute_aos, tp_scores, 0, assigned, below)
             if sim == -1.0:
                 sim = 0.0
             delta[t, 0] += tp - prev_tp
@@ -296,16 +333,10 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
             delta[t, 3] += sim - prev_sim
             prev_tp, prev_fp, prev_fn, prev_sim = tp, fp, fn, sim
     # detections that can match nothing: false positives from the first threshold at or below their score
-    # (scanned from the lowest threshold up: most such detections score below all or most thresholds)
     lowest = thresholds[n_thr - 1]
     for k in range(free_fp.shape[0]):
-        s = free_fp[k]
-        if s < lowest:
-            continue
-        t = n_thr - 1
-        while t > 0 and thresholds[t - 1] <= s:
-            t -= 1
-        delta[t, 1] += 1.0
+        if free_fp[k] >= lowest:
+            delta[_first_at_or_below(thresholds, free_fp[k]), 1] += 1.0
     pr = np.empty((n_thr, 4), dtype=np.float64)
     for c in range(4):
         running = 0.0
@@ -319,23 +350,38 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
 def _pr_counts_many(pair_offsets: np.ndarray, ov_0: np.ndarray, ov_1: np.ndarray, ov_2: np.ndarray,
                     gt_offsets: np.ndarray, dt_offsets: np.ndarray, ignored_gt: np.ndarray,
                     ignored_det: np.ndarray, dontcare: np.ndarray, score: np.ndarray, gt_alpha: np.ndarray,
-                    dt_alpha: np.ndarray, job_metric: np.ndarray, job_codes: np.ndarray, job_overlap: np.ndarray,
-                    job_aos: np.ndarray, job_dontcare: np.ndarray,
+                    dt_alpha: np.ndarray, groups: np.ndarray, metrics_used: np.ndarray, job_metric: np.ndarray,
+                    job_codes: np.ndarray, job_group: np.ndarray, job_overlap: np.ndarray, job_aos: np.ndarray,
+                    job_dontcare: np.ndarray,
                     n_sample_pts: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Independent matchings in parallel, one per job (metric, ignore-code row, threshold, flags)."""
+    """Independent matchings in parallel, one per job (metric, ignore-code row, threshold, flags).
+
+    ``groups`` (G, M): the ground-truth rows taking part, one row per distinct set among the jobs, and
+    the DontCare rows last; each detection's best overlap with each group is computed once per metric.
+    """
     n_jobs = job_metric.shape[0]
+    n_dt = dt_offsets[dt_offsets.shape[0] - 1]
+    best = np.zeros((3, groups.shape[0], n_dt), dtype=np.float64)
+    for k in prange(metrics_used.shape[0]):
+        m = metrics_used[k]
+        ov = ov_0 if m == 0 else (ov_1 if m == 1 else ov_2)
+        best[m] = _best_overlaps(pair_offsets, ov, gt_offsets, dt_offsets, groups)
     thr_out = np.zeros((n_jobs, n_sample_pts), dtype=np.float64)
     pr_out = np.zeros((n_jobs, n_sample_pts, 4), dtype=np.float64)
     n_thr = np.zeros(n_jobs, dtype=np.int64)
     n_valid = np.zeros(n_jobs, dtype=np.int64)
     no_dontcare = np.zeros(dontcare.shape[0], dtype=np.bool_)
+    no_cover = np.zeros(n_dt, dtype=np.float64)
+    dc_group = groups.shape[0] - 1
     for c in prange(n_jobs):
         m = job_metric[c]
         ov = ov_0 if m == 0 else (ov_1 if m == 1 else ov_2)
-        dc = dontcare if job_dontcare[c] else no_dontcare
+        use_dc = job_dontcare[c]
         thresholds, pr, valid = _pr_counts(pair_offsets, ov, gt_offsets, dt_offsets, ignored_gt[job_codes[c]],
-                                           ignored_det[job_codes[c]], dc, score, gt_alpha, dt_alpha,
-                                           job_overlap[c], job_aos[c], n_sample_pts)
+                                           ignored_det[job_codes[c]], dontcare if use_dc else no_dontcare, score,
+                                           gt_alpha, dt_alpha, best[m, job_group[c]],
+                                           best[m, dc_group] if use_dc else no_cover, job_overlap[c], job_aos[c],
+                                           n_sample_pts)
         t = thresholds.shape[0]
         n_thr[c] = t
         n_valid[c] = valid
@@ -461,10 +507,24 @@ def pr_counts_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.N
         if not (0 <= job.metric < len(ovs) and 0 <= job.codes < ig.shape[0]):
             raise ValueError(f"{job} refers to overlaps or ignore codes that were not given")
     ov3 = (ovs + [ovs[0]] * 3)[:3]
+    # the ground truth taking part depends only on the ignore-code row (per class, not per difficulty)
+    group_of: dict[bytes, int] = {}
+    masks: list[npt.NDArray[np.bool_]] = []
+    job_group = []
+    for job in jobs:
+        mask = ig[job.codes] != -1
+        key = mask.tobytes()
+        if key not in group_of:
+            group_of[key] = len(masks)
+            masks.append(mask)
+        job_group.append(group_of[key])
+    groups = np.stack([*masks, dc]) if n_gt else np.zeros((len(masks) + 1, 0), dtype=np.bool_)
     with _PARALLEL_LOCK:
         thr, pr, n_thr, n_valid = _pr_counts_many(
             pair_offsets, ov3[0], ov3[1], ov3[2], gt_offsets, dt_offsets, ig, idet, dc, score, gt_alpha, dt_alpha,
+            groups, np.array(sorted({j.metric for j in jobs}), np.int64),
             np.array([j.metric for j in jobs], np.int64), np.array([j.codes for j in jobs], np.int64),
+            np.array(job_group, np.int64),
             np.array([j.min_overlap for j in jobs], np.float64), np.array([j.compute_aos for j in jobs], np.bool_),
             np.array([j.dontcare for j in jobs], np.bool_), int(n_sample_pts))
     out = []
