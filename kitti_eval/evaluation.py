@@ -7,6 +7,8 @@ rules, vectorised here), matches, and reduces the counts to curves and AP. No I/
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import numpy.typing as npt
 
@@ -96,7 +98,7 @@ def _dontcare_rows(gt: Annotations, protocol: Protocol) -> npt.NDArray[np.bool_]
 
 
 def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None, *,
-             keep_curves: bool = False) -> EvalResult:
+             keep_curves: bool = False, workers: int | None = None) -> EvalResult:
     """Evaluate detections against ground truth.
 
     Parameters
@@ -107,7 +109,11 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
         :class:`~kitti_eval.errors.InputError`.
     config : classes, protocol, IoU thresholds (default: Car, Pedestrian, Cyclist; official protocol)
     keep_curves : keep the 41-point curves in the result
+    workers : threads for the matchings (default: the CPUs available, or ``$KITTI_EVAL_THREADS``)
     """
+    clock = time.perf_counter
+    timings: dict[str, float] = {}
+    t0 = clock()
     config = config or EvalConfig()
     protocol = config.protocol
     if gt.kind != "ground_truth" or dt.kind != "detections":
@@ -119,7 +125,11 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
         warnings.append(f"{len(missing)} of {gt.num_frames} frames have no predictions and count as empty: "
                         f"{shown}")
     dontcare = _dontcare_rows(gt, protocol)
+    t1 = clock()
+    timings["align"] = t1 - t0
     fo = frame_overlaps(dt.bbox, dt.boxes_camera, dt.offsets, gt.bbox, gt.boxes_camera, gt.offsets, dontcare)
+    t0 = clock()
+    timings["overlaps"] = t0 - t1
     compute_aos = aos_enabled(dt, protocol)
 
     # step 1: the matchings needed, one per (class, difficulty, metric, distinct IoU threshold)
@@ -156,7 +166,9 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
                     slots.append((cls, difficulty, metric, oset, job, with_aos))
     counts = pr_counts_many(fo.pair_offsets, (fo.bbox, fo.bev, fo.d3), gt.offsets, dt.offsets,
                             np.stack(ig_rows), np.stack(idet_rows), dontcare, dt.score, gt.alpha, dt.alpha,
-                            jobs) if jobs else []
+                            jobs, workers=workers) if jobs else []
+    t1 = clock()
+    timings["matching"] = t1 - t0
     job_curves = [curve_from_counts(c) for c in counts]
 
     # step 2: curves to AP
@@ -176,6 +188,7 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
                     None if curve_ is None else average_precision(getattr(curve_, attr), r))
             if curve_ is not None:
                 curves[oset][cls][m.value][difficulty.label] = curve_
+    timings["ap"] = clock() - t1
     return EvalResult(
         protocol=protocol.name,
         classes=tuple(config.classes),
@@ -190,4 +203,5 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
         aos_evaluated=compute_aos,
         warnings=tuple(warnings),
         curves=curves if keep_curves else None,
+        timings=timings,
     )

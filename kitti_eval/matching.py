@@ -23,13 +23,14 @@ matched once per distinct set of above-threshold detections rather than once per
 
 from __future__ import annotations
 
-import threading
+import os
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit, prange
+from numba import njit
 
 __all__ = ["PRCounts", "MatchJob", "pr_counts", "pr_counts_many", "score_thresholds"]
 
@@ -147,11 +148,10 @@ def _first_at_or_below(thresholds: np.ndarray, value: float) -> int:
 
 @njit(cache=True, nogil=True)
 def _best_overlaps(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray,
-                   groups: np.ndarray) -> np.ndarray:
-    """(G, N): each detection's largest overlap with the ground-truth rows of each group (0 if none)."""
+                   groups: np.ndarray, best: np.ndarray) -> None:
+    """Fill ``best`` (G, N), zeros on entry: each detection's largest overlap with each group's rows."""
     n_frames = gt_offsets.shape[0] - 1
     n_groups = groups.shape[0]
-    best = np.zeros((n_groups, dt_offsets[n_frames]), dtype=np.float64)
     for f in range(n_frames):
         g0, g1 = gt_offsets[f], gt_offsets[f + 1]
         d0, d1 = dt_offsets[f], dt_offsets[f + 1]
@@ -165,7 +165,6 @@ def _best_overlaps(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndar
                     for g in range(n_groups):
                         if groups[g, g0 + i] and o > best[g, d0 + j]:
                             best[g, d0 + j] = o
-    return best
 
 
 @njit(cache=True, nogil=True)
@@ -346,34 +345,28 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
     return thresholds, pr, n_valid_gt
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True)
 def _pr_counts_many(pair_offsets: np.ndarray, ov_0: np.ndarray, ov_1: np.ndarray, ov_2: np.ndarray,
                     gt_offsets: np.ndarray, dt_offsets: np.ndarray, ignored_gt: np.ndarray,
                     ignored_det: np.ndarray, dontcare: np.ndarray, score: np.ndarray, gt_alpha: np.ndarray,
-                    dt_alpha: np.ndarray, groups: np.ndarray, metrics_used: np.ndarray, job_metric: np.ndarray,
-                    job_codes: np.ndarray, job_group: np.ndarray, job_overlap: np.ndarray, job_aos: np.ndarray,
-                    job_dontcare: np.ndarray,
+                    dt_alpha: np.ndarray, best: np.ndarray, job_metric: np.ndarray, job_codes: np.ndarray,
+                    job_group: np.ndarray, job_overlap: np.ndarray, job_aos: np.ndarray, job_dontcare: np.ndarray,
                     n_sample_pts: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Independent matchings in parallel, one per job (metric, ignore-code row, threshold, flags).
+    """Independent matchings, one per job (metric, ignore-code row, group, threshold, flags).
 
-    ``groups`` (G, M): the ground-truth rows taking part, one row per distinct set among the jobs, and
-    the DontCare rows last; each detection's best overlap with each group is computed once per metric.
+    ``best`` (3, G, N): each detection's best overlap per metric with each group of ground-truth rows
+    (:func:`_best_overlaps`); group G - 1 is the DontCare rows.
     """
     n_jobs = job_metric.shape[0]
     n_dt = dt_offsets[dt_offsets.shape[0] - 1]
-    best = np.zeros((3, groups.shape[0], n_dt), dtype=np.float64)
-    for k in prange(metrics_used.shape[0]):
-        m = metrics_used[k]
-        ov = ov_0 if m == 0 else (ov_1 if m == 1 else ov_2)
-        best[m] = _best_overlaps(pair_offsets, ov, gt_offsets, dt_offsets, groups)
     thr_out = np.zeros((n_jobs, n_sample_pts), dtype=np.float64)
     pr_out = np.zeros((n_jobs, n_sample_pts, 4), dtype=np.float64)
     n_thr = np.zeros(n_jobs, dtype=np.int64)
     n_valid = np.zeros(n_jobs, dtype=np.int64)
     no_dontcare = np.zeros(dontcare.shape[0], dtype=np.bool_)
     no_cover = np.zeros(n_dt, dtype=np.float64)
-    dc_group = groups.shape[0] - 1
-    for c in prange(n_jobs):
+    dc_group = best.shape[1] - 1
+    for c in range(n_jobs):
         m = job_metric[c]
         ov = ov_0 if m == 0 else (ov_1 if m == 1 else ov_2)
         use_dc = job_dontcare[c]
@@ -461,8 +454,15 @@ def pr_counts(pair_offsets: npt.NDArray[np.int64], overlaps: npt.NDArray[np.floa
     return counts
 
 
-#: numba's default thread pool must not be entered from two Python threads at once
-_PARALLEL_LOCK = threading.Lock()
+def default_workers() -> int:
+    """Threads used for the matchings: ``$KITTI_EVAL_THREADS``, else the CPUs this process may use."""
+    env = os.environ.get("KITTI_EVAL_THREADS", "").strip()
+    if env.isdigit() and int(env) > 0:
+        return int(env)
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
 
 
 def pr_counts_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.NDArray[np.float64]],
@@ -470,7 +470,8 @@ def pr_counts_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.N
                    ignored_gt: npt.NDArray[np.int8], ignored_det: npt.NDArray[np.int8],
                    dontcare: npt.NDArray[np.bool_], score: npt.NDArray[np.float64],
                    gt_alpha: npt.NDArray[np.float64], dt_alpha: npt.NDArray[np.float64],
-                   jobs: Sequence[MatchJob], n_sample_pts: int = 41) -> list[PRCounts]:
+                   jobs: Sequence[MatchJob], n_sample_pts: int = 41, *, workers: int | None = None,
+                   ) -> list[PRCounts]:
     """Run many independent matchings over the same frames, in parallel across jobs.
 
     Parameters
@@ -480,6 +481,7 @@ def pr_counts_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.N
     ignored_det : (K, N) int8, the matching rows for detections
     dontcare : (M,) bool, DontCare ground-truth rows (used by jobs with ``dontcare`` set)
     jobs : what to match; see :class:`MatchJob`
+    workers : threads to spread the jobs over (default :func:`default_workers`)
     """
     pair_offsets = np.ascontiguousarray(pair_offsets, np.int64)
     gt_offsets = np.ascontiguousarray(gt_offsets, np.int64)
@@ -508,30 +510,52 @@ def pr_counts_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.N
             raise ValueError(f"{job} refers to overlaps or ignore codes that were not given")
     ov3 = (ovs + [ovs[0]] * 3)[:3]
     # the ground truth taking part depends only on the ignore-code row (per class, not per difficulty)
-    group_of: dict[bytes, int] = {}
-    masks: list[npt.NDArray[np.bool_]] = []
-    job_group = []
-    for job in jobs:
-        mask = ig[job.codes] != -1
-        key = mask.tobytes()
-        if key not in group_of:
-            group_of[key] = len(masks)
-            masks.append(mask)
-        job_group.append(group_of[key])
-    groups = np.stack([*masks, dc]) if n_gt else np.zeros((len(masks) + 1, 0), dtype=np.bool_)
-    with _PARALLEL_LOCK:
-        thr, pr, n_thr, n_valid = _pr_counts_many(
+    rows = sorted({j.codes for j in jobs})
+    group_of_row: dict[int, int] = {}
+    masks: dict[bytes, tuple[int, npt.NDArray[np.bool_]]] = {}
+    for row in rows:
+        mask = ig[row] != -1
+        group_of_row[row] = masks.setdefault(mask.tobytes(), (len(masks), mask))[0]
+    job_group = [group_of_row[j.codes] for j in jobs]
+    groups = (np.stack([m for _, m in masks.values()] + [dc]) if n_gt
+              else np.zeros((len(masks) + 1, 0), dtype=np.bool_))
+    workers = default_workers() if workers is None else max(1, int(workers))
+    metrics_used = sorted({j.metric for j in jobs})
+    best = np.zeros((3, groups.shape[0], n_dt if metrics_used else 0), dtype=np.float64)
+    # jobs differ a lot in cost (by class): deal them out like cards, largest first, one hand per thread
+    row_cost = {row: int(np.count_nonzero(idet[row] != -1)) for row in rows}
+    cost = np.array([row_cost[j.codes] for j in jobs], dtype=np.int64)
+    hands: list[list[int]] = [[] for _ in range(min(workers, max(1, len(jobs))))]
+    for rank, k in enumerate(np.argsort(-cost, kind="stable")):
+        hands[rank % len(hands)].append(int(k))
+
+    def fill_best(m: int) -> None:
+        _best_overlaps(pair_offsets, ov3[m], gt_offsets, dt_offsets, groups, best[m])
+
+    def run(hand: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        picked = [jobs[k] for k in hand]
+        return _pr_counts_many(
             pair_offsets, ov3[0], ov3[1], ov3[2], gt_offsets, dt_offsets, ig, idet, dc, score, gt_alpha, dt_alpha,
-            groups, np.array(sorted({j.metric for j in jobs}), np.int64),
-            np.array([j.metric for j in jobs], np.int64), np.array([j.codes for j in jobs], np.int64),
-            np.array(job_group, np.int64),
-            np.array([j.min_overlap for j in jobs], np.float64), np.array([j.compute_aos for j in jobs], np.bool_),
-            np.array([j.dontcare for j in jobs], np.bool_), int(n_sample_pts))
-    out = []
-    for c in range(len(jobs)):
-        t = int(n_thr[c])
-        if t > n_sample_pts:
-            raise RuntimeError(f"{t} score thresholds for {n_sample_pts} recall samples")
-        out.append(PRCounts(thresholds=thr[c, :t].copy(), tp=pr[c, :t, 0].copy(), fp=pr[c, :t, 1].copy(),
-                            fn=pr[c, :t, 2].copy(), similarity=pr[c, :t, 3].copy(), num_valid_gt=int(n_valid[c])))
-    return out
+            best, np.array([j.metric for j in picked], np.int64), np.array([j.codes for j in picked], np.int64),
+            np.array([job_group[k] for k in hand], np.int64), np.array([j.min_overlap for j in picked], np.float64),
+            np.array([j.compute_aos for j in picked], np.bool_), np.array([j.dontcare for j in picked], np.bool_),
+            int(n_sample_pts))
+
+    # the kernels release the GIL, so plain threads run them in parallel
+    if len(hands) == 1:
+        for m in metrics_used:
+            fill_best(m)
+        results = [run(hands[0])]
+    else:
+        with ThreadPoolExecutor(max_workers=len(hands)) as pool:
+            list(pool.map(fill_best, metrics_used))
+            results = list(pool.map(run, hands))
+    out: list[PRCounts | None] = [None] * len(jobs)
+    for hand, (thr, pr, n_thr, n_valid) in zip(hands, results):
+        for c, k in enumerate(hand):
+            t = int(n_thr[c])
+            if t > n_sample_pts:
+                raise RuntimeError(f"{t} score thresholds for {n_sample_pts} recall samples")
+            out[k] = PRCounts(thresholds=thr[c, :t].copy(), tp=pr[c, :t, 0].copy(), fp=pr[c, :t, 1].copy(),
+                              fn=pr[c, :t, 2].copy(), similarity=pr[c, :t, 3].copy(), num_valid_gt=int(n_valid[c]))
+    return out  # type: ignore[return-value]

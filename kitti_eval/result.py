@@ -41,6 +41,8 @@ class EvalResult:
     aos_evaluated: bool
     warnings: tuple[str, ...] = ()
     curves: Mapping[str, Mapping[str, Mapping[str, Mapping[str, Curve]]]] | None = field(default=None, repr=False)
+    #: seconds spent per stage (align, overlaps, matching, ap); not part of the JSON document
+    timings: Mapping[str, float] = field(default_factory=dict, repr=False, compare=False)
 
     def get(self, cls: str, metric: str | Metric, difficulty: str | Difficulty, recall: str = "R40",
             oset: str = "strict") -> float | None:
