@@ -155,3 +155,16 @@ def test_demo_runs_on_bundled_data(capsys):
     doc = json.loads(out)
     assert code == 0 and doc["frames"] == 200
     assert 0 < doc["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"] < 100
+
+
+def test_compile_notice_follows_numba_cache(monkeypatch, tmp_path):
+    from kitti_eval._jit import kernels_cached
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    assert kernels_cached() is False
+    deep = tmp_path / "work" / "kitti_eval"
+    deep.mkdir(parents=True)
+    (deep / "matching._pr_counts_many-400.py311.nbi").write_bytes(b"")
+    assert kernels_cached() is False  # one of the two kernels is still missing
+    (deep / "geometry._frame_overlaps_kernel-251.py311.nbi").write_bytes(b"")
+    assert kernels_cached() is True
