@@ -1,6 +1,7 @@
 """``kitti-eval``: the command line. Parses, loads, evaluates, prints; holds no evaluation logic.
 
-Exit codes: 0 success, 1 bad input (unreadable, unsafe or inconsistent files), 2 usage error.
+Exit codes: 0 success, 1 bad input (unreadable, unsafe or inconsistent files), 2 usage error,
+3 a gate rule failed (``kitti-eval gate``).
 Data goes to stdout (or ``--output``); warnings and progress go to stderr.
 """
 
@@ -19,7 +20,7 @@ from .protocol import DEFAULT_CLASSES, KNOWN_CLASSES, PROTOCOLS, THRESHOLD_SETS
 __all__ = ["main"]
 
 PROG = "kitti-eval"
-EXIT_OK, EXIT_INPUT, EXIT_USAGE = 0, 1, 2
+EXIT_OK, EXIT_INPUT, EXIT_USAGE, EXIT_GATE = 0, 1, 2, 3
 
 
 def _parse_iou(text: str) -> tuple[str, str | None, tuple[float, float, float]]:
@@ -37,18 +38,22 @@ def _parse_iou(text: str) -> tuple[str, str | None, tuple[float, float, float]]:
     return cls, oset or None, triple  # type: ignore[return-value]
 
 
-def _add_eval_options(p: argparse.ArgumentParser) -> None:
+def _add_config_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--protocol", choices=sorted(PROTOCOLS), default="official",
                    help="official: the KITTI devkit's rules (default); openpcdet: what OpenPCDet prints")
-    p.add_argument("--format", type=OutputFormat, choices=list(OutputFormat),
-                   default=OutputFormat(os.environ.get("KITTI_EVAL_FORMAT", "table")),
-                   help="table: OpenPCDet's text; json: versioned schema; markdown: for CI summaries "
-                        "(default: table, or $KITTI_EVAL_FORMAT)")
     p.add_argument("--classes", default=",".join(DEFAULT_CLASSES),
                    help=f"comma-separated classes (default {','.join(DEFAULT_CLASSES)}; "
                         f"known: {','.join(KNOWN_CLASSES)})")
     p.add_argument("--iou", type=_parse_iou, action="append", default=[], metavar="CLASS[:SET]=BBOX,BEV,3D",
                    help="IoU thresholds for a class, for both sets or for 'strict'/'loose' only; repeatable")
+
+
+def _add_eval_options(p: argparse.ArgumentParser) -> None:
+    _add_config_options(p)
+    p.add_argument("--format", type=OutputFormat, choices=list(OutputFormat),
+                   default=OutputFormat(os.environ.get("KITTI_EVAL_FORMAT", "table")),
+                   help="table: OpenPCDet's text; json: versioned schema; markdown: for CI summaries "
+                        "(default: table, or $KITTI_EVAL_FORMAT)")
     p.add_argument("--curves", action="store_true", help="include the 41-point curves in the JSON output")
     p.add_argument("--output", "-o", type=Path, help="write the result here instead of stdout")
     p.add_argument("--quiet", "-q", action="store_true", help="do not print warnings")
@@ -58,8 +63,8 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Exact KITTI 3D object detection evaluation (2D, BEV, 3D, AOS; R11 and R40) on a CPU.",
-        epilog="Commands: 'kitti-eval demo' evaluates the bundled demo set. "
-               "Exit codes: 0 ok, 1 bad input, 2 usage.")
+        epilog="Commands: 'kitti-eval demo' evaluates the bundled demo set; 'kitti-eval gate' checks AP "
+               "rules (exit 3 when a rule fails). Exit codes: 0 ok, 1 bad input, 2 usage.")
     p.add_argument("--gt", required=True, type=Path,
                    help="ground truth: a KITTI label_2 folder or an OpenPCDet infos .pkl[.gz]")
     p.add_argument("--pred", required=True, type=Path,
@@ -113,6 +118,89 @@ def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _gate_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=f"{PROG} gate",
+        description="Check AP rules on a result: floors, maximum drops against a baseline, required classes. "
+                    "Exit 0 when every rule passes, 3 when one fails, 1 on bad input, 2 on usage errors.",
+        epilog="Values are named Class/metric/difficulty[/R40|R11[/strict|loose]] (default R40, strict). "
+               "A rule on a value that is null (not evaluated) fails.")
+    src = p.add_argument_group("the result to gate: a saved JSON result, or ground truth and predictions")
+    src.add_argument("--result", type=Path, help="a JSON result written by 'kitti-eval --format json'")
+    src.add_argument("--gt", type=Path, help="ground truth (evaluated with --pred)")
+    src.add_argument("--pred", type=Path, help="predictions to evaluate")
+    _add_config_options(p)
+    rules = p.add_argument_group("rules")
+    rules.add_argument("--min", dest="floors", action="append", default=[], metavar="RULE",
+                       help="a floor such as 'Car/3d/moderate/R40 >= 78.5' (any of >=, >, <=, <); repeatable")
+    rules.add_argument("--max-drop", action="append", default=[], metavar="[VALUE=]N",
+                       help="largest allowed drop against --baseline, in AP points: N for every value, or "
+                            "Car/3d/moderate=N for one; repeatable")
+    rules.add_argument("--require-class", action="append", default=[], metavar="CLASS",
+                       help="fail unless this class was evaluated; repeatable")
+    rules.add_argument("--rules", type=Path, help="rules from a TOML file (floor, max_drop, require_classes)")
+    p.add_argument("--baseline", type=Path,
+                   help="the result to compare with: a JSON result, or predictions evaluated against --gt")
+    out = p.add_argument_group("reports")
+    out.add_argument("--markdown", type=Path, help="also write the verdict as Markdown (CI job summaries)")
+    out.add_argument("--junit", type=Path, help="also write the verdict as JUnit XML")
+    out.add_argument("--show-passed", action="store_true", help="list passing checks too")
+    return p
+
+
+def _read_result_json(path: Path) -> dict:
+    import json
+
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError("no such file", source=str(path)) from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"not a JSON result: {e}", source=str(path)) from None
+    if not isinstance(doc, dict) or doc.get("schema_version") != 1 or not isinstance(doc.get("ap"), dict):
+        raise InputError("not a kitti-eval JSON result (schema_version 1 with an 'ap' table)", source=str(path))
+    return doc
+
+
+def _gate(args: argparse.Namespace) -> int:
+    from .gate import GateRules, parse_floor, parse_max_drop, render_junit, render_verdict, render_verdict_markdown
+    from .gate import rules_from_toml, run_gate
+
+    rules = GateRules(tuple(parse_floor(r) for r in args.floors), tuple(parse_max_drop(d) for d in args.max_drop),
+                      tuple(args.require_class))
+    if args.rules:
+        rules = rules.merged(rules_from_toml(args.rules))
+    if rules.empty:
+        raise ConfigError("no gate rules: give --min, --max-drop, --require-class or --rules")
+    if args.result and (args.gt or args.pred):
+        raise ConfigError("give either --result or --gt with --pred, not both")
+    if not args.result and not (args.gt and args.pred):
+        raise ConfigError("give the result to gate: --result R.json, or --gt and --pred")
+    if rules.max_drops and not args.baseline:
+        raise ConfigError("--max-drop needs --baseline")
+
+    def evaluated(pred: Path) -> dict:
+        from .evaluation import evaluate
+        from .loaders import load_detections, load_ground_truth
+
+        if args.gt is None:
+            raise ConfigError("a baseline given as predictions needs --gt")
+        return evaluate(load_ground_truth(args.gt), load_detections(pred), _config(args)).to_dict()
+
+    current = _read_result_json(args.result) if args.result else evaluated(args.pred)
+    baseline = None
+    if args.baseline:
+        baseline = (_read_result_json(args.baseline) if args.baseline.suffix.lower() == ".json"
+                    else evaluated(args.baseline))
+    verdict = run_gate(current, rules, baseline)
+    sys.stdout.write(render_verdict(verdict, show_passed=args.show_passed))
+    if args.markdown:
+        args.markdown.write_text(render_verdict_markdown(verdict), encoding="utf-8")
+    if args.junit:
+        args.junit.write_text(render_junit(verdict), encoding="utf-8")
+    return EXIT_OK if verdict.passed else EXIT_GATE
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
@@ -122,6 +210,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             gt_path, pred_path = demo_paths()
             return _run(gt_path, pred_path, args)
+        if argv and argv[0] == "gate":
+            return _gate(_gate_parser().parse_args(argv[1:]))
         args = _parser().parse_args(argv)
         return _run(args.gt, args.pred, args)
     except SystemExit as e:  # argparse: usage errors exit 2, --help exits 0

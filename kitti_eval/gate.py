@@ -1,0 +1,361 @@
+"""Regression gates on AP: floors, maximum drops against a baseline, required classes.
+
+Rules address values of the JSON document by ``Class/metric/difficulty[/recall[/set]]`` (recall R40 and
+the strict threshold set by default), e.g. ``Car/3d/moderate/R40 >= 78.5``. A value that is ``null`` (not
+evaluated) fails any rule that reads it: a gate must never pass on a number that is not there.
+
+Rules come from flags or from a TOML file::
+
+    [[floor]]
+    value = "Car/3d/moderate"       # R40, strict
+    min = 78.5
+
+    [max_drop]
+    all = 0.5                       # every value, against the baseline
+    "Pedestrian/3d/moderate" = 1.0  # a per-value override
+
+    require_classes = ["Car", "Pedestrian"]
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+import re
+import sys
+import xml.etree.ElementTree as ET
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import ConfigError, InputError
+from .protocol import ALL_METRICS, RECALL_MODES, THRESHOLD_SETS, Difficulty
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+__all__ = ["ValueKey", "Floor", "MaxDrop", "GateRules", "Check", "Verdict", "run_gate", "parse_floor",
+           "parse_max_drop", "rules_from_toml", "render_verdict", "render_verdict_markdown", "render_junit"]
+
+_METRICS = tuple(m.value for m in ALL_METRICS)
+_DIFFS = tuple(d.label for d in Difficulty)
+_OPS = {">=": operator.ge, ">": operator.gt, "<=": operator.le, "<": operator.lt}
+
+
+@dataclass(frozen=True, order=True)
+class ValueKey:
+    """One value of the result: class, metric, difficulty, recall mode, threshold set."""
+
+    cls: str
+    metric: str
+    difficulty: str
+    recall: str = "R40"
+    oset: str = "strict"
+
+    @classmethod
+    def parse(cls, text: str) -> ValueKey:
+        parts = [p.strip() for p in text.strip().split("/")]
+        if not 3 <= len(parts) <= 5 or not all(parts):
+            raise ConfigError(f"expected Class/metric/difficulty[/R40|R11[/strict|loose]], got {text!r}")
+        key = cls(*parts)
+        if key.metric not in _METRICS:
+            raise ConfigError(f"unknown metric {key.metric!r} in {text!r}; expected one of {', '.join(_METRICS)}")
+        if key.difficulty not in _DIFFS:
+            raise ConfigError(f"unknown difficulty {key.difficulty!r} in {text!r}; expected one of "
+                              f"{', '.join(_DIFFS)}")
+        if key.recall not in RECALL_MODES:
+            raise ConfigError(f"unknown recall mode {key.recall!r} in {text!r}; expected R40 or R11")
+        if key.oset not in THRESHOLD_SETS:
+            raise ConfigError(f"unknown threshold set {key.oset!r} in {text!r}; expected strict or loose")
+        return key
+
+    def __str__(self) -> str:
+        return f"{self.cls}/{self.metric}/{self.difficulty}/{self.recall}/{self.oset}"
+
+    def read(self, doc: Mapping[str, Any]) -> float | None:
+        """The value in a result document; a class or key the document lacks is an error."""
+        try:
+            by_cls = doc["ap"][self.oset][self.recall]
+        except (KeyError, TypeError):
+            raise InputError(f"the result has no AP table for {self.recall}/{self.oset}") from None
+        if self.cls not in by_cls:
+            raise InputError(f"the result has no class {self.cls!r} (it has {', '.join(by_cls) or 'none'})")
+        value = by_cls[self.cls][self.metric][self.difficulty]
+        return None if value is None else float(value)
+
+
+@dataclass(frozen=True)
+class Floor:
+    """``key op bound``, e.g. Car/3d/moderate/R40 >= 78.5."""
+
+    key: ValueKey
+    op: str
+    bound: float
+
+    def __str__(self) -> str:
+        return f"{self.key} {self.op} {self.bound:g}"
+
+
+@dataclass(frozen=True)
+class MaxDrop:
+    """``baseline - current <= limit`` for one value, or for every value when ``key`` is None."""
+
+    limit: float
+    key: ValueKey | None = None
+
+
+@dataclass(frozen=True)
+class GateRules:
+    floors: tuple[Floor, ...] = ()
+    max_drops: tuple[MaxDrop, ...] = ()
+    require_classes: tuple[str, ...] = ()
+
+    def merged(self, other: GateRules) -> GateRules:
+        return GateRules(self.floors + other.floors, self.max_drops + other.max_drops,
+                         self.require_classes + tuple(c for c in other.require_classes
+                                                      if c not in self.require_classes))
+
+    @property
+    def empty(self) -> bool:
+        return not (self.floors or self.max_drops or self.require_classes)
+
+
+_FLOOR_RE = re.compile(r"^\s*(?P<key>[^<>=\s]+)\s*(?P<op>>=|<=|>|<)\s*(?P<bound>[-+0-9.eE]+)\s*$")
+
+
+def parse_floor(text: str) -> Floor:
+    """``Car/3d/moderate/R40 >= 78.5``."""
+    m = _FLOOR_RE.match(text)
+    if not m:
+        raise ConfigError(f"expected a rule like 'Car/3d/moderate/R40 >= 78.5', got {text!r}")
+    try:
+        bound = float(m["bound"])
+    except ValueError:
+        raise ConfigError(f"not a number: {m['bound']!r} in {text!r}") from None
+    if not math.isfinite(bound):
+        raise ConfigError(f"the bound of {text!r} must be finite")
+    return Floor(ValueKey.parse(m["key"]), m["op"], bound)
+
+
+def parse_max_drop(text: str) -> MaxDrop:
+    """``0.5`` (every value) or ``Car/3d/moderate=0.5``."""
+    key_text, _, limit_text = text.rpartition("=")
+    try:
+        limit = float(limit_text)
+    except ValueError:
+        raise ConfigError(f"expected --max-drop N or --max-drop Class/metric/difficulty=N, got {text!r}") from None
+    if not math.isfinite(limit) or limit < 0:
+        raise ConfigError(f"a maximum drop must be a finite number >= 0, got {text!r}")
+    return MaxDrop(limit, ValueKey.parse(key_text) if key_text else None)
+
+
+def rules_from_toml(path: str | Path) -> GateRules:
+    """Rules from a TOML file (see the module docstring)."""
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise ConfigError(f"cannot read gate rules {p}: {e.strerror or e}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{p}: not valid TOML: {e}") from None
+    unknown = set(data) - {"floor", "max_drop", "require_classes"}
+    if unknown:
+        raise ConfigError(f"{p}: unknown keys {sorted(unknown)}; expected floor, max_drop, require_classes")
+    floors = []
+    for i, entry in enumerate(data.get("floor", [])):
+        if not isinstance(entry, dict) or "value" not in entry or not ({"min", "max"} & set(entry)):
+            raise ConfigError(f"{p}: floor #{i + 1} needs 'value' and 'min' (or 'max')")
+        key = ValueKey.parse(str(entry["value"]))
+        if "min" in entry:
+            floors.append(Floor(key, ">=", _number(entry["min"], p, f"floor #{i + 1} min")))
+        if "max" in entry:
+            floors.append(Floor(key, "<=", _number(entry["max"], p, f"floor #{i + 1} max")))
+    drops = []
+    md = data.get("max_drop", {})
+    if isinstance(md, (int, float)):
+        md = {"all": md}
+    if not isinstance(md, dict):
+        raise ConfigError(f"{p}: max_drop must be a number or a table")
+    for name, limit in md.items():
+        value = _number(limit, p, f"max_drop {name}")
+        if value < 0:
+            raise ConfigError(f"{p}: max_drop {name} must be >= 0")
+        drops.append(MaxDrop(value, None if name == "all" else ValueKey.parse(name)))
+    classes = data.get("require_classes", [])
+    if not isinstance(classes, list) or not all(isinstance(c, str) for c in classes):
+        raise ConfigError(f"{p}: require_classes must be a list of class names")
+    return GateRules(tuple(floors), tuple(drops), tuple(classes))
+
+
+def _number(value: object, path: Path, what: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
+        raise ConfigError(f"{path}: {what} must be a finite number, got {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class Check:
+    """One rule applied to one value."""
+
+    rule: str
+    key: str
+    passed: bool
+    current: float | None = None
+    baseline: float | None = None
+    delta: float | None = None
+    interval: tuple[float, float] | None = None
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class Verdict:
+    checks: tuple[Check, ...] = field(default_factory=tuple)
+
+    @property
+    def passed(self) -> bool:
+        return all(c.passed for c in self.checks)
+
+    @property
+    def failures(self) -> tuple[Check, ...]:
+        return tuple(c for c in self.checks if not c.passed)
+
+
+def _all_keys(doc: Mapping[str, Any]) -> Iterable[ValueKey]:
+    for oset in doc.get("threshold_sets", THRESHOLD_SETS):
+        for recall in RECALL_MODES:
+            for cls in doc["classes"]:
+                for metric in _METRICS:
+                    for d in _DIFFS:
+                        yield ValueKey(cls, metric, d, recall, oset)
+
+
+def run_gate(current: Mapping[str, Any], rules: GateRules, baseline: Mapping[str, Any] | None = None,
+             intervals: Mapping[ValueKey, tuple[float, float]] | None = None) -> Verdict:
+    """Apply ``rules`` to a result document (``EvalResult.to_dict()`` or its JSON).
+
+    ``intervals`` (optional): 95% bootstrap intervals of ``current - baseline`` per value. When given, a
+    drop fails only if it exceeds the limit *and* its interval lies entirely below zero (a significant
+    drop); otherwise it passes with a note.
+    """
+    if rules.empty:
+        raise ConfigError("no gate rules: give --min, --max-drop, --require-class or --rules")
+    checks: list[Check] = []
+    for cls in rules.require_classes:
+        present = cls in current.get("classes", [])
+        evaluated = present and any(
+            current["ap"][oset][recall][cls][m][d] is not None
+            for oset in current["threshold_sets"] for recall in RECALL_MODES for m in _METRICS for d in _DIFFS)
+        msg = ("" if evaluated else f"class {cls} is not in the result" if not present
+               else f"class {cls} was not evaluated (no detections of it?)")
+        checks.append(Check(f"require class {cls}", cls, evaluated, message=msg))
+    for floor in rules.floors:
+        value = _read_or_none(current, floor.key)
+        if value is None:
+            checks.append(Check(str(floor), str(floor.key), False, message="value is null (not evaluated)"))
+            continue
+        ok = _OPS[floor.op](value, floor.bound)
+        checks.append(Check(str(floor), str(floor.key), ok, current=value,
+                            message="" if ok else f"{value:.4f} is not {floor.op} {floor.bound:g}"))
+    if rules.max_drops:
+        if baseline is None:
+            raise ConfigError("a --max-drop rule needs a baseline (--baseline)")
+        per_key = {d.key: d.limit for d in rules.max_drops if d.key is not None}
+        blanket = [d.limit for d in rules.max_drops if d.key is None]
+        keys = list(_all_keys(current)) if blanket else []
+        keys += [k for k in per_key if k not in keys]
+        for key in keys:
+            limit = per_key.get(key, min(blanket) if blanket else None)
+            if limit is None:
+                continue
+            checks.append(_drop_check(key, limit, current, baseline, intervals, explicit=key in per_key))
+    return Verdict(tuple(checks))
+
+
+def _read_or_none(doc: Mapping[str, Any], key: ValueKey) -> float | None:
+    return key.read(doc)
+
+
+def _drop_check(key: ValueKey, limit: float, current: Mapping[str, Any], baseline: Mapping[str, Any],
+                intervals: Mapping[ValueKey, tuple[float, float]] | None, explicit: bool) -> Check:
+    rule = f"{key} drop <= {limit:g}"
+    now = _read_or_none(current, key)
+    try:
+        before = _read_or_none(baseline, key)
+    except InputError:
+        before = None
+        if explicit:
+            return Check(rule, str(key), False, current=now, message="the baseline has no such value")
+    if before is None and now is None:
+        if explicit:
+            return Check(rule, str(key), False, message="value is null in both results")
+        return Check(rule, str(key), True, message="not evaluated in either result")
+    if now is None:
+        return Check(rule, str(key), False, baseline=before, message="value is null now but was evaluated before")
+    if before is None:
+        if explicit:
+            return Check(rule, str(key), False, current=now, message="value is null in the baseline")
+        return Check(rule, str(key), True, current=now, message="new value (null in the baseline)")
+    delta = now - before
+    interval = intervals.get(key) if intervals else None
+    ok = -delta <= limit + 1e-12
+    message = "" if ok else f"dropped {-delta:.4f} > {limit:g}"
+    if not ok and interval is not None and interval[1] >= 0:
+        ok = True
+        message = f"dropped {-delta:.4f} > {limit:g}, but not significantly (95% interval reaches {interval[1]:+.4f})"
+    return Check(rule, str(key), ok, current=now, baseline=before, delta=delta, interval=interval, message=message)
+
+
+def render_verdict(verdict: Verdict, *, show_passed: bool = False) -> str:
+    """A readable table: failures always, passing checks when asked (or when there are few)."""
+    rows = [c for c in verdict.checks if show_passed or not c.passed or len(verdict.checks) <= 20]
+    head = f"{'':4} {'rule':<48} {'now':>9} {'base':>9} {'delta':>9}  note"
+    lines = [head]
+    for c in rows:
+        lines.append(f"{'ok' if c.passed else 'FAIL':<4} {c.rule:<48} {_f(c.current):>9} {_f(c.baseline):>9} "
+                     f"{_f(c.delta, sign=True):>9}  {c.message}")
+    hidden = len(verdict.checks) - len(rows)
+    if hidden:
+        lines.append(f"     ... and {hidden} passing checks not shown")
+    n_fail = len(verdict.failures)
+    lines.append(f"gate: {'PASSED' if verdict.passed else 'FAILED'} "
+                 f"({len(verdict.checks) - n_fail} passed, {n_fail} failed)")
+    return "\n".join(lines) + "\n"
+
+
+def render_verdict_markdown(verdict: Verdict) -> str:
+    status = "✅ passed" if verdict.passed else "❌ failed"
+    out = [f"### KITTI AP gate: {status}", "", "| | rule | now | baseline | delta | note |", "|---|---|---:|---:|---:|---|"]
+    for c in sorted(verdict.checks, key=lambda c: c.passed):
+        if c.passed and len(verdict.checks) > 40:
+            continue
+        out.append(f"| {'✅' if c.passed else '❌'} | `{c.rule}` | {_f(c.current)} | {_f(c.baseline)} | "
+                   f"{_f(c.delta, sign=True)} | {c.message} |")
+    n_fail = len(verdict.failures)
+    out += ["", f"{len(verdict.checks) - n_fail} passed, {n_fail} failed."]
+    return "\n".join(out) + "\n"
+
+
+def render_junit(verdict: Verdict, name: str = "kitti-eval gate") -> str:
+    """JUnit XML: one test case per check, failures as <failure>."""
+    suite = ET.Element("testsuite", name=name, tests=str(len(verdict.checks)),
+                       failures=str(len(verdict.failures)), errors="0", skipped="0")
+    for c in verdict.checks:
+        case = ET.SubElement(suite, "testcase", classname="kitti_eval.gate", name=c.rule)
+        if not c.passed:
+            failure = ET.SubElement(case, "failure", message=c.message or "failed")
+            failure.text = f"current={_f(c.current)} baseline={_f(c.baseline)} delta={_f(c.delta, sign=True)}"
+    return ET.tostring(ET.ElementTree(suite).getroot(), encoding="unicode", xml_declaration=True) + "\n"
+
+
+def _f(value: float | None, sign: bool = False) -> str:
+    if value is None:
+        return "-"
+    return f"{value:+.4f}" if sign else f"{value:.4f}"
+
+
+def keys_of(doc: Mapping[str, Any]) -> Sequence[ValueKey]:
+    """Every value key of a result document."""
+    return list(_all_keys(doc))
