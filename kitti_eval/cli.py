@@ -163,8 +163,16 @@ def _read_result_json(path: Path) -> dict:
 
 
 def _gate(args: argparse.Namespace) -> int:
-    from .gate import GateRules, parse_floor, parse_max_drop, render_junit, render_verdict, render_verdict_markdown
-    from .gate import rules_from_toml, run_gate
+    from .gate import (
+        GateRules,
+        parse_floor,
+        parse_max_drop,
+        render_junit,
+        render_verdict,
+        render_verdict_markdown,
+        rules_from_toml,
+        run_gate,
+    )
 
     rules = GateRules(tuple(parse_floor(r) for r in args.floors), tuple(parse_max_drop(d) for d in args.max_drop),
                       tuple(args.require_class))

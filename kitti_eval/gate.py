@@ -327,7 +327,8 @@ def render_verdict(verdict: Verdict, *, show_passed: bool = False) -> str:
 
 def render_verdict_markdown(verdict: Verdict) -> str:
     status = "✅ passed" if verdict.passed else "❌ failed"
-    out = [f"### KITTI AP gate: {status}", "", "| | rule | now | baseline | delta | note |", "|---|---|---:|---:|---:|---|"]
+    out = [f"### KITTI AP gate: {status}", "", "| | rule | now | baseline | delta | note |",
+           "|---|---|---:|---:|---:|---|"]
     for c in sorted(verdict.checks, key=lambda c: c.passed):
         if c.passed and len(verdict.checks) > 40:
             continue
