@@ -40,9 +40,26 @@ GOLDEN_DEFAULT = Path("..") / "shared" / "golden" / "cases" / "kitti_val_scale"
 
 
 def _peak_rss_mib() -> float:
+    """This process's peak resident set (VmHWM; unlike ru_maxrss it is not inherited from a parent)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:  # pragma: no cover - not Linux
+        pass
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _cli_child(gt_path: str, pred_path: str) -> int:
+    """Run the CLI in this process (as the console script would), then report its peak RSS on stderr."""
+    from .cli import main as cli_main
+
+    code = cli_main(["--gt", gt_path, "--pred", pred_path, "--format", "json", "--output", os.devnull, "--quiet"])
+    sys.stderr.write(f"\nPEAK_RSS_MIB {_peak_rss_mib():.1f}\n")
+    return code
 
 
 def _child(gt_path: str, pred_path: str, repeat: int) -> dict[str, float]:
@@ -105,26 +122,22 @@ def _run_child(gt: Path, pred: Path, repeat: int) -> dict[str, float]:
 
 def _cli_once(gt: Path, pred: Path, env: dict[str, str] | None = None) -> tuple[float, float, int]:
     """Wall seconds, peak RSS (MiB) and exit code of one ``kitti-eval --format json`` process."""
-    argv = [sys.executable, "-m", "kitti_eval.cli", "--gt", str(gt), "--pred", str(pred), "--format", "json",
-            "--output", os.devnull, "--quiet"]
+    argv = [sys.executable, "-m", "kitti_eval.bench", "--cli-child", str(gt), str(pred)]
     t = time.perf_counter()
-    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
-    _, status, usage = os.wait4(proc.pid, 0)
+    proc = subprocess.run(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True, check=False)
     wall = time.perf_counter() - t
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    if proc.stderr is not None:
-        proc.stderr.close()
-    return wall, usage.ru_maxrss / 1024.0, proc.returncode
+    peak = [float(line.split()[1]) for line in proc.stderr.splitlines() if line.startswith("PEAK_RSS_MIB")]
+    if proc.returncode != 0 or not peak:
+        raise RuntimeError(f"kitti-eval failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}")
+    return wall, peak[0], proc.returncode
 
 
 def _generate(directory: Path, frames: int, seed: int) -> tuple[Path, Path]:
-    from .synth import generate, write_infos, write_results
-
-    infos, results = generate(frames, seed, dets_per_frame=40.0, gt_per_frame=8.0)
-    gt, pred = directory / "kitti_infos_val.pkl", directory / "result.pkl"
-    write_infos(gt, infos)
-    write_results(pred, results)
-    return gt, pred
+    """A KITTI-val-like set (~8 ground-truth boxes and ~40 detections a frame), written by a child process."""
+    subprocess.run([sys.executable, "-m", "kitti_eval.synth", "--frames", str(frames), "--seed", str(seed),
+                    "--dets-per-frame", "40", "--gt-per-frame", "8", "--out", str(directory)],
+                   check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return directory / "kitti_infos_val.pkl", directory / "result.pkl"
 
 
 def _golden_inputs(case: Path, tmp: Path) -> tuple[Path, Path] | None:
@@ -167,7 +180,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--repeat", type=int, default=5, help="repetitions of each warm measurement (best/median)")
     p.add_argument("--no-cold", action="store_true", help="skip the empty-cache (first run) measurement")
     p.add_argument("--child", nargs=2, metavar=("GT", "PRED"), help=argparse.SUPPRESS)
+    p.add_argument("--cli-child", nargs=2, metavar=("GT", "PRED"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.cli_child:
+        return _cli_child(*args.cli_child)
     if args.child:
         print(json.dumps(_child(args.child[0], args.child[1], args.repeat)))
         return 0

@@ -8,12 +8,13 @@ rules, vectorised here), matches, and reduces the counts to curves and AP. No I/
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from .frames import Annotations, dimension_order_warnings
-from .geometry import frame_overlaps
+from .geometry import FrameOverlaps, frame_overlaps
 from .matching import MatchJob, pr_counts_many
 from .metrics import Curve, average_precision, curve_from_counts
 from .protocol import (
@@ -32,7 +33,7 @@ from .protocol import (
 )
 from .result import EvalResult
 
-__all__ = ["evaluate", "ignore_codes", "aos_enabled", "scored_metrics"]
+__all__ = ["evaluate", "plan_evaluation", "Plan", "ap_tables", "ignore_codes", "aos_enabled", "scored_metrics"]
 
 
 def ignore_codes(gt: Annotations, dt: Annotations, cls: str, difficulty: Difficulty,
@@ -97,23 +98,34 @@ def _dontcare_rows(gt: Annotations, protocol: Protocol) -> npt.NDArray[np.bool_]
     return gt.name == DONTCARE
 
 
-def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None, *,
-             keep_curves: bool = False, workers: int | None = None) -> EvalResult:
-    """Evaluate detections against ground truth.
+@dataclass(frozen=True, eq=False)
+class Plan:
+    """Everything an evaluation computes before matching: aligned inputs, overlaps, and the matchings.
 
-    Parameters
-    ----------
-    gt : ground truth (DontCare rows included); its frames define the evaluated set
-    dt : detections; matched to ``gt`` by frame id. A ground-truth frame without detections counts as
-        empty and is listed in ``frames_without_predictions``; a detection frame unknown to ``gt`` raises
-        :class:`~kitti_eval.errors.InputError`.
-    config : classes, protocol, IoU thresholds (default: Car, Pedestrian, Cyclist; official protocol)
-    keep_curves : keep the 41-point curves in the result
-    workers : threads for the matchings (default: the CPUs available, or ``$KITTI_EVAL_THREADS``)
+    ``jobs`` are the distinct matchings (one per class, difficulty, metric and IoU threshold); ``slots``
+    map every (class, difficulty, metric, threshold set) of the result to its job (None where the
+    protocol does not evaluate it) and say whether AOS rides on it.
     """
-    clock = time.perf_counter
-    timings: dict[str, float] = {}
-    t0 = clock()
+
+    gt: Annotations
+    dt: Annotations
+    config: EvalConfig
+    missing: tuple[str, ...]
+    warnings: tuple[str, ...]
+    dontcare: npt.NDArray[np.bool_]
+    overlaps: FrameOverlaps
+    compute_aos: bool
+    ignored_gt: npt.NDArray[np.int8]     # (K, M), one row per (class, difficulty)
+    ignored_det: npt.NDArray[np.int8]    # (K, N)
+    jobs: tuple[MatchJob, ...]
+    slots: tuple[tuple[str, Difficulty, Metric, str, int | None, bool], ...]
+    num_gt: dict[str, dict[str, int]]
+    num_det: dict[str, int]
+    timings: dict[str, float]
+
+
+def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None = None) -> Plan:
+    """Align detections to the ground truth's frames, compute overlaps, and list the matchings needed."""
     config = config or EvalConfig()
     protocol = config.protocol
     if gt.kind != "ground_truth" or dt.kind != "detections":
@@ -125,14 +137,10 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
         warnings.append(f"{len(missing)} of {gt.num_frames} frames have no predictions and count as empty: "
                         f"{shown}")
     dontcare = _dontcare_rows(gt, protocol)
-    t1 = clock()
-    timings["align"] = t1 - t0
+    t0 = time.perf_counter()
     fo = frame_overlaps(dt.bbox, dt.boxes_camera, dt.offsets, gt.bbox, gt.boxes_camera, gt.offsets, dontcare)
-    t0 = clock()
-    timings["overlaps"] = t0 - t1
+    overlap_seconds = time.perf_counter() - t0
     compute_aos = aos_enabled(dt, protocol)
-
-    # step 1: the matchings needed, one per (class, difficulty, metric, distinct IoU threshold)
     ig_rows: list[npt.NDArray[np.int8]] = []
     idet_rows: list[npt.NDArray[np.int8]] = []
     jobs: list[MatchJob] = []
@@ -164,20 +172,67 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
                                                  compute_aos=metric is Metric.BBOX and with_aos,
                                                  dontcare=metric in protocol.dontcare_metrics))
                     slots.append((cls, difficulty, metric, oset, job, with_aos))
-    counts = pr_counts_many(fo.pair_offsets, (fo.bbox, fo.bev, fo.d3), gt.offsets, dt.offsets,
-                            np.stack(ig_rows), np.stack(idet_rows), dontcare, dt.score, gt.alpha, dt.alpha,
-                            jobs, workers=workers) if jobs else []
-    t1 = clock()
-    timings["matching"] = t1 - t0
-    job_curves = [curve_from_counts(c) for c in counts]
+    return Plan(gt=gt, dt=dt, config=config, missing=tuple(missing), warnings=tuple(warnings), dontcare=dontcare,
+                overlaps=fo, compute_aos=compute_aos, ignored_gt=np.stack(ig_rows), ignored_det=np.stack(idet_rows),
+                jobs=tuple(jobs), slots=tuple(slots), num_gt=num_gt, num_det=num_det,
+                timings={"overlaps": overlap_seconds})
 
-    # step 2: curves to AP
+
+def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None, *,
+             keep_curves: bool = False, workers: int | None = None) -> EvalResult:
+    """Evaluate detections against ground truth.
+
+    Parameters
+    ----------
+    gt : ground truth (DontCare rows included); its frames define the evaluated set
+    dt : detections; matched to ``gt`` by frame id. A ground-truth frame without detections counts as
+        empty and is listed in ``frames_without_predictions``; a detection frame unknown to ``gt`` raises
+        :class:`~kitti_eval.errors.InputError`.
+    config : classes, protocol, IoU thresholds (default: Car, Pedestrian, Cyclist; official protocol)
+    keep_curves : keep the 41-point curves in the result
+    workers : threads for the matchings (default: the CPUs available, or ``$KITTI_EVAL_THREADS``)
+    """
+    clock = time.perf_counter
+    t0 = clock()
+    plan = plan_evaluation(gt, dt, config)
+    t1 = clock()
+    fo = plan.overlaps
+    counts = pr_counts_many(fo.pair_offsets, (fo.bbox, fo.bev, fo.d3), plan.gt.offsets, plan.dt.offsets,
+                            plan.ignored_gt, plan.ignored_det, plan.dontcare, plan.dt.score, plan.gt.alpha,
+                            plan.dt.alpha, plan.jobs, workers=workers) if plan.jobs else []
+    t2 = clock()
+    ap, curves = ap_tables(plan, [curve_from_counts(c) for c in counts])
+    config = plan.config
+    timings = {"align": t1 - t0 - plan.timings["overlaps"], "overlaps": plan.timings["overlaps"],
+               "matching": t2 - t1, "ap": clock() - t2}
+    return EvalResult(
+        protocol=config.protocol.name,
+        classes=tuple(config.classes),
+        threshold_sets=tuple(config.threshold_sets),
+        overlaps={cls: {oset: {m.value: config.overlap(cls, oset, m) for m in OVERLAP_METRICS}
+                        for oset in config.threshold_sets} for cls in config.classes},
+        ap=ap,
+        num_gt=plan.num_gt,
+        num_det=plan.num_det,
+        frames=plan.gt.num_frames,
+        frames_without_predictions=plan.missing,
+        aos_evaluated=plan.compute_aos,
+        warnings=plan.warnings,
+        curves=curves if keep_curves else None,
+        timings=timings,
+    )
+
+
+def ap_tables(plan: Plan, job_curves: list[Curve]) -> tuple[dict, dict]:
+    """``ap[set][recall][class][metric][difficulty]`` and ``curves[set][class][metric][difficulty]`` from the
+    curve of every job of ``plan``."""
+    config = plan.config
     ap: dict[str, dict[str, dict[str, dict[str, dict[str, float | None]]]]] = {
         oset: {r: {cls: {m.value: {} for m in ALL_METRICS} for cls in config.classes} for r in RECALL_MODES}
         for oset in config.threshold_sets}
     curves: dict[str, dict[str, dict[str, dict[str, Curve]]]] = {
         oset: {cls: {m.value: {} for m in ALL_METRICS} for cls in config.classes} for oset in config.threshold_sets}
-    for cls, difficulty, metric, oset, job, with_aos in slots:
+    for cls, difficulty, metric, oset, job, with_aos in plan.slots:
         curve = None if job is None else job_curves[job]
         targets = [(metric, curve, "precision")]
         if metric is Metric.BBOX:
@@ -188,20 +243,4 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
                     None if curve_ is None else average_precision(getattr(curve_, attr), r))
             if curve_ is not None:
                 curves[oset][cls][m.value][difficulty.label] = curve_
-    timings["ap"] = clock() - t1
-    return EvalResult(
-        protocol=protocol.name,
-        classes=tuple(config.classes),
-        threshold_sets=tuple(config.threshold_sets),
-        overlaps={cls: {oset: {m.value: config.overlap(cls, oset, m) for m in OVERLAP_METRICS}
-                        for oset in config.threshold_sets} for cls in config.classes},
-        ap=ap,
-        num_gt=num_gt,
-        num_det=num_det,
-        frames=gt.num_frames,
-        frames_without_predictions=tuple(missing),
-        aos_evaluated=compute_aos,
-        warnings=tuple(warnings),
-        curves=curves if keep_curves else None,
-        timings=timings,
-    )
+    return ap, curves
