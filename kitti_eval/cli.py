@@ -64,7 +64,8 @@ def _parser() -> argparse.ArgumentParser:
         prog=PROG,
         description="Exact KITTI 3D object detection evaluation (2D, BEV, 3D, AOS; R11 and R40) on a CPU.",
         epilog="Commands: 'kitti-eval demo' evaluates the bundled demo set; 'kitti-eval gate' checks AP "
-               "rules (exit 3 when a rule fails). Exit codes: 0 ok, 1 bad input, 2 usage.")
+               "rules (exit 3 when a rule fails); 'kitti-eval compare A B' shows per-value differences. "
+               "Exit codes: 0 ok, 1 bad input, 2 usage.")
     p.add_argument("--gt", required=True, type=Path,
                    help="ground truth: a KITTI label_2 folder or an OpenPCDet infos .pkl[.gz]")
     p.add_argument("--pred", required=True, type=Path,
@@ -141,11 +142,71 @@ def _gate_parser() -> argparse.ArgumentParser:
     rules.add_argument("--rules", type=Path, help="rules from a TOML file (floor, max_drop, require_classes)")
     p.add_argument("--baseline", type=Path,
                    help="the result to compare with: a JSON result, or predictions evaluated against --gt")
+    sig = p.add_argument_group("significance")
+    sig.add_argument("--significant", action="store_true",
+                     help="fail a drop only if a paired bootstrap over frames says it is significant (95%%); "
+                          "needs --gt, --pred and --baseline as predictions")
+    sig.add_argument("--bootstrap", type=int, default=1000, metavar="N", help="resamples for --significant")
+    sig.add_argument("--seed", type=int, default=0, help="seed of the resampling (default 0)")
     out = p.add_argument_group("reports")
     out.add_argument("--markdown", type=Path, help="also write the verdict as Markdown (CI job summaries)")
     out.add_argument("--junit", type=Path, help="also write the verdict as JUnit XML")
     out.add_argument("--show-passed", action="store_true", help="list passing checks too")
     return p
+
+
+def _compare_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=f"{PROG} compare",
+        description="Per-value differences B - A between two results, with paired bootstrap intervals over "
+                    "frames when both are predictions (--gt) and --bootstrap N is given.")
+    p.add_argument("a", type=Path, help="result A: a JSON result, or predictions (with --gt)")
+    p.add_argument("b", type=Path, help="result B: a JSON result, or predictions (with --gt)")
+    p.add_argument("--gt", type=Path, help="ground truth, to evaluate predictions given as A or B")
+    p.add_argument("--bootstrap", type=int, default=0, metavar="N", help="paired bootstrap resamples (e.g. 1000)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the resampling (default 0)")
+    p.add_argument("--all", action="store_true", help="every value, not only R40 with the strict thresholds")
+    p.add_argument("--format", choices=["table", "json", "markdown"], default="table")
+    p.add_argument("--output", "-o", type=Path, help="write the comparison here instead of stdout")
+    _add_config_options(p)
+    return p
+
+
+def _compare(args: argparse.Namespace) -> int:
+    from .bootstrap import compare_documents, paired_bootstrap, render_comparison
+
+    if args.bootstrap < 0:
+        raise ConfigError("--bootstrap must be >= 0")
+    is_json = [p.suffix.lower() == ".json" for p in (args.a, args.b)]
+    intervals = None
+    if args.bootstrap:
+        if any(is_json) or args.gt is None:
+            raise ConfigError("--bootstrap needs predictions for both A and B, and --gt")
+        from .loaders import load_detections, load_ground_truth
+
+        gt = load_ground_truth(args.gt)
+        res_a, res_b, intervals = paired_bootstrap(gt, load_detections(args.a), load_detections(args.b),
+                                                   _config(args), resamples=args.bootstrap, seed=args.seed)
+        doc_a, doc_b = res_a.to_dict(), res_b.to_dict()
+    else:
+        doc_a, doc_b = (_read_result_json(p) if j else _evaluate_doc(args, p)
+                        for p, j in zip((args.a, args.b), is_json))
+    text = render_comparison(compare_documents(doc_a, doc_b, intervals, args.bootstrap, args.seed if args.bootstrap
+                                               else None), args.format, every_value=args.all)
+    if args.output:
+        args.output.write_text(text, encoding="utf-8")
+    else:
+        sys.stdout.write(text)
+    return EXIT_OK
+
+
+def _evaluate_doc(args: argparse.Namespace, pred: Path) -> dict:
+    from .evaluation import evaluate
+    from .loaders import load_detections, load_ground_truth
+
+    if args.gt is None:
+        raise ConfigError(f"{pred} is not a JSON result; evaluating it needs --gt")
+    return evaluate(load_ground_truth(args.gt), load_detections(pred), _config(args)).to_dict()
 
 
 def _read_result_json(path: Path) -> dict:
@@ -187,20 +248,24 @@ def _gate(args: argparse.Namespace) -> int:
     if rules.max_drops and not args.baseline:
         raise ConfigError("--max-drop needs --baseline")
 
-    def evaluated(pred: Path) -> dict:
-        from .evaluation import evaluate
+    intervals = None
+    if args.significant:
+        if not (args.gt and args.pred and args.baseline) or args.baseline.suffix.lower() == ".json":
+            raise ConfigError("--significant needs --gt, --pred and a --baseline given as predictions")
+        from .bootstrap import paired_bootstrap
         from .loaders import load_detections, load_ground_truth
 
-        if args.gt is None:
-            raise ConfigError("a baseline given as predictions needs --gt")
-        return evaluate(load_ground_truth(args.gt), load_detections(pred), _config(args)).to_dict()
-
-    current = _read_result_json(args.result) if args.result else evaluated(args.pred)
-    baseline = None
-    if args.baseline:
-        baseline = (_read_result_json(args.baseline) if args.baseline.suffix.lower() == ".json"
-                    else evaluated(args.baseline))
-    verdict = run_gate(current, rules, baseline)
+        res_base, res_now, intervals = paired_bootstrap(
+            load_ground_truth(args.gt), load_detections(args.baseline), load_detections(args.pred), _config(args),
+            resamples=args.bootstrap, seed=args.seed)
+        current, baseline = res_now.to_dict(), res_base.to_dict()
+    else:
+        current = _read_result_json(args.result) if args.result else _evaluate_doc(args, args.pred)
+        baseline = None
+        if args.baseline:
+            baseline = (_read_result_json(args.baseline) if args.baseline.suffix.lower() == ".json"
+                        else _evaluate_doc(args, args.baseline))
+    verdict = run_gate(current, rules, baseline, intervals)
     sys.stdout.write(render_verdict(verdict, show_passed=args.show_passed))
     if args.markdown:
         args.markdown.write_text(render_verdict_markdown(verdict), encoding="utf-8")
@@ -220,6 +285,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _run(gt_path, pred_path, args)
         if argv and argv[0] == "gate":
             return _gate(_gate_parser().parse_args(argv[1:]))
+        if argv and argv[0] == "compare":
+            return _compare(_compare_parser().parse_args(argv[1:]))
         args = _parser().parse_args(argv)
         return _run(args.gt, args.pred, args)
     except SystemExit as e:  # argparse: usage errors exit 2, --help exits 0

@@ -255,6 +255,19 @@ class Annotations:
         missing = [fid for fid in frame_ids if fid not in mine]
         if not missing and tuple(frame_ids) == self.frame_ids:
             return self, []
+        return self._take(frame_ids), missing
+
+    def subset(self, frame_ids: Sequence[str]) -> Annotations:
+        """Only the given frames, in that order (a frame not here is an error)."""
+        mine = self.frame_index()
+        absent = [fid for fid in frame_ids if fid not in mine]
+        if absent:
+            raise InputError(f"no such frame ({len(absent)} asked for are absent)", source=self.source,
+                             frame=absent[0])
+        return self._take(frame_ids)
+
+    def _take(self, frame_ids: Sequence[str]) -> Annotations:
+        mine = self.frame_index()
         rows: list[np.ndarray] = []
         counts = np.zeros(len(frame_ids), dtype=np.int64)
         for k, fid in enumerate(frame_ids):
@@ -268,7 +281,7 @@ class Annotations:
         np.cumsum(counts, out=offsets[1:])
         fields = {f: getattr(self, f)[take] for f in ("name", *_NUMERIC_FIELDS)}
         return Annotations(kind=self.kind, source=self.source, frame_ids=tuple(frame_ids), offsets=offsets,
-                           **fields), missing
+                           **fields)
 
 
 #: Typical (l, h, w) of KITTI classes, metres; used only to spot a swapped dimension order.

@@ -32,7 +32,8 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-__all__ = ["PRCounts", "MatchJob", "pr_counts", "pr_counts_many", "score_thresholds"]
+__all__ = ["PRCounts", "MatchJob", "FrameEvents", "pr_counts", "pr_counts_many", "frame_events_many",
+           "score_thresholds", "default_workers"]
 
 _NO_DETECTION = -10000000.0
 
@@ -181,7 +182,8 @@ def _candidates(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray
     ``d_ptr``) -- the number of DontCare rows (``c_cnt``), and their overlaps as one (detections x (ground
     truth + DontCare)) block per frame in ``sub`` at ``sub_ptr``. Also ``valid``: (F,) valid ground truth
     per frame, and ``free_fp``: scores of valid detections that can match nothing and that no DontCare
-    region covers -- false positives at every threshold up to their score, with no need to match them.
+    region covers -- false positives at every threshold up to their score, with no need to match them --
+    and ``free_frame``, the frame of each.
     """
     n_frames = gt_offsets.shape[0] - 1
     n_gt_all = gt_offsets[n_frames]
@@ -192,6 +194,7 @@ def _candidates(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray
     d_code = np.empty(n_dt_all, dtype=np.int8)
     d_alpha = np.empty(n_dt_all, dtype=np.float64)
     free_fp = np.empty(n_dt_all, dtype=np.float64)
+    free_frame = np.empty(n_dt_all, dtype=np.int64)
     g_ptr = np.zeros(n_frames + 1, dtype=np.int64)
     d_ptr = np.zeros(n_frames + 1, dtype=np.int64)
     c_cnt = np.zeros(n_frames, dtype=np.int64)
@@ -229,6 +232,7 @@ def _candidates(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray
                 nd += 1
             elif code == 0 and not best_dc[d0 + j] > min_overlap:
                 free_fp[n_free] = score[d0 + j]
+                free_frame[n_free] = f
                 n_free += 1
         g_ptr[f + 1] = ng
         d_ptr[f + 1] = nd
@@ -259,7 +263,7 @@ def _candidates(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray
                     sub[k] = ov[base + j * n_gt + cols[c]]
                     k += 1
     return (g_code, g_alpha, g_ptr, d_score, d_code, d_alpha, d_ptr, c_cnt, sub, sub_ptr, valid,
-            free_fp[:n_free])
+            free_fp[:n_free], free_frame[:n_free])
 
 
 @njit(cache=True, nogil=True)
@@ -269,7 +273,7 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
                min_overlap: float, compute_aos: bool, n_sample_pts: int) -> tuple[np.ndarray, np.ndarray, int]:
     n_frames = gt_offsets.shape[0] - 1
     (g_code, g_alpha, g_ptr, d_score, d_code, d_alpha, d_ptr, c_cnt, sub, sub_ptr, valid,
-     free_fp) = _candidates(pair_offsets, ov, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score,
+     free_fp, _) = _candidates(pair_offsets, ov, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score,
                             gt_alpha, dt_alpha, best_gt, best_dc, min_overlap)
     n_valid_gt = 0
     for f in range(n_frames):
@@ -343,6 +347,84 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
             running += delta[t, c]
             pr[t, c] = running
     return thresholds, pr, n_valid_gt
+
+
+@njit(cache=True, nogil=True)
+def _frame_events(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray,
+                  ignored_gt: np.ndarray, ignored_det: np.ndarray, dontcare: np.ndarray, score: np.ndarray,
+                  gt_alpha: np.ndarray, dt_alpha: np.ndarray, best_gt: np.ndarray, best_dc: np.ndarray,
+                  min_overlap: float, compute_aos: bool):  # noqa: ANN202 - see the docstring
+    """Each frame's part of the counts, as a function of the score threshold, for re-weighting frames.
+
+    Returns ``valid`` (F,) valid ground truth per frame; the pass-1 true positives as ``tp_score``,
+    ``tp_frame``; and the events ``ev_score``, ``ev_frame``, ``ev_delta`` (E, 4): when the threshold
+    falls to ``ev_score``, frame ``ev_frame``'s (tp, fp, fn, similarity) change by ``ev_delta`` (before
+    any event a frame counts (0, 0, valid, 0)). The counts at threshold t of any weighting of the frames
+    are the weighted sums of the events with score >= t.
+    """
+    n_frames = gt_offsets.shape[0] - 1
+    (g_code, g_alpha, g_ptr, d_score, d_code, d_alpha, d_ptr, c_cnt, sub, sub_ptr, valid,
+     free_fp, free_frame) = _candidates(pair_offsets, ov, gt_offsets, dt_offsets, ignored_gt, ignored_det,
+                                        dontcare, score, gt_alpha, dt_alpha, best_gt, best_dc, min_overlap)
+    widest = 0
+    for f in range(n_frames):
+        widest = max(widest, d_ptr[f + 1] - d_ptr[f])
+    assigned = np.empty(widest, dtype=np.bool_)
+    below = np.empty(widest, dtype=np.bool_)
+    ranked = np.empty(widest, dtype=np.float64)
+    n_match = d_ptr[n_frames]
+    tp_score = np.empty(n_match, dtype=np.float64)
+    tp_frame = np.empty(n_match, dtype=np.int64)
+    n_ev_max = n_match + free_fp.shape[0]
+    ev_score = np.empty(n_ev_max, dtype=np.float64)
+    ev_frame = np.empty(n_ev_max, dtype=np.int64)
+    ev_delta = np.zeros((n_ev_max, 4), dtype=np.float64)
+    n_tp = 0
+    n_ev = 0
+    for f in range(n_frames):
+        lo, hi = d_ptr[f], d_ptr[f + 1]
+        if lo == hi:
+            continue
+        ga, gb = g_ptr[f], g_ptr[f + 1]
+        first = n_tp
+        _, _, _, _, n_tp = _match_frame(sub, sub_ptr[f], gb - ga, c_cnt[f], g_code[ga:gb], g_alpha[ga:gb],
+                                        d_score[lo:hi], d_code[lo:hi], d_alpha[lo:hi], min_overlap, False, 0.0,
+                                        False, tp_score, n_tp, assigned, below)
+        for k in range(first, n_tp):
+            tp_frame[k] = f
+        m = hi - lo
+        for a in range(m):
+            s = d_score[lo + a]
+            b = a
+            while b > 0 and ranked[b - 1] < s:
+                ranked[b] = ranked[b - 1]
+                b -= 1
+            ranked[b] = s
+        prev_tp, prev_fp, prev_fn, prev_sim = 0.0, 0.0, float(valid[f]), 0.0
+        a = 0
+        while a < m:
+            level = ranked[a]
+            while a < m and ranked[a] >= level:
+                a += 1
+            tp, fp, fn, sim, _ = _match_frame(sub, sub_ptr[f], gb - ga, c_cnt[f], g_code[ga:gb], g_alpha[ga:gb],
+                                              d_score[lo:hi], d_code[lo:hi], d_alpha[lo:hi], min_overlap, True,
+                                              level, compute_aos, tp_score, 0, assigned, below)
+            if sim == -1.0:
+                sim = 0.0
+            ev_score[n_ev] = level
+            ev_frame[n_ev] = f
+            ev_delta[n_ev, 0] = tp - prev_tp
+            ev_delta[n_ev, 1] = fp - prev_fp
+            ev_delta[n_ev, 2] = fn - prev_fn
+            ev_delta[n_ev, 3] = sim - prev_sim
+            n_ev += 1
+            prev_tp, prev_fp, prev_fn, prev_sim = tp, fp, fn, sim
+    for k in range(free_fp.shape[0]):
+        ev_score[n_ev] = free_fp[k]
+        ev_frame[n_ev] = free_frame[k]
+        ev_delta[n_ev, 1] = 1.0
+        n_ev += 1
+    return valid, tp_score[:n_tp], tp_frame[:n_tp], ev_score[:n_ev], ev_frame[:n_ev], ev_delta[:n_ev]
 
 
 @njit(cache=True, nogil=True)
@@ -465,24 +547,40 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def pr_counts_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.NDArray[np.float64]],
-                   gt_offsets: npt.NDArray[np.int64], dt_offsets: npt.NDArray[np.int64],
-                   ignored_gt: npt.NDArray[np.int8], ignored_det: npt.NDArray[np.int8],
-                   dontcare: npt.NDArray[np.bool_], score: npt.NDArray[np.float64],
-                   gt_alpha: npt.NDArray[np.float64], dt_alpha: npt.NDArray[np.float64],
-                   jobs: Sequence[MatchJob], n_sample_pts: int = 41, *, workers: int | None = None,
-                   ) -> list[PRCounts]:
-    """Run many independent matchings over the same frames, in parallel across jobs.
+@dataclass(frozen=True, eq=False)
+class _Prepared:
+    """Validated inputs of a batch of matchings, with each detection's best overlap per ground-truth group."""
 
-    Parameters
-    ----------
-    overlaps : one to three (P,) arrays in the layout of :func:`pr_counts`, e.g. bbox, bev, 3d
-    ignored_gt : (K, M) int8, one row of ignore codes per (class, difficulty)
-    ignored_det : (K, N) int8, the matching rows for detections
-    dontcare : (M,) bool, DontCare ground-truth rows (used by jobs with ``dontcare`` set)
-    jobs : what to match; see :class:`MatchJob`
-    workers : threads to spread the jobs over (default :func:`default_workers`)
-    """
+    pair_offsets: np.ndarray
+    ov3: list[np.ndarray]
+    gt_offsets: np.ndarray
+    dt_offsets: np.ndarray
+    ig: np.ndarray
+    idet: np.ndarray
+    dc: np.ndarray
+    score: np.ndarray
+    gt_alpha: np.ndarray
+    dt_alpha: np.ndarray
+    best: np.ndarray           # (3, G, N): per metric, per group (DontCare last)
+    job_group: list[int]
+    hands: list[list[int]]     # job indices per thread, largest jobs dealt first
+
+    def best_of(self, job: MatchJob, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The (N,) best overlaps with the job's ground truth, and with DontCare (zeros without it)."""
+        dc_best = self.best[job.metric, -1] if job.dontcare else np.zeros(self.best.shape[2])
+        return self.best[job.metric, self.job_group[k]], dc_best
+
+    def pool_map(self, fn, items):  # noqa: ANN001, ANN201 - a thread map over the prepared hands
+        if len(self.hands) == 1 or len(items) <= 1:
+            return [fn(x) for x in items]
+        with ThreadPoolExecutor(max_workers=len(self.hands)) as pool:
+            return list(pool.map(fn, items))
+
+
+def _prepare(pair_offsets: npt.ArrayLike, overlaps: Sequence[npt.ArrayLike], gt_offsets: npt.ArrayLike,
+             dt_offsets: npt.ArrayLike, ignored_gt: npt.ArrayLike, ignored_det: npt.ArrayLike,
+             dontcare: npt.ArrayLike, score: npt.ArrayLike, gt_alpha: npt.ArrayLike, dt_alpha: npt.ArrayLike,
+             jobs: Sequence[MatchJob], workers: int | None) -> _Prepared:
     pair_offsets = np.ascontiguousarray(pair_offsets, np.int64)
     gt_offsets = np.ascontiguousarray(gt_offsets, np.int64)
     dt_offsets = np.ascontiguousarray(dt_offsets, np.int64)
@@ -528,34 +626,101 @@ def pr_counts_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.N
     hands: list[list[int]] = [[] for _ in range(min(workers, max(1, len(jobs))))]
     for rank, k in enumerate(np.argsort(-cost, kind="stable")):
         hands[rank % len(hands)].append(int(k))
+    prep = _Prepared(pair_offsets, ov3, gt_offsets, dt_offsets, ig, idet, dc, score, gt_alpha, dt_alpha, best,
+                     job_group, hands)
 
     def fill_best(m: int) -> None:
         _best_overlaps(pair_offsets, ov3[m], gt_offsets, dt_offsets, groups, best[m])
 
+    prep.pool_map(fill_best, metrics_used)  # the kernels release the GIL: plain threads run them in parallel
+    return prep
+
+
+def pr_counts_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.NDArray[np.float64]],
+                   gt_offsets: npt.NDArray[np.int64], dt_offsets: npt.NDArray[np.int64],
+                   ignored_gt: npt.NDArray[np.int8], ignored_det: npt.NDArray[np.int8],
+                   dontcare: npt.NDArray[np.bool_], score: npt.NDArray[np.float64],
+                   gt_alpha: npt.NDArray[np.float64], dt_alpha: npt.NDArray[np.float64],
+                   jobs: Sequence[MatchJob], n_sample_pts: int = 41, *, workers: int | None = None,
+                   ) -> list[PRCounts]:
+    """Run many independent matchings over the same frames, in parallel across jobs.
+
+    Parameters
+    ----------
+    overlaps : one to three (P,) arrays in the layout of :func:`pr_counts`, e.g. bbox, bev, 3d
+    ignored_gt : (K, M) int8, one row of ignore codes per (class, difficulty)
+    ignored_det : (K, N) int8, the matching rows for detections
+    dontcare : (M,) bool, DontCare ground-truth rows (used by jobs with ``dontcare`` set)
+    jobs : what to match; see :class:`MatchJob`
+    workers : threads to spread the jobs over (default :func:`default_workers`)
+    """
+    p = _prepare(pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score,
+                 gt_alpha, dt_alpha, jobs, workers)
+
     def run(hand: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         picked = [jobs[k] for k in hand]
         return _pr_counts_many(
-            pair_offsets, ov3[0], ov3[1], ov3[2], gt_offsets, dt_offsets, ig, idet, dc, score, gt_alpha, dt_alpha,
-            best, np.array([j.metric for j in picked], np.int64), np.array([j.codes for j in picked], np.int64),
-            np.array([job_group[k] for k in hand], np.int64), np.array([j.min_overlap for j in picked], np.float64),
-            np.array([j.compute_aos for j in picked], np.bool_), np.array([j.dontcare for j in picked], np.bool_),
-            int(n_sample_pts))
+            p.pair_offsets, p.ov3[0], p.ov3[1], p.ov3[2], p.gt_offsets, p.dt_offsets, p.ig, p.idet, p.dc, p.score,
+            p.gt_alpha, p.dt_alpha, p.best, np.array([j.metric for j in picked], np.int64),
+            np.array([j.codes for j in picked], np.int64), np.array([p.job_group[k] for k in hand], np.int64),
+            np.array([j.min_overlap for j in picked], np.float64), np.array([j.compute_aos for j in picked], np.bool_),
+            np.array([j.dontcare for j in picked], np.bool_), int(n_sample_pts))
 
-    # the kernels release the GIL, so plain threads run them in parallel
-    if len(hands) == 1:
-        for m in metrics_used:
-            fill_best(m)
-        results = [run(hands[0])]
-    else:
-        with ThreadPoolExecutor(max_workers=len(hands)) as pool:
-            list(pool.map(fill_best, metrics_used))
-            results = list(pool.map(run, hands))
+    results = p.pool_map(run, p.hands)
     out: list[PRCounts | None] = [None] * len(jobs)
-    for hand, (thr, pr, n_thr, n_valid) in zip(hands, results):
+    for hand, (thr, pr, n_thr, n_valid) in zip(p.hands, results):
         for c, k in enumerate(hand):
             t = int(n_thr[c])
             if t > n_sample_pts:
                 raise RuntimeError(f"{t} score thresholds for {n_sample_pts} recall samples")
             out[k] = PRCounts(thresholds=thr[c, :t].copy(), tp=pr[c, :t, 0].copy(), fp=pr[c, :t, 1].copy(),
                               fn=pr[c, :t, 2].copy(), similarity=pr[c, :t, 3].copy(), num_valid_gt=int(n_valid[c]))
+    return out  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class FrameEvents:
+    """One matching's counts per frame as step functions of the score threshold (see :func:`_frame_events`).
+
+    valid : (F,) valid ground truth per frame
+    tp_score, tp_frame : (T,) the true positives that choose the score thresholds, sorted by score, descending
+    ev_score, ev_frame : (E,) and ev_delta : (E, 4) changes of a frame's (tp, fp, fn, similarity) as the
+        threshold falls to ev_score, sorted by score, descending
+    """
+
+    valid: npt.NDArray[np.int64]
+    tp_score: npt.NDArray[np.float64]
+    tp_frame: npt.NDArray[np.int64]
+    ev_score: npt.NDArray[np.float64]
+    ev_frame: npt.NDArray[np.int64]
+    ev_delta: npt.NDArray[np.float64]
+    compute_aos: bool
+
+
+def frame_events_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.NDArray[np.float64]],
+                      gt_offsets: npt.NDArray[np.int64], dt_offsets: npt.NDArray[np.int64],
+                      ignored_gt: npt.NDArray[np.int8], ignored_det: npt.NDArray[np.int8],
+                      dontcare: npt.NDArray[np.bool_], score: npt.NDArray[np.float64],
+                      gt_alpha: npt.NDArray[np.float64], dt_alpha: npt.NDArray[np.float64],
+                      jobs: Sequence[MatchJob], *, workers: int | None = None) -> list[FrameEvents]:
+    """Per-frame step functions for the same jobs as :func:`pr_counts_many` (arguments alike)."""
+    p = _prepare(pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score,
+                 gt_alpha, dt_alpha, jobs, workers)
+
+    def run(k: int) -> FrameEvents:
+        job = jobs[k]
+        best_gt, best_dc = p.best_of(job, k)
+        valid, tp_s, tp_f, ev_s, ev_f, ev_d = _frame_events(
+            p.pair_offsets, p.ov3[job.metric], p.gt_offsets, p.dt_offsets, p.ig[job.codes], p.idet[job.codes],
+            p.dc if job.dontcare else np.zeros_like(p.dc), p.score, p.gt_alpha, p.dt_alpha, best_gt, best_dc,
+            job.min_overlap, job.compute_aos)
+        order_tp = np.argsort(-tp_s, kind="stable")
+        order_ev = np.argsort(-ev_s, kind="stable")
+        return FrameEvents(valid, tp_s[order_tp], tp_f[order_tp], ev_s[order_ev], ev_f[order_ev], ev_d[order_ev],
+                           job.compute_aos)
+
+    order = [k for hand in p.hands for k in hand] if jobs else []
+    out: list[FrameEvents | None] = [None] * len(jobs)
+    for k, events in zip(order, p.pool_map(run, order)):
+        out[k] = events
     return out  # type: ignore[return-value]
