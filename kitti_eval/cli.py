@@ -68,9 +68,17 @@ def _parser() -> argparse.ArgumentParser:
                "Exit codes: 0 ok, 1 bad input, 2 usage.")
     p.add_argument("--gt", required=True, type=Path,
                    help="ground truth: a KITTI label_2 folder or an OpenPCDet infos .pkl[.gz]")
-    p.add_argument("--pred", required=True, type=Path,
-                   help="predictions: a KITTI result folder (16-field txt) or an OpenPCDet result .pkl[.gz]")
+    p.add_argument("--pred", required=True, action="append", metavar="PRED",
+                   help="predictions: a KITTI result folder (16-field txt) or an OpenPCDet result .pkl[.gz]; "
+                        "repeat it or give a quoted glob ('output/*/epoch_*/val/result.pkl') to evaluate many "
+                        "checkpoints in one process")
     _add_eval_options(p)
+    many = p.add_argument_group("many checkpoints")
+    many.add_argument("--value", action="append", default=[], metavar="KEY",
+                      help="a column of the checkpoint table, e.g. Car/3d/moderate/R40 (default: moderate 3D "
+                           "AP of each class); repeatable")
+    many.add_argument("--best-by", metavar="KEY", help="rank checkpoints by this value (default: mean moderate 3D AP)")
+    many.add_argument("--plot", type=Path, metavar="PNG", help="save a plot of AP against epoch (needs matplotlib)")
     return p
 
 
@@ -274,6 +282,37 @@ def _gate(args: argparse.Namespace) -> int:
     return EXIT_OK if verdict.passed else EXIT_GATE
 
 
+def _run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int:
+    from ._jit import kernels_cached
+    from .batch import evaluate_many, plot_batch, render_batch
+    from .gate import ValueKey
+    from .loaders import load_ground_truth
+
+    config = _config(args)
+    keys = [ValueKey.parse(k) for k in args.value]
+    best_by = ValueKey.parse(args.best_by) if args.best_by else None
+    if args.format == OutputFormat.TABLE or args.format == OutputFormat.MARKDOWN:
+        fmt = args.format.value
+    else:
+        fmt = "json"
+    gt = load_ground_truth(gt_path)
+    if not kernels_cached():
+        _say("compiling the evaluation kernels once (takes a few seconds; later runs use numba's cache)")
+
+    def skip(path: Path, error: Exception) -> None:
+        _say(f"error: {error} (skipped)")
+
+    checkpoints = evaluate_many(gt, preds, config, progress=sys.stderr.isatty() and not args.quiet, on_error=skip)
+    text = render_batch(checkpoints, fmt, keys=keys or None, best_by=best_by)
+    if args.plot:
+        plot_batch(checkpoints, args.plot, keys=keys or None)
+    if args.output:
+        args.output.write_text(text, encoding="utf-8")
+    else:
+        sys.stdout.write(text)
+    return EXIT_OK if len(checkpoints) == len(preds) else EXIT_INPUT
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
@@ -288,7 +327,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if argv and argv[0] == "compare":
             return _compare(_compare_parser().parse_args(argv[1:]))
         args = _parser().parse_args(argv)
-        return _run(args.gt, args.pred, args)
+        from .batch import expand_predictions
+
+        preds = expand_predictions(args.pred)
+        if len(preds) == 1 and not args.plot:
+            return _run(args.gt, preds[0], args)
+        return _run_many(args.gt, preds, args)
     except SystemExit as e:  # argparse: usage errors exit 2, --help exits 0
         return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
     except ConfigError as e:
