@@ -86,6 +86,8 @@ def _demo_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=f"{PROG} demo",
                                 description="Evaluate the bundled synthetic demo set (nothing is downloaded).")
     _add_eval_options(p)
+    p.add_argument("--where", action="store_true",
+                   help="print the demo's ground-truth and prediction paths (one line, space-separated) and exit")
     return p
 
 
@@ -321,6 +323,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             from .synth import demo_paths
 
             gt_path, pred_path = demo_paths()
+            if args.where:
+                print(gt_path, pred_path)
+                return EXIT_OK
             return _run(gt_path, pred_path, args)
         if argv and argv[0] == "gate":
             return _gate(_gate_parser().parse_args(argv[1:]))

@@ -158,3 +158,27 @@ def test_cli_gate_usage_and_input_errors(capsys, tmp_path):
     code, _, err = run(capsys, "gate", "--result", tmp_path / "bad.json", "--min", "Car/3d/easy >= 1")
     assert code == 1 and "not a kitti-eval JSON result" in err
     assert run(capsys, "gate", "--result", tmp_path / "bad.json", "--max-drop", "1")[0] == 2  # no baseline
+
+
+def test_readme_ci_example_runs_as_written(tmp_path):
+    """The 'Evaluate and gate' step of the README's CI job, run by bash on the bundled demo data."""
+    import os
+    import re
+    import shutil
+    import subprocess
+    import sys
+
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    block = re.search(r"- name: Evaluate and gate\n\s+run: \|\n((?:          .*\n)+)", readme)
+    assert block, "the README's CI example lost its 'Evaluate and gate' step"
+    script = "set -euo pipefail\n" + "\n".join(line[10:] for line in block.group(1).splitlines())
+    bash = shutil.which("bash")
+    if bash is None:
+        pytest.skip("no bash")
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    env.pop("GITHUB_STEP_SUMMARY", None)
+    proc = subprocess.run([bash, "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "gate: PASSED" in proc.stdout
+    assert ET.parse(tmp_path / "gate.xml").getroot().get("failures") == "0"
+    assert "passed" in (tmp_path / "summary.md").read_text()
