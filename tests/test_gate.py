@@ -29,7 +29,7 @@ GT, PRED = GOLDEN / "kitti_infos_val.pkl", GOLDEN / "result.pkl"
 
 def doc(values: dict[str, float | None], classes=("Car", "Pedestrian")) -> dict:
     """A minimal result document: every value 50.0 unless given as 'Class/metric/difficulty' (R40, strict)."""
-    ap = {oset: {r: {c: {m: {d: 50.0 for d in ("easy", "moderate", "hard")} for m in ("bbox", "bev", "3d", "aos")}
+    ap = {oset: {r: {c: {m: dict.fromkeys(("easy", "moderate", "hard"), 50.0) for m in ("bbox", "bev", "3d", "aos")}
                      for c in classes} for r in ("R11", "R40")} for oset in ("strict", "loose")}
     for key, v in values.items():
         k = ValueKey.parse(key)
