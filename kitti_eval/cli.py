@@ -15,7 +15,7 @@ from pathlib import Path
 
 from .errors import ConfigError, InputError, KittiEvalError
 from .formats import OutputFormat
-from .protocol import DEFAULT_CLASSES, KNOWN_CLASSES, PROTOCOLS, THRESHOLD_SETS
+from .protocol import DEFAULT_CLASSES, KNOWN_CLASSES, PROTOCOLS
 
 __all__ = ["main"]
 
@@ -23,19 +23,15 @@ PROG = "kitti-eval"
 EXIT_OK, EXIT_INPUT, EXIT_USAGE, EXIT_GATE = 0, 1, 2, 3
 
 
-def _parse_iou(text: str) -> tuple[str, str | None, tuple[float, float, float]]:
-    """``Car=0.7,0.6,0.6`` (both threshold sets) or ``Car:loose=0.7,0.5,0.5``."""
+def _iou_argument(text: str) -> str:
+    """argparse check of an ``--iou`` value; the text itself goes to :func:`overlaps_from_overrides`."""
+    from .protocol import parse_iou_override
+
     try:
-        key, values = text.split("=", 1)
-        cls, _, oset = key.partition(":")
-        triple = tuple(float(v) for v in values.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected CLASS[:SET]=BBOX,BEV,3D, got {text!r}") from None
-    if len(triple) != 3 or not cls:
-        raise argparse.ArgumentTypeError(f"expected CLASS[:SET]=BBOX,BEV,3D, got {text!r}")
-    if oset and oset not in THRESHOLD_SETS:
-        raise argparse.ArgumentTypeError(f"threshold set must be one of {', '.join(THRESHOLD_SETS)}, got {oset!r}")
-    return cls, oset or None, triple  # type: ignore[return-value]
+        parse_iou_override(text)
+    except ConfigError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return text
 
 
 def _add_config_options(p: argparse.ArgumentParser) -> None:
@@ -44,7 +40,7 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--classes", default=",".join(DEFAULT_CLASSES),
                    help=f"comma-separated classes (default {','.join(DEFAULT_CLASSES)}; "
                         f"known: {','.join(KNOWN_CLASSES)})")
-    p.add_argument("--iou", type=_parse_iou, action="append", default=[], metavar="CLASS[:SET]=BBOX,BEV,3D",
+    p.add_argument("--iou", type=_iou_argument, action="append", default=[], metavar="CLASS[:SET]=BBOX,BEV,3D",
                    help="IoU thresholds for a class, for both sets or for 'strict'/'loose' only; repeatable")
 
 
@@ -64,7 +60,8 @@ def _parser() -> argparse.ArgumentParser:
         prog=PROG,
         description="Exact KITTI 3D object detection evaluation (2D, BEV, 3D, AOS; R11 and R40) on a CPU.",
         epilog="Commands: 'kitti-eval demo' evaluates the bundled demo set; 'kitti-eval gate' checks AP "
-               "rules (exit 3 when a rule fails); 'kitti-eval compare A B' shows per-value differences. "
+               "rules (exit 3 when a rule fails); 'kitti-eval compare A B' shows per-value differences; "
+               "'kitti-eval serve' runs the HTTP service. "
                "Exit codes: 0 ok, 1 bad input, 2 usage.")
     p.add_argument("--gt", required=True, type=Path,
                    help="ground truth: a KITTI label_2 folder or an OpenPCDet infos .pkl[.gz]")
@@ -92,14 +89,11 @@ def _demo_parser() -> argparse.ArgumentParser:
 
 
 def _config(args: argparse.Namespace):  # noqa: ANN202 - EvalConfig, imported lazily
-    from .protocol import EvalConfig
+    from .protocol import EvalConfig, overlaps_from_overrides
 
     classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
-    overlaps: dict[str, dict[str, tuple[float, float, float]]] = {}
-    for cls, oset, triple in args.iou:
-        for s in ([oset] if oset else THRESHOLD_SETS):
-            overlaps.setdefault(cls, {})[s] = triple
-    return EvalConfig(classes=classes, protocol=PROTOCOLS[args.protocol], overlaps=overlaps)
+    return EvalConfig(classes=classes, protocol=PROTOCOLS[args.protocol],
+                      overlaps=overlaps_from_overrides(args.iou))
 
 
 def _say(msg: str) -> None:
@@ -331,6 +325,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _gate(_gate_parser().parse_args(argv[1:]))
         if argv and argv[0] == "compare":
             return _compare(_compare_parser().parse_args(argv[1:]))
+        if argv and argv[0] == "serve":
+            try:
+                from server.main import serve
+            except ImportError as e:
+                raise ConfigError(f"the service needs the server extra: pip install 'kitti-eval[server]' ({e})") from None
+            return serve(argv[1:])
         args = _parser().parse_args(argv)
         from .batch import expand_predictions
 

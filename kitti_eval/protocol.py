@@ -12,7 +12,7 @@ Two protocols share these tables and differ only in the flags of :class:`Protoco
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
 from types import MappingProxyType
@@ -24,7 +24,8 @@ __all__ = [
     "Metric", "Difficulty", "DifficultyLimits", "Protocol", "EvalConfig",
     "OVERLAP_METRICS", "ALL_METRICS", "THRESHOLD_SETS", "RECALL_MODES", "DEFAULT_CLASSES", "KNOWN_CLASSES",
     "CLASS_OVERLAPS", "NEIGHBOURS", "DONTCARE", "N_SAMPLE_PTS", "RECALL_SAMPLE_INDICES", "INVALID_ALPHA",
-    "KITTI_DIFFICULTY", "OFFICIAL", "OPENPCDET", "PROTOCOLS", "get_protocol",
+    "KITTI_DIFFICULTY", "OFFICIAL", "OPENPCDET", "PROTOCOLS", "get_protocol", "parse_iou_override",
+    "overlaps_from_overrides",
 ]
 
 
@@ -164,6 +165,31 @@ def _check_overlap(cls: str, oset: str, values: object) -> tuple[float, float, f
         raise ConfigError(
             f"IoU thresholds for {cls}/{oset} must be three numbers in [0, 1) (bbox, bev, 3d), got {values!r}")
     return triple  # type: ignore[return-value]
+
+
+def parse_iou_override(text: str) -> tuple[str, str | None, tuple[float, float, float]]:
+    """``Car=0.7,0.6,0.6`` (both threshold sets) or ``Car:loose=0.7,0.5,0.5``: (class, set or None, triple)."""
+    try:
+        key, values = text.split("=", 1)
+        cls, _, oset = key.strip().partition(":")
+        triple = tuple(float(v) for v in values.split(","))
+    except ValueError:
+        raise ConfigError(f"expected CLASS[:SET]=BBOX,BEV,3D, got {text!r}") from None
+    if len(triple) != 3 or not cls:
+        raise ConfigError(f"expected CLASS[:SET]=BBOX,BEV,3D, got {text!r}")
+    if oset and oset not in THRESHOLD_SETS:
+        raise ConfigError(f"threshold set must be one of {', '.join(THRESHOLD_SETS)}, got {oset!r}")
+    return cls, oset or None, (triple[0], triple[1], triple[2])
+
+
+def overlaps_from_overrides(texts: Sequence[str]) -> dict[str, dict[str, tuple[float, float, float]]]:
+    """``EvalConfig.overlaps`` from ``--iou``-style overrides (a later one wins)."""
+    overlaps: dict[str, dict[str, tuple[float, float, float]]] = {}
+    for text in texts:
+        cls, oset, triple = parse_iou_override(text)
+        for s in [oset] if oset else THRESHOLD_SETS:
+            overlaps.setdefault(cls, {})[s] = triple
+    return overlaps
 
 
 @dataclass(frozen=True)

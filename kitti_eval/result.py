@@ -51,6 +51,17 @@ class EvalResult:
         d = difficulty.label if isinstance(difficulty, Difficulty) else str(difficulty)
         return self.ap[oset][recall][cls][m][d]
 
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> EvalResult:
+        """Back from :meth:`to_dict` (curves and timings are not kept), e.g. to render a stored result."""
+        if doc.get("schema_version") != SCHEMA_VERSION:
+            raise ValueError(f"expected schema_version {SCHEMA_VERSION}, got {doc.get('schema_version')!r}")
+        return cls(protocol=doc["protocol"], classes=tuple(doc["classes"]), threshold_sets=tuple(doc["threshold_sets"]),
+                   overlaps=copy.deepcopy(doc["overlaps"]), ap=copy.deepcopy(doc["ap"]),
+                   num_gt=copy.deepcopy(doc["num_gt"]), num_det=dict(doc["num_det"]), frames=int(doc["frames"]),
+                   frames_without_predictions=tuple(doc["frames_without_predictions"]),
+                   aos_evaluated=bool(doc["aos_evaluated"]), warnings=tuple(doc["warnings"]))
+
     def to_dict(self, *, include_curves: bool = False) -> dict[str, Any]:
         """The JSON form (schema version :data:`SCHEMA_VERSION`); every key is always present."""
         out: dict[str, Any] = {

@@ -1,0 +1,181 @@
+"""One error shape for every failure: ``{"error": {"code", "message"}}`` (plus ``frame``/``field`` when known).
+
+Library errors (:mod:`kitti_eval.errors`) and the service's own (:class:`ApiError`) map to a status here and
+nowhere else; an unexpected exception becomes a 500 whose body says nothing about the code that failed
+(the traceback goes to the server log only).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from http import HTTPStatus
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from kitti_eval.errors import ConfigError, InputError, KittiEvalError, UnsafePickleError
+
+__all__ = [
+    "ApiError", "NotFound", "Conflict", "Unauthorized", "Forbidden", "Busy", "NotReady", "PayloadTooLarge",
+    "UnknownFormat", "ArchiveError", "BadRequest", "error_body", "error_response", "install_error_handlers",
+]
+
+log = logging.getLogger("kitti_eval.server")
+
+
+class ApiError(Exception):
+    """A failure the service reports on purpose; subclasses fix the status and the code."""
+
+    status_code = 400
+    code = "bad_request"
+
+    def __init__(self, message: str, *, headers: Mapping[str, str] | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.headers = dict(headers or {})
+
+
+class BadRequest(ApiError):
+    """A request option is invalid (unknown format, malformed label, ...)."""
+
+    status_code = 422
+    code = "invalid_request"
+
+
+class NotFound(ApiError):
+    status_code = 404
+    code = "not_found"
+
+
+class Conflict(ApiError):
+    status_code = 409
+    code = "conflict"
+
+
+class Unauthorized(ApiError):
+    status_code = 401
+    code = "unauthorized"
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message, headers={"WWW-Authenticate": "Bearer"})
+
+
+class Forbidden(ApiError):
+    status_code = 403
+    code = "forbidden"
+
+
+class Busy(ApiError):
+    """Every evaluation slot and queue place is taken."""
+
+    status_code = 503
+    code = "busy"
+
+    def __init__(self, message: str, retry_after_s: int) -> None:
+        super().__init__(message, headers={"Retry-After": str(retry_after_s)})
+
+
+class NotReady(ApiError):
+    status_code = 503
+    code = "not_ready"
+
+    def __init__(self, message: str, retry_after_s: int = 1) -> None:
+        super().__init__(message, headers={"Retry-After": str(retry_after_s)})
+
+
+class PayloadTooLarge(ApiError):
+    status_code = 413
+    code = "payload_too_large"
+
+
+class UnknownFormat(ApiError):
+    """An upload is none of the accepted formats."""
+
+    status_code = 422
+    code = "unknown_format"
+
+
+class ArchiveError(ApiError):
+    """An uploaded zip/tar is unsafe or unusable (traversal, links, devices, bombs, no txt files)."""
+
+    status_code = 422
+    code = "invalid_archive"
+
+
+#: library error -> (status, code); the first matching class wins
+_LIBRARY_ERRORS: tuple[tuple[type[KittiEvalError], int, str], ...] = (
+    (UnsafePickleError, 422, "unsafe_pickle"),
+    (InputError, 422, "invalid_input"),
+    (ConfigError, 422, "invalid_config"),
+    (KittiEvalError, 422, "invalid_input"),
+)
+
+
+def error_body(code: str, message: str, **details: Any) -> dict[str, Any]:
+    err: dict[str, Any] = {"code": code, "message": message}
+    err.update({k: v for k, v in details.items() if v is not None})
+    return {"error": err}
+
+
+def error_response(status: int, code: str, message: str, headers: Mapping[str, str] | None = None,
+                   **details: Any) -> JSONResponse:
+    return JSONResponse(error_body(code, message, **details), status_code=status, headers=dict(headers or {}))
+
+
+def _status_code_name(status: int) -> str:
+    try:
+        return HTTPStatus(status).phrase.lower().replace(" ", "_").replace("-", "_")
+    except ValueError:
+        return "http_error"
+
+
+def _location(loc: tuple[Any, ...]) -> str:
+    parts = [str(p) for p in loc]
+    if parts and parts[0] in ("body", "query", "path", "header"):
+        where = {"body": "form field", "query": "query parameter", "path": "path parameter",
+                 "header": "header"}[parts[0]]
+        return f"{where} '{'.'.join(parts[1:])}'" if len(parts) > 1 else where
+    return ".".join(parts)
+
+
+async def _api_error(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, ApiError)
+    return error_response(exc.status_code, exc.code, exc.message, exc.headers)
+
+
+async def _library_error(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, KittiEvalError)
+    status, code = next((s, c) for cls, s, c in _LIBRARY_ERRORS if isinstance(exc, cls))
+    frame = getattr(exc, "frame", None)
+    field = getattr(exc, "field", None)
+    return error_response(status, code, str(exc), frame=frame, field=field)
+
+
+async def _http_error(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    message = exc.detail if isinstance(exc.detail, str) else HTTPStatus(exc.status_code).phrase
+    return error_response(exc.status_code, _status_code_name(exc.status_code), message, exc.headers)
+
+
+async def _validation_error(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    problems = [f"{_location(tuple(e.get('loc', ())))}: {e.get('msg', 'invalid')}" for e in exc.errors()[:10]]
+    return error_response(422, "invalid_request", "; ".join(problems) or "invalid request")
+
+
+async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+    log.error("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
+    return error_response(500, "internal_error", "internal error; the server log has the details")
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Register the handlers that turn every exception into the one error shape."""
+    app.add_exception_handler(ApiError, _api_error)
+    app.add_exception_handler(KittiEvalError, _library_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(Exception, _unexpected)

@@ -1,0 +1,89 @@
+"""Request options to an :class:`~kitti_eval.protocol.EvalConfig`, and the one call of ``evaluate`` here.
+
+Evaluations run on several threads at once: the library's kernels are compiled ``nogil`` and keep no
+state, so that is safe.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from kitti_eval.errors import ConfigError
+from kitti_eval.evaluation import evaluate
+from kitti_eval.formats import render_json
+from kitti_eval.frames import Annotations
+from kitti_eval.protocol import DEFAULT_CLASSES, PROTOCOLS, THRESHOLD_SETS, EvalConfig, overlaps_from_overrides
+
+from .errors import BadRequest
+
+__all__ = ["EvalOptions", "evaluate_document", "summarize", "parse_labels", "LABEL_KEY_PATTERN"]
+
+LABEL_KEY_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
+_LABEL_KEY = re.compile(LABEL_KEY_PATTERN)
+_MAX_LABELS = 32
+_MAX_LABEL_VALUE = 256
+
+
+def _split(text: str) -> tuple[str, ...]:
+    return tuple(p.strip() for p in text.split(",") if p.strip())
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    """What the client asked for, as given (strings); :meth:`config` validates it."""
+
+    protocol: str = "official"
+    classes: str = ",".join(DEFAULT_CLASSES)
+    threshold_sets: str = ",".join(THRESHOLD_SETS)
+    iou: Sequence[str] = ()
+    curves: bool = False
+
+    def config(self) -> EvalConfig:
+        if self.protocol not in PROTOCOLS:
+            raise ConfigError(f"unknown protocol {self.protocol!r}; expected one of {sorted(PROTOCOLS)}")
+        try:
+            overlaps = overlaps_from_overrides(self.iou)
+        except ConfigError as e:
+            raise ConfigError(f"iou: {e}") from None
+        return EvalConfig(classes=_split(self.classes), protocol=PROTOCOLS[self.protocol], overlaps=overlaps,
+                          threshold_sets=_split(self.threshold_sets))
+
+
+def evaluate_document(gt: Annotations, dt: Annotations, config: EvalConfig, *, curves: bool = False) -> dict[str, Any]:
+    """The JSON document ``kitti-eval --format json`` prints for the same inputs, as a dict."""
+    result = evaluate(gt, dt, config, keep_curves=curves)
+    doc: dict[str, Any] = json.loads(render_json(result, include_curves=curves))
+    return doc
+
+
+def summarize(doc: Mapping[str, Any]) -> dict[str, dict[str, float | None]]:
+    """R40 AP at moderate difficulty with the strict thresholds (or the first set), per class and metric."""
+    oset = "strict" if "strict" in doc["ap"] else next(iter(doc["ap"]))
+    by_class = doc["ap"][oset]["R40"]
+    return {cls: {metric: values.get("moderate") for metric, values in metrics.items()}
+            for cls, metrics in by_class.items()}
+
+
+def parse_labels(fixed: Mapping[str, str | None], extra: Sequence[str]) -> dict[str, str]:
+    """Labels from the named form fields (model, commit, epoch) and repeated ``label=key=value`` fields."""
+    labels = {k: v for k, v in fixed.items() if v not in (None, "")}
+    for item in extra:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise BadRequest(f"label {item!r}: expected key=value")
+        key = key.strip()
+        if key in labels:
+            raise BadRequest(f"label {key!r} is given twice")
+        labels[key] = value
+    if len(labels) > _MAX_LABELS:
+        raise BadRequest(f"at most {_MAX_LABELS} labels")
+    for key, value in labels.items():
+        if not _LABEL_KEY.fullmatch(key):
+            raise BadRequest(f"label key {key!r}: 1-64 letters, digits, '_', '.' or '-'")
+        if len(value) > _MAX_LABEL_VALUE or not value.isprintable():
+            raise BadRequest(f"label {key!r}: the value must be printable and at most {_MAX_LABEL_VALUE} characters")
+    return labels

@@ -1,0 +1,120 @@
+"""The application factory, the ASGI ``app`` for ``uvicorn server.main:app``, and ``serve()`` for the CLI.
+
+``app`` is built on first access (from the environment), so importing this module does nothing else.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import AsyncIterator, Sequence
+from contextlib import asynccontextmanager
+from typing import Any
+
+import anyio.to_thread
+from fastapi import FastAPI
+from pydantic import ValidationError
+
+from kitti_eval import __version__
+
+from .errors import install_error_handlers
+from .middleware import AdmissionMiddleware, BodyLimitMiddleware
+from .routes import evaluations, ground_truths, health
+from .service import Service
+from .settings import Settings
+
+__all__ = ["create_app", "serve"]  # and `app`, built on first access
+
+log = logging.getLogger("kitti_eval.server")
+
+_DESCRIPTION = """Exact KITTI 3D object detection evaluation as a service.
+
+Upload an OpenPCDet `result.pkl` (or a zip/tar of KITTI txt results) with `POST /v1/evaluations`, name a
+registered ground truth (`demo` is there out of the box), and get back the JSON `kitti-eval --format json`
+prints, stored with the inputs' sha256 and your labels. Errors are always `{"error": {"code", "message"}}`.
+"""
+
+
+def _log_to_stderr() -> None:
+    """The service's own messages (evaluations, warm-up, generated token) next to uvicorn's, unless the
+    embedding application configured logging itself."""
+    if log.handlers or logging.getLogger().handlers:
+        return
+    handler = logging.StreamHandler()
+    handler.setFormatter(logging.Formatter("%(levelname)s:     kitti-eval: %(message)s"))
+    log.addHandler(handler)
+    log.setLevel(logging.INFO)
+    log.propagate = False
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Build the application. Nothing touches the disk or the database until the lifespan starts."""
+    settings = settings or Settings()
+    _log_to_stderr()
+    service = Service(settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        await anyio.to_thread.run_sync(service.start)
+        try:
+            yield
+        finally:
+            service.stop()
+
+    app = FastAPI(title="kitti-eval", version=__version__, description=_DESCRIPTION, lifespan=lifespan,
+                  debug=False)
+    app.state.service = service
+    install_error_handlers(app)
+    app.include_router(health.router)
+    app.include_router(evaluations.router)
+    app.include_router(ground_truths.router)
+    # outermost last: admission is decided before the body limit starts reading
+    app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
+    app.add_middleware(AdmissionMiddleware, paths=frozenset({"/v1/evaluations"}),
+                       capacity=lambda: settings.max_concurrent_evals + settings.max_queued_evals,
+                       retry_after_s=lambda: settings.retry_after_s)
+    return app
+
+
+_app: FastAPI | None = None
+
+
+def __getattr__(name: str) -> Any:
+    """``server.main.app``: the application configured from the environment, built once on first use."""
+    global _app
+    if name == "app":
+        if _app is None:
+            _app = create_app()
+        return _app
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def serve(argv: Sequence[str] | None = None) -> int:
+    """``kitti-eval serve``: run the service with uvicorn. Options override ``KITTI_EVAL_*`` variables."""
+    import uvicorn
+
+    parser = argparse.ArgumentParser(prog="kitti-eval serve", description="Run the kitti-eval HTTP service.")
+    parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    parser.add_argument("--data-dir", help="KITTI_EVAL_DATA_DIR: database, ground truths, scratch space")
+    parser.add_argument("--database-url", help="KITTI_EVAL_DATABASE_URL, e.g. postgresql://user:pw@host/db")
+    parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    try:
+        args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
+    except SystemExit as e:
+        return int(e.code) if isinstance(e.code, int) else 2
+    overrides = {k: v for k, v in (("data_dir", args.data_dir), ("database_url", args.database_url)) if v}
+    try:
+        settings = Settings(**overrides)
+    except ValidationError as e:
+        print(f"kitti-eval serve: error: invalid settings:\n{e}", file=sys.stderr)  # noqa: T201
+        return 2
+    app = create_app(settings)
+    log.setLevel(args.log_level.upper())
+    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, timeout_graceful_shutdown=10)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(serve())

@@ -1,0 +1,1 @@
+"""One router per resource; :func:`server.main.create_app` includes them."""

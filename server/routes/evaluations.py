@@ -1,0 +1,117 @@
+"""``/v1/evaluations``: upload predictions and get AP back; history; comparisons."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, File, Form, Query, UploadFile
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
+
+from kitti_eval.formats import OutputFormat, render
+from kitti_eval.result import EvalResult
+
+from ..compare import compare, render_comparison_markdown
+from ..deps import FormatDep, ServiceDep
+from ..errors import BadRequest
+from ..evaluator import EvalOptions, parse_labels
+from ..schemas import (
+    Comparison,
+    ErrorResponse,
+    EvaluationList,
+    EvaluationResponse,
+    evaluation_response,
+    evaluation_summary,
+)
+from ..service import FileIn
+from ..store import EvaluationRecord
+
+_errors: dict[int | str, dict[str, Any]] = {
+    404: {"model": ErrorResponse, "description": "unknown evaluation or ground truth"},
+    422: {"model": ErrorResponse, "description": "invalid request, input (names frame and field) or unsafe pickle"},
+}
+router = APIRouter(prefix="/v1/evaluations", tags=["evaluations"], responses=_errors)
+
+_TEXT_RESPONSES: dict[str, Any] = {"text/plain": {"schema": {"type": "string"}},
+                                   "text/markdown": {"schema": {"type": "string"}}}
+_MEDIA = {OutputFormat.TABLE: "text/plain; charset=utf-8", OutputFormat.MARKDOWN: "text/markdown; charset=utf-8"}
+
+
+def _respond(record: EvaluationRecord, fmt: OutputFormat, status: int = 200) -> Response:
+    headers = {"X-Evaluation-Id": record.id, "Location": f"/v1/evaluations/{record.id}"}
+    if fmt is OutputFormat.JSON:
+        return JSONResponse(evaluation_response(record), status_code=status, headers=headers)
+    assert record.result is not None
+    text = render(EvalResult.from_dict(record.result), fmt)
+    return PlainTextResponse(text, status_code=status, headers=headers, media_type=_MEDIA[fmt])
+
+
+@router.post(
+    "", status_code=201, response_model=EvaluationResponse, summary="Evaluate uploaded predictions",
+    responses={201: {"content": _TEXT_RESPONSES, "description": "the evaluation, stored"},
+               413: {"model": ErrorResponse, "description": "the upload is larger than KITTI_EVAL_MAX_UPLOAD_MB"},
+               503: {"model": ErrorResponse, "description": "every evaluation slot is taken; see Retry-After"}})
+async def create_evaluation(
+    service: ServiceDep,
+    fmt: FormatDep,
+    predictions: Annotated[UploadFile, File(description="an OpenPCDet result.pkl (or .pkl.gz), or a zip/tar of "
+                                                        "KITTI result txt files (16 fields, one file per frame)")],
+    gt: Annotated[str | None, Form(description="name of a registered ground truth, e.g. demo")] = None,
+    gt_file: Annotated[UploadFile | None, File(description="instead of gt: an infos .pkl[.gz] or a zip/tar of a "
+                                                           "label_2 folder, used for this evaluation only")] = None,
+    protocol: Annotated[Literal["official", "openpcdet"], Form()] = "official",
+    classes: Annotated[str, Form(description="comma-separated, e.g. Car,Van")] = "Car,Pedestrian,Cyclist",
+    threshold_sets: Annotated[str, Form(description="strict, loose or strict,loose")] = "strict,loose",
+    iou: Annotated[list[str] | None, Form(description="IoU thresholds as the CLI's --iou: CLASS[:SET]=BBOX,BEV,3D; "
+                                                       "repeatable")] = None,
+    curves: Annotated[bool, Form(description="include the 41-point curves in the JSON")] = False,
+    model: Annotated[str | None, Form(description="label: the model's name")] = None,
+    commit: Annotated[str | None, Form(description="label: the code commit")] = None,
+    epoch: Annotated[str | None, Form(description="label: the training epoch")] = None,
+    label: Annotated[list[str] | None, Form(description="more labels as key=value; repeatable")] = None,
+) -> Response:
+    """Evaluate `predictions` against a ground truth and store the result with the inputs' sha256 and the
+    labels. The JSON is the document `kitti-eval --format json` prints, plus `id` and `evaluation`."""
+    labels = parse_labels({"model": model, "commit": commit, "epoch": epoch}, label or [])
+    options = EvalOptions(protocol=protocol, classes=classes, threshold_sets=threshold_sets, iou=tuple(iou or ()),
+                          curves=curves)
+    gt_in = FileIn(gt_file.file, gt_file.filename) if gt_file is not None else None
+    record = await service.run(service.evaluate, FileIn(predictions.file, predictions.filename), gt or None, gt_in,
+                               options, labels)
+    return _respond(record, fmt, status=201)
+
+
+@router.get("", response_model=EvaluationList, summary="History, newest first")
+def list_evaluations(
+    service: ServiceDep,
+    gt: Annotated[str | None, Query(description="only evaluations against this registered ground truth")] = None,
+    model: str | None = None,
+    commit: str | None = None,
+    epoch: str | None = None,
+    label: Annotated[list[str] | None, Query(description="key=value; repeatable; all must match")] = None,
+    limit: Annotated[int, Query(ge=1, le=500)] = 50,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> dict[str, Any]:
+    labels = parse_labels({"model": model, "commit": commit, "epoch": epoch}, label or [])
+    records = service.store.list_evaluations(gt_name=gt, labels=labels, limit=limit + 1, offset=offset)
+    more = len(records) > limit
+    return {"items": [evaluation_summary(r) for r in records[:limit]], "limit": limit, "offset": offset,
+            "next_offset": offset + limit if more else None}
+
+
+@router.get("/{evaluation_id}", response_model=EvaluationResponse, summary="One evaluation",
+            responses={200: {"content": _TEXT_RESPONSES}})
+def get_evaluation(service: ServiceDep, fmt: FormatDep, evaluation_id: str) -> Response:
+    return _respond(service.evaluation(evaluation_id), fmt)
+
+
+@router.get("/{evaluation_id}/compare/{other_id}", response_model=Comparison,
+            summary="Per-value differences: other minus base",
+            responses={200: {"content": {"text/markdown": {"schema": {"type": "string"}}}}})
+def compare_evaluations(service: ServiceDep, fmt: FormatDep, evaluation_id: str, other_id: str) -> Response:
+    base, other = service.evaluation(evaluation_id), service.evaluation(other_id)
+    comparison = compare(base, other)
+    if fmt is OutputFormat.JSON:
+        return JSONResponse(comparison)
+    if fmt is OutputFormat.MARKDOWN:
+        return PlainTextResponse(render_comparison_markdown(base, other, comparison), media_type=_MEDIA[fmt])
+    raise BadRequest("a comparison renders as json or markdown")

@@ -1,0 +1,208 @@
+"""The service behind the routes: evaluations, ground truths, readiness. No HTTP in here.
+
+Blocking work (reading uploads, unpickling, unpacking, evaluating, writing the database) runs on worker
+threads through :meth:`Service.run`, at most ``max_concurrent_evals`` at a time; the event loop only
+waits. An evaluation is committed to the database before :meth:`Service.evaluate` returns.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import secrets
+import shutil
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import IO, Any, TypeVar
+
+import anyio
+import anyio.to_thread
+
+from kitti_eval.loaders import load_detections, load_ground_truth
+from kitti_eval.protocol import EvalConfig
+from kitti_eval.synth import demo_paths
+
+from .errors import BadRequest, NotFound
+from .evaluator import EvalOptions, evaluate_document, summarize
+from .ground_truths import GroundTruthCache, GroundTruths
+from .settings import Settings
+from .store import EvaluationRecord, GroundTruthRecord, Store, new_id
+from .uploads import Limits, load_upload, receive_upload
+
+__all__ = ["Service", "FileIn", "DEMO_NAME"]
+
+log = logging.getLogger("kitti_eval.server")
+T = TypeVar("T")
+
+DEMO_NAME = "demo"
+_STALE_SCRATCH_S = 3600
+
+
+@dataclass(frozen=True)
+class FileIn:
+    """An uploaded file as the routes hand it over: its spooled bytes and the client's name."""
+
+    file: IO[bytes]
+    filename: str | None
+
+
+class Service:
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.data_dir = settings.data_dir.resolve()
+        self.store = Store(settings.resolved_database_url)
+        self.limits = Limits(max_unpacked_bytes=settings.max_unpacked_bytes,
+                             max_members=settings.max_archive_members)
+        self.ground_truths = GroundTruths(self.store, self.data_dir / "ground-truths",
+                                          GroundTruthCache(settings.gt_cache_entries, settings.gt_cache_bytes),
+                                          self.limits)
+        self.admin_token = ""
+        self.warm = threading.Event()
+        self.warmup_error: str | None = None
+        self._limiter: anyio.CapacityLimiter | None = None
+
+    # -- lifecycle ---------------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Create folders and tables, register the demo, start the warm-up (called from the lifespan)."""
+        self._limiter = anyio.CapacityLimiter(self.settings.max_concurrent_evals)
+        (self.data_dir / "tmp").mkdir(parents=True, exist_ok=True)
+        self._clean_scratch()
+        self.store.create_schema()
+        self.admin_token = self._admin_token()
+        if self.settings.register_demo:
+            self._register_demo()
+        if self.settings.warmup:
+            threading.Thread(target=self._warm_up, name="kitti-eval-warmup", daemon=True).start()
+        else:
+            self.warm.set()
+
+    def stop(self) -> None:
+        self.store.dispose()
+
+    def _clean_scratch(self) -> None:
+        """Remove scratch folders a killed process left (old ones only: another worker may share the folder)."""
+        now = time.time()
+        for entry in (self.data_dir / "tmp").iterdir():
+            try:
+                if now - entry.stat().st_mtime > _STALE_SCRATCH_S:
+                    shutil.rmtree(entry, ignore_errors=True)
+            except OSError:
+                pass
+
+    def _admin_token(self) -> str:
+        if self.settings.admin_token is not None:
+            return self.settings.admin_token.get_secret_value()
+        path = self.data_dir / "admin-token"
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:
+            return path.read_text().strip()
+        token = secrets.token_urlsafe(32)
+        with os.fdopen(fd, "w") as fh:
+            fh.write(token + "\n")
+        log.warning("generated an admin token in %s (set KITTI_EVAL_ADMIN_TOKEN to choose one)", path)
+        return token
+
+    def _register_demo(self) -> None:
+        if self.store.get_ground_truth(DEMO_NAME) is not None:
+            return
+        gt_path, _ = demo_paths()
+        with open(gt_path, "rb") as fh, self.scratch() as scratch:
+            upload = receive_upload(fh, gt_path.name, gt_path.name)
+            try:
+                self.ground_truths.register(DEMO_NAME, upload, scratch)
+            except Exception as e:  # noqa: BLE001 - another worker may have registered it meanwhile
+                if self.store.get_ground_truth(DEMO_NAME) is None:
+                    raise
+                log.debug("demo ground truth registered concurrently: %s", e)
+        log.info("registered the bundled demo ground truth as %r", DEMO_NAME)
+
+    def _warm_up(self) -> None:
+        """Evaluate the bundled demo once so numba compiles (or loads) the kernels before requests do."""
+        started = time.perf_counter()
+        try:
+            gt_path, pred_path = demo_paths()
+            evaluate_document(load_ground_truth(gt_path), load_detections(pred_path), EvalConfig())
+        except Exception as e:  # noqa: BLE001 - reported through /readyz and the log
+            self.warmup_error = f"{type(e).__name__}: {e}"
+            log.exception("warm-up failed")
+            return
+        self.warm.set()
+        log.info("kernels warm in %.1f s", time.perf_counter() - started)
+
+    def readiness(self) -> str | None:
+        """None when ready, else why not."""
+        if self.warmup_error:
+            return f"warm-up failed: {self.warmup_error}"
+        if not self.warm.is_set():
+            return "warming up the evaluation kernels"
+        try:
+            self.store.ping()
+        except Exception as e:  # noqa: BLE001 - any failure means not ready
+            log.warning("database ping failed: %s", e)
+            return "the database is unavailable"
+        return None
+
+    # -- threads -----------------------------------------------------------------------------------------
+    async def run(self, func: Callable[..., T], *args: Any) -> T:
+        """Run blocking work on a worker thread, at most ``max_concurrent_evals`` at once."""
+        return await anyio.to_thread.run_sync(func, *args, limiter=self._limiter)
+
+    @contextmanager
+    def scratch(self) -> Iterator[Path]:
+        path = self.data_dir / "tmp" / new_id()
+        path.mkdir(parents=True)
+        try:
+            yield path
+        finally:
+            shutil.rmtree(path, ignore_errors=True)
+
+    # -- evaluations ------------------------------------------------------------------------------------
+    def evaluate(self, predictions: FileIn, gt_name: str | None, gt_file: FileIn | None, options: EvalOptions,
+                 labels: Mapping[str, str]) -> EvaluationRecord:
+        """Load, evaluate, store (committed) and return the record."""
+        started = time.perf_counter()
+        if (gt_name is None) == (gt_file is None):
+            raise BadRequest("give the ground truth either by name (form field 'gt', e.g. 'demo'; GET "
+                             "/v1/ground-truths lists them) or as a file (form field 'gt_file'), not both")
+        config = options.config()  # bad options fail before any upload is read
+        gt_record = self.ground_truths.record(gt_name) if gt_name is not None else None
+        with self.scratch() as scratch:
+            if gt_record is not None:
+                gt = self.ground_truths.load(gt_record)
+                gt_sha256 = gt_record.sha256
+            else:
+                assert gt_file is not None
+                gt_upload = receive_upload(gt_file.file, gt_file.filename, "gt_file")
+                gt = load_upload(gt_upload, "ground_truth", scratch / "gt", self.limits).annotations
+                gt_sha256 = gt_upload.sha256
+            pred = receive_upload(predictions.file, predictions.filename, "predictions")
+            loaded = load_upload(pred, "detections", scratch / "pred", self.limits)
+            doc = evaluate_document(gt, loaded.annotations, config, curves=options.curves)
+        record = EvaluationRecord(
+            id=new_id(), created_at=datetime.now(timezone.utc), gt_name=gt_name, gt_sha256=gt_sha256,
+            pred_filename=pred.filename, pred_sha256=pred.sha256, pred_format=str(loaded.format),
+            pred_size=pred.size, protocol=doc["protocol"],
+            duration_ms=round((time.perf_counter() - started) * 1000, 3), summary=summarize(doc), result=doc,
+            labels=dict(labels))
+        self.store.add_evaluation(record)
+        log.info("evaluation %s: %s frames against %s in %.0f ms", record.id, doc["frames"],
+                 gt_name or "an uploaded ground truth", record.duration_ms)
+        return record
+
+    def evaluation(self, evaluation_id: str) -> EvaluationRecord:
+        record = self.store.get_evaluation(evaluation_id)
+        if record is None:
+            raise NotFound(f"no evaluation with id {evaluation_id!r}")
+        return record
+
+    # -- ground truths ----------------------------------------------------------------------------------
+    def register_ground_truth(self, name: str, file: FileIn) -> GroundTruthRecord:
+        with self.scratch() as scratch:
+            upload = receive_upload(file.file, file.filename, "file")
+            return self.ground_truths.register(name, upload, scratch)

@@ -1,0 +1,92 @@
+"""Service settings: environment variables ``KITTI_EVAL_*`` (or keyword arguments in tests)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+__all__ = ["Settings", "ENV_PREFIX"]
+
+ENV_PREFIX = "KITTI_EVAL_"
+_MB = 1 << 20
+
+
+class Settings(BaseSettings):
+    """Everything the service can be told; each field is also ``KITTI_EVAL_<FIELD>`` in the environment."""
+
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore", env_ignore_empty=True,
+                                      validate_default=True)
+
+    data_dir: Path = Path("kitti-eval-data")
+    """Holds the SQLite database (when ``database_url`` is unset), registered ground truths, the generated
+    admin token and the scratch space of uploads being processed."""
+
+    database_url: str | None = None
+    """SQLAlchemy URL. Unset: ``sqlite:///<data_dir>/kitti-eval.db`` (WAL). ``postgresql://user:pw@host/db``
+    uses PostgreSQL through psycopg 3."""
+
+    max_upload_mb: Annotated[float, Field(gt=0)] = 200.0
+    """Largest request body accepted (all uploaded files together); larger ones get 413."""
+
+    max_unpacked_mb: Annotated[float, Field(gt=0)] = 512.0
+    """Largest decompressed pickle, and largest total unpacked size of an archive (zip-bomb guard)."""
+
+    max_archive_members: Annotated[int, Field(gt=0)] = 20_000
+    """Most members (files and folders) an uploaded zip or tar may have. KITTI val has 3769 frames."""
+
+    max_concurrent_evals: Annotated[int, Field(gt=0)] = 2
+    """Evaluations (loading, validating, matching) running at the same time, each on its own thread."""
+
+    max_queued_evals: Annotated[int, Field(ge=0)] = 8
+    """Evaluation requests admitted beyond those running (uploading, or waiting for a slot); past that the
+    service answers 503 with Retry-After."""
+
+    retry_after_s: Annotated[int, Field(ge=1)] = 2
+    """The Retry-After a 503 carries."""
+
+    admin_token: SecretStr | None = None
+    """Bearer token for registering and deleting ground truths. Unset: one is generated on first start and
+    kept in ``<data_dir>/admin-token`` (readable by the server's user only)."""
+
+    gt_cache_entries: Annotated[int, Field(ge=1)] = 4
+    """Ground-truth sets kept loaded in memory (least recently used ones are dropped first)."""
+
+    gt_cache_mb: Annotated[float, Field(gt=0)] = 2048.0
+    """Memory the cached ground-truth sets may take together (the arrays' size)."""
+
+    register_demo: bool = True
+    """Register the bundled 200-frame demo ground truth as ``demo`` at startup (if absent)."""
+
+    warmup: bool = True
+    """Evaluate the demo once at startup, in the background, so the first request does not compile the
+    kernels; ``/readyz`` answers 200 once it is done."""
+
+    @field_validator("database_url")
+    @classmethod
+    def _normalise_url(cls, url: str | None) -> str | None:
+        """``postgres://`` and ``postgresql://`` mean psycopg 3 (SQLAlchemy's default driver is psycopg2)."""
+        if url is None:
+            return None
+        for prefix in ("postgres://", "postgresql://"):
+            if url.startswith(prefix):
+                return "postgresql+psycopg://" + url[len(prefix):]
+        return url
+
+    @property
+    def resolved_database_url(self) -> str:
+        return self.database_url or f"sqlite:///{self.data_dir.resolve() / 'kitti-eval.db'}"
+
+    @property
+    def max_upload_bytes(self) -> int:
+        return int(self.max_upload_mb * _MB)
+
+    @property
+    def max_unpacked_bytes(self) -> int:
+        return int(self.max_unpacked_mb * _MB)
+
+    @property
+    def gt_cache_bytes(self) -> int:
+        return int(self.gt_cache_mb * _MB)

@@ -1,0 +1,264 @@
+"""The database: SQLAlchemy 2 Core tables and one small class that reads and writes them.
+
+SQLite (the default, one file in the data folder) runs in WAL mode with ``synchronous=FULL``; PostgreSQL is
+reached through psycopg 3. Every write is one transaction committed before the method returns, so a
+caller that answers 2xx after it has a durable row.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Column,
+    DateTime,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    MetaData,
+    String,
+    Table,
+    create_engine,
+    delete,
+    event,
+    exists,
+    func,
+    insert,
+    select,
+    text,
+)
+from sqlalchemy.dialects.postgresql import JSONB
+from sqlalchemy.engine import Engine, RowMapping
+from sqlalchemy.exc import IntegrityError
+
+__all__ = ["Store", "GroundTruthRecord", "EvaluationRecord", "metadata", "ground_truths", "ground_truth_files",
+           "evaluations", "evaluation_labels"]
+
+metadata = MetaData()
+_JSON = JSON().with_variant(JSONB(), "postgresql")
+
+ground_truths = Table(
+    "ground_truths", metadata,
+    Column("name", String(64), primary_key=True),
+    Column("sha256", String(64), nullable=False),
+    Column("format", String(16), nullable=False),        # pickle | zip | tar
+    Column("filename", String(255), nullable=False),     # the uploader's name for the file
+    Column("storage", String(255), nullable=False),      # path under the data folder
+    Column("size_bytes", BigInteger, nullable=False),
+    Column("frames", Integer, nullable=False),
+    Column("boxes", Integer, nullable=False),
+    Column("created_at", DateTime(timezone=True), nullable=False),
+)
+
+#: the registered files themselves, by content, so that any server on the same database can load them
+ground_truth_files = Table(
+    "ground_truth_files", metadata,
+    Column("sha256", String(64), primary_key=True),
+    Column("content", LargeBinary, nullable=False),
+)
+
+evaluations = Table(
+    "evaluations", metadata,
+    Column("id", String(32), primary_key=True),
+    Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("gt_name", String(64), nullable=True),        # None: ground truth uploaded with the request
+    Column("gt_sha256", String(64), nullable=False),
+    Column("pred_filename", String(255), nullable=False),
+    Column("pred_sha256", String(64), nullable=False),
+    Column("pred_format", String(16), nullable=False),
+    Column("pred_size", BigInteger, nullable=False),
+    Column("protocol", String(16), nullable=False),
+    Column("duration_ms", Float, nullable=False),
+    Column("summary", _JSON, nullable=False),            # strict R40 moderate AP per class and metric
+    Column("result", _JSON, nullable=False),             # the document `kitti-eval --format json` prints
+    Index("ix_evaluations_created", "created_at", "id"),
+    Index("ix_evaluations_gt", "gt_name", "created_at"),
+)
+
+evaluation_labels = Table(
+    "evaluation_labels", metadata,
+    Column("evaluation_id", String(32), ForeignKey("evaluations.id", ondelete="CASCADE"), primary_key=True),
+    Column("key", String(64), primary_key=True),
+    Column("value", String(256), nullable=False),
+    Index("ix_labels_key_value", "key", "value"),
+)
+
+
+@dataclass(frozen=True)
+class GroundTruthRecord:
+    name: str
+    sha256: str
+    format: str
+    filename: str
+    storage: str
+    size_bytes: int
+    frames: int
+    boxes: int
+    created_at: datetime
+
+
+@dataclass(frozen=True)
+class EvaluationRecord:
+    id: str
+    created_at: datetime
+    gt_name: str | None
+    gt_sha256: str
+    pred_filename: str
+    pred_sha256: str
+    pred_format: str
+    pred_size: int
+    protocol: str
+    duration_ms: float
+    summary: Mapping[str, Any]
+    result: Mapping[str, Any] | None  # None when listed without results
+    labels: Mapping[str, str] = field(default_factory=dict)
+
+
+def _utc(value: datetime) -> datetime:
+    return value if value.tzinfo else value.replace(tzinfo=timezone.utc)  # SQLite keeps no zone
+
+
+def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
+    cursor = dbapi_connection.cursor()
+    cursor.execute("PRAGMA journal_mode=WAL")
+    cursor.execute("PRAGMA synchronous=FULL")  # WAL + FULL: a committed row survives a crash and power loss
+    cursor.execute("PRAGMA foreign_keys=ON")
+    cursor.execute("PRAGMA busy_timeout=10000")
+    cursor.close()
+
+
+def new_id() -> str:
+    return uuid.uuid4().hex
+
+
+class Store:
+    """Ground-truth registrations and evaluations, in SQLite or PostgreSQL."""
+
+    def __init__(self, url: str) -> None:
+        if url.startswith("sqlite"):
+            self.engine: Engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 10})
+            event.listen(self.engine, "connect", _sqlite_pragmas)
+        else:
+            self.engine = create_engine(url, pool_pre_ping=True, pool_size=5, max_overflow=10)
+        self.dialect = self.engine.dialect.name
+
+    def create_schema(self) -> None:
+        metadata.create_all(self.engine)
+
+    def ping(self) -> None:
+        with self.engine.connect() as conn:
+            conn.execute(text("SELECT 1"))
+
+    def dispose(self) -> None:
+        self.engine.dispose()
+
+    # -- ground truths ---------------------------------------------------------------------------------
+    def add_ground_truth(self, record: GroundTruthRecord, content: bytes) -> bool:
+        """Insert the record and (once per sha256) its file; False if the name is taken (nothing changed)."""
+        for _ in range(2):  # a concurrent registration of the same file may insert its content first
+            try:
+                with self.engine.begin() as conn:
+                    known = conn.execute(select(ground_truth_files.c.sha256)
+                                         .where(ground_truth_files.c.sha256 == record.sha256)).first()
+                    if known is None:
+                        conn.execute(insert(ground_truth_files).values(sha256=record.sha256, content=content))
+                    conn.execute(insert(ground_truths).values(**record.__dict__))
+                return True
+            except IntegrityError:
+                if self.get_ground_truth(record.name) is not None:
+                    return False
+        return False
+
+    def ground_truth_content(self, sha256: str) -> bytes | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(ground_truth_files.c.content)
+                               .where(ground_truth_files.c.sha256 == sha256)).first()
+        return None if row is None else bytes(row[0])
+
+    def get_ground_truth(self, name: str) -> GroundTruthRecord | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(ground_truths).where(ground_truths.c.name == name)).mappings().first()
+        return None if row is None else self._gt(row)
+
+    def list_ground_truths(self) -> list[GroundTruthRecord]:
+        with self.engine.connect() as conn:
+            rows = conn.execute(select(ground_truths).order_by(ground_truths.c.name)).mappings().all()
+        return [self._gt(r) for r in rows]
+
+    def delete_ground_truth(self, name: str) -> tuple[GroundTruthRecord | None, bool]:
+        """Delete by name: (the deleted record or None, whether another name still uses the same file)."""
+        with self.engine.begin() as conn:
+            row = conn.execute(select(ground_truths).where(ground_truths.c.name == name)).mappings().first()
+            if row is None:
+                return None, False
+            conn.execute(delete(ground_truths).where(ground_truths.c.name == name))
+            shared = conn.execute(select(func.count()).select_from(ground_truths)
+                                  .where(ground_truths.c.sha256 == row["sha256"])).scalar_one()
+            if not shared:
+                conn.execute(delete(ground_truth_files).where(ground_truth_files.c.sha256 == row["sha256"]))
+        return self._gt(row), bool(shared)
+
+    @staticmethod
+    def _gt(row: RowMapping) -> GroundTruthRecord:
+        values = dict(row)
+        values["created_at"] = _utc(values["created_at"])
+        return GroundTruthRecord(**values)
+
+    # -- evaluations -----------------------------------------------------------------------------------
+    def add_evaluation(self, record: EvaluationRecord) -> None:
+        values = {k: v for k, v in record.__dict__.items() if k != "labels"}
+        with self.engine.begin() as conn:
+            conn.execute(insert(evaluations).values(**values))
+            if record.labels:
+                conn.execute(insert(evaluation_labels),
+                             [{"evaluation_id": record.id, "key": k, "value": v} for k, v in record.labels.items()])
+
+    def get_evaluation(self, evaluation_id: str) -> EvaluationRecord | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(evaluations).where(evaluations.c.id == evaluation_id)).mappings().first()
+            if row is None:
+                return None
+            labels = self._labels(conn, [evaluation_id])
+        return self._evaluation(row, labels.get(evaluation_id, {}))
+
+    def list_evaluations(self, *, gt_name: str | None = None, labels: Mapping[str, str] | None = None,
+                         limit: int = 50, offset: int = 0) -> list[EvaluationRecord]:
+        """Newest first, without the full results (the summary is there)."""
+        columns = [c for c in evaluations.c if c.name != "result"]
+        query = select(*columns)
+        if gt_name is not None:
+            query = query.where(evaluations.c.gt_name == gt_name)
+        for key, value in (labels or {}).items():
+            query = query.where(exists().where(evaluation_labels.c.evaluation_id == evaluations.c.id,
+                                               evaluation_labels.c.key == key, evaluation_labels.c.value == value))
+        query = query.order_by(evaluations.c.created_at.desc(), evaluations.c.id.desc()).limit(limit).offset(offset)
+        with self.engine.connect() as conn:
+            rows = conn.execute(query).mappings().all()
+            found = self._labels(conn, [r["id"] for r in rows])
+        return [self._evaluation(r, found.get(r["id"], {})) for r in rows]
+
+    @staticmethod
+    def _labels(conn: Any, ids: list[str]) -> dict[str, dict[str, str]]:
+        out: dict[str, dict[str, str]] = {}
+        if not ids:
+            return out
+        rows = conn.execute(select(evaluation_labels).where(evaluation_labels.c.evaluation_id.in_(ids))
+                            .order_by(evaluation_labels.c.key))
+        for eid, key, value in rows:
+            out.setdefault(eid, {})[key] = value
+        return out
+
+    @staticmethod
+    def _evaluation(row: RowMapping, labels: dict[str, str]) -> EvaluationRecord:
+        values = dict(row)
+        values["created_at"] = _utc(values["created_at"])
+        values.setdefault("result", None)
+        return EvaluationRecord(**values, labels=labels)

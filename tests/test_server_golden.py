@@ -1,0 +1,71 @@
+"""The golden small case uploaded returns exactly what the CLI prints, for the pickle and the txt archives."""
+
+from __future__ import annotations
+
+import json
+import tarfile
+from pathlib import Path
+
+import pytest
+from server_helpers import GOLDEN, app_client, golden_bytes, golden_txt, register, tar_of, upload, zip_of
+
+from kitti_eval.cli import main as cli_main
+
+META = ("id", "evaluation")
+
+
+@pytest.fixture(scope="module")
+def txt_dirs(tmp_path_factory) -> dict[str, Path]:
+    out = tmp_path_factory.mktemp("golden-txt")
+    for name in ("label_2.tar.gz", "pred.tar.gz"):
+        with tarfile.open(GOLDEN / name) as tf:
+            tf.extractall(out, filter="data")
+    return {"label_2": out / "label_2", "pred": out / "pred"}
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    with app_client(tmp_path_factory.mktemp("golden") / "data") as c:
+        assert register(c, "small-pkl", golden_bytes("kitti_infos_val.pkl"), "kitti_infos_val.pkl").status_code == 201
+        assert register(c, "small-txt", golden_bytes("label_2.tar.gz"), "label_2.tar.gz").status_code == 201
+        yield c
+
+
+def cli_json(tmp_path: Path, gt: Path, pred: Path, protocol: str) -> dict:
+    out = tmp_path / "cli.json"
+    assert cli_main(["--gt", str(gt), "--pred", str(pred), "--protocol", protocol, "--format", "json",
+                     "--output", str(out), "--quiet"]) == 0
+    return json.loads(out.read_text())
+
+
+def predictions(kind: str) -> tuple[str, bytes]:
+    pred = golden_txt("pred.tar.gz")
+    return {
+        "pkl": ("result.pkl", golden_bytes("result.pkl")),
+        "tar.gz": ("pred.tar.gz", golden_bytes("pred.tar.gz")),
+        "tar": ("pred.tar", tar_of(pred, compression="")),
+        "tar.xz": ("pred.tar.xz", tar_of(pred, compression="xz")),
+        "zip": ("pred.zip", zip_of(pred)),
+        "zip-flat": ("pred.zip", zip_of({Path(k).name: v for k, v in pred.items()})),
+        "zip-final_result": ("final_result.zip",
+                             zip_of({f"final_result/data/{Path(k).name}": v for k, v in pred.items()})),
+    }[kind]
+
+
+@pytest.mark.parametrize("protocol", ["official", "openpcdet"])
+@pytest.mark.parametrize("kind", ["pkl", "tar.gz", "tar", "tar.xz", "zip", "zip-flat", "zip-final_result"])
+def test_upload_equals_the_cli(client, txt_dirs, tmp_path, kind, protocol) -> None:
+    filename, data = predictions(kind)
+    if kind == "pkl":  # the pickle route: infos against result.pkl
+        gt_name, expected = "small-pkl", cli_json(tmp_path, GOLDEN / "kitti_infos_val.pkl", GOLDEN / "result.pkl",
+                                                  protocol)
+    else:  # the txt route: label_2 against the pred folder
+        gt_name, expected = "small-txt", cli_json(tmp_path, txt_dirs["label_2"], txt_dirs["pred"], protocol)
+    r = upload(client, data, filename, gt=gt_name, fields={"protocol": protocol})
+    assert r.status_code == 201, r.text
+    body = r.json()
+    assert {k: v for k, v in body.items() if k not in META} == expected
+    fmt = "pickle" if kind == "pkl" else kind.split(".")[0].split("-")[0]
+    assert body["evaluation"]["predictions"]["format"] == fmt
+    stored = client.get(f"/v1/evaluations/{body['id']}").json()
+    assert stored == body

@@ -1,0 +1,96 @@
+"""The core flow on PostgreSQL (psycopg 3): a throwaway cluster, in-process and behind a real uvicorn.
+
+Skipped, with the reason, when no PostgreSQL binaries are installed (Debian: ``apt-get install postgresql``).
+"""
+
+from __future__ import annotations
+
+import threading
+
+import httpx
+import pytest
+from server_helpers import (
+    ADMIN,
+    LiveServer,
+    app_client,
+    assert_error,
+    golden_bytes,
+    golden_txt,
+    register,
+    upload,
+    zip_of,
+)
+from server_postgres import PostgresCluster, why_no_postgres
+
+pytestmark = pytest.mark.skipif(why_no_postgres() is not None, reason=why_no_postgres() or "")
+
+
+@pytest.fixture(scope="module")
+def postgres():
+    with PostgresCluster() as cluster:
+        yield cluster
+
+
+def test_core_flow_on_postgres(postgres, tmp_path) -> None:
+    data_dir = tmp_path / "data"
+    with app_client(data_dir, database_url=postgres.url) as c:
+        service = c.app.state.service
+        assert service.store.dialect == "postgresql"
+        assert not (data_dir / "kitti-eval.db").exists()
+        assert [g["name"] for g in c.get("/v1/ground-truths").json()["items"]] == ["demo"]
+        assert register(c, "small", golden_bytes("kitti_infos_val.pkl"), "kitti_infos_val.pkl").status_code == 201
+        assert register(c, "small-txt", golden_bytes("label_2.tar.gz"), "label_2.tar.gz").status_code == 201
+        assert_error(register(c, "small", golden_bytes("kitti_infos_val.pkl"), "i.pkl"), 409)
+        a = upload(c, golden_bytes("result.pkl"), gt="small", fields={"model": "m", "epoch": "1"})
+        b = upload(c, zip_of(golden_txt("pred.tar.gz")), "pred.zip", gt="small-txt",
+                   fields={"model": "m", "epoch": "2", "label": "team=pg"})
+        assert a.status_code == 201 and b.status_code == 201, (a.text, b.text)
+        a, b = a.json(), b.json()
+        assert c.get(f"/v1/evaluations/{a['id']}").json() == a
+        assert [i["id"] for i in c.get("/v1/evaluations", params={"model": "m"}).json()["items"]] == [b["id"], a["id"]]
+        assert [i["id"] for i in c.get("/v1/evaluations", params={"gt": "small"}).json()["items"]] == [a["id"]]
+        assert [i["id"] for i in c.get("/v1/evaluations", params={"label": "team=pg"}).json()["items"]] == [b["id"]]
+        cmp = c.get(f"/v1/evaluations/{a['id']}/compare/{b['id']}").json()
+        va = a["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"]
+        vb = b["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"]
+        assert cmp["delta"]["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"] == pytest.approx(vb - va, abs=1e-12)
+        assert "different ground truth" in cmp["notes"][0]
+        assert c.delete("/v1/ground-truths/small", headers=ADMIN).status_code == 204
+        assert_error(upload(c, golden_bytes("result.pkl"), gt="small"), 404)
+    with app_client(data_dir, database_url=postgres.url) as c:  # a restart: everything is still there
+        assert c.get(f"/v1/evaluations/{a['id']}").json() == a
+        assert {g["name"] for g in c.get("/v1/ground-truths").json()["items"]} == {"demo", "small-txt"}
+        assert c.get("/readyz").status_code == 200
+
+
+def test_concurrent_uploads_and_sigkill_on_postgres(postgres, tmp_path) -> None:
+    data_dir = tmp_path / "data"
+    server = LiveServer(data_dir, database_url=postgres.url, max_concurrent_evals=2, max_queued_evals=16).start()
+    acked: list[str] = []
+    lock = threading.Lock()
+    try:
+        def sender() -> None:
+            with server.client(timeout=60) as c:
+                for _ in range(3):
+                    r = c.post("/v1/evaluations", data={"gt": "demo", "label": "db=pg"},
+                               files={"predictions": ("r.pkl", golden_bytes("result.pkl"))})
+                    assert r.status_code == 201, r.text
+                    with lock:
+                        acked.append(r.json()["id"])
+
+        threads = [threading.Thread(target=sender) for _ in range(8)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(120)
+        assert len(acked) == 24
+        server.kill()
+        server = LiveServer(data_dir, database_url=postgres.url).start()
+        with server.client() as c:
+            listed = c.get("/v1/evaluations", params={"label": "db=pg", "limit": 100}).json()["items"]
+            assert {i["id"] for i in listed} == set(acked)
+            assert c.get(f"/v1/evaluations/{acked[0]}").status_code == 200
+    except httpx.TransportError:
+        raise AssertionError(f"server failed:\n{server.log()}") from None
+    finally:
+        server.stop()
