@@ -148,6 +148,18 @@ def _first_at_or_below(thresholds: np.ndarray, value: float) -> int:
 
 
 @njit(cache=True, nogil=True)
+def _rank_descending(values: np.ndarray, out: np.ndarray) -> None:
+    """``out[:len(values)]`` = values sorted descending (insertion sort: a frame has a handful)."""
+    for a in range(values.shape[0]):
+        s = values[a]
+        b = a
+        while b > 0 and out[b - 1] < s:
+            out[b] = out[b - 1]
+            b -= 1
+        out[b] = s
+
+
+@njit(cache=True, nogil=True)
 def _best_overlaps(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray,
                    groups: np.ndarray, best: np.ndarray) -> None:
     """Fill ``best`` (G, N), zeros on entry: each detection's largest overlap with each group's rows."""
@@ -310,13 +322,7 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
             continue
         ga, gb = g_ptr[f], g_ptr[f + 1]
         m = hi - lo
-        for a in range(m):  # insertion sort, descending: a handful of detections
-            s = d_score[lo + a]
-            b = a
-            while b > 0 and ranked[b - 1] < s:
-                ranked[b] = ranked[b - 1]
-                b -= 1
-            ranked[b] = s
+        _rank_descending(d_score[lo:hi], ranked)
         prev_tp, prev_fp, prev_fn, prev_sim = 0.0, 0.0, float(valid[f]), 0.0
         a = 0
         while a < m:
@@ -393,13 +399,7 @@ def _frame_events(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarr
         for k in range(first, n_tp):
             tp_frame[k] = f
         m = hi - lo
-        for a in range(m):
-            s = d_score[lo + a]
-            b = a
-            while b > 0 and ranked[b - 1] < s:
-                ranked[b] = ranked[b - 1]
-                b -= 1
-            ranked[b] = s
+        _rank_descending(d_score[lo:hi], ranked)
         prev_tp, prev_fp, prev_fn, prev_sim = 0.0, 0.0, float(valid[f]), 0.0
         a = 0
         while a < m:
