@@ -54,12 +54,14 @@ def _peak_rss_mib() -> float:
 
 
 def _cli_child(gt_path: str, pred_path: str) -> int:
-    """Run the CLI in this process (as the console script would), then report its peak RSS on stderr."""
+    """Run the CLI in this process as the console script does (``kitti_eval.cli.entry``: main, then exit
+    without interpreter teardown), reporting its peak RSS on stderr just before leaving."""
     from .cli import main as cli_main
 
     code = cli_main(["--gt", gt_path, "--pred", pred_path, "--format", "json", "--output", os.devnull, "--quiet"])
     sys.stderr.write(f"\nPEAK_RSS_MIB {_peak_rss_mib():.1f}\n")
-    return code
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def _child(gt_path: str, pred_path: str, repeat: int) -> dict[str, float]:

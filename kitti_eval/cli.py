@@ -356,5 +356,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
 
 
+def entry() -> None:
+    """The console script: :func:`main`, then leave without tearing the interpreter down.
+
+    Everything the command writes is flushed or closed by then; skipping the teardown of numba, llvmlite
+    and the loaded arrays saves about 0.15 s on every run.
+    """
+    code = main()
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+    except (OSError, ValueError):  # a closed pipe: nothing more can be said
+        code = code or EXIT_INPUT
+    os._exit(code)
+
+
 if __name__ == "__main__":
     sys.exit(main())

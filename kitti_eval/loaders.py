@@ -75,8 +75,8 @@ def load_annotations(path: PathLike, kind: Kind, *, max_bytes: int | None = None
         return load_kitti_txt_dir(p, kind)
     if not p.exists():
         what = "ground truth" if kind == "ground_truth" else "detections"
-        raise InputError(f"no such file or directory: {source} (expected {what} as a KITTI txt folder or "
-                         "a pickle)", source=source)
+        raise InputError(f"no such file or directory (expected {what} as a KITTI txt folder or a pickle)",
+                         source=source)
     if p.suffix.lower() == ".txt":
         raise InputError("this is a single txt file; pass the folder that holds one KITTI txt file per "
                          "frame", source=source)
