@@ -9,15 +9,19 @@ import functools
 import gzip
 import importlib
 import io
+import math
 import os
 import pickle
+import random
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import kitti_eval.safe_pickle as safe_pickle
 from kitti_eval.errors import InputError, UnsafePickleError
 from kitti_eval.safe_pickle import ALLOWED_GLOBALS, load_pickle
 
@@ -413,3 +417,340 @@ def test_max_bytes_bounds_decompressed_and_plain_input(tmp_path: Path) -> None:
         loads(data, max_bytes=100)
     assert loads(data, max_bytes=len(data)).shape == (1000,)
     assert loads(gzip.compress(data), max_bytes=len(data)).shape == (1000,)
+
+
+# =============================================================================== the scan (_pickle_scan)
+#
+# load_pickle runs the C unpickler only on bytes that kitti_eval._pickle_scan.scan has checked. These
+# tests cover the scan's model of _pickle.c opcode by opcode, its limits, and (by truncation and random
+# mutation) that nothing it accepts can crash the interpreter or yield anything but plain data.
+
+@pytest.fixture(params=["inline", "threaded"])
+def scan_mode(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Run a test with the scan before the C unpickler (small inputs) and beside it (big inputs)."""
+    if request.param == "threaded":
+        monkeypatch.setattr(safe_pickle, "_THREAD_MIN", 0)
+    return request.param
+
+
+def same(a: object, b: object, strides: bool = False) -> bool:
+    """Deep equality that also compares numpy arrays, dtypes and scalars by type and bytes (and array
+    strides if ``strides``: below protocol 5 numpy pickles every array as a contiguous copy)."""
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, np.ndarray):
+        if a.dtype != b.dtype or a.shape != b.shape or (strides and a.strides != b.strides):
+            return False
+        if a.dtype.kind == "O":
+            return all(same(x, y, strides) for x, y in zip(a.ravel(), b.ravel()))
+        return a.tobytes() == b.tobytes()
+    if isinstance(a, np.generic):
+        return a.dtype == b.dtype and a.tobytes() == b.tobytes()
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(same(x, y, strides) for x, y in zip(a, b))
+    if isinstance(a, dict):
+        return list(a) == list(b) and all(same(a[k], b[k], strides) for k in a)
+    if isinstance(a, float) and math.isnan(a):
+        return math.isnan(b)
+    return bool(a == b)
+
+
+_PLAIN = (str, int, float, bool, bytes, bytearray, type(None))
+
+
+def post_check(obj: object, depth: int = 0) -> None:
+    """What load_pickle may return: plain containers (at most ~100 deep), plain numpy arrays whose memory
+    is all there, object arrays of plain items, numpy scalars and dtypes."""
+    assert depth <= 101
+    if isinstance(obj, _PLAIN) or isinstance(obj, np.generic):
+        return
+    if isinstance(obj, np.dtype):
+        assert obj.kind in "biufcUSO" and obj.names is None and obj.subdtype is None
+        return
+    if type(obj) is np.ndarray:
+        dt = obj.dtype
+        assert dt.kind in "biufcUSO" and dt.names is None and dt.subdtype is None
+        assert dt.hasobject == (dt.kind == "O")
+        if dt.kind == "O":
+            for x in obj.ravel():
+                assert isinstance(x, _PLAIN) or isinstance(x, np.generic), type(x)
+        else:
+            assert len(obj.tobytes()) == obj.size * dt.itemsize  # reads every element
+        return
+    if type(obj) in (list, tuple, set, frozenset):
+        for x in obj:  # type: ignore[attr-defined]
+            post_check(x, depth + 1)
+        return
+    assert type(obj) in (dict, collections.OrderedDict), type(obj)
+    for k, v in obj.items():  # type: ignore[attr-defined]
+        post_check(k, depth + 1)
+        post_check(v, depth + 1)
+
+
+def _dtypes() -> list[np.dtype]:
+    out = [np.dtype(c) for c in ("?", "i1", "i2", "i4", "i8", "u1", "u2", "u4", "u8", "f2", "f4", "f8", "c8",
+                                 "c16", "U1", "U7", "S1", "S5", ">i4", ">f8", ">c16", ">U3", "O")]
+    out += [np.dtype(np.longdouble), np.dtype(np.clongdouble)]
+    return out
+
+
+def _rich(protocol: int) -> dict[str, object]:
+    """Every kind of value load_pickle accepts, as pickle writes it at ``protocol``."""
+    arrays = [np.zeros((2, 3), dtype=dt) + (np.array("ab", dtype=dt) if dt.kind in "US" else 1) for dt in _dtypes()
+              if dt.kind != "O"]
+    arrays += [np.array(["Car", 1, 2.5, None, b"x", np.float32(3)], dtype=object),
+               np.frombuffer(bytes(range(256)) * 2, np.uint8),  # every byte value (escapes at protocol 0)
+               np.array(7.25), np.zeros((0, 7)), np.zeros(0, "U1"), np.asfortranarray(np.arange(6.0).reshape(2, 3)),
+               np.arange(24.0).reshape(2, 3, 4).transpose(1, 0, 2)]  # neither C nor F (axis order at protocol 5)
+    scalars = [np.dtype(dt).type(1) for dt in _dtypes() if dt.kind not in "USO"]
+    scalars += [np.str_("000001"), np.bytes_(b"ab\x00c"), np.float64("nan")]
+    strings = [str(i) for i in range(300)]
+    obj: dict[str, object] = {
+        "arrays": arrays, "scalars": scalars, "dtypes": [np.dtype("f4"), np.dtype(">U5")],
+        "nested": [[{"a": (1, (2, (3,)))}], (), [], {}, ((),)],
+        "str": ["", "plain", "ünïcødé \u20ac \U0001f600", "back\\slash\nnew line\r\x1a\x00", "'\""],
+        "bytes": [b"", b"raw\x00\xff\\\n", bytes(range(256)) * 2],
+        "ints": [0, 1, -1, 255, 256, 65535, 65536, 2**31 - 1, -2**31, 2**63, -2**63 - 1, 2**70, -2**3000],
+        "floats": [0.0, -0.0, 1.5, 1e308, float("inf"), float("nan")], "consts": [None, True, False],
+        "od": collections.OrderedDict([("b", 1), ("a", [1, 2, 3])]), (1, "tuple key"): "v",
+        "memo": strings + strings,  # > 256 memo entries, each fetched again (LONG_BINGET)
+        "shared": [arrays[0], arrays[0]],
+    }
+    if protocol >= 4:  # below 4 sets pickle as builtins.set(list), which is not on the allowlist
+        obj.update({"set": {1, "a", (2, 3)}, "frozenset": frozenset({frozenset({1}), "b"})})
+    if protocol >= 5:
+        obj["bytearray"] = bytearray(b"ba\x00")
+    return obj
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_every_kind_of_value_round_trips(protocol: int, scan_mode: str) -> None:
+    obj = _rich(protocol)
+    data = pickle.dumps(obj, protocol=protocol)
+    out = loads(data)
+    post_check(out)
+    assert same(out, obj) and same(out, pickle.loads(data), strides=True)
+    assert out["shared"][0] is out["shared"][1]  # type: ignore[index]
+
+
+@pytest.mark.parametrize("data, expected", [
+    (b"S'abc'\n.", "abc"),                                   # STRING (protocol 0, quoted)
+    (b"S\"a\\x41\\n\"\n.", "aA\n"),                          # STRING with escapes
+    (b"U\x03abc.", "abc"),                                   # SHORT_BINSTRING
+    (b"T\x03\x00\x00\x00abc.", "abc"),                        # BINSTRING
+    (b"\x8d\x02\x00\x00\x00\x00\x00\x00\x00\xc3\xa9.", "\xe9"),  # BINUNICODE8
+    (b"\x8e\x02\x00\x00\x00\x00\x00\x00\x00ab.", b"ab"),      # BINBYTES8
+    (b"B\x02\x00\x00\x00ab.", b"ab"),                         # BINBYTES
+    (b"Vab\\u00e9\\x\n.", "ab\xe9\\x"),                      # UNICODE with an escape and a lone backslash
+    (b"I01\n.", True), (b"I00\n.", False), (b"I7\n.", 7), (b"I-12\n.", -12), (b"I010\n.", 8),  # INT
+    (b"L123L\n.", 123), (b"L99999999999999999999999\n.", 99999999999999999999999),  # LONG
+    (b"F1.5\n.", 1.5),                                       # FLOAT
+    (b"\x8b\x02\x00\x00\x00\xff\x7f.", 32767),               # LONG4
+    (b"\x8a\x01\xff.", -1), (b"\x8a\x00.", 0),               # LONG1
+    (b"K\x012\x86.", (1, 1)),                                # DUP
+    (b"K\x01K\x020\x85.", (1,)),                             # POP of an object
+    (b"K\x01(0\x85.", (1,)),                                 # POP of a MARK
+    (b"K\x01(K\x02K\x031\x85.", (1,)),                       # POP_MARK
+    (b"(K\x01K\x02l.", [1, 2]), (b"(K\x01K\x02d.", {1: 2}),  # LIST, DICT
+    (b"(K\x01\x91.", frozenset({1})), (b"\x8f(K\x01\x90.", {1}),  # FROZENSET, ADDITEMS
+    (b"K\x01p5\n0g5\n.", 1),                                 # PUT / GET (protocol 0)
+    (b"K\x01r\x00\x01\x00\x000j\x00\x01\x00\x00.", 1),       # LONG_BINPUT / LONG_BINGET
+    (b"K\x01q\x07\x94\x94h\x07\x85.", (1,)),                 # MEMOIZE after an explicit PUT
+    (b"\x80\x05\x95\x03\x00\x00\x00\x00\x00\x00\x00K\x01.", 1),  # FRAME
+    (b"\x80\x02K\x01.trailing bytes are ignored", 1),
+])
+def test_hand_written_opcodes(data: bytes, expected: object) -> None:
+    out = loads(data)
+    assert same(out, expected) and same(out, pickle.loads(data), strides=True)
+
+
+@pytest.mark.parametrize("data, match", [
+    (b"(i__builtin__\nbytes\n.", "INST"),
+    (b"\x80\x02ccollections\nOrderedDict\n)o.", "INST"),
+    (b"Pfoo\n.", "persistent"),
+    (b"\x80\x02\x83\x01\x00.", "extension"), (b"\x80\x02\x84\x01\x00\x00\x00.", "extension"),
+    (b"\x80\x04ccollections\nOrderedDict\n)}\x92.", "NEWOBJ"),
+    (b"\x80\x04]ccollections\nOrderedDict\na.", "as a value"),  # a global is never a value
+    (b"\x80\x04ccollections\nOrderedDict\n.", "as a value"),
+    (b"\x80\x04cnumpy\nndarray\n)R.", "calls numpy.ndarray"),
+    (b"\x80\x04\x8c\x01aK\x01\x85R.", "calls 'a'"),
+    (b"\x80\x02cnumpy\ndtype\nX\x02\x00\x00\x00f8K\x00K\x01\x87R.", "dtype"),  # align/copy as int, not bool
+    (b"\x80\x02cnumpy\ndtype\nX\x02\x00\x00\x00f8\x89\x89\x87R.", "dtype"),   # copy=False: numpy's shared dtype
+    (b"\x80\x02cnumpy.core.multiarray\n_reconstruct\ncnumpy\nndarray\nK\x00\x85C\x01b\x87RK\x01K\x02s.",
+     "adds items to a numpy array"),
+    (b"\x80\x02K\x01K\x02K\x03(u.", "adds items to a int"),  # a no-op for _pickle.c, never written
+])
+def test_scan_refusals(data: bytes, match: str, scan_mode: str) -> None:
+    with pytest.raises(UnsafePickleError, match=match):
+        loads(data)
+
+
+@pytest.mark.parametrize("data, match", [
+    (b"\x80\x02}]Ns.", "cannot be hashed"),                                 # a list as a dict key
+    (b"\x80\x02]q\x00h\x00a.", "recursive"),                                 # l.append(l)
+    (b"\x80\x02]q\x00\x85h\x00K\x02a.", "recursive"),                       # a list changed inside a tuple
+    (b"\x80\x02Nr\xff\xff\xff\x7f.", "memo index"),                         # the C memo would take 16 GB
+    (b"\x80\x05\x97.", "out-of-band"), (b"\x80\x05C\x01a\x98.", "out-of-band"),
+    (b"\x80\x02(u.", "underflow"), (b"\x80\x02(K\x01\x85(\x86.", "underflow"),
+    (b"\x80\x02K\x01t.", "MARK"), (b"\x80\x02\x8c.", "ends before"), (b"\x80\x06N.", "malformed"),
+    (b"\x80\x02\x8b\xff\xff\xff\xffN.", "malformed"), (b"\x80\x02g1x\n.", "malformed"),
+    (b"\x80\x02}(K\x01d.", "odd"),
+    (b"\x80\x05cnumpy._core.numeric\n_frombuffer\n(C\x00cnumpy\ndtype\nX\x02\x00\x00\x00O8\x89\x88\x87R"
+     b"(K\x03X\x01\x00\x00\x00|NNNJ\xff\xff\xff\xffJ\xff\xff\xff\xffK?tbK\x00\x85X\x01\x00\x00\x00CtR.", "raw buffer"),
+])
+def test_scan_rejects_malformed_input(data: bytes, match: str, scan_mode: str) -> None:
+    with pytest.raises(InputError, match=match) as err:
+        loads(data)
+    assert not isinstance(err.value, UnsafePickleError)
+    assert str(err.value).startswith("upload.pkl: not a readable pickle: ")
+
+
+def test_protocol5_axis_order_is_checked() -> None:
+    arr = np.arange(24.0).reshape(2, 3, 4).transpose(1, 0, 2)
+    data = pickle.dumps(arr, protocol=5)
+    assert same(loads(data), arr, strides=True)
+    axes = b"K\x01K\x00K\x02\x87"
+    assert data.count(axes) == 1
+    for bad in (b"K\x01K\x01K\x02\x87", b"K\x01K\x00K\x03\x87", b"K\x01K\x00\x86\x94\x94"):
+        with pytest.raises(InputError, match="order"):
+            loads(data.replace(axes, bad))
+
+
+def test_dtype_states_are_the_ones_numpy_writes() -> None:
+    """The scan's table of canonical dtype states agrees with numpy for every dtype and byte order."""
+    for dt in _dtypes() + [np.dtype(f"U{n}") for n in (0, 1, 9, 1000)] + [np.dtype(f"S{n}") for n in (0, 2, 333)]:
+        for order in "<>":
+            d = dt.newbyteorder(order) if dt.byteorder != "|" else dt
+            assert loads(pickle.dumps(d, protocol=2)) == d
+            for protocol in (2, 5):  # below 5, numpy itself loads swapped arrays in native order
+                data = pickle.dumps(np.ones(2, d), protocol=protocol)
+                assert same(loads(data), pickle.loads(data), strides=True)
+                np.testing.assert_array_equal(loads(data), np.ones(2, d))
+    for state in [(3, "|", None, None, None, -1, -1, 0),    # a multi-byte number with no byte order
+                  (3, "<", None, None, None, 8, -1, 0),     # explicit size on a fixed-size dtype
+                  (3, "<", None, None, None, -1, -1, 16),   # custom flags
+                  (4, "<", None, None, None, -1, -1, 0)]:   # another version
+        with pytest.raises(UnsafePickleError, match="dtype"):
+            loads(pickle.dumps(Reducer(np.dtype, ("f8", False, True), state), protocol=2))
+    with pytest.raises(InputError, match="string size 6"):
+        loads(pickle.dumps(Reducer(np.dtype, ("U1", False, True), (3, "<", None, None, None, 6, 4, 8)),
+                           protocol=2))
+
+
+def _nested(opener: bytes, closer: bytes, n: int) -> bytes:
+    return b"\x80\x04" + opener * n + closer * n + b"."
+
+
+@pytest.mark.parametrize("n", [99, 1000, 1_000_000])
+def test_deep_nesting_is_refused_before_anything_is_built(n: int, scan_mode: str) -> None:
+    lists = b"\x80\x04" + b"]" * n + b"a" * (n - 1) + b"."  # [[[...]]]
+    frozensets = _nested(b"(", b"\x91", n)                  # frozenset({frozenset({...})})
+    tuples = _nested(b"(", b"t", n)
+    dicts = b"\x80\x04" + b"}K\x00" * (n - 1) + b"}" + b"s" * (n - 1) + b"."  # {0: {0: {...}}}
+    for data in (lists, frozensets, tuples, dicts):
+        if n < 100:
+            post_check(loads(data))
+        else:
+            with pytest.raises(InputError, match="nested too deeply"):
+                loads(data)
+
+
+def test_a_million_deep_tuple_key_is_refused_in_process() -> None:
+    # pickle.loads of this segfaults CPython: hashing the key recurses 1e6 deep in C
+    data = b"\x80\x02}N" + b"\x85" * 1_000_000 + b"Ns."
+    with pytest.raises(InputError, match="nested too deeply"):
+        loads(data)
+    # ... and the same as a set item, a frozenset item and a nested key
+    for data in (b"\x80\x04\x8f(N" + b"\x85" * 1_000_000 + b"\x90.",
+                 b"\x80\x04(N" + b"\x85" * 1_000_000 + b"\x91.",
+                 b"\x80\x04}N" + b"\x85" * 1_000_000 + b"K\x01\x86Ns."):
+        with pytest.raises(InputError, match="nested too deeply"):
+            loads(data)
+
+
+def test_a_tuple_key_that_would_hash_for_ever_is_refused() -> None:
+    # t[i] = (t[i-1], t[i-1]): 60 levels, 2**60 elements to hash, 400 bytes of pickle
+    # each level: BINGET i, BINGET i, TUPLE2, MEMOIZE, POP
+    level = b"".join(b"h" + bytes([i]) + b"h" + bytes([i]) + b"\x86\x940" for i in range(60))
+    data = b"\x80\x04})\x940" + level + b"h<Ns."  # {t[60]: None}
+    start = time.perf_counter()
+    with pytest.raises(InputError, match="nested too deeply"):
+        loads(data)
+    assert time.perf_counter() - start < 5
+
+
+def _small_pickles() -> list[bytes]:
+    frame = {"frame_id": "000001", "name": np.array(["Car", "Pedestrian"]), "score": np.float32([0.9, 0.1]),
+             "bbox": np.zeros((2, 4)), "s": np.float32(2.5), "od": collections.OrderedDict(a=(1, b"x")),
+             "big": 2**70, "obj": np.array(["Car", None], dtype=object)}
+    return [pickle.dumps(frame, protocol=p) for p in PROTOCOLS]
+
+
+def test_every_truncation_is_an_input_error(scan_mode: str) -> None:
+    for data in _small_pickles():
+        for cut in range(len(data)):
+            with pytest.raises(InputError) as err:
+                loads(data[:cut])
+            assert not isinstance(err.value, UnsafePickleError), (cut, data[:cut])
+
+
+def test_random_mutations_never_crash_and_yield_only_plain_data(scan_mode: str) -> None:
+    """Seeded byte flips, deletions, insertions and copies: whatever load_pickle accepts is plain data and
+    exactly what pickle.loads makes of the same bytes (safe to call once the scan accepted them)."""
+    rng = random.Random(20240611)
+    base = _small_pickles()
+    counts = collections.Counter()
+    for _ in range(3000 if scan_mode == "inline" else 1000):
+        data = bytearray(rng.choice(base))
+        for _ in range(rng.choice((1, 1, 2, 3, 6))):
+            k = rng.randrange(len(data))
+            r = rng.random()
+            if r < 0.6:
+                data[k] = rng.randrange(256)
+            elif r < 0.75:
+                del data[k]
+            elif r < 0.9:
+                data.insert(k, rng.randrange(256))
+            else:
+                data[k:k] = data[rng.randrange(len(data)):][:rng.randrange(1, 12)]
+        try:
+            out = loads(bytes(data))
+        except UnsafePickleError:
+            counts["refused"] += 1
+            continue
+        except InputError:
+            counts["malformed"] += 1
+            continue
+        counts["loaded"] += 1
+        post_check(out)
+        assert same(out, pickle.loads(bytes(data)), strides=True)
+    assert min(counts.values()) > 20, counts  # all three outcomes happen
+
+
+def test_the_c_unpickler_never_sees_bytes_the_scan_refused(tmp_path: Path,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """A big pickle (checked in a helper thread while the C unpickler runs behind it) whose last item is
+    a payload: the C unpickler builds the frames before it, then stops where the scan refused."""
+    asked: list[tuple[str, str]] = []
+    find_class = safe_pickle._Unpickler.find_class
+
+    def spy(self: safe_pickle._Unpickler, module: str, name: str) -> object:
+        asked.append((module, name))
+        return find_class(self, module, name)
+
+    monkeypatch.setattr(safe_pickle._Unpickler, "find_class", spy)
+    canary = tmp_path / "CANARY"
+    frames = [{"name": np.array(["Car"] * 3), "score": np.float32([0.5, 0.25, 0.125]), "i": i} for i in range(12000)]
+    assert len(pickle.dumps(frames, protocol=4)) > safe_pickle._THREAD_MIN
+    for protocol in (2, 4):
+        for at in (0, len(frames) // 2, len(frames)):
+            payload = frames[:at] + [Reducer(os.system, (f"touch {canary}",))] + frames[at:]
+            with pytest.raises(UnsafePickleError, match="system"):
+                loads(pickle.dumps(payload, protocol=protocol))
+            assert set(asked) <= ALLOWED_GLOBALS
+            assert not canary.exists()
+        big = pickle.dumps(frames, protocol=protocol)
+        assert same(loads(big), frames)
+        for cut in (len(big) - 1, len(big) // 2, 2):
+            with pytest.raises(InputError, match="ends before"):
+                loads(big[:cut])
