@@ -100,17 +100,32 @@ def _say(msg: str) -> None:
     print(f"{PROG}: {msg}", file=sys.stderr)
 
 
+def _start_warm_up() -> object | None:
+    """On a first run, say that the kernels compile once, and compile the evaluation kernels in another
+    process while this one compiles the loader's (returns the process to wait for)."""
+    from ._jit import kernels_cached, loader_cached, warm_in_background
+
+    eval_cold, load_cold = not kernels_cached(), not loader_cached()
+    if eval_cold or load_cold:
+        _say("compiling the kernels once (about 20 s on two cores; later runs use numba's cache)")
+    return warm_in_background() if eval_cold else None
+
+
+def _wait(warmer: object | None) -> None:
+    if warmer is not None:
+        warmer.wait()  # type: ignore[attr-defined]
+
+
 def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
-    from ._jit import kernels_cached
     from .evaluation import evaluate
     from .formats import render
     from .loaders import load_detections, load_ground_truth
 
     config = _config(args)
+    warmer = _start_warm_up()
     gt = load_ground_truth(gt_path)
     dt = load_detections(pred_path)
-    if not kernels_cached():
-        _say("compiling the evaluation kernels once (takes a few seconds; later runs use numba's cache)")
+    _wait(warmer)
     result = evaluate(gt, dt, config, keep_curves=args.curves)
     text = render(result, args.format, include_curves=args.curves)
     if not args.quiet:
@@ -279,7 +294,6 @@ def _gate(args: argparse.Namespace) -> int:
 
 
 def _run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int:
-    from ._jit import kernels_cached
     from .batch import evaluate_many, plot_batch, render_batch
     from .gate import ValueKey
     from .loaders import load_ground_truth
@@ -291,9 +305,9 @@ def _run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int
         fmt = args.format.value
     else:
         fmt = "json"
+    warmer = _start_warm_up()
     gt = load_ground_truth(gt_path)
-    if not kernels_cached():
-        _say("compiling the evaluation kernels once (takes a few seconds; later runs use numba's cache)")
+    _wait(warmer)
 
     def skip(path: Path, error: Exception) -> None:
         _say(f"error: {error} (skipped)")
