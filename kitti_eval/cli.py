@@ -61,7 +61,7 @@ def _parser() -> argparse.ArgumentParser:
         description="Exact KITTI 3D object detection evaluation (2D, BEV, 3D, AOS; R11 and R40) on a CPU.",
         epilog="Commands: 'kitti-eval demo' evaluates the bundled demo set; 'kitti-eval gate' checks AP "
                "rules (exit 3 when a rule fails); 'kitti-eval compare A B' shows per-value differences; "
-               "'kitti-eval serve' runs the HTTP service. "
+               "'kitti-eval describe FILE' reports what a file holds; 'kitti-eval serve' runs the HTTP service. "
                "Exit codes: 0 ok, 1 bad input, 2 usage.")
     p.add_argument("--gt", required=True, type=Path,
                    help="ground truth: a KITTI label_2 folder or an OpenPCDet infos .pkl[.gz]")
@@ -70,6 +70,16 @@ def _parser() -> argparse.ArgumentParser:
                         "repeat it or give a quoted glob ('output/*/epoch_*/val/result.pkl') to evaluate many "
                         "checkpoints in one process")
     _add_eval_options(p)
+    from .loaders import FORMATS
+
+    fmts = p.add_argument_group("input formats")
+    fmts.add_argument("--gt-format", choices=FORMATS, default=None,
+                      help="the ground truth's layout, instead of detecting it")
+    fmts.add_argument("--pred-format", choices=FORMATS, default=None,
+                      help="the predictions' layout, instead of detecting it")
+    fmts.add_argument("--split", type=Path, metavar="IMAGESETS_TXT",
+                      help="evaluate only the frames listed in this file (ImageSets/val.txt: one id a line); "
+                           "predictions for other frames are dropped with a warning")
     many = p.add_argument_group("many checkpoints")
     many.add_argument("--value", action="append", default=[], metavar="KEY",
                       help="a column of the checkpoint table, e.g. Car/3d/moderate/R40 (default: moderate 3D "
@@ -119,17 +129,19 @@ def _wait(warmer: object | None) -> None:
 def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
     from .evaluation import evaluate
     from .formats import render
-    from .loaders import load_detections, load_ground_truth
+    from .loaders import load_pair
 
     config = _config(args)
     warmer = _start_warm_up()
-    gt = load_ground_truth(gt_path)
-    dt = load_detections(pred_path)
+    load_warnings: list[str] = []
+    gt, dt = load_pair(gt_path, pred_path, gt_format=getattr(args, "gt_format", None),
+                       pred_format=getattr(args, "pred_format", None), split=getattr(args, "split", None),
+                       warnings=load_warnings)
     _wait(warmer)
     result = evaluate(gt, dt, config, keep_curves=args.curves)
     text = render(result, args.format, include_curves=args.curves)
     if not args.quiet:
-        for w in result.warnings:
+        for w in [*load_warnings, *result.warnings]:
             _say(f"warning: {w}")
     if args.output:
         args.output.write_text(text)
@@ -339,11 +351,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _gate(_gate_parser().parse_args(argv[1:]))
         if argv and argv[0] == "compare":
             return _compare(_compare_parser().parse_args(argv[1:]))
+        if argv and argv[0] == "describe":
+            from .describe import main as describe_main
+
+            return describe_main(argv[1:])
         if argv and argv[0] == "serve":
             try:
                 from server.main import serve
             except ImportError as e:
-                raise ConfigError(f"the service needs the server extra: pip install 'kitti-eval[server]' ({e})") from None
+                raise ConfigError("the service needs the server extra: pip install 'kitti-eval[server]' "
+                                  f"({e})") from None
             return serve(argv[1:])
         args = _parser().parse_args(argv)
         from .batch import expand_predictions
@@ -351,6 +368,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         preds = expand_predictions(args.pred)
         if len(preds) == 1 and not args.plot:
             return _run(args.gt, preds[0], args)
+        if args.gt_format or args.pred_format or args.split:
+            raise ConfigError("--gt-format, --pred-format and --split work with one --pred only")
         return _run_many(args.gt, preds, args)
     except SystemExit as e:  # argparse: usage errors exit 2, --help exits 0
         return int(e.code) if isinstance(e.code, int) else EXIT_USAGE

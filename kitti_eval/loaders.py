@@ -19,7 +19,16 @@ Formats
                        truth, plain annos dicts with ``frame_id``)
   ``annos_by_frame``   dict ``{frame id: annos dict}`` (PointPillars style; for ground truth the values may
                        also be info dicts holding ``annos``)
+  ``mmdet3d_infos``    mmdetection3d 1.x info dict ``{'metainfo', 'data_list'}``: ground truth; names from
+                       ``metainfo['categories']``, ``bbox_label`` -1 is DontCare, ``bbox_3d`` = x y z l h w ry
+                       (camera, bottom centre); frame ids from ``sample_idx``
+  ``mmdet3d_results``  list of mmdetection3d KITTI-format result dicts (OpenPCDet's fields plus ``sample_idx``,
+                       an int or an array repeating it per box; entries with no boxes and no id are skipped)
   ==================  ====================================================================================
+
+  Detections that carry only ``boxes_lidar`` (OpenPCDet LiDAR convention) are converted to the camera frame
+  with each frame's calibration (:mod:`kitti_eval.calib`), taken from the ground-truth infos; see
+  :func:`load_pair`. Zip and tar archives of a KITTI txt folder are unpacked safely (:func:`extract_txt_archive`).
 
   New formats are added to :data:`PICKLE_FORMATS` with a detector in :func:`detect_format`.
 """
@@ -28,20 +37,23 @@ from __future__ import annotations
 
 import os
 from array import array
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from itertools import chain
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
 
 from .errors import InputError
-from .frames import Annotations, Kind
+from .frames import Annotations, Kind, normalize_frame_id
 from .safe_pickle import load_pickle
 
 __all__ = [
     "load_ground_truth", "load_detections", "load_annotations", "load_kitti_txt_dir", "parse_kitti_txt",
     "annotations_from_object", "detect_format", "describe_format", "PICKLE_FORMATS", "KITTI_TXT_FIELDS",
+    "FORMATS", "load_pair", "read_split", "apply_split", "calibs_from_object", "extract_txt_archive",
+    "is_archive", "ArchiveLimits",
 ]
 
 #: the fields of a KITTI label line, in file order (``score`` only in detections)
@@ -56,39 +68,76 @@ Frames = Iterator[tuple[object, Mapping[str, Any]]]
 
 # ----------------------------------------------------------------------------------------- public API
 
-def load_ground_truth(path: PathLike, *, max_bytes: int | None = None) -> Annotations:
-    """Ground truth from a KITTI ``label_2``-style txt folder or an infos/annos pickle (see module doc)."""
-    return load_annotations(path, "ground_truth", max_bytes=max_bytes)
+def load_ground_truth(path: PathLike, *, max_bytes: int | None = None, fmt: str | None = None) -> Annotations:
+    """Ground truth from a KITTI ``label_2``-style txt folder (or a zip/tar of one) or an infos/annos pickle."""
+    return load_annotations(path, "ground_truth", max_bytes=max_bytes, fmt=fmt)
 
 
-def load_detections(path: PathLike, *, max_bytes: int | None = None) -> Annotations:
-    """Detections from a KITTI txt folder (16 fields) or a ``result.pkl``-style pickle (see module doc)."""
-    return load_annotations(path, "detections", max_bytes=max_bytes)
+def load_detections(path: PathLike, *, max_bytes: int | None = None, fmt: str | None = None,
+                    calibs: Mapping[str, Any] | None = None, warnings: list[str] | None = None) -> Annotations:
+    """Detections from a KITTI txt folder (16 fields; or a zip/tar of one) or a ``result.pkl``-style pickle.
+
+    ``calibs`` ({frame id: :class:`kitti_eval.calib.Calib`}) converts LiDAR-only boxes and checks boxes that
+    carry both; messages about the check are appended to ``warnings``.
+    """
+    return load_annotations(path, "detections", max_bytes=max_bytes, fmt=fmt, calibs=calibs, warnings=warnings)
 
 
-def load_annotations(path: PathLike, kind: Kind, *, max_bytes: int | None = None) -> Annotations:
-    """A folder is read as KITTI txt files, a file as a (possibly gzipped) pickle."""
+def _check_fmt(fmt: str | None) -> None:
+    if fmt is not None and fmt not in FORMATS:
+        raise InputError(f"unknown format {fmt!r}; known: {', '.join(FORMATS)}")
+
+
+def _missing(p: Path, kind: Kind, source: str) -> InputError:
+    what = "ground truth" if kind == "ground_truth" else "detections"
+    return InputError(f"no such file or directory (expected {what} as a KITTI txt folder, a zip/tar of one, or "
+                      "a pickle)", source=source)
+
+
+def load_annotations(path: PathLike, kind: Kind, *, max_bytes: int | None = None, fmt: str | None = None,
+                     calibs: Mapping[str, Any] | None = None, warnings: list[str] | None = None) -> Annotations:
+    """A folder is read as KITTI txt files, a zip/tar as an archived txt folder, a file as a pickle.
+
+    ``fmt`` (a name of :data:`FORMATS`) skips the detection of the layout.
+    """
     _check_kind(kind)
+    _check_fmt(fmt)
     p = Path(path)
     source = str(path)
     if p.is_dir():
+        if fmt not in (None, "kitti_txt"):
+            raise InputError(f"a folder is read as KITTI txt files, not as {fmt!r}", source=source)
         return load_kitti_txt_dir(p, kind)
     if not p.exists():
-        what = "ground truth" if kind == "ground_truth" else "detections"
-        raise InputError(f"no such file or directory (expected {what} as a KITTI txt folder or a pickle)",
-                         source=source)
+        raise _missing(p, kind, source)
     if p.suffix.lower() == ".txt":
         raise InputError("this is a single txt file; pass the folder that holds one KITTI txt file per "
                          "frame", source=source)
+    if fmt == "kitti_txt" or (fmt is None and is_archive(p)):
+        return _load_txt_archive(p, kind, source)
     obj = load_pickle(p, source=source, max_bytes=max_bytes)
-    return annotations_from_object(obj, kind, source=source)
+    return annotations_from_object(obj, kind, source=source, fmt=fmt, calibs=calibs, warnings=warnings)
 
 
-def annotations_from_object(obj: object, kind: Kind, *, source: str) -> Annotations:
-    """Annotations from an already unpickled object (e.g. an upload passed through ``load_pickle``)."""
+def annotations_from_object(obj: object, kind: Kind, *, source: str, fmt: str | None = None,
+                            calibs: Mapping[str, Any] | None = None,
+                            warnings: list[str] | None = None) -> Annotations:
+    """Annotations from an already unpickled object (e.g. an upload passed through ``load_pickle``).
+
+    ``fmt`` forces a layout of :data:`PICKLE_FORMATS`; ``calibs`` and ``warnings``: see :func:`load_detections`.
+    """
     _check_kind(kind)
-    fmt = detect_format(obj, kind, source=source)
-    return Annotations.from_frames(kind, source, PICKLE_FORMATS[fmt](obj, kind, source))
+    _check_fmt(fmt)
+    if fmt == "kitti_txt":
+        raise InputError("this is a pickle, not KITTI txt files", source=source)
+    if fmt is None:
+        fmt = detect_format(obj, kind, source=source)
+    else:
+        _check_layout(obj, fmt, source)
+    frames = PICKLE_FORMATS[fmt](obj, kind, source)
+    if kind == "detections":
+        frames = _camera_fields(frames, calibs, source, warnings)
+    return Annotations.from_frames(kind, source, frames)
 
 
 # ---------------------------------------------------------------------------------------- KITTI txt
@@ -287,6 +336,8 @@ def detect_format(obj: object, kind: Kind, *, source: str) -> str:
         if not obj:
             raise InputError(f"the pickle holds an empty {type(obj).__name__}: no frames", source=source)
         first = obj[0]
+        if "sample_idx" in first and "frame_id" not in first and "name" in first:
+            return "mmdet3d_results"
         if _INFO_KEYS & first.keys() and "name" not in first:
             if kind == "detections":
                 raise InputError("this is an OpenPCDet infos file (ground-truth labels), not detections; "
@@ -299,8 +350,10 @@ def detect_format(obj: object, kind: Kind, *, source: str) -> str:
                          f"{expected}", source=source, frame="#0")
     if isinstance(obj, Mapping):
         if "data_list" in obj and "metainfo" in obj:
-            raise InputError("this is an mmdetection3d 1.x info file (metainfo/data_list), which is not "
-                             "supported yet; use OpenPCDet infos or KITTI txt files", source=source)
+            if kind == "detections":
+                raise InputError("this is an mmdetection3d 1.x info file (metainfo/data_list: ground-truth "
+                                 "labels), not detections; pass it as the ground truth", source=source)
+            return "mmdet3d_infos"
         if _ANNOS_KEYS & obj.keys():
             raise InputError(f"this is a single frame's annos dict ({describe_format(obj)}); expected one "
                              f"per frame: {expected}", source=source)
@@ -376,3 +429,441 @@ PICKLE_FORMATS: dict[str, Callable[[Any, Kind, str], Frames]] = {
     "annos_list": _frames_annos_list,
     "annos_by_frame": _frames_annos_by_frame,
 }
+
+
+# ------------------------------------------------------------------------------------ mmdetection3d 1.x
+
+def _frames_mmdet3d_infos(obj: Any, kind: Kind, source: str) -> Frames:
+    meta = obj.get("metainfo")
+    data_list = obj.get("data_list")
+    if not isinstance(meta, Mapping) or not isinstance(data_list, (list, tuple)):
+        raise InputError("an mmdetection3d 1.x info file needs a 'metainfo' dict and a 'data_list' list",
+                         source=source)
+    if not data_list:
+        raise InputError("an mmdetection3d 1.x info file with an empty data_list: no frames", source=source)
+    cats = meta.get("categories")
+    if not isinstance(cats, Mapping):
+        raise InputError("mmdetection3d 1.x info file without metainfo['categories'] (class name -> label)",
+                         source=source, field="metainfo")
+    label2cat: dict[int, str] = {}
+    for name, label in cats.items():
+        try:
+            label2cat[int(label)] = str(name)
+        except (TypeError, ValueError):
+            raise InputError(f"metainfo['categories'][{name!r}] is {label!r}, expected an integer label",
+                             source=source, field="metainfo") from None
+    label2cat.setdefault(-1, "DontCare")
+    for i, entry in enumerate(data_list):
+        if not isinstance(entry, Mapping):
+            raise InputError(f"data_list entry #{i} is {_type_name(entry)}, expected a dict", source=source,
+                             frame=f"#{i}")
+        if entry.get("sample_idx") is None:
+            raise InputError(f"data_list entry #{i} has no sample_idx", source=source, frame=f"#{i}",
+                             field="sample_idx")
+        fid = _frame_id(entry["sample_idx"], f"data_list entry #{i}: sample_idx", source, f"#{i}")
+        try:
+            shown = normalize_frame_id(fid)
+        except (TypeError, ValueError):
+            shown = str(fid)
+        instances = entry.get("instances")
+        if instances is None:
+            raise InputError(f"data_list entry #{i} has no 'instances' (a test split?)", source=source,
+                             frame=shown, field="instances")
+        if not isinstance(instances, (list, tuple)):
+            raise InputError(f"'instances' is {_type_name(instances)}, expected a list", source=source,
+                             frame=shown, field="instances")
+        yield fid, _mmdet3d_instances(instances, label2cat, source, shown)
+
+
+def _mmdet3d_instances(instances: Sequence[Any], label2cat: Mapping[int, str], source: str,
+                       frame: str) -> dict[str, Any]:
+    n = len(instances)
+    names: list[str] = []
+    cols: dict[str, list[Any]] = {k: [] for k in ("bbox", "bbox_3d", "truncated", "occluded", "alpha")}
+    for j, inst in enumerate(instances):
+        if not isinstance(inst, Mapping):
+            raise InputError(f"instance #{j} is {_type_name(inst)}, expected a dict", source=source, frame=frame)
+        for key in ("bbox_label", *cols):
+            if key not in inst:
+                raise InputError(f"instance #{j} has no '{key}'", source=source, frame=frame, field=key)
+        label = inst["bbox_label"]
+        try:
+            names.append(label2cat[int(label)])
+        except (KeyError, TypeError, ValueError):
+            raise InputError(f"instance #{j}: bbox_label {label!r} is not in metainfo['categories']",
+                             source=source, frame=frame, field="bbox_label") from None
+        for key, col in cols.items():
+            col.append(inst[key])
+    fields: dict[str, Any] = {"name": np.array(names) if n else np.zeros(0, dtype="<U1")}
+    try:
+        box3d = np.asarray(cols["bbox_3d"], dtype=np.float64).reshape(n, 7) if n else np.zeros((0, 7))
+        fields["bbox"] = np.asarray(cols["bbox"], dtype=np.float64).reshape(n, 4) if n else np.zeros((0, 4))
+        for key in ("truncated", "occluded", "alpha"):
+            fields[key] = np.asarray(cols[key], dtype=np.float64).reshape(n)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"instances: bbox must be 4 numbers, bbox_3d 7, truncated/occluded/alpha one ({e})",
+                         source=source, frame=frame) from None
+    fields["location"] = box3d[:, 0:3]
+    fields["dimensions"] = box3d[:, 3:6]
+    fields["rotation_y"] = box3d[:, 6]
+    return fields
+
+
+def _frames_mmdet3d_results(obj: Any, kind: Kind, source: str) -> Frames:
+    for i, entry in enumerate(obj):
+        raw = entry.get("sample_idx")
+        if isinstance(raw, (list, tuple)):
+            raw = np.asarray(raw)
+        if isinstance(raw, np.ndarray) and raw.ndim == 1:
+            uniq = np.unique(raw)
+            if len(uniq) == 0:
+                if np.size(entry.get("score", ())) == 0:
+                    continue  # mmdet3d writes an empty sample_idx for a frame without boxes: nothing to add
+                raise InputError(f"{_KIND_WORD[kind]} entry #{i} has boxes but an empty sample_idx",
+                                 source=source, frame=f"#{i}", field="sample_idx")
+            if len(uniq) > 1:
+                raise InputError(f"{_KIND_WORD[kind]} entry #{i}: sample_idx holds several frames "
+                                 f"{uniq[:4].tolist()}", source=source, frame=f"#{i}", field="sample_idx")
+            raw = uniq[0]
+        if raw is None:
+            raise InputError(f"{_KIND_WORD[kind]} entry #{i} has no sample_idx (frames are matched by id, "
+                             "never by position)", source=source, frame=f"#{i}", field="sample_idx")
+        yield _frame_id(raw, f"{_KIND_WORD[kind]} entry #{i}: sample_idx", source, f"#{i}"), entry
+
+
+def _check_layout(obj: object, fmt: str, source: str) -> None:
+    """A forced format must at least have the right top-level type."""
+    want = {"mmdet3d_infos": Mapping, "annos_by_frame": Mapping}.get(fmt, (list, tuple))
+    if not isinstance(obj, want):
+        raise InputError(f"format {fmt!r} expects a {'dict' if want is Mapping else 'list'}; found "
+                         f"{describe_format(obj)}", source=source)
+    if want is not Mapping:
+        for i, entry in enumerate(obj):
+            if not isinstance(entry, Mapping):
+                raise InputError(f"entry #{i} is {_type_name(entry)}, expected a dict", source=source,
+                                 frame=f"#{i}")
+
+
+PICKLE_FORMATS["mmdet3d_infos"] = _frames_mmdet3d_infos
+PICKLE_FORMATS["mmdet3d_results"] = _frames_mmdet3d_results
+
+#: every format name ``--gt-format`` / ``--pred-format`` accept
+FORMATS: tuple[str, ...] = (*PICKLE_FORMATS, "kitti_txt")
+
+
+# -------------------------------------------------------------------------- LiDAR boxes and calibration
+
+_CAMERA_FIELDS = ("location", "dimensions", "rotation_y")
+
+
+def calibs_from_object(obj: object) -> dict[str, Any]:
+    """{frame id: :class:`kitti_eval.calib.Calib`} from ground-truth infos (OpenPCDet list, PointPillars
+    dict, mmdetection3d 1.x); empty when the object has no calibration. Never raises."""
+    from .calib import Calib, calib_from_info
+    from .frames import normalize_frame_id
+
+    out: dict[str, Any] = {}
+    try:
+        if isinstance(obj, Mapping) and "data_list" in obj:
+            for entry in obj["data_list"]:
+                cam = entry["images"]["CAM2"]
+                p2 = np.asarray(cam["cam2img"], dtype=np.float64)
+                p2 = np.pad(p2, ((0, 3 - p2.shape[0]), (0, 4 - p2.shape[1]))) if p2.shape != (4, 4) else p2[:3]
+                shape = (int(cam["height"]), int(cam["width"])) if "height" in cam else None
+                out[normalize_frame_id(entry["sample_idx"])] = Calib(
+                    np.asarray(cam["lidar2cam"], dtype=np.float64).reshape(4, 4), p2, shape)
+            return out
+        entries = (obj.items() if isinstance(obj, Mapping) else
+                   ((None, e) for e in obj) if isinstance(obj, (list, tuple)) else ())
+        for i, (key, info) in enumerate(entries):
+            if not isinstance(info, Mapping) or "calib" not in info:
+                continue
+            fid = key if key is not None else _entry_frame_id(info, i, "")
+            out[normalize_frame_id(fid)] = calib_from_info(info)
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError, InputError):
+        return {}
+    return out
+
+
+def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str,
+                   warnings: list[str] | None) -> Frames:
+    """Detections: LiDAR-only frames converted to camera fields; frames with both checked for agreement."""
+    from .calib import camera_lidar_disagreement, lidar_to_camera
+    from .frames import normalize_frame_id
+
+    checked = bad = 0
+    bad_frames = 0
+    for fid, fields in frames:
+        if not isinstance(fields, Mapping) or "boxes_lidar" not in fields:
+            yield fid, fields
+            continue
+        has_camera = all(k in fields for k in _CAMERA_FIELDS)
+        calib = None
+        if calibs:
+            try:
+                calib = calibs.get(normalize_frame_id(fid))
+            except (TypeError, ValueError):
+                calib = None
+        lidar = fields["boxes_lidar"]
+        if has_camera:
+            if calib is not None and np.size(lidar) and np.shape(lidar)[-1:] == (7,):
+                n = camera_lidar_disagreement(fields["location"], fields["rotation_y"], lidar, calib)
+                checked += len(np.asarray(lidar).reshape(-1, 7))
+                bad += n
+                bad_frames += n > 0
+            yield fid, fields
+            continue
+        if any(k in fields for k in _CAMERA_FIELDS):
+            yield fid, fields  # partial camera fields: from_frames names what is missing
+            continue
+        arr = np.asarray(lidar)
+        if arr.dtype.kind not in "iuf" and arr.size:
+            raise InputError(f"expected numbers, got dtype {arr.dtype}", source=source, frame=str(fid),
+                             field="boxes_lidar")
+        if arr.size == 0:
+            arr = np.zeros((0, 7))
+        if arr.ndim != 2 or arr.shape[1] != 7:
+            raise InputError(f"expected shape (N, 7), got {arr.shape}", source=source, frame=str(fid),
+                             field="boxes_lidar")
+        if calib is None:
+            raise InputError("LiDAR-only boxes (boxes_lidar without location/dimensions/rotation_y) need the "
+                             "frame's calibration: pass OpenPCDet (or mmdetection3d) infos as the ground truth",
+                             source=source, frame=str(fid), field="boxes_lidar")
+        out = dict(fields)
+        conv = lidar_to_camera(arr, calib)
+        out.update(conv)
+        if "alpha" in fields and np.size(fields["alpha"]) == len(arr):
+            out["alpha"] = fields["alpha"]
+        yield fid, out
+    if warnings is not None and checked and bad > 0.01 * checked:
+        warnings.append(f"{source}: camera fields and boxes_lidar disagree (location > 0.1 m or yaw > 0.1 rad) "
+                        f"for {bad} of {checked} boxes in {bad_frames} frames; the camera fields are evaluated")
+
+
+# ---------------------------------------------------------------------------------------- archives
+
+@dataclass(frozen=True)
+class ArchiveLimits:
+    max_members: int = 100_000
+    max_unpacked_bytes: int = 2 << 30
+
+
+_ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tar.xz")
+
+
+def is_archive(path: PathLike) -> bool:
+    """A zip (by magic) or a tar (by name, or a plain tar by its ustar magic)."""
+    p = Path(path)
+    name = p.name.lower()
+    if name.endswith((".pkl", ".pkl.gz", ".pickle", ".pt", ".pth")):
+        return False  # a zip named like a pickle is torch.save(): load_pickle explains that
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(512)
+    except OSError:
+        return False
+    if head[:4] in (b"PK\x03\x04", b"PK\x05\x06"):
+        return True
+    if head[257:262] == b"ustar":
+        return True
+    return name.endswith(_ARCHIVE_SUFFIXES[1:])
+
+
+def _member_path(raw: str, source: str) -> PurePosixPath:
+    if any(not c.isprintable() for c in raw):
+        raise InputError(f"archive member {raw!r} has control characters in its name", source=source)
+    name = raw.replace("\\", "/")
+    if name.startswith("/") or (len(name) > 1 and name[1] == ":"):
+        raise InputError(f"archive member {raw!r} has an absolute path", source=source)
+    parts = [q for q in name.split("/") if q not in ("", ".")]
+    if ".." in parts:
+        raise InputError(f"archive member {raw!r} points outside the archive ('..')", source=source)
+    return PurePosixPath(*parts) if parts else PurePosixPath(".")
+
+
+def _wanted_txt(path: PathLike) -> bool:
+    p = PurePosixPath(path)
+    return p.name.lower().endswith(".txt") and not p.name.startswith(".") and "__MACOSX" not in p.parts
+
+
+def _pick_folder(folders: Iterable[str], source: str) -> str:
+    folders = sorted(set(folders))
+    if not folders:
+        raise InputError("no .txt files in the archive (expected a folder of KITTI txt files, one per frame)",
+                         source=source)
+    if len(folders) == 1:
+        return folders[0]
+    for preferred in ("label_2", "data"):
+        hits = [f for f in folders if PurePosixPath(f).name == preferred]
+        if len(hits) == 1:
+            return hits[0]
+    shown = ", ".join(f + "/" for f in folders[:5])
+    raise InputError(f"txt files in several folders ({shown}); archive one folder (or one named label_2/ or "
+                     "data/)", source=source)
+
+
+def extract_txt_archive(path: PathLike, dest: PathLike, *, limits: ArchiveLimits = ArchiveLimits()) -> Path:
+    """Unpack the ``.txt`` files of one folder of a zip or tar into ``dest`` (flat); returns ``dest``.
+
+    Refuses absolute paths, ``..``, links, devices and fifos, more than ``limits.max_members`` members and
+    more than ``limits.max_unpacked_bytes`` unpacked (counted as written). When several folders hold txt
+    files, the one named ``label_2`` (or else ``data``) is taken.
+    """
+    import stat
+    import tarfile
+    import zipfile
+
+    p, out, source = Path(path), Path(dest), str(path)
+    left = [limits.max_unpacked_bytes]
+
+    def copy(read: Callable[[int], bytes], target: Path) -> None:
+        with open(target, "xb") as fh:
+            while chunk := read(1 << 20):
+                left[0] -= len(chunk)
+                if left[0] < 0:
+                    raise InputError(f"unpacks to more than {limits.max_unpacked_bytes >> 20} MB; a zip bomb?",
+                                     source=source)
+                fh.write(chunk)
+
+    with open(p, "rb") as fh:
+        magic = fh.read(4)
+    try:
+        if magic in (b"PK\x03\x04", b"PK\x05\x06"):
+            with zipfile.ZipFile(p) as zf:
+                infos = zf.infolist()
+                if len(infos) > limits.max_members:
+                    raise InputError(f"more than {limits.max_members} members", source=source)
+                txt: dict[str, list[tuple[str, Any]]] = {}
+                for info in infos:
+                    name = _member_path(info.filename, source)
+                    mode = info.external_attr >> 16
+                    if stat.S_ISLNK(mode) or stat.S_IFMT(mode) not in (0, stat.S_IFREG, stat.S_IFDIR):
+                        raise InputError(f"archive member {info.filename!r} is a link or a special file",
+                                         source=source)
+                    if info.is_dir() or not _wanted_txt(name):
+                        continue
+                    txt.setdefault(str(name.parent), []).append((name.name, info))
+                folder = _pick_folder(txt, source)
+                seen: set[str] = set()
+                for base, info in txt[folder]:
+                    if base in seen:
+                        raise InputError(f"archive member {info.filename!r} is listed twice", source=source)
+                    seen.add(base)
+                    with zf.open(info) as src:
+                        copy(src.read, out / base)
+            return out
+        staged = out / ".staged"
+        staged.mkdir()
+        by_folder: dict[str, list[tuple[str, Path]]] = {}
+        n = 0
+        with tarfile.open(p, mode="r|*") as tf:
+            for member in tf:
+                n += 1
+                if n > limits.max_members:
+                    raise InputError(f"more than {limits.max_members} members", source=source)
+                name = _member_path(member.name, source)
+                if member.isdir():
+                    continue
+                if member.issym() or member.islnk() or member.isdev() or not member.isreg():
+                    raise InputError(f"archive member {member.name!r} is a link, a device or not a regular "
+                                     "file", source=source)
+                if not _wanted_txt(name):
+                    continue
+                src = tf.extractfile(member)
+                if src is None:  # pragma: no cover
+                    continue
+                entries = by_folder.setdefault(str(name.parent), [])
+                target = staged / f"{len(by_folder)}-{len(entries)}"
+                copy(src.read, target)
+                entries.append((name.name, target))
+        folder = _pick_folder(by_folder, source)
+        for base, target in by_folder[folder]:
+            final = out / base
+            if final.exists():
+                raise InputError(f"archive member {folder}/{base} is listed twice", source=source)
+            target.rename(final)
+        import shutil
+
+        shutil.rmtree(staged)
+        return out
+    except InputError:
+        raise
+    except (zipfile.BadZipFile, tarfile.TarError, OSError, EOFError, ValueError, NotImplementedError) as e:
+        raise InputError(f"not a readable zip or tar archive ({e or type(e).__name__})", source=source) from None
+
+
+def _load_txt_archive(p: Path, kind: Kind, source: str) -> Annotations:
+    import dataclasses
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="kitti-eval-") as tmp:
+        folder = extract_txt_archive(p, tmp)
+        try:
+            annos = load_kitti_txt_dir(folder, kind)
+        except InputError as e:
+            raise InputError(e.message, source=source, frame=e.frame, field=e.field) from None
+    return dataclasses.replace(annos, source=source)
+
+
+# ------------------------------------------------------------------------------ pairs and split files
+
+def read_split(path: PathLike) -> list[str]:
+    """Frame ids of a KITTI ``ImageSets/<split>.txt`` (one a line; blank lines skipped), normalised."""
+    from .frames import normalize_frame_id
+
+    text = _read_text(Path(path))
+    ids: list[str] = []
+    seen: set[str] = set()
+    for lineno, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            fid = normalize_frame_id(line.strip())
+        except (TypeError, ValueError) as e:
+            raise InputError(f"line {lineno}: {e}", source=str(path)) from None
+        if fid not in seen:
+            seen.add(fid)
+            ids.append(fid)
+    if not ids:
+        raise InputError("the split file lists no frames", source=str(path))
+    return ids
+
+
+def apply_split(gt: Annotations, dt: Annotations, frame_ids: Sequence[str]) -> tuple[Annotations, Annotations, int]:
+    """Ground truth subset to ``frame_ids`` (each must be there), predictions of other frames dropped.
+
+    Returns ``(gt, dt, dropped)`` with the number of prediction frames dropped.
+    """
+    gt = gt.subset(list(frame_ids))
+    wanted = set(frame_ids)
+    keep = [fid for fid in dt.frame_ids if fid in wanted]
+    dropped = dt.num_frames - len(keep)
+    if dropped:
+        dt = dt.subset(keep)
+    return gt, dt, dropped
+
+
+def load_pair(gt_path: PathLike, pred_path: PathLike, *, gt_format: str | None = None,
+              pred_format: str | None = None, split: PathLike | None = None,
+              warnings: list[str] | None = None, max_bytes: int | None = None) -> tuple[Annotations, Annotations]:
+    """Ground truth and predictions, the pickle of ground truth read once (its calibration converts
+    LiDAR-only predictions); with ``split``, only the listed frames (dropped prediction frames are
+    reported in ``warnings``)."""
+    _check_fmt(gt_format)
+    _check_fmt(pred_format)
+    gp = Path(gt_path)
+    calibs: Mapping[str, Any] = {}
+    if gp.is_file() and gt_format != "kitti_txt" and not (gt_format is None and is_archive(gp)) \
+            and gp.suffix.lower() != ".txt":
+        obj = load_pickle(gp, source=str(gt_path), max_bytes=max_bytes)
+        gt = annotations_from_object(obj, "ground_truth", source=str(gt_path), fmt=gt_format)
+        calibs = calibs_from_object(obj)
+        del obj
+    else:
+        gt = load_ground_truth(gt_path, fmt=gt_format, max_bytes=max_bytes)
+    dt = load_detections(pred_path, fmt=pred_format, calibs=calibs, warnings=warnings, max_bytes=max_bytes)
+    if split is not None:
+        gt, dt, dropped = apply_split(gt, dt, read_split(split))
+        if dropped and warnings is not None:
+            warnings.append(f"{pred_path}: predictions for {dropped} frames outside the split {split} were dropped")
+    return gt, dt

@@ -430,7 +430,8 @@ def test_detect_and_describe_format() -> None:
     assert detect_format(infos(), "ground_truth", source="x") == "openpcdet_infos"
     assert detect_format(results(), "detections", source="x") == "annos_list"
     assert detect_format({0: {}}, "detections", source="x") == "annos_by_frame"
-    assert set(PICKLE_FORMATS) == {"openpcdet_infos", "annos_list", "annos_by_frame"}
+    assert set(PICKLE_FORMATS) == {"openpcdet_infos", "annos_list", "annos_by_frame", "mmdet3d_infos",
+                                   "mmdet3d_results"}
     assert describe_format(infos()) == \
         "a list of 3 entries, the first a dict with keys [annos, calib, image, point_cloud]"
     assert describe_format({1: 2}) == "a dict with 1 keys [1]"
