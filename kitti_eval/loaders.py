@@ -28,7 +28,8 @@ Formats
 
   Detections that carry only ``boxes_lidar`` (OpenPCDet LiDAR convention) are converted to the camera frame
   with each frame's calibration (:mod:`kitti_eval.calib`), taken from the ground-truth infos; see
-  :func:`load_pair`. Zip and tar archives of a KITTI txt folder are unpacked safely (:func:`extract_txt_archive`).
+  :func:`load_pair`. Zip and tar archives of a KITTI txt folder are unpacked safely (:func:`extract_txt_archive`,
+  over :mod:`kitti_eval.archives`).
 
   New formats are added to :data:`PICKLE_FORMATS` with a detector in :func:`detect_format`.
 """
@@ -37,14 +38,14 @@ from __future__ import annotations
 
 import os
 from array import array
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from itertools import chain
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .archives import ArchiveLimits, extract_txt_folder, sniff_archive
 from .errors import InputError
 from .frames import Annotations, Kind, normalize_frame_id
 from .safe_pickle import load_pickle
@@ -642,12 +643,7 @@ def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str
 
 # ---------------------------------------------------------------------------------------- archives
 
-@dataclass(frozen=True)
-class ArchiveLimits:
-    max_members: int = 100_000
-    max_unpacked_bytes: int = 2 << 30
-
-
+_DEFAULT_LIMITS = ArchiveLimits()
 _ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tar.xz")
 
 
@@ -669,127 +665,20 @@ def is_archive(path: PathLike) -> bool:
     return name.endswith(_ARCHIVE_SUFFIXES[1:])
 
 
-def _member_path(raw: str, source: str) -> PurePosixPath:
-    if any(not c.isprintable() for c in raw):
-        raise InputError(f"archive member {raw!r} has control characters in its name", source=source)
-    name = raw.replace("\\", "/")
-    if name.startswith("/") or (len(name) > 1 and name[1] == ":"):
-        raise InputError(f"archive member {raw!r} has an absolute path", source=source)
-    parts = [q for q in name.split("/") if q not in ("", ".")]
-    if ".." in parts:
-        raise InputError(f"archive member {raw!r} points outside the archive ('..')", source=source)
-    return PurePosixPath(*parts) if parts else PurePosixPath(".")
+def extract_txt_archive(path: PathLike, dest: PathLike, *, limits: ArchiveLimits = _DEFAULT_LIMITS) -> Path:
+    """Unpack the ``.txt`` files of one folder of a zip or tar into a subfolder of ``dest``; returns it.
 
-
-def _wanted_txt(path: PathLike) -> bool:
-    p = PurePosixPath(path)
-    return p.name.lower().endswith(".txt") and not p.name.startswith(".") and "__MACOSX" not in p.parts
-
-
-def _pick_folder(folders: Iterable[str], source: str) -> str:
-    folders = sorted(set(folders))
-    if not folders:
-        raise InputError("no .txt files in the archive (expected a folder of KITTI txt files, one per frame)",
-                         source=source)
-    if len(folders) == 1:
-        return folders[0]
-    for preferred in ("label_2", "data"):
-        hits = [f for f in folders if PurePosixPath(f).name == preferred]
-        if len(hits) == 1:
-            return hits[0]
-    shown = ", ".join(f + "/" for f in folders[:5])
-    raise InputError(f"txt files in several folders ({shown}); archive one folder (or one named label_2/ or "
-                     "data/)", source=source)
-
-
-def extract_txt_archive(path: PathLike, dest: PathLike, *, limits: ArchiveLimits = ArchiveLimits()) -> Path:
-    """Unpack the ``.txt`` files of one folder of a zip or tar into ``dest`` (flat); returns ``dest``.
-
-    Refuses absolute paths, ``..``, links, devices and fifos, more than ``limits.max_members`` members and
-    more than ``limits.max_unpacked_bytes`` unpacked (counted as written). When several folders hold txt
-    files, the one named ``label_2`` (or else ``data``) is taken.
+    A thin wrapper over :func:`kitti_eval.archives.extract_txt_folder` (which see for the checks and for
+    which folder is taken when several hold txt files); anything that is not a zip is read as a tar.
     """
-    import stat
-    import tarfile
-    import zipfile
-
-    p, out, source = Path(path), Path(dest), str(path)
-    left = [limits.max_unpacked_bytes]
-
-    def copy(read: Callable[[int], bytes], target: Path) -> None:
-        with open(target, "xb") as fh:
-            while chunk := read(1 << 20):
-                left[0] -= len(chunk)
-                if left[0] < 0:
-                    raise InputError(f"unpacks to more than {limits.max_unpacked_bytes >> 20} MB; a zip bomb?",
-                                     source=source)
-                fh.write(chunk)
-
-    with open(p, "rb") as fh:
-        magic = fh.read(4)
+    source = str(path)
     try:
-        if magic in (b"PK\x03\x04", b"PK\x05\x06"):
-            with zipfile.ZipFile(p) as zf:
-                infos = zf.infolist()
-                if len(infos) > limits.max_members:
-                    raise InputError(f"more than {limits.max_members} members", source=source)
-                txt: dict[str, list[tuple[str, Any]]] = {}
-                for info in infos:
-                    name = _member_path(info.filename, source)
-                    mode = info.external_attr >> 16
-                    if stat.S_ISLNK(mode) or stat.S_IFMT(mode) not in (0, stat.S_IFREG, stat.S_IFDIR):
-                        raise InputError(f"archive member {info.filename!r} is a link or a special file",
-                                         source=source)
-                    if info.is_dir() or not _wanted_txt(name):
-                        continue
-                    txt.setdefault(str(name.parent), []).append((name.name, info))
-                folder = _pick_folder(txt, source)
-                seen: set[str] = set()
-                for base, info in txt[folder]:
-                    if base in seen:
-                        raise InputError(f"archive member {info.filename!r} is listed twice", source=source)
-                    seen.add(base)
-                    with zf.open(info) as src:
-                        copy(src.read, out / base)
-            return out
-        staged = out / ".staged"
-        staged.mkdir()
-        by_folder: dict[str, list[tuple[str, Path]]] = {}
-        n = 0
-        with tarfile.open(p, mode="r|*") as tf:
-            for member in tf:
-                n += 1
-                if n > limits.max_members:
-                    raise InputError(f"more than {limits.max_members} members", source=source)
-                name = _member_path(member.name, source)
-                if member.isdir():
-                    continue
-                if member.issym() or member.islnk() or member.isdev() or not member.isreg():
-                    raise InputError(f"archive member {member.name!r} is a link, a device or not a regular "
-                                     "file", source=source)
-                if not _wanted_txt(name):
-                    continue
-                src = tf.extractfile(member)
-                if src is None:  # pragma: no cover
-                    continue
-                entries = by_folder.setdefault(str(name.parent), [])
-                target = staged / f"{len(by_folder)}-{len(entries)}"
-                copy(src.read, target)
-                entries.append((name.name, target))
-        folder = _pick_folder(by_folder, source)
-        for base, target in by_folder[folder]:
-            final = out / base
-            if final.exists():
-                raise InputError(f"archive member {folder}/{base} is listed twice", source=source)
-            target.rename(final)
-        import shutil
-
-        shutil.rmtree(staged)
-        return out
-    except InputError:
-        raise
-    except (zipfile.BadZipFile, tarfile.TarError, OSError, EOFError, ValueError, NotImplementedError) as e:
-        raise InputError(f"not a readable zip or tar archive ({e or type(e).__name__})", source=source) from None
+        fh = open(path, "rb")
+    except OSError as e:
+        raise InputError(f"cannot read the archive ({e.strerror or type(e).__name__})", source=source) from None
+    with fh:
+        folder, _ = extract_txt_folder(fh, sniff_archive(fh) or "tar", Path(dest), limits, source)
+    return folder
 
 
 def _load_txt_archive(p: Path, kind: Kind, source: str) -> Annotations:
