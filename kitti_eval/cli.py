@@ -42,6 +42,9 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
                         f"known: {','.join(KNOWN_CLASSES)})")
     p.add_argument("--iou", type=_iou_argument, action="append", default=[], metavar="CLASS[:SET]=BBOX,BEV,3D",
                    help="IoU thresholds for a class, for both sets or for 'strict'/'loose' only; repeatable")
+    p.add_argument("--ranges", metavar="EDGES",
+                   help="also evaluate by ground-plane distance from the camera, e.g. 0,30,50,inf (metres); boxes "
+                        "outside a range are ignored there, neither misses nor false positives")
 
 
 def _add_eval_options(p: argparse.ArgumentParser) -> None:
@@ -99,11 +102,12 @@ def _demo_parser() -> argparse.ArgumentParser:
 
 
 def _config(args: argparse.Namespace):  # noqa: ANN202 - EvalConfig, imported lazily
-    from .protocol import EvalConfig, overlaps_from_overrides
+    from .protocol import EvalConfig, overlaps_from_overrides, parse_ranges
 
     classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
+    ranges = parse_ranges(args.ranges) if getattr(args, "ranges", None) else ()
     return EvalConfig(classes=classes, protocol=PROTOCOLS[args.protocol],
-                      overlaps=overlaps_from_overrides(args.iou))
+                      overlaps=overlaps_from_overrides(args.iou), ranges=ranges)
 
 
 def _say(msg: str) -> None:

@@ -8,6 +8,7 @@ rules, vectorised here), matches, and reduces the counts to curves and AP. No I/
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,6 +58,18 @@ def ignore_codes(gt: Annotations, dt: Annotations, cls: str, difficulty: Difficu
     idet = np.full(dt.num_boxes, -1, dtype=np.int8)
     idet[dt.is_class(cls)] = 0
     idet[np.abs(dt.bbox[:, 3] - dt.bbox[:, 1]) < limits.min_height[d]] = 1
+    return ig, idet
+
+
+def in_range_codes(ignored_gt: npt.NDArray[np.int8], ignored_det: npt.NDArray[np.int8],
+                   gt_inside: npt.NDArray[np.bool_], dt_inside: npt.NDArray[np.bool_],
+                   ) -> tuple[npt.NDArray[np.int8], npt.NDArray[np.int8]]:
+    """Ignore codes within a distance range (:class:`~kitti_eval.protocol.DistanceRange`): ground truth
+    outside it that takes part becomes ignored (1), and so does a counting detection (0) outside it."""
+    ig = ignored_gt.copy()
+    ig[(ig != -1) & ~gt_inside] = 1
+    idet = ignored_det.copy()
+    idet[(idet == 0) & ~dt_inside] = 1
     return ig, idet
 
 
@@ -119,6 +132,10 @@ class Plan:
     ignored_det: npt.NDArray[np.int8]    # (K, N)
     jobs: tuple[MatchJob, ...]
     slots: tuple[tuple[str, Difficulty, Metric, str, int | None, bool], ...]
+    #: per distance range of the config, the slots of that range's matchings (same layout as ``slots``)
+    range_slots: tuple[tuple[tuple[str, Difficulty, Metric, str, int | None, bool], ...], ...]
+    #: the row of ``ignored_gt`` holding the whole set's codes of each (class, difficulty)
+    code_rows: dict[tuple[str, Difficulty], int]
     num_gt: dict[str, dict[str, int]]
     num_det: dict[str, int]
     timings: dict[str, float]
@@ -148,6 +165,32 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
     slots: list[tuple[str, Difficulty, Metric, str, int | None, bool]] = []
     num_gt: dict[str, dict[str, int]] = {}
     num_det: dict[str, int] = {}
+    gt_dist = np.hypot(gt.location[:, 0], gt.location[:, 2])
+    dt_dist = np.hypot(dt.location[:, 0], dt.location[:, 2])
+    range_slots: list[list[tuple[str, Difficulty, Metric, str, int | None, bool]]] = [[] for _ in config.ranges]
+
+    code_rows: dict[tuple[str, Difficulty], int] = {}
+
+    def add_jobs(ig: npt.NDArray[np.int8], idet: npt.NDArray[np.int8], cls: str, difficulty: Difficulty,
+                 evaluated: dict[Metric, bool], with_aos: bool,
+                 into: list[tuple[str, Difficulty, Metric, str, int | None, bool]]) -> int:
+        row = len(ig_rows)
+        ig_rows.append(ig)
+        idet_rows.append(idet)
+        for metric in OVERLAP_METRICS:
+            for oset in config.threshold_sets:
+                job = None
+                if evaluated[metric]:
+                    thr = config.overlap(cls, oset, metric)
+                    job = job_of.get((row, metric, thr))
+                    if job is None:
+                        job = job_of[(row, metric, thr)] = len(jobs)
+                        jobs.append(MatchJob(metric=OVERLAP_METRICS.index(metric), codes=row, min_overlap=thr,
+                                             compute_aos=metric is Metric.BBOX and with_aos,
+                                             dontcare=metric in protocol.dontcare_metrics))
+                into.append((cls, difficulty, metric, oset, job, with_aos))
+        return row
+
     for cls in config.classes:
         scored = scored_metrics(dt, cls)
         evaluated = {m: (scored[m] or not protocol.skip_undetected) for m in OVERLAP_METRICS}
@@ -157,24 +200,15 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
         for difficulty in Difficulty:
             ig, idet = ignore_codes(gt, dt, cls, difficulty, config.difficulty)
             num_gt[cls][difficulty.label] = int(np.sum(ig == 0))
-            row = len(ig_rows)
-            ig_rows.append(ig)
-            idet_rows.append(idet)
-            for metric in OVERLAP_METRICS:
-                for oset in config.threshold_sets:
-                    job = None
-                    if evaluated[metric]:
-                        thr = config.overlap(cls, oset, metric)
-                        job = job_of.get((row, metric, thr))
-                        if job is None:
-                            job = job_of[(row, metric, thr)] = len(jobs)
-                            jobs.append(MatchJob(metric=OVERLAP_METRICS.index(metric), codes=row, min_overlap=thr,
-                                                 compute_aos=metric is Metric.BBOX and with_aos,
-                                                 dontcare=metric in protocol.dontcare_metrics))
-                    slots.append((cls, difficulty, metric, oset, job, with_aos))
+            code_rows[(cls, difficulty)] = add_jobs(ig, idet, cls, difficulty, evaluated, with_aos, slots)
+            for k, rng in enumerate(config.ranges):
+                ig_r, idet_r = in_range_codes(ig, idet, rng.contains(gt_dist), rng.contains(dt_dist))
+                add_jobs(ig_r, idet_r, cls, difficulty, evaluated, with_aos, range_slots[k])
     return Plan(gt=gt, dt=dt, config=config, missing=tuple(missing), warnings=tuple(warnings), dontcare=dontcare,
                 overlaps=fo, compute_aos=compute_aos, ignored_gt=np.stack(ig_rows), ignored_det=np.stack(idet_rows),
-                jobs=tuple(jobs), slots=tuple(slots), num_gt=num_gt, num_det=num_det,
+                jobs=tuple(jobs), slots=tuple(slots), range_slots=tuple(tuple(r) for r in range_slots),
+                code_rows=code_rows,
+                num_gt=num_gt, num_det=num_det,
                 timings={"overlaps": overlap_seconds})
 
 
@@ -201,8 +235,16 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
                             plan.ignored_gt, plan.ignored_det, plan.dontcare, plan.dt.score, plan.gt.alpha,
                             plan.dt.alpha, plan.jobs, workers=workers) if plan.jobs else []
     t2 = clock()
-    ap, curves = ap_tables(plan, [curve_from_counts(c) for c in counts])
+    job_curves = [curve_from_counts(c) for c in counts]
+    ap, curves = ap_tables(plan, job_curves)
     config = plan.config
+    by_range = []
+    for rng, slots in zip(config.ranges, plan.range_slots):
+        range_ap, _ = ap_tables(plan, job_curves, slots)
+        inside = rng.contains(np.hypot(plan.gt.location[:, 0], plan.gt.location[:, 2]))
+        range_gt = {cls: {d.label: int(np.sum((plan.ignored_gt[plan.code_rows[(cls, d)]] == 0) & inside))
+                          for d in Difficulty} for cls in config.classes}
+        by_range.append({"label": rng.label, "min": rng.lo, "max": rng.hi, "ap": range_ap, "num_gt": range_gt})
     timings = {"align": t1 - t0 - plan.timings["overlaps"], "overlaps": plan.timings["overlaps"],
                "matching": t2 - t1, "ap": clock() - t2}
     return EvalResult(
@@ -220,19 +262,22 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
         warnings=plan.warnings,
         curves=curves if keep_curves else None,
         timings=timings,
+        ranges=tuple(by_range),
     )
 
 
-def ap_tables(plan: Plan, job_curves: list[Curve]) -> tuple[dict, dict]:
+def ap_tables(plan: Plan, job_curves: list[Curve],
+              slots: Sequence[tuple[str, Difficulty, Metric, str, int | None, bool]] | None = None,
+              ) -> tuple[dict, dict]:
     """``ap[set][recall][class][metric][difficulty]`` and ``curves[set][class][metric][difficulty]`` from the
-    curve of every job of ``plan``."""
+    curve of every job of ``plan`` (for ``slots``: the whole set by default, or one distance range's)."""
     config = plan.config
     ap: dict[str, dict[str, dict[str, dict[str, dict[str, float | None]]]]] = {
         oset: {r: {cls: {m.value: {} for m in ALL_METRICS} for cls in config.classes} for r in RECALL_MODES}
         for oset in config.threshold_sets}
     curves: dict[str, dict[str, dict[str, dict[str, Curve]]]] = {
         oset: {cls: {m.value: {} for m in ALL_METRICS} for cls in config.classes} for oset in config.threshold_sets}
-    for cls, difficulty, metric, oset, job, with_aos in plan.slots:
+    for cls, difficulty, metric, oset, job, with_aos in (plan.slots if slots is None else slots):
         curve = None if job is None else job_curves[job]
         targets = [(metric, curve, "precision")]
         if metric is Metric.BBOX:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import enum
 import json
 import math
+from typing import Any
 
 from .protocol import Difficulty
 from .result import EvalResult
@@ -34,21 +35,29 @@ def render_table(result: EvalResult) -> str:
 
     Per class and threshold set: an ``AP@`` (R11) block then an ``AP_R40@`` block; the header triple is
     the IoU thresholds for bbox, bev and 3d; each row holds easy, moderate, hard. AOS rows appear when
-    AOS was evaluated. Values the protocol does not evaluate print as ``n/a``.
+    AOS was evaluated. Values the protocol does not evaluate print as ``n/a``. Distance ranges, when asked
+    for, follow as the same blocks with the range in the header (``Car AP_R40@0.70, 0.70, 0.70 (0-30m):``).
     """
+    lines = _blocks(result, result.ap, "")
+    for rng in result.ranges:
+        lines += _blocks(result, rng["ap"], f" ({rng['label']})")
+    return "\n".join(lines) + "\n"
+
+
+def _blocks(result: EvalResult, ap: Any, suffix: str) -> list[str]:
     lines: list[str] = []
     for cls in result.classes:
         for oset in result.threshold_sets:
             ious = result.overlaps[cls][oset]
             triple = f"{ious['bbox']:.2f}, {ious['bev']:.2f}, {ious['3d']:.2f}"
             for recall, tag in (("R11", "AP"), ("R40", "AP_R40")):
-                by_metric = result.ap[oset][recall][cls]
-                lines.append(f"{cls} {tag}@{triple}:")
+                by_metric = ap[oset][recall][cls]
+                lines.append(f"{cls} {tag}@{triple}{suffix}:")
                 for metric, label in _ROW_LABELS:
                     lines.append(label + ", ".join(_num(by_metric[metric][d], 4) for d in _DIFFS))
                 if result.aos_evaluated:
                     lines.append("aos  AP:" + ", ".join(_num(by_metric["aos"][d], 2) for d in _DIFFS))
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def _finite_or_none(obj: object) -> object:
@@ -82,6 +91,17 @@ def render_markdown(result: EvalResult) -> str:
                     vals = " | ".join(_num(result.ap[oset][recall][cls][metric][d], 2) for d in _DIFFS)
                     out.append(f"| {cls} | {metric} | {iou:.2f} | {vals} |")
             out.append("")
+    for rng in result.ranges:
+        out.append(f"### AP R40 by distance {rng['label']}, strict IoU thresholds")
+        out.append("")
+        out.append("| Class | Metric | Easy | Moderate | Hard |")
+        out.append("|---|---|---:|---:|---:|")
+        for cls in result.classes:
+            for metric in ("bbox", "bev", "3d", "aos"):
+                vals = " | ".join(_num(rng["ap"]["strict"]["R40"][cls][metric][d], 2) for d in _DIFFS) \
+                    if "strict" in rng["ap"] else ""
+                out.append(f"| {cls} | {metric} | {vals} |")
+        out.append("")
     gt_line = ", ".join(f"{cls} {result.num_gt[cls]['moderate']}" for cls in result.classes)
     out.append(f"Ground truth boxes that count (moderate): {gt_line}.")
     for w in result.warnings:

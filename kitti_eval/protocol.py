@@ -12,11 +12,14 @@ Two protocols share these tables and differ only in the flags of :class:`Protoco
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
 from types import MappingProxyType
 from typing import Literal
+
+import numpy as np
 
 from .errors import ConfigError
 
@@ -25,7 +28,7 @@ __all__ = [
     "OVERLAP_METRICS", "ALL_METRICS", "THRESHOLD_SETS", "RECALL_MODES", "DEFAULT_CLASSES", "KNOWN_CLASSES",
     "CLASS_OVERLAPS", "NEIGHBOURS", "DONTCARE", "N_SAMPLE_PTS", "RECALL_SAMPLE_INDICES", "INVALID_ALPHA",
     "KITTI_DIFFICULTY", "OFFICIAL", "OPENPCDET", "PROTOCOLS", "get_protocol", "parse_iou_override",
-    "overlaps_from_overrides",
+    "overlaps_from_overrides", "DistanceRange", "parse_ranges",
 ]
 
 
@@ -167,6 +170,44 @@ def _check_overlap(cls: str, oset: str, values: object) -> tuple[float, float, f
     return triple  # type: ignore[return-value]
 
 
+@dataclass(frozen=True)
+class DistanceRange:
+    """A distance bin [lo, hi) in metres, the distance being ``sqrt(x**2 + z**2)`` of a box's location in
+    the camera frame (its ground-plane distance from the camera).
+
+    The rule: within a bin, ground truth outside it is *ignored* -- never a miss, and a detection matched
+    to it is neither a hit nor a false positive -- and a detection outside it that would count is
+    ignored too: not a false positive when unmatched, and, like a too-small detection, it makes a box it
+    matches neither a hit nor a miss. So a box is judged only against what lies in its bin, and objects
+    straddling a boundary neither reward nor punish.
+    """
+
+    lo: float
+    hi: float
+
+    def __post_init__(self) -> None:
+        if not (0.0 <= self.lo < self.hi) or math.isnan(self.hi):
+            raise ConfigError(f"a distance range needs 0 <= lo < hi, got [{self.lo}, {self.hi})")
+
+    @property
+    def label(self) -> str:
+        return f"{self.lo:g}m+" if math.isinf(self.hi) else f"{self.lo:g}-{self.hi:g}m"
+
+    def contains(self, distance: np.ndarray) -> np.ndarray:
+        return (distance >= self.lo) & (distance < self.hi)
+
+
+def parse_ranges(text: str) -> tuple[DistanceRange, ...]:
+    """``0,30,50,inf`` -> [0, 30), [30, 50), [50, inf)."""
+    try:
+        edges = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ConfigError(f"expected distance edges like 0,30,50,inf, got {text!r}") from None
+    if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:])):
+        raise ConfigError(f"expected at least two increasing distance edges like 0,30,50,inf, got {text!r}")
+    return tuple(DistanceRange(a, b) for a, b in zip(edges, edges[1:]))
+
+
 def parse_iou_override(text: str) -> tuple[str, str | None, tuple[float, float, float]]:
     """``Car=0.7,0.6,0.6`` (both threshold sets) or ``Car:loose=0.7,0.5,0.5``: (class, set or None, triple)."""
     try:
@@ -206,8 +247,14 @@ class EvalConfig:
     overlaps: Mapping[str, Mapping[str, tuple[float, float, float]]] = field(default_factory=dict)
     difficulty: DifficultyLimits = KITTI_DIFFICULTY
     threshold_sets: tuple[str, ...] = THRESHOLD_SETS
+    #: distance bins [lo, hi) in metres, each evaluated in addition to the whole set (see :class:`DistanceRange`)
+    ranges: tuple[DistanceRange, ...] = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "ranges", tuple(self.ranges))
+        for r in self.ranges:
+            if not isinstance(r, DistanceRange):
+                raise ConfigError(f"ranges must be DistanceRange values, got {r!r}")
         if isinstance(self.classes, str):
             object.__setattr__(self, "classes", (self.classes,))
         object.__setattr__(self, "protocol", get_protocol(self.protocol))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -43,6 +44,9 @@ class EvalResult:
     curves: Mapping[str, Mapping[str, Mapping[str, Mapping[str, Curve]]]] | None = field(default=None, repr=False)
     #: seconds spent per stage (align, overlaps, matching, ap); not part of the JSON document
     timings: Mapping[str, float] = field(default_factory=dict, repr=False, compare=False)
+    #: per distance range asked for: {"label", "min", "max" (metres; inf for open), "ap" (same layout as
+    #: ``ap``), "num_gt" (valid ground truth in the range per class and difficulty)}
+    ranges: tuple[Mapping[str, Any], ...] = ()
 
     def get(self, cls: str, metric: str | Metric, difficulty: str | Difficulty, recall: str = "R40",
             oset: str = "strict") -> float | None:
@@ -60,7 +64,9 @@ class EvalResult:
                    overlaps=copy.deepcopy(doc["overlaps"]), ap=copy.deepcopy(doc["ap"]),
                    num_gt=copy.deepcopy(doc["num_gt"]), num_det=dict(doc["num_det"]), frames=int(doc["frames"]),
                    frames_without_predictions=tuple(doc["frames_without_predictions"]),
-                   aos_evaluated=bool(doc["aos_evaluated"]), warnings=tuple(doc["warnings"]))
+                   aos_evaluated=bool(doc["aos_evaluated"]), warnings=tuple(doc["warnings"]),
+                   ranges=tuple({**r, "max": math.inf if r["max"] is None else r["max"]}
+                                for r in doc.get("ranges", [])))
 
     def to_dict(self, *, include_curves: bool = False) -> dict[str, Any]:
         """The JSON form (schema version :data:`SCHEMA_VERSION`); every key is always present."""
@@ -79,6 +85,9 @@ class EvalResult:
             "frames_without_predictions": list(self.frames_without_predictions),
             "aos_evaluated": self.aos_evaluated,
             "warnings": list(self.warnings),
+            "ranges": [{"label": r["label"], "min": r["min"], "max": None if math.isinf(r["max"]) else r["max"],
+                        "ap": copy.deepcopy(_plain(r["ap"])), "num_gt": copy.deepcopy(_plain(r["num_gt"]))}
+                       for r in self.ranges],
         }
         if include_curves and self.curves is not None:
             out["curves"] = {

@@ -168,3 +168,16 @@ def test_compile_notice_follows_numba_cache(monkeypatch, tmp_path):
     assert kernels_cached() is False  # one of the two kernels is still missing
     (deep / "geometry._frame_overlaps_kernel-251.py311.nbi").write_bytes(b"")
     assert kernels_cached() is True
+
+
+def test_distance_ranges_in_every_output(capsys):
+    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--ranges", "0,30,inf", "--format", "json")
+    doc = json.loads(out)
+    assert code == 0 and [r["label"] for r in doc["ranges"]] == ["0-30m", "30m+"] and doc["ranges"][1]["max"] is None
+    by_range = [r["num_gt"]["Car"]["moderate"] for r in doc["ranges"]]
+    assert sum(by_range) == doc["num_gt"]["Car"]["moderate"]  # the bins split the valid boxes
+    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--ranges", "0,30,inf")
+    assert "Car AP_R40@0.70, 0.70, 0.70 (0-30m):" in out.splitlines()
+    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--ranges", "0,30,inf", "--format", "markdown")
+    assert "### AP R40 by distance 30m+, strict IoU thresholds" in out
+    assert run(capsys, "--gt", GT, "--pred", PRED, "--ranges", "30,0")[0] == 2

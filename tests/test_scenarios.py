@@ -236,3 +236,41 @@ def test_ground_truth_against_itself_is_perfect_in_every_metric():
 def test_official_is_default_and_protocols_differ_only_where_documented():
     assert EvalConfig().protocol is OFFICIAL
     assert OFFICIAL.dontcare_metrics > OPENPCDET.dontcare_metrics
+
+
+def test_distance_ranges_ignore_what_lies_outside():
+    from kitti_eval.protocol import parse_ranges
+
+    near = one_car_per_frame(40)                                   # z = 20 m
+    far = [[box("Car", z=40.0, x1=300.0)] for _ in range(40)]      # z = 40 m, never detected
+    dets = hits(40) + [[] for _ in range(40)]
+    dets[0].append(box("Car", x=-15.0, z=40.0, x1=900.0, score=1.0))  # a false positive at 42.7 m
+    config = EvalConfig(classes=("Car",), ranges=parse_ranges("0,30,50"))
+    r = run(near + far, dets, config)
+    # whole set: 80 boxes, 40 found below one false positive: thresholds at recall 1/80, 2/80, 4/80, ...,
+    # 40/80 -> 21 samples, precision (k+1)/(k+2) rising to 40/41
+    assert r.num_gt["Car"]["easy"] == 80
+    assert r.get("Car", "bbox", "easy", "R40") == pytest.approx(20 * (40 / 41) / 40 * 100)
+    near_range, far_range = r.ranges
+    assert (near_range["label"], far_range["label"]) == ("0-30m", "30-50m")
+    # 0-30 m: the far boxes and the far false positive are ignored -> 40 of 40 found
+    assert near_range["num_gt"]["Car"]["easy"] == 40
+    assert near_range["ap"]["strict"]["R40"]["Car"]["3d"]["easy"] == pytest.approx(39 / 40 * 100)
+    # 30-50 m: 40 boxes, nothing found (the near detections are outside and ignored)
+    assert far_range["num_gt"]["Car"]["easy"] == 40
+    assert far_range["ap"]["strict"]["R40"]["Car"]["3d"]["easy"] == 0.0
+    doc = r.to_dict()
+    assert [x["label"] for x in doc["ranges"]] == ["0-30m", "30-50m"] and doc["ranges"][1]["max"] == 50.0
+
+
+def test_a_box_on_a_range_edge_belongs_to_the_farther_range():
+    from kitti_eval.protocol import DistanceRange, parse_ranges
+
+    edge = [[box("Car", z=30.0)] for _ in range(41)]
+    r = run(edge, [[box("Car", z=30.0, score=0.9 - i / 1000)] for i in range(41)],
+            EvalConfig(classes=("Car",), ranges=parse_ranges("0,30,inf")))
+    assert [x["num_gt"]["Car"]["easy"] for x in r.ranges] == [0, 41]
+    assert r.ranges[1]["label"] == "30m+" and r.ranges[1]["ap"]["strict"]["R11"]["Car"]["bev"]["hard"] == 100.0
+    assert DistanceRange(0, 30).label == "0-30m"
+    with pytest.raises(Exception, match="increasing"):
+        parse_ranges("0,50,30")
