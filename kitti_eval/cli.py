@@ -45,6 +45,9 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ranges", metavar="EDGES",
                    help="also evaluate by ground-plane distance from the camera, e.g. 0,30,50,inf (metres); boxes "
                         "outside a range are ignored there, neither misses nor false positives")
+    p.add_argument("--coco", action="store_true",
+                   help="also COCO-style AP: the mean over ten IoU thresholds (Car 0.50:0.05:0.95, Pedestrian "
+                        "and Cyclist 0.25:0.05:0.70)")
 
 
 def _add_eval_options(p: argparse.ArgumentParser) -> None:
@@ -107,7 +110,7 @@ def _config(args: argparse.Namespace):  # noqa: ANN202 - EvalConfig, imported la
     classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
     ranges = parse_ranges(args.ranges) if getattr(args, "ranges", None) else ()
     return EvalConfig(classes=classes, protocol=PROTOCOLS[args.protocol],
-                      overlaps=overlaps_from_overrides(args.iou), ranges=ranges)
+                      overlaps=overlaps_from_overrides(args.iou), ranges=ranges, coco=getattr(args, "coco", False))
 
 
 def _say(msg: str) -> None:

@@ -31,6 +31,7 @@ from .protocol import (
     EvalConfig,
     Metric,
     Protocol,
+    coco_thresholds,
 )
 from .result import EvalResult
 
@@ -136,6 +137,9 @@ class Plan:
     range_slots: tuple[tuple[tuple[str, Difficulty, Metric, str, int | None, bool], ...], ...]
     #: the row of ``ignored_gt`` holding the whole set's codes of each (class, difficulty)
     code_rows: dict[tuple[str, Difficulty], int]
+    #: with ``config.coco``: the job of each (class, difficulty, metric) at each COCO threshold (None where
+    #: the protocol does not evaluate it), and whether AOS rides on the bbox ones
+    coco_jobs: dict[tuple[str, Difficulty, Metric], tuple[tuple[int | None, ...], bool]]
     num_gt: dict[str, dict[str, int]]
     num_det: dict[str, int]
     timings: dict[str, float]
@@ -171,6 +175,17 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
 
     code_rows: dict[tuple[str, Difficulty], int] = {}
 
+    coco_jobs: dict[tuple[str, Difficulty, Metric], tuple[tuple[int | None, ...], bool]] = {}
+
+    def job_for(row: int, metric: Metric, thr: float, with_aos: bool) -> int:
+        job = job_of.get((row, metric, thr))
+        if job is None:
+            job = job_of[(row, metric, thr)] = len(jobs)
+            jobs.append(MatchJob(metric=OVERLAP_METRICS.index(metric), codes=row, min_overlap=thr,
+                                 compute_aos=metric is Metric.BBOX and with_aos,
+                                 dontcare=metric in protocol.dontcare_metrics))
+        return job
+
     def add_jobs(ig: npt.NDArray[np.int8], idet: npt.NDArray[np.int8], cls: str, difficulty: Difficulty,
                  evaluated: dict[Metric, bool], with_aos: bool,
                  into: list[tuple[str, Difficulty, Metric, str, int | None, bool]]) -> int:
@@ -179,15 +194,7 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
         idet_rows.append(idet)
         for metric in OVERLAP_METRICS:
             for oset in config.threshold_sets:
-                job = None
-                if evaluated[metric]:
-                    thr = config.overlap(cls, oset, metric)
-                    job = job_of.get((row, metric, thr))
-                    if job is None:
-                        job = job_of[(row, metric, thr)] = len(jobs)
-                        jobs.append(MatchJob(metric=OVERLAP_METRICS.index(metric), codes=row, min_overlap=thr,
-                                             compute_aos=metric is Metric.BBOX and with_aos,
-                                             dontcare=metric in protocol.dontcare_metrics))
+                job = job_for(row, metric, config.overlap(cls, oset, metric), with_aos) if evaluated[metric] else None
                 into.append((cls, difficulty, metric, oset, job, with_aos))
         return row
 
@@ -200,14 +207,19 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
         for difficulty in Difficulty:
             ig, idet = ignore_codes(gt, dt, cls, difficulty, config.difficulty)
             num_gt[cls][difficulty.label] = int(np.sum(ig == 0))
-            code_rows[(cls, difficulty)] = add_jobs(ig, idet, cls, difficulty, evaluated, with_aos, slots)
+            row = code_rows[(cls, difficulty)] = add_jobs(ig, idet, cls, difficulty, evaluated, with_aos, slots)
+            if config.coco:
+                for metric in OVERLAP_METRICS:
+                    coco_jobs[(cls, difficulty, metric)] = (
+                        tuple(job_for(row, metric, thr, with_aos) if evaluated[metric] else None
+                              for thr in coco_thresholds(cls)), with_aos)
             for k, rng in enumerate(config.ranges):
                 ig_r, idet_r = in_range_codes(ig, idet, rng.contains(gt_dist), rng.contains(dt_dist))
                 add_jobs(ig_r, idet_r, cls, difficulty, evaluated, with_aos, range_slots[k])
     return Plan(gt=gt, dt=dt, config=config, missing=tuple(missing), warnings=tuple(warnings), dontcare=dontcare,
                 overlaps=fo, compute_aos=compute_aos, ignored_gt=np.stack(ig_rows), ignored_det=np.stack(idet_rows),
                 jobs=tuple(jobs), slots=tuple(slots), range_slots=tuple(tuple(r) for r in range_slots),
-                code_rows=code_rows,
+                code_rows=code_rows, coco_jobs=coco_jobs,
                 num_gt=num_gt, num_det=num_det,
                 timings={"overlaps": overlap_seconds})
 
@@ -245,6 +257,7 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
         range_gt = {cls: {d.label: int(np.sum((plan.ignored_gt[plan.code_rows[(cls, d)]] == 0) & inside))
                           for d in Difficulty} for cls in config.classes}
         by_range.append({"label": rng.label, "min": rng.lo, "max": rng.hi, "ap": range_ap, "num_gt": range_gt})
+    coco = _coco_table(plan, job_curves) if config.coco else None
     timings = {"align": t1 - t0 - plan.timings["overlaps"], "overlaps": plan.timings["overlaps"],
                "matching": t2 - t1, "ap": clock() - t2}
     return EvalResult(
@@ -263,7 +276,26 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
         curves=curves if keep_curves else None,
         timings=timings,
         ranges=tuple(by_range),
+        coco=coco,
     )
+
+
+def _coco_table(plan: Plan, job_curves: list[Curve]) -> dict:
+    """``coco[recall][class][metric][difficulty]``: the mean AP over the class's COCO IoU thresholds."""
+    out: dict[str, dict[str, dict[str, dict[str, float | None]]]] = {
+        r: {cls: {m.value: {} for m in ALL_METRICS} for cls in plan.config.classes} for r in RECALL_MODES}
+    for (cls, difficulty, metric), (jobs, with_aos) in plan.coco_jobs.items():
+        targets = [(metric, "precision", True)]
+        if metric is Metric.BBOX:
+            targets.append((Metric.AOS, "orientation", with_aos))
+        for m, attr, wanted in targets:
+            for r in RECALL_MODES:
+                if not wanted or any(j is None for j in jobs):
+                    value = None
+                else:
+                    value = sum(average_precision(getattr(job_curves[j], attr), r) for j in jobs) / len(jobs)
+                out[r][cls][m.value][difficulty.label] = value
+    return out
 
 
 def ap_tables(plan: Plan, job_curves: list[Curve],

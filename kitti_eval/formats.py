@@ -41,7 +41,28 @@ def render_table(result: EvalResult) -> str:
     lines = _blocks(result, result.ap, "")
     for rng in result.ranges:
         lines += _blocks(result, rng["ap"], f" ({rng['label']})")
+    if result.coco is not None:
+        lines += _coco_blocks(result)
     return "\n".join(lines) + "\n"
+
+
+def _coco_blocks(result: EvalResult) -> list[str]:
+    """``Car coco AP@0.50:0.05:0.95:`` (R11) and ``Car coco AP_R40@...`` blocks."""
+    from .protocol import coco_thresholds
+
+    assert result.coco is not None
+    lines: list[str] = []
+    for cls in result.classes:
+        t = coco_thresholds(cls)
+        span = f"{t[0]:.2f}:{(t[-1] - t[0]) / (len(t) - 1):.2f}:{t[-1]:.2f}"
+        for recall, tag in (("R11", "AP"), ("R40", "AP_R40")):
+            by_metric = result.coco[recall][cls]
+            lines.append(f"{cls} coco {tag}@{span}:")
+            for metric, label in _ROW_LABELS:
+                lines.append(label + ", ".join(_num(by_metric[metric][d], 4) for d in _DIFFS))
+            if result.aos_evaluated:
+                lines.append("aos  AP:" + ", ".join(_num(by_metric["aos"][d], 2) for d in _DIFFS))
+    return lines
 
 
 def _blocks(result: EvalResult, ap: Any, suffix: str) -> list[str]:
@@ -100,6 +121,16 @@ def render_markdown(result: EvalResult) -> str:
             for metric in ("bbox", "bev", "3d", "aos"):
                 vals = " | ".join(_num(rng["ap"]["strict"]["R40"][cls][metric][d], 2) for d in _DIFFS) \
                     if "strict" in rng["ap"] else ""
+                out.append(f"| {cls} | {metric} | {vals} |")
+        out.append("")
+    if result.coco is not None:
+        out.append("### COCO-style AP R40 (mean over ten IoU thresholds)")
+        out.append("")
+        out.append("| Class | Metric | Easy | Moderate | Hard |")
+        out.append("|---|---|---:|---:|---:|")
+        for cls in result.classes:
+            for metric in ("bbox", "bev", "3d", "aos"):
+                vals = " | ".join(_num(result.coco["R40"][cls][metric][d], 2) for d in _DIFFS)
                 out.append(f"| {cls} | {metric} | {vals} |")
         out.append("")
     gt_line = ", ".join(f"{cls} {result.num_gt[cls]['moderate']}" for cls in result.classes)

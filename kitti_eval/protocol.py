@@ -28,7 +28,8 @@ __all__ = [
     "OVERLAP_METRICS", "ALL_METRICS", "THRESHOLD_SETS", "RECALL_MODES", "DEFAULT_CLASSES", "KNOWN_CLASSES",
     "CLASS_OVERLAPS", "NEIGHBOURS", "DONTCARE", "N_SAMPLE_PTS", "RECALL_SAMPLE_INDICES", "INVALID_ALPHA",
     "KITTI_DIFFICULTY", "OFFICIAL", "OPENPCDET", "PROTOCOLS", "get_protocol", "parse_iou_override",
-    "overlaps_from_overrides", "DistanceRange", "parse_ranges",
+    "overlaps_from_overrides", "DistanceRange", "parse_ranges", "COCO_IOU_RANGES", "COCO_STEPS",
+    "coco_thresholds",
 ]
 
 
@@ -108,6 +109,25 @@ RECALL_SAMPLE_INDICES: Mapping[str, tuple[int, ...]] = MappingProxyType({
     "R40": tuple(range(1, N_SAMPLE_PTS)),
 })
 RECALL_MODES: tuple[str, ...] = ("R11", "R40")
+#: COCO-style AP: the mean of the AP at ten IoU thresholds evenly spaced over a per-class interval (the
+#: same for bbox, bev and 3d); classes not listed use the first interval.
+COCO_IOU_RANGES: Mapping[str, tuple[float, float]] = MappingProxyType({
+    "car": (0.5, 0.95),
+    "van": (0.5, 0.95),
+    "truck": (0.5, 0.95),
+    "pedestrian": (0.25, 0.7),
+    "cyclist": (0.25, 0.7),
+    "person_sitting": (0.25, 0.7),
+})
+COCO_STEPS = 10
+
+
+def coco_thresholds(cls: str) -> tuple[float, ...]:
+    """The ten IoU thresholds of a class for COCO-style AP (e.g. Car 0.50, 0.55, ..., 0.95)."""
+    lo, hi = COCO_IOU_RANGES.get(cls.lower(), COCO_IOU_RANGES["car"])
+    return tuple(float(v) for v in np.linspace(lo, hi, COCO_STEPS))
+
+
 #: alpha value meaning "no orientation given".
 INVALID_ALPHA = -10.0
 #: Coordinate meaning "not given" in a KITTI result line (BEV-only or 2D-only submissions).
@@ -249,6 +269,8 @@ class EvalConfig:
     threshold_sets: tuple[str, ...] = THRESHOLD_SETS
     #: distance bins [lo, hi) in metres, each evaluated in addition to the whole set (see :class:`DistanceRange`)
     ranges: tuple[DistanceRange, ...] = ()
+    #: also compute COCO-style AP, averaged over :func:`coco_thresholds` (whole set, all three metrics)
+    coco: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "ranges", tuple(self.ranges))

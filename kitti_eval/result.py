@@ -47,6 +47,9 @@ class EvalResult:
     #: per distance range asked for: {"label", "min", "max" (metres; inf for open), "ap" (same layout as
     #: ``ap``), "num_gt" (valid ground truth in the range per class and difficulty)}
     ranges: tuple[Mapping[str, Any], ...] = ()
+    #: COCO-style AP when asked for: ``coco[recall][class][metric][difficulty]``, the mean over the class's
+    #: ten IoU thresholds (:func:`kitti_eval.protocol.coco_thresholds`); None otherwise
+    coco: Mapping[str, Any] | None = None
 
     def get(self, cls: str, metric: str | Metric, difficulty: str | Difficulty, recall: str = "R40",
             oset: str = "strict") -> float | None:
@@ -66,7 +69,8 @@ class EvalResult:
                    frames_without_predictions=tuple(doc["frames_without_predictions"]),
                    aos_evaluated=bool(doc["aos_evaluated"]), warnings=tuple(doc["warnings"]),
                    ranges=tuple({**r, "max": math.inf if r["max"] is None else r["max"]}
-                                for r in doc.get("ranges", [])))
+                                for r in doc.get("ranges", [])),
+                   coco=copy.deepcopy(doc.get("coco")))
 
     def to_dict(self, *, include_curves: bool = False) -> dict[str, Any]:
         """The JSON form (schema version :data:`SCHEMA_VERSION`); every key is always present."""
@@ -88,6 +92,7 @@ class EvalResult:
             "ranges": [{"label": r["label"], "min": r["min"], "max": None if math.isinf(r["max"]) else r["max"],
                         "ap": copy.deepcopy(_plain(r["ap"])), "num_gt": copy.deepcopy(_plain(r["num_gt"]))}
                        for r in self.ranges],
+            "coco": copy.deepcopy(_plain(self.coco)) if self.coco is not None else None,
         }
         if include_curves and self.curves is not None:
             out["curves"] = {

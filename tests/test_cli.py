@@ -181,3 +181,13 @@ def test_distance_ranges_in_every_output(capsys):
     code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--ranges", "0,30,inf", "--format", "markdown")
     assert "### AP R40 by distance 30m+, strict IoU thresholds" in out
     assert run(capsys, "--gt", GT, "--pred", PRED, "--ranges", "30,0")[0] == 2
+
+
+def test_coco_in_every_output(capsys):
+    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--coco", "--format", "json", "--classes", "Car")
+    doc = json.loads(out)
+    assert code == 0 and set(doc["coco"]) == {"R11", "R40"}
+    # the mean over thresholds 0.50 ... 0.95 sits below the AP at 0.50 (the loose 3D threshold of Car)
+    assert 0 < doc["coco"]["R40"]["Car"]["3d"]["moderate"] < doc["ap"]["loose"]["R40"]["Car"]["3d"]["moderate"]
+    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--coco", "--classes", "Car")
+    assert "Car coco AP_R40@0.50:0.05:0.95:" in out.splitlines()

@@ -274,3 +274,24 @@ def test_a_box_on_a_range_edge_belongs_to_the_farther_range():
     assert DistanceRange(0, 30).label == "0-30m"
     with pytest.raises(Exception, match="increasing"):
         parse_ranges("0,50,30")
+
+
+def test_coco_style_ap_is_the_mean_over_ten_thresholds():
+    # detections shifted 0.4 m along their 4 m length: BEV and 3D IoU = 3.6 / 4.4 = 0.818..., a match at
+    # the thresholds 0.50, 0.55, ..., 0.80 (7 of 10) and not at 0.85, 0.90, 0.95; the 2D boxes are exact
+    dets = [[box("Car", x=0.4, dims=(4.0, 1.5, 1.6), score=0.9 - i / 1000)] for i in range(40)]
+    gts = [[box("Car", dims=(4.0, 1.5, 1.6))] for _ in range(40)]
+    r = run(gts, dets, EvalConfig(classes=("Car",), coco=True))
+    assert r.coco["R40"]["Car"]["bev"]["easy"] == pytest.approx(7 / 10 * (39 / 40 * 100))
+    assert r.coco["R40"]["Car"]["3d"]["hard"] == pytest.approx(7 / 10 * (39 / 40 * 100))
+    assert r.coco["R40"]["Car"]["bbox"]["easy"] == pytest.approx(39 / 40 * 100)
+    assert r.coco["R11"]["Car"]["bev"]["easy"] == pytest.approx(7 / 10 * (10 / 11 * 100))
+    assert run(gts, dets).coco is None and run(gts, dets).to_dict()["coco"] is None
+
+
+def test_coco_thresholds_per_class():
+    from kitti_eval.protocol import coco_thresholds
+
+    assert coco_thresholds("Car")[0] == 0.5 and coco_thresholds("Car")[-1] == 0.95
+    assert coco_thresholds("Cyclist")[0] == 0.25 and coco_thresholds("cyclist")[-1] == pytest.approx(0.7)
+    assert len(coco_thresholds("Bus")) == 10
