@@ -35,9 +35,9 @@ def _iou_argument(text: str) -> str:
 
 
 def _add_config_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--protocol", choices=sorted(PROTOCOLS), default="official",
+    p.add_argument("--protocol", choices=sorted(PROTOCOLS), default=None,
                    help="official: the KITTI devkit's rules (default); openpcdet: what OpenPCDet prints")
-    p.add_argument("--classes", default=",".join(DEFAULT_CLASSES),
+    p.add_argument("--classes", default=None,
                    help=f"comma-separated classes (default {','.join(DEFAULT_CLASSES)}; "
                         f"known: {','.join(KNOWN_CLASSES)})")
     p.add_argument("--iou", type=_iou_argument, action="append", default=[], metavar="CLASS[:SET]=BBOX,BEV,3D",
@@ -45,6 +45,12 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ranges", metavar="EDGES",
                    help="also evaluate by ground-plane distance from the camera, e.g. 0,30,50,inf (metres); boxes "
                         "outside a range are ignored there, neither misses nor false positives")
+    p.add_argument("--lidar-only", action="store_true",
+                   help="BEV and 3D only: no 2D boxes needed, no 2D height filter, no difficulty unless a protocol "
+                        "file gives occlusion/truncation limits")
+    p.add_argument("--protocol-file", type=Path, metavar="TOML",
+                   help="classes, IoU thresholds, neighbour classes, difficulty limits, ranges, lidar_only, coco "
+                        "from a TOML file (see kitti_eval/protocol.py); flags given on the command line win")
     p.add_argument("--coco", action="store_true",
                    help="also COCO-style AP: the mean over ten IoU thresholds (Car 0.50:0.05:0.95, Pedestrian "
                         "and Cyclist 0.25:0.05:0.70)")
@@ -105,12 +111,24 @@ def _demo_parser() -> argparse.ArgumentParser:
 
 
 def _config(args: argparse.Namespace):  # noqa: ANN202 - EvalConfig, imported lazily
-    from .protocol import EvalConfig, overlaps_from_overrides, parse_ranges
+    from .protocol import EvalConfig, load_protocol_file, overlaps_from_overrides, parse_ranges
 
-    classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
-    ranges = parse_ranges(args.ranges) if getattr(args, "ranges", None) else ()
-    return EvalConfig(classes=classes, protocol=PROTOCOLS[args.protocol],
-                      overlaps=overlaps_from_overrides(args.iou), ranges=ranges, coco=getattr(args, "coco", False))
+    kwargs: dict = load_protocol_file(args.protocol_file) if getattr(args, "protocol_file", None) else {}
+    if args.classes is not None:
+        kwargs["classes"] = tuple(c.strip() for c in args.classes.split(",") if c.strip())
+    if args.protocol is not None:
+        kwargs["protocol"] = PROTOCOLS[args.protocol]
+    if args.iou:
+        overlaps = {k: dict(v) for k, v in dict(kwargs.get("overlaps", {})).items()}
+        for cls, sets in overlaps_from_overrides(args.iou).items():
+            overlaps.setdefault(cls, {}).update(sets)
+        kwargs["overlaps"] = overlaps
+    if getattr(args, "ranges", None):
+        kwargs["ranges"] = parse_ranges(args.ranges)
+    for flag in ("coco", "lidar_only"):
+        if getattr(args, flag, False):
+            kwargs[flag] = True
+    return EvalConfig(**kwargs)
 
 
 def _say(msg: str) -> None:

@@ -8,12 +8,13 @@ rules, vectorised here), matches, and reduces the counts to curves and AP. No I/
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
+from .errors import InputError
 from .frames import Annotations, dimension_order_warnings
 from .geometry import FrameOverlaps, frame_overlaps
 from .matching import MatchJob, pr_counts_many
@@ -38,8 +39,9 @@ from .result import EvalResult
 __all__ = ["evaluate", "plan_evaluation", "Plan", "ap_tables", "ignore_codes", "aos_enabled", "scored_metrics"]
 
 
-def ignore_codes(gt: Annotations, dt: Annotations, cls: str, difficulty: Difficulty,
-                 limits: DifficultyLimits) -> tuple[npt.NDArray[np.int8], npt.NDArray[np.int8]]:
+def ignore_codes(gt: Annotations, dt: Annotations, cls: str, difficulty: Difficulty, limits: DifficultyLimits,
+                 neighbours: Mapping[str, tuple[str, ...]] = NEIGHBOURS,
+                 ) -> tuple[npt.NDArray[np.int8], npt.NDArray[np.int8]]:
     """The devkit's ``cleanData``: which boxes count for ``cls`` at ``difficulty``.
 
     Ground truth: 0 = counts, 1 = ignored (a neighbour class such as Van for Car, or the class itself but
@@ -49,7 +51,7 @@ def ignore_codes(gt: Annotations, dt: Annotations, cls: str, difficulty: Difficu
     """
     d = int(difficulty)
     own = gt.is_class(cls)
-    neighbour = gt.is_class(*NEIGHBOURS.get(cls.lower(), ()))
+    neighbour = gt.is_class(*neighbours.get(cls.lower(), ()))
     height = gt.bbox[:, 3] - gt.bbox[:, 1]
     hard = ((gt.occluded > limits.max_occlusion[d]) | (gt.truncated > limits.max_truncation[d])
             | (height <= limits.min_height[d]))
@@ -151,6 +153,14 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
     protocol = config.protocol
     if gt.kind != "ground_truth" or dt.kind != "detections":
         raise ValueError("evaluate(gt, dt): expected ground truth then detections")
+    if not config.lidar_only:
+        for annos in (gt, dt):
+            if annos.missing_fields:
+                fname = "bbox" if "bbox" in annos.missing_fields else next(iter(annos.missing_fields))
+                frame = annos.missing_fields[fname]
+                raise InputError(f"no '{fname}' (an image field) for some boxes; a set without 2D boxes is "
+                                 "evaluated with --lidar-only (BEV and 3D)", source=annos.source, frame=frame,
+                                 field=fname)
     dt, missing = dt.aligned_to(gt.frame_ids)
     warnings = dimension_order_warnings(gt) + dimension_order_warnings(dt)
     if missing:
@@ -201,11 +211,13 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
     for cls in config.classes:
         scored = scored_metrics(dt, cls)
         evaluated = {m: (scored[m] or not protocol.skip_undetected) for m in OVERLAP_METRICS}
+        if config.lidar_only:
+            evaluated[Metric.BBOX] = False  # no image: BEV and 3D only
         with_aos = evaluated[Metric.BBOX] and compute_aos
         num_det[cls] = int(np.sum(dt.is_class(cls)))
         num_gt[cls] = {}
         for difficulty in Difficulty:
-            ig, idet = ignore_codes(gt, dt, cls, difficulty, config.difficulty)
+            ig, idet = ignore_codes(gt, dt, cls, difficulty, config.difficulty, config.neighbours)
             num_gt[cls][difficulty.label] = int(np.sum(ig == 0))
             row = code_rows[(cls, difficulty)] = add_jobs(ig, idet, cls, difficulty, evaluated, with_aos, slots)
             if config.coco:

@@ -13,7 +13,7 @@ the camera y axis; ``bbox`` is the 2D image box (x1, y1, x2, y2) in pixels.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any, Literal
 
@@ -38,8 +38,14 @@ _NUMERIC_FIELDS: Mapping[str, tuple[int, ...]] = {
     "score": (),
 }
 _REQUIRED = {
-    "ground_truth": ("name", "truncated", "occluded", "alpha", "bbox", "dimensions", "location", "rotation_y"),
-    "detections": ("name", "alpha", "bbox", "dimensions", "location", "rotation_y", "score"),
+    "ground_truth": ("name", "dimensions", "location", "rotation_y"),
+    "detections": ("name", "dimensions", "location", "rotation_y", "score"),
+}
+#: fields that come from the image; a LiDAR-only set may lack them (filled with these values, and listed in
+#: ``Annotations.missing_fields`` so that an image-based evaluation refuses them)
+IMAGE_FIELDS: Mapping[Kind, Mapping[str, float]] = {
+    "ground_truth": {"bbox": 0.0, "alpha": -10.0, "truncated": 0.0, "occluded": 0.0},
+    "detections": {"bbox": 0.0, "alpha": -10.0},
 }
 
 
@@ -121,6 +127,8 @@ class Annotations:
     location: npt.NDArray[np.float64]
     rotation_y: npt.NDArray[np.float64]
     score: npt.NDArray[np.float64]
+    #: image fields (see :data:`IMAGE_FIELDS`) some frame lacked: field -> the first such frame
+    missing_fields: Mapping[str, str] = field(default_factory=dict)
 
     @property
     def num_frames(self) -> int:
@@ -191,6 +199,7 @@ class Annotations:
         seen: dict[str, int] = {}
         cols: dict[str, list[np.ndarray]] = {f: [] for f in ("name", *_NUMERIC_FIELDS)}
         counts: list[int] = []
+        absent: dict[str, str] = {}
         for pos, (raw_id, fields) in enumerate(frames):
             try:
                 fid = normalize_frame_id(raw_id)
@@ -218,7 +227,9 @@ class Annotations:
                 elif f == "score":
                     cols[f].append(np.full(n, -1.0))
                 else:
-                    cols[f].append(np.zeros((n, *trailing)))
+                    cols[f].append(np.full((n, *trailing), IMAGE_FIELDS[kind].get(f, 0.0)))
+                    if f in IMAGE_FIELDS[kind]:
+                        absent.setdefault(f, fid)
             ids.append(fid)
             counts.append(n)
         offsets = np.zeros(len(counts) + 1, dtype=np.int64)
@@ -236,7 +247,7 @@ class Annotations:
                 raise InputError(f"non-finite value {arr.reshape(len(arr), -1)[row].tolist()} in box "
                                  f"{row - int(offsets[frame])}", source=source, frame=ids[frame], field=f)
             joined[f] = arr
-        return cls(kind=kind, source=source, frame_ids=tuple(ids), offsets=offsets, **joined)
+        return cls(kind=kind, source=source, frame_ids=tuple(ids), offsets=offsets, missing_fields=absent, **joined)
 
     def aligned_to(self, frame_ids: Sequence[str], *, reference: str = "ground truth") -> tuple[Annotations, list[str]]:
         """These boxes re-ordered to ``frame_ids`` (frames absent here become empty).
@@ -281,7 +292,7 @@ class Annotations:
         np.cumsum(counts, out=offsets[1:])
         fields = {f: getattr(self, f)[take] for f in ("name", *_NUMERIC_FIELDS)}
         return Annotations(kind=self.kind, source=self.source, frame_ids=tuple(frame_ids), offsets=offsets,
-                           **fields)
+                           missing_fields=self.missing_fields, **fields)
 
 
 #: Typical (l, h, w) of KITTI classes, metres; used only to spot a swapped dimension order.

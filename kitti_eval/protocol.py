@@ -13,6 +13,7 @@ Two protocols share these tables and differ only in the flags of :class:`Protoco
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
@@ -29,7 +30,7 @@ __all__ = [
     "CLASS_OVERLAPS", "NEIGHBOURS", "DONTCARE", "N_SAMPLE_PTS", "RECALL_SAMPLE_INDICES", "INVALID_ALPHA",
     "KITTI_DIFFICULTY", "OFFICIAL", "OPENPCDET", "PROTOCOLS", "get_protocol", "parse_iou_override",
     "overlaps_from_overrides", "DistanceRange", "parse_ranges", "COCO_IOU_RANGES", "COCO_STEPS",
-    "coco_thresholds",
+    "coco_thresholds", "load_protocol_file", "NO_DIFFICULTY",
 ]
 
 
@@ -77,6 +78,9 @@ class DifficultyLimits:
 
 
 KITTI_DIFFICULTY = DifficultyLimits()
+#: LiDAR-only evaluation without a difficulty rule: every box counts at every level
+NO_DIFFICULTY = DifficultyLimits(min_height=(-math.inf,) * 3, max_occlusion=(math.inf,) * 3,
+                                 max_truncation=(math.inf,) * 3)
 
 #: The two IoU threshold sets OpenPCDet prints: the official one and a looser one.
 THRESHOLD_SETS: tuple[str, ...] = ("strict", "loose")
@@ -228,6 +232,90 @@ def parse_ranges(text: str) -> tuple[DistanceRange, ...]:
     return tuple(DistanceRange(a, b) for a, b in zip(edges, edges[1:]))
 
 
+def load_protocol_file(path: str | os.PathLike[str]) -> dict[str, object]:
+    """Evaluation settings from a TOML file, as keyword arguments of :class:`EvalConfig`.
+
+    ::
+
+        protocol = "official"              # or "openpcdet"
+        classes = ["Car", "Bus"]
+        lidar_only = false
+        coco = false
+        ranges = [0, 30, 50, inf]          # or "0,30,50,inf"
+
+        [overlaps.Bus]                     # IoU thresholds (bbox, bev, 3d) per threshold set
+        strict = [0.7, 0.7, 0.7]
+        loose = [0.5, 0.5, 0.5]            # one set given alone is used for both
+
+        [neighbours]                       # ground truth of these classes is ignored for the key class
+        Bus = ["Tram"]                     # (replaces the defaults Car: Van, Pedestrian: Person_sitting)
+
+        [difficulty]                       # easy, moderate, hard
+        min_height = [40, 25, 25]
+        max_occlusion = [0, 1, 2]
+        max_truncation = [0.15, 0.3, 0.5]
+    """
+    import sys
+
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # pragma: no cover - Python 3.10
+        import tomli as tomllib
+    name = str(path)
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except OSError as e:
+        raise ConfigError(f"cannot read the protocol file {name}: {e.strerror or e}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{name}: not valid TOML: {e}") from None
+    known = {"protocol", "classes", "lidar_only", "coco", "ranges", "overlaps", "neighbours", "difficulty"}
+    if set(data) - known:
+        raise ConfigError(f"{name}: unknown keys {sorted(set(data) - known)}; expected {sorted(known)}")
+    out: dict[str, object] = {}
+    if "protocol" in data:
+        out["protocol"] = get_protocol(str(data["protocol"]))
+    if "classes" in data:
+        if not isinstance(data["classes"], list) or not all(isinstance(c, str) for c in data["classes"]):
+            raise ConfigError(f"{name}: classes must be a list of names")
+        out["classes"] = tuple(data["classes"])
+    for flag in ("lidar_only", "coco"):
+        if flag in data:
+            if not isinstance(data[flag], bool):
+                raise ConfigError(f"{name}: {flag} must be true or false")
+            out[flag] = data[flag]
+    if "ranges" in data:
+        r = data["ranges"]
+        out["ranges"] = parse_ranges(r if isinstance(r, str) else ",".join(str(v) for v in r))
+    if "overlaps" in data:
+        overlaps: dict[str, dict[str, object]] = {}
+        for cls, sets in dict(data["overlaps"]).items():
+            if isinstance(sets, list):
+                overlaps[cls] = dict.fromkeys(THRESHOLD_SETS, sets)
+            elif isinstance(sets, dict):
+                overlaps[cls] = dict(sets)
+            else:
+                raise ConfigError(f"{name}: overlaps.{cls} must be a list of three numbers or a table of sets")
+        out["overlaps"] = overlaps
+    if "neighbours" in data:
+        nb = dict(data["neighbours"])
+        if not all(isinstance(v, list) and all(isinstance(x, str) for x in v) for v in nb.values()):
+            raise ConfigError(f"{name}: each neighbours entry must be a list of class names")
+        out["neighbours"] = {k: tuple(v) for k, v in nb.items()}
+    if "difficulty" in data:
+        d = dict(data["difficulty"])
+        if set(d) - {"min_height", "max_occlusion", "max_truncation"}:
+            raise ConfigError(f"{name}: difficulty takes min_height, max_occlusion, max_truncation")
+        try:
+            limits = {k: tuple(float(x) for x in v) for k, v in d.items()}
+        except (TypeError, ValueError):
+            raise ConfigError(f"{name}: difficulty limits must be lists of three numbers") from None
+        if any(len(v) != 3 for v in limits.values()):
+            raise ConfigError(f"{name}: difficulty limits must be lists of three numbers (easy, moderate, hard)")
+        out["difficulty"] = DifficultyLimits(**{**KITTI_DIFFICULTY.__dict__, **limits})
+    return out
+
+
 def parse_iou_override(text: str) -> tuple[str, str | None, tuple[float, float, float]]:
     """``Car=0.7,0.6,0.6`` (both threshold sets) or ``Car:loose=0.7,0.5,0.5``: (class, set or None, triple)."""
     try:
@@ -271,9 +359,21 @@ class EvalConfig:
     ranges: tuple[DistanceRange, ...] = ()
     #: also compute COCO-style AP, averaged over :func:`coco_thresholds` (whole set, all three metrics)
     coco: bool = False
+    #: ground truth of these classes is ignored for the key class (lower-case names); default :data:`NEIGHBOURS`
+    neighbours: Mapping[str, tuple[str, ...]] = field(default_factory=lambda: dict(NEIGHBOURS))
+    #: LiDAR-only: BEV and 3D only (no 2D box, no AOS), no 2D height filter; difficulty by the occlusion and
+    #: truncation limits of ``difficulty`` if given, else none (every box counts at every level)
+    lidar_only: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "ranges", tuple(self.ranges))
+        object.__setattr__(self, "neighbours", MappingProxyType(
+            {k.lower(): tuple(v.lower() for v in vs) for k, vs in self.neighbours.items()}))
+        if self.lidar_only:
+            limits = NO_DIFFICULTY if self.difficulty == KITTI_DIFFICULTY else self.difficulty
+            object.__setattr__(self, "difficulty", DifficultyLimits(
+                min_height=(-math.inf,) * 3, max_occlusion=limits.max_occlusion,
+                max_truncation=limits.max_truncation))
         for r in self.ranges:
             if not isinstance(r, DistanceRange):
                 raise ConfigError(f"ranges must be DistanceRange values, got {r!r}")

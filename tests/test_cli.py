@@ -191,3 +191,22 @@ def test_coco_in_every_output(capsys):
     assert 0 < doc["coco"]["R40"]["Car"]["3d"]["moderate"] < doc["ap"]["loose"]["R40"]["Car"]["3d"]["moderate"]
     code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--coco", "--classes", "Car")
     assert "Car coco AP_R40@0.50:0.05:0.95:" in out.splitlines()
+
+
+def test_lidar_only_and_protocol_file_flags(capsys, tmp_path):
+    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--lidar-only", "--format", "json")
+    doc = json.loads(out)
+    assert code == 0 and doc["ap"]["strict"]["R40"]["Car"]["bbox"]["easy"] is None
+    assert doc["ap"]["strict"]["R40"]["Car"]["3d"]["easy"] == doc["ap"]["strict"]["R40"]["Car"]["3d"]["hard"]
+    f = tmp_path / "p.toml"
+    f.write_text('classes = ["Car"]\nprotocol = "openpcdet"\n[overlaps.Car]\nstrict = [0.7, 0.6, 0.6]\n')
+    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--protocol-file", f, "--format", "json")
+    doc = json.loads(out)
+    assert code == 0 and doc["classes"] == ["Car"] and doc["protocol"] == "openpcdet"
+    assert doc["overlaps"]["Car"]["strict"] == {"bbox": 0.7, "bev": 0.6, "3d": 0.6}
+    # a flag on the command line wins over the file
+    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--protocol-file", f, "--protocol", "official",
+                       "--format", "json")
+    assert json.loads(out)["protocol"] == "official"
+    f.write_text("nonsense = 1\n")
+    assert run(capsys, "--gt", GT, "--pred", PRED, "--protocol-file", f)[0] == 2

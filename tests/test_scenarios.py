@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 from builders import annotations, box, dontcare, hits, one_car_per_frame
 
@@ -295,3 +296,73 @@ def test_coco_thresholds_per_class():
     assert coco_thresholds("Car")[0] == 0.5 and coco_thresholds("Car")[-1] == 0.95
     assert coco_thresholds("Cyclist")[0] == 0.25 and coco_thresholds("cyclist")[-1] == pytest.approx(0.7)
     assert len(coco_thresholds("Bus")) == 10
+
+
+def _lidar_frames(kind, frames):
+    """Frames as a LiDAR-only dataset has them: no 2D box, alpha, truncation or occlusion."""
+    from kitti_eval.frames import Annotations
+
+    keep = ("name", "dimensions", "location", "rotation_y", "score")
+    out = []
+    for i, objs in enumerate(frames):
+        d = {k: np.array([o[k] for o in objs], dtype="<U20" if k == "name" else np.float64) for k in keep
+             if kind == "detections" or k != "score"}
+        for k, width in (("dimensions", 3), ("location", 3)):
+            d[k] = d[k].reshape(-1, width)
+        out.append((f"{i:06d}", d))
+    return Annotations.from_frames(kind, f"<lidar {kind}>", out)
+
+
+def test_lidar_only_mode_scores_bev_and_3d_without_image_fields():
+    from kitti_eval.errors import InputError
+
+    gt = _lidar_frames("ground_truth", one_car_per_frame(40))
+    dt = _lidar_frames("detections", hits(40))
+    with pytest.raises(InputError, match="--lidar-only") as err:
+        evaluate(gt, dt, CAR)
+    assert err.value.field == "bbox"
+    r = evaluate(gt, dt, EvalConfig(classes=("Car",), lidar_only=True))
+    assert r.get("Car", "bbox", "easy") is None and r.get("Car", "aos", "easy") is None
+    for d in ("easy", "moderate", "hard"):  # no difficulty rule: every level is the same
+        assert r.get("Car", "bev", d) == pytest.approx(39 / 40 * 100)
+        assert r.get("Car", "3d", d, "R11") == pytest.approx(10 / 11 * 100)
+
+
+def test_lidar_only_mode_has_no_height_filter():
+    gts = [[box("Car", height_px=10.0)] for _ in range(41)]  # far too small for any 2D difficulty
+    dets = [[box("Car", height_px=10.0, score=0.9 - i / 1000)] for i in range(41)]
+    assert run(gts, dets).num_gt["Car"]["hard"] == 0
+    r = run(gts, dets, EvalConfig(classes=("Car",), lidar_only=True))
+    assert r.num_gt["Car"] == {"easy": 41, "moderate": 41, "hard": 41}
+    assert r.get("Car", "3d", "easy") == pytest.approx(100.0)
+
+
+def test_protocol_file_custom_class_neighbours_and_difficulty(tmp_path):
+    from kitti_eval.protocol import load_protocol_file
+
+    f = tmp_path / "bus.toml"
+    f.write_text('classes = ["Bus"]\n[overlaps.Bus]\nstrict = [0.7, 0.6, 0.6]\n'
+                 '[neighbours]\nBus = ["Tram"]\n[difficulty]\nmin_height = [40, 25, 10]\n')
+    config = EvalConfig(**load_protocol_file(f))
+    assert config.overlaps["Bus"] == {"strict": (0.7, 0.6, 0.6), "loose": (0.7, 0.6, 0.6)}
+    bus = dict(dims=(12.0, 3.2, 2.5), width_px=150.0, height_px=90.0)
+    gts = [[box("Bus", **bus)] for _ in range(40)]
+    gts[0].append(box("Tram", x=-15.0, z=40.0, x1=900.0, **bus))
+    gts[1].append(box("Bus", x=12.0, z=60.0, x1=600.0, dims=(12.0, 3.2, 2.5), height_px=20.0))  # 20 px tall
+    dets = [[box("Bus", score=0.9 - i / 1000, **bus)] for i in range(40)]
+    dets[0].append(box("Bus", x=-15.0, z=40.0, x1=900.0, score=1.0, **bus))  # a Bus detection on the Tram
+    r = run(gts, dets, config)
+    assert r.get("Bus", "3d", "moderate") == pytest.approx(39 / 40 * 100)  # the Tram absorbs it: no FP
+    assert r.num_gt["Bus"] == {"easy": 40, "moderate": 40, "hard": 41}  # 20 px counts only above 10 px
+
+
+def test_bad_protocol_files(tmp_path):
+    from kitti_eval.errors import ConfigError
+    from kitti_eval.protocol import load_protocol_file
+
+    for text, needle in (("bogus = 1", "unknown keys"), ("classes = 'Car'", "list of names"),
+                         ("[difficulty]\nmin_height = [1, 2]", "three numbers"), ("x = [", "not valid TOML")):
+        f = tmp_path / "p.toml"
+        f.write_text(text)
+        with pytest.raises(ConfigError, match=needle):
+            load_protocol_file(f)
