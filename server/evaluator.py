@@ -16,7 +16,14 @@ from kitti_eval.errors import ConfigError
 from kitti_eval.evaluation import evaluate
 from kitti_eval.formats import render_json
 from kitti_eval.frames import Annotations
-from kitti_eval.protocol import DEFAULT_CLASSES, PROTOCOLS, THRESHOLD_SETS, EvalConfig, overlaps_from_overrides
+from kitti_eval.protocol import (
+    DEFAULT_CLASSES,
+    PROTOCOLS,
+    THRESHOLD_SETS,
+    EvalConfig,
+    overlaps_from_overrides,
+    parse_ranges,
+)
 
 from .errors import BadRequest
 
@@ -41,6 +48,9 @@ class EvalOptions:
     threshold_sets: str = ",".join(THRESHOLD_SETS)
     iou: Sequence[str] = ()
     curves: bool = False
+    ranges: str | None = None
+    coco: bool = False
+    lidar_only: bool = False
 
     def config(self) -> EvalConfig:
         if self.protocol not in PROTOCOLS:
@@ -49,8 +59,10 @@ class EvalOptions:
             overlaps = overlaps_from_overrides(self.iou)
         except ConfigError as e:
             raise ConfigError(f"iou: {e}") from None
+        ranges = parse_ranges(self.ranges) if self.ranges else ()
         return EvalConfig(classes=_split(self.classes), protocol=PROTOCOLS[self.protocol], overlaps=overlaps,
-                          threshold_sets=_split(self.threshold_sets))
+                          threshold_sets=_split(self.threshold_sets), ranges=ranges, coco=self.coco,
+                          lidar_only=self.lidar_only)
 
 
 def evaluate_document(gt: Annotations, dt: Annotations, config: EvalConfig, *, curves: bool = False) -> dict[str, Any]:

@@ -84,3 +84,15 @@ def test_bad_gate_requests(client, stored, body, status, needle):
 def test_no_baseline_with_that_label(client, stored):
     assert_error(client.post("/v1/gates", json={"evaluation": stored[1], "baseline_label": "branch=nowhere",
                                                 "max_drop": ["1"]}), 404, "branch=nowhere")
+
+
+def test_variants_through_the_service(client):
+    r = upload(client, demo_paths()[1].read_bytes(), "result.pkl.gz",
+               fields={"ranges": "0,30,inf", "coco": "true", "classes": "Car"})
+    body = r.json()
+    assert r.status_code == 201 and [x["label"] for x in body["ranges"]] == ["0-30m", "30m+"]
+    assert body["coco"]["R40"]["Car"]["3d"]["moderate"] is not None
+    r = upload(client, demo_paths()[1].read_bytes(), "result.pkl.gz", fields={"lidar_only": "true"})
+    assert r.status_code == 201 and r.json()["ap"]["strict"]["R40"]["Car"]["bbox"]["easy"] is None
+    assert_error(upload(client, demo_paths()[1].read_bytes(), "result.pkl.gz", fields={"ranges": "5,1"}),
+                 422, "increasing")

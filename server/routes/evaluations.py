@@ -64,6 +64,10 @@ async def create_evaluation(
     iou: Annotated[list[str] | None, Form(description="IoU thresholds as the CLI's --iou: CLASS[:SET]=BBOX,BEV,3D; "
                                                        "repeatable")] = None,
     curves: Annotated[bool, Form(description="include the 41-point curves in the JSON")] = False,
+    ranges: Annotated[str | None, Form(description="also by distance, e.g. 0,30,50,inf (as --ranges)")] = None,
+    coco: Annotated[bool, Form(description="also COCO-style AP over ten IoU thresholds (as --coco)")] = False,
+    lidar_only: Annotated[bool, Form(description="BEV and 3D only, for sets without images (as --lidar-only)")
+                          ] = False,
     model: Annotated[str | None, Form(description="label: the model's name")] = None,
     commit: Annotated[str | None, Form(description="label: the code commit")] = None,
     epoch: Annotated[str | None, Form(description="label: the training epoch")] = None,
@@ -73,7 +77,7 @@ async def create_evaluation(
     labels. The JSON is the document `kitti-eval --format json` prints, plus `id` and `evaluation`."""
     labels = parse_labels({"model": model, "commit": commit, "epoch": epoch}, label or [])
     options = EvalOptions(protocol=protocol, classes=classes, threshold_sets=threshold_sets, iou=tuple(iou or ()),
-                          curves=curves)
+                          curves=curves, ranges=ranges, coco=coco, lidar_only=lidar_only)
     gt_in = FileIn(gt_file.file, gt_file.filename) if gt_file is not None else None
     record = await service.run(service.evaluate, FileIn(predictions.file, predictions.filename), gt or None, gt_in,
                                options, labels)
