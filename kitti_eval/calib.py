@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["Calib", "calib_from_info", "lidar_to_camera", "camera_lidar_disagreement", "wrap_angle"]
+__all__ = ["Calib", "calib_from_info", "lidar_to_camera", "camera_lidar_disagreement", "disagreeing_boxes",
+           "wrap_angle"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -94,15 +95,28 @@ def lidar_to_camera(boxes_lidar: npt.ArrayLike, calib: Calib) -> dict[str, F64]:
     return {"location": loc, "dimensions": dims, "rotation_y": ry, "alpha": alpha, "bbox": bbox}
 
 
-def camera_lidar_disagreement(location: npt.ArrayLike, rotation_y: npt.ArrayLike, boxes_lidar: npt.ArrayLike,
-                              calib: Calib, *, max_distance: float = 0.1, max_yaw: float = 0.1) -> int:
-    """How many boxes whose camera fields and LiDAR box disagree (location by more than ``max_distance``
-    metres in any coordinate, or yaw by more than ``max_yaw`` radians)."""
-    conv = lidar_to_camera(boxes_lidar, calib)
+def disagreeing_boxes(location: npt.ArrayLike, rotation_y: npt.ArrayLike, boxes_lidar: npt.ArrayLike,
+                      velo_to_rect: npt.ArrayLike, *, max_distance: float = 0.1,
+                      max_yaw: float = 0.1) -> npt.NDArray[np.bool_]:
+    """(N,) which boxes' camera fields and LiDAR box disagree (location by more than ``max_distance`` metres
+    in any coordinate, or yaw by more than ``max_yaw`` radians); ``velo_to_rect`` is (4, 4) or one (N, 4, 4)
+    per box, so a whole set is checked in one call."""
+    b = np.asarray(boxes_lidar, dtype=np.float64).reshape(-1, 7)
     loc = np.asarray(location, dtype=np.float64).reshape(-1, 3)
     ry = np.asarray(rotation_y, dtype=np.float64).reshape(-1)
-    if len(loc) != len(conv["location"]):
+    m = np.asarray(velo_to_rect, dtype=np.float64)
+    pts = np.stack([b[:, 0], b[:, 1], b[:, 2] - b[:, 5] / 2, np.ones(len(b))], axis=1)
+    conv = pts @ m.T if m.ndim == 2 else np.einsum("nij,nj->ni", m, pts)
+    far = np.abs(loc - conv[:, :3]).max(axis=1, initial=0.0) > max_distance
+    turned = np.abs(wrap_angle(ry - wrap_angle(-b[:, 6] - np.pi / 2))) > max_yaw
+    return far | turned
+
+
+def camera_lidar_disagreement(location: npt.ArrayLike, rotation_y: npt.ArrayLike, boxes_lidar: npt.ArrayLike,
+                              calib: Calib, *, max_distance: float = 0.1, max_yaw: float = 0.1) -> int:
+    """How many boxes of one frame disagree (see :func:`disagreeing_boxes`)."""
+    loc = np.asarray(location, dtype=np.float64).reshape(-1, 3)
+    if len(loc) != len(np.asarray(boxes_lidar).reshape(-1, 7)):
         return len(loc)
-    far = np.abs(loc - conv["location"]).max(axis=1, initial=0.0) > max_distance
-    turned = np.abs(wrap_angle(ry - conv["rotation_y"])) > max_yaw
-    return int(np.count_nonzero(far | turned))
+    return int(np.count_nonzero(disagreeing_boxes(loc, rotation_y, boxes_lidar, calib.velo_to_rect,
+                                                  max_distance=max_distance, max_yaw=max_yaw)))

@@ -589,11 +589,11 @@ def calibs_from_object(obj: object) -> dict[str, Any]:
 def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str,
                    warnings: list[str] | None) -> Frames:
     """Detections: LiDAR-only frames converted to camera fields; frames with both checked for agreement."""
-    from .calib import camera_lidar_disagreement, lidar_to_camera
+    from .calib import disagreeing_boxes, lidar_to_camera
     from .frames import normalize_frame_id
 
-    checked = bad = 0
-    bad_frames = 0
+    # frames with both camera fields and LiDAR boxes: collected, then checked in one vectorised call
+    both: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     for fid, fields in frames:
         if not isinstance(fields, Mapping) or "boxes_lidar" not in fields:
             yield fid, fields
@@ -608,10 +608,11 @@ def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str
         lidar = fields["boxes_lidar"]
         if has_camera:
             if calib is not None and np.size(lidar) and np.shape(lidar)[-1:] == (7,):
-                n = camera_lidar_disagreement(fields["location"], fields["rotation_y"], lidar, calib)
-                checked += len(np.asarray(lidar).reshape(-1, 7))
-                bad += n
-                bad_frames += n > 0
+                box = np.asarray(lidar, dtype=np.float64).reshape(-1, 7)
+                loc = np.asarray(fields["location"], dtype=np.float64).reshape(-1, 3)
+                ry = np.asarray(fields["rotation_y"], dtype=np.float64).reshape(-1)
+                if len(loc) == len(box) == len(ry):
+                    both.append((loc, ry, box, calib.velo_to_rect))
             yield fid, fields
             continue
         if any(k in fields for k in _CAMERA_FIELDS):
@@ -636,7 +637,15 @@ def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str
         if "alpha" in fields and np.size(fields["alpha"]) == len(arr):
             out["alpha"] = fields["alpha"]
         yield fid, out
-    if warnings is not None and checked and bad > 0.01 * checked:
+    if warnings is None or not both:
+        return
+    counts = [len(b[2]) for b in both]
+    flags = disagreeing_boxes(np.concatenate([b[0] for b in both]), np.concatenate([b[1] for b in both]),
+                              np.concatenate([b[2] for b in both]),
+                              np.repeat(np.stack([b[3] for b in both]), counts, axis=0))
+    checked, bad = len(flags), int(np.count_nonzero(flags))
+    bad_frames = int(np.count_nonzero(np.add.reduceat(flags, np.cumsum([0, *counts[:-1]])))) if checked else 0
+    if bad > 0.01 * checked:
         warnings.append(f"{source}: camera fields and boxes_lidar disagree (location > 0.1 m or yaw > 0.1 rad) "
                         f"for {bad} of {checked} boxes in {bad_frames} frames; the camera fields are evaluated")
 
