@@ -405,3 +405,12 @@ def test_describe_reports(tmp_path, capsys):
     (tmp_path / "junk.pkl").write_bytes(b"not a pickle at all")
     assert main(["describe", str(tmp_path / "junk.pkl")]) == 1
     assert main(["describe", str(SMALL / "result.pkl"), "--kind", "bogus"]) == 2
+
+
+def test_pointpillars_dicts_keyed_by_frame_give_the_golden_ap(reference, tmp_path):
+    """PointPillars writes {int frame id: info} infos and {int frame id: annos} results."""
+    infos, results = golden()
+    gt_path = dump(tmp_path / "infos.pkl", {int(i["image"]["image_idx"]): i for i in infos})
+    pred_path = dump(tmp_path / "results.pkl", {int(r["frame_id"]): {k: v for k, v in r.items() if k != "frame_id"}
+                                                for r in results})
+    assert max_ap_difference(evaluate(load_ground_truth(gt_path), load_detections(pred_path)), reference) <= 1e-9
