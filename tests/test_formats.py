@@ -359,12 +359,15 @@ def test_lidar_only_predictions_evaluate_like_their_camera_fields(reference, tmp
 def test_camera_lidar_disagreement_warns(tmp_path, capsys):
     _, results = golden()
     bad = [dict(r) for r in results]
-    for r in bad[:10]:
+    for r in bad:  # a conversion that is off everywhere, as a broken one is
         r["location"] = r["location"] + np.float32(0.5)
     path = dump(tmp_path / "bad.pkl", bad)
     warnings: list[str] = []
     load_pair(SMALL / "kitti_infos_val.pkl", path, warnings=warnings)
-    assert len(warnings) == 1 and "in 10 frames" in warnings[0] and "of 790 boxes" in warnings[0]
+    # every 10th frame that has both is checked: frames 0, 10, 20, 30 and 40 of the 50
+    checked = sum(len(r["score"]) for r in results[::10])
+    assert len(warnings) == 1 and "disagree" in warnings[0] and "every 10th frame" in warnings[0]
+    assert f"for {checked} of {checked} boxes" in warnings[0] and "in 5 frames" in warnings[0]
     clean: list[str] = []
     load_pair(SMALL / "kitti_infos_val.pkl", SMALL / "result.pkl", warnings=clean)
     assert clean == []
