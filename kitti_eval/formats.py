@@ -56,12 +56,16 @@ def _coco_blocks(result: EvalResult) -> list[str]:
         t = coco_thresholds(cls)
         span = f"{t[0]:.2f}:{(t[-1] - t[0]) / (len(t) - 1):.2f}:{t[-1]:.2f}"
         for recall, tag in (("R11", "AP"), ("R40", "AP_R40")):
-            by_metric = result.coco[recall][cls]
             lines.append(f"{cls} coco {tag}@{span}:")
-            for metric, label in _ROW_LABELS:
-                lines.append(label + ", ".join(_num(by_metric[metric][d], 4) for d in _DIFFS))
-            if result.aos_evaluated:
-                lines.append("aos  AP:" + ", ".join(_num(by_metric["aos"][d], 2) for d in _DIFFS))
+            lines += _rows(result.coco[recall][cls], result.aos_evaluated)
+    return lines
+
+
+def _rows(by_metric: Any, with_aos: bool) -> list[str]:
+    """The bbox / bev / 3d rows (4 decimals) and the aos row (2 decimals) of one block: easy, moderate, hard."""
+    lines = [label + ", ".join(_num(by_metric[metric][d], 4) for d in _DIFFS) for metric, label in _ROW_LABELS]
+    if with_aos:
+        lines.append("aos  AP:" + ", ".join(_num(by_metric["aos"][d], 2) for d in _DIFFS))
     return lines
 
 
@@ -72,12 +76,8 @@ def _blocks(result: EvalResult, ap: Any, suffix: str) -> list[str]:
             ious = result.overlaps[cls][oset]
             triple = f"{ious['bbox']:.2f}, {ious['bev']:.2f}, {ious['3d']:.2f}"
             for recall, tag in (("R11", "AP"), ("R40", "AP_R40")):
-                by_metric = ap[oset][recall][cls]
                 lines.append(f"{cls} {tag}@{triple}{suffix}:")
-                for metric, label in _ROW_LABELS:
-                    lines.append(label + ", ".join(_num(by_metric[metric][d], 4) for d in _DIFFS))
-                if result.aos_evaluated:
-                    lines.append("aos  AP:" + ", ".join(_num(by_metric["aos"][d], 2) for d in _DIFFS))
+                lines += _rows(ap[oset][recall][cls], result.aos_evaluated)
     return lines
 
 
