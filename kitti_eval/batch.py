@@ -74,7 +74,7 @@ def default_ranking(result: EvalResult) -> float:
 
 def evaluate_many(gt: Annotations, paths: Sequence[Path], config: EvalConfig | None = None, *,
                   progress: bool = True, on_error: Callable[[Path, Exception], None] | None = None,
-                  ) -> list[Checkpoint]:
+                  keep_curves: bool = False) -> list[Checkpoint]:
     """Evaluate every prediction file against ``gt``; a bad file raises unless ``on_error`` takes it."""
     from tqdm import tqdm
 
@@ -83,7 +83,7 @@ def evaluate_many(gt: Annotations, paths: Sequence[Path], config: EvalConfig | N
     for path in bar:
         bar.set_postfix_str(path.name)
         try:
-            result = evaluate(gt, load_detections(path), config)
+            result = evaluate(gt, load_detections(path), config, keep_curves=keep_curves)
         except InputError as e:
             if on_error is None:
                 raise

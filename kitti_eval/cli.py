@@ -15,7 +15,7 @@ from pathlib import Path
 
 from .errors import ConfigError, InputError, KittiEvalError
 from .formats import OutputFormat
-from .protocol import DEFAULT_CLASSES, KNOWN_CLASSES, PROTOCOLS
+from .protocol import DEFAULT_CLASSES, KNOWN_CLASSES, PROTOCOLS, THRESHOLD_SETS
 
 __all__ = ["main"]
 
@@ -73,7 +73,8 @@ def _parser() -> argparse.ArgumentParser:
         description="Exact KITTI 3D object detection evaluation (2D, BEV, 3D, AOS; R11 and R40) on a CPU.",
         epilog="Commands: 'kitti-eval demo' evaluates the bundled demo set; 'kitti-eval gate' checks AP "
                "rules (exit 3 when a rule fails); 'kitti-eval compare A B' shows per-value differences; "
-               "'kitti-eval describe FILE' reports what a file holds; 'kitti-eval serve' runs the HTTP service. "
+               "'kitti-eval describe FILE' reports what a file holds; 'kitti-eval frames' counts hits and errors "
+               "per frame; 'kitti-eval serve' runs the HTTP service. "
                "Exit codes: 0 ok, 1 bad input, 2 usage.")
     p.add_argument("--gt", required=True, type=Path,
                    help="ground truth: a KITTI label_2 folder or an OpenPCDet infos .pkl[.gz]")
@@ -98,6 +99,9 @@ def _parser() -> argparse.ArgumentParser:
                            "AP of each class); repeatable")
     many.add_argument("--best-by", metavar="KEY", help="rank checkpoints by this value (default: mean moderate 3D AP)")
     many.add_argument("--plot", type=Path, metavar="PNG", help="save a plot of AP against epoch (needs matplotlib)")
+    p.add_argument("--plot-dir", type=Path, metavar="DIR",
+                   help="save precision-recall curves as PNGs (per class and metric; with several --pred, one "
+                        "overlay per class of the moderate 3D curves); needs matplotlib")
     return p
 
 
@@ -163,7 +167,12 @@ def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
                        pred_format=getattr(args, "pred_format", None), split=getattr(args, "split", None),
                        warnings=load_warnings)
     _wait(warmer)
-    result = evaluate(gt, dt, config, keep_curves=args.curves)
+    plot_dir = getattr(args, "plot_dir", None)
+    result = evaluate(gt, dt, config, keep_curves=args.curves or bool(plot_dir))
+    if plot_dir:
+        from .plots import plot_pr_curves
+
+        plot_pr_curves(result, plot_dir)
     text = render(result, args.format, include_curves=args.curves)
     if not args.quiet:
         for w in [*load_warnings, *result.warnings]:
@@ -265,6 +274,43 @@ def _evaluate_doc(args: argparse.Namespace, pred: Path) -> dict:
     return evaluate(load_ground_truth(args.gt), load_detections(pred), _config(args)).to_dict()
 
 
+def _frames_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=f"{PROG} frames",
+        description="True positives, false positives and misses of every frame for one class, metric and "
+                    "difficulty, from the same matching as the AP; --worst N lists the frames with most errors.")
+    p.add_argument("--gt", required=True, type=Path, help="ground truth")
+    p.add_argument("--pred", required=True, type=Path, help="predictions")
+    p.add_argument("--class", dest="cls", default="Car", help="the class (default Car)")
+    p.add_argument("--metric", default="3d", choices=["bbox", "bev", "3d"], help="default 3d")
+    p.add_argument("--difficulty", default="moderate", choices=["easy", "moderate", "hard"])
+    p.add_argument("--set", dest="oset", default="strict", choices=list(THRESHOLD_SETS), help="IoU threshold set")
+    p.add_argument("--score-threshold", type=float, default=0.0,
+                   help="count detections scoring at least this (default 0: every detection)")
+    p.add_argument("--worst", type=int, metavar="N", help="only the N frames with most errors (FP + FN)")
+    p.add_argument("--format", choices=["table", "csv", "json"], default="table")
+    p.add_argument("--output", "-o", type=Path)
+    _add_config_options(p)
+    return p
+
+
+def _frames(args: argparse.Namespace) -> int:
+    from .diagnostics import frame_stats, render_frames
+    from .loaders import load_detections, load_ground_truth
+
+    if args.worst is not None and args.worst < 1:
+        raise ConfigError("--worst must be >= 1")
+    stats = frame_stats(load_ground_truth(args.gt), load_detections(args.pred), _config(args), cls=args.cls,
+                        metric=args.metric, difficulty=args.difficulty, oset=args.oset,
+                        score_threshold=args.score_threshold)
+    text = render_frames(stats, args.format, worst=args.worst)
+    if args.output:
+        args.output.write_text(text, encoding="utf-8")
+    else:
+        sys.stdout.write(text)
+    return EXIT_OK
+
+
 def _read_result_json(path: Path) -> dict:
     import json
 
@@ -349,10 +395,16 @@ def _run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int
     def skip(path: Path, error: Exception) -> None:
         _say(f"error: {error} (skipped)")
 
-    checkpoints = evaluate_many(gt, preds, config, progress=sys.stderr.isatty() and not args.quiet, on_error=skip)
+    checkpoints = evaluate_many(gt, preds, config, progress=sys.stderr.isatty() and not args.quiet, on_error=skip,
+                                keep_curves=bool(args.plot_dir))
     text = render_batch(checkpoints, fmt, keys=keys or None, best_by=best_by)
     if args.plot:
         plot_batch(checkpoints, args.plot, keys=keys or None)
+    if args.plot_dir:
+        from .batch import _label
+        from .plots import plot_overlays
+
+        plot_overlays([(_label(c), c.result) for c in checkpoints], args.plot_dir)
     if args.output:
         args.output.write_text(text, encoding="utf-8")
     else:
@@ -376,6 +428,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _gate(_gate_parser().parse_args(argv[1:]))
         if argv and argv[0] == "compare":
             return _compare(_compare_parser().parse_args(argv[1:]))
+        if argv and argv[0] == "frames":
+            return _frames(_frames_parser().parse_args(argv[1:]))
         if argv and argv[0] == "describe":
             from .describe import main as describe_main
 
@@ -391,7 +445,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from .batch import expand_predictions
 
         preds = expand_predictions(args.pred)
-        if len(preds) == 1 and not args.plot:
+        if len(preds) == 1 and not args.plot and not (args.plot_dir and len(args.pred) > 1):
             return _run(args.gt, preds[0], args)
         if args.gt_format or args.pred_format or args.split:
             raise ConfigError("--gt-format, --pred-format and --split work with one --pred only")

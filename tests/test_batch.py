@@ -78,3 +78,17 @@ def test_a_bad_checkpoint_is_reported_and_the_rest_evaluated(capsys, checkpoints
     code = main(["--gt", str(GT), "--pred", str(paths[1]), "--pred", str(bad)])
     out, err = capsys.readouterr()
     assert code == 1 and "epoch_99" in err and "skipped" in err and "epoch 10" in out
+
+
+def test_plot_dir_writes_pr_curves_and_overlays(capsys, checkpoints, tmp_path):
+    out = tmp_path / "curves"
+    assert main(["--gt", str(GT), "--pred", str(checkpoints[1][1]), "--plot-dir", str(out)]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted(f"{c}_{m}_strict.png" for c in ("Car", "Pedestrian", "Cyclist")
+                           for m in ("bbox", "bev", "3d", "aos"))
+    assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in out.iterdir())
+    over = tmp_path / "overlay"
+    assert main(["--gt", str(GT), "--pred", str(checkpoints[1][0]), "--pred", str(checkpoints[1][1]),
+                 "--plot-dir", str(over)]) == 0
+    assert sorted(p.name for p in over.iterdir()) == [f"{c}_3d_moderate_overlay.png"
+                                                      for c in ("Car", "Cyclist", "Pedestrian")]

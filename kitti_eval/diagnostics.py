@@ -1,0 +1,105 @@
+"""Per-frame diagnostics: TP / FP / FN of every frame for one class, metric and difficulty, worst first.
+
+The counts come from the same matching as the AP (each frame's recorded steps, see
+:func:`kitti_eval.matching.frame_events_many`), read at a score threshold: every detection scoring at
+least the threshold takes part, exactly as in the devkit's second pass.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from .errors import ConfigError
+from .evaluation import plan_evaluation
+from .frames import Annotations
+from .matching import frame_events_many
+from .protocol import THRESHOLD_SETS, Difficulty, EvalConfig, Metric
+
+__all__ = ["FrameStats", "frame_stats", "render_frames"]
+
+
+@dataclass(frozen=True)
+class FrameStats:
+    """Counts per frame (arrays of shape (F,), in the ground truth's frame order)."""
+
+    frame_ids: tuple[str, ...]
+    tp: npt.NDArray[np.int64]
+    fp: npt.NDArray[np.int64]
+    fn: npt.NDArray[np.int64]
+    cls: str
+    metric: str
+    difficulty: str
+    oset: str
+    score_threshold: float
+
+    def worst(self, n: int) -> list[int]:
+        """Indices of the ``n`` frames with the most errors (FP + FN), ties by more misses, then frame order."""
+        errors = self.fp + self.fn
+        order = np.lexsort((np.arange(len(errors)), -self.fn, -errors))
+        return [int(i) for i in order[:n] if errors[i] > 0]
+
+
+def frame_stats(gt: Annotations, dt: Annotations, config: EvalConfig | None = None, *, cls: str = "Car",
+                metric: str = "3d", difficulty: str = "moderate", oset: str = "strict",
+                score_threshold: float = 0.0) -> FrameStats:
+    """TP, FP and FN of every frame for one (class, metric, difficulty, threshold set) at a score threshold."""
+    config = config or EvalConfig(classes=(cls,))
+    if cls not in config.classes:
+        config = EvalConfig(classes=(*config.classes, cls), protocol=config.protocol, overlaps=dict(config.overlaps),
+                            difficulty=config.difficulty, threshold_sets=config.threshold_sets,
+                            neighbours=dict(config.neighbours), lidar_only=config.lidar_only)
+    try:
+        m = Metric(metric)
+        d = Difficulty[difficulty.upper()]
+    except (ValueError, KeyError):
+        raise ConfigError(f"unknown metric {metric!r} or difficulty {difficulty!r}") from None
+    if m is Metric.AOS:
+        m = Metric.BBOX  # AOS rides on the 2D matching
+    if oset not in THRESHOLD_SETS or oset not in config.threshold_sets:
+        raise ConfigError(f"unknown threshold set {oset!r}")
+    plan = plan_evaluation(gt, dt, config)
+    job = next((j for c, dd, mm, s, j, _ in plan.slots if c == cls and dd is d and mm is m and s == oset), None)
+    n = gt.num_frames
+    if job is None:
+        raise ConfigError(f"{cls} is not evaluated in {m.value} under the {config.protocol.name} protocol "
+                          "(no detection of it can be scored there)")
+    fo = plan.overlaps
+    (events,) = frame_events_many(fo.pair_offsets, (fo.bbox, fo.bev, fo.d3), plan.gt.offsets, plan.dt.offsets,
+                                  plan.ignored_gt, plan.ignored_det, plan.dontcare, plan.dt.score, plan.gt.alpha,
+                                  plan.dt.alpha, [plan.jobs[job]])
+    counts = np.zeros((n, 3))
+    counts[:, 2] = events.valid
+    on = events.ev_score >= score_threshold
+    np.add.at(counts, events.ev_frame[on], events.ev_delta[on, :3])
+    tp, fp, fn = (np.rint(counts[:, k]).astype(np.int64) for k in range(3))
+    return FrameStats(plan.gt.frame_ids, tp, fp, fn, cls, m.value, d.label, oset, float(score_threshold))
+
+
+def render_frames(stats: FrameStats, fmt: str = "table", *, worst: int | None = None) -> str:
+    """The frames (all, or the ``worst`` n) as a table, CSV or JSON."""
+    rows: Sequence[int] = stats.worst(worst) if worst else range(len(stats.frame_ids))
+    if fmt == "json":
+        doc = {"class": stats.cls, "metric": stats.metric, "difficulty": stats.difficulty, "threshold_set": stats.oset,
+               "score_threshold": stats.score_threshold,
+               "frames": [{"frame": stats.frame_ids[i], "tp": int(stats.tp[i]), "fp": int(stats.fp[i]),
+                           "fn": int(stats.fn[i])} for i in rows]}
+        return json.dumps(doc, indent=2) + "\n"
+    if fmt == "csv":
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(["frame", "tp", "fp", "fn"])
+        w.writerows([stats.frame_ids[i], int(stats.tp[i]), int(stats.fp[i]), int(stats.fn[i])] for i in rows)
+        return buf.getvalue()
+    head = (f"{stats.cls} {stats.metric} {stats.difficulty} ({stats.oset} IoU), detections scoring >= "
+            f"{stats.score_threshold:g}")
+    lines = [head, f"{'frame':<12} {'TP':>4} {'FP':>4} {'FN':>4}"]
+    lines += [f"{stats.frame_ids[i]:<12} {stats.tp[i]:>4} {stats.fp[i]:>4} {stats.fn[i]:>4}" for i in rows]
+    lines.append(f"{'all frames':<12} {int(stats.tp.sum()):>4} {int(stats.fp.sum()):>4} {int(stats.fn.sum()):>4}")
+    return "\n".join(lines) + "\n"
