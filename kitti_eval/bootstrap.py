@@ -17,6 +17,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from .errors import InputError
 from .evaluation import Plan, evaluate, plan_evaluation
 from .frames import Annotations
 from .gate import ValueKey
@@ -179,7 +180,7 @@ class Comparison:
             va = key.read(self.a)
             try:
                 vb = key.read(self.b)
-            except Exception:  # noqa: BLE001 - a class only A has
+            except InputError:  # a class only A has
                 vb = None
             delta = None if va is None or vb is None else vb - va
             out.append((key, va, vb, delta, self.intervals.get(key)))

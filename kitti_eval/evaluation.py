@@ -179,8 +179,6 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
     slots: list[tuple[str, Difficulty, Metric, str, int | None, bool]] = []
     num_gt: dict[str, dict[str, int]] = {}
     num_det: dict[str, int] = {}
-    gt_dist = np.hypot(gt.location[:, 0], gt.location[:, 2])
-    dt_dist = np.hypot(dt.location[:, 0], dt.location[:, 2])
     range_slots: list[list[tuple[str, Difficulty, Metric, str, int | None, bool]]] = [[] for _ in config.ranges]
 
     code_rows: dict[tuple[str, Difficulty], int] = {}
@@ -226,7 +224,8 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
                         tuple(job_for(row, metric, thr, with_aos) if evaluated[metric] else None
                               for thr in coco_thresholds(cls)), with_aos)
             for k, rng in enumerate(config.ranges):
-                ig_r, idet_r = in_range_codes(ig, idet, rng.contains(gt_dist), rng.contains(dt_dist))
+                ig_r, idet_r = in_range_codes(ig, idet, rng.contains(gt.ground_distance),
+                                              rng.contains(dt.ground_distance))
                 add_jobs(ig_r, idet_r, cls, difficulty, evaluated, with_aos, range_slots[k])
     return Plan(gt=gt, dt=dt, config=config, missing=tuple(missing), warnings=tuple(warnings), dontcare=dontcare,
                 overlaps=fo, compute_aos=compute_aos, ignored_gt=np.stack(ig_rows), ignored_det=np.stack(idet_rows),
@@ -265,7 +264,7 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
     by_range = []
     for rng, slots in zip(config.ranges, plan.range_slots):
         range_ap, _ = ap_tables(plan, job_curves, slots)
-        inside = rng.contains(np.hypot(plan.gt.location[:, 0], plan.gt.location[:, 2]))
+        inside = rng.contains(plan.gt.ground_distance)
         range_gt = {cls: {d.label: int(np.sum((plan.ignored_gt[plan.code_rows[(cls, d)]] == 0) & inside))
                           for d in Difficulty} for cls in config.classes}
         by_range.append({"label": rng.label, "min": rng.lo, "max": rng.hi, "ap": range_ap, "num_gt": range_gt})

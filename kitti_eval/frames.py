@@ -149,6 +149,11 @@ class Annotations:
         return np.concatenate([self.location, self.dimensions, self.rotation_y[:, None]], axis=1)
 
     @cached_property
+    def ground_distance(self) -> npt.NDArray[np.float64]:
+        """(N,) distance from the camera in the ground plane, ``sqrt(x**2 + z**2)`` of the location (metres)."""
+        return np.hypot(self.location[:, 0], self.location[:, 2])
+
+    @cached_property
     def _name_vocabulary(self) -> tuple[npt.NDArray[np.intp], tuple[str, ...]]:
         """(N,) codes into the sorted distinct names, and those names lower-cased."""
         uniq, codes = np.unique(self.name, return_inverse=True)

@@ -40,6 +40,17 @@ def _curve(result: EvalResult, oset: str, cls: str, metric: str, difficulty: str
     return [float(v) for v in values]
 
 
+def _save(plt: Any, fig: Any, ax: Any, path: Path, title: str, ylabel: str) -> Path:
+    """Label a curve plot the same way everywhere, write it, and free the figure."""
+    ax.set(xlim=(0, 1), ylim=(0, 1.02), xlabel="recall", ylabel=ylabel, title=title)
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="lower left", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 def plot_pr_curves(result: EvalResult, out_dir: str | Path, *, oset: str = "strict") -> list[Path]:
     """One PNG per class and metric, easy / moderate / hard together; returns the files written."""
     plt = _pyplot()
@@ -57,16 +68,8 @@ def plot_pr_curves(result: EvalResult, out_dir: str | Path, *, oset: str = "stri
                     ap = result.ap[oset]["R40"][cls][metric][label]
                     ax.plot(_RECALL, values, label=f"{label} (AP R40 {ap:.2f})")
             iou = result.overlaps[cls][oset]["bbox" if metric == "aos" else metric]
-            ax.set(xlim=(0, 1), ylim=(0, 1.02), xlabel="recall",
-                   ylabel="orientation similarity" if metric == "aos" else "precision",
-                   title=f"{cls} {metric} (IoU {iou:.2f})")
-            ax.grid(True, alpha=0.3)
-            ax.legend(loc="lower left", fontsize=8)
-            fig.tight_layout()
-            path = out / f"{cls}_{metric}_{oset}.png"
-            fig.savefig(path)
-            plt.close(fig)
-            written.append(path)
+            written.append(_save(plt, fig, ax, out / f"{cls}_{metric}_{oset}.png", f"{cls} {metric} (IoU {iou:.2f})",
+                                 "orientation similarity" if metric == "aos" else "precision"))
     return written
 
 
@@ -89,13 +92,6 @@ def plot_overlays(named: Sequence[tuple[str, EvalResult]], out_dir: str | Path, 
         if not drawn:
             plt.close(fig)
             continue
-        ax.set(xlim=(0, 1), ylim=(0, 1.02), xlabel="recall", ylabel="precision",
-               title=f"{cls} {metric} {difficulty}: {len(named)} results")
-        ax.grid(True, alpha=0.3)
-        ax.legend(loc="lower left", fontsize=7)
-        fig.tight_layout()
-        path = out / f"{cls}_{metric}_{difficulty}_overlay.png"
-        fig.savefig(path)
-        plt.close(fig)
-        written.append(path)
+        written.append(_save(plt, fig, ax, out / f"{cls}_{metric}_{difficulty}_overlay.png",
+                             f"{cls} {metric} {difficulty}: {len(named)} results", "precision"))
     return written
