@@ -346,6 +346,24 @@ def _digits(data, p, e):
 
 
 @nb.njit(cache=True, nogil=True)
+def _memo_arg(data, p, L, width):
+    """The memo index of a GET/PUT-family opcode at p: ``width`` 1 or 4 little-endian bytes, or 0 for a
+    decimal line. Returns (index, position after it); index -1 when the data end first, -2 when the line
+    is malformed."""
+    if width:
+        if p + width > L:
+            return np.int64(-1), p
+        return (np.int64(data[p]) if width == 1 else _uint_le(data, p, 4)), p + width
+    e = _line_end(data, p)
+    if e < 0:
+        return np.int64(-1), p
+    idx = _digits(data, p, e)
+    if idx < 0:
+        return np.int64(-2), p
+    return idx, e + 1
+
+
+@nb.njit(cache=True, nogil=True)
 def _equals(data, p, n, blob, q, m):
     if n != m:
         return False
@@ -503,25 +521,13 @@ def _run(data, gblob, gtab, dblob, dtab, max_depth, nodes, ch, stack, marks, mem
             pos = p
             continue
         elif op == 0x68 or op == 0x6a or op == 0x67:  # BINGET, LONG_BINGET, GET
-            if op == 0x68:
-                if p + 1 > L:
-                    break
-                idx = np.int64(data[p])
-                pos = p + 1
-            elif op == 0x6a:
-                if p + 4 > L:
-                    break
-                idx = _uint_le(data, p, 4)
-                pos = p + 4
-            else:
-                e = _line_end(data, p)
-                if e < 0:
-                    break
-                idx = _digits(data, p, e)
-                if idx < 0:
-                    err = E_BADARG
-                    break
-                pos = e + 1
+            idx, nxt = _memo_arg(data, p, L, 1 if op == 0x68 else (4 if op == 0x6a else 0))
+            if idx == -1:
+                break
+            if idx == -2:
+                err = E_BADARG
+                break
+            pos = nxt
             if idx >= memo_init or memo[idx] < 0:
                 err = E_MEMO
                 i0 = idx
@@ -530,25 +536,12 @@ def _run(data, gblob, gtab, dblob, dtab, max_depth, nodes, ch, stack, marks, mem
             sp += 1
             continue
         elif op == 0x71 or op == 0x72 or op == 0x70:  # BINPUT, LONG_BINPUT, PUT
-            if op == 0x71:
-                if p + 1 > L:
-                    break
-                idx = np.int64(data[p])
-                nxt = p + 1
-            elif op == 0x72:
-                if p + 4 > L:
-                    break
-                idx = _uint_le(data, p, 4)
-                nxt = p + 4
-            else:
-                e = _line_end(data, p)
-                if e < 0:
-                    break
-                idx = _digits(data, p, e)
-                if idx < 0:
-                    err = E_BADARG
-                    break
-                nxt = e + 1
+            idx, nxt = _memo_arg(data, p, L, 1 if op == 0x71 else (4 if op == 0x72 else 0))
+            if idx == -1:
+                break
+            if idx == -2:
+                err = E_BADARG
+                break
             if sp <= fence:
                 err = E_UNDERFLOW
                 break
