@@ -74,7 +74,8 @@ def _parser() -> argparse.ArgumentParser:
         epilog="Commands: 'kitti-eval demo' evaluates the bundled demo set; 'kitti-eval gate' checks AP "
                "rules (exit 3 when a rule fails); 'kitti-eval compare A B' shows per-value differences; "
                "'kitti-eval describe FILE' reports what a file holds; 'kitti-eval frames' counts hits and errors "
-               "per frame; 'kitti-eval serve' runs the HTTP service. "
+               "per frame; 'kitti-eval inspect' labels every box of one frame for one or more models; "
+               "'kitti-eval serve' runs the HTTP service and its web page. "
                "Exit codes: 0 ok, 1 bad input, 2 usage.")
     p.add_argument("--gt", required=True, type=Path,
                    help="ground truth: a KITTI label_2 folder or an OpenPCDet infos .pkl[.gz]")
@@ -311,6 +312,52 @@ def _frames(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _inspect_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=f"{PROG} inspect",
+        description="One frame, one or more models: every detection labelled by the matching behind the AP "
+                    "(TP with its ground truth and IoU, FP and why, ignored, DontCare, below the score threshold, "
+                    "other class) and the ground truth each model missed.")
+    p.add_argument("--gt", required=True, type=Path, help="ground truth")
+    p.add_argument("--pred", required=True, type=Path, action="append",
+                   help="predictions of a model; repeat for several models")
+    p.add_argument("--name", action="append", default=[],
+                   help="a model's name, once per --pred in the same order (default: the folder after "
+                        "kitti_models/ in the path, else the file name)")
+    p.add_argument("--frame", required=True, help="frame id, e.g. 000015 (or 15)")
+    p.add_argument("--class", dest="cls", default="Car", help="the class (default Car)")
+    p.add_argument("--metric", default="3d", choices=["bbox", "bev", "3d", "aos"], help="default 3d")
+    p.add_argument("--difficulty", default="moderate", choices=["easy", "moderate", "hard"])
+    p.add_argument("--set", dest="oset", default="strict", choices=list(THRESHOLD_SETS), help="IoU threshold set")
+    p.add_argument("--score-threshold", type=float, default=None,
+                   help="detections scoring below this take no part (default: all take part)")
+    p.add_argument("--format", choices=["table", "json"], default="table")
+    p.add_argument("--output", "-o", type=Path)
+    _add_config_options(p)
+    return p
+
+
+def _inspect(args: argparse.Namespace) -> int:
+    from .inspection import inspect_frame, inspection_json, model_name, render_inspection, unique_names
+    from .loaders import load_detections, load_ground_truth_and_calibs
+
+    if args.name and len(args.name) != len(args.pred):
+        raise ConfigError(f"--name given {len(args.name)} times for {len(args.pred)} --pred")
+    names = args.name or unique_names([model_name(p) for p in args.pred])
+    if len(set(names)) != len(names):
+        raise ConfigError(f"--name values repeat: {names}")
+    gt, calibs = load_ground_truth_and_calibs(args.gt)
+    models = [(name, load_detections(path, calibs=calibs, keep_lidar=True)) for name, path in zip(names, args.pred)]
+    report = inspect_frame(gt, models, args.frame, _config(args), cls=args.cls, metric=args.metric,
+                           difficulty=args.difficulty, oset=args.oset, score_threshold=args.score_threshold)
+    text = inspection_json(report) if args.format == "json" else render_inspection(report)
+    if args.output:
+        args.output.write_text(text, encoding="utf-8")
+    else:
+        sys.stdout.write(text)
+    return EXIT_OK
+
+
 def _read_result_json(path: Path) -> dict:
     import json
 
@@ -430,6 +477,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _compare(_compare_parser().parse_args(argv[1:]))
         if argv and argv[0] == "frames":
             return _frames(_frames_parser().parse_args(argv[1:]))
+        if argv and argv[0] == "inspect":
+            return _inspect(_inspect_parser().parse_args(argv[1:]))
         if argv and argv[0] == "describe":
             from .describe import main as describe_main
 

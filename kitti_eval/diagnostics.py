@@ -17,12 +17,12 @@ import numpy as np
 import numpy.typing as npt
 
 from .errors import ConfigError
-from .evaluation import plan_evaluation
+from .evaluation import Plan, plan_evaluation
 from .frames import Annotations
-from .matching import frame_events_many
+from .matching import MatchJob, frame_events_many
 from .protocol import THRESHOLD_SETS, Difficulty, EvalConfig, Metric
 
-__all__ = ["FrameStats", "frame_stats", "render_frames"]
+__all__ = ["FrameStats", "frame_stats", "render_frames", "with_class", "parse_slot", "slot_job"]
 
 
 @dataclass(frozen=True)
@@ -46,34 +46,51 @@ class FrameStats:
         return [int(i) for i in order[:n] if errors[i] > 0]
 
 
-def frame_stats(gt: Annotations, dt: Annotations, config: EvalConfig | None = None, *, cls: str = "Car",
-                metric: str = "3d", difficulty: str = "moderate", oset: str = "strict",
-                score_threshold: float = 0.0) -> FrameStats:
-    """TP, FP and FN of every frame for one (class, metric, difficulty, threshold set) at a score threshold."""
+def with_class(config: EvalConfig | None, cls: str) -> EvalConfig:
+    """``config`` (default: the defaults for ``cls`` alone) with ``cls`` among its classes."""
     config = config or EvalConfig(classes=(cls,))
-    if cls not in config.classes:
-        config = EvalConfig(classes=(*config.classes, cls), protocol=config.protocol, overlaps=dict(config.overlaps),
-                            difficulty=config.difficulty, threshold_sets=config.threshold_sets,
-                            neighbours=dict(config.neighbours), lidar_only=config.lidar_only)
+    if cls in config.classes:
+        return config
+    return EvalConfig(classes=(*config.classes, cls), protocol=config.protocol, overlaps=dict(config.overlaps),
+                      difficulty=config.difficulty, threshold_sets=config.threshold_sets,
+                      neighbours=dict(config.neighbours), lidar_only=config.lidar_only)
+
+
+def parse_slot(config: EvalConfig, metric: str, difficulty: str, oset: str) -> tuple[Metric, Difficulty]:
+    """The overlap metric (AOS rides on the 2D matching) and difficulty named by the strings."""
     try:
         m = Metric(metric)
         d = Difficulty[difficulty.upper()]
     except (ValueError, KeyError):
         raise ConfigError(f"unknown metric {metric!r} or difficulty {difficulty!r}") from None
-    if m is Metric.AOS:
-        m = Metric.BBOX  # AOS rides on the 2D matching
     if oset not in THRESHOLD_SETS or oset not in config.threshold_sets:
         raise ConfigError(f"unknown threshold set {oset!r}")
-    plan = plan_evaluation(gt, dt, config)
-    job = next((j for c, dd, mm, s, j, _ in plan.slots if c == cls and dd is d and mm is m and s == oset), None)
-    n = gt.num_frames
+    return (Metric.BBOX if m is Metric.AOS else m), d
+
+
+def slot_job(plan: Plan, cls: str, metric: Metric, difficulty: Difficulty, oset: str) -> MatchJob:
+    """The matching behind one (class, metric, difficulty, threshold set) of ``plan``'s result."""
+    job = next((j for c, dd, mm, s, j, _ in plan.slots if c == cls and dd is difficulty and mm is metric
+                and s == oset), None)
     if job is None:
-        raise ConfigError(f"{cls} is not evaluated in {m.value} under the {config.protocol.name} protocol "
-                          "(no detection of it can be scored there)")
+        raise ConfigError(f"{cls} is not evaluated in {metric.value} under the {plan.config.protocol.name} "
+                          "protocol (no detection of it can be scored there)")
+    return plan.jobs[job]
+
+
+def frame_stats(gt: Annotations, dt: Annotations, config: EvalConfig | None = None, *, cls: str = "Car",
+                metric: str = "3d", difficulty: str = "moderate", oset: str = "strict",
+                score_threshold: float = 0.0) -> FrameStats:
+    """TP, FP and FN of every frame for one (class, metric, difficulty, threshold set) at a score threshold."""
+    config = with_class(config, cls)
+    m, d = parse_slot(config, metric, difficulty, oset)
+    plan = plan_evaluation(gt, dt, config)
+    job = slot_job(plan, cls, m, d, oset)
+    n = gt.num_frames
     fo = plan.overlaps
     (events,) = frame_events_many(fo.pair_offsets, (fo.bbox, fo.bev, fo.d3), plan.gt.offsets, plan.dt.offsets,
                                   plan.ignored_gt, plan.ignored_det, plan.dontcare, plan.dt.score, plan.gt.alpha,
-                                  plan.dt.alpha, [plan.jobs[job]])
+                                  plan.dt.alpha, [job])
     counts = np.zeros((n, 3))
     counts[:, 2] = events.valid
     on = events.ev_score >= score_threshold

@@ -129,6 +129,9 @@ class Annotations:
     score: npt.NDArray[np.float64]
     #: image fields (see :data:`IMAGE_FIELDS`) some frame lacked: field -> the first such frame
     missing_fields: Mapping[str, str] = field(default_factory=dict)
+    #: (N, 7) ``boxes_lidar`` as the input wrote them (NaN rows where a frame had none), only when asked for
+    #: with ``keep_lidar``: they are shown, never evaluated (the camera fields are)
+    boxes_lidar: npt.NDArray[np.float64] | None = None
 
     @property
     def num_frames(self) -> int:
@@ -186,7 +189,8 @@ class Annotations:
         return {f: getattr(self, f)[lo:hi].copy() for f in ("name", *_NUMERIC_FIELDS)}
 
     @classmethod
-    def from_frames(cls, kind: Kind, source: str, frames: Iterable[tuple[object, Mapping[str, Any]]]) -> Annotations:
+    def from_frames(cls, kind: Kind, source: str, frames: Iterable[tuple[object, Mapping[str, Any]]], *,
+                    keep_lidar: bool = False) -> Annotations:
         """Validate per-frame field dicts and concatenate them.
 
         Parameters
@@ -197,6 +201,7 @@ class Annotations:
             ``dimensions`` (N, 3) as l, h, w, ``location`` (N, 3), ``rotation_y`` (N,), ``alpha`` (N,),
             and ``score`` (N,) for detections or ``truncated``/``occluded`` (N,) for ground truth.
             Empty frames may use any empty arrays (OpenPCDet writes float zeros for ``name``).
+        keep_lidar : also keep each frame's ``boxes_lidar`` (N, 7) where present, for display
         """
         if kind not in _REQUIRED:
             raise ValueError(f"kind must be 'ground_truth' or 'detections', got {kind!r}")
@@ -205,6 +210,7 @@ class Annotations:
         cols: dict[str, list[np.ndarray]] = {f: [] for f in ("name", *_NUMERIC_FIELDS)}
         counts: list[int] = []
         absent: dict[str, str] = {}
+        lidar: list[np.ndarray] = []
         for pos, (raw_id, fields) in enumerate(frames):
             try:
                 fid = normalize_frame_id(raw_id)
@@ -235,6 +241,12 @@ class Annotations:
                     cols[f].append(np.full((n, *trailing), IMAGE_FIELDS[kind].get(f, 0.0)))
                     if f in IMAGE_FIELDS[kind]:
                         absent.setdefault(f, fid)
+            if keep_lidar:
+                if fields.get("boxes_lidar") is not None:
+                    where = {"source": source, "frame": fid, "field": "boxes_lidar"}
+                    lidar.append(_numeric(fields["boxes_lidar"], (7,), n, where))
+                else:
+                    lidar.append(np.full((n, 7), np.nan))
             ids.append(fid)
             counts.append(n)
         offsets = np.zeros(len(counts) + 1, dtype=np.int64)
@@ -252,7 +264,17 @@ class Annotations:
                 raise InputError(f"non-finite value {arr.reshape(len(arr), -1)[row].tolist()} in box "
                                  f"{row - int(offsets[frame])}", source=source, frame=ids[frame], field=f)
             joined[f] = arr
-        return cls(kind=kind, source=source, frame_ids=tuple(ids), offsets=offsets, missing_fields=absent, **joined)
+        kept = None
+        if keep_lidar:
+            kept = np.concatenate(lidar, dtype=np.float64) if lidar else np.zeros((0, 7), dtype=np.float64)
+            bad = np.isinf(kept).any(axis=1)
+            if bad.any():
+                row = int(np.argmax(bad))
+                frame = int(np.searchsorted(offsets, row, side="right")) - 1
+                raise InputError(f"non-finite value in box {row - int(offsets[frame])}", source=source,
+                                 frame=ids[frame], field="boxes_lidar")
+        return cls(kind=kind, source=source, frame_ids=tuple(ids), offsets=offsets, missing_fields=absent,
+                   boxes_lidar=kept, **joined)
 
     def aligned_to(self, frame_ids: Sequence[str], *, reference: str = "ground truth") -> tuple[Annotations, list[str]]:
         """These boxes re-ordered to ``frame_ids`` (frames absent here become empty).
@@ -297,7 +319,8 @@ class Annotations:
         np.cumsum(counts, out=offsets[1:])
         fields = {f: getattr(self, f)[take] for f in ("name", *_NUMERIC_FIELDS)}
         return Annotations(kind=self.kind, source=self.source, frame_ids=tuple(frame_ids), offsets=offsets,
-                           missing_fields=self.missing_fields, **fields)
+                           missing_fields=self.missing_fields,
+                           boxes_lidar=None if self.boxes_lidar is None else self.boxes_lidar[take], **fields)
 
 
 #: Typical (l, h, w) of KITTI classes, metres; used only to spot a swapped dimension order.

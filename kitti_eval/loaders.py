@@ -53,8 +53,8 @@ from .safe_pickle import load_pickle
 __all__ = [
     "load_ground_truth", "load_detections", "load_annotations", "load_kitti_txt_dir", "parse_kitti_txt",
     "annotations_from_object", "detect_format", "describe_format", "PICKLE_FORMATS", "KITTI_TXT_FIELDS",
-    "FORMATS", "load_pair", "read_split", "apply_split", "calibs_from_object", "extract_txt_archive",
-    "is_archive", "ArchiveLimits",
+    "FORMATS", "load_pair", "load_ground_truth_and_calibs", "read_split", "apply_split", "calibs_from_object",
+    "extract_txt_archive", "is_archive", "ArchiveLimits",
 ]
 
 #: the fields of a KITTI label line, in file order (``score`` only in detections)
@@ -75,13 +75,16 @@ def load_ground_truth(path: PathLike, *, max_bytes: int | None = None, fmt: str 
 
 
 def load_detections(path: PathLike, *, max_bytes: int | None = None, fmt: str | None = None,
-                    calibs: Mapping[str, Any] | None = None, warnings: list[str] | None = None) -> Annotations:
+                    calibs: Mapping[str, Any] | None = None, warnings: list[str] | None = None,
+                    keep_lidar: bool = False) -> Annotations:
     """Detections from a KITTI txt folder (16 fields; or a zip/tar of one) or a ``result.pkl``-style pickle.
 
     ``calibs`` ({frame id: :class:`kitti_eval.calib.Calib`}) converts LiDAR-only boxes and checks boxes that
-    carry both; messages about the check are appended to ``warnings``.
+    carry both; messages about the check are appended to ``warnings``. ``keep_lidar`` keeps the
+    ``boxes_lidar`` as written, for display (:attr:`Annotations.boxes_lidar`).
     """
-    return load_annotations(path, "detections", max_bytes=max_bytes, fmt=fmt, calibs=calibs, warnings=warnings)
+    return load_annotations(path, "detections", max_bytes=max_bytes, fmt=fmt, calibs=calibs, warnings=warnings,
+                            keep_lidar=keep_lidar)
 
 
 def _check_fmt(fmt: str | None) -> None:
@@ -96,7 +99,8 @@ def _missing(p: Path, kind: Kind, source: str) -> InputError:
 
 
 def load_annotations(path: PathLike, kind: Kind, *, max_bytes: int | None = None, fmt: str | None = None,
-                     calibs: Mapping[str, Any] | None = None, warnings: list[str] | None = None) -> Annotations:
+                     calibs: Mapping[str, Any] | None = None, warnings: list[str] | None = None,
+                     keep_lidar: bool = False) -> Annotations:
     """A folder is read as KITTI txt files, a zip/tar as an archived txt folder, a file as a pickle.
 
     ``fmt`` (a name of :data:`FORMATS`) skips the detection of the layout.
@@ -117,15 +121,17 @@ def load_annotations(path: PathLike, kind: Kind, *, max_bytes: int | None = None
     if fmt == "kitti_txt" or (fmt is None and is_archive(p)):
         return _load_txt_archive(p, kind, source)
     obj = load_pickle(p, source=source, max_bytes=max_bytes)
-    return annotations_from_object(obj, kind, source=source, fmt=fmt, calibs=calibs, warnings=warnings)
+    return annotations_from_object(obj, kind, source=source, fmt=fmt, calibs=calibs, warnings=warnings,
+                                   keep_lidar=keep_lidar)
 
 
 def annotations_from_object(obj: object, kind: Kind, *, source: str, fmt: str | None = None,
                             calibs: Mapping[str, Any] | None = None,
-                            warnings: list[str] | None = None) -> Annotations:
+                            warnings: list[str] | None = None, keep_lidar: bool = False) -> Annotations:
     """Annotations from an already unpickled object (e.g. an upload passed through ``load_pickle``).
 
-    ``fmt`` forces a layout of :data:`PICKLE_FORMATS`; ``calibs`` and ``warnings``: see :func:`load_detections`.
+    ``fmt`` forces a layout of :data:`PICKLE_FORMATS`; ``calibs``, ``warnings`` and ``keep_lidar``: see
+    :func:`load_detections`.
     """
     _check_kind(kind)
     _check_fmt(fmt)
@@ -138,7 +144,7 @@ def annotations_from_object(obj: object, kind: Kind, *, source: str, fmt: str | 
     frames = PICKLE_FORMATS[fmt](obj, kind, source)
     if kind == "detections":
         frames = _camera_fields(frames, calibs, source, warnings)
-    return Annotations.from_frames(kind, source, frames)
+    return Annotations.from_frames(kind, source, frames, keep_lidar=keep_lidar and kind == "detections")
 
 
 # ---------------------------------------------------------------------------------------- KITTI txt
@@ -750,25 +756,29 @@ def apply_split(gt: Annotations, dt: Annotations, frame_ids: Sequence[str]) -> t
     return gt, dt, dropped
 
 
+def load_ground_truth_and_calibs(gt_path: PathLike, *, fmt: str | None = None, max_bytes: int | None = None,
+                                 ) -> tuple[Annotations, Mapping[str, Any]]:
+    """Ground truth and, from an infos pickle, its calibration per frame (read once; empty for txt)."""
+    _check_fmt(fmt)
+    gp = Path(gt_path)
+    if gp.is_file() and fmt != "kitti_txt" and not (fmt is None and is_archive(gp)) and gp.suffix.lower() != ".txt":
+        obj = load_pickle(gp, source=str(gt_path), max_bytes=max_bytes)
+        gt = annotations_from_object(obj, "ground_truth", source=str(gt_path), fmt=fmt)
+        return gt, calibs_from_object(obj)
+    return load_ground_truth(gt_path, fmt=fmt, max_bytes=max_bytes), {}
+
+
 def load_pair(gt_path: PathLike, pred_path: PathLike, *, gt_format: str | None = None,
               pred_format: str | None = None, split: PathLike | None = None,
-              warnings: list[str] | None = None, max_bytes: int | None = None) -> tuple[Annotations, Annotations]:
+              warnings: list[str] | None = None, max_bytes: int | None = None,
+              keep_lidar: bool = False) -> tuple[Annotations, Annotations]:
     """Ground truth and predictions, the pickle of ground truth read once (its calibration converts
     LiDAR-only predictions); with ``split``, only the listed frames (dropped prediction frames are
-    reported in ``warnings``)."""
-    _check_fmt(gt_format)
+    reported in ``warnings``); ``keep_lidar``: see :func:`load_detections`."""
     _check_fmt(pred_format)
-    gp = Path(gt_path)
-    calibs: Mapping[str, Any] = {}
-    if gp.is_file() and gt_format != "kitti_txt" and not (gt_format is None and is_archive(gp)) \
-            and gp.suffix.lower() != ".txt":
-        obj = load_pickle(gp, source=str(gt_path), max_bytes=max_bytes)
-        gt = annotations_from_object(obj, "ground_truth", source=str(gt_path), fmt=gt_format)
-        calibs = calibs_from_object(obj)
-        del obj
-    else:
-        gt = load_ground_truth(gt_path, fmt=gt_format, max_bytes=max_bytes)
-    dt = load_detections(pred_path, fmt=pred_format, calibs=calibs, warnings=warnings, max_bytes=max_bytes)
+    gt, calibs = load_ground_truth_and_calibs(gt_path, fmt=gt_format, max_bytes=max_bytes)
+    dt = load_detections(pred_path, fmt=pred_format, calibs=calibs, warnings=warnings, max_bytes=max_bytes,
+                         keep_lidar=keep_lidar)
     if split is not None:
         gt, dt, dropped = apply_split(gt, dt, read_split(split))
         if dropped and warnings is not None:

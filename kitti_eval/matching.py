@@ -32,8 +32,8 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-__all__ = ["PRCounts", "MatchJob", "FrameEvents", "pr_counts", "pr_counts_many", "frame_events_many",
-           "score_thresholds", "default_workers"]
+__all__ = ["PRCounts", "MatchJob", "FrameEvents", "FrameLabels", "pr_counts", "pr_counts_many", "frame_events_many",
+           "label_frame", "score_thresholds", "default_workers", "DET_LABELS", "GT_LABELS"]
 
 _NO_DETECTION = -10000000.0
 
@@ -465,6 +465,148 @@ def _pr_counts_many(pair_offsets: np.ndarray, ov_0: np.ndarray, ov_1: np.ndarray
             for q in range(4):
                 pr_out[c, k, q] = pr[k, q]
     return thr_out, pr_out, n_thr, n_valid
+
+
+#: labels of :func:`label_frame`, by code
+DET_LABELS = ("tp", "fp", "ignored", "dontcare", "below_threshold", "other_class")
+GT_LABELS = ("matched", "missed", "ignored", "absorbed", "other_class")
+
+
+@njit(cache=True, nogil=True)
+def _label_frame(ov: np.ndarray, ig: np.ndarray, idet: np.ndarray, dc: np.ndarray, score: np.ndarray,
+                 min_overlap: float, thresh: float):  # noqa: ANN202 - five arrays, see label_frame
+    """Pass 2 of the matching on one frame at one score threshold, keeping who matched whom.
+
+    The same steps as :func:`_match_frame` with ``compute_fp`` set, on the frame's whole (detections x
+    ground truth) overlap matrix in file order.
+    """
+    nd, ng = ov.shape
+    det_label = np.full(nd, -1, dtype=np.int8)
+    det_ref = np.full(nd, -1, dtype=np.int64)
+    det_ov = np.full(nd, np.nan, dtype=np.float64)
+    gt_label = np.full(ng, -1, dtype=np.int8)
+    gt_ref = np.full(ng, -1, dtype=np.int64)
+    assigned = np.zeros(nd, dtype=np.bool_)
+    below = np.zeros(nd, dtype=np.bool_)
+    for a in range(nd):
+        below[a] = score[a] < thresh
+    for i in range(ng):
+        if ig[i] == -1:
+            gt_label[i] = 4
+            continue
+        det_a = -1
+        valid_detection = _NO_DETECTION
+        max_overlap = 0.0
+        assigned_ignored_det = False
+        for a in range(nd):
+            if idet[a] == -1 or assigned[a] or below[a]:
+                continue
+            overlap = ov[a, i]
+            if overlap > min_overlap and (overlap > max_overlap or assigned_ignored_det) and idet[a] == 0:
+                max_overlap = overlap
+                det_a = a
+                valid_detection = 1.0
+                assigned_ignored_det = False
+            elif overlap > min_overlap and valid_detection == _NO_DETECTION and idet[a] == 1:
+                det_a = a
+                valid_detection = 1.0
+                assigned_ignored_det = True
+        if valid_detection == _NO_DETECTION:
+            gt_label[i] = 1 if ig[i] == 0 else 2
+            continue
+        assigned[det_a] = True
+        det_ref[det_a] = i
+        det_ov[det_a] = ov[det_a, i]
+        gt_ref[i] = det_a
+        if ig[i] == 1 or idet[det_a] == 1:
+            det_label[det_a] = 2
+            gt_label[i] = 2 if ig[i] == 1 else 3
+        else:
+            det_label[det_a] = 0
+            gt_label[i] = 0
+    for a in range(nd):
+        if assigned[a]:
+            continue
+        if idet[a] == -1:
+            det_label[a] = 5
+        elif below[a]:
+            det_label[a] = 4
+        elif idet[a] == 1:
+            det_label[a] = 2
+        else:
+            det_label[a] = 1
+    for c in range(ng):
+        if not dc[c]:
+            continue
+        for a in range(nd):
+            if assigned[a] or idet[a] != 0 or below[a]:
+                continue
+            if ov[a, c] > min_overlap:
+                assigned[a] = True
+                det_label[a] = 3
+                det_ref[a] = c
+                det_ov[a] = ov[a, c]
+    return det_label, det_ref, det_ov, gt_label, gt_ref
+
+
+@dataclass(frozen=True)
+class FrameLabels:
+    """What the matching made of each box of one frame (codes index :data:`DET_LABELS` / :data:`GT_LABELS`).
+
+    det_label : (N,) int8 ; det_ref : (N,) int64, the ground-truth row a detection matched (tp, ignored) or
+        the DontCare row that covers it (dontcare), else -1 ; det_overlap : (N,) float64, that overlap (NaN
+        without one) ; gt_label : (M,) int8 ; gt_ref : (M,) int64, the detection that took the box, else -1
+    """
+
+    det_label: npt.NDArray[np.int8]
+    det_ref: npt.NDArray[np.int64]
+    det_overlap: npt.NDArray[np.float64]
+    gt_label: npt.NDArray[np.int8]
+    gt_ref: npt.NDArray[np.int64]
+
+    @property
+    def tp(self) -> int:
+        return int(np.count_nonzero(self.det_label == 0))
+
+    @property
+    def fp(self) -> int:
+        return int(np.count_nonzero(self.det_label == 1))
+
+    @property
+    def fn(self) -> int:
+        return int(np.count_nonzero(self.gt_label == 1))
+
+
+def label_frame(overlaps: npt.ArrayLike, ignored_gt: npt.ArrayLike, ignored_det: npt.ArrayLike,
+                dontcare: npt.ArrayLike | None, score: npt.ArrayLike, min_overlap: float,
+                score_threshold: float = -np.inf) -> FrameLabels:
+    """Label every box of one frame as the devkit's second pass sees it at ``score_threshold``.
+
+    Parameters
+    ----------
+    overlaps : (N, M) float64, detection j (rows) against ground-truth box i (columns) of the frame, in
+        file order; for DontCare rows the fraction of the detection covered
+    ignored_gt : (M,) int8 in {0, 1, -1} ; ignored_det : (N,) int8 in {0, 1, -1} (see the module docstring)
+    dontcare : (M,) bool, ground-truth rows that suppress false positives, or None for none
+    score : (N,) detection scores ; min_overlap : a match needs overlap strictly above this
+    score_threshold : detections scoring below it take no part (default: all take part)
+
+    The counts (``tp``, ``fp``, ``fn``) are the frame's share of the precision/recall counts at that
+    threshold.
+    """
+    ov = np.ascontiguousarray(overlaps, np.float64)
+    ig = np.ascontiguousarray(ignored_gt, np.int8)
+    idet = np.ascontiguousarray(ignored_det, np.int8)
+    sc = np.ascontiguousarray(score, np.float64)
+    n_gt = ig.shape[0] if ig.ndim == 1 else -1
+    dc = np.zeros(max(n_gt, 0), dtype=np.bool_) if dontcare is None else np.ascontiguousarray(dontcare, np.bool_)
+    if ig.ndim != 1 or idet.ndim != 1 or ov.shape != (idet.shape[0], n_gt):
+        raise ValueError(f"Expected `overlaps` (N, M) with `ignored_det` (N,) and `ignored_gt` (M,), got "
+                         f"{ov.shape}, {idet.shape} and {ig.shape}")
+    if dc.shape != (n_gt,) or sc.shape != idet.shape:
+        raise ValueError(f"Expected `dontcare` ({n_gt},) and `score` ({idet.shape[0]},), got {dc.shape} and "
+                         f"{sc.shape}")
+    return FrameLabels(*_label_frame(ov, ig, idet, dc, sc, float(min_overlap), float(score_threshold)))
 
 
 @dataclass(frozen=True)

@@ -90,3 +90,55 @@ def pr_counts_naive(frames, min_overlap, compute_aos):
             if sim != -1:
                 pr[t][3] += sim
     return thresholds, pr, n_gt
+
+
+def labels_naive(frame, min_overlap, thresh=float("-inf")):
+    """One frame's second pass at ``thresh``, literally, keeping who took whom.
+
+    Returns (det_labels, det_refs, gt_labels, gt_refs): labels as the words of ``DET_LABELS`` /
+    ``GT_LABELS``; a detection's ref is the ground truth it took or the DontCare row covering it.
+    """
+    ov, ig, idet, dc, score = frame["ov"], frame["ig"], frame["idet"], frame["dc"], frame["score"]
+    nd, ng = len(idet), len(ig)
+    below = [score[j] < thresh for j in range(nd)]
+    det = [None] * nd
+    det_ref = [-1] * nd
+    gt = [None] * ng
+    gt_ref = [-1] * ng
+    for i in range(ng):
+        if ig[i] == -1:
+            gt[i] = "other_class"
+            continue
+        det_idx, valid, max_ov, took_ignored = -1, NO_DETECTION, 0.0, False
+        for j in range(nd):
+            if idet[j] == -1 or det[j] is not None or below[j]:
+                continue
+            o = ov[j][i]
+            if o > min_overlap and (o > max_ov or took_ignored) and idet[j] == 0:
+                max_ov, det_idx, valid, took_ignored = o, j, 1.0, False
+            elif o > min_overlap and valid == NO_DETECTION and idet[j] == 1:
+                det_idx, valid, took_ignored = j, 1.0, True
+        if valid == NO_DETECTION:
+            gt[i] = "missed" if ig[i] == 0 else "ignored"
+        elif ig[i] == 1 or idet[det_idx] == 1:
+            det[det_idx], det_ref[det_idx] = "ignored", i
+            gt[i], gt_ref[i] = ("ignored" if ig[i] == 1 else "absorbed"), det_idx
+        else:
+            det[det_idx], det_ref[det_idx] = "tp", i
+            gt[i], gt_ref[i] = "matched", det_idx
+    for j in range(nd):
+        if det[j] is None:
+            if idet[j] == -1:
+                det[j] = "other_class"
+            elif below[j]:
+                det[j] = "below_threshold"
+            elif idet[j] == 1:
+                det[j] = "ignored"
+    for i in range(ng):
+        if not dc[i]:
+            continue
+        for j in range(nd):
+            if det[j] is None and ov[j][i] > min_overlap:
+                det[j], det_ref[j] = "dontcare", i
+    det = ["fp" if d is None else d for d in det]
+    return det, det_ref, gt, gt_ref
