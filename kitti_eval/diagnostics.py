@@ -12,6 +12,7 @@ import io
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -22,7 +23,7 @@ from .frames import Annotations
 from .matching import MatchJob, frame_events_many
 from .protocol import THRESHOLD_SETS, Difficulty, EvalConfig, Metric
 
-__all__ = ["FrameStats", "frame_stats", "render_frames", "with_class", "parse_slot", "slot_job"]
+__all__ = ["FrameStats", "frame_stats", "frames_document", "render_frames", "with_class", "parse_slot", "slot_job"]
 
 
 @dataclass(frozen=True)
@@ -99,15 +100,20 @@ def frame_stats(gt: Annotations, dt: Annotations, config: EvalConfig | None = No
     return FrameStats(plan.gt.frame_ids, tp, fp, fn, cls, m.value, d.label, oset, float(score_threshold))
 
 
+def frames_document(stats: FrameStats, *, worst: int | None = None) -> dict[str, Any]:
+    """The frames (all, or the ``worst`` n) as a JSON-ready dict."""
+    rows: Sequence[int] = stats.worst(worst) if worst else range(len(stats.frame_ids))
+    return {"class": stats.cls, "metric": stats.metric, "difficulty": stats.difficulty, "threshold_set": stats.oset,
+            "score_threshold": stats.score_threshold,
+            "frames": [{"frame": stats.frame_ids[i], "tp": int(stats.tp[i]), "fp": int(stats.fp[i]),
+                        "fn": int(stats.fn[i])} for i in rows]}
+
+
 def render_frames(stats: FrameStats, fmt: str = "table", *, worst: int | None = None) -> str:
     """The frames (all, or the ``worst`` n) as a table, CSV or JSON."""
     rows: Sequence[int] = stats.worst(worst) if worst else range(len(stats.frame_ids))
     if fmt == "json":
-        doc = {"class": stats.cls, "metric": stats.metric, "difficulty": stats.difficulty, "threshold_set": stats.oset,
-               "score_threshold": stats.score_threshold,
-               "frames": [{"frame": stats.frame_ids[i], "tp": int(stats.tp[i]), "fp": int(stats.fp[i]),
-                           "fn": int(stats.fn[i])} for i in rows]}
-        return json.dumps(doc, indent=2) + "\n"
+        return json.dumps(frames_document(stats, worst=worst), indent=2) + "\n"
     if fmt == "csv":
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")

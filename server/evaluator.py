@@ -6,6 +6,7 @@ state, so that is safe.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from collections.abc import Mapping, Sequence
@@ -51,6 +52,20 @@ class EvalOptions:
     ranges: str | None = None
     coco: bool = False
     lidar_only: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        """The options as stored with an evaluation (JSON)."""
+        out = dataclasses.asdict(self)
+        out["iou"] = list(self.iou)
+        return out
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> EvalOptions:
+        known = {f.name for f in dataclasses.fields(cls)}
+        kwargs = {k: v for k, v in values.items() if k in known}
+        if "iou" in kwargs:
+            kwargs["iou"] = tuple(kwargs["iou"])
+        return cls(**kwargs)
 
     def config(self) -> EvalConfig:
         if self.protocol not in PROTOCOLS:

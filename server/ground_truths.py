@@ -54,11 +54,15 @@ def annotations_nbytes(annotations: Annotations) -> int:
 
 
 class GroundTruthCache:
-    """Loaded ground truths by sha256, least recently used dropped first; each set is loaded once."""
+    """Loaded sets (ground truth, or kept predictions) by sha256, least recently used dropped first; each set
+    is loaded once."""
 
-    def __init__(self, max_entries: int, max_bytes: int) -> None:
+    def __init__(self, max_entries: int, max_bytes: int, *, what: str = "ground truth",
+                 setting: str = "KITTI_EVAL_GT_CACHE_MB") -> None:
         self.max_entries = max_entries
         self.max_bytes = max_bytes
+        self.what = what
+        self.setting = setting
         self._entries: OrderedDict[str, tuple[Annotations, int]] = OrderedDict()
         self._lock = threading.Lock()
         self._loading: dict[str, threading.Lock] = {}
@@ -74,8 +78,8 @@ class GroundTruthCache:
     def put(self, key: str, annotations: Annotations) -> None:
         size = annotations_nbytes(annotations)
         if size > self.max_bytes:
-            log.warning("ground truth %s (%d MB) is larger than the cache (KITTI_EVAL_GT_CACHE_MB); not cached",
-                        key[:12], size >> 20)
+            log.warning("%s %s (%d MB) is larger than the cache (%s); not cached", self.what, key[:12], size >> 20,
+                        self.setting)
             return
         with self._lock:
             self._entries[key] = (annotations, size)

@@ -20,7 +20,7 @@ from kitti_eval import __version__
 
 from .errors import install_error_handlers
 from .middleware import AdmissionMiddleware, BodyLimitMiddleware
-from .routes import evaluations, gates, ground_truths, health
+from .routes import evaluations, frames, gates, ground_truths, health
 from .service import Service
 from .settings import Settings
 
@@ -70,6 +70,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(evaluations.router)
     app.include_router(ground_truths.router)
     app.include_router(gates.router)
+    app.include_router(frames.router)
     # outermost last: admission is decided before the body limit starts reading
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
     app.add_middleware(AdmissionMiddleware, paths=frozenset({"/v1/evaluations"}),

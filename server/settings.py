@@ -57,6 +57,14 @@ class Settings(BaseSettings):
     gt_cache_mb: Annotated[float, Field(gt=0)] = 2048.0
     """Memory the cached ground-truth sets may take together (the arrays' size)."""
 
+    keep_predictions: bool = True
+    """Keep each uploaded predictions file (once per content, in the database) so that the frames of an
+    evaluation against a registered ground truth can be looked at later (``/v1/evaluations/{id}/frames``,
+    ``/v1/frames/{frame}``, the web page's frame view). Off: only the scores are kept."""
+
+    pred_cache_entries: Annotated[int, Field(ge=1)] = 4
+    """Kept predictions held loaded in memory for looking at frames (least recently used dropped first)."""
+
     register_demo: bool = True
     """Register the bundled 200-frame demo ground truth as ``demo`` at startup (if absent)."""
 

@@ -32,6 +32,7 @@ from sqlalchemy import (
     exists,
     func,
     insert,
+    inspect,
     select,
     text,
 )
@@ -40,7 +41,7 @@ from sqlalchemy.engine import Engine, RowMapping
 from sqlalchemy.exc import IntegrityError
 
 __all__ = ["Store", "GroundTruthRecord", "EvaluationRecord", "metadata", "ground_truths", "ground_truth_files",
-           "evaluations", "evaluation_labels"]
+           "evaluations", "evaluation_labels", "prediction_files"]
 
 metadata = MetaData()
 _JSON = JSON().with_variant(JSONB(), "postgresql")
@@ -79,8 +80,16 @@ evaluations = Table(
     Column("duration_ms", Float, nullable=False),
     Column("summary", _JSON, nullable=False),            # strict R40 moderate AP per class and metric
     Column("result", _JSON, nullable=False),             # the document `kitti-eval --format json` prints
+    Column("options", _JSON, nullable=True),             # the request's options (None: stored before they were)
     Index("ix_evaluations_created", "created_at", "id"),
     Index("ix_evaluations_gt", "gt_name", "created_at"),
+)
+
+#: uploaded predictions by content, kept so that frames of an evaluation can be looked at later
+prediction_files = Table(
+    "prediction_files", metadata,
+    Column("sha256", String(64), primary_key=True),
+    Column("content", LargeBinary, nullable=False),
 )
 
 evaluation_labels = Table(
@@ -120,6 +129,8 @@ class EvaluationRecord:
     summary: Mapping[str, Any]
     result: Mapping[str, Any] | None  # None when listed without results
     labels: Mapping[str, str] = field(default_factory=dict)
+    #: the request's options (:class:`server.evaluator.EvalOptions` as a dict); None for older rows
+    options: Mapping[str, Any] | None = None
 
 
 def _utc(value: datetime) -> datetime:
@@ -151,7 +162,13 @@ class Store:
         self.dialect = self.engine.dialect.name
 
     def create_schema(self) -> None:
+        """Create missing tables, and add the columns a database made by an earlier version lacks."""
         metadata.create_all(self.engine)
+        present = {c["name"] for c in inspect(self.engine).get_columns("evaluations")}
+        if "options" not in present:
+            kind = "JSONB" if self.dialect == "postgresql" else "JSON"
+            with self.engine.begin() as conn:
+                conn.execute(text(f"ALTER TABLE evaluations ADD COLUMN options {kind}"))
 
     def ping(self) -> None:
         with self.engine.connect() as conn:
@@ -211,6 +228,23 @@ class Store:
         values = dict(row)
         values["created_at"] = _utc(values["created_at"])
         return GroundTruthRecord(**values)
+
+    # -- predictions -----------------------------------------------------------------------------------
+    def add_prediction_file(self, sha256: str, content: bytes) -> None:
+        """Keep an uploaded predictions file (once per content)."""
+        try:
+            with self.engine.begin() as conn:
+                if conn.execute(select(prediction_files.c.sha256)
+                                .where(prediction_files.c.sha256 == sha256)).first() is None:
+                    conn.execute(insert(prediction_files).values(sha256=sha256, content=content))
+        except IntegrityError:  # the same file, kept concurrently by another request
+            pass
+
+    def prediction_content(self, sha256: str) -> bytes | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(prediction_files.c.content)
+                               .where(prediction_files.c.sha256 == sha256)).first()
+        return None if row is None else bytes(row[0])
 
     # -- evaluations -----------------------------------------------------------------------------------
     def add_evaluation(self, record: EvaluationRecord) -> None:

@@ -170,8 +170,9 @@ def _relabel(e: InputError, names: dict[str, str], source: str) -> InputError:
     return cls(e.message, source=where, frame=e.frame, field=e.field)
 
 
-def load_upload(upload: Upload, kind: Kind, scratch: Path, limits: Limits) -> Loaded:
-    """Identify, unpack and load one upload as ground truth or detections.
+def load_upload(upload: Upload, kind: Kind, scratch: Path, limits: Limits, *, keep_lidar: bool = False) -> Loaded:
+    """Identify, unpack and load one upload as ground truth or detections (``keep_lidar``: see
+    :func:`kitti_eval.loaders.load_detections`).
 
     Raises InputError / UnsafePickleError (from the library), ArchiveError or UnknownFormat; every
     message names the upload by the client's file name.
@@ -179,7 +180,7 @@ def load_upload(upload: Upload, kind: Kind, scratch: Path, limits: Limits) -> Lo
     fmt = sniff(upload.file, upload.filename)
     if fmt is InputFormat.PICKLE:
         obj = load_pickle(upload.file, source=upload.filename, max_bytes=limits.max_unpacked_bytes)
-        return Loaded(fmt, annotations_from_object(obj, kind, source=upload.filename), None)
+        return Loaded(fmt, annotations_from_object(obj, kind, source=upload.filename, keep_lidar=keep_lidar), None)
     folder, names = extract_txt_folder(upload.file, fmt, scratch, limits, upload.filename)
     try:
         annotations = load_kitti_txt_dir(folder, kind)
