@@ -135,7 +135,9 @@ class Service:
         started = time.perf_counter()
         try:
             gt_path, pred_path = demo_paths()
-            evaluate_document(load_ground_truth(gt_path), load_detections(pred_path), EvalConfig())
+            gt, dt = load_ground_truth(gt_path), load_detections(pred_path)
+            evaluate_document(gt, dt, EvalConfig())
+            inspect_frame(gt, [("demo", dt)], gt.frame_ids[0])  # the frame view's labelling kernel
         except Exception as e:  # noqa: BLE001 - reported through /readyz and the log
             self.warmup_error = f"{type(e).__name__}: {e}"
             log.exception("warm-up failed")
