@@ -21,7 +21,8 @@ from kitti_eval.errors import ConfigError, InputError, KittiEvalError, UnsafePic
 
 __all__ = [
     "ApiError", "NotFound", "Conflict", "Unauthorized", "Forbidden", "Busy", "NotReady", "PayloadTooLarge",
-    "UnknownFormat", "ArchiveError", "BadRequest", "error_body", "error_response", "install_error_handlers",
+    "UnknownFormat", "ArchiveError", "BadRequest", "library_error_status", "error_body", "error_response",
+    "install_error_handlers",
 ]
 
 log = logging.getLogger("kitti_eval.server")
@@ -115,6 +116,11 @@ _LIBRARY_ERRORS: tuple[tuple[type[KittiEvalError], int, str], ...] = (
 )
 
 
+def library_error_status(exc: KittiEvalError) -> tuple[int, str]:
+    """The (status, code) a library error is answered with."""
+    return next((s, c) for cls, s, c in _LIBRARY_ERRORS if isinstance(exc, cls))
+
+
 def error_body(code: str, message: str, **details: Any) -> dict[str, Any]:
     err: dict[str, Any] = {"code": code, "message": message}
     err.update({k: v for k, v in details.items() if v is not None})
@@ -149,7 +155,7 @@ async def _api_error(request: Request, exc: Exception) -> JSONResponse:
 
 async def _library_error(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, KittiEvalError)
-    status, code = next((s, c) for cls, s, c in _LIBRARY_ERRORS if isinstance(exc, cls))
+    status, code = library_error_status(exc)
     frame = getattr(exc, "frame", None)
     field = getattr(exc, "field", None)
     return error_response(status, code, str(exc), frame=frame, field=field)

@@ -14,6 +14,7 @@ from typing import Any
 
 import anyio.to_thread
 from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
 from pydantic import ValidationError
 
 from kitti_eval import __version__
@@ -23,6 +24,8 @@ from .middleware import AdmissionMiddleware, BodyLimitMiddleware
 from .routes import evaluations, frames, gates, ground_truths, health
 from .service import Service
 from .settings import Settings
+from .web import STATIC_DIR
+from .web import router as web_router
 
 __all__ = ["create_app", "serve"]  # and `app`, built on first access
 
@@ -71,9 +74,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(ground_truths.router)
     app.include_router(gates.router)
     app.include_router(frames.router)
+    app.include_router(web_router)
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     # outermost last: admission is decided before the body limit starts reading
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
-    app.add_middleware(AdmissionMiddleware, paths=frozenset({"/v1/evaluations"}),
+    app.add_middleware(AdmissionMiddleware, paths=frozenset({"/v1/evaluations", "/ui/evaluations"}),
                        capacity=lambda: settings.max_concurrent_evals + settings.max_queued_evals,
                        retry_after_s=lambda: settings.retry_after_s)
     return app

@@ -1,0 +1,310 @@
+"""The HTML pages: upload and history, one evaluation, a comparison, one frame. Not in the OpenAPI document.
+
+The pages read the same records the JSON API serves and render them with Jinja2; a failure renders the page
+(or a small error page) with the message and the status the JSON API gives the same failure.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from functools import partial
+from pathlib import Path
+from typing import Annotated, Any
+from urllib.parse import quote, urlencode
+
+import anyio.to_thread
+import jinja2
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import RedirectResponse, Response
+from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException
+from starlette.templating import Jinja2Templates
+
+from kitti_eval.errors import KittiEvalError
+from kitti_eval.protocol import ALL_METRICS, KNOWN_CLASSES, PROTOCOLS
+
+from ..compare import compare
+from ..deps import ServiceDep
+from ..errors import ApiError, BadRequest, library_error_status
+from ..evaluator import EvalOptions, parse_labels
+from ..schemas import iso
+from ..service import FileIn, Service
+from ..store import EvaluationRecord
+from .svg import bev_view, pr_chart
+
+__all__ = ["router", "templates", "STATIC_DIR"]
+
+STATIC_DIR = Path(__file__).resolve().parent / "static"
+_TEMPLATES_DIR = Path(__file__).resolve().parent / "templates"
+
+_RECALLS = ("R40", "R11")
+_DIFFICULTIES = ("easy", "moderate", "hard")
+_SUMMARY_CLASSES = ("Car", "Pedestrian", "Cyclist")
+_HISTORY = 50
+_WORST = 20
+
+router = APIRouter(include_in_schema=False)
+
+
+def fmt(value: float | None) -> str:
+    """An AP as the CLI prints it: four decimals, ``-`` where there is none."""
+    return "-" if value is None else f"{value:.4f}"
+
+
+def full(value: float | None) -> str:
+    """The exact value for a ``data-value`` attribute (``repr`` round-trips a float); empty for none."""
+    return "" if value is None else repr(float(value))
+
+
+def signed(value: float | None) -> str:
+    return "-" if value is None else f"{value:+.4f}"
+
+
+def delta_class(value: float | None) -> str:
+    if value is None:
+        return "delta none"
+    return "delta pos" if value > 0 else "delta neg" if value < 0 else "delta zero"
+
+
+def _env() -> jinja2.Environment:
+    env = jinja2.Environment(loader=jinja2.FileSystemLoader(_TEMPLATES_DIR),
+                             autoescape=jinja2.select_autoescape(["html"]), undefined=jinja2.StrictUndefined,
+                             trim_blocks=True, lstrip_blocks=True)
+    env.filters.update(fmt=fmt, full=full, signed=signed, delta_class=delta_class, iso=iso)
+    return env
+
+
+templates = Jinja2Templates(env=_env())
+
+
+def _status(exc: Exception) -> int:
+    """The status the JSON API answers the same failure with (the mapping lives in ``server.errors``)."""
+    if isinstance(exc, ApiError):
+        return exc.status_code
+    if isinstance(exc, HTTPException):
+        return exc.status_code
+    return library_error_status(exc)[0]
+
+
+def _render(request: Request, template: str, status_code: int = 200, /, **context: Any) -> Response:
+    return templates.TemplateResponse(request, template, context, status_code=status_code)
+
+
+def _error_page(request: Request, exc: ApiError | KittiEvalError) -> Response:
+    return _render(request, "error.html", _status(exc), status=_status(exc), message=str(exc))
+
+
+def _url(path: str, **params: Any) -> str:
+    """``path?query``; list values repeat the key, None values are left out."""
+    query = urlencode({k: v for k, v in params.items() if v is not None}, doseq=True)
+    return f"{path}?{query}" if query else path
+
+
+def model_name(record: EvaluationRecord) -> str:
+    """How a page names an evaluation: its ``model`` label, else the predictions' file name."""
+    return record.labels.get("model") or record.pred_filename
+
+
+# -------------------------------------------------------------------------------------------------- home
+
+def _history(service: Service) -> list[dict[str, Any]]:
+    rows = []
+    for record in service.store.list_evaluations(limit=_HISTORY):
+        summary = {cls: (record.summary.get(cls) or {}).get("3d") for cls in _SUMMARY_CLASSES}
+        rows.append({"record": record, "name": model_name(record), "summary": summary})
+    return rows
+
+
+def _home(request: Request, service: Service, *, status: int = 200, error: str | None = None,
+          form: Mapping[str, str] | None = None) -> Response:
+    return _render(request, "home.html", status, error=error, form=dict(form or {}),
+                   ground_truths=[g.name for g in service.store.list_ground_truths()],
+                   protocols=sorted(PROTOCOLS), history=_history(service), summary_classes=_SUMMARY_CLASSES,
+                   max_upload_bytes=service.settings.max_upload_bytes)
+
+
+@router.get("/")
+def home(request: Request, service: ServiceDep) -> Response:
+    return _home(request, service)
+
+
+@router.post("/ui/evaluations")
+async def upload(request: Request, service: ServiceDep) -> Response:
+    """The upload form: evaluate (with curves) and redirect to the new evaluation's page."""
+    values: dict[str, str] = {}
+    try:
+        async with request.form(max_files=1, max_fields=16) as form:
+            values = {k: v for k, v in form.items() if isinstance(v, str)}
+            predictions = form.get("predictions")
+            if not isinstance(predictions, UploadFile) or not predictions.filename:
+                raise BadRequest("choose a predictions file (a result.pkl, .pkl.gz, or a zip/tar of KITTI txt "
+                                 "results)")
+            labels = parse_labels({"model": values.get("model", "").strip()}, [])
+            options = EvalOptions(protocol=values.get("protocol", "official"), curves=True)
+            record = await service.run(service.evaluate, FileIn(predictions.file, predictions.filename),
+                                       values.get("gt") or None, None, options, labels)
+    except (ApiError, KittiEvalError, HTTPException) as e:
+        message = e.detail if isinstance(e, HTTPException) else str(e)
+        return await anyio.to_thread.run_sync(partial(_home, request, service, status=_status(e),
+                                                      error=str(message), form=values))
+    return RedirectResponse(f"/evaluations/{quote(record.id)}", status_code=303)
+
+
+# -------------------------------------------------------------------------------------------- evaluation
+
+def score_tables(result: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """One table per threshold set and recall mode: rows class × metric, cells per difficulty."""
+    tables = []
+    for oset in result["threshold_sets"]:
+        for recall in _RECALLS:
+            by_class = result["ap"][oset][recall]
+            rows = [{"cls": cls, "metric": metric,
+                     "cells": [{"key": f"{oset}/{recall}/{cls}/{metric}/{d}", "value": values.get(d)}
+                               for d in _DIFFICULTIES]}
+                    for cls in result["classes"] for metric, values in by_class[cls].items()]
+            overlaps = {cls: result["overlaps"][cls][oset] for cls in result["classes"]}
+            tables.append({"set": oset, "recall": recall, "rows": rows, "overlaps": overlaps})
+    return tables
+
+
+def curve_charts(result: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """Per threshold set: per class, one precision-recall chart per metric (empty without curves)."""
+    curves = result.get("curves")
+    if not curves:
+        return []
+    out = []
+    for oset, by_class in curves.items():
+        classes = []
+        for cls, by_metric in by_class.items():
+            charts = [{"metric": metric, "chart": pr_chart(by_difficulty, result["ap"][oset]["R40"][cls][metric])}
+                      for metric, by_difficulty in by_metric.items() if by_difficulty]
+            classes.append({"cls": cls, "charts": charts})
+        out.append({"set": oset, "classes": classes})
+    return out
+
+
+async def _worst_frames(service: Service, record: EvaluationRecord, choice: Mapping[str, str]) -> dict[str, Any]:
+    section: dict[str, Any] = {"rows": [], "error": None}
+    try:
+        found = await service.run(partial(service.frames, record.id, cls=choice["cls"], metric=choice["metric"],
+                                          difficulty=choice["difficulty"], oset=choice["set"], worst=_WORST))
+    except (ApiError, KittiEvalError) as e:
+        section["error"] = str(e)
+        return section
+    for row in found["frames"]:
+        row = dict(row)
+        row["href"] = _url(f"/frames/{quote(str(row['frame']))}", e=record.id, **choice)
+        section["rows"].append(row)
+    return section
+
+
+@router.get("/evaluations/{evaluation_id}")
+async def evaluation_page(request: Request, service: ServiceDep, evaluation_id: str, cls: str | None = None,
+                          metric: str = "3d", difficulty: str = "moderate",
+                          oset: Annotated[str | None, Query(alias="set")] = None) -> Response:
+    try:
+        record = await anyio.to_thread.run_sync(service.evaluation, evaluation_id)
+    except ApiError as e:
+        return _error_page(request, e)
+    result = record.result
+    assert result is not None
+    sets = list(result["threshold_sets"])
+    choice = {"cls": cls or result["classes"][0], "metric": metric, "difficulty": difficulty,
+              "set": oset or ("strict" if "strict" in sets else sets[0])}
+    return _render(request, "evaluation.html", record=record, result=result, name=model_name(record),
+                   tables=score_tables(result), curves=curve_charts(result), choice=choice,
+                   choices={"cls": result["classes"], "metric": result["metrics"],
+                            "difficulty": result["difficulties"], "set": sets},
+                   worst=await _worst_frames(service, record, choice))
+
+
+# ------------------------------------------------------------------------------------------------ compare
+
+def compare_tables(a: Mapping[str, Any], b: Mapping[str, Any], comparison: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """Per threshold set and recall mode: rows class × metric, cells (a, b, b - a) per difficulty."""
+    tables = []
+    for oset in comparison["threshold_sets"]:
+        for recall in _RECALLS:
+            delta, ap_a, ap_b = comparison["delta"]["ap"][oset][recall], a["ap"][oset][recall], b["ap"][oset][recall]
+            rows = [{"cls": cls, "metric": metric,
+                     "cells": [{"key": f"{oset}/{recall}/{cls}/{metric}/{d}", "a": ap_a[cls][metric][d],
+                                "b": ap_b[cls][metric][d], "delta": values[d]} for d in _DIFFICULTIES]}
+                    for cls in comparison["classes"] for metric, values in delta[cls].items()]
+            tables.append({"set": oset, "recall": recall, "rows": rows})
+    return tables
+
+
+@router.get("/compare")
+def compare_page(request: Request, service: ServiceDep, a: str | None = None, b: str | None = None,
+                 e: Annotated[list[str] | None, Query()] = None) -> Response:
+    """``?a=<base>&b=<other>``; or ``?e=<id>&e=<id>`` (the history form without JavaScript), older first."""
+    try:
+        if a is None and b is None and e is not None and len(e) == 2:
+            a, b = sorted(e, key=lambda i: service.evaluation(i).created_at)
+        if not a or not b:
+            raise BadRequest("compare needs two evaluations: /compare?a=<base id>&b=<other id>")
+        base, other = service.evaluation(a), service.evaluation(b)
+    except ApiError as exc:
+        return _error_page(request, exc)
+    assert base.result is not None and other.result is not None
+    comparison = compare(base, other)
+    return _render(request, "compare.html", base=base, other=other, names=(model_name(base), model_name(other)),
+                   comparison=comparison, tables=compare_tables(base.result, other.result, comparison))
+
+
+# -------------------------------------------------------------------------------------------------- frame
+
+def _parse_score(text: str | None) -> float | None:
+    if text is None or not text.strip():
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise BadRequest(f"score threshold must be a number, got {text!r}") from None
+
+
+def frame_models(data: Mapping[str, Any], ids: Sequence[str],
+                 url: Callable[[Sequence[str]], str]) -> list[dict[str, Any]]:
+    """Per evaluation of an inspected frame: its rows and counts as inspected, a bird's-eye view (all views of
+    the frame at one scale) and the link that drops it from the view."""
+    models = data["models"]
+    everything = [d for m in models.values() for d in m["detections"]]
+    out = []
+    for name, model in models.items():
+        others = [i for i in ids if i != model["evaluation"]]
+        out.append({"name": name, **model,
+                    "bev": bev_view(data["ground_truth"], model["detections"], missed=model["missed"],
+                                    extent=everything),
+                    "remove": url(others) if others else None})
+    return out
+
+
+@router.get("/frames/{frame_id}")
+async def frame_page(request: Request, service: ServiceDep, frame_id: str,
+                     e: Annotated[list[str] | None, Query()] = None, cls: str = "Car", metric: str = "3d",
+                     difficulty: str = "moderate", oset: Annotated[str, Query(alias="set")] = "strict",
+                     score: str | None = None) -> Response:
+    """One frame: the ground truth, then each evaluation's detections with their labels, side by side."""
+    ids = list(dict.fromkeys(i for i in e or () if i))  # the "add" select may send an empty value
+    choice = {"cls": cls, "metric": metric, "difficulty": difficulty, "set": oset, "score": score or ""}
+
+    def url(with_ids: Sequence[str]) -> str:
+        return _url(f"/frames/{quote(frame_id)}", e=list(with_ids), cls=cls, metric=metric, difficulty=difficulty,
+                    set=oset, score=score or None)
+
+    listed = await anyio.to_thread.run_sync(partial(service.store.list_evaluations, limit=_HISTORY))
+    history = [{"id": r.id, "name": model_name(r), "created_at": r.created_at} for r in listed if r.id not in ids]
+    context: dict[str, Any] = {"frame": frame_id, "ids": ids, "choice": choice, "history": history,
+                               "classes": list(dict.fromkeys((*KNOWN_CLASSES, cls))),
+                               "metrics": [m.value for m in ALL_METRICS], "difficulties": _DIFFICULTIES, "data": None,
+                               "models": [], "error": None}
+    try:
+        if not ids:
+            raise BadRequest("name at least one evaluation: /frames/<frame>?e=<evaluation id>")
+        data = await service.run(partial(service.inspect, ids, frame_id, cls=cls, metric=metric,
+                                         difficulty=difficulty, oset=oset, score_threshold=_parse_score(score)))
+    except (ApiError, KittiEvalError) as exc:
+        context["error"] = str(exc)
+        return _render(request, "frame.html", _status(exc), **context)
+    context.update(data=data, models=frame_models(data, ids, url))
+    return _render(request, "frame.html", **context)
