@@ -136,6 +136,14 @@ def _config(args: argparse.Namespace):  # noqa: ANN202 - EvalConfig, imported la
     return EvalConfig(**kwargs)
 
 
+def _emit(text: str, output: Path | None) -> None:
+    """A command's output: to ``--output`` when given, else to stdout."""
+    if output:
+        output.write_text(text, encoding="utf-8")
+    else:
+        sys.stdout.write(text)
+
+
 def _say(msg: str) -> None:
     print(f"{PROG}: {msg}", file=sys.stderr)
 
@@ -178,10 +186,7 @@ def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
     if not args.quiet:
         for w in [*load_warnings, *result.warnings]:
             _say(f"warning: {w}")
-    if args.output:
-        args.output.write_text(text)
-    else:
-        sys.stdout.write(text)
+    _emit(text, args.output)
     return EXIT_OK
 
 
@@ -259,10 +264,7 @@ def _compare(args: argparse.Namespace) -> int:
                         for p, j in zip((args.a, args.b), is_json))
     text = render_comparison(compare_documents(doc_a, doc_b, intervals, args.bootstrap, args.seed if args.bootstrap
                                                else None), args.format, every_value=args.all)
-    if args.output:
-        args.output.write_text(text, encoding="utf-8")
-    else:
-        sys.stdout.write(text)
+    _emit(text, args.output)
     return EXIT_OK
 
 
@@ -305,10 +307,7 @@ def _frames(args: argparse.Namespace) -> int:
                         metric=args.metric, difficulty=args.difficulty, oset=args.oset,
                         score_threshold=args.score_threshold)
     text = render_frames(stats, args.format, worst=args.worst)
-    if args.output:
-        args.output.write_text(text, encoding="utf-8")
-    else:
-        sys.stdout.write(text)
+    _emit(text, args.output)
     return EXIT_OK
 
 
@@ -351,10 +350,7 @@ def _inspect(args: argparse.Namespace) -> int:
     report = inspect_frame(gt, models, args.frame, _config(args), cls=args.cls, metric=args.metric,
                            difficulty=args.difficulty, oset=args.oset, score_threshold=args.score_threshold)
     text = inspection_json(report) if args.format == "json" else render_inspection(report)
-    if args.output:
-        args.output.write_text(text, encoding="utf-8")
-    else:
-        sys.stdout.write(text)
+    _emit(text, args.output)
     return EXIT_OK
 
 
@@ -452,10 +448,7 @@ def _run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int
         from .plots import plot_overlays
 
         plot_overlays([(_label(c), c.result) for c in checkpoints], args.plot_dir)
-    if args.output:
-        args.output.write_text(text, encoding="utf-8")
-    else:
-        sys.stdout.write(text)
+    _emit(text, args.output)
     return EXIT_OK if len(checkpoints) == len(preds) else EXIT_INPUT
 
 
