@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from html.parser import HTMLParser
@@ -10,6 +11,7 @@ from typing import Any
 import pytest
 from server_helpers import app_client, golden_bytes, upload
 
+from kitti_eval.cli import main as cli_main
 from kitti_eval.synth import demo_paths
 from server.web import STATIC_DIR
 from server.web.svg import Plot, bev_corners, bev_view, pr_chart
@@ -165,6 +167,19 @@ def test_evaluation_page_values_equal_the_json(client, two) -> None:
     text = page.all_text()
     assert "result.pkl.gz" in text and "model=pointpillars" in text and "official" in text
     assert f"/v1/evaluations/{first}" in page.urls
+
+
+def test_the_demo_uploaded_on_the_page_reads_as_the_cli_prints_it(client, two, tmp_path) -> None:
+    first, _ = two  # the bundled demo predictions against the demo ground truth, official protocol
+    out = tmp_path / "demo.json"
+    assert cli_main(["demo", "--format", "json", "--output", str(out), "--quiet"]) == 0
+    cli_doc = json.loads(out.read_text())
+    page = Page(client.get(f"/evaluations/{first}").text)
+    expected = ap_values(cli_doc)
+    assert set(page.cells) == set(expected)
+    for key, value in expected.items():
+        assert page.cells[key]["text"] == ("-" if value is None else f"{value:.4f}"), key
+        assert page.cells[key]["value"] == ("" if value is None else repr(value)), key
 
 
 def test_evaluation_page_draws_the_curves(client, two) -> None:
