@@ -270,11 +270,19 @@ def _compare(args: argparse.Namespace) -> int:
 
 def _evaluate_doc(args: argparse.Namespace, pred: Path) -> dict:
     from .evaluation import evaluate
-    from .loaders import load_detections, load_ground_truth
+    from .loaders import load_pair
 
     if args.gt is None:
         raise ConfigError(f"{pred} is not a JSON result; evaluating it needs --gt")
-    return evaluate(load_ground_truth(args.gt), load_detections(pred), _config(args)).to_dict()
+    return evaluate(*load_pair(args.gt, pred), _config(args)).to_dict()
+
+
+def _add_slot_options(p: argparse.ArgumentParser, metrics: list[str]) -> None:
+    """Which matching to look at: class, metric, difficulty and IoU threshold set."""
+    p.add_argument("--class", dest="cls", default="Car", help="the class (default Car)")
+    p.add_argument("--metric", default="3d", choices=metrics, help="default 3d")
+    p.add_argument("--difficulty", default="moderate", choices=["easy", "moderate", "hard"])
+    p.add_argument("--set", dest="oset", default="strict", choices=list(THRESHOLD_SETS), help="IoU threshold set")
 
 
 def _frames_parser() -> argparse.ArgumentParser:
@@ -284,10 +292,7 @@ def _frames_parser() -> argparse.ArgumentParser:
                     "difficulty, from the same matching as the AP; --worst N lists the frames with most errors.")
     p.add_argument("--gt", required=True, type=Path, help="ground truth")
     p.add_argument("--pred", required=True, type=Path, help="predictions")
-    p.add_argument("--class", dest="cls", default="Car", help="the class (default Car)")
-    p.add_argument("--metric", default="3d", choices=["bbox", "bev", "3d"], help="default 3d")
-    p.add_argument("--difficulty", default="moderate", choices=["easy", "moderate", "hard"])
-    p.add_argument("--set", dest="oset", default="strict", choices=list(THRESHOLD_SETS), help="IoU threshold set")
+    _add_slot_options(p, ["bbox", "bev", "3d"])
     p.add_argument("--score-threshold", type=float, default=0.0,
                    help="count detections scoring at least this (default 0: every detection)")
     p.add_argument("--worst", type=int, metavar="N", help="only the N frames with most errors (FP + FN)")
@@ -299,11 +304,11 @@ def _frames_parser() -> argparse.ArgumentParser:
 
 def _frames(args: argparse.Namespace) -> int:
     from .diagnostics import frame_stats, render_frames
-    from .loaders import load_detections, load_ground_truth
+    from .loaders import load_pair
 
     if args.worst is not None and args.worst < 1:
         raise ConfigError("--worst must be >= 1")
-    stats = frame_stats(load_ground_truth(args.gt), load_detections(args.pred), _config(args), cls=args.cls,
+    stats = frame_stats(*load_pair(args.gt, args.pred), _config(args), cls=args.cls,
                         metric=args.metric, difficulty=args.difficulty, oset=args.oset,
                         score_threshold=args.score_threshold)
     text = render_frames(stats, args.format, worst=args.worst)
@@ -324,10 +329,7 @@ def _inspect_parser() -> argparse.ArgumentParser:
                    help="a model's name, once per --pred in the same order (default: the folder after "
                         "kitti_models/ in the path, else the file name)")
     p.add_argument("--frame", required=True, help="frame id, e.g. 000015 (or 15)")
-    p.add_argument("--class", dest="cls", default="Car", help="the class (default Car)")
-    p.add_argument("--metric", default="3d", choices=["bbox", "bev", "3d", "aos"], help="default 3d")
-    p.add_argument("--difficulty", default="moderate", choices=["easy", "moderate", "hard"])
-    p.add_argument("--set", dest="oset", default="strict", choices=list(THRESHOLD_SETS), help="IoU threshold set")
+    _add_slot_options(p, ["bbox", "bev", "3d", "aos"])
     p.add_argument("--score-threshold", type=float, default=None,
                    help="detections scoring below this take no part (default: all take part)")
     p.add_argument("--format", choices=["table", "json"], default="table")
@@ -342,9 +344,7 @@ def _inspect(args: argparse.Namespace) -> int:
 
     if args.name and len(args.name) != len(args.pred):
         raise ConfigError(f"--name given {len(args.name)} times for {len(args.pred)} --pred")
-    names = args.name or unique_names([model_name(p) for p in args.pred])
-    if len(set(names)) != len(names):
-        raise ConfigError(f"--name values repeat: {names}")
+    names = args.name or unique_names([model_name(p) for p in args.pred])  # inspect_frame refuses repeats
     gt, calibs = load_ground_truth_and_calibs(args.gt)
     models = [(name, load_detections(path, calibs=calibs, keep_lidar=True)) for name, path in zip(names, args.pred)]
     report = inspect_frame(gt, models, args.frame, _config(args), cls=args.cls, metric=args.metric,

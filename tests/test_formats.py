@@ -351,6 +351,14 @@ def test_lidar_only_predictions_evaluate_like_their_camera_fields(reference, tmp
     # through the CLI, and with mmdetection3d infos as the source of calibration
     assert main(["--gt", str(SMALL / "kitti_infos_val.pkl"), "--pred", str(path), "--quiet",
                  "--output", str(tmp_path / "o.txt")]) == 0
+    # the subcommands that evaluate load the pair the same way
+    assert main(["frames", "--gt", str(SMALL / "kitti_infos_val.pkl"), "--pred", str(path),
+                 "--output", str(tmp_path / "f.txt")]) == 0
+    assert main(["compare", str(SMALL / "result.pkl"), str(path), "--gt", str(SMALL / "kitti_infos_val.pkl"),
+                 "--output", str(tmp_path / "c.txt")]) == 0
+    inspect_out = tmp_path / "i.txt"
+    assert main(["inspect", "--gt", str(SMALL / "kitti_infos_val.pkl"), "--pred", str(path), "--frame",
+                 gt.frame_ids[0], "--output", str(inspect_out)]) == 0
     mm = dump(tmp_path / "mm.pkl", to_mmdet3d_infos(infos))
     gt2, dt2 = load_pair(mm, path)
     assert np.abs(dt2.location - dt.location).max() < 1e-9
