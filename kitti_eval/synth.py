@@ -55,11 +55,32 @@ _R0 = np.array([9.999239e-01, 9.837760e-03, -7.445048e-03, -9.869795e-03, 9.9994
 _V2C = np.array([7.533745e-03, -9.999714e-01, -6.166020e-04, -4.069766e-03, 1.480249e-02, 7.280733e-04,
                  -9.998902e-01, -7.631618e-02, 9.998621e-01, 7.523790e-03, 1.480755e-02, -2.717806e-01],
                 dtype=np.float32).reshape(3, 4)
-_R0_EXT = np.eye(4)
-_R0_EXT[:3, :3] = _R0
-_V2C_EXT = np.eye(4)
-_V2C_EXT[:3] = _V2C
-_RECT_TO_LIDAR = np.linalg.inv(_R0_EXT @ _V2C_EXT)  # (4, 4) camera (rectified) -> LiDAR
+
+
+def _rect_to_lidar() -> F64:
+    """(4, 4) camera (rectified) -> LiDAR: the inverse of ``R0_rect @ Tr_velo_to_cam``, in closed form.
+
+    The rigid inverse ``[A^-1, -A^-1 t]`` (A^-1 by its adjugate, as A is only nearly orthonormal) is worked
+    out on Python floats, one IEEE operation at a time in a fixed order, so every machine gets the same bits.
+    ``np.linalg.inv`` and ``@`` go through LAPACK and BLAS kernels that differ by CPU (FMA, blocking) and
+    change the last bit of some LiDAR boxes from one machine to another.
+    """
+    r0 = _R0.astype(np.float64).tolist()
+    v = _V2C.astype(np.float64).tolist()
+    a = [[r0[i][0] * v[0][j] + r0[i][1] * v[1][j] + r0[i][2] * v[2][j] for j in range(3)] for i in range(3)]
+    t = [r0[i][0] * v[0][3] + r0[i][1] * v[1][3] + r0[i][2] * v[2][3] for i in range(3)]
+    cof = [[a[(j + 1) % 3][(i + 1) % 3] * a[(j + 2) % 3][(i + 2) % 3]
+            - a[(j + 1) % 3][(i + 2) % 3] * a[(j + 2) % 3][(i + 1) % 3] for j in range(3)] for i in range(3)]
+    det = a[0][0] * cof[0][0] + a[0][1] * cof[1][0] + a[0][2] * cof[2][0]
+    inv = [[cof[i][j] / det for j in range(3)] for i in range(3)]
+    out = np.eye(4)
+    for i in range(3):
+        out[i, :3] = inv[i]
+        out[i, 3] = -(inv[i][0] * t[0] + inv[i][1] * t[1] + inv[i][2] * t[2])
+    return out
+
+
+_RECT_TO_LIDAR = _rect_to_lidar()
 
 # Ground-truth classes: name, share of objects (KITTI train label counts), mean (l, h, w) and its spread (m),
 # probability that the detector finds a near, unoccluded one, and the detector class (index into _PRED_NAMES).
