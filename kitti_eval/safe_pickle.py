@@ -1,11 +1,13 @@
 """The one place kitti_eval unpickles: a restricted unpickler for numpy arrays and plain containers.
 
 Ground truth and predictions arrive as pickles (OpenPCDet's ``kitti_infos_val.pkl`` and ``result.pkl``),
-often uploaded by someone else. ``pickle.load`` on such a file runs whatever callables it names, so
-:func:`load_pickle` never imports anything and calls only a short allowlist of numpy reconstructors:
+often uploaded by someone else. ``pickle.load`` on such a file runs whatever callables it names, and even
+numpy's own reconstructors trust their input (a dtype state can declare structured fields outside the item,
+or object fields over raw bytes, which reads or frees arbitrary memory later). So :func:`load_pickle`
+imports nothing and calls only numpy's reconstructors, with the arguments numpy itself writes:
 
 * ``numpy.core.multiarray._reconstruct`` / ``numpy._core.multiarray._reconstruct`` with ``numpy.ndarray``
-  (the empty shell numpy pickles every array as; its data arrive by ``__setstate__``),
+  (the empty shell numpy pickles every array as; its data arrive by ``BUILD``),
 * ``numpy.core.numeric._frombuffer`` / ``numpy._core.numeric._frombuffer`` (arrays at protocol 5),
 * ``numpy.dtype`` (plain numeric, bool, str, bytes and object dtypes; no structured or datetime dtypes),
 * ``numpy.core.multiarray.scalar`` / ``numpy._core.multiarray.scalar`` (``np.float32(1.5)``, ``np.str_``),
@@ -13,44 +15,12 @@ often uploaded by someone else. ``pickle.load`` on such a file runs whatever cal
 * ``collections.OrderedDict`` without arguments (its items come by ``SETITEMS``),
 * ``builtins.bytes`` without arguments (how protocols 0-2 store ``b""``, e.g. an empty array's data).
 
-numpy 2 does not pickle the ``numpy.dtypes.*DType`` classes for these dtypes (a ``dtype`` pickles as
-``numpy.dtype(code)`` plus a state tuple), so they are not on the list.
-
-How: every opcode is checked before the C unpickler runs it
------------------------------------------------------------
-numpy's own ``__setstate__`` trusts its input (a dtype state can declare structured fields at offsets
-outside the item, or object fields over raw bytes, which reads or frees arbitrary memory later), and
-CPython's C unpickler cannot be hooked at ``BUILD``. So :func:`kitti_eval._pickle_scan.scan` (numba, no
-GIL) runs the opcode stream through a model of ``_pickle.c`` that tracks the type of every value (the
-value of ints, the length and text of strs and bytes, the children of tuples, the dtype of arrays, the
-nesting depth of containers, which global each REDUCE calls), and refuses the pickle unless every call
-and every ``BUILD`` is one of the above with the arguments numpy writes:
-
-* a dtype state must be exactly the canonical state of a plain dtype; an array state must carry a
-  complete plain dtype and exactly ``prod(shape) * itemsize`` bytes (object arrays: a list of exactly
-  ``prod(shape)`` str, numbers, bytes, None or numpy scalars, so nothing nests through them);
-* ``BUILD`` only once, on a fresh array shell or dtype; ``NEWOBJ``, ``INST``/``OBJ``, extension codes,
-  persistent ids and out-of-band buffers are refused; a global is never a value;
-* containers nest at most 100 deep (CPython's tuple hash recurses in C without a guard: a tuple key
-  nested 1e6 deep crashes the interpreter), tuple keys are hashed at most 4M elements in all, a
-  container cannot change once it is inside another (so there are no cycles), memo indices stay near
-  the number of memo writes (``_pickle.c`` allocates its memo up to twice the largest index);
-* the bytes that reconstructors produce are budgeted (4x the input + 16 MiB), so a small pickle cannot
-  claim a huge array.
-
-The C unpickler (:class:`pickle.Unpickler`) builds the objects, reading through :class:`_Gate`, which
-hands it only the bytes the scan has already accepted: it can never parse an opcode the scan has not
-checked, and a refused opcode stops it. Inputs of 1 MiB or more are scanned in a helper thread while the
-C unpickler works behind it (the scan is ~4x faster), smaller ones first. ``find_class`` hands out the
-real numpy functions for the allowlist (``_codecs.encode``, ``OrderedDict`` and ``bytes`` through small
-checking wrappers) and checks that each global it is asked for is the one the scan saw at that point of
-the stream; the type of the result is checked against the scan's too.
-
-Cost: the scan takes ~14 ms on each KITTI-val-sized file (3769 frames; result.pkl 22 MB with 41k arrays,
-kitti_infos_val.pkl 9 MB with 64k arrays). With a second core free it runs beside the C unpickler and
-:func:`load_pickle` is within ~2-15% of plain ``pickle.load``; on one core it adds up (~1.2x for the
-infos, ~1.35x for result.pkl). A fresh process pays ~15 ms more to load the scan's numba cache (after
-numba's own start-up, which the evaluation kernels pay anyway); a fresh install compiles it once (~17 s).
+How: :func:`kitti_eval._pickle_scan.scan` (numba) first runs the whole opcode stream through a model of
+CPython's C unpickler and refuses the pickle unless every call and every ``BUILD`` is one of the above with
+checked arguments and states, nesting, hashing, the memo and the bytes built stay bounded (see its
+docstring); only then does the C unpickler (:class:`pickle.Unpickler`) build the objects from the same
+bytes, with ``find_class`` handing out exactly the globals the scan saw, in the same order. The scan takes
+about 10 ms on a KITTI-val-sized result.pkl (22 MB, 41k arrays).
 """
 
 from __future__ import annotations
@@ -61,7 +31,6 @@ import gzip
 import io
 import os
 import pickle
-import threading
 import zlib
 from collections.abc import Callable
 from typing import IO, Any
@@ -86,31 +55,11 @@ _NPY_MAGIC = b"\x93NUMPY"
 #: what ``torch.save`` writes first in its legacy (non-zip) format: a pickled int
 _TORCH_LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
 _READ_CHUNK = 16 << 20
-_THREAD_MIN = 1 << 20  # inputs from this size are checked in a helper thread while the C unpickler runs
 _MAX_DEPTH = 100
 _KEY_BUDGET = 1 << 22  # tuple elements hashed as dict keys and set members, in all
 
 
 # ------------------------------------------------------------------------------------------ allowlist
-
-def _encode(obj: object, encoding: object = "utf-8", errors: object = "strict") -> bytes:
-    if not isinstance(obj, str) or not isinstance(encoding, str) or \
-            encoding.lower().replace("_", "-") not in ("latin1", "latin-1", "iso-8859-1"):
-        raise _Refused("_codecs.encode is accepted only to turn a str into latin-1 bytes")
-    return obj.encode("latin-1")
-
-
-def _ordered_dict(*args: object) -> collections.OrderedDict[Any, Any]:
-    if args:  # items arrive by SETITEMS
-        raise _Refused("OrderedDict is accepted only without arguments (as pickle writes it)")
-    return collections.OrderedDict()
-
-
-def _empty_bytes(*args: object) -> bytes:
-    if args:
-        raise _Refused("bytes() is accepted only without arguments (an empty bytes object)")
-    return b""
-
 
 #: (module, name, what the scan lets it do, what ``find_class`` returns), in the order the scan numbers them
 _GLOBALS: tuple[tuple[str, str, int, object], ...] = (
@@ -122,10 +71,10 @@ _GLOBALS: tuple[tuple[str, str, int, object], ...] = (
     ("numpy", "dtype", _ps.FN_DTYPE, np.dtype),
     ("numpy.core.multiarray", "scalar", _ps.FN_SCALAR, _np_multiarray.scalar),
     ("numpy._core.multiarray", "scalar", _ps.FN_SCALAR, _np_multiarray.scalar),
-    ("_codecs", "encode", _ps.FN_ENCODE, _encode),
-    ("collections", "OrderedDict", _ps.FN_ODICT, _ordered_dict),
-    ("builtins", "bytes", _ps.FN_BYTES, _empty_bytes),  # b"" at protocols 0-2 is bytes()
-    ("__builtin__", "bytes", _ps.FN_BYTES, _empty_bytes),
+    ("_codecs", "encode", _ps.FN_ENCODE, codecs.encode),
+    ("collections", "OrderedDict", _ps.FN_ODICT, collections.OrderedDict),
+    ("builtins", "bytes", _ps.FN_BYTES, bytes),  # b"" at protocols 0-2 is bytes()
+    ("__builtin__", "bytes", _ps.FN_BYTES, bytes),
 )
 
 #: every global a pickle may name, as (module, name); anything else raises UnsafePickleError
@@ -220,10 +169,6 @@ def _unsafe(source: str, module: str, name: str) -> UnsafePickleError:
     return UnsafePickleError(
         f"the pickle refers to {qual}; only numpy arrays and plain containers (dict, list, tuple, str, "
         "numbers) are accepted. Nothing was imported or called", source=source)
-
-
-class _Refused(Exception):
-    """Raised while loading for hostile-looking input; turned into UnsafePickleError."""
 
 
 # ------------------------------------------------------------------------------- scan errors to messages
@@ -345,7 +290,6 @@ def _scan_error(res: tuple[Any, ...], data: bytes | np.ndarray, source: str) -> 
             _ps.E_FROMBUF_OBJ: "an object array cannot come from a raw buffer",
             _ps.E_DTYPE_SIZE: f"bad string size {i1} in a numpy dtype",
             _ps.E_ARGS: "malformed call arguments for a numpy reconstructor",
-            _ps.E_GLOBALS: "more globals than a pickle of this size can hold",
         }.get(code, f"rejected by the check (code {code})")
         if code in (_ps.E_OPCODE, _ps.E_UNDERFLOW, _ps.E_NOMARK, _ps.E_BADARG, _ps.E_MEMO, _ps.E_MEMO_RANGE,
                     _ps.E_ODD):
@@ -355,121 +299,49 @@ def _scan_error(res: tuple[Any, ...], data: bytes | np.ndarray, source: str) -> 
 
 # --------------------------------------------------------------------------------------------- loading
 
-class _ScanStopped(Exception):
-    """The C unpickler asked for bytes the scan refused (or never reached): the scan's error applies."""
+class _Reader:
+    """The checked bytes as a file for the C unpickler: ``peek`` hands out all of them at once, so it parses
+    from one buffer (as ``pickle.loads`` does) without copies."""
 
-
-class _Scan:
-    """:func:`kitti_eval._pickle_scan.scan` over ``data``, in a helper thread for big inputs (it releases the
-    GIL), publishing how many bytes it has checked so far."""
+    __slots__ = ("_view", "_pos")
 
     def __init__(self, data: bytes | np.ndarray) -> None:
-        n = len(data)
-        room = n // 8 + 64  # enough for most pickles (the scan grows it if not); pages are touched as used
-        self.size = n
-        self.progress = np.zeros(2, np.int64)
-        self.gseq = np.empty(n // 4 + 16, np.int64)  # room for every global a pickle of n bytes can name
-        self.result: tuple[Any, ...] = ()
-        self.error: BaseException | None = None
-        self.done = threading.Event()
-        u8 = np.frombuffer(data, np.uint8)
-        if u8.flags.writeable:  # one compiled specialization (read-only input) whatever the source
-            u8 = u8.view()
-            u8.flags.writeable = False
-        self._args = (u8, _GBLOB, _GTAB, _DBLOB, _DTAB, 4 * n + (16 << 20),
-                      _MAX_DEPTH, _KEY_BUDGET, np.empty((room, _ps.N_COLS), np.int64), np.empty(room, np.int64),
-                      np.empty(room, np.int64), self.gseq, self.progress)
-        if n >= _THREAD_MIN:
-            threading.Thread(target=self._run, name="kitti-eval pickle check", daemon=True).start()
-        else:
-            self._run()
-
-    def _run(self) -> None:
-        try:
-            self.result = _ps.scan(*self._args)
-        except BaseException as e:  # noqa: BLE001 - reported by finish()
-            self.error = e
-        finally:
-            self._args = ()
-            self.done.set()
-
-    def validated(self) -> int:
-        return int(_ps.validated(self.progress))
-
-    def wait_for(self, end: int) -> int:
-        """Wait until the bytes before ``end`` are checked, or the scan stopped; returns how many are."""
-        ok = self.validated()
-        while ok < end and not self.done.is_set():
-            self.done.wait(0.0002)
-            ok = self.validated()
-        return self.validated() if ok < end else ok
-
-    def finish(self, stop: bool, source: str) -> tuple[Any, ...]:
-        """Wait for the scan (telling it to stop early if ``stop``); its result."""
-        if stop:
-            self.progress[1] = 1
-        self.done.wait()
-        if isinstance(self.error, MemoryError):
-            raise InputError("not a readable pickle: it needs more memory than is available", source=source)
-        if self.error is not None:
-            raise self.error
-        return self.result
-
-
-class _Gate:
-    """The input of the C unpickler: only the bytes the scan has checked, no copies. ``peek`` hands out
-    all of them at once (so the C unpickler reads from one buffer, as ``pickle.loads`` does); ``read``
-    waits for the scan when the C unpickler needs more, and stops the load where the scan refused."""
-
-    __slots__ = ("_view", "_pos", "_scan")
-
-    def __init__(self, data: bytes | np.ndarray, scan: _Scan) -> None:
         self._view = memoryview(data).cast("B")
         self._pos = 0
-        self._scan = scan
 
     def peek(self, n: int = 0) -> memoryview:
-        return self._view[self._pos:max(self._pos, self._scan.validated())]
+        return self._view[self._pos:]
 
     def read(self, n: int = -1) -> memoryview:
         start = self._pos
-        end = len(self._view) if n is None or n < 0 else start + n
-        if end > len(self._view) or self._scan.wait_for(end) < end:  # past the end: truncated
-            raise _ScanStopped
-        self._pos = end
-        return self._view[start:end]
+        self._pos = len(self._view) if n is None or n < 0 else min(len(self._view), start + n)
+        return self._view[start:self._pos]
 
     def readinto(self, buf: Any) -> int:
         chunk = self.read(len(buf))
         buf[:len(chunk)] = chunk
         return len(chunk)
 
-    def readline(self) -> memoryview:  # protocol 0/1 lines that straddle what the scan has checked so far
-        seen = self._pos
-        while True:
-            ok = self._scan.validated()
-            i = bytes(self._view[seen:ok]).find(b"\n")
-            if i >= 0:
-                return self.read(seen + i + 1 - self._pos)
-            seen = max(seen, ok)
-            if self._scan.wait_for(ok + 1) <= ok:
-                return self.read(-1)  # the rest (raises _ScanStopped unless all of it is checked)
+    def readline(self) -> bytes:
+        rest = bytes(self._view[self._pos:self._pos + (1 << 20)])
+        end = rest.find(b"\n")
+        return bytes(self.read(len(rest) if end < 0 else end + 1))
 
 
 class _Unpickler(pickle.Unpickler):
-    """The C unpickler on the checked bytes, handing out the allowlist in exactly the order the scan saw it."""
+    """The C unpickler, handing out the allowlisted globals in exactly the order the scan saw them."""
 
-    def __init__(self, data: bytes | np.ndarray, scan: _Scan) -> None:
-        super().__init__(_Gate(data, scan), fix_imports=False, encoding="ASCII", errors="strict")
-        self.expected = scan.gseq
+    def __init__(self, data: bytes | np.ndarray, expected: np.ndarray) -> None:
+        super().__init__(_Reader(data), fix_imports=False, encoding="ASCII", errors="strict")
+        self.expected = expected
         self.found = 0
 
     def find_class(self, module: str, name: str) -> Any:
         k = self.found
         self.found = k + 1
         row = _GLOBAL_ROW.get((module, name))
-        if row is None or k >= len(self.expected) or self.expected[k] != row:
-            raise _Refused(f"the pickle refers to {module}.{name} where the check saw another global")
+        if row is None or k >= len(self.expected) or self.expected[k] != row:  # pragma: no cover - the scan's
+            raise UnsafePickleError(f"the pickle refers to {module}.{name} where the check saw another global")
         return _GLOBAL_OBJ[row]
 
 
@@ -483,41 +355,46 @@ _RESULT_TYPES: dict[int, tuple[type, ...]] = {
 }
 
 
-def _load(data: bytes | np.ndarray, source: str) -> object:
+def _scan(data: bytes | np.ndarray, source: str) -> tuple[Any, ...]:
+    """Run the scan, with work arrays sized for common pickles and grown (by rerunning it) when too small."""
+    u8 = np.frombuffer(data, np.uint8)
+    if u8.flags.writeable:  # one compiled specialization (read-only input) whatever the source
+        u8 = u8.view()
+        u8.flags.writeable = False
+    n = len(u8)
+    sizes = [n // 8 + 1024, n // 8 + 1024, 1024, 64, n // 16 + 1024, 64]  # by _ps.ROOM_*: nodes, ch, ...
     try:
-        scan = _Scan(data)
+        while True:
+            work = [np.empty((sizes[0], 4), np.int64)] + [np.empty(k, np.int64) for k in sizes[1:]]
+            work[_ps.ROOM_MEMO][:] = -1
+            work[_ps.ROOM_NODES][:len(_ps.BASE_NODES)] = _ps.BASE_NODES
+            res = _ps.scan(u8, _GBLOB, _GTAB, _DBLOB, _DTAB, 4 * n + (16 << 20), _MAX_DEPTH, _KEY_BUDGET, *work)
+            if res[0] != _ps.E_ROOM:
+                break
+            sizes[int(res[2])] = int(res[3])
     except MemoryError:
         raise InputError("not a readable pickle: it needs more memory than is available", source=source) from None
-    error: InputError | None = None
-    obj: object = None
-    loaded = False
-    found = 0
-    try:  # whatever happens, finish() below waits for the scan (and tells it to stop if loading failed)
-        unpickler = _Unpickler(data, scan)
-        obj = unpickler.load()
-        found = unpickler.found
-        loaded = True
-    except _ScanStopped:
-        pass  # the scan's error below
-    except _Refused as e:
-        error = UnsafePickleError(f"{e}; it was not loaded (only numpy arrays and plain containers are "
-                                  "accepted)", source=source)
-    except MemoryError:
-        error = InputError("not a readable pickle: it needs more memory than is available (corrupt sizes?)",
-                           source=source)
-    except Exception as e:  # noqa: BLE001 - only allowlisted code ran on checked arguments; bad input
-        error = InputError(f"not a readable pickle: {type(e).__name__}: {e}", source=source)
-    finally:
-        res = scan.finish(not loaded, source)
-    if error is not None:  # the C unpickler failed before the scan did (it only sees checked bytes)
-        raise error
+    nn, nch, ng = int(res[5]), int(res[6]), int(res[7])
+    return (*res[:5], work[_ps.ROOM_NODES][:nn], work[_ps.ROOM_CH][:nch], work[_ps.ROOM_GSEQ][:ng], int(res[8]))
+
+
+def _load(data: bytes | np.ndarray, source: str) -> object:
+    res = _scan(data, source)
     if res[0] != _ps.OK:
         raise _scan_error(res, data, source)
-    if not loaded:  # pragma: no cover - the scan accepted what the C unpickler would not read
-        raise InputError("not a readable pickle: the unpickler stopped before the end", source=source)
-    nodes, ngseq, result = res[5], int(res[7]), int(res[8])
+    nodes, gseq, result = res[5], res[7], int(res[8])
+    unpickler = _Unpickler(data, gseq)
+    try:
+        obj = unpickler.load()
+    except MemoryError:
+        raise InputError("not a readable pickle: it needs more memory than is available (corrupt sizes?)",
+                         source=source) from None
+    except UnsafePickleError:  # pragma: no cover - find_class disagreeing with the scan
+        raise
+    except Exception as e:  # noqa: BLE001 - only allowlisted code ran on checked arguments; bad input
+        raise InputError(f"not a readable pickle: {type(e).__name__}: {e}", source=source) from None
     kind = int(nodes[result, _ps.W]) & _ps.KIND_MASK
-    if found != ngseq or not isinstance(obj, _RESULT_TYPES[kind]):  # pragma: no cover
+    if unpickler.found != len(gseq) or not isinstance(obj, _RESULT_TYPES[kind]):  # pragma: no cover
         raise InputError(f"not a readable pickle: the loaded {type(obj).__name__} is not the "
                          f"{_ps.KIND_NAMES[kind]} the check saw", source=source)
     return obj

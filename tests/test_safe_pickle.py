@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import kitti_eval._pickle_scan as _pickle_scan
 import kitti_eval.safe_pickle as safe_pickle
 from kitti_eval.errors import InputError, UnsafePickleError
 from kitti_eval.safe_pickle import ALLOWED_GLOBALS, load_pickle
@@ -425,11 +426,11 @@ def test_max_bytes_bounds_decompressed_and_plain_input(tmp_path: Path) -> None:
 # tests cover the scan's model of _pickle.c opcode by opcode, its limits, and (by truncation and random
 # mutation) that nothing it accepts can crash the interpreter or yield anything but plain data.
 
-@pytest.fixture(params=["inline", "threaded"])
+@pytest.fixture(params=["compiled", "python"])
 def scan_mode(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
-    """Run a test with the scan before the C unpickler (small inputs) and beside it (big inputs)."""
-    if request.param == "threaded":
-        monkeypatch.setattr(safe_pickle, "_THREAD_MIN", 0)
+    """Run a test with the compiled scan and with its main loop as plain Python (the same checks)."""
+    if request.param == "python":
+        monkeypatch.setattr(_pickle_scan, "scan", _pickle_scan.scan.py_func)
     return request.param
 
 
@@ -727,10 +728,9 @@ def test_random_mutations_never_crash_and_yield_only_plain_data(scan_mode: str) 
     assert min(counts.values()) > 20, counts  # all three outcomes happen
 
 
-def test_the_c_unpickler_never_sees_bytes_the_scan_refused(tmp_path: Path,
-                                                           monkeypatch: pytest.MonkeyPatch) -> None:
-    """A big pickle (checked in a helper thread while the C unpickler runs behind it) whose last item is
-    a payload: the C unpickler builds the frames before it, then stops where the scan refused."""
+def test_the_c_unpickler_never_runs_on_a_refused_pickle(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A big pickle whose payload comes first, in the middle or last: the scan refuses it before the C
+    unpickler has built anything or asked for a single global."""
     asked: list[tuple[str, str]] = []
     find_class = safe_pickle._Unpickler.find_class
 
@@ -741,16 +741,18 @@ def test_the_c_unpickler_never_sees_bytes_the_scan_refused(tmp_path: Path,
     monkeypatch.setattr(safe_pickle._Unpickler, "find_class", spy)
     canary = tmp_path / "CANARY"
     frames = [{"name": np.array(["Car"] * 3), "score": np.float32([0.5, 0.25, 0.125]), "i": i} for i in range(12000)]
-    assert len(pickle.dumps(frames, protocol=4)) > safe_pickle._THREAD_MIN
     for protocol in (2, 4):
         for at in (0, len(frames) // 2, len(frames)):
             payload = frames[:at] + [Reducer(os.system, (f"touch {canary}",))] + frames[at:]
             with pytest.raises(UnsafePickleError, match="system"):
                 loads(pickle.dumps(payload, protocol=protocol))
-            assert set(asked) <= ALLOWED_GLOBALS
+            assert asked == []
             assert not canary.exists()
         big = pickle.dumps(frames, protocol=protocol)
         assert same(loads(big), frames)
+        assert set(asked) <= ALLOWED_GLOBALS and len(asked) > 0
+        asked.clear()
         for cut in (len(big) - 1, len(big) // 2, 2):
             with pytest.raises(InputError, match="ends before"):
                 loads(big[:cut])
+            assert asked == []
