@@ -15,7 +15,7 @@ from pathlib import Path
 
 _PACKAGE = Path(__file__).resolve().parent
 #: kernels every evaluation calls; if their cache index is there, the others of their group are too
-_EVAL_MARKERS = ("matching._pr_counts_many-*.nbi", "geometry._frame_overlaps_kernel-*.nbi")
+_EVAL_MARKERS = ("matching._pass2-*.nbi", "geometry._frame_overlaps_kernel-*.nbi")
 _LOAD_MARKERS = ("_pickle_scan.scan-*.nbi",)
 
 

@@ -151,7 +151,7 @@ def _rect_inter_local(xp, zp, lp, wp, rp, xq, zq, lq, wq, rq, buf):  # pragma: n
     az[3] = cz + ez - fz
     hlp = 0.5 * abs(lp)
     hwp = 0.5 * abs(wp)
-    n = _clip_half_plane(ax, az, 4, bx, bz, 1.0, hlp)
+    n = _clip_half_plane(ax, az, np.int64(4), bx, bz, 1.0, hlp)  # int64, not a literal: one compiled version
     n = _clip_half_plane(bx, bz, n, ax, az, -1.0, hlp)
     n = _clip_half_plane(az, ax, n, bz, bx, 1.0, hwp)
     n = _clip_half_plane(bz, bx, n, az, ax, -1.0, hwp)

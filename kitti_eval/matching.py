@@ -27,6 +27,7 @@ import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -57,81 +58,6 @@ def _score_thresholds(scores_desc: np.ndarray, n_gt: int, n_sample_pts: int) -> 
         k += 1
         current_recall += 1.0 / (n_sample_pts - 1.0)
     return out[:k]
-
-
-@njit(cache=True, nogil=True)
-def _match_frame(sub: np.ndarray, o0: int, n_g: int, n_c: int, g_code: np.ndarray, g_alpha: np.ndarray,
-                 d_score: np.ndarray, d_code: np.ndarray, d_alpha: np.ndarray, min_overlap: float,
-                 compute_fp: bool, thresh: float, compute_aos: bool, tp_scores: np.ndarray, n_tp_scores: int,
-                 assigned: np.ndarray, below: np.ndarray) -> tuple[int, int, int, float, int]:
-    """One frame, one threshold, on the frame's compacted rows (see :func:`_candidates`).
-
-    ``sub[o0 + a * (n_g + n_c) + k]`` is the overlap of detection ``a`` with ground truth ``k`` (k < n_g)
-    or with DontCare region ``k - n_g``. ``g_*`` hold the n_g ground-truth rows, ``d_*`` the detections,
-    all in file order. Returns (tp, fp, fn, similarity, n_tp_scores); in pass 1 (``compute_fp`` False)
-    true-positive scores are appended to ``tp_scores`` from position ``n_tp_scores``. ``assigned`` and
-    ``below`` are scratch space of at least ``len(d_score)`` entries.
-    """
-    nd = d_score.shape[0]
-    width = n_g + n_c
-    for a in range(nd):
-        assigned[a] = False
-        below[a] = compute_fp and d_score[a] < thresh
-    tp = 0
-    fp = 0
-    fn = 0
-    similarity = 0.0
-    for i in range(n_g):
-        det_a = -1
-        valid_detection = _NO_DETECTION
-        max_overlap = 0.0
-        assigned_ignored_det = False
-        for a in range(nd):
-            if assigned[a] or below[a]:
-                continue
-            overlap = sub[o0 + a * width + i]
-            if not compute_fp and overlap > min_overlap and d_score[a] > valid_detection:
-                det_a = a
-                valid_detection = d_score[a]
-            elif (compute_fp and overlap > min_overlap and (overlap > max_overlap or assigned_ignored_det)
-                  and d_code[a] == 0):
-                max_overlap = overlap
-                det_a = a
-                valid_detection = 1.0
-                assigned_ignored_det = False
-            elif compute_fp and overlap > min_overlap and valid_detection == _NO_DETECTION and d_code[a] == 1:
-                det_a = a
-                valid_detection = 1.0
-                assigned_ignored_det = True
-        if valid_detection == _NO_DETECTION:
-            if g_code[i] == 0:
-                fn += 1
-        elif g_code[i] == 1 or d_code[det_a] == 1:
-            assigned[det_a] = True
-        else:
-            tp += 1
-            if not compute_fp:
-                tp_scores[n_tp_scores] = d_score[det_a]
-                n_tp_scores += 1
-            if compute_aos:
-                similarity += (1.0 + np.cos(g_alpha[i] - d_alpha[det_a])) / 2.0
-            assigned[det_a] = True
-    if compute_fp:
-        for a in range(nd):
-            if not (assigned[a] or d_code[a] == 1 or below[a]):
-                fp += 1
-        nstuff = 0
-        for c in range(n_c):
-            for a in range(nd):
-                if assigned[a] or d_code[a] == 1 or below[a]:
-                    continue
-                if sub[o0 + a * width + n_g + c] > min_overlap:
-                    assigned[a] = True
-                    nstuff += 1
-        fp -= nstuff
-        if compute_aos and tp == 0 and fp == 0:
-            similarity = -1.0
-    return tp, fp, fn, similarity, n_tp_scores
 
 
 @njit(cache=True, nogil=True)
@@ -180,23 +106,56 @@ def _best_overlaps(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndar
                             best[g, d0 + j] = o
 
 
-@njit(cache=True, nogil=True)
-def _candidates(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray,
-                ignored_gt: np.ndarray, ignored_det: np.ndarray, dontcare: np.ndarray, score: np.ndarray,
-                gt_alpha: np.ndarray, dt_alpha: np.ndarray, best_gt: np.ndarray, best_dc: np.ndarray,
-                min_overlap: float):  # noqa: ANN202 - a tuple of compact arrays, see the docstring
-    """Compact each frame to the rows that can play a part in this matching.
+class Frames(NamedTuple):
+    """The frames every matching of one evaluation shares (CSR offsets; see :func:`pr_counts`)."""
 
-    ``best_gt``/``best_dc`` are each detection's largest overlap with the ground truth taking part
-    (ignore code != -1) and with the DontCare rows. Kept, per frame and in file order: the ground truth
-    taking part (``g_code``, ``g_alpha``; CSR pointer ``g_ptr``), the detections overlapping one of those
-    above the threshold -- the only ones that can be matched (``d_score``, ``d_code``, ``d_alpha``;
-    ``d_ptr``) -- the number of DontCare rows (``c_cnt``), and their overlaps as one (detections x (ground
-    truth + DontCare)) block per frame in ``sub`` at ``sub_ptr``. Also ``valid``: (F,) valid ground truth
-    per frame, and ``free_fp``: scores of valid detections that can match nothing and that no DontCare
-    region covers -- false positives at every threshold up to their score, with no need to match them --
-    and ``free_frame``, the frame of each.
+    pair_offsets: np.ndarray  # (F + 1,) int64: start of each frame's (detections x ground truth) block
+    gt_offsets: np.ndarray    # (F + 1,) int64
+    dt_offsets: np.ndarray    # (F + 1,) int64
+    score: np.ndarray         # (N,) float64 detection scores
+    gt_alpha: np.ndarray      # (M,) float64
+    dt_alpha: np.ndarray      # (N,) float64
+
+
+class Candidates(NamedTuple):
+    """One matching's rows, compacted per frame to those that can play a part (made by :func:`_candidates`).
+
+    Per frame and in file order: the ground truth taking part (``g_code``: 0 valid, 1 ignored; ``g_alpha``;
+    CSR pointer ``g_ptr``); the detections overlapping one of those above the threshold, the only ones
+    that can be matched (``d_score``, ``d_code``, ``d_alpha``; ``d_ptr``); the number of DontCare rows
+    (``c_cnt``); their overlaps as one (detections x (ground truth + DontCare)) block per frame in ``sub``
+    at ``sub_ptr``. ``valid``: (F,) valid ground truth per frame. ``free_fp``: scores of valid detections
+    that can match nothing and that no DontCare region covers -- false positives at every threshold up to
+    their score, with no need to match them -- and ``free_frame``, the frame of each.
     """
+
+    g_code: np.ndarray
+    g_alpha: np.ndarray
+    g_ptr: np.ndarray
+    d_score: np.ndarray
+    d_code: np.ndarray
+    d_alpha: np.ndarray
+    d_ptr: np.ndarray
+    c_cnt: np.ndarray
+    sub: np.ndarray
+    sub_ptr: np.ndarray
+    valid: np.ndarray
+    free_fp: np.ndarray
+    free_frame: np.ndarray
+
+
+@njit(cache=True, nogil=True)
+def _candidates(fr: Frames, ov: np.ndarray, ignored_gt: np.ndarray, ignored_det: np.ndarray, dontcare: np.ndarray,
+                best_gt: np.ndarray, best_dc: np.ndarray, min_overlap: float) -> Candidates:
+    """Compact each frame to the rows that can play a part in one matching (see :class:`Candidates`).
+
+    ``ov``: the (P,) overlaps of the metric; ``ignored_gt``/``ignored_det``: the job's ignore codes;
+    ``dontcare``: the DontCare rows that suppress false positives (all False for none); ``best_gt``/
+    ``best_dc``: each detection's largest overlap with the ground truth taking part (ignore code != -1)
+    and with those DontCare rows.
+    """
+    pair_offsets, gt_offsets, dt_offsets = fr.pair_offsets, fr.gt_offsets, fr.dt_offsets
+    score, gt_alpha, dt_alpha = fr.score, fr.gt_alpha, fr.dt_alpha
     n_frames = gt_offsets.shape[0] - 1
     n_gt_all = gt_offsets[n_frames]
     n_dt_all = dt_offsets[n_frames]
@@ -212,7 +171,10 @@ def _candidates(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray
     c_cnt = np.zeros(n_frames, dtype=np.int64)
     sub_ptr = np.zeros(n_frames + 1, dtype=np.int64)
     valid = np.zeros(n_frames, dtype=np.int64)
-    cols = np.empty(max(1, int(np.max(np.diff(gt_offsets))) if n_frames else 1), dtype=np.int64)
+    widest_gt = 1
+    for f in range(n_frames):
+        widest_gt = max(widest_gt, gt_offsets[f + 1] - gt_offsets[f])
+    cols = np.empty(widest_gt, dtype=np.int64)
     ng = 0
     nd = 0
     n_free = 0
@@ -274,56 +236,135 @@ def _candidates(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray
                 for c in range(width):
                     sub[k] = ov[base + j * n_gt + cols[c]]
                     k += 1
-    return (g_code, g_alpha, g_ptr, d_score, d_code, d_alpha, d_ptr, c_cnt, sub, sub_ptr, valid,
-            free_fp[:n_free], free_frame[:n_free])
+    return Candidates(g_code, g_alpha, g_ptr, d_score, d_code, d_alpha, d_ptr, c_cnt, sub, sub_ptr, valid,
+                      free_fp[:n_free], free_frame[:n_free])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _frame_pass1(c: Candidates, f: int, min_overlap: float, tp_scores: np.ndarray, assigned: np.ndarray) -> int:
+    """Pass 1 on frame ``f``: each ground-truth box in file order takes the unassigned detection of highest
+    score with overlap > ``min_overlap``. Writes the scores of the valid matches (true positives) to
+    ``tp_scores`` and returns how many. ``assigned``: scratch space for the frame's detections.
+    """
+    ga, d0, nd = c.g_ptr[f], c.d_ptr[f], c.d_ptr[f + 1] - c.d_ptr[f]
+    n_g = c.g_ptr[f + 1] - ga
+    width = n_g + c.c_cnt[f]
+    o0 = c.sub_ptr[f]
+    for a in range(nd):
+        assigned[a] = False
+    n_tp = 0
+    for i in range(n_g):
+        det_a = -1
+        best = _NO_DETECTION
+        for a in range(nd):
+            if not assigned[a] and c.sub[o0 + a * width + i] > min_overlap and c.d_score[d0 + a] > best:
+                det_a = a
+                best = c.d_score[d0 + a]
+        if det_a >= 0:
+            assigned[det_a] = True
+            if c.g_code[ga + i] == 0 and c.d_code[d0 + det_a] == 0:
+                tp_scores[n_tp] = best
+                n_tp += 1
+    return n_tp
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _frame_pass2(c: Candidates, f: int, min_overlap: float, thresh: float, compute_aos: bool,
+                 assigned: np.ndarray, below: np.ndarray) -> tuple[int, int, int, float]:
+    """Pass 2 on frame ``f`` at score threshold ``thresh``: detections below it take no part; each
+    ground-truth box takes the remaining detection of highest overlap (a too-small, ignored detection only
+    if nothing else qualifies). Returns (tp, fp, fn, summed orientation similarity): unmatched valid ground
+    truth is a miss, unassigned valid detections are false positives unless a DontCare region covers them.
+    ``assigned``/``below``: scratch space for the frame's detections.
+    """
+    ga, d0, nd = c.g_ptr[f], c.d_ptr[f], c.d_ptr[f + 1] - c.d_ptr[f]
+    n_g = c.g_ptr[f + 1] - ga
+    width = n_g + c.c_cnt[f]
+    o0 = c.sub_ptr[f]
+    for a in range(nd):
+        assigned[a] = False
+        below[a] = c.d_score[d0 + a] < thresh
+    tp = 0
+    fn = 0
+    similarity = 0.0
+    for i in range(n_g):
+        det_a = -1
+        max_overlap = 0.0
+        det_ignored = False
+        for a in range(nd):
+            if assigned[a] or below[a]:
+                continue
+            overlap = c.sub[o0 + a * width + i]
+            if overlap <= min_overlap:
+                continue
+            if c.d_code[d0 + a] == 0 and (overlap > max_overlap or det_ignored):
+                max_overlap = overlap
+                det_a = a
+                det_ignored = False
+            elif det_a < 0 and c.d_code[d0 + a] == 1:
+                det_a = a
+                det_ignored = True
+        if det_a < 0:
+            fn += int(c.g_code[ga + i] == 0)
+            continue
+        assigned[det_a] = True
+        if c.g_code[ga + i] == 0 and c.d_code[d0 + det_a] == 0:
+            tp += 1
+            if compute_aos:
+                similarity += (1.0 + np.cos(c.g_alpha[ga + i] - c.d_alpha[d0 + det_a])) / 2.0
+    fp = 0
+    for a in range(nd):
+        fp += int(not (assigned[a] or below[a] or c.d_code[d0 + a] == 1))
+    for k in range(c.c_cnt[f]):  # false positives that a DontCare region covers do not count
+        for a in range(nd):
+            if not (assigned[a] or below[a] or c.d_code[d0 + a] == 1) and \
+                    c.sub[o0 + a * width + n_g + k] > min_overlap:
+                assigned[a] = True
+                fp -= 1
+    return tp, fp, fn, similarity
 
 
 @njit(cache=True, nogil=True)
-def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray,
-               ignored_gt: np.ndarray, ignored_det: np.ndarray, dontcare: np.ndarray, score: np.ndarray,
-               gt_alpha: np.ndarray, dt_alpha: np.ndarray, best_gt: np.ndarray, best_dc: np.ndarray,
-               min_overlap: float, compute_aos: bool, n_sample_pts: int) -> tuple[np.ndarray, np.ndarray, int]:
-    n_frames = gt_offsets.shape[0] - 1
-    (g_code, g_alpha, g_ptr, d_score, d_code, d_alpha, d_ptr, c_cnt, sub, sub_ptr, valid,
-     free_fp, _) = _candidates(pair_offsets, ov, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score,
-                            gt_alpha, dt_alpha, best_gt, best_dc, min_overlap)
-    n_valid_gt = 0
-    for f in range(n_frames):
-        n_valid_gt += valid[f]
-    widest = 0
-    for f in range(n_frames):
-        widest = max(widest, d_ptr[f + 1] - d_ptr[f])
+def _widest(ptr: np.ndarray) -> int:
+    """The largest step of a CSR pointer (at least 1)."""
+    out = 1
+    for f in range(ptr.shape[0] - 1):
+        out = max(out, ptr[f + 1] - ptr[f])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _pass1(c: Candidates, min_overlap: float) -> tuple[np.ndarray, np.ndarray]:
+    """The scores of pass 1's true positives over every frame, in frame order, and the frame of each."""
+    assigned = np.empty(_widest(c.d_ptr), dtype=np.bool_)
+    tp_scores = np.empty(c.d_ptr[c.d_ptr.shape[0] - 1], dtype=np.float64)
+    tp_frames = np.empty(tp_scores.shape[0], dtype=np.int64)
+    n_tp = 0
+    for f in range(c.valid.shape[0]):
+        k = _frame_pass1(c, f, min_overlap, tp_scores[n_tp:], assigned)
+        tp_frames[n_tp:n_tp + k] = f
+        n_tp += k
+    return tp_scores[:n_tp], tp_frames[:n_tp]
+
+
+@njit(cache=True, nogil=True)
+def _pass2(c: Candidates, thresholds: np.ndarray, min_overlap: float, compute_aos: bool) -> np.ndarray:
+    """(T, 4) totals of (tp, fp, fn, similarity) over every frame at each of the descending ``thresholds``.
+
+    A frame's counts change only where another of its detections rises above the threshold, so it is
+    matched once per such step; the change is recorded there and summed over the thresholds at the end.
+    """
+    n_thr = thresholds.shape[0]
+    widest = _widest(c.d_ptr)
     assigned = np.empty(widest, dtype=np.bool_)
     below = np.empty(widest, dtype=np.bool_)
-    # pass 1: scores of true positives (DontCare plays no part)
-    tp_scores = np.empty(d_ptr[n_frames], dtype=np.float64)
-    n_tp = 0
-    for f in range(n_frames):
-        lo, hi = d_ptr[f], d_ptr[f + 1]
-        if lo == hi:
-            continue
-        ga, gb = g_ptr[f], g_ptr[f + 1]
-        _, _, _, _, n_tp = _match_frame(sub, sub_ptr[f], gb - ga, c_cnt[f], g_code[ga:gb], g_alpha[ga:gb],
-                                        d_score[lo:hi], d_code[lo:hi], d_alpha[lo:hi], min_overlap, False, 0.0,
-                                        False, tp_scores, n_tp, assigned, below)
-    if n_tp == 0:
-        return np.empty(0, dtype=np.float64), np.zeros((0, 4), dtype=np.float64), n_valid_gt
-    thresholds = _score_thresholds(-np.sort(-tp_scores[:n_tp]), n_valid_gt, n_sample_pts)
-    n_thr = thresholds.shape[0]
-    # pass 2: counts at each threshold. A frame's counts change only where another of its detections
-    # rises above the threshold, so it is matched once per such step, and the change is recorded there
-    # (``delta``) and summed up over the thresholds at the end.
-    delta = np.zeros((n_thr, 4), dtype=np.float64)
     ranked = np.empty(widest, dtype=np.float64)
-    for f in range(n_frames):
-        delta[0, 2] += valid[f]  # above every detection's score, every valid box is missed
-        lo, hi = d_ptr[f], d_ptr[f + 1]
-        if lo == hi:
-            continue
-        ga, gb = g_ptr[f], g_ptr[f + 1]
-        m = hi - lo
-        _rank_descending(d_score[lo:hi], ranked)
-        prev_tp, prev_fp, prev_fn, prev_sim = 0.0, 0.0, float(valid[f]), 0.0
+    delta = np.zeros((n_thr, 4), dtype=np.float64)
+    for f in range(c.valid.shape[0]):
+        delta[0, 2] += c.valid[f]  # above every detection's score, every valid box is missed
+        d0, m = c.d_ptr[f], c.d_ptr[f + 1] - c.d_ptr[f]
+        _rank_descending(c.d_score[d0:d0 + m], ranked)
+        prev_tp, prev_fp, prev_fn, prev_sim = 0.0, 0.0, float(c.valid[f]), 0.0
         a = 0
         while a < m:
             t = _first_at_or_below(thresholds, ranked[a])
@@ -331,86 +372,49 @@ def _pr_counts(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray,
                 break  # this and the remaining detections never reach a threshold
             while a < m and ranked[a] >= thresholds[t]:
                 a += 1
-            tp, fp, fn, sim, _ = _match_frame(sub, sub_ptr[f], gb - ga, c_cnt[f], g_code[ga:gb], g_alpha[ga:gb],
-                                              d_score[lo:hi], d_code[lo:hi], d_alpha[lo:hi], min_overlap, True,
-                                              thresholds[t], compute_aos, tp_scores, 0, assigned, below)
-            if sim == -1.0:
-                sim = 0.0
+            tp, fp, fn, sim = _frame_pass2(c, f, min_overlap, thresholds[t], compute_aos, assigned, below)
             delta[t, 0] += tp - prev_tp
             delta[t, 1] += fp - prev_fp
             delta[t, 2] += fn - prev_fn
             delta[t, 3] += sim - prev_sim
             prev_tp, prev_fp, prev_fn, prev_sim = tp, fp, fn, sim
-    # detections that can match nothing: false positives from the first threshold at or below their score
-    lowest = thresholds[n_thr - 1]
-    for k in range(free_fp.shape[0]):
-        if free_fp[k] >= lowest:
-            delta[_first_at_or_below(thresholds, free_fp[k]), 1] += 1.0
-    pr = np.empty((n_thr, 4), dtype=np.float64)
-    for c in range(4):
-        running = 0.0
-        for t in range(n_thr):
-            running += delta[t, c]
-            pr[t, c] = running
-    return thresholds, pr, n_valid_gt
+    for k in range(c.free_fp.shape[0]):  # detections that can match nothing
+        if n_thr and c.free_fp[k] >= thresholds[n_thr - 1]:
+            delta[_first_at_or_below(thresholds, c.free_fp[k]), 1] += 1.0
+    for t in range(1, n_thr):
+        for q in range(4):
+            delta[t, q] += delta[t - 1, q]
+    return delta
 
 
 @njit(cache=True, nogil=True)
-def _frame_events(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray,
-                  ignored_gt: np.ndarray, ignored_det: np.ndarray, dontcare: np.ndarray, score: np.ndarray,
-                  gt_alpha: np.ndarray, dt_alpha: np.ndarray, best_gt: np.ndarray, best_dc: np.ndarray,
-                  min_overlap: float, compute_aos: bool):  # noqa: ANN202 - see the docstring
-    """Each frame's part of the counts, as a function of the score threshold, for re-weighting frames.
+def _events(c: Candidates, min_overlap: float, compute_aos: bool):  # noqa: ANN202 - see the docstring
+    """Each frame's part of the counts as a function of the score threshold, for re-weighting frames.
 
-    Returns ``valid`` (F,) valid ground truth per frame; the pass-1 true positives as ``tp_score``,
-    ``tp_frame``; and the events ``ev_score``, ``ev_frame``, ``ev_delta`` (E, 4): when the threshold
-    falls to ``ev_score``, frame ``ev_frame``'s (tp, fp, fn, similarity) change by ``ev_delta`` (before
-    any event a frame counts (0, 0, valid, 0)). The counts at threshold t of any weighting of the frames
-    are the weighted sums of the events with score >= t.
+    Returns the events ``ev_score``, ``ev_frame``, ``ev_delta`` (E, 4): when the threshold falls to
+    ``ev_score``, frame ``ev_frame``'s (tp, fp, fn, similarity) change by ``ev_delta`` (before any event a
+    frame counts (0, 0, valid, 0)). The counts at threshold t of any weighting of the frames are the
+    weighted sums of the events with score >= t.
     """
-    n_frames = gt_offsets.shape[0] - 1
-    (g_code, g_alpha, g_ptr, d_score, d_code, d_alpha, d_ptr, c_cnt, sub, sub_ptr, valid,
-     free_fp, free_frame) = _candidates(pair_offsets, ov, gt_offsets, dt_offsets, ignored_gt, ignored_det,
-                                        dontcare, score, gt_alpha, dt_alpha, best_gt, best_dc, min_overlap)
-    widest = 0
-    for f in range(n_frames):
-        widest = max(widest, d_ptr[f + 1] - d_ptr[f])
+    widest = _widest(c.d_ptr)
     assigned = np.empty(widest, dtype=np.bool_)
     below = np.empty(widest, dtype=np.bool_)
     ranked = np.empty(widest, dtype=np.float64)
-    n_match = d_ptr[n_frames]
-    tp_score = np.empty(n_match, dtype=np.float64)
-    tp_frame = np.empty(n_match, dtype=np.int64)
-    n_ev_max = n_match + free_fp.shape[0]
+    n_ev_max = c.d_ptr[c.d_ptr.shape[0] - 1] + c.free_fp.shape[0]
     ev_score = np.empty(n_ev_max, dtype=np.float64)
     ev_frame = np.empty(n_ev_max, dtype=np.int64)
     ev_delta = np.zeros((n_ev_max, 4), dtype=np.float64)
-    n_tp = 0
     n_ev = 0
-    for f in range(n_frames):
-        lo, hi = d_ptr[f], d_ptr[f + 1]
-        if lo == hi:
-            continue
-        ga, gb = g_ptr[f], g_ptr[f + 1]
-        first = n_tp
-        _, _, _, _, n_tp = _match_frame(sub, sub_ptr[f], gb - ga, c_cnt[f], g_code[ga:gb], g_alpha[ga:gb],
-                                        d_score[lo:hi], d_code[lo:hi], d_alpha[lo:hi], min_overlap, False, 0.0,
-                                        False, tp_score, n_tp, assigned, below)
-        for k in range(first, n_tp):
-            tp_frame[k] = f
-        m = hi - lo
-        _rank_descending(d_score[lo:hi], ranked)
-        prev_tp, prev_fp, prev_fn, prev_sim = 0.0, 0.0, float(valid[f]), 0.0
+    for f in range(c.valid.shape[0]):
+        d0, m = c.d_ptr[f], c.d_ptr[f + 1] - c.d_ptr[f]
+        _rank_descending(c.d_score[d0:d0 + m], ranked)
+        prev_tp, prev_fp, prev_fn, prev_sim = 0.0, 0.0, float(c.valid[f]), 0.0
         a = 0
         while a < m:
             level = ranked[a]
             while a < m and ranked[a] >= level:
                 a += 1
-            tp, fp, fn, sim, _ = _match_frame(sub, sub_ptr[f], gb - ga, c_cnt[f], g_code[ga:gb], g_alpha[ga:gb],
-                                              d_score[lo:hi], d_code[lo:hi], d_alpha[lo:hi], min_overlap, True,
-                                              level, compute_aos, tp_score, 0, assigned, below)
-            if sim == -1.0:
-                sim = 0.0
+            tp, fp, fn, sim = _frame_pass2(c, f, min_overlap, level, compute_aos, assigned, below)
             ev_score[n_ev] = level
             ev_frame[n_ev] = f
             ev_delta[n_ev, 0] = tp - prev_tp
@@ -419,52 +423,12 @@ def _frame_events(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarr
             ev_delta[n_ev, 3] = sim - prev_sim
             n_ev += 1
             prev_tp, prev_fp, prev_fn, prev_sim = tp, fp, fn, sim
-    for k in range(free_fp.shape[0]):
-        ev_score[n_ev] = free_fp[k]
-        ev_frame[n_ev] = free_frame[k]
+    for k in range(c.free_fp.shape[0]):
+        ev_score[n_ev] = c.free_fp[k]
+        ev_frame[n_ev] = c.free_frame[k]
         ev_delta[n_ev, 1] = 1.0
         n_ev += 1
-    return valid, tp_score[:n_tp], tp_frame[:n_tp], ev_score[:n_ev], ev_frame[:n_ev], ev_delta[:n_ev]
-
-
-@njit(cache=True, nogil=True)
-def _pr_counts_many(pair_offsets: np.ndarray, ov_0: np.ndarray, ov_1: np.ndarray, ov_2: np.ndarray,
-                    gt_offsets: np.ndarray, dt_offsets: np.ndarray, ignored_gt: np.ndarray,
-                    ignored_det: np.ndarray, dontcare: np.ndarray, score: np.ndarray, gt_alpha: np.ndarray,
-                    dt_alpha: np.ndarray, best: np.ndarray, job_metric: np.ndarray, job_codes: np.ndarray,
-                    job_group: np.ndarray, job_overlap: np.ndarray, job_aos: np.ndarray, job_dontcare: np.ndarray,
-                    n_sample_pts: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Independent matchings, one per job (metric, ignore-code row, group, threshold, flags).
-
-    ``best`` (3, G, N): each detection's best overlap per metric with each group of ground-truth rows
-    (:func:`_best_overlaps`); group G - 1 is the DontCare rows.
-    """
-    n_jobs = job_metric.shape[0]
-    n_dt = dt_offsets[dt_offsets.shape[0] - 1]
-    thr_out = np.zeros((n_jobs, n_sample_pts), dtype=np.float64)
-    pr_out = np.zeros((n_jobs, n_sample_pts, 4), dtype=np.float64)
-    n_thr = np.zeros(n_jobs, dtype=np.int64)
-    n_valid = np.zeros(n_jobs, dtype=np.int64)
-    no_dontcare = np.zeros(dontcare.shape[0], dtype=np.bool_)
-    no_cover = np.zeros(n_dt, dtype=np.float64)
-    dc_group = best.shape[1] - 1
-    for c in range(n_jobs):
-        m = job_metric[c]
-        ov = ov_0 if m == 0 else (ov_1 if m == 1 else ov_2)
-        use_dc = job_dontcare[c]
-        thresholds, pr, valid = _pr_counts(pair_offsets, ov, gt_offsets, dt_offsets, ignored_gt[job_codes[c]],
-                                           ignored_det[job_codes[c]], dontcare if use_dc else no_dontcare, score,
-                                           gt_alpha, dt_alpha, best[m, job_group[c]],
-                                           best[m, dc_group] if use_dc else no_cover, job_overlap[c], job_aos[c],
-                                           n_sample_pts)
-        t = thresholds.shape[0]
-        n_thr[c] = t
-        n_valid[c] = valid
-        for k in range(min(t, n_sample_pts)):
-            thr_out[c, k] = thresholds[k]
-            for q in range(4):
-                pr_out[c, k, q] = pr[k, q]
-    return thr_out, pr_out, n_thr, n_valid
+    return ev_score[:n_ev], ev_frame[:n_ev], ev_delta[:n_ev]
 
 
 #: labels of :func:`label_frame`, by code
@@ -477,7 +441,7 @@ def _label_frame(ov: np.ndarray, ig: np.ndarray, idet: np.ndarray, dc: np.ndarra
                  min_overlap: float, thresh: float):  # noqa: ANN202 - five arrays, see label_frame
     """Pass 2 of the matching on one frame at one score threshold, keeping who matched whom.
 
-    The same steps as :func:`_match_frame` with ``compute_fp`` set, on the frame's whole (detections x
+    The same steps as :func:`_frame_pass2`, on the frame's whole (detections x
     ground truth) overlap matrix in file order.
     """
     nd, ng = ov.shape
@@ -693,24 +657,23 @@ def default_workers() -> int:
 class _Prepared:
     """Validated inputs of a batch of matchings, with each detection's best overlap per ground-truth group."""
 
-    pair_offsets: np.ndarray
+    frames: Frames
     ov3: list[np.ndarray]
-    gt_offsets: np.ndarray
-    dt_offsets: np.ndarray
     ig: np.ndarray
     idet: np.ndarray
     dc: np.ndarray
-    score: np.ndarray
-    gt_alpha: np.ndarray
-    dt_alpha: np.ndarray
     best: np.ndarray           # (3, G, N): per metric, per group (DontCare last)
     job_group: list[int]
     hands: list[list[int]]     # job indices per thread, largest jobs dealt first
 
-    def best_of(self, job: MatchJob, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """The (N,) best overlaps with the job's ground truth, and with DontCare (zeros without it)."""
-        dc_best = self.best[job.metric, -1] if job.dontcare else np.zeros(self.best.shape[2])
-        return self.best[job.metric, self.job_group[k]], dc_best
+    def candidates(self, job: MatchJob, k: int) -> Candidates:
+        """Job ``k``'s rows that can play a part (see :class:`Candidates`)."""
+        if job.dontcare:
+            dc, dc_best = self.dc, self.best[job.metric, -1]
+        else:
+            dc, dc_best = np.zeros_like(self.dc), np.zeros(self.best.shape[2])
+        return _candidates(self.frames, self.ov3[job.metric], self.ig[job.codes], self.idet[job.codes], dc,
+                           self.best[job.metric, self.job_group[k]], dc_best, float(job.min_overlap))
 
     def pool_map(self, fn, items):  # noqa: ANN001, ANN201 - a thread map over the prepared hands
         if len(self.hands) == 1 or len(items) <= 1:
@@ -768,8 +731,8 @@ def _prepare(pair_offsets: npt.ArrayLike, overlaps: Sequence[npt.ArrayLike], gt_
     hands: list[list[int]] = [[] for _ in range(min(workers, max(1, len(jobs))))]
     for rank, k in enumerate(np.argsort(-cost, kind="stable")):
         hands[rank % len(hands)].append(int(k))
-    prep = _Prepared(pair_offsets, ov3, gt_offsets, dt_offsets, ig, idet, dc, score, gt_alpha, dt_alpha, best,
-                     job_group, hands)
+    frames = Frames(pair_offsets, gt_offsets, dt_offsets, score, gt_alpha, dt_alpha)
+    prep = _Prepared(frames, ov3, ig, idet, dc, best, job_group, hands)
 
     def fill_best(m: int) -> None:
         _best_overlaps(pair_offsets, ov3[m], gt_offsets, dt_offsets, groups, best[m])
@@ -799,30 +762,32 @@ def pr_counts_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.N
     p = _prepare(pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score,
                  gt_alpha, dt_alpha, jobs, workers)
 
-    def run(hand: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        picked = [jobs[k] for k in hand]
-        return _pr_counts_many(
-            p.pair_offsets, p.ov3[0], p.ov3[1], p.ov3[2], p.gt_offsets, p.dt_offsets, p.ig, p.idet, p.dc, p.score,
-            p.gt_alpha, p.dt_alpha, p.best, np.array([j.metric for j in picked], np.int64),
-            np.array([j.codes for j in picked], np.int64), np.array([p.job_group[k] for k in hand], np.int64),
-            np.array([j.min_overlap for j in picked], np.float64), np.array([j.compute_aos for j in picked], np.bool_),
-            np.array([j.dontcare for j in picked], np.bool_), int(n_sample_pts))
+    def run(hand: list[int]) -> list[PRCounts]:
+        return [_count(p.candidates(jobs[k], k), jobs[k], n_sample_pts) for k in hand]
 
-    results = p.pool_map(run, p.hands)
     out: list[PRCounts | None] = [None] * len(jobs)
-    for hand, (thr, pr, n_thr, n_valid) in zip(p.hands, results):
-        for c, k in enumerate(hand):
-            t = int(n_thr[c])
-            if t > n_sample_pts:
-                raise RuntimeError(f"{t} score thresholds for {n_sample_pts} recall samples")
-            out[k] = PRCounts(thresholds=thr[c, :t].copy(), tp=pr[c, :t, 0].copy(), fp=pr[c, :t, 1].copy(),
-                              fn=pr[c, :t, 2].copy(), similarity=pr[c, :t, 3].copy(), num_valid_gt=int(n_valid[c]))
+    for hand, counts in zip(p.hands, p.pool_map(run, p.hands)):
+        for k, c in zip(hand, counts):
+            out[k] = c
     return out  # type: ignore[return-value]
+
+
+def _count(c: Candidates, job: MatchJob, n_sample_pts: int) -> PRCounts:
+    """One matching: pass 1, the score thresholds from its true positives, pass 2 at each of them."""
+    tp_scores, _ = _pass1(c, float(job.min_overlap))
+    n_valid = int(c.valid.sum())
+    thresholds = score_thresholds(tp_scores, n_valid, n_sample_pts)
+    if len(thresholds) > n_sample_pts:
+        raise RuntimeError(f"{len(thresholds)} score thresholds for {n_sample_pts} recall samples")
+    pr = _pass2(c, thresholds, float(job.min_overlap), bool(job.compute_aos)) if len(thresholds) else \
+        np.zeros((0, 4))
+    return PRCounts(thresholds=thresholds, tp=pr[:, 0].copy(), fp=pr[:, 1].copy(), fn=pr[:, 2].copy(),
+                    similarity=pr[:, 3].copy(), num_valid_gt=n_valid)
 
 
 @dataclass(frozen=True)
 class FrameEvents:
-    """One matching's counts per frame as step functions of the score threshold (see :func:`_frame_events`).
+    """One matching's counts per frame as step functions of the score threshold (see :func:`_events`).
 
     valid : (F,) valid ground truth per frame
     tp_score, tp_frame : (T,) the true positives that choose the score thresholds, sorted by score, descending
@@ -851,14 +816,12 @@ def frame_events_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[np
 
     def run(k: int) -> FrameEvents:
         job = jobs[k]
-        best_gt, best_dc = p.best_of(job, k)
-        valid, tp_s, tp_f, ev_s, ev_f, ev_d = _frame_events(
-            p.pair_offsets, p.ov3[job.metric], p.gt_offsets, p.dt_offsets, p.ig[job.codes], p.idet[job.codes],
-            p.dc if job.dontcare else np.zeros_like(p.dc), p.score, p.gt_alpha, p.dt_alpha, best_gt, best_dc,
-            job.min_overlap, job.compute_aos)
+        c = p.candidates(job, k)
+        tp_s, tp_f = _pass1(c, float(job.min_overlap))
+        ev_s, ev_f, ev_d = _events(c, float(job.min_overlap), bool(job.compute_aos))
         order_tp = np.argsort(-tp_s, kind="stable")
         order_ev = np.argsort(-ev_s, kind="stable")
-        return FrameEvents(valid, tp_s[order_tp], tp_f[order_tp], ev_s[order_ev], ev_f[order_ev], ev_d[order_ev],
+        return FrameEvents(c.valid, tp_s[order_tp], tp_f[order_tp], ev_s[order_ev], ev_f[order_ev], ev_d[order_ev],
                            job.compute_aos)
 
     order = [k for hand in p.hands for k in hand] if jobs else []

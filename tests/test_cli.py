@@ -164,7 +164,7 @@ def test_compile_notice_follows_numba_cache(monkeypatch, tmp_path):
     assert kernels_cached() is False
     deep = tmp_path / "work" / "kitti_eval"
     deep.mkdir(parents=True)
-    (deep / "matching._pr_counts_many-400.py311.nbi").write_bytes(b"")
+    (deep / "matching._pass2-400.py311.nbi").write_bytes(b"")
     assert kernels_cached() is False  # one of the two kernels is still missing
     (deep / "geometry._frame_overlaps_kernel-251.py311.nbi").write_bytes(b"")
     assert kernels_cached() is True
