@@ -1,22 +1,37 @@
 """numba's on-disk cache: whether it holds the kernels (so the CLI can say when it compiles), and warming it.
 
-A first run compiles two groups of kernels: the restricted unpickler's scanner (needed to load the
-inputs) and the evaluation kernels. On two or more cores :func:`warm_in_background` compiles the second
-group in another process while this one compiles the first, so a fresh install pays roughly the larger
-of the two instead of their sum.
+Every entry point (the CLI, ``evaluate``, the OpenPCDet drop-in, batch, compare/bootstrap, frames,
+inspect, the service) calls the same kernels with the same argument types: the wrappers cast every input
+to one dtype and layout before a kernel sees it, so each kernel is compiled once and cached once.
+:func:`warm_up` compiles (or loads) all of them.
+
+A first run compiles two groups: the restricted unpickler's scan (needed to load the inputs) and the
+evaluation kernels. On two or more cores :func:`warm_in_background` compiles the second group in another
+process while this one compiles the first, so a fresh install pays roughly the larger of the two.
 """
 
 from __future__ import annotations
 
+import io
 import os
+import pickle
 import subprocess
 import sys
 from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
 
 _PACKAGE = Path(__file__).resolve().parent
 #: kernels every evaluation calls; if their cache index is there, the others of their group are too
 _EVAL_MARKERS = ("matching._pass2-*.nbi", "geometry._frame_overlaps_kernel-*.nbi")
 _LOAD_MARKERS = ("_pickle_scan.scan-*.nbi",)
+
+
+def kernel_input(value: npt.ArrayLike, dtype: npt.DTypeLike) -> np.ndarray:
+    """``value`` as every kernel takes its arrays: C-contiguous, of ``dtype``, writeable (numba compiles a
+    separate version for read-only arrays). Copies only when it must."""
+    return np.require(value, dtype, ("C", "W"))
 
 
 def _cache_places() -> list[tuple[Path, bool]]:
@@ -42,7 +57,7 @@ def kernels_cached() -> bool:
 
 
 def loader_cached() -> bool:
-    """True when the restricted unpickler's scanner is in numba's cache."""
+    """True when the restricted unpickler's scan is in numba's cache."""
     return _cached(_LOAD_MARKERS)
 
 
@@ -57,9 +72,10 @@ def warm_in_background() -> subprocess.Popen[bytes] | None:
         return None
 
 
-def _warm() -> None:
-    """Evaluate a tiny generated scene: it has the array types of every real input, so the kernels
-    compiled here are the ones a real evaluation loads from the cache."""
+def warm_up(everything: bool = True) -> None:
+    """Compile (or load from the cache) the kernels: those an evaluation calls, and with ``everything``
+    those of every other entry point too (the pickle scan, per-frame events and the bootstrap, the frame
+    labels, the IoU functions). A tiny generated scene has the array types of every real input."""
     from .evaluation import evaluate
     from .frames import Annotations
     from .synth import generate
@@ -68,7 +84,23 @@ def _warm() -> None:
     gt = Annotations.from_frames("ground_truth", "warm-up", [(i["image"]["image_idx"], i["annos"]) for i in infos])
     dt = Annotations.from_frames("detections", "warm-up", [(r["frame_id"], r) for r in results])
     evaluate(gt, dt)
+    if not everything:
+        return
+    from .bootstrap import paired_bootstrap
+    from .diagnostics import frame_stats
+    from .geometry import iou_2d, iou_3d, iou_bev
+    from .inspection import inspect_frame
+    from .safe_pickle import load_pickle
+
+    load_pickle(io.BytesIO(pickle.dumps(results, protocol=4)), source="warm-up")
+    paired_bootstrap(gt, dt, dt, resamples=2)
+    frame_stats(gt, dt)
+    inspect_frame(gt, [("warm-up", dt)], gt.frame_ids[0])
+    boxes = gt.boxes_camera[:2]
+    iou_2d(gt.bbox[:2], gt.bbox[:2])
+    iou_bev(boxes, boxes)
+    iou_3d(boxes, boxes)
 
 
 if __name__ == "__main__":
-    _warm()
+    warm_up(everything="--all" in sys.argv[1:])

@@ -294,9 +294,11 @@ def _shape(nodes, ch, s):
 
 
 @njit(cache=True, nogil=True)
-def _is_char(data, nodes, s, c):
-    return nodes[s, W] & (KIND_MASK | F_CONTENT) == K_STR | F_CONTENT and nodes[s, B] == 1 and \
-        data[nodes[s, A]] == c
+def _char(data, nodes, s):
+    """The character of node s if it is a one-character ASCII str, else -1."""
+    if nodes[s, W] & (KIND_MASK | F_CONTENT) == K_STR | F_CONTENT and nodes[s, B] == 1:
+        return int(data[nodes[s, A]])
+    return -1
 
 
 #: the names of the latin-1 codec that _codecs.encode may be called with (lower case, '_' as '-'), padded
@@ -388,9 +390,9 @@ def _reduce(data, nodes, ch, gtab, dblob, dtab, fn, args):
     if not (rk == K_BYTES or rk == K_BYTEARRAY) or size < 0:
         return E_RAWTYPE, 0, 0, 0, 0, 0, 0, 0, 0
     if n == 4:
-        order_ok = _is_char(data, nodes, c[3], 67) or _is_char(data, nodes, c[3], 70)  # C, F
+        order_ok = _char(data, nodes, c[3]) == 67 or _char(data, nodes, c[3]) == 70  # C, F
     else:  # K, with the axis order: a permutation of range(ndim)
-        order_ok = _is_char(data, nodes, c[3], 75) and nodes[c[4], W] & KIND_MASK == K_TUPLE and nodes[c[4], B] == nd
+        order_ok = _char(data, nodes, c[3]) == 75 and nodes[c[4], W] & KIND_MASK == K_TUPLE and nodes[c[4], B] == nd
         seen = 0
         for k in ch[nodes[c[4], A]:nodes[c[4], A] + (nd if order_ok else 0)]:
             v = nodes[k, V]
@@ -414,11 +416,10 @@ def _build(data, nodes, ch, dtab, target, state):
     c = ch[nodes[state, A]:nodes[state, A] + n]
     if tk == K_DTYPE:
         row = nodes[target, B]
-        if n != 8 or c[0] != _INT0 + 3 or nodes[c[1], W] & (KIND_MASK | F_CONTENT) != K_STR | F_CONTENT or \
-                nodes[c[1], B] != 1 or c[2] != _NONE or c[3] != _NONE or c[4] != _NONE:
+        if n != 8 or c[0] != _INT0 + 3 or c[2] != _NONE or c[3] != _NONE or c[4] != _NONE:
             return E_DTYPE_STATE, 0, 0, 0, 0, 0
-        bo = data[nodes[c[1], A]]
-        bit = 1 if bo == 60 else (2 if bo == 62 else (4 if bo == 124 else 0))
+        bo = _char(data, nodes, c[1])
+        bit = int(bo == 60) | 2 * int(bo == 62) | 4 * int(bo == 124)  # '<', '>', '|'
         ints_ok = True
         for k in c[5:]:
             ints_ok = ints_ok and nodes[k, W] & (KIND_MASK | F_BOOL) == K_INT
@@ -645,8 +646,8 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                 break
             pos += 1
         elif op == 0x95:  # FRAME: its bytes must all be there
-            size = _uint(data, pos, 8)
-            pos += 8
+            size = _uint(data, pos, fixed)
+            pos += fixed
             if size < 0 or size > n - pos:
                 err = E_TRUNC
                 break

@@ -17,6 +17,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from ._jit import kernel_input
 from .errors import InputError
 from .evaluation import Plan, evaluate, plan_evaluation
 from .frames import Annotations
@@ -118,7 +119,7 @@ def resampled_ap(events: FrameEvents, weights: npt.ArrayLike) -> npt.NDArray[np.
     -------
     (B, 4) float64: precision AP R11, R40 and orientation AP R11, R40, in percent
     """
-    w = np.ascontiguousarray(weights, dtype=np.int64)
+    w = kernel_input(weights, np.int64)
     if w.ndim != 2 or w.shape[1] != events.valid.shape[0] or (w < 0).any():
         raise ValueError(f"Expected `weights` with shape (B, {events.valid.shape[0]}) of counts >= 0, got {w.shape}")
     return _resampled_ap(events.valid, events.tp_score, events.tp_frame, events.ev_score, events.ev_frame,

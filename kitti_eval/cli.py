@@ -155,7 +155,7 @@ def _start_warm_up() -> object | None:
 
     eval_cold, load_cold = not kernels_cached(), not loader_cached()
     if eval_cold or load_cold:
-        _say("compiling the kernels once (about 20 s on two cores; later runs use numba's cache)")
+        _say("compiling the kernels once (about 7 s on two cores; later runs use numba's cache)")
     return warm_in_background() if eval_cold else None
 
 

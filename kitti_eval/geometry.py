@@ -27,6 +27,8 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from ._jit import kernel_input
+
 __all__ = ["FrameOverlaps", "iou_2d", "iou_bev", "iou_3d", "frame_overlaps"]
 
 _CRITERIA = ("union", "first")
@@ -311,7 +313,7 @@ def _as_rows(value: object, name: str, width: int) -> npt.NDArray[np.float64]:
         arr = arr.reshape(0, width)
     if arr.ndim != 2 or arr.shape[1] != width:
         raise ValueError(f"Expected `{name}` with shape (N, {width}), got {arr.shape}")
-    out = np.ascontiguousarray(arr, dtype=np.float64)
+    out = kernel_input(arr, np.float64)
     if not np.isfinite(out).all():
         row = int(np.argwhere(~np.isfinite(out))[0][0])
         raise ValueError(f"Expected finite values in `{name}`, got {out[row].tolist()} in row {row}")
@@ -330,7 +332,7 @@ def _offsets(value: object, name: str, n_rows: int, n_rows_name: str) -> npt.NDA
         raise ValueError(f"Expected `{name}` with shape (F + 1,), got {arr.shape}")
     if arr.dtype.kind not in "iu":
         raise ValueError(f"Expected `{name}` to hold integers, got dtype {arr.dtype}")
-    out = np.ascontiguousarray(arr, dtype=np.int64)
+    out = kernel_input(arr, np.int64)
     if out[0] != 0:
         raise ValueError(f"Expected `{name}` to start at 0, got {int(out[0])}")
     steps = np.diff(out)
@@ -497,7 +499,7 @@ def frame_overlaps(dt_bbox: npt.ArrayLike, dt_boxes: npt.ArrayLike, dt_offsets: 
         raise ValueError(f"Expected `gt_first` to be boolean, got dtype {first.dtype}")
     if first.shape != (gt_boxes_.shape[0],):
         raise ValueError(f"Expected `gt_first` with shape ({gt_boxes_.shape[0]},), got {first.shape}")
-    first = np.ascontiguousarray(first)
+    first = kernel_input(first, np.bool_)
     dt_off = _offsets(dt_offsets, "dt_offsets", dt_boxes_.shape[0], "dt_boxes")
     gt_off = _offsets(gt_offsets, "gt_offsets", gt_boxes_.shape[0], "gt_boxes")
     if dt_off.shape != gt_off.shape:

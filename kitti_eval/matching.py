@@ -33,6 +33,8 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from ._jit import kernel_input
+
 __all__ = ["PRCounts", "MatchJob", "FrameEvents", "FrameLabels", "pr_counts", "pr_counts_many", "frame_events_many",
            "label_frame", "score_thresholds", "default_workers", "DET_LABELS", "GT_LABELS"]
 
@@ -558,12 +560,12 @@ def label_frame(overlaps: npt.ArrayLike, ignored_gt: npt.ArrayLike, ignored_det:
     The counts (``tp``, ``fp``, ``fn``) are the frame's share of the precision/recall counts at that
     threshold.
     """
-    ov = np.ascontiguousarray(overlaps, np.float64)
-    ig = np.ascontiguousarray(ignored_gt, np.int8)
-    idet = np.ascontiguousarray(ignored_det, np.int8)
-    sc = np.ascontiguousarray(score, np.float64)
+    ov = kernel_input(overlaps, np.float64)
+    ig = kernel_input(ignored_gt, np.int8)
+    idet = kernel_input(ignored_det, np.int8)
+    sc = kernel_input(score, np.float64)
     n_gt = ig.shape[0] if ig.ndim == 1 else -1
-    dc = np.zeros(max(n_gt, 0), dtype=np.bool_) if dontcare is None else np.ascontiguousarray(dontcare, np.bool_)
+    dc = np.zeros(max(n_gt, 0), dtype=np.bool_) if dontcare is None else kernel_input(dontcare, np.bool_)
     if ig.ndim != 1 or idet.ndim != 1 or ov.shape != (idet.shape[0], n_gt):
         raise ValueError(f"Expected `overlaps` (N, M) with `ignored_det` (N,) and `ignored_gt` (M,), got "
                          f"{ov.shape}, {idet.shape} and {ig.shape}")
@@ -686,24 +688,24 @@ def _prepare(pair_offsets: npt.ArrayLike, overlaps: Sequence[npt.ArrayLike], gt_
              dt_offsets: npt.ArrayLike, ignored_gt: npt.ArrayLike, ignored_det: npt.ArrayLike,
              dontcare: npt.ArrayLike, score: npt.ArrayLike, gt_alpha: npt.ArrayLike, dt_alpha: npt.ArrayLike,
              jobs: Sequence[MatchJob], workers: int | None) -> _Prepared:
-    pair_offsets = np.ascontiguousarray(pair_offsets, np.int64)
-    gt_offsets = np.ascontiguousarray(gt_offsets, np.int64)
-    dt_offsets = np.ascontiguousarray(dt_offsets, np.int64)
+    pair_offsets = kernel_input(pair_offsets, np.int64)
+    gt_offsets = kernel_input(gt_offsets, np.int64)
+    dt_offsets = kernel_input(dt_offsets, np.int64)
     if not pair_offsets.shape == gt_offsets.shape == dt_offsets.shape or pair_offsets.ndim != 1:
         raise ValueError("Expected `pair_offsets`, `gt_offsets` and `dt_offsets` with the same shape (F + 1,)")
     n_gt, n_dt, n_pairs = int(gt_offsets[-1]), int(dt_offsets[-1]), int(pair_offsets[-1])
-    ovs = [np.ascontiguousarray(o, np.float64) for o in overlaps]
+    ovs = [kernel_input(o, np.float64) for o in overlaps]
     if not 1 <= len(ovs) <= 3 or any(o.shape != (n_pairs,) for o in ovs):
         raise ValueError(f"Expected one to three `overlaps` arrays with shape ({n_pairs},)")
-    ig = np.ascontiguousarray(ignored_gt, np.int8)
-    idet = np.ascontiguousarray(ignored_det, np.int8)
+    ig = kernel_input(ignored_gt, np.int8)
+    idet = kernel_input(ignored_det, np.int8)
     if ig.ndim != 2 or ig.shape[1] != n_gt or idet.shape != (ig.shape[0], n_dt):
         raise ValueError(f"Expected `ignored_gt` (K, {n_gt}) and `ignored_det` (K, {n_dt}), "
                          f"got {ig.shape} and {idet.shape}")
-    dc = np.ascontiguousarray(dontcare, np.bool_)
-    gt_alpha = np.ascontiguousarray(gt_alpha, np.float64)
-    score = np.ascontiguousarray(score, np.float64)
-    dt_alpha = np.ascontiguousarray(dt_alpha, np.float64)
+    dc = kernel_input(dontcare, np.bool_)
+    gt_alpha = kernel_input(gt_alpha, np.float64)
+    score = kernel_input(score, np.float64)
+    dt_alpha = kernel_input(dt_alpha, np.float64)
     if dc.shape != (n_gt,) or gt_alpha.shape != (n_gt,):
         raise ValueError(f"Expected ground-truth arrays with shape ({n_gt},)")
     if score.shape != (n_dt,) or dt_alpha.shape != (n_dt,):

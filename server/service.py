@@ -24,10 +24,10 @@ from typing import IO, Any, TypeVar
 import anyio
 import anyio.to_thread
 
+from kitti_eval._jit import warm_up
 from kitti_eval.diagnostics import frame_stats, frames_document
 from kitti_eval.frames import Annotations, normalize_frame_id
 from kitti_eval.inspection import inspect_frame, model_name, unique_names
-from kitti_eval.loaders import load_detections, load_ground_truth
 from kitti_eval.protocol import EvalConfig
 from kitti_eval.synth import demo_paths
 
@@ -131,13 +131,10 @@ class Service:
         log.info("registered the bundled demo ground truth as %r", DEMO_NAME)
 
     def _warm_up(self) -> None:
-        """Evaluate the bundled demo once so numba compiles (or loads) the kernels before requests do."""
+        """Compile (or load) every kernel before requests need them: the same ones the CLI and library use."""
         started = time.perf_counter()
         try:
-            gt_path, pred_path = demo_paths()
-            gt, dt = load_ground_truth(gt_path), load_detections(pred_path)
-            evaluate_document(gt, dt, EvalConfig())
-            inspect_frame(gt, [("demo", dt)], gt.frame_ids[0])  # the frame view's labelling kernel
+            warm_up(everything=True)
         except Exception as e:  # noqa: BLE001 - reported through /readyz and the log
             self.warmup_error = f"{type(e).__name__}: {e}"
             log.exception("warm-up failed")
