@@ -460,7 +460,7 @@ def _build(data, nodes, ch, dtab, target, state):
     return OK, 0, 0, 0, 0, size
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _hash_cost(nodes, k):
     """Elements hashed when node k is a dict key or set member; -1 if it cannot be hashed."""
     w = nodes[k, W]
@@ -474,9 +474,10 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
     """Check the pickle in ``data`` (read-only uint8).
 
     ``gblob``/``gtab``: the allowlist (rows: module offset, length, name offset, length, FN_*);
-    ``dblob``/``dtab``: the accepted dtype codes (columns D_*). ``nodes`` (N, 4; the first rows :data:`BASE_NODES`),
-    ``ch``, ``stack``, ``marks``, ``memo`` (all -1) and ``gseq`` (int64) are room to work in; when one is
-    too small the scan returns E_ROOM naming it (i0) and the size it needs (i1), to be called again.
+    ``dblob``/``dtab``: the accepted dtype codes (columns D_*). ``nodes`` (N, 4; the first rows
+    :data:`BASE_NODES`), ``ch``, ``stack``, ``marks``, ``memo`` (zeros; it keeps node + 1 per filled slot)
+    and ``gseq`` (int64) are room to work in; when one is too small the scan returns E_ROOM naming it (i0)
+    and the size it needs (i1), to be called again.
 
     Returns ``(code, pos, i0, i1, i2, nodes used, children used, globals, result)``: OK or an E_* code for
     the opcode at byte ``pos`` with details i0..i2; how many nodes and tuple children (for messages) and
@@ -620,10 +621,10 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
             push = stack[sp - 1]
         elif op == 0x67 or op == 0x68 or op == 0x6a:  # GET, BINGET, LONG_BINGET
             idx, pos = _memo_index(data, pos, fixed, line)
-            if idx < 0 or idx >= memo.shape[0] or memo[idx] < 0:
+            if idx < 0 or idx >= memo.shape[0] or memo[idx] == 0:
                 err, i0 = (E_BADARG if idx < 0 else E_MEMO), idx
                 break
-            push = memo[idx]
+            push = memo[idx] - 1
         elif op == 0x70 or op == 0x71 or op == 0x72 or op == 0x94:  # PUT, BINPUT, LONG_BINPUT, MEMOIZE
             idx = memo_len
             if op != 0x94:
@@ -637,8 +638,8 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
             if idx >= memo.shape[0]:
                 err, i0, i1 = E_ROOM, ROOM_MEMO, max(2 * memo.shape[0], idx + 1)
                 break
-            memo_len += int(memo[idx] < 0)
-            memo[idx] = stack[sp - 1]
+            memo_len += int(memo[idx] == 0)
+            memo[idx] = stack[sp - 1] + 1
             writes += 1
         elif op == 0x80:  # PROTO
             if data[pos] > 5:

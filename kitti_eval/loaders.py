@@ -48,7 +48,7 @@ import numpy as np
 from .archives import ArchiveLimits, extract_txt_folder, sniff_archive
 from .errors import InputError
 from .frames import Annotations, Kind, normalize_frame_id
-from .safe_pickle import load_pickle
+from .safe_pickle import load_pickle, load_pickles
 
 __all__ = [
     "load_ground_truth", "load_detections", "load_annotations", "load_kitti_txt_dir", "parse_kitti_txt",
@@ -756,12 +756,17 @@ def apply_split(gt: Annotations, dt: Annotations, frame_ids: Sequence[str]) -> t
     return gt, dt, dropped
 
 
+def _is_pickle_file(p: Path, fmt: str | None) -> bool:
+    """``p`` is read as a pickle: a file that is neither a txt file nor an archive (unless ``fmt`` says)."""
+    return p.is_file() and fmt != "kitti_txt" and not (fmt is None and is_archive(p)) and p.suffix.lower() != ".txt"
+
+
 def load_ground_truth_and_calibs(gt_path: PathLike, *, fmt: str | None = None, max_bytes: int | None = None,
                                  ) -> tuple[Annotations, Mapping[str, Any]]:
     """Ground truth and, from an infos pickle, its calibration per frame (read once; empty for txt)."""
     _check_fmt(fmt)
     gp = Path(gt_path)
-    if gp.is_file() and fmt != "kitti_txt" and not (fmt is None and is_archive(gp)) and gp.suffix.lower() != ".txt":
+    if _is_pickle_file(gp, fmt):
         obj = load_pickle(gp, source=str(gt_path), max_bytes=max_bytes)
         gt = annotations_from_object(obj, "ground_truth", source=str(gt_path), fmt=fmt)
         return gt, calibs_from_object(obj)
@@ -776,9 +781,20 @@ def load_pair(gt_path: PathLike, pred_path: PathLike, *, gt_format: str | None =
     LiDAR-only predictions); with ``split``, only the listed frames (dropped prediction frames are
     reported in ``warnings``); ``keep_lidar``: see :func:`load_detections`."""
     _check_fmt(pred_format)
-    gt, calibs = load_ground_truth_and_calibs(gt_path, fmt=gt_format, max_bytes=max_bytes)
-    dt = load_detections(pred_path, fmt=pred_format, calibs=calibs, warnings=warnings, max_bytes=max_bytes,
-                         keep_lidar=keep_lidar)
+    _check_fmt(gt_format)
+    if _is_pickle_file(Path(gt_path), gt_format) and _is_pickle_file(Path(pred_path), pred_format):
+        # the predictions are read and checked in a helper thread while the ground truth is converted
+        objects = load_pickles([gt_path, pred_path], sources=[str(gt_path), str(pred_path)], max_bytes=max_bytes)
+        gt_obj = next(objects)
+        gt = annotations_from_object(gt_obj, "ground_truth", source=str(gt_path), fmt=gt_format)
+        calibs = calibs_from_object(gt_obj)
+        del gt_obj
+        dt = annotations_from_object(next(objects), "detections", source=str(pred_path), fmt=pred_format,
+                                     calibs=calibs, warnings=warnings, keep_lidar=keep_lidar)
+    else:
+        gt, calibs = load_ground_truth_and_calibs(gt_path, fmt=gt_format, max_bytes=max_bytes)
+        dt = load_detections(pred_path, fmt=pred_format, calibs=calibs, warnings=warnings, max_bytes=max_bytes,
+                             keep_lidar=keep_lidar)
     if split is not None:
         gt, dt, dropped = apply_split(gt, dt, read_split(split))
         if dropped and warnings is not None:

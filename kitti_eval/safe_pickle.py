@@ -32,7 +32,8 @@ import io
 import os
 import pickle
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import IO, Any
 
 import numpy as np
@@ -40,7 +41,7 @@ import numpy as np
 from . import _pickle_scan as _ps
 from .errors import InputError, UnsafePickleError
 
-__all__ = ["load_pickle", "ALLOWED_GLOBALS", "GZIP_MAGIC"]
+__all__ = ["load_pickle", "load_pickles", "ALLOWED_GLOBALS", "GZIP_MAGIC"]
 
 try:  # numpy >= 2 (numpy 1.26 also ships the numpy._core aliases)
     from numpy._core import multiarray as _np_multiarray
@@ -362,11 +363,12 @@ def _scan(data: bytes | np.ndarray, source: str) -> tuple[Any, ...]:
         u8 = u8.view()
         u8.flags.writeable = False
     n = len(u8)
-    sizes = [n // 8 + 1024, n // 8 + 1024, 1024, 64, n // 16 + 1024, 64]  # by _ps.ROOM_*: nodes, ch, ...
+    # by _ps.ROOM_*: nodes, children, stack (pickle appends in batches of 1000), marks, memo, globals
+    sizes = [n // 8 + 1024, n // 8 + 1024, 1 << 16, 1 << 10, n // 16 + 1024, 64]
     try:
         while True:
             work = [np.empty((sizes[0], 4), np.int64)] + [np.empty(k, np.int64) for k in sizes[1:]]
-            work[_ps.ROOM_MEMO][:] = -1
+            work[_ps.ROOM_MEMO] = np.zeros(sizes[_ps.ROOM_MEMO], np.int64)  # pages zeroed as they are touched
             work[_ps.ROOM_NODES][:len(_ps.BASE_NODES)] = _ps.BASE_NODES
             res = _ps.scan(u8, _GBLOB, _GTAB, _DBLOB, _DTAB, 4 * n + (16 << 20), _MAX_DEPTH, _KEY_BUDGET, *work)
             if res[0] != _ps.E_ROOM:
@@ -378,10 +380,8 @@ def _scan(data: bytes | np.ndarray, source: str) -> tuple[Any, ...]:
     return (*res[:5], work[_ps.ROOM_NODES][:nn], work[_ps.ROOM_CH][:nch], work[_ps.ROOM_GSEQ][:ng], int(res[8]))
 
 
-def _load(data: bytes | np.ndarray, source: str) -> object:
-    res = _scan(data, source)
-    if res[0] != _ps.OK:
-        raise _scan_error(res, data, source)
+def _build(data: bytes | np.ndarray, res: tuple[Any, ...], source: str) -> object:
+    """The objects of a pickle the scan accepted (``res``), built by the C unpickler."""
     nodes, gseq, result = res[5], res[7], int(res[8])
     unpickler = _Unpickler(data, gseq)
     try:
@@ -397,6 +397,10 @@ def _load(data: bytes | np.ndarray, source: str) -> object:
     if unpickler.found != len(gseq) or not isinstance(obj, _RESULT_TYPES[kind]):  # pragma: no cover
         raise InputError(f"not a readable pickle: the loaded {type(obj).__name__} is not the "
                          f"{_ps.KIND_NAMES[kind]} the check saw", source=source)
+    if isinstance(obj, int) and not isinstance(obj, bool) and obj == _TORCH_LEGACY_MAGIC:
+        raise UnsafePickleError("this is a torch.save() file (legacy format) holding torch tensors; it was "
+                                "not loaded. Export predictions as plain numpy arrays (e.g. .numpy() on each "
+                                "tensor) and pickle the list of per-frame dicts", source=source)
     return obj
 
 
@@ -515,11 +519,26 @@ def load_pickle(path_or_fileobj: str | os.PathLike[str] | IO[bytes], *, source: 
         tensors, mmdet3d boxes) or sets state that numpy would not write; nothing was imported or called
     InputError : missing, empty, truncated or corrupt input, or input over ``max_bytes``
     """
+    return _build(*_checked(path_or_fileobj, source, max_bytes), source)
+
+
+def _checked(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str,
+             max_bytes: int | None) -> tuple[bytes | np.ndarray, tuple[Any, ...]]:
+    """The input's bytes and the scan's verdict on them (raises if it refused them)."""
     data = _read_input(path_or_fileobj, source, max_bytes)
     _sniff(data, source)
-    obj = _load(data, source)
-    if isinstance(obj, int) and not isinstance(obj, bool) and obj == _TORCH_LEGACY_MAGIC:
-        raise UnsafePickleError("this is a torch.save() file (legacy format) holding torch tensors; it was "
-                                "not loaded. Export predictions as plain numpy arrays (e.g. .numpy() on each "
-                                "tensor) and pickle the list of per-frame dicts", source=source)
-    return obj
+    res = _scan(data, source)
+    if res[0] != _ps.OK:
+        raise _scan_error(res, data, source)
+    return data, res
+
+
+def load_pickles(paths: Sequence[str | os.PathLike[str]], *, sources: Sequence[str],
+                 max_bytes: int | None = None) -> Iterator[object]:
+    """:func:`load_pickle` of several files, in order; while the caller works on one object, the next file
+    is read and checked in a helper thread (the scan needs no GIL). Errors are raised where that file's
+    object would be."""
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="kitti-eval pickle check") as pool:
+        pending = [pool.submit(_checked, p, s, max_bytes) for p, s in zip(paths, sources)]
+        for future, source in zip(pending, sources):
+            yield _build(*future.result(), source)

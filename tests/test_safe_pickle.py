@@ -756,3 +756,20 @@ def test_the_c_unpickler_never_runs_on_a_refused_pickle(tmp_path: Path, monkeypa
             with pytest.raises(InputError, match="ends before"):
                 loads(big[:cut])
             assert asked == []
+
+
+def test_load_pickles_builds_in_order_and_raises_where_a_file_is_bad(tmp_path: Path) -> None:
+    """Several files: each is checked in a helper thread ahead of the caller, built in order; a refused
+    file raises (naming it) when its turn comes, after the good ones before it."""
+    frames = [{"frame_id": f"{i:06d}", "score": np.float32([0.5, 0.25])} for i in range(3)]
+    paths = []
+    for name, obj in (("a.pkl", frames), ("b.pkl", Reducer(os.system, ("true",))), ("c.pkl", frames[:1])):
+        paths.append(tmp_path / name)
+        paths[-1].write_bytes(pickle.dumps(obj, protocol=4))
+    loaded = safe_pickle.load_pickles(paths, sources=["a", "b", "c"])
+    assert same(next(loaded), frames)
+    with pytest.raises(UnsafePickleError, match="os.system") as err:
+        next(loaded)
+    assert err.value.source == "b"
+    good = safe_pickle.load_pickles([paths[2], paths[0]], sources=["c", "a"])
+    assert [len(x) for x in good] == [1, 3]  # type: ignore[arg-type]
