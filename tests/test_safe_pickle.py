@@ -768,7 +768,7 @@ def test_load_pickles_builds_in_order_and_raises_where_a_file_is_bad(tmp_path: P
         paths[-1].write_bytes(pickle.dumps(obj, protocol=4))
     loaded = safe_pickle.load_pickles(paths, sources=["a", "b", "c"])
     assert same(next(loaded), frames)
-    with pytest.raises(UnsafePickleError, match="os.system") as err:
+    with pytest.raises(UnsafePickleError, match="system") as err:
         next(loaded)
     assert err.value.source == "b"
     good = safe_pickle.load_pickles([paths[2], paths[0]], sources=["c", "a"])
