@@ -21,8 +21,9 @@ every container operation the C unpickler would perform is an allowed one:
   and set members hashable;
 * nesting at most ``max_depth`` deep (CPython's tuple hash recurses in C without a guard) and at most
   ``key_budget`` tuple elements hashed in all (a shared-child tuple DAG would hash for ever);
-* array bytes built (counted at every BUILD, call and encode, shared inputs counted each time) within
-  ``budget``; memo indices within the number of memo writes + 1024 (``_pickle.c`` sizes its memo array
+* what the C unpickler will hold -- array bytes (counted at every BUILD, call and encode, shared inputs
+  each time), 32 bytes an object, 8 a stack slot -- within ``budget`` (a small pickle cannot make a huge
+  array, nor millions of empty containers); memo indices within the number of memo writes + 1024 (``_pickle.c`` sizes its memo array
   by the largest index);
 * no NEWOBJ(_EX), INST, OBJ, EXT1/2/4, (BIN)PERSID, NEXT_BUFFER, READONLY_BUFFER.
 
@@ -50,7 +51,7 @@ E_DEPTH = 9          # nested more than max_depth deep
 E_KEYS = 10          # more than key_budget tuple elements hashed
 E_UNHASHABLE = 11    # dict key or set item that cannot be hashed (i0: node)
 E_CHANGED = 12       # a container changed after it was put into another one
-E_BUDGET = 13        # more array bytes built than the budget
+E_BUDGET = 13        # more bytes built (array data, objects, the stack) than the budget
 E_OOB = 14           # out-of-band buffers
 E_NOT_TUPLE = 15     # REDUCE arguments that are not a tuple
 E_HEADER = 16        # _reconstruct arguments other than numpy's empty int8 shell
@@ -156,6 +157,7 @@ _MUTABLE = (1 << K_LIST) | (1 << K_DICT) | (1 << K_SET) | (1 << K_ODICT)
 _NONE, _TRUE, _FALSE, _FLOAT, _BIGINT, _INT0 = 0, 1, 2, 3, 4, 5  # shared nodes; _INT0 + i is the int i < 256
 _FIRST = _INT0 + 256
 _SAT = 1 << 62
+_OBJECT_BYTES = 32  # what the budget charges for each object the C unpickler makes (an empty dict is 80)
 _MAX_DIMS = 64
 
 
@@ -814,7 +816,7 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
             err, i0 = E_OPCODE, op
         if err:
             break
-        if spent > budget:
+        if spent + 8 * sp > budget:
             err = E_BUDGET
             break
         if push == nn:
@@ -823,6 +825,7 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
             else:
                 nodes[nn, W], nodes[nn, V], nodes[nn, A], nodes[nn, B] = w | op << OP_SHIFT, v, a, b
                 nn += 1
+                spent += _OBJECT_BYTES
         if push >= 0:
             stack[sp] = push
             sp += 1

@@ -773,3 +773,15 @@ def test_load_pickles_builds_in_order_and_raises_where_a_file_is_bad(tmp_path: P
     assert err.value.source == "b"
     good = safe_pickle.load_pickles([paths[2], paths[0]], sources=["c", "a"])
     assert [len(x) for x in good] == [1, 3]  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("flood", [b"}", b"]", b"\x8f"])
+def test_a_pickle_of_millions_of_tiny_objects_is_refused_before_they_are_built(flood: bytes) -> None:
+    """Empty dicts, lists or sets: one byte each in the pickle, 60-220 in memory; the budget counts them
+    and refuses before the C unpickler makes any."""
+    data = b"\x80\x04" + flood * (3_000_000 // len(flood)) + b"."
+    with pytest.raises(InputError, match="far more array data or objects") as err:
+        loads(data)
+    assert not isinstance(err.value, UnsafePickleError)
+    assert safe_pickle._budget(len(data)) < 96 << 20
+    loads(b"\x80\x04" + flood * 1000 + b".")  # a thousand are fine
