@@ -23,8 +23,8 @@ every container operation the C unpickler would perform is an allowed one:
   ``key_budget`` tuple elements hashed in all (a shared-child tuple DAG would hash for ever);
 * what the C unpickler will hold -- array bytes (counted at every BUILD, call and encode, shared inputs
   each time), 32 bytes an object, 8 a stack slot -- within ``budget`` (a small pickle cannot make a huge
-  array, nor millions of empty containers); memo indices within the number of memo writes + 1024 (``_pickle.c`` sizes its memo array
-  by the largest index);
+  array, nor millions of empty containers); memo indices within the number of memo writes + 1024
+  (``_pickle.c`` sizes its memo array by the largest index);
 * no NEWOBJ(_EX), INST, OBJ, EXT1/2/4, (BIN)PERSID, NEXT_BUFFER, READONLY_BUFFER.
 
 Where ``_pickle.c`` is lenient the scan is stricter; it never accepts what the C unpickler would read

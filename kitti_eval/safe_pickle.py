@@ -278,7 +278,8 @@ def _scan_error(res: tuple[Any, ...], data: bytes | np.ndarray, source: str) -> 
             _ps.E_UNHASHABLE: f"a dict key or set item is a {nd.describe(i0)}, which cannot be hashed",
             _ps.E_CHANGED: "a container is changed after it was put into another one (recursive structures "
                            "are not accepted)",
-            _ps.E_BUDGET: "the pickle builds far more array data or objects than it contains (a corrupt or hostile size)",
+            _ps.E_BUDGET: "the pickle builds far more array data or objects than it contains (a corrupt or "
+                          "hostile size)",
             _ps.E_OOB: "the pickle refers to out-of-band buffers, which are not supported",
             _ps.E_NOT_TUPLE: "call arguments must be a tuple",
             _ps.E_HEADER: "malformed numpy array header (numpy writes an empty int8 shell)",
