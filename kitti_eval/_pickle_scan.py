@@ -67,7 +67,7 @@ E_FROMBUF_OBJ = 25   # object dtype from a raw buffer
 E_DTYPE_SIZE = 26    # bad str/bytes size in a dtype state (i1: size)
 E_ARGS = 27          # wrong number or kind of call arguments
 E_ROOM = 28          # not an error: work array i0 (a ROOM_* index) needs i1 rows; the caller grows it and calls again
-ROOM_NODES, ROOM_CH, ROOM_STACK, ROOM_MARKS, ROOM_MEMO, ROOM_GSEQ = range(6)
+ROOM_NODES, ROOM_CH, ROOM_STACK, ROOM_MARKS, ROOM_MEMO = range(5)
 # refused (UnsafePickleError)
 E_GLOBAL = 40        # a global outside the allowlist (i0: 0 GLOBAL, i1/i2 line offsets; 1 STACK_GLOBAL, str nodes)
 E_NEWOBJ = 41
@@ -472,21 +472,21 @@ def _hash_cost(nodes, k):
 
 
 @njit(cache=True, nogil=True)
-def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, ch, stack, marks, memo, gseq):
+def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, ch, stack, marks, memo):
     """Check the pickle in ``data`` (read-only uint8).
 
     ``gblob``/``gtab``: the allowlist (rows: module offset, length, name offset, length, FN_*);
     ``dblob``/``dtab``: the accepted dtype codes (columns D_*). ``nodes`` (N, 4; the first rows
-    :data:`BASE_NODES`), ``ch``, ``stack``, ``marks``, ``memo`` (zeros; it keeps node + 1 per filled slot)
-    and ``gseq`` (int64) are room to work in; when one is too small the scan returns E_ROOM naming it (i0)
-    and the size it needs (i1), to be called again.
+    :data:`BASE_NODES`), ``ch``, ``stack``, ``marks`` and ``memo`` (zeros; it keeps node + 1 per filled
+    slot), all int64, are room to work in; when one is too small the scan returns E_ROOM naming it (i0) and
+    the size it needs (i1), to be called again.
 
-    Returns ``(code, pos, i0, i1, i2, nodes used, children used, globals, result)``: OK or an E_* code for
-    the opcode at byte ``pos`` with details i0..i2; how many nodes and tuple children (for messages) and
-    globals (allowlist rows in stream order, in ``gseq``) there are, and the node STOP returns.
+    Returns ``(code, pos, i0, i1, i2, nodes used, children used, result)``: OK or an E_* code for the opcode
+    at byte ``pos`` with details i0..i2; how many nodes and tuple children there are (for messages), and
+    the node STOP returns.
     """
     n = data.shape[0]
-    nn, nch, sp, nmarks, fence, ng = _FIRST, 0, 0, 0, 0, 0
+    nn, nch, sp, nmarks, fence = _FIRST, 0, 0, 0, 0
     memo_len, writes, spent, hashed = 0, 0, 0, 0
     pos, p0, err, i0, i1, i2, result = 0, 0, OK, 0, 0, 0, -1
     while True:
@@ -694,11 +694,6 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                 if op == 0x93:
                     i1, i2 = stack[sp], stack[sp + 1]
                 break
-            if ng == gseq.shape[0]:
-                err, i0, i1 = E_ROOM, ROOM_GSEQ, 2 * ng
-                break
-            gseq[ng] = row
-            ng += 1
             w, v, push = K_GLOBAL | F_GLOBALISH, row, nn
         elif op == 0x52:  # REDUCE
             if sp - 2 < fence:
@@ -829,4 +824,4 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
         if push >= 0:
             stack[sp] = push
             sp += 1
-    return err, p0, i0, i1, i2, nn, nch, ng, result
+    return err, p0, i0, i1, i2, nn, nch, result

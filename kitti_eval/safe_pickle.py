@@ -55,7 +55,6 @@ _ZIP_MAGIC = b"PK\x03\x04"
 _NPY_MAGIC = b"\x93NUMPY"
 #: what ``torch.save`` writes first in its legacy (non-zip) format: a pickled int
 _TORCH_LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
-_READ_CHUNK = 16 << 20
 _MAX_DEPTH = 100
 _KEY_BUDGET = 1 << 22  # tuple elements hashed as dict keys and set members, in all
 
@@ -177,7 +176,7 @@ def _unsafe(source: str, module: str, name: str) -> UnsafePickleError:
 class _Nodes:
     """Read access to the scan's nodes, for messages."""
 
-    def __init__(self, data: bytes | np.ndarray, nodes: np.ndarray, ch: np.ndarray) -> None:
+    def __init__(self, data: bytes, nodes: np.ndarray, ch: np.ndarray) -> None:
         self.data, self.nodes, self.ch = data, nodes, ch
 
     def kind(self, n: int) -> int:
@@ -215,13 +214,13 @@ class _Nodes:
         return np.dtype(f"{kind}{size // 4 if kind == 'U' else size}")
 
 
-def _line(data: bytes | np.ndarray, start: int) -> str:
+def _line(data: bytes, start: int) -> str:
     line = bytes(data[start:start + 4096])
     end = line.find(b"\n")
     return line[:end if end >= 0 else len(line)].decode("utf-8", "replace")
 
 
-def _scan_error(res: tuple[Any, ...], data: bytes | np.ndarray, source: str) -> InputError:
+def _scan_error(res: tuple[Any, ...], data: bytes, source: str) -> InputError:
     code, pos, i0, i1, i2, nodes, ch = (int(res[0]), int(res[1]), int(res[2]), int(res[3]), int(res[4]),
                                         res[5], res[6])
     nd = _Nodes(data, nodes, ch)
@@ -307,7 +306,7 @@ class _Reader:
 
     __slots__ = ("_view", "_pos")
 
-    def __init__(self, data: bytes | np.ndarray) -> None:
+    def __init__(self, data: bytes) -> None:
         self._view = memoryview(data).cast("B")
         self._pos = 0
 
@@ -331,19 +330,15 @@ class _Reader:
 
 
 class _Unpickler(pickle.Unpickler):
-    """The C unpickler, handing out the allowlisted globals in exactly the order the scan saw them."""
+    """The C unpickler, handing out the allowlisted globals (the scan has seen every one it will ask for)."""
 
-    def __init__(self, data: bytes | np.ndarray, expected: np.ndarray) -> None:
+    def __init__(self, data: bytes) -> None:
         super().__init__(_Reader(data), fix_imports=False, encoding="ASCII", errors="strict")
-        self.expected = expected
-        self.found = 0
 
     def find_class(self, module: str, name: str) -> Any:
-        k = self.found
-        self.found = k + 1
         row = _GLOBAL_ROW.get((module, name))
-        if row is None or k >= len(self.expected) or self.expected[k] != row:  # pragma: no cover - the scan's
-            raise UnsafePickleError(f"the pickle refers to {module}.{name} where the check saw another global")
+        if row is None:  # pragma: no cover - the scan refuses every other global first
+            raise UnsafePickleError(f"the pickle refers to {module}.{name}; it was not loaded")
         return _GLOBAL_OBJ[row]
 
 
@@ -364,15 +359,15 @@ def _budget(n: int) -> int:
     return 8 * n + (32 << 20)
 
 
-def _scan(data: bytes | np.ndarray, source: str) -> tuple[Any, ...]:
+def _scan(data: bytes, source: str) -> tuple[Any, ...]:
     """Run the scan, with work arrays sized for common pickles and grown (by rerunning it) when too small."""
     u8 = np.frombuffer(data, np.uint8)
     if u8.flags.writeable:  # one compiled specialization (read-only input) whatever the source
         u8 = u8.view()
         u8.flags.writeable = False
     n = len(u8)
-    # by _ps.ROOM_*: nodes, children, stack (pickle appends in batches of 1000), marks, memo, globals
-    sizes = [n // 8 + 1024, n // 8 + 1024, 1 << 16, 1 << 10, n // 16 + 1024, 64]
+    # by _ps.ROOM_*: nodes, children, stack (pickle appends in batches of 1000), marks, memo
+    sizes = [n // 8 + 1024, n // 8 + 1024, 1 << 16, 1 << 10, n // 16 + 1024]
     try:
         while True:
             work = [np.empty((sizes[0], 4), np.int64)] + [np.empty(k, np.int64) for k in sizes[1:]]
@@ -384,14 +379,14 @@ def _scan(data: bytes | np.ndarray, source: str) -> tuple[Any, ...]:
             sizes[int(res[2])] = int(res[3])
     except MemoryError:
         raise InputError("not a readable pickle: it needs more memory than is available", source=source) from None
-    nn, nch, ng = int(res[5]), int(res[6]), int(res[7])
-    return (*res[:5], work[_ps.ROOM_NODES][:nn], work[_ps.ROOM_CH][:nch], work[_ps.ROOM_GSEQ][:ng], int(res[8]))
+    nn, nch = int(res[5]), int(res[6])
+    return (*res[:5], work[_ps.ROOM_NODES][:nn], work[_ps.ROOM_CH][:nch], int(res[7]))
 
 
-def _build(data: bytes | np.ndarray, res: tuple[Any, ...], source: str) -> object:
+def _build(data: bytes, res: tuple[Any, ...], source: str) -> object:
     """The objects of a pickle the scan accepted (``res``), built by the C unpickler."""
-    nodes, gseq, result = res[5], res[7], int(res[8])
-    unpickler = _Unpickler(data, gseq)
+    nodes, result = res[5], int(res[7])
+    unpickler = _Unpickler(data)
     try:
         obj = unpickler.load()
     except MemoryError:
@@ -402,7 +397,7 @@ def _build(data: bytes | np.ndarray, res: tuple[Any, ...], source: str) -> objec
     except Exception as e:  # noqa: BLE001 - only allowlisted code ran on checked arguments; bad input
         raise InputError(f"not a readable pickle: {type(e).__name__}: {e}", source=source) from None
     kind = int(nodes[result, _ps.W]) & _ps.KIND_MASK
-    if unpickler.found != len(gseq) or not isinstance(obj, _RESULT_TYPES[kind]):  # pragma: no cover
+    if not isinstance(obj, _RESULT_TYPES[kind]):  # pragma: no cover - the scan models what pickle builds
         raise InputError(f"not a readable pickle: the loaded {type(obj).__name__} is not the "
                          f"{_ps.KIND_NAMES[kind]} the check saw", source=source)
     if isinstance(obj, int) and not isinstance(obj, bool) and obj == _TORCH_LEGACY_MAGIC:
@@ -436,34 +431,8 @@ def _read_limited(read: Callable[..., bytes], max_bytes: int | None, what: str, 
     return chunks[0] if len(chunks) == 1 else b"".join(chunks)
 
 
-def _read_file(fh: IO[bytes], max_bytes: int | None, source: str) -> bytes | np.ndarray:
-    """The whole file, into a numpy buffer (huge pages, no 4 KiB page faults for a 22 MB pickle)."""
-    size = os.fstat(fh.fileno()).st_size
-    if max_bytes is not None and size > max_bytes:
-        raise InputError(f"the file is larger than the limit of {max_bytes} bytes", source=source)
-    buf = np.empty(size + 1, np.uint8)  # one byte more: a file that grows (or a pipe) is read on below
-    view = memoryview(buf)
-    n = 0
-    while n < len(buf):
-        k = fh.readinto(view[n:])  # type: ignore[attr-defined]
-        if not k:
-            return buf[:n]
-        n += k
-    chunks = [bytes(buf)]
-    while max_bytes is None or n <= max_bytes:
-        chunk = fh.read(_READ_CHUNK if max_bytes is None else min(_READ_CHUNK, max_bytes + 1 - n))
-        if not chunk:
-            break
-        chunks.append(chunk)
-        n += len(chunk)
-    if max_bytes is not None and n > max_bytes:
-        raise InputError(f"the file is larger than the limit of {max_bytes} bytes", source=source)
-    return b"".join(chunks)
-
-
 def _read_input(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str,
-                max_bytes: int | None) -> bytes | np.ndarray:
-    data: bytes | np.ndarray
+                max_bytes: int | None) -> bytes:
     if hasattr(path_or_fileobj, "read"):
         try:
             read = path_or_fileobj.read  # type: ignore[union-attr]
@@ -473,8 +442,8 @@ def _read_input(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str
     else:
         path = os.fspath(path_or_fileobj)  # type: ignore[arg-type]
         try:
-            with open(path, "rb", buffering=0) as fh:
-                data = _read_file(fh, max_bytes, source)
+            with open(path, "rb") as fh:
+                data = _read_limited(fh.read, max_bytes, "the file", source)
         except FileNotFoundError:
             raise InputError(f"no such file: {path}", source=source) from None
         except IsADirectoryError:
@@ -492,7 +461,7 @@ def _read_input(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str
     return data
 
 
-def _sniff(data: bytes | np.ndarray, source: str) -> None:
+def _sniff(data: bytes, source: str) -> None:
     if not len(data):
         raise InputError("not a readable pickle: the file is empty", source=source)
     data = bytes(data[:262])
@@ -531,7 +500,7 @@ def load_pickle(path_or_fileobj: str | os.PathLike[str] | IO[bytes], *, source: 
 
 
 def _checked(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str,
-             max_bytes: int | None) -> tuple[bytes | np.ndarray, tuple[Any, ...]]:
+             max_bytes: int | None) -> tuple[bytes, tuple[Any, ...]]:
     """The input's bytes and the scan's verdict on them (raises if it refused them)."""
     data = _read_input(path_or_fileobj, source, max_bytes)
     _sniff(data, source)
