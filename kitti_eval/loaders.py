@@ -563,33 +563,61 @@ FORMATS: tuple[str, ...] = (*PICKLE_FORMATS, "kitti_txt")
 _CAMERA_FIELDS = ("location", "dimensions", "rotation_y")
 
 
-def calibs_from_object(obj: object) -> dict[str, Any]:
+class _LazyCalibs(Mapping[str, Any]):
+    """{frame id: :class:`kitti_eval.calib.Calib`}, each worked out from its entry when first asked for (the
+    loader asks for a few frames: those with LiDAR boxes only, and every tenth one to compare both); a
+    frame whose calibration cannot be read is missing."""
+
+    def __init__(self, entries: dict[str, Any], build: Callable[[Any], Any]) -> None:
+        self._entries, self._build, self._done = entries, build, dict[str, Any]()
+
+    def __getitem__(self, frame_id: str) -> Any:
+        if frame_id not in self._done:
+            try:
+                self._done[frame_id] = self._build(self._entries[frame_id])
+            except (TypeError, ValueError, IndexError, AttributeError, InputError) as e:
+                raise KeyError(frame_id) from e
+        return self._done[frame_id]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._entries)
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+
+def _mmdet3d_calib(entry: Mapping[str, Any]) -> Any:
+    from .calib import Calib
+
+    cam = entry["images"]["CAM2"]
+    p2 = np.asarray(cam["cam2img"], dtype=np.float64)
+    p2 = np.pad(p2, ((0, 3 - p2.shape[0]), (0, 4 - p2.shape[1]))) if p2.shape != (4, 4) else p2[:3]
+    shape = (int(cam["height"]), int(cam["width"])) if "height" in cam else None
+    return Calib(np.asarray(cam["lidar2cam"], dtype=np.float64).reshape(4, 4), p2, shape)
+
+
+def calibs_from_object(obj: object) -> Mapping[str, Any]:
     """{frame id: :class:`kitti_eval.calib.Calib`} from ground-truth infos (OpenPCDet list, PointPillars
-    dict, mmdetection3d 1.x); empty when the object has no calibration. Never raises."""
-    from .calib import Calib, calib_from_info
+    dict, mmdetection3d 1.x), each read when first used; empty when the object has no calibration. Never
+    raises (a frame whose calibration cannot be read is missing)."""
+    from .calib import calib_from_info
     from .frames import normalize_frame_id
 
-    out: dict[str, Any] = {}
+    entries: dict[str, Any] = {}
     try:
         if isinstance(obj, Mapping) and "data_list" in obj:
             for entry in obj["data_list"]:
-                cam = entry["images"]["CAM2"]
-                p2 = np.asarray(cam["cam2img"], dtype=np.float64)
-                p2 = np.pad(p2, ((0, 3 - p2.shape[0]), (0, 4 - p2.shape[1]))) if p2.shape != (4, 4) else p2[:3]
-                shape = (int(cam["height"]), int(cam["width"])) if "height" in cam else None
-                out[normalize_frame_id(entry["sample_idx"])] = Calib(
-                    np.asarray(cam["lidar2cam"], dtype=np.float64).reshape(4, 4), p2, shape)
-            return out
-        entries = (obj.items() if isinstance(obj, Mapping) else
-                   ((None, e) for e in obj) if isinstance(obj, (list, tuple)) else ())
-        for i, (key, info) in enumerate(entries):
-            if not isinstance(info, Mapping) or "calib" not in info:
-                continue
-            fid = key if key is not None else _entry_frame_id(info, i, "")
-            out[normalize_frame_id(fid)] = calib_from_info(info)
+                if isinstance(entry, Mapping) and "images" in entry:
+                    entries[normalize_frame_id(entry["sample_idx"])] = entry
+            return _LazyCalibs(entries, _mmdet3d_calib)
+        items = (obj.items() if isinstance(obj, Mapping) else
+                 ((None, e) for e in obj) if isinstance(obj, (list, tuple)) else ())
+        for i, (key, info) in enumerate(items):
+            if isinstance(info, Mapping) and "calib" in info:
+                entries[normalize_frame_id(key if key is not None else _entry_frame_id(info, i, ""))] = info
     except (KeyError, TypeError, ValueError, IndexError, AttributeError, InputError):
         return {}
-    return out
+    return _LazyCalibs(entries, calib_from_info)
 
 
 #: camera/LiDAR agreement is checked on every so many frames that carry both

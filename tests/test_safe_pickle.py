@@ -430,6 +430,8 @@ def test_max_bytes_bounds_decompressed_and_plain_input(tmp_path: Path) -> None:
 def scan_mode(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
     """Run a test with the compiled scan and with its main loop as plain Python (the same checks)."""
     if request.param == "python":
+        if not hasattr(_pickle_scan.scan, "py_func"):
+            pytest.skip("NUMBA_DISABLE_JIT: the scan is plain Python in the other run already")
         monkeypatch.setattr(_pickle_scan, "scan", _pickle_scan.scan.py_func)
     return request.param
 
