@@ -23,9 +23,9 @@ RUN pip install --no-cache-dir ".[server]" \
 
 WORKDIR /data
 USER kitti
-# Compile the numba kernels into NUMBA_CACHE_DIR now, so a container starts warm (numba recompiles, once,
-# if the host's CPU differs from the build machine's).
-RUN kitti-eval demo --format json > /dev/null
+# Compile every numba kernel into NUMBA_CACHE_DIR now (what the service's warm-up would), so a container
+# starts warm (numba recompiles, once, if the host's CPU differs from the build machine's).
+RUN python -m kitti_eval._jit --all
 
 VOLUME ["/data"]
 EXPOSE 8000
