@@ -22,7 +22,8 @@ from .errors import InputError
 from .evaluation import Plan, evaluate, plan_evaluation
 from .frames import Annotations
 from .gate import ValueKey
-from .matching import FrameEvents, default_workers, frame_events_many
+from .matching import FrameEvents, default_workers, frame_events_many, threshold_step
+from .metrics import average_precisions, envelope
 from .protocol import N_SAMPLE_PTS, EvalConfig, Metric
 from .result import EvalResult
 
@@ -30,35 +31,12 @@ __all__ = ["resampled_ap", "frame_weights", "paired_bootstrap", "Comparison", "c
 
 
 @njit(cache=True, nogil=True)
-def _envelope_ap(values: np.ndarray, n: int) -> tuple[float, float]:
-    """R11 and R40 (percent) of the first ``n`` values of a curve after ``v[i] = max(v[i:])`` (NaN spreads)."""
-    env = np.zeros(N_SAMPLE_PTS)
-    running = 0.0
-    nan = False
-    for i in range(n - 1, -1, -1):
-        v = values[i]
-        if np.isnan(v):
-            nan = True
-        if v > running:
-            running = v
-        env[i] = np.nan if nan else running
-    r11 = 0.0
-    for i in range(0, N_SAMPLE_PTS, 4):
-        r11 = r11 + env[i]
-    r40 = 0.0
-    for i in range(1, N_SAMPLE_PTS):
-        r40 = r40 + env[i]
-    return r11 / 11.0 * 100.0, r40 / 40.0 * 100.0
-
-
-@njit(cache=True, nogil=True)
-def _resampled_ap(valid: np.ndarray, tp_score: np.ndarray, tp_frame: np.ndarray, ev_score: np.ndarray,
-                  ev_frame: np.ndarray, ev_delta: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(B, 4): precision R11, R40 and orientation R11, R40 for each row of frame weights (B, F)."""
+def _resampled_curves(valid: np.ndarray, tp_score: np.ndarray, tp_frame: np.ndarray, ev_score: np.ndarray,
+                      ev_frame: np.ndarray, ev_delta: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(B, 2, 41): precision and orientation similarity / (TP + FP) at each score threshold (zeros past the
+    last; NaN where nothing is detected) for each row of frame weights (B, F), before max-interpolation."""
     n_b = weights.shape[0]
-    out = np.zeros((n_b, 4))
-    precision = np.zeros(N_SAMPLE_PTS)
-    orientation = np.zeros(N_SAMPLE_PTS)
+    out = np.zeros((n_b, 2, N_SAMPLE_PTS))
     for b in range(n_b):
         w = weights[b]
         n_gt = 0
@@ -70,20 +48,17 @@ def _resampled_ap(valid: np.ndarray, tp_score: np.ndarray, tp_frame: np.ndarray,
         if n_gt == 0 or n_tp == 0:
             continue
         # the devkit's score thresholds over the resampled true positives (each repeated by its weight)
-        thresholds = np.empty(n_tp)
+        thresholds = np.empty(N_SAMPLE_PTS)
         n_thr = 0
         current = 0.0
         i = 0
         for k in range(tp_score.shape[0]):
             for _ in range(w[tp_frame[k]]):
-                left = (i + 1) / n_gt
-                right = (i + 2) / n_gt if i < n_tp - 1 else left
-                if not ((right - current) < (current - left) and i < n_tp - 1):
+                take, current = threshold_step(i, n_tp, n_gt, current, N_SAMPLE_PTS)
+                if take and n_thr < N_SAMPLE_PTS:
                     thresholds[n_thr] = tp_score[k]
                     n_thr += 1
-                    current += 1.0 / (N_SAMPLE_PTS - 1.0)
                 i += 1
-        n_thr = min(n_thr, N_SAMPLE_PTS)
         tp = 0.0
         fp = 0.0
         sim = 0.0
@@ -96,14 +71,8 @@ def _resampled_ap(valid: np.ndarray, tp_score: np.ndarray, tp_frame: np.ndarray,
                     fp += ww * ev_delta[e, 1]
                     sim += ww * ev_delta[e, 3]
                 e += 1
-            if tp + fp > 0:
-                precision[t] = tp / (tp + fp)
-                orientation[t] = sim / (tp + fp)
-            else:
-                precision[t] = np.nan
-                orientation[t] = np.nan
-        out[b, 0], out[b, 1] = _envelope_ap(precision, n_thr)
-        out[b, 2], out[b, 3] = _envelope_ap(orientation, n_thr)
+            out[b, 0, t] = tp / (tp + fp) if tp + fp > 0 else np.nan
+            out[b, 1, t] = sim / (tp + fp) if tp + fp > 0 else np.nan
     return out
 
 
@@ -117,13 +86,16 @@ def resampled_ap(events: FrameEvents, weights: npt.ArrayLike) -> npt.NDArray[np.
 
     Returns
     -------
-    (B, 4) float64: precision AP R11, R40 and orientation AP R11, R40, in percent
+    (B, 4) float64: precision AP R11, R40 and orientation AP R11, R40, in percent (the curves interpolated
+    and averaged by :mod:`kitti_eval.metrics`, as every AP is)
     """
     w = kernel_input(weights, np.int64)
     if w.ndim != 2 or w.shape[1] != events.valid.shape[0] or (w < 0).any():
         raise ValueError(f"Expected `weights` with shape (B, {events.valid.shape[0]}) of counts >= 0, got {w.shape}")
-    return _resampled_ap(events.valid, events.tp_score, events.tp_frame, events.ev_score, events.ev_frame,
-                         events.ev_delta, w)
+    curves = envelope(_resampled_curves(events.valid, events.tp_score, events.tp_frame, events.ev_score,
+                                        events.ev_frame, events.ev_delta, w))
+    return np.stack([average_precisions(curves[:, 0], "R11"), average_precisions(curves[:, 0], "R40"),
+                     average_precisions(curves[:, 1], "R11"), average_precisions(curves[:, 1], "R40")], axis=1)
 
 
 def frame_weights(n_frames: int, n_resamples: int, seed: int) -> npt.NDArray[np.int64]:

@@ -41,24 +41,31 @@ __all__ = ["PRCounts", "MatchJob", "FrameEvents", "FrameLabels", "pr_counts", "p
 _NO_DETECTION = -10000000.0
 
 
+@njit(cache=True, nogil=True, inline="always")
+def threshold_step(i: int, n: int, n_gt: int, current_recall: float, n_sample_pts: int) -> tuple[bool, float]:
+    """The devkit's rule for score thresholds: whether the ``i``-th of ``n`` true-positive scores (sorted
+    descending, so taking it as the threshold gives recall ``(i + 1) / n_gt``) becomes a threshold, and the
+    recall the next one must reach. A score becomes one where recall gets at least as close to the next
+    1/(n_sample_pts - 1) step as the following score would; the last score always does."""
+    l_recall = (i + 1) / n_gt
+    r_recall = (i + 2) / n_gt if i < n - 1 else l_recall
+    if (r_recall - current_recall) < (current_recall - l_recall) and i < n - 1:
+        return False, current_recall
+    return True, current_recall + 1.0 / (n_sample_pts - 1.0)
+
+
 @njit(cache=True, nogil=True)
 def _score_thresholds(scores_desc: np.ndarray, n_gt: int, n_sample_pts: int) -> np.ndarray:
-    """Scores at which recall crosses each 1/(n_sample_pts - 1) step; scores sorted descending."""
+    """The score thresholds (see :func:`threshold_step`) of true-positive scores sorted descending."""
     n = scores_desc.shape[0]
     out = np.empty(n, dtype=np.float64)
     k = 0
     current_recall = 0.0
     for i in range(n):
-        l_recall = (i + 1) / n_gt
-        if i < n - 1:
-            r_recall = (i + 2) / n_gt
-        else:
-            r_recall = l_recall
-        if (r_recall - current_recall) < (current_recall - l_recall) and i < n - 1:
-            continue
-        out[k] = scores_desc[i]
-        k += 1
-        current_recall += 1.0 / (n_sample_pts - 1.0)
+        take, current_recall = threshold_step(i, n, n_gt, current_recall, n_sample_pts)
+        if take:
+            out[k] = scores_desc[i]
+            k += 1
     return out[:k]
 
 

@@ -11,7 +11,7 @@ import numpy.typing as npt
 from .matching import PRCounts
 from .protocol import N_SAMPLE_PTS, RECALL_SAMPLE_INDICES
 
-__all__ = ["Curve", "curve_from_counts", "average_precision"]
+__all__ = ["Curve", "curve_from_counts", "envelope", "average_precision", "average_precisions"]
 
 
 @dataclass(frozen=True)
@@ -37,9 +37,10 @@ class Curve:
                 raise ValueError(f"Expected `{name}` with shape ({N_SAMPLE_PTS},), got {getattr(self, name).shape}")
 
 
-def _envelope(values: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    """``out[i] = max(values[i:])`` (NaN propagates, as numpy's max does)."""
-    return np.maximum.accumulate(values[::-1])[::-1].copy()
+def envelope(values: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """``out[..., i] = max(values[..., i:])`` along the last axis: the devkit's max-interpolation (a NaN
+    makes every earlier sample NaN, as numpy's max does)."""
+    return np.maximum.accumulate(values[..., ::-1], axis=-1)[..., ::-1].copy()
 
 
 def curve_from_counts(counts: PRCounts, n_sample_pts: int = N_SAMPLE_PTS) -> Curve:
@@ -53,7 +54,7 @@ def curve_from_counts(counts: PRCounts, n_sample_pts: int = N_SAMPLE_PTS) -> Cur
             recall[:t] = counts.tp / (counts.tp + counts.fn)
             precision[:t] = counts.tp / (counts.tp + counts.fp)
             orientation[:t] = counts.similarity / (counts.tp + counts.fp)
-    return Curve(precision=_envelope(precision), recall=_envelope(recall), orientation=_envelope(orientation),
+    return Curve(precision=envelope(precision), recall=envelope(recall), orientation=envelope(orientation),
                  thresholds=counts.thresholds.copy(), num_valid_gt=counts.num_valid_gt)
 
 
@@ -62,8 +63,13 @@ def average_precision(values: Sequence[float] | npt.NDArray[np.float64], recall:
 
     Summed in sample order, as the reference evaluators do.
     """
+    return float(average_precisions(np.asarray(values, dtype=np.float64)[None], recall)[0])
+
+
+def average_precisions(curves: npt.NDArray[np.float64], recall: str) -> npt.NDArray[np.float64]:
+    """:func:`average_precision` of each row of ``curves`` (B, 41): the same sums, in the same order."""
     idx = RECALL_SAMPLE_INDICES[recall]
-    total = 0.0
+    total = np.zeros(curves.shape[0])
     for i in idx:
-        total = total + float(values[i])
+        total = total + curves[:, i]
     return total / len(idx) * 100.0
