@@ -301,10 +301,11 @@ def _coco_table(plan: Plan, job_curves: list[Curve]) -> dict:
             targets.append((Metric.AOS, "orientation", with_aos))
         for m, attr, wanted in targets:
             for r in RECALL_MODES:
-                if not wanted or any(j is None for j in jobs):
+                picked = [j for j in jobs if j is not None]
+                if not wanted or len(picked) < len(jobs):
                     value = None
                 else:
-                    value = sum(average_precision(getattr(job_curves[j], attr), r) for j in jobs) / len(jobs)
+                    value = sum(average_precision(getattr(job_curves[j], attr), r) for j in picked) / len(picked)
                 out[r][cls][m.value][difficulty.label] = value
     return out
 

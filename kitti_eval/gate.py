@@ -348,7 +348,7 @@ def render_junit(verdict: Verdict, name: str = "kitti-eval gate") -> str:
         if not c.passed:
             failure = ET.SubElement(case, "failure", message=c.message or "failed")
             failure.text = f"current={_f(c.current)} baseline={_f(c.baseline)} delta={_f(c.delta, sign=True)}"
-    return ET.tostring(ET.ElementTree(suite).getroot(), encoding="unicode", xml_declaration=True) + "\n"
+    return ET.tostring(suite, encoding="unicode", xml_declaration=True) + "\n"
 
 
 def _f(value: float | None, sign: bool = False) -> str:

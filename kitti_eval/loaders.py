@@ -320,9 +320,9 @@ def describe_format(obj: object) -> str:
             return f"a {kind} of {len(obj)} entries, the first a dict with keys [{keys}]"
         return f"a {kind} of {len(obj)} entries, the first {_type_name(first)}"
     if isinstance(obj, Mapping):
-        keys = list(obj.keys())
-        shown = ", ".join(repr(k) for k in keys[:6]) + (", ..." if len(keys) > 6 else "")
-        return f"a dict with {len(keys)} keys [{shown}]"
+        names = list(obj.keys())
+        shown = ", ".join(repr(k) for k in names[:6]) + (", ..." if len(names) > 6 else "")
+        return f"a dict with {len(names)} keys [{shown}]"
     return _type_name(obj)
 
 

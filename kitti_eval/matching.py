@@ -644,7 +644,7 @@ def pr_counts(pair_offsets: npt.NDArray[np.int64], overlaps: npt.NDArray[np.floa
     """
     n_gt = int(np.asarray(gt_offsets)[-1])
     use_dc = dontcare is not None
-    dc = dontcare if use_dc else np.zeros(n_gt, dtype=np.bool_)
+    dc = dontcare if dontcare is not None else np.zeros(n_gt, dtype=np.bool_)
     (counts,) = pr_counts_many(pair_offsets, [overlaps], gt_offsets, dt_offsets, np.asarray(ignored_gt)[None],
                                np.asarray(ignored_det)[None], dc, score, gt_alpha, dt_alpha,
                                [MatchJob(0, 0, float(min_overlap), bool(compute_aos), use_dc)], n_sample_pts)

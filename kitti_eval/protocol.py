@@ -191,7 +191,7 @@ def _check_overlap(cls: str, oset: str, values: object) -> tuple[float, float, f
     if len(triple) != 3 or not all(0.0 <= v < 1.0 for v in triple):
         raise ConfigError(
             f"IoU thresholds for {cls}/{oset} must be three numbers in [0, 1) (bbox, bev, 3d), got {values!r}")
-    return triple  # type: ignore[return-value]
+    return triple
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ import pickle
 import zlib
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import IO, Any
+from typing import IO, Any, cast
 
 import numpy as np
 
@@ -65,8 +65,8 @@ _KEY_BUDGET = 1 << 22  # tuple elements hashed as dict keys and set members, in 
 _GLOBALS: tuple[tuple[str, str, int, object], ...] = (
     ("numpy.core.multiarray", "_reconstruct", _ps.FN_RECONSTRUCT, _np_multiarray._reconstruct),
     ("numpy._core.multiarray", "_reconstruct", _ps.FN_RECONSTRUCT, _np_multiarray._reconstruct),
-    ("numpy.core.numeric", "_frombuffer", _ps.FN_FROMBUFFER, _np_numeric._frombuffer),
-    ("numpy._core.numeric", "_frombuffer", _ps.FN_FROMBUFFER, _np_numeric._frombuffer),
+    ("numpy.core.numeric", "_frombuffer", _ps.FN_FROMBUFFER, _np_numeric._frombuffer),  # type: ignore[attr-defined]
+    ("numpy._core.numeric", "_frombuffer", _ps.FN_FROMBUFFER, _np_numeric._frombuffer),  # type: ignore[attr-defined]
     ("numpy", "ndarray", _ps.FN_NDARRAY, np.ndarray),  # only ever the subtype argument of _reconstruct
     ("numpy", "dtype", _ps.FN_DTYPE, np.dtype),
     ("numpy.core.multiarray", "scalar", _ps.FN_SCALAR, _np_multiarray.scalar),
@@ -96,8 +96,8 @@ def _globals_table() -> tuple[np.ndarray, np.ndarray]:
 def _canonical_state(dt: np.dtype, byteorder: str) -> tuple[Any, ...]:
     """The state numpy writes for a plain dtype like ``dt`` stored in ``byteorder``."""
     if byteorder in "<>" and dt.byteorder != "|":
-        dt = dt.newbyteorder(byteorder)
-    return dt.__reduce__()[2]
+        dt = dt.newbyteorder("<" if byteorder == "<" else ">")
+    return cast(tuple[Any, ...], dt.__reduce__()[2])
 
 
 def _dtype_table() -> tuple[np.ndarray, np.ndarray]:
@@ -191,7 +191,7 @@ class _Nodes:
             if op == ord("V"):
                 return raw.decode("raw_unicode_escape")
             if op == ord("S"):
-                return codecs.escape_decode(raw)[0].decode("ascii", "replace")  # type: ignore[attr-defined]
+                return codecs.escape_decode(raw)[0].decode("ascii", "replace")
             return raw.decode("utf-8", "replace")
         except (UnicodeError, ValueError):
             return raw.decode("latin-1")
@@ -333,7 +333,8 @@ class _Unpickler(pickle.Unpickler):
     """The C unpickler, handing out the allowlisted globals (the scan has seen every one it will ask for)."""
 
     def __init__(self, data: bytes) -> None:
-        super().__init__(_Reader(data), fix_imports=False, encoding="ASCII", errors="strict")
+        # the C unpickler reads any buffer (memoryviews, without copies), not only bytes
+        super().__init__(_Reader(data), fix_imports=False, encoding="ASCII", errors="strict")  # type: ignore[arg-type]
 
     def find_class(self, module: str, name: str) -> Any:
         row = _GLOBAL_ROW.get((module, name))
@@ -435,12 +436,12 @@ def _read_input(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str
                 max_bytes: int | None) -> bytes:
     if hasattr(path_or_fileobj, "read"):
         try:
-            read = path_or_fileobj.read  # type: ignore[union-attr]
+            read = path_or_fileobj.read
             data = _read_limited(read, max_bytes, "the upload", source)
         except OSError as e:
             raise InputError(f"cannot read: {e}", source=source) from None
     else:
-        path = os.fspath(path_or_fileobj)  # type: ignore[arg-type]
+        path = os.fspath(path_or_fileobj)
         try:
             with open(path, "rb") as fh:
                 data = _read_limited(fh.read, max_bytes, "the file", source)

@@ -253,7 +253,8 @@ def _ground_truth(rng: np.random.Generator, frames: int, gt_per_frame: float, do
     i, j = i[pick], j[pick]
     ok[j[_bev_overlap(loc, dims, ry, i, j, margin=0.3)]] = False  # a later candidate yields to an earlier one
     keep = ok & (_rank_in_frame(frame, ok, frames) < want[frame])
-    frame, cls, loc, dims, ry, bbox, trunc = (a[keep] for a in (frame, cls, loc, dims, ry, bbox, trunc))
+    frame, cls, loc, dims, ry, bbox, trunc = frame[keep], cls[keep], loc[keep], dims[keep], ry[keep], bbox[keep], \
+        trunc[keep]
     n = len(frame)
     z = loc[:, 2]
     occ = np.digitize(0.75 * (z - 4.0) / 66.0 + rng.random(n), [0.7, 1.05, 1.42]).astype(np.float64)

@@ -77,11 +77,9 @@ def _env() -> jinja2.Environment:
 templates = Jinja2Templates(env=_env())
 
 
-def _status(exc: Exception) -> int:
+def _status(exc: ApiError | KittiEvalError | HTTPException) -> int:
     """The status the JSON API answers the same failure with (the mapping lives in ``server.errors``)."""
-    if isinstance(exc, ApiError):
-        return exc.status_code
-    if isinstance(exc, HTTPException):
+    if isinstance(exc, (ApiError, HTTPException)):
         return exc.status_code
     return library_error_status(exc)[0]
 
