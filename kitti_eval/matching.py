@@ -250,15 +250,21 @@ def _candidates(fr: Frames, ov: np.ndarray, ignored_gt: np.ndarray, ignored_det:
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _frame_rows(c: Candidates, f: int) -> tuple[int, int, int, int, int, int]:
+    """Where frame ``f`` lies in ``c``: first ground-truth row and count, first detection row and count, and
+    its overlap block's start and row width (ground truth + DontCare regions)."""
+    ga, d0 = c.g_ptr[f], c.d_ptr[f]
+    n_g = c.g_ptr[f + 1] - ga
+    return ga, n_g, d0, c.d_ptr[f + 1] - d0, c.sub_ptr[f], n_g + c.c_cnt[f]
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _frame_pass1(c: Candidates, f: int, min_overlap: float, tp_scores: np.ndarray, assigned: np.ndarray) -> int:
     """Pass 1 on frame ``f``: each ground-truth box in file order takes the unassigned detection of highest
     score with overlap > ``min_overlap``. Writes the scores of the valid matches (true positives) to
     ``tp_scores`` and returns how many. ``assigned``: scratch space for the frame's detections.
     """
-    ga, d0, nd = c.g_ptr[f], c.d_ptr[f], c.d_ptr[f + 1] - c.d_ptr[f]
-    n_g = c.g_ptr[f + 1] - ga
-    width = n_g + c.c_cnt[f]
-    o0 = c.sub_ptr[f]
+    ga, n_g, d0, nd, o0, width = _frame_rows(c, f)
     for a in range(nd):
         assigned[a] = False
     n_tp = 0
@@ -286,10 +292,7 @@ def _frame_pass2(c: Candidates, f: int, min_overlap: float, thresh: float, compu
     truth is a miss, unassigned valid detections are false positives unless a DontCare region covers them.
     ``assigned``/``below``: scratch space for the frame's detections.
     """
-    ga, d0, nd = c.g_ptr[f], c.d_ptr[f], c.d_ptr[f + 1] - c.d_ptr[f]
-    n_g = c.g_ptr[f + 1] - ga
-    width = n_g + c.c_cnt[f]
-    o0 = c.sub_ptr[f]
+    ga, n_g, d0, nd, o0, width = _frame_rows(c, f)
     for a in range(nd):
         assigned[a] = False
         below[a] = c.d_score[d0 + a] < thresh
