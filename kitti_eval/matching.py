@@ -13,7 +13,7 @@ This is the KITTI devkit's ``eval_class`` for one (class, difficulty, metric, Io
    detections are false positives unless a DontCare region covers them; AOS sums (1 + cos(dalpha)) / 2
    over true positives.
 
-Ignore codes (computed by :mod:`kitti_eval.evaluation` from the protocol):
+Ignore codes (computed by :mod:`kitti_eval.evaluation` from the protocol; named VALID, IGNORED, OTHER_CLASS):
 ``ignored_gt``: 0 = valid, 1 = ignored (neighbour class or outside the difficulty), -1 = other class;
 ``ignored_det``: 0 = valid, 1 = ignored (too small in 2D), -1 = other class.
 
@@ -39,6 +39,9 @@ __all__ = ["PRCounts", "MatchJob", "FrameEvents", "FrameLabels", "pr_counts", "p
            "label_frame", "score_thresholds", "default_workers", "DET_LABELS", "GT_LABELS"]
 
 _NO_DETECTION = -10000000.0
+
+#: ignore codes of ground truth and detections (numba compiles these module constants in)
+VALID, IGNORED, OTHER_CLASS = 0, 1, -1
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -194,11 +197,11 @@ def _candidates(fr: Frames, ov: np.ndarray, ignored_gt: np.ndarray, ignored_det:
         n_c = 0
         for i in range(g1 - g0):
             code = ignored_gt[g0 + i]
-            if code != -1:
+            if code != OTHER_CLASS:
                 g_code[ng] = code
                 g_alpha[ng] = gt_alpha[g0 + i]
                 ng += 1
-                if code == 0:
+                if code == VALID:
                     valid[f] += 1
             if dontcare[g0 + i]:
                 n_c += 1
@@ -206,14 +209,14 @@ def _candidates(fr: Frames, ov: np.ndarray, ignored_gt: np.ndarray, ignored_det:
         first = nd
         for j in range(d1 - d0):
             code = ignored_det[d0 + j]
-            if code == -1:
+            if code == OTHER_CLASS:
                 continue
             if best_gt[d0 + j] > min_overlap:
                 d_score[nd] = score[d0 + j]
                 d_code[nd] = code
                 d_alpha[nd] = dt_alpha[d0 + j]
                 nd += 1
-            elif code == 0 and not best_dc[d0 + j] > min_overlap:
+            elif code == VALID and not best_dc[d0 + j] > min_overlap:
                 free_fp[n_free] = score[d0 + j]
                 free_frame[n_free] = f
                 n_free += 1
@@ -231,7 +234,7 @@ def _candidates(fr: Frames, ov: np.ndarray, ignored_gt: np.ndarray, ignored_det:
         n_gt = g1 - g0
         width = 0
         for i in range(n_gt):
-            if ignored_gt[g0 + i] != -1:
+            if ignored_gt[g0 + i] != OTHER_CLASS:
                 cols[width] = i
                 width += 1
         for i in range(n_gt):
@@ -241,7 +244,7 @@ def _candidates(fr: Frames, ov: np.ndarray, ignored_gt: np.ndarray, ignored_det:
         k = sub_ptr[f]
         base = pair_offsets[f]
         for j in range(d1 - d0):
-            if ignored_det[d0 + j] != -1 and best_gt[d0 + j] > min_overlap:
+            if ignored_det[d0 + j] != OTHER_CLASS and best_gt[d0 + j] > min_overlap:
                 for c in range(width):
                     sub[k] = ov[base + j * n_gt + cols[c]]
                     k += 1
@@ -277,7 +280,7 @@ def _frame_pass1(c: Candidates, f: int, min_overlap: float, tp_scores: np.ndarra
                 best = c.d_score[d0 + a]
         if det_a >= 0:
             assigned[det_a] = True
-            if c.g_code[ga + i] == 0 and c.d_code[d0 + det_a] == 0:
+            if c.g_code[ga + i] == VALID and c.d_code[d0 + det_a] == VALID:
                 tp_scores[n_tp] = best
                 n_tp += 1
     return n_tp
@@ -309,27 +312,27 @@ def _frame_pass2(c: Candidates, f: int, min_overlap: float, thresh: float, compu
             overlap = c.sub[o0 + a * width + i]
             if overlap <= min_overlap:
                 continue
-            if c.d_code[d0 + a] == 0 and (overlap > max_overlap or det_ignored):
+            if c.d_code[d0 + a] == VALID and (overlap > max_overlap or det_ignored):
                 max_overlap = overlap
                 det_a = a
                 det_ignored = False
-            elif det_a < 0 and c.d_code[d0 + a] == 1:
+            elif det_a < 0 and c.d_code[d0 + a] == IGNORED:
                 det_a = a
                 det_ignored = True
         if det_a < 0:
-            fn += int(c.g_code[ga + i] == 0)
+            fn += int(c.g_code[ga + i] == VALID)
             continue
         assigned[det_a] = True
-        if c.g_code[ga + i] == 0 and c.d_code[d0 + det_a] == 0:
+        if c.g_code[ga + i] == VALID and c.d_code[d0 + det_a] == VALID:
             tp += 1
             if compute_aos:
                 similarity += (1.0 + np.cos(c.g_alpha[ga + i] - c.d_alpha[d0 + det_a])) / 2.0
     fp = 0
     for a in range(nd):
-        fp += int(not (assigned[a] or below[a] or c.d_code[d0 + a] == 1))
+        fp += int(not (assigned[a] or below[a] or c.d_code[d0 + a] == IGNORED))
     for k in range(c.c_cnt[f]):  # false positives that a DontCare region covers do not count
         for a in range(nd):
-            if not (assigned[a] or below[a] or c.d_code[d0 + a] == 1) and \
+            if not (assigned[a] or below[a] or c.d_code[d0 + a] == IGNORED) and \
                     c.sub[o0 + a * width + n_g + k] > min_overlap:
                 assigned[a] = True
                 fp -= 1
@@ -446,6 +449,8 @@ def _events(c: Candidates, min_overlap: float, compute_aos: bool):  # noqa: ANN2
 #: labels of :func:`label_frame`, by code
 DET_LABELS = ("tp", "fp", "ignored", "dontcare", "below_threshold", "other_class")
 GT_LABELS = ("matched", "missed", "ignored", "absorbed", "other_class")
+DET_TP, DET_FP, DET_IGNORED, DET_DONTCARE, DET_BELOW_THRESHOLD, DET_OTHER_CLASS = range(len(DET_LABELS))
+GT_MATCHED, GT_MISSED, GT_IGNORED, GT_ABSORBED, GT_OTHER_CLASS = range(len(GT_LABELS))
 
 
 @njit(cache=True, nogil=True)
@@ -467,59 +472,59 @@ def _label_frame(ov: np.ndarray, ig: np.ndarray, idet: np.ndarray, dc: np.ndarra
     for a in range(nd):
         below[a] = score[a] < thresh
     for i in range(ng):
-        if ig[i] == -1:
-            gt_label[i] = 4
+        if ig[i] == OTHER_CLASS:
+            gt_label[i] = GT_OTHER_CLASS
             continue
         det_a = -1
         valid_detection = _NO_DETECTION
         max_overlap = 0.0
         assigned_ignored_det = False
         for a in range(nd):
-            if idet[a] == -1 or assigned[a] or below[a]:
+            if idet[a] == OTHER_CLASS or assigned[a] or below[a]:
                 continue
             overlap = ov[a, i]
-            if overlap > min_overlap and (overlap > max_overlap or assigned_ignored_det) and idet[a] == 0:
+            if overlap > min_overlap and (overlap > max_overlap or assigned_ignored_det) and idet[a] == VALID:
                 max_overlap = overlap
                 det_a = a
                 valid_detection = 1.0
                 assigned_ignored_det = False
-            elif overlap > min_overlap and valid_detection == _NO_DETECTION and idet[a] == 1:
+            elif overlap > min_overlap and valid_detection == _NO_DETECTION and idet[a] == IGNORED:
                 det_a = a
                 valid_detection = 1.0
                 assigned_ignored_det = True
         if valid_detection == _NO_DETECTION:
-            gt_label[i] = 1 if ig[i] == 0 else 2
+            gt_label[i] = GT_MISSED if ig[i] == VALID else GT_IGNORED
             continue
         assigned[det_a] = True
         det_ref[det_a] = i
         det_ov[det_a] = ov[det_a, i]
         gt_ref[i] = det_a
-        if ig[i] == 1 or idet[det_a] == 1:
-            det_label[det_a] = 2
-            gt_label[i] = 2 if ig[i] == 1 else 3
+        if ig[i] == IGNORED or idet[det_a] == IGNORED:
+            det_label[det_a] = DET_IGNORED
+            gt_label[i] = GT_IGNORED if ig[i] == IGNORED else GT_ABSORBED
         else:
-            det_label[det_a] = 0
-            gt_label[i] = 0
+            det_label[det_a] = DET_TP
+            gt_label[i] = GT_MATCHED
     for a in range(nd):
         if assigned[a]:
             continue
-        if idet[a] == -1:
-            det_label[a] = 5
+        if idet[a] == OTHER_CLASS:
+            det_label[a] = DET_OTHER_CLASS
         elif below[a]:
-            det_label[a] = 4
-        elif idet[a] == 1:
-            det_label[a] = 2
+            det_label[a] = DET_BELOW_THRESHOLD
+        elif idet[a] == IGNORED:
+            det_label[a] = DET_IGNORED
         else:
-            det_label[a] = 1
+            det_label[a] = DET_FP
     for c in range(ng):
         if not dc[c]:
             continue
         for a in range(nd):
-            if assigned[a] or idet[a] != 0 or below[a]:
+            if assigned[a] or idet[a] != VALID or below[a]:
                 continue
             if ov[a, c] > min_overlap:
                 assigned[a] = True
-                det_label[a] = 3
+                det_label[a] = DET_DONTCARE
                 det_ref[a] = c
                 det_ov[a] = ov[a, c]
     return det_label, det_ref, det_ov, gt_label, gt_ref
@@ -542,15 +547,15 @@ class FrameLabels:
 
     @property
     def tp(self) -> int:
-        return int(np.count_nonzero(self.det_label == 0))
+        return int(np.count_nonzero(self.det_label == DET_TP))
 
     @property
     def fp(self) -> int:
-        return int(np.count_nonzero(self.det_label == 1))
+        return int(np.count_nonzero(self.det_label == DET_FP))
 
     @property
     def fn(self) -> int:
-        return int(np.count_nonzero(self.gt_label == 1))
+        return int(np.count_nonzero(self.gt_label == GT_MISSED))
 
 
 def label_frame(overlaps: npt.ArrayLike, ignored_gt: npt.ArrayLike, ignored_det: npt.ArrayLike,
