@@ -27,11 +27,12 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import IO, Literal
 
-from .errors import InputError
+from .errors import InputError, UnknownFormatError
 
-__all__ = ["ArchiveLimits", "ArchiveKind", "sniff_archive", "extract_txt_folder"]
+__all__ = ["ArchiveLimits", "ArchiveKind", "InputKind", "sniff_archive", "sniff_input", "extract_txt_folder"]
 
 ArchiveKind = Literal["zip", "tar"]
+InputKind = Literal["pickle", "zip", "tar"]
 
 _CHUNK = 1 << 20
 _GZIP_MAGIC = b"\x1f\x8b"
@@ -94,6 +95,48 @@ def sniff_archive(file: IO[bytes]) -> ArchiveKind | None:
     if head[:3] == _BZ2_MAGIC or head[:6] == _XZ_MAGIC or _looks_like_tar(head):
         return "tar"
     return None
+
+
+def _looks_like_kitti_line(head: bytes) -> bool:
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError as e:
+        text = head[:e.start].decode("utf-8")
+    for line in text.splitlines():
+        fields = line.split()
+        if fields:
+            return len(fields) in (15, 16) and fields[0][:1].isalpha()
+    return False
+
+
+def sniff_input(file: IO[bytes], source: str) -> InputKind:
+    """What a file is, from its first bytes, never from its name: ``"zip"`` or ``"tar"`` (of KITTI txt
+    files; a ``torch.save`` zip is one, and its extraction says what to export instead), or ``"pickle"``
+    (plain or gzipped; also a numpy ``.npy``, which the pickle loader refuses saying what to export instead).
+    The file (seekable) is rewound.
+
+    Raises
+    ------
+    UnknownFormatError : a single KITTI txt file, or anything else
+    InputError : an empty file
+    """
+    file.seek(0)
+    head = file.read(4096)
+    file.seek(0)
+    if not head:
+        raise InputError("the file is empty", source=source)
+    archive = sniff_archive(file)
+    if archive is not None:
+        return archive
+    if head[:2] == _GZIP_MAGIC or head[0] == 0x80 or head[:6] == b"\x93NUMPY":  # gzip without a tar, protocol 2+
+        return "pickle"
+    if _looks_like_kitti_line(head):  # before the protocol-0 check: a class name may start with 'c'
+        raise UnknownFormatError("this is a single KITTI txt file; pass the folder of txt files (or a zip or "
+                                 "tar of it)", source=source)
+    if head[0] in b"(]}c":  # how a protocol 0/1 pickle of a list or dict starts: MARK, EMPTY_LIST, EMPTY_DICT, GLOBAL
+        return "pickle"
+    raise UnknownFormatError(f"unknown format (starts with {head[:8]!r}); expected a pickle (.pkl, .pkl.gz), a "
+                             "zip or tar of KITTI txt files, or a folder of them", source=source)
 
 
 # ------------------------------------------------------------------------------------------ checking

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["KittiEvalError", "InputError", "UnsafePickleError", "ConfigError"]
+__all__ = ["KittiEvalError", "InputError", "UnsafePickleError", "UnknownFormatError", "ConfigError"]
 
 
 class KittiEvalError(Exception):
@@ -30,6 +30,10 @@ class InputError(KittiEvalError):
 
 class UnsafePickleError(InputError):
     """A pickle refers to something other than numpy arrays and plain containers; it was not loaded."""
+
+
+class UnknownFormatError(InputError):
+    """A file is none of the formats read (a pickle, a zip or tar of KITTI txt files, a txt folder)."""
 
 
 class ConfigError(KittiEvalError):

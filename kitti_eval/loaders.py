@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from .archives import ArchiveLimits, extract_txt_folder, sniff_archive
+from .archives import ArchiveLimits, InputKind, extract_txt_folder, sniff_archive, sniff_input
 from .errors import InputError
 from .frames import Annotations, Kind, normalize_frame_id
 from .safe_pickle import load_pickle, load_pickles
@@ -118,7 +118,7 @@ def load_annotations(path: PathLike, kind: Kind, *, max_bytes: int | None = None
     if p.suffix.lower() == ".txt":
         raise InputError("this is a single txt file; pass the folder that holds one KITTI txt file per "
                          "frame", source=source)
-    if fmt == "kitti_txt" or (fmt is None and is_archive(p)):
+    if fmt == "kitti_txt" or (fmt is None and input_kind(p, source) != "pickle"):
         return _load_txt_archive(p, kind, source)
     obj = load_pickle(p, source=source, max_bytes=max_bytes)
     return annotations_from_object(obj, kind, source=source, fmt=fmt, calibs=calibs, warnings=warnings,
@@ -696,25 +696,24 @@ def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str
 # ---------------------------------------------------------------------------------------- archives
 
 _DEFAULT_LIMITS = ArchiveLimits()
-_ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tar.xz")
+
+
+def input_kind(path: PathLike, source: str | None = None) -> InputKind:
+    """What a file holds, from its content (the same test the service makes of an upload):
+    :func:`kitti_eval.archives.sniff_input`. Raises InputError (UnknownFormatError for other content)."""
+    try:
+        with open(path, "rb") as fh:
+            return sniff_input(fh, str(path) if source is None else source)
+    except OSError as e:
+        raise InputError(f"cannot read {path}: {e.strerror or e}", source=source) from None
 
 
 def is_archive(path: PathLike) -> bool:
-    """A zip (by magic) or a tar (by name, or a plain tar by its ustar magic)."""
-    p = Path(path)
-    name = p.name.lower()
-    if name.endswith((".pkl", ".pkl.gz", ".pickle", ".pt", ".pth")):
-        return False  # a zip named like a pickle is torch.save(): load_pickle explains that
+    """A zip or tar of txt files by its content (False for anything else, or a file that cannot be read)."""
     try:
-        with open(p, "rb") as fh:
-            head = fh.read(512)
-    except OSError:
+        return input_kind(path) != "pickle"
+    except InputError:
         return False
-    if head[:4] in (b"PK\x03\x04", b"PK\x05\x06"):
-        return True
-    if head[257:262] == b"ustar":
-        return True
-    return name.endswith(_ARCHIVE_SUFFIXES[1:])
 
 
 def extract_txt_archive(path: PathLike, dest: PathLike, *, limits: ArchiveLimits = _DEFAULT_LIMITS) -> Path:
@@ -786,7 +785,9 @@ def apply_split(gt: Annotations, dt: Annotations, frame_ids: Sequence[str]) -> t
 
 def _is_pickle_file(p: Path, fmt: str | None) -> bool:
     """``p`` is read as a pickle: a file that is neither a txt file nor an archive (unless ``fmt`` says)."""
-    return p.is_file() and fmt != "kitti_txt" and not (fmt is None and is_archive(p)) and p.suffix.lower() != ".txt"
+    if not p.is_file() or fmt == "kitti_txt" or p.suffix.lower() == ".txt":
+        return False
+    return fmt is not None or input_kind(p) == "pickle"
 
 
 def load_ground_truth_and_calibs(gt_path: PathLike, *, fmt: str | None = None, max_bytes: int | None = None,

@@ -17,11 +17,11 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from kitti_eval.errors import ConfigError, InputError, KittiEvalError, UnsafePickleError
+from kitti_eval.errors import ConfigError, InputError, KittiEvalError, UnknownFormatError, UnsafePickleError
 
 __all__ = [
     "ApiError", "NotFound", "Conflict", "Unauthorized", "Forbidden", "Busy", "NotReady", "PayloadTooLarge",
-    "UnknownFormat", "ArchiveError", "BadRequest", "library_error_status", "error_body", "error_response",
+    "ArchiveError", "BadRequest", "library_error_status", "error_body", "error_response",
     "install_error_handlers",
 ]
 
@@ -93,13 +93,6 @@ class PayloadTooLarge(ApiError):
     code = "payload_too_large"
 
 
-class UnknownFormat(ApiError):
-    """An upload is none of the accepted formats."""
-
-    status_code = 422
-    code = "unknown_format"
-
-
 class ArchiveError(ApiError):
     """An uploaded zip/tar is unsafe or unusable (traversal, links, devices, bombs, no txt files)."""
 
@@ -110,6 +103,7 @@ class ArchiveError(ApiError):
 #: library error -> (status, code); the first matching class wins
 _LIBRARY_ERRORS: tuple[tuple[type[KittiEvalError], int, str], ...] = (
     (UnsafePickleError, 422, "unsafe_pickle"),
+    (UnknownFormatError, 422, "unknown_format"),
     (InputError, 422, "invalid_input"),
     (ConfigError, 422, "invalid_config"),
     (KittiEvalError, 422, "invalid_input"),

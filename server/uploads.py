@@ -21,22 +21,18 @@ from pathlib import Path
 from typing import IO
 
 from kitti_eval import archives
-from kitti_eval.archives import ArchiveKind, ArchiveLimits, sniff_archive
+from kitti_eval.archives import ArchiveKind, ArchiveLimits, sniff_input
 from kitti_eval.errors import InputError, UnsafePickleError
 from kitti_eval.frames import Annotations, Kind
 from kitti_eval.loaders import annotations_from_object, load_kitti_txt_dir
 from kitti_eval.safe_pickle import load_pickle
 
-from .errors import ArchiveError, UnknownFormat
+from .errors import ArchiveError
 
 __all__ = ["InputFormat", "Limits", "Upload", "Loaded", "receive_upload", "sniff", "extract_txt_folder",
            "load_upload", "clean_filename"]
 
 _CHUNK = 1 << 20
-_GZIP_MAGIC = b"\x1f\x8b"
-_NPY_MAGIC = b"\x93NUMPY"
-#: how a protocol 0/1 pickle of a list or dict starts: MARK, EMPTY_LIST, EMPTY_DICT, GLOBAL
-_OLD_PICKLE_STARTS = b"(]}c"
 
 
 class InputFormat(str, enum.Enum):
@@ -102,39 +98,10 @@ def receive_upload(file: IO[bytes], filename: str | None, default_name: str) -> 
 
 # ------------------------------------------------------------------------------------------- sniffing
 
-def _looks_like_kitti_line(head: bytes) -> bool:
-    try:
-        text = head.decode("utf-8")
-    except UnicodeDecodeError as e:
-        text = head[:e.start].decode("utf-8")
-    for line in text.splitlines():
-        fields = line.split()
-        if fields:
-            return len(fields) in (15, 16) and fields[0][:1].isalpha()
-    return False
-
-
 def sniff(file: IO[bytes], source: str) -> InputFormat:
-    """What an upload is, from its first bytes (never from its name)."""
-    file.seek(0)
-    head = file.read(4096)
-    file.seek(0)
-    if not head:
-        raise InputError("the file is empty", source=source)
-    archive = sniff_archive(file)
-    if archive is not None:
-        return InputFormat(archive)
-    if head[:2] == _GZIP_MAGIC:  # not a tar inside (or broken): load_pickle reports what it is
-        return InputFormat.PICKLE
-    if head[0] == 0x80 or head[:6] == _NPY_MAGIC:
-        return InputFormat.PICKLE  # .npy: load_pickle explains what to upload instead
-    if _looks_like_kitti_line(head):  # before the protocol-0 check: a class name may start with 'c'
-        raise UnknownFormat(f"{source}: this is a single KITTI txt file; upload the folder of txt files as a "
-                            "zip or tar")
-    if head[0] in _OLD_PICKLE_STARTS:
-        return InputFormat.PICKLE
-    raise UnknownFormat(f"{source}: unknown format (starts with {head[:8]!r}); expected a pickle (.pkl, "
-                        ".pkl.gz) or a zip/tar of KITTI txt files")
+    """What an upload is, from its content: the library's test (:func:`kitti_eval.archives.sniff_input`), so a
+    file loads the same way here and through the CLI."""
+    return InputFormat(sniff_input(file, source))
 
 
 # ------------------------------------------------------------------------------------------ archives
@@ -174,7 +141,7 @@ def load_upload(upload: Upload, kind: Kind, scratch: Path, limits: Limits, *, ke
     """Identify, unpack and load one upload as ground truth or detections (``keep_lidar``: see
     :func:`kitti_eval.loaders.load_detections`).
 
-    Raises InputError / UnsafePickleError (from the library), ArchiveError or UnknownFormat; every
+    Raises InputError / UnsafePickleError (from the library), ArchiveError or UnknownFormatError; every
     message names the upload by the client's file name.
     """
     fmt = sniff(upload.file, upload.filename)

@@ -425,3 +425,54 @@ def test_pointpillars_dicts_keyed_by_frame_give_the_golden_ap(reference, tmp_pat
     pred_path = dump(tmp_path / "results.pkl", {int(r["frame_id"]): {k: v for k, v in r.items() if k != "frame_id"}
                                                 for r in results})
     assert max_ap_difference(evaluate(load_ground_truth(gt_path), load_detections(pred_path)), reference) <= 1e-9
+
+
+# ------------------------------------------------------------------- one test of what a file is, CLI and service
+
+def _same_file_cases(tmp_path: Path) -> dict[str, tuple[str, bytes]]:
+    import gzip as gz
+    import zipfile
+
+    from kitti_eval.synth import write_result_dir
+
+    pred_dir = tmp_path / "pred"
+    write_result_dir(pred_dir, generate(3, seed=1)[1])
+    zipped = io.BytesIO()
+    with zipfile.ZipFile(zipped, "w") as zf:
+        for f in sorted(pred_dir.iterdir()):
+            zf.writestr(f"data/{f.name}", f.read_bytes())
+    results = pickle.dumps(generate(3, seed=1)[1], protocol=4)
+    return {
+        "a zip named like a pickle": ("result.pkl", zipped.getvalue()),
+        "a pickle named like a zip": ("pred.zip", results),
+        "a gzipped pickle named like a tar": ("pred.tar.gz", gz.compress(results)),
+        "a single KITTI txt file": ("000000", (pred_dir / "000000.txt").read_bytes()),
+        "something else": ("result.pkl", b"%PDF-1.4 not a pickle"),
+    }
+
+
+@pytest.mark.parametrize("case", ["a zip named like a pickle", "a pickle named like a zip",
+                                  "a gzipped pickle named like a tar", "a single KITTI txt file", "something else"])
+def test_a_file_loads_the_same_way_through_the_cli_and_the_service(tmp_path: Path, case: str) -> None:
+    """The CLI's loader and the service's upload path decide what a file is by the same test of its content,
+    whatever its name: the same boxes, or the same refusal."""
+    from server.uploads import Limits, load_upload, receive_upload
+
+    name, data = _same_file_cases(tmp_path)[case]
+    path = tmp_path / "in" / name
+    path.parent.mkdir()
+    path.write_bytes(data)
+    outcomes = []
+    for load in (lambda: load_detections(path),
+                 lambda: load_upload(receive_upload(io.BytesIO(data), name, "upload"), "detections",
+                                     tmp_path / "scratch", Limits(1 << 30, 1000)).annotations):
+        try:
+            dt = load()
+            outcomes.append(("loaded", dt.frame_ids, dt.num_boxes, dt.score.tolist()))
+        except InputError as e:
+            outcomes.append((type(e).__name__, e.message))
+    assert outcomes[0] == outcomes[1]
+    if case in ("a single KITTI txt file", "something else"):
+        assert outcomes[0][0] == "UnknownFormatError"
+    else:
+        assert outcomes[0][0] == "loaded" and outcomes[0][1] == ("000000", "000001", "000002")
