@@ -116,24 +116,12 @@ def _demo_parser() -> argparse.ArgumentParser:
 
 
 def _config(args: argparse.Namespace):  # noqa: ANN202 - EvalConfig, imported lazily
-    from .protocol import EvalConfig, load_protocol_file, overlaps_from_overrides, parse_ranges
+    from .protocol import config_from_options, load_protocol_file
 
-    kwargs: dict = load_protocol_file(args.protocol_file) if getattr(args, "protocol_file", None) else {}
-    if args.classes is not None:
-        kwargs["classes"] = tuple(c.strip() for c in args.classes.split(",") if c.strip())
-    if args.protocol is not None:
-        kwargs["protocol"] = PROTOCOLS[args.protocol]
-    if args.iou:
-        overlaps = {k: dict(v) for k, v in dict(kwargs.get("overlaps", {})).items()}
-        for cls, sets in overlaps_from_overrides(args.iou).items():
-            overlaps.setdefault(cls, {}).update(sets)
-        kwargs["overlaps"] = overlaps
-    if getattr(args, "ranges", None):
-        kwargs["ranges"] = parse_ranges(args.ranges)
-    for flag in ("coco", "lidar_only"):
-        if getattr(args, flag, False):
-            kwargs[flag] = True
-    return EvalConfig(**kwargs)
+    return config_from_options(
+        base=load_protocol_file(args.protocol_file) if getattr(args, "protocol_file", None) else None,
+        classes=args.classes, protocol=args.protocol, iou=args.iou or (), ranges=getattr(args, "ranges", None),
+        coco=getattr(args, "coco", False), lidar_only=getattr(args, "lidar_only", False))
 
 
 def _emit(text: str, output: Path | None) -> None:

@@ -18,7 +18,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
 from types import MappingProxyType
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -30,7 +30,7 @@ __all__ = [
     "CLASS_OVERLAPS", "NEIGHBOURS", "DONTCARE", "N_SAMPLE_PTS", "RECALL_SAMPLE_INDICES", "INVALID_ALPHA",
     "KITTI_DIFFICULTY", "OFFICIAL", "OPENPCDET", "PROTOCOLS", "get_protocol", "parse_iou_override",
     "overlaps_from_overrides", "DistanceRange", "parse_ranges", "COCO_IOU_RANGES", "COCO_STEPS",
-    "coco_thresholds", "load_protocol_file", "NO_DIFFICULTY",
+    "coco_thresholds", "load_protocol_file", "NO_DIFFICULTY", "config_from_options",
 ]
 
 
@@ -415,3 +415,47 @@ class EvalConfig:
         """The IoU a match of class ``cls`` must exceed in ``metric`` (AOS uses the bbox threshold)."""
         m = Metric.BBOX if metric is Metric.AOS else metric
         return self.overlaps[cls][oset][OVERLAP_METRICS.index(m)]
+
+
+def _names(text: str) -> tuple[str, ...]:
+    return tuple(p.strip() for p in text.split(",") if p.strip())
+
+
+def config_from_options(*, base: Mapping[str, Any] | None = None, classes: str | None = None,
+                        protocol: str | None = None, threshold_sets: str | None = None, iou: Sequence[str] = (),
+                        ranges: str | None = None, coco: bool = False, lidar_only: bool = False) -> EvalConfig:
+    """An :class:`EvalConfig` from options written as the CLI's flags and the service's form fields are.
+
+    ``base``: keyword arguments of :class:`EvalConfig` to start from (a protocol file's); ``classes`` and
+    ``threshold_sets``: comma-separated names; ``protocol``: a name of :data:`PROTOCOLS`; ``iou``:
+    ``Car=0.7,0.6,0.6`` or ``Car:loose=...`` overrides, added to ``base``'s (a later one wins); ``ranges``:
+    ``0,30,50,inf``; ``coco``/``lidar_only`` switch those on (they never switch ``base``'s off).
+
+    Raises ConfigError naming the option at fault.
+    """
+    kwargs: dict[str, Any] = dict(base or {})
+    if classes is not None:
+        kwargs["classes"] = _names(classes)
+    if protocol is not None:
+        if protocol not in PROTOCOLS:
+            raise ConfigError(f"unknown protocol {protocol!r}; expected one of {sorted(PROTOCOLS)}")
+        kwargs["protocol"] = PROTOCOLS[protocol]
+    if threshold_sets is not None:
+        kwargs["threshold_sets"] = _names(threshold_sets)
+    if iou:
+        try:
+            overrides = overlaps_from_overrides(iou)
+        except ConfigError as e:
+            raise ConfigError(f"iou: {e}") from None
+        overlaps = {k: dict(v) for k, v in dict(kwargs.get("overlaps", {})).items()}
+        for cls, sets in overrides.items():
+            overlaps.setdefault(cls, {}).update(sets)
+        kwargs["overlaps"] = overlaps
+    if ranges:
+        kwargs["ranges"] = parse_ranges(ranges)
+    if coco:
+        kwargs["coco"] = True
+    if lidar_only:
+        kwargs["lidar_only"] = True
+    return EvalConfig(**kwargs)
+

@@ -13,18 +13,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from kitti_eval.errors import ConfigError
 from kitti_eval.evaluation import evaluate
 from kitti_eval.formats import render_json
 from kitti_eval.frames import Annotations
-from kitti_eval.protocol import (
-    DEFAULT_CLASSES,
-    PROTOCOLS,
-    THRESHOLD_SETS,
-    EvalConfig,
-    overlaps_from_overrides,
-    parse_ranges,
-)
+from kitti_eval.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
 
 from .errors import BadRequest
 
@@ -34,10 +26,6 @@ LABEL_KEY_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
 _LABEL_KEY = re.compile(LABEL_KEY_PATTERN)
 _MAX_LABELS = 32
 _MAX_LABEL_VALUE = 256
-
-
-def _split(text: str) -> tuple[str, ...]:
-    return tuple(p.strip() for p in text.split(",") if p.strip())
 
 
 @dataclass(frozen=True)
@@ -68,16 +56,9 @@ class EvalOptions:
         return cls(**kwargs)
 
     def config(self) -> EvalConfig:
-        if self.protocol not in PROTOCOLS:
-            raise ConfigError(f"unknown protocol {self.protocol!r}; expected one of {sorted(PROTOCOLS)}")
-        try:
-            overlaps = overlaps_from_overrides(self.iou)
-        except ConfigError as e:
-            raise ConfigError(f"iou: {e}") from None
-        ranges = parse_ranges(self.ranges) if self.ranges else ()
-        return EvalConfig(classes=_split(self.classes), protocol=PROTOCOLS[self.protocol], overlaps=overlaps,
-                          threshold_sets=_split(self.threshold_sets), ranges=ranges, coco=self.coco,
-                          lidar_only=self.lidar_only)
+        """The evaluation these options ask for: the library's reading of them, as for the CLI's flags."""
+        return config_from_options(classes=self.classes, protocol=self.protocol, threshold_sets=self.threshold_sets,
+                                   iou=self.iou, ranges=self.ranges, coco=self.coco, lidar_only=self.lidar_only)
 
 
 def evaluate_document(gt: Annotations, dt: Annotations, config: EvalConfig, *, curves: bool = False) -> dict[str, Any]:
