@@ -358,28 +358,20 @@ def _read_result_json(path: Path) -> dict:
 
 def _gate(args: argparse.Namespace) -> int:
     from .gate import (
-        GateRules,
-        parse_floor,
-        parse_max_drop,
         render_junit,
         render_verdict,
         render_verdict_markdown,
+        rules_from_options,
         rules_from_toml,
         run_gate,
     )
 
-    rules = GateRules(tuple(parse_floor(r) for r in args.floors), tuple(parse_max_drop(d) for d in args.max_drop),
-                      tuple(args.require_class))
-    if args.rules:
-        rules = rules.merged(rules_from_toml(args.rules))
-    if rules.empty:
-        raise ConfigError("no gate rules: give --min, --max-drop, --require-class or --rules")
+    rules = rules_from_options(args.floors, args.max_drop, args.require_class, baseline=bool(args.baseline),
+                               also=rules_from_toml(args.rules) if args.rules else None)
     if args.result and (args.gt or args.pred):
         raise ConfigError("give either --result or --gt with --pred, not both")
     if not args.result and not (args.gt and args.pred):
         raise ConfigError("give the result to gate: --result R.json, or --gt and --pred")
-    if rules.max_drops and not args.baseline:
-        raise ConfigError("--max-drop needs --baseline")
 
     intervals = None
     if args.significant:

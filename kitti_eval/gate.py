@@ -38,7 +38,8 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 __all__ = ["ValueKey", "Floor", "MaxDrop", "GateRules", "Check", "Verdict", "run_gate", "parse_floor",
-           "parse_max_drop", "rules_from_toml", "render_verdict", "render_verdict_markdown", "render_junit"]
+           "parse_max_drop", "rules_from_options", "rules_from_toml", "render_verdict", "render_verdict_markdown",
+           "render_junit"]
 
 _METRICS = tuple(m.value for m in ALL_METRICS)
 _DIFFS = tuple(d.label for d in Difficulty)
@@ -150,6 +151,27 @@ def parse_max_drop(text: str) -> MaxDrop:
     if not math.isfinite(limit) or limit < 0:
         raise ConfigError(f"a maximum drop must be a finite number >= 0, got {text!r}")
     return MaxDrop(limit, ValueKey.parse(key_text) if key_text else None)
+
+
+def rules_from_options(floors: Sequence[str] = (), max_drops: Sequence[str] = (),
+                       require_classes: Sequence[str] = (), *, also: GateRules | None = None,
+                       baseline: bool) -> GateRules:
+    """Gate rules as the CLI's flags and the service's request give them (floors such as
+    ``Car/3d/moderate >= 78.5``, drops such as ``0.5`` or ``Car/3d/moderate=1.0``, class names), merged with
+    ``also`` (a rules file's). ``baseline``: whether a baseline is given (a maximum drop needs one).
+
+    Raises ConfigError: a malformed rule, no rule at all, or a maximum drop without a baseline.
+    """
+    rules = GateRules(tuple(parse_floor(r) for r in floors), tuple(parse_max_drop(d) for d in max_drops),
+                      tuple(require_classes))
+    if also is not None:
+        rules = rules.merged(also)
+    if rules.empty:
+        raise ConfigError("no rules: give a floor (--min), a maximum drop (--max-drop) or a required class "
+                          "(--require-class), or a rules file")
+    if rules.max_drops and not baseline:
+        raise ConfigError("a maximum drop (--max-drop) needs a baseline")
+    return rules
 
 
 def rules_from_toml(path: str | Path) -> GateRules:

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
+from server_helpers import app_client, upload
 
 from kitti_eval.cli import _config, _parser
 from kitti_eval.errors import ConfigError
@@ -44,3 +47,47 @@ def test_bad_options_are_refused_with_the_same_words(flags: list[str], fields: d
         _cli(flags)
     cli_text = str(cli_error.value) if isinstance(cli_error.value, ConfigError) else capsys.readouterr().err
     assert str(service_error.value).removeprefix("iou: ") in cli_text
+
+
+def _two_demo_evaluations(client) -> list[str]:  # noqa: ANN001 - a TestClient
+    from kitti_eval.synth import demo_paths
+
+    data = demo_paths()[1].read_bytes()
+    return [upload(client, data, "result.pkl.gz").json()["id"] for _ in range(2)]
+
+
+@pytest.mark.parametrize("body, flags", [
+    ({"min": ["Car/3d/moderate >= 10"]}, ["--min", "Car/3d/moderate >= 10"]),
+    ({"min": ["Car/3d/moderate >= 99"], "require_classes": ["Cyclist", "Truck"]},
+     ["--min", "Car/3d/moderate >= 99", "--require-class", "Cyclist", "--require-class", "Truck"]),
+    ({"max_drop": ["0.5", "Car/bev/hard=0.1"]}, ["--max-drop", "0.5", "--max-drop", "Car/bev/hard=0.1"]),
+])
+def test_gate_verdicts_equal_the_clis(body: dict, flags: list[str], tmp_path: Path) -> None:
+    """The same rules on the same two results: the service's JUnit report is the CLI's, to the byte."""
+    from kitti_eval import cli
+    from kitti_eval.synth import demo_paths
+
+    with app_client(tmp_path / "data") as client:
+        current, base = _two_demo_evaluations(client)
+        answer = client.post("/v1/gates", params={"format": "junit"},
+                             json={"evaluation": current, "baseline": base, **body})
+    gt, pred = demo_paths()
+    junit = tmp_path / "gate.xml"
+    code = cli.main(["gate", "--gt", str(gt), "--pred", str(pred), "--baseline", str(pred), *flags,
+                     "--junit", str(junit)])
+    assert (answer.status_code, code) in ((200, 0), (412, 3))
+    assert answer.text == junit.read_text()
+
+
+def test_gate_rules_are_refused_with_the_same_words(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from kitti_eval import cli
+    from kitti_eval.synth import demo_paths
+
+    gt, pred = demo_paths()
+    with app_client(tmp_path / "data") as client:
+        current, _ = _two_demo_evaluations(client)
+        for body, flags in (({}, []), ({"max_drop": ["0.5"]}, ["--max-drop", "0.5"]),
+                            ({"min": ["Car/3d >= 1"]}, ["--min", "Car/3d >= 1"])):
+            message = client.post("/v1/gates", json={"evaluation": current, **body}).json()["error"]["message"]
+            assert cli.main(["gate", "--gt", str(gt), "--pred", str(pred), *flags]) == 2
+            assert message in capsys.readouterr().err

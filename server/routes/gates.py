@@ -9,15 +9,7 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
 from kitti_eval.errors import ConfigError
-from kitti_eval.gate import (
-    GateRules,
-    Verdict,
-    parse_floor,
-    parse_max_drop,
-    render_junit,
-    render_verdict_markdown,
-    run_gate,
-)
+from kitti_eval.gate import GateRules, Verdict, render_junit, render_verdict_markdown, rules_from_options, run_gate
 
 from ..deps import ServiceDep
 from ..errors import BadRequest, NotFound
@@ -60,16 +52,12 @@ class GateResponse(BaseModel):
 
 
 def _rules(req: GateRequest) -> GateRules:
+    """The library's reading of the rules (the CLI's): min are floors, max_drop maximum drops."""
     try:
-        rules = GateRules(tuple(parse_floor(r) for r in req.min), tuple(parse_max_drop(d) for d in req.max_drop),
-                          tuple(req.require_classes))
+        return rules_from_options(req.min, req.max_drop, req.require_classes,
+                                  baseline=bool(req.baseline or req.baseline_label))
     except ConfigError as e:
         raise BadRequest(str(e)) from None
-    if rules.empty:
-        raise BadRequest("no rules: give min, max_drop or require_classes")
-    if rules.max_drops and not (req.baseline or req.baseline_label):
-        raise BadRequest("max_drop needs a baseline or a baseline_label")
-    return rules
 
 
 @router.post("", response_model=GateResponse, summary="Check AP rules on a stored evaluation",
