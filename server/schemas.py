@@ -101,12 +101,18 @@ class GroundTruthList(BaseModel):
 
 
 class Comparison(BaseModel):
+    """``kitti-eval compare --format json`` of the two results (A = base, B = other), with the records."""
+
     base: dict[str, Any]
     other: dict[str, Any]
-    classes: list[str]
-    threshold_sets: list[str]
+    schema_version: int
+    resamples: int
+    seed: int | None
     notes: list[str]
-    delta: dict[str, Any] = Field(description="ap[set][recall][class][metric][difficulty] = other - base; num_det")
+    values: list[dict[str, Any]] = Field(description="every value both have: key Class/metric/difficulty/"
+                                                     "recall/set, a, b, delta = b - a (null where either is)")
+    num_det: dict[str, int] = Field(description="detections per class, other - base")
+    frames: int | None
 
 
 class Health(BaseModel):

@@ -201,19 +201,22 @@ def test_comparison_gives_per_value_deltas(client) -> None:
     assert r.status_code == 200, r.text
     cmp = r.json()
     assert cmp["base"]["id"] == a["id"] and cmp["other"]["id"] == b["id"]
+    values = {v["key"]: v for v in cmp["values"]}
+    assert len(values) == 2 * 2 * 3 * 4 * 3  # sets x recalls x classes x metrics x difficulties
     for oset in ("strict", "loose"):
         for recall in ("R11", "R40"):
             for cls in ("Car", "Pedestrian", "Cyclist"):
                 for metric in ("bbox", "bev", "3d", "aos"):
                     for d in ("easy", "moderate", "hard"):
                         va, vb = a["ap"][oset][recall][cls][metric][d], b["ap"][oset][recall][cls][metric][d]
-                        got = cmp["delta"]["ap"][oset][recall][cls][metric][d]
-                        assert got == (None if va is None or vb is None else vb - va)
-    assert cmp["delta"]["num_det"]["Car"] == b["num_det"]["Car"] - a["num_det"]["Car"]
+                        got = values[f"{cls}/{metric}/{d}/{recall}/{oset}"]
+                        assert (got["a"], got["b"]) == (va, vb)
+                        assert got["delta"] == (None if va is None or vb is None else vb - va)
+    assert cmp["num_det"]["Car"] == b["num_det"]["Car"] - a["num_det"]["Car"]
     assert cmp["notes"] == []  # same ground truth, protocol and thresholds
     md = client.get(f"/v1/evaluations/{a['id']}/compare/{b['id']}", params={"format": "markdown"})
     assert md.headers["content-type"].startswith("text/markdown")
-    assert "a → b (epoch 2)" in md.text and "| Car | 3d |" in md.text
+    assert "a → b (epoch 2)" in md.text and "| `Car/3d/moderate/R40/strict` |" in md.text
     assert_error(client.get(f"/v1/evaluations/{a['id']}/compare/nope"), 404)
 
 

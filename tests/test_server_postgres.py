@@ -53,7 +53,8 @@ def test_core_flow_on_postgres(postgres, tmp_path) -> None:
         cmp = c.get(f"/v1/evaluations/{a['id']}/compare/{b['id']}").json()
         va = a["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"]
         vb = b["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"]
-        assert cmp["delta"]["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"] == pytest.approx(vb - va, abs=1e-12)
+        delta = next(v["delta"] for v in cmp["values"] if v["key"] == "Car/3d/moderate/R40/strict")
+        assert delta == pytest.approx(vb - va, abs=1e-12)
         assert "different ground truth" in cmp["notes"][0]
         assert c.delete("/v1/ground-truths/small", headers=ADMIN).status_code == 204
         assert_error(upload(c, golden_bytes("result.pkl"), gt="small"), 404)

@@ -91,3 +91,27 @@ def test_gate_rules_are_refused_with_the_same_words(tmp_path: Path, capsys: pyte
             message = client.post("/v1/gates", json={"evaluation": current, **body}).json()["error"]["message"]
             assert cli.main(["gate", "--gt", str(gt), "--pred", str(pred), *flags]) == 2
             assert message in capsys.readouterr().err
+
+
+def test_the_services_comparison_is_the_clis(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The service's comparison of two stored evaluations is what ``kitti-eval compare`` prints for the
+    same two results (JSON and Markdown), plus the records' sides."""
+    import json
+
+    from kitti_eval import cli
+
+    with app_client(tmp_path / "data") as client:
+        first, second = _two_demo_evaluations(client)
+        docs = [client.get(f"/v1/evaluations/{i}").json() for i in (first, second)]
+        answer = client.get(f"/v1/evaluations/{first}/compare/{second}").json()
+        markdown = client.get(f"/v1/evaluations/{first}/compare/{second}", params={"format": "markdown"}).text
+    paths = []
+    for k, doc in enumerate(docs):
+        paths.append(tmp_path / f"{k}.json")
+        paths[-1].write_text(json.dumps({key: doc[key] for key in doc if key not in ("id", "evaluation")}))
+    assert cli.main(["compare", str(paths[0]), str(paths[1]), "--format", "json"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert {k: v for k, v in answer.items() if k not in ("base", "other")} == printed
+    assert answer["base"]["id"] == first and answer["other"]["id"] == second
+    assert cli.main(["compare", str(paths[0]), str(paths[1]), "--format", "markdown"]) == 0
+    assert capsys.readouterr().out in markdown

@@ -117,5 +117,5 @@ def compare_evaluations(service: ServiceDep, fmt: FormatDep, evaluation_id: str,
     if fmt is OutputFormat.JSON:
         return JSONResponse(comparison)
     if fmt is OutputFormat.MARKDOWN:
-        return PlainTextResponse(render_comparison_markdown(base, other, comparison), media_type=_MEDIA[fmt])
+        return PlainTextResponse(render_comparison_markdown(base, other), media_type=_MEDIA[fmt])
     raise BadRequest("a comparison renders as json or markdown")

@@ -218,18 +218,24 @@ async def evaluation_page(request: Request, service: ServiceDep, evaluation_id: 
 
 # ------------------------------------------------------------------------------------------------ compare
 
-def compare_tables(a: Mapping[str, Any], b: Mapping[str, Any], comparison: Mapping[str, Any]) -> list[dict[str, Any]]:
-    """Per threshold set and recall mode: rows class × metric, cells (a, b, b - a) per difficulty."""
-    tables = []
-    for oset in comparison["threshold_sets"]:
-        for recall in _RECALLS:
-            delta, ap_a, ap_b = comparison["delta"]["ap"][oset][recall], a["ap"][oset][recall], b["ap"][oset][recall]
-            rows = [{"cls": cls, "metric": metric,
-                     "cells": [{"key": f"{oset}/{recall}/{cls}/{metric}/{d}", "a": ap_a[cls][metric][d],
-                                "b": ap_b[cls][metric][d], "delta": values[d]} for d in _DIFFICULTIES]}
-                    for cls in comparison["classes"] for metric, values in delta[cls].items()]
-            tables.append({"set": oset, "recall": recall, "rows": rows})
-    return tables
+def compare_tables(comparison: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The comparison's values per threshold set and recall mode (R40 first): rows class × metric, cells
+    (a, b, b - a) per difficulty."""
+    tables: dict[tuple[str, str], dict[tuple[str, str], dict[str, dict[str, Any]]]] = {}
+    for v in comparison["values"]:
+        cls, metric, d, recall, oset = v["key"].split("/")
+        cell = {"key": f"{oset}/{recall}/{cls}/{metric}/{d}", "a": v["a"], "b": v["b"], "delta": v["delta"]}
+        tables.setdefault((oset, recall), {}).setdefault((cls, metric), {})[d] = cell
+    order = sorted(tables, key=lambda t: (comparison_sets(comparison).index(t[0]), _RECALLS.index(t[1])))
+    return [{"set": oset, "recall": recall,
+             "rows": [{"cls": cls, "metric": metric, "cells": [cells[d] for d in _DIFFICULTIES]}
+                      for (cls, metric), cells in tables[(oset, recall)].items()]}
+            for oset, recall in order]
+
+
+def comparison_sets(comparison: Mapping[str, Any]) -> list[str]:
+    """The threshold sets of a comparison's values, in their order."""
+    return list(dict.fromkeys(v["key"].rsplit("/", 1)[1] for v in comparison["values"]))
 
 
 @router.get("/compare")
@@ -247,7 +253,7 @@ def compare_page(request: Request, service: ServiceDep, a: str | None = None, b:
     assert base.result is not None and other.result is not None
     comparison = compare(base, other)
     return _render(request, "compare.html", base=base, other=other, names=(model_name(base), model_name(other)),
-                   comparison=comparison, tables=compare_tables(base.result, other.result, comparison))
+                   comparison=comparison, tables=compare_tables(comparison))
 
 
 # -------------------------------------------------------------------------------------------------- frame
