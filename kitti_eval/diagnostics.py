@@ -71,8 +71,8 @@ def parse_slot(config: EvalConfig, metric: str, difficulty: str, oset: str) -> t
 
 def slot_job(plan: Plan, cls: str, metric: Metric, difficulty: Difficulty, oset: str) -> MatchJob:
     """The matching behind one (class, metric, difficulty, threshold set) of ``plan``'s result."""
-    job = next((j for c, dd, mm, s, j, _ in plan.slots if c == cls and dd is difficulty and mm is metric
-                and s == oset), None)
+    job = next((s.job for s in plan.slots if s.cls == cls and s.difficulty is difficulty and s.metric is metric
+                and s.oset == oset), None)
     if job is None:
         raise ConfigError(f"{cls} is not evaluated in {metric.value} under the {plan.config.protocol.name} "
                           "protocol (no detection of it can be scored there)")

@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -114,6 +115,18 @@ def _dontcare_rows(gt: Annotations, protocol: Protocol) -> npt.NDArray[np.bool_]
     return gt.name == DONTCARE
 
 
+class Slot(NamedTuple):
+    """One (class, difficulty, metric, threshold set) of the result: the matching behind it (an index into
+    ``Plan.jobs``; None where the protocol does not evaluate it) and whether AOS rides on it."""
+
+    cls: str
+    difficulty: Difficulty
+    metric: Metric
+    oset: str
+    job: int | None
+    with_aos: bool
+
+
 @dataclass(frozen=True, eq=False)
 class Plan:
     """Everything an evaluation computes before matching: aligned inputs, overlaps, and the matchings.
@@ -134,9 +147,9 @@ class Plan:
     ignored_gt: npt.NDArray[np.int8]     # (K, M), one row per (class, difficulty)
     ignored_det: npt.NDArray[np.int8]    # (K, N)
     jobs: tuple[MatchJob, ...]
-    slots: tuple[tuple[str, Difficulty, Metric, str, int | None, bool], ...]
+    slots: tuple[Slot, ...]
     #: per distance range of the config, the slots of that range's matchings (same layout as ``slots``)
-    range_slots: tuple[tuple[tuple[str, Difficulty, Metric, str, int | None, bool], ...], ...]
+    range_slots: tuple[tuple[Slot, ...], ...]
     #: the row of ``ignored_gt`` holding the whole set's codes of each (class, difficulty)
     code_rows: dict[tuple[str, Difficulty], int]
     #: with ``config.coco``: the job of each (class, difficulty, metric) at each COCO threshold (None where
@@ -176,10 +189,10 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
     idet_rows: list[npt.NDArray[np.int8]] = []
     jobs: list[MatchJob] = []
     job_of: dict[tuple[int, Metric, float], int] = {}
-    slots: list[tuple[str, Difficulty, Metric, str, int | None, bool]] = []
+    slots: list[Slot] = []
     num_gt: dict[str, dict[str, int]] = {}
     num_det: dict[str, int] = {}
-    range_slots: list[list[tuple[str, Difficulty, Metric, str, int | None, bool]]] = [[] for _ in config.ranges]
+    range_slots: list[list[Slot]] = [[] for _ in config.ranges]
 
     code_rows: dict[tuple[str, Difficulty], int] = {}
 
@@ -196,14 +209,14 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
 
     def add_jobs(ig: npt.NDArray[np.int8], idet: npt.NDArray[np.int8], cls: str, difficulty: Difficulty,
                  evaluated: dict[Metric, bool], with_aos: bool,
-                 into: list[tuple[str, Difficulty, Metric, str, int | None, bool]]) -> int:
+                 into: list[Slot]) -> int:
         row = len(ig_rows)
         ig_rows.append(ig)
         idet_rows.append(idet)
         for metric in OVERLAP_METRICS:
             for oset in config.threshold_sets:
                 job = job_for(row, metric, config.overlap(cls, oset, metric), with_aos) if evaluated[metric] else None
-                into.append((cls, difficulty, metric, oset, job, with_aos))
+                into.append(Slot(cls, difficulty, metric, oset, job, with_aos))
         return row
 
     for cls in config.classes:
@@ -311,7 +324,7 @@ def _coco_table(plan: Plan, job_curves: list[Curve]) -> dict:
 
 
 def ap_tables(plan: Plan, job_curves: list[Curve],
-              slots: Sequence[tuple[str, Difficulty, Metric, str, int | None, bool]] | None = None,
+              slots: Sequence[Slot] | None = None,
               ) -> tuple[dict, dict]:
     """``ap[set][recall][class][metric][difficulty]`` and ``curves[set][class][metric][difficulty]`` from the
     curve of every job of ``plan`` (for ``slots``: the whole set by default, or one distance range's)."""
