@@ -64,6 +64,11 @@ class Checkpoint:
     epoch: int | None
     result: EvalResult
 
+    @property
+    def label(self) -> str:
+        """How tables and plots name it: its epoch, else its path."""
+        return f"epoch {self.epoch}" if self.epoch is not None else str(self.path)
+
 
 def default_ranking(result: EvalResult) -> float:
     """Mean of the moderate 3D AP (R40, strict) over the classes evaluated; the default 'best' score."""
@@ -101,10 +106,6 @@ def _columns(results: Sequence[Checkpoint], keys: Sequence[ValueKey] | None) -> 
     return [ValueKey(cls, "3d", "moderate") for cls in classes]
 
 
-def _label(c: Checkpoint) -> str:
-    return f"epoch {c.epoch}" if c.epoch is not None else str(c.path)
-
-
 def render_batch(results: Sequence[Checkpoint], fmt: str = "table", *, keys: Sequence[ValueKey] | None = None,
                  best_by: ValueKey | None = None) -> str:
     """A table over checkpoints (rows) and values (columns: moderate 3D AP per class by default)."""
@@ -132,12 +133,12 @@ def render_batch(results: Sequence[Checkpoint], fmt: str = "table", *, keys: Seq
         return "-" if v is None else f"{v:.2f}"
 
     names = [str(k) for k in cols]
-    rows = [[_label(c)] + [cell(k.read(c.result.to_dict())) for k in cols] for c in results]
+    rows = [[c.label] + [cell(k.read(c.result.to_dict())) for k in cols] for c in results]
     if fmt == "markdown":
         lines = ["| checkpoint | " + " | ".join(f"`{n}`" for n in names) + " |",
                  "|---|" + "---:|" * len(names)]
         lines += ["| " + " | ".join(r) + (" ⭐" if c is best else "") + " |" for r, c in zip(rows, results)]
-        return "\n".join(lines) + f"\n\nBest: **{_label(best)}** ({best.path}), {how}.\n"
+        return "\n".join(lines) + f"\n\nBest: **{best.label}** ({best.path}), {how}.\n"
     widths = [max(len(r[i]) for r in rows + [["checkpoint", *names]]) for i in range(len(names) + 1)]
     header = "  ".join(h.ljust(widths[0]) if i == 0 else h.rjust(widths[i])
                        for i, h in enumerate(["checkpoint", *names]))
@@ -145,7 +146,7 @@ def render_batch(results: Sequence[Checkpoint], fmt: str = "table", *, keys: Seq
     for r, c in zip(rows, results):
         lines.append("  ".join(v.ljust(widths[0]) if i == 0 else v.rjust(widths[i]) for i, v in enumerate(r))
                      + ("  <- best" if c is best else ""))
-    lines.append(f"best: {_label(best)} ({best.path}), {how}")
+    lines.append(f"best: {best.label} ({best.path}), {how}")
     return "\n".join(lines) + "\n"
 
 

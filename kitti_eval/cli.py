@@ -12,6 +12,7 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from .errors import ConfigError, InputError, KittiEvalError
 from .formats import OutputFormat
@@ -71,15 +72,10 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Exact KITTI 3D object detection evaluation (2D, BEV, 3D, AOS; R11 and R40) on a CPU.",
-        epilog="Commands: 'kitti-eval demo' evaluates the bundled demo set; 'kitti-eval gate' checks AP "
-               "rules (exit 3 when a rule fails); 'kitti-eval compare A B' shows per-value differences; "
-               "'kitti-eval describe FILE' reports what a file holds; 'kitti-eval frames' counts hits and errors "
-               "per frame; 'kitti-eval inspect' labels every box of one frame for one or more models; "
-               "'kitti-eval serve' runs the HTTP service and its web page. "
-               "Exit codes: 0 ok, 1 bad input, 2 usage.")
-    p.add_argument("--gt", required=True, type=Path,
+        epilog="Exit codes: 0 ok, 1 bad input, 2 usage error, 3 a gate rule failed ('kitti-eval gate').")
+    p.add_argument("--gt", type=Path,
                    help="ground truth: a KITTI label_2 folder or an OpenPCDet infos .pkl[.gz]")
-    p.add_argument("--pred", required=True, action="append", metavar="PRED",
+    p.add_argument("--pred", action="append", metavar="PRED",
                    help="predictions: a KITTI result folder (16-field txt) or an OpenPCDet result .pkl[.gz]; "
                         "repeat it or give a quoted glob ('output/*/epoch_*/val/result.pkl') to evaluate many "
                         "checkpoints in one process")
@@ -103,15 +99,65 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--plot-dir", type=Path, metavar="DIR",
                    help="save precision-recall curves as PNGs (per class and metric; with several --pred, one "
                         "overlay per class of the moderate 3D curves); needs matplotlib")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", title="commands (each has its own --help)")
+    for add in (_demo_parser, _gate_parser, _compare_parser, _frames_parser, _inspect_parser, _describe_parser,
+                _serve_parser):
+        add(sub)
     return p
 
 
-def _demo_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=f"{PROG} demo",
-                                description="Evaluate the bundled synthetic demo set (nothing is downloaded).")
+def _describe_parser(sub: Any) -> argparse.ArgumentParser:
+    from .describe import KINDS
+
+    p = sub.add_parser("describe", help="what a ground-truth or prediction file holds",
+                       description="Sniff a ground-truth or prediction file: format, frames, boxes per class, "
+                                   "dtypes, dimension order, camera/LiDAR consistency.")
+    p.add_argument("file", type=Path, help="a pickle, a KITTI txt folder, or a zip/tar of one")
+    p.add_argument("--kind", choices=sorted(KINDS), help="read it as ground truth or predictions (default: guess)")
+    p.add_argument("--gt", type=Path, help="infos with calibration, to check prediction locations against boxes_lidar")
+    p.set_defaults(run=_describe)
+    return p
+
+
+def _describe(args: argparse.Namespace) -> int:
+    from .describe import describe
+
+    _emit(describe(args.file, args.kind, args.gt), None)
+    return EXIT_OK
+
+
+def _serve_parser(sub: Any) -> argparse.ArgumentParser:
+    """Listed for the help; :func:`main` hands everything after ``serve`` to the service's own parser."""
+    return sub.add_parser("serve", add_help=False, help="run the HTTP service and its web page (--help for its "
+                                                         "options)")
+
+
+def _serve(argv: Sequence[str]) -> int:
+    try:
+        from server.main import serve
+    except ImportError as e:
+        raise ConfigError(f"the service needs the server extra: pip install 'kitti-eval[server]' ({e})") from None
+    return serve(list(argv))
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from .synth import demo_paths
+
+    gt_path, pred_path = demo_paths()
+    if args.where:
+        print(gt_path, pred_path)
+        return EXIT_OK
+    return _run(gt_path, pred_path, args)
+
+
+def _demo_parser(sub: Any) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "demo", help="evaluate the bundled demo set",
+        description="Evaluate the bundled synthetic demo set (nothing is downloaded).")
     _add_eval_options(p)
     p.add_argument("--where", action="store_true",
                    help="print the demo's ground-truth and prediction paths (one line, space-separated) and exit")
+    p.set_defaults(run=_demo)
     return p
 
 
@@ -178,9 +224,9 @@ def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _gate_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog=f"{PROG} gate",
+def _gate_parser(sub: Any) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "gate", help="check AP rules on a result (exit 3 when a rule fails)",
         description="Check AP rules on a result: floors, maximum drops against a baseline, required classes. "
                     "Exit 0 when every rule passes, 3 when one fails, 1 on bad input, 2 on usage errors.",
         epilog="Values are named Class/metric/difficulty[/R40|R11[/strict|loose]] (default R40, strict). "
@@ -211,12 +257,13 @@ def _gate_parser() -> argparse.ArgumentParser:
     out.add_argument("--markdown", type=Path, help="also write the verdict as Markdown (CI job summaries)")
     out.add_argument("--junit", type=Path, help="also write the verdict as JUnit XML")
     out.add_argument("--show-passed", action="store_true", help="list passing checks too")
+    p.set_defaults(run=_gate)
     return p
 
 
-def _compare_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog=f"{PROG} compare",
+def _compare_parser(sub: Any) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "compare", help="per-value differences between two results",
         description="Per-value differences B - A between two results, with paired bootstrap intervals over "
                     "frames when both are predictions (--gt) and --bootstrap N is given.")
     p.add_argument("a", type=Path, help="result A: a JSON result, or predictions (with --gt)")
@@ -228,6 +275,7 @@ def _compare_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=["table", "json", "markdown"], default="table")
     p.add_argument("--output", "-o", type=Path, help="write the comparison here instead of stdout")
     _add_config_options(p)
+    p.set_defaults(run=_compare)
     return p
 
 
@@ -273,9 +321,9 @@ def _add_slot_options(p: argparse.ArgumentParser, metrics: list[str]) -> None:
     p.add_argument("--set", dest="oset", default="strict", choices=list(THRESHOLD_SETS), help="IoU threshold set")
 
 
-def _frames_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog=f"{PROG} frames",
+def _frames_parser(sub: Any) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "frames", help="hits, false positives and misses per frame",
         description="True positives, false positives and misses of every frame for one class, metric and "
                     "difficulty, from the same matching as the AP; --worst N lists the frames with most errors.")
     p.add_argument("--gt", required=True, type=Path, help="ground truth")
@@ -287,6 +335,7 @@ def _frames_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=["table", "csv", "json"], default="table")
     p.add_argument("--output", "-o", type=Path)
     _add_config_options(p)
+    p.set_defaults(run=_frames)
     return p
 
 
@@ -304,9 +353,9 @@ def _frames(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _inspect_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog=f"{PROG} inspect",
+def _inspect_parser(sub: Any) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "inspect", help="every box of one frame labelled by the matching, for one or more models",
         description="One frame, one or more models: every detection labelled by the matching behind the AP "
                     "(TP with its ground truth and IoU, FP and why, ignored, DontCare, below the score threshold, "
                     "other class) and the ground truth each model missed.")
@@ -323,6 +372,7 @@ def _inspect_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=["table", "json"], default="table")
     p.add_argument("--output", "-o", type=Path)
     _add_config_options(p)
+    p.set_defaults(run=_inspect)
     return p
 
 
@@ -424,10 +474,9 @@ def _run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int
     if args.plot:
         plot_batch(checkpoints, args.plot, keys=keys or None)
     if args.plot_dir:
-        from .batch import _label
         from .plots import plot_overlays
 
-        plot_overlays([(_label(c), c.result) for c in checkpoints], args.plot_dir)
+        plot_overlays([(c.label, c.result) for c in checkpoints], args.plot_dir)
     _emit(text, args.output)
     return EXIT_OK if len(checkpoints) == len(preds) else EXIT_INPUT
 
@@ -435,35 +484,14 @@ def _run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        if argv and argv[0] == "demo":
-            args = _demo_parser().parse_args(argv[1:])
-            from .synth import demo_paths
-
-            gt_path, pred_path = demo_paths()
-            if args.where:
-                print(gt_path, pred_path)
-                return EXIT_OK
-            return _run(gt_path, pred_path, args)
-        if argv and argv[0] == "gate":
-            return _gate(_gate_parser().parse_args(argv[1:]))
-        if argv and argv[0] == "compare":
-            return _compare(_compare_parser().parse_args(argv[1:]))
-        if argv and argv[0] == "frames":
-            return _frames(_frames_parser().parse_args(argv[1:]))
-        if argv and argv[0] == "inspect":
-            return _inspect(_inspect_parser().parse_args(argv[1:]))
-        if argv and argv[0] == "describe":
-            from .describe import main as describe_main
-
-            return describe_main(argv[1:])
-        if argv and argv[0] == "serve":
-            try:
-                from server.main import serve
-            except ImportError as e:
-                raise ConfigError("the service needs the server extra: pip install 'kitti-eval[server]' "
-                                  f"({e})") from None
-            return serve(argv[1:])
-        args = _parser().parse_args(argv)
+        if argv[:1] == ["serve"]:
+            return _serve(argv[1:])
+        parser = _parser()
+        args = parser.parse_args(argv)
+        if args.command is not None:
+            return int(args.run(args))
+        if args.gt is None or not args.pred:
+            parser.error("the following arguments are required: --gt, --pred (or a command)")
         from .batch import expand_predictions
 
         preds = expand_predictions(args.pred)

@@ -1,27 +1,26 @@
-"""``kitti-eval describe FILE``: what a ground-truth or prediction file holds, before evaluating it.
+"""What a ground-truth or prediction file holds, before evaluating it (``kitti-eval describe FILE``).
 
 Reports the detected format, whether it reads as ground truth or predictions, frames (and empty ones),
 boxes per class, the dtypes of the stored fields, the dimension-order check, and for predictions that
 carry both camera fields and ``boxes_lidar`` whether the two agree (yaw and dimensions always; locations
-too when ``--gt`` names infos with calibration). Exit 0, or 1 when the file cannot be read safely.
+too when ``--gt`` names infos with calibration). Raises InputError when the file cannot be read safely.
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .errors import InputError, KittiEvalError
+from .errors import InputError
 from .frames import Annotations, Kind, dimension_order_warnings
 
-__all__ = ["describe", "main"]
+__all__ = ["describe", "KINDS"]
 
-_KINDS: dict[str, Kind] = {"gt": "ground_truth", "pred": "detections"}
+#: ``--kind`` values and what they read a file as
+KINDS: dict[str, Kind] = {"gt": "ground_truth", "pred": "detections"}
 
 
 def _first_frames(obj: object) -> list[Mapping[str, Any]]:
@@ -123,7 +122,7 @@ def describe(path: str | Path, kind: str | None = None, gt: str | Path | None = 
         raise InputError("no such file or directory", source=str(path))
     lines = [f"file: {path}"]
     frames: list[Mapping[str, Any]] = []
-    want: Kind | None = _KINDS[kind] if kind else None
+    want: Kind | None = KINDS[kind] if kind else None
     if p.is_dir() or is_archive(p):
         fmt = "kitti_txt " + ("folder" if p.is_dir() else "archive")
         kinds: list[Kind] = [want] if want else ["detections", "ground_truth"]
@@ -176,22 +175,3 @@ def describe(path: str | Path, kind: str | None = None, gt: str | Path | None = 
     dim_warnings = dimension_order_warnings(annos)
     lines.append("dimension order: " + ("; ".join(dim_warnings) if dim_warnings else "looks like (l, h, w)"))
     return "\n".join(lines) + "\n"
-
-
-def main(argv: Sequence[str]) -> int:
-    p = argparse.ArgumentParser(prog="kitti-eval describe",
-                                description="Sniff a ground-truth or prediction file: format, frames, boxes per "
-                                            "class, dtypes, dimension order, camera/LiDAR consistency.")
-    p.add_argument("file", type=Path, help="a pickle, a KITTI txt folder, or a zip/tar of one")
-    p.add_argument("--kind", choices=sorted(_KINDS), help="read it as ground truth or predictions (default: guess)")
-    p.add_argument("--gt", type=Path, help="infos with calibration, to check prediction locations against boxes_lidar")
-    try:
-        args = p.parse_args(list(argv))
-    except SystemExit as e:
-        return int(e.code) if isinstance(e.code, int) else 2
-    try:
-        sys.stdout.write(describe(args.file, args.kind, args.gt))
-    except (KittiEvalError, OSError) as e:
-        sys.stderr.write(f"kitti-eval describe: error: {e}\n")
-        return 1
-    return 0
