@@ -27,9 +27,22 @@ _LAZY = {
 }
 
 __all__ = [
-    "evaluate", "EvalConfig", "EvalResult", "Annotations", "Metric", "Protocol", "OFFICIAL", "OPENPCDET",
-    "load_ground_truth", "load_detections", "get_official_eval_result",
-    "KittiEvalError", "InputError", "UnsafePickleError", "ConfigError", "__version__",
+    "evaluate",
+    "EvalConfig",
+    "EvalResult",
+    "Annotations",
+    "Metric",
+    "Protocol",
+    "OFFICIAL",
+    "OPENPCDET",
+    "load_ground_truth",
+    "load_detections",
+    "get_official_eval_result",
+    "KittiEvalError",
+    "InputError",
+    "UnsafePickleError",
+    "ConfigError",
+    "__version__",
 ]
 
 

@@ -45,8 +45,9 @@ def _cache_places() -> list[tuple[Path, bool]]:
 
 def _cached(markers: tuple[str, ...]) -> bool:
     for marker in markers:
-        if not any(place.is_dir() and any(place.glob(f"**/{marker}" if deep else marker))
-                   for place, deep in _cache_places()):
+        if not any(
+            place.is_dir() and any(place.glob(f"**/{marker}" if deep else marker)) for place, deep in _cache_places()
+        ):
             return False
     return True
 
@@ -66,8 +67,12 @@ def warm_in_background() -> subprocess.Popen[bytes] | None:
     if (os.cpu_count() or 1) < 2:
         return None
     try:
-        return subprocess.Popen([sys.executable, "-m", "kitti_eval._jit"], stdin=subprocess.DEVNULL,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        return subprocess.Popen(
+            [sys.executable, "-m", "kitti_eval._jit"],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
     except OSError:
         return None
 

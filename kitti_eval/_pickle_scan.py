@@ -39,80 +39,96 @@ from numba import njit
 # ------------------------------------------------------------------------------------------ error codes
 OK = 0
 # not a readable pickle (InputError)
-E_TRUNC = 1          # the data ends inside an opcode or before STOP
-E_OPCODE = 2         # unknown opcode (i0: the byte)
-E_UNDERFLOW = 3      # stack underflow, or an object taken across a MARK
-E_NOMARK = 4         # an opcode needs a MARK that is not there
-E_BADARG = 5         # a malformed opcode argument
-E_MEMO = 6           # GET of an empty memo slot (i0: index)
-E_MEMO_RANGE = 7     # memo index far beyond the number of memo writes (i0: index)
-E_ODD = 8            # odd number of items for DICT / SETITEMS
-E_DEPTH = 9          # nested more than max_depth deep
-E_KEYS = 10          # more than key_budget tuple elements hashed
-E_UNHASHABLE = 11    # dict key or set item that cannot be hashed (i0: node)
-E_CHANGED = 12       # a container changed after it was put into another one
-E_BUDGET = 13        # more bytes built (array data, objects, the stack) than the budget
-E_OOB = 14           # out-of-band buffers
-E_NOT_TUPLE = 15     # REDUCE arguments that are not a tuple
-E_HEADER = 16        # _reconstruct arguments other than numpy's empty int8 shell
-E_SHAPE = 17         # a shape that is not a tuple of at most 64 sizes >= 0
-E_SIZE = 18          # data bytes differ from prod(shape) * itemsize (i0: shape, i1: dtype, i2: bytes)
-E_LIST = 19          # object array state with a list of the wrong length (i1: shape)
-E_ARRSTATE = 20      # array state that is not (1, shape, dtype, fortran, data)
-E_INCOMPLETE = 21    # a dtype used before its state was set
-E_RAWTYPE = 22       # array data of the wrong type, or of a size the scan cannot know
-E_ORDER = 23         # bad order, axis order or fortran flag
-E_SCALAR = 24        # numpy scalar data of the wrong size or type
-E_FROMBUF_OBJ = 25   # object dtype from a raw buffer
-E_DTYPE_SIZE = 26    # bad str/bytes size in a dtype state (i1: size)
-E_ARGS = 27          # wrong number or kind of call arguments
-E_ROOM = 28          # not an error: work array i0 (a ROOM_* index) needs i1 rows; the caller grows it and calls again
+E_TRUNC = 1  # the data ends inside an opcode or before STOP
+E_OPCODE = 2  # unknown opcode (i0: the byte)
+E_UNDERFLOW = 3  # stack underflow, or an object taken across a MARK
+E_NOMARK = 4  # an opcode needs a MARK that is not there
+E_BADARG = 5  # a malformed opcode argument
+E_MEMO = 6  # GET of an empty memo slot (i0: index)
+E_MEMO_RANGE = 7  # memo index far beyond the number of memo writes (i0: index)
+E_ODD = 8  # odd number of items for DICT / SETITEMS
+E_DEPTH = 9  # nested more than max_depth deep
+E_KEYS = 10  # more than key_budget tuple elements hashed
+E_UNHASHABLE = 11  # dict key or set item that cannot be hashed (i0: node)
+E_CHANGED = 12  # a container changed after it was put into another one
+E_BUDGET = 13  # more bytes built (array data, objects, the stack) than the budget
+E_OOB = 14  # out-of-band buffers
+E_NOT_TUPLE = 15  # REDUCE arguments that are not a tuple
+E_HEADER = 16  # _reconstruct arguments other than numpy's empty int8 shell
+E_SHAPE = 17  # a shape that is not a tuple of at most 64 sizes >= 0
+E_SIZE = 18  # data bytes differ from prod(shape) * itemsize (i0: shape, i1: dtype, i2: bytes)
+E_LIST = 19  # object array state with a list of the wrong length (i1: shape)
+E_ARRSTATE = 20  # array state that is not (1, shape, dtype, fortran, data)
+E_INCOMPLETE = 21  # a dtype used before its state was set
+E_RAWTYPE = 22  # array data of the wrong type, or of a size the scan cannot know
+E_ORDER = 23  # bad order, axis order or fortran flag
+E_SCALAR = 24  # numpy scalar data of the wrong size or type
+E_FROMBUF_OBJ = 25  # object dtype from a raw buffer
+E_DTYPE_SIZE = 26  # bad str/bytes size in a dtype state (i1: size)
+E_ARGS = 27  # wrong number or kind of call arguments
+E_ROOM = 28  # not an error: work array i0 (a ROOM_* index) needs i1 rows; the caller grows it and calls again
 ROOM_NODES, ROOM_CH, ROOM_STACK, ROOM_MARKS, ROOM_MEMO = range(5)
 # refused (UnsafePickleError)
-E_GLOBAL = 40        # a global outside the allowlist (i0: 0 GLOBAL, i1/i2 line offsets; 1 STACK_GLOBAL, str nodes)
+E_GLOBAL = 40  # a global outside the allowlist (i0: 0 GLOBAL, i1/i2 line offsets; 1 STACK_GLOBAL, str nodes)
 E_NEWOBJ = 41
 E_INST = 42
 E_EXT = 43
 E_PERSID = 44
-E_CALL = 45          # REDUCE on something that is not an allowlisted callable (i0: node)
-E_BUILD = 46         # BUILD on something other than a fresh array or dtype (i0: node)
+E_CALL = 45  # REDUCE on something that is not an allowlisted callable (i0: node)
+E_BUILD = 46  # BUILD on something other than a fresh array or dtype (i0: node)
 E_GLOBAL_VALUE = 47  # a global used as a value (i0: node)
-E_DTYPE_CODE = 48    # numpy.dtype code not accepted (i0: node of the code)
-E_DTYPE_STATE = 49   # dtype state other than the canonical plain state
-E_SUBTYPE = 50       # _reconstruct of something other than numpy.ndarray (i0: node)
-E_OBJ_ITEMS = 51     # object array holding something other than str, numbers, bytes, None
-E_ENCODE = 52        # _codecs.encode other than str -> latin-1
+E_DTYPE_CODE = 48  # numpy.dtype code not accepted (i0: node of the code)
+E_DTYPE_STATE = 49  # dtype state other than the canonical plain state
+E_SUBTYPE = 50  # _reconstruct of something other than numpy.ndarray (i0: node)
+E_OBJ_ITEMS = 51  # object array holding something other than str, numbers, bytes, None
+E_ENCODE = 52  # _codecs.encode other than str -> latin-1
 E_ODICT_ARGS = 53
 E_BYTES_ARGS = 54
-E_SCALAR_OBJ = 55    # numpy scalar of object dtype
-E_NOT_DTYPE = 56     # something other than a dtype where numpy expects one
-E_TARGET = 57        # APPENDS / SETITEMS / ADDITEMS on an object of the wrong kind (i0: node)
-E_DTYPE_ARGS = 58    # numpy.dtype called other than (code, align: bool, copy=True)
+E_SCALAR_OBJ = 55  # numpy scalar of object dtype
+E_NOT_DTYPE = 56  # something other than a dtype where numpy expects one
+E_TARGET = 57  # APPENDS / SETITEMS / ADDITEMS on an object of the wrong kind (i0: node)
+E_DTYPE_ARGS = 58  # numpy.dtype called other than (code, align: bool, copy=True)
 
 # ------------------------------------------------------------------------------------------ node kinds
 K_NONE = 1
-K_INT = 2          # V: the value (bools have F_BOOL)
-K_BIGINT = 3       # an int whose value the scan does not know
+K_INT = 2  # V: the value (bools have F_BOOL)
+K_BIGINT = 3  # an int whose value the scan does not know
 K_FLOAT = 4
-K_STR = 5          # raw bytes data[A:A+B]; V chars (-1: unknown); F_CONTENT: the raw bytes are the ASCII text
-K_BYTES = 6        # V bytes (-1: unknown); F_CONTENT: data[A:A+V] are the bytes
-K_BYTEARRAY = 7    # V bytes
-K_TUPLE = 8        # children ch[A:A+B]; V: elements hashed when it is a key
-K_LIST = 9         # V items
+K_STR = 5  # raw bytes data[A:A+B]; V chars (-1: unknown); F_CONTENT: the raw bytes are the ASCII text
+K_BYTES = 6  # V bytes (-1: unknown); F_CONTENT: data[A:A+V] are the bytes
+K_BYTEARRAY = 7  # V bytes
+K_TUPLE = 8  # children ch[A:A+B]; V: elements hashed when it is a key
+K_LIST = 9  # V items
 K_DICT = 10
 K_SET = 11
 K_FROZENSET = 12
 K_ODICT = 13
-K_GLOBAL = 14      # V: row of the allowlist
-K_SHELL = 15       # numpy array from _reconstruct; F_BUILT once its state is set
-K_ARRAY = 16       # numpy array from _frombuffer
-K_DTYPE = 17       # V itemsize (-1 until known), A kind letter, B dtype-table row; F_BUILT once its state is set
+K_GLOBAL = 14  # V: row of the allowlist
+K_SHELL = 15  # numpy array from _reconstruct; F_BUILT once its state is set
+K_ARRAY = 16  # numpy array from _frombuffer
+K_DTYPE = 17  # V itemsize (-1 until known), A kind letter, B dtype-table row; F_BUILT once its state is set
 K_SCALAR = 18
 
-KIND_NAMES = {K_NONE: "None", K_INT: "int", K_BIGINT: "int", K_FLOAT: "float", K_STR: "str",
-              K_BYTES: "bytes", K_BYTEARRAY: "bytearray", K_TUPLE: "tuple", K_LIST: "list", K_DICT: "dict",
-              K_SET: "set", K_FROZENSET: "frozenset", K_ODICT: "OrderedDict", K_GLOBAL: "global",
-              K_SHELL: "numpy array", K_ARRAY: "numpy array", K_DTYPE: "numpy dtype", K_SCALAR: "numpy scalar"}
+KIND_NAMES = {
+    K_NONE: "None",
+    K_INT: "int",
+    K_BIGINT: "int",
+    K_FLOAT: "float",
+    K_STR: "str",
+    K_BYTES: "bytes",
+    K_BYTEARRAY: "bytearray",
+    K_TUPLE: "tuple",
+    K_LIST: "list",
+    K_DICT: "dict",
+    K_SET: "set",
+    K_FROZENSET: "frozenset",
+    K_ODICT: "OrderedDict",
+    K_GLOBAL: "global",
+    K_SHELL: "numpy array",
+    K_ARRAY: "numpy array",
+    K_DTYPE: "numpy dtype",
+    K_SCALAR: "numpy scalar",
+}
 
 # a node is a row of 4 int64: W = kind | flags | opcode << 24 | depth << 32, then V, A, B (per kind, above)
 W = 0
@@ -122,12 +138,12 @@ B = 3
 KIND_MASK = 0xFF
 OP_SHIFT = 24
 DEPTH_SHIFT = 32
-F_PLACED = 1 << 8       # inside another container: frozen from then on
-F_GLOBALISH = 1 << 9    # a global, or a tuple holding one
+F_PLACED = 1 << 8  # inside another container: frozen from then on
+F_GLOBALISH = 1 << 9  # a global, or a tuple holding one
 F_BUILT = 1 << 10
 F_BOOL = 1 << 11
 F_CONTENT = 1 << 12
-F_LEAVES = 1 << 13      # list: every item may go into an object array
+F_LEAVES = 1 << 13  # list: every item may go into an object array
 F_UNHASHABLE = 1 << 14  # tuple: holds something unhashable
 
 # what each allowlisted global does (column 4 of the globals table)
@@ -141,17 +157,18 @@ FN_ODICT = 7
 FN_BYTES = 8
 
 # dtype table columns (rows made by safe_pickle from numpy itself)
-D_OFF = 0       # the code in the blob
+D_OFF = 0  # the code in the blob
 D_LEN = 1
-D_KIND = 2      # kind letter
+D_KIND = 2  # kind letter
 D_ITEMSIZE = 3  # -1 for U and S (the state gives it)
-D_BO = 4        # allowed byte orders: bit 0 '<', 1 '>', 2 '|'
-D_ELSIZE = 5    # the canonical state's elsize, alignment and flags (elsize -1 for fixed sizes)
+D_BO = 4  # allowed byte orders: bit 0 '<', 1 '>', 2 '|'
+D_ELSIZE = 5  # the canonical state's elsize, alignment and flags (elsize -1 for fixed sizes)
 D_ALIGN = 6
 D_FLAGS = 7
 
-_LEAVES = (1 << K_NONE) | (1 << K_INT) | (1 << K_BIGINT) | (1 << K_FLOAT) | (1 << K_STR) | (1 << K_BYTES) | \
-    (1 << K_SCALAR)
+_LEAVES = (
+    (1 << K_NONE) | (1 << K_INT) | (1 << K_BIGINT) | (1 << K_FLOAT) | (1 << K_STR) | (1 << K_BYTES) | (1 << K_SCALAR)
+)
 _HASHABLE = _LEAVES | (1 << K_TUPLE) | (1 << K_FROZENSET) | (1 << K_DTYPE)
 _MUTABLE = (1 << K_LIST) | (1 << K_DICT) | (1 << K_SET) | (1 << K_ODICT)
 _NONE, _TRUE, _FALSE, _FLOAT, _BIGINT, _INT0 = 0, 1, 2, 3, 4, 5  # shared nodes; _INT0 + i is the int i < 256
@@ -172,11 +189,19 @@ def _table(*groups: tuple[bytes, int]) -> np.ndarray:
 _FIXED = _table((b"Khq\x80\x8a", 1), (b"M", 2), (b"Jjr\x8b", 4), (b"G\x95", 8))  # argument bytes
 _COUNTED = _table((b"UC\x8c", 1), (b"TBX", 4), (b"\x8d\x8e\x96", 8))  # bytes of the length before the data
 _LINES = _table((b"FILSVgp", 1), (b"c", 2))  # newline-terminated arguments
-_REFUSED = _table((b"PQ", E_PERSID), (b"\x82\x83\x84", E_EXT), (b"io", E_INST), (b"\x81\x92", E_NEWOBJ),
-                  (b"\x97\x98", E_OOB))
-_NEW = _table((b"UTXSV\x8c\x8d", K_STR), (b"CB\x8e", K_BYTES | F_CONTENT), (b"\x96", K_BYTEARRAY),
-              (b")t\x85\x86\x87", K_TUPLE), (b"]l", K_LIST | F_LEAVES), (b"}d", K_DICT), (b"\x8f", K_SET),
-              (b"\x91", K_FROZENSET))  # what a value or container opcode makes
+_REFUSED = _table(
+    (b"PQ", E_PERSID), (b"\x82\x83\x84", E_EXT), (b"io", E_INST), (b"\x81\x92", E_NEWOBJ), (b"\x97\x98", E_OOB)
+)
+_NEW = _table(
+    (b"UTXSV\x8c\x8d", K_STR),
+    (b"CB\x8e", K_BYTES | F_CONTENT),
+    (b"\x96", K_BYTEARRAY),
+    (b")t\x85\x86\x87", K_TUPLE),
+    (b"]l", K_LIST | F_LEAVES),
+    (b"}d", K_DICT),
+    (b"\x8f", K_SET),
+    (b"\x91", K_FROZENSET),
+)  # what a value or container opcode makes
 _FROM_MARK = _table((b"tldu\x91e\x90", 1))  # takes the items above the last MARK
 _INTO = _table((b"ae", K_LIST), (b"su", K_DICT), (b"\x90", K_SET))  # adds items to the container below them
 BASE_NODES = np.zeros((_FIRST, 4), np.int64)  # the shared nodes: None, True, False, a float, an int, 0..255
@@ -259,7 +284,7 @@ def _text(data, p, n, op):
         return (n if not slash else -1), ascii_ and not slash
     if op != 86:  # UTF-8 (binary unicode) or single bytes (binary strings)
         chars = n
-        if op == 88 or op == 0x8c or op == 0x8d:
+        if op == 88 or op == 0x8C or op == 0x8D:
             for i in range(p, p + n):
                 chars -= int(0x80 <= data[i] < 0xC0)
         return chars, ascii_
@@ -327,13 +352,19 @@ def _reduce(data, nodes, ch, gtab, dblob, dtab, fn, args):
     """Check a call of allowlisted function ``fn`` (FN_*) with the tuple node ``args``. Returns (error, i0, i1,
     i2, the result's W, V, A, B, array bytes the call makes)."""
     n = nodes[args, B]
-    c = ch[nodes[args, A]:nodes[args, A] + n]
+    c = ch[nodes[args, A] : nodes[args, A] + n]
     if fn == FN_RECONSTRUCT:  # (numpy.ndarray, (0,), b"b")
         if n == 3 and (nodes[c[0], W] & KIND_MASK != K_GLOBAL or gtab[nodes[c[0], V], 4] != FN_NDARRAY):
             return E_SUBTYPE, c[0], 0, 0, 0, 0, 0, 0, 0
-        if n != 3 or nodes[c[1], W] & KIND_MASK != K_TUPLE or nodes[c[1], B] != 1 or \
-                ch[nodes[c[1], A]] != _INT0 or nodes[c[2], W] & (KIND_MASK | F_CONTENT) != K_BYTES | F_CONTENT or \
-                nodes[c[2], V] != 1 or data[nodes[c[2], A]] != 98:
+        if (
+            n != 3
+            or nodes[c[1], W] & KIND_MASK != K_TUPLE
+            or nodes[c[1], B] != 1
+            or ch[nodes[c[1], A]] != _INT0
+            or nodes[c[2], W] & (KIND_MASK | F_CONTENT) != K_BYTES | F_CONTENT
+            or nodes[c[2], V] != 1
+            or data[nodes[c[2], A]] != 98
+        ):
             return E_HEADER, 0, 0, 0, 0, 0, 0, 0, 0
         return OK, 0, 0, 0, K_SHELL, 0, 0, 0, 0
     for k in c:
@@ -348,8 +379,11 @@ def _reduce(data, nodes, ch, gtab, dblob, dtab, fn, args):
             for r in range(dtab.shape[0]):
                 if dtab[r, D_ITEMSIZE] >= 0 and _equals(data, q, m, dblob, dtab[r, D_OFF], dtab[r, D_LEN]):
                     row = r
-                elif dtab[r, D_ITEMSIZE] < 0 and data[q] == dtab[r, D_KIND] and \
-                        (m == 1 or _decimal(data, q + 1, q + m)[0]):  # U, S, or U<n>, S<n>
+                elif (
+                    dtab[r, D_ITEMSIZE] < 0
+                    and data[q] == dtab[r, D_KIND]
+                    and (m == 1 or _decimal(data, q + 1, q + m)[0])
+                ):  # U, S, or U<n>, S<n>
                     row = r
         if row < 0:
             return E_DTYPE_CODE, c[0], 0, 0, 0, 0, 0, 0, 0
@@ -357,9 +391,12 @@ def _reduce(data, nodes, ch, gtab, dblob, dtab, fn, args):
             return E_DTYPE_ARGS, 0, 0, 0, 0, 0, 0, 0, 0
         return OK, 0, 0, 0, K_DTYPE, dtab[row, D_ITEMSIZE], dtab[row, D_KIND], row, 0
     if fn == FN_ENCODE:  # (str, "latin1")
-        if n != 2 or nodes[c[0], W] & KIND_MASK != K_STR or \
-                nodes[c[1], W] & (KIND_MASK | F_CONTENT) != K_STR | F_CONTENT or \
-                not _is_latin1(data, nodes[c[1], A], nodes[c[1], B]):
+        if (
+            n != 2
+            or nodes[c[0], W] & KIND_MASK != K_STR
+            or nodes[c[1], W] & (KIND_MASK | F_CONTENT) != K_STR | F_CONTENT
+            or not _is_latin1(data, nodes[c[1], A], nodes[c[1], B])
+        ):
             return E_ENCODE, 0, 0, 0, 0, 0, 0, 0, 0
         s = c[0]
         return OK, 0, 0, 0, K_BYTES | (nodes[s, W] & F_CONTENT), nodes[s, V], nodes[s, A], nodes[s, B], nodes[s, B]
@@ -396,7 +433,7 @@ def _reduce(data, nodes, ch, gtab, dblob, dtab, fn, args):
     else:  # K, with the axis order: a permutation of range(ndim)
         order_ok = _char(data, nodes, c[3]) == 75 and nodes[c[4], W] & KIND_MASK == K_TUPLE and nodes[c[4], B] == nd
         seen = 0
-        for k in ch[nodes[c[4], A]:nodes[c[4], A] + (nd if order_ok else 0)]:
+        for k in ch[nodes[c[4], A] : nodes[c[4], A] + (nd if order_ok else 0)]:
             v = nodes[k, V]
             order_ok = order_ok and nodes[k, W] & (KIND_MASK | F_BOOL) == K_INT and 0 <= v < nd and not seen >> v & 1
             seen |= 1 << min(max(v, 0), 62)
@@ -415,7 +452,7 @@ def _build(data, nodes, ch, dtab, target, state):
         return E_BUILD, target, 0, 0, 0, 0
     sk = nodes[state, W] & KIND_MASK
     n = nodes[state, B] if sk == K_TUPLE else 0
-    c = ch[nodes[state, A]:nodes[state, A] + n]
+    c = ch[nodes[state, A] : nodes[state, A] + n]
     if tk == K_DTYPE:
         row = nodes[target, B]
         if n != 8 or c[0] != _INT0 + 3 or c[2] != _NONE or c[3] != _NONE or c[4] != _NONE:
@@ -543,20 +580,20 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                     w |= F_CONTENT
             pos = line + 1 if not width else pos + size
             push = nn
-        elif op == 0x4e:  # NONE
+        elif op == 0x4E:  # NONE
             push = _NONE
         elif op == 0x88:  # NEWTRUE
             push = _TRUE
         elif op == 0x89:  # NEWFALSE
             push = _FALSE
-        elif op == 0x4b or op == 0x4d or op == 0x4a:  # BININT1, BININT2, BININT
+        elif op == 0x4B or op == 0x4D or op == 0x4A:  # BININT1, BININT2, BININT
             v = _uint(data, pos, fixed)
             if fixed == 4 and v >= 1 << 31:
                 v -= 1 << 32
             w = K_INT
             push = nn
             pos += fixed
-        elif op == 0x8a or op == 0x8b:  # LONG1, LONG4: two's complement, little-endian
+        elif op == 0x8A or op == 0x8B:  # LONG1, LONG4: two's complement, little-endian
             size = _uint(data, pos, fixed)
             pos += fixed
             if size >= 1 << 31:
@@ -583,13 +620,13 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
             if line - pos == 2 and data[pos] == 48 and (data[pos + 1] == 48 or data[pos + 1] == 49):
                 push = _TRUE if data[pos + 1] == 49 else _FALSE
             pos = line + 1
-        elif op == 0x4c:  # LONG
+        elif op == 0x4C:  # LONG
             push = _BIGINT
             pos = line + 1
         elif op == 0x46 or op == 0x47:  # FLOAT, BINFLOAT
             push = _FLOAT
             pos = line + 1 if op == 0x46 else pos + 8
-        elif op == 0x29 or op == 0x5d or op == 0x7d or op == 0x8f:  # EMPTY_TUPLE, _LIST, _DICT, _SET
+        elif op == 0x29 or op == 0x5D or op == 0x7D or op == 0x8F:  # EMPTY_TUPLE, _LIST, _DICT, _SET
             w |= 1 << DEPTH_SHIFT
             push = nn
         # ------------------------------------------------------------ the stack and the memo
@@ -621,7 +658,7 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                 err = E_UNDERFLOW
                 break
             push = stack[sp - 1]
-        elif op == 0x67 or op == 0x68 or op == 0x6a:  # GET, BINGET, LONG_BINGET
+        elif op == 0x67 or op == 0x68 or op == 0x6A:  # GET, BINGET, LONG_BINGET
             idx, pos = _memo_index(data, pos, fixed, line)
             if idx < 0 or idx >= memo.shape[0] or memo[idx] == 0:
                 err, i0 = (E_BADARG if idx < 0 else E_MEMO), idx
@@ -654,7 +691,7 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
             if size < 0 or size > n - pos:
                 err = E_TRUNC
                 break
-        elif op == 0x2e:  # STOP
+        elif op == 0x2E:  # STOP
             if sp <= fence:
                 err = E_UNDERFLOW
                 break
@@ -686,8 +723,11 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                 i1, i2 = nodes[i1, A], nodes[i2, A]
             row = -1
             for g in range(gtab.shape[0]):
-                if known and _equals(data, i1, mlen, gblob, gtab[g, 0], gtab[g, 1]) and \
-                        _equals(data, i2, qlen, gblob, gtab[g, 2], gtab[g, 3]):
+                if (
+                    known
+                    and _equals(data, i1, mlen, gblob, gtab[g, 0], gtab[g, 1])
+                    and _equals(data, i2, qlen, gblob, gtab[g, 2], gtab[g, 3])
+                ):
                     row = g
             if row < 0:
                 err, i0 = E_GLOBAL, int(op == 0x93)
@@ -707,8 +747,9 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
             if nodes[args, W] & KIND_MASK != K_TUPLE:
                 err = E_NOT_TUPLE
                 break
-            err, i0, i1, i2, w, v, a, b, made = _reduce(data, nodes, ch, gtab, dblob, dtab, gtab[nodes[call, V], 4],
-                                                        args)
+            err, i0, i1, i2, w, v, a, b, made = _reduce(
+                data, nodes, ch, gtab, dblob, dtab, gtab[nodes[call, V], 4], args
+            )
             spent += made
             push = nn
         elif op == 0x62:  # BUILD

@@ -66,6 +66,7 @@ class ArchiveLimits:
 
 # ------------------------------------------------------------------------------------------- sniffing
 
+
 def _looks_like_tar(block: bytes) -> bool:
     if len(block) < 512:
         return False
@@ -101,7 +102,7 @@ def _looks_like_kitti_line(head: bytes) -> bool:
     try:
         text = head.decode("utf-8")
     except UnicodeDecodeError as e:
-        text = head[:e.start].decode("utf-8")
+        text = head[: e.start].decode("utf-8")
     for line in text.splitlines():
         fields = line.split()
         if fields:
@@ -131,15 +132,20 @@ def sniff_input(file: IO[bytes], source: str) -> InputKind:
     if head[:2] == _GZIP_MAGIC or head[0] == 0x80 or head[:6] == b"\x93NUMPY":  # gzip without a tar, protocol 2+
         return "pickle"
     if _looks_like_kitti_line(head):  # before the protocol-0 check: a class name may start with 'c'
-        raise UnknownFormatError("this is a single KITTI txt file; pass the folder of txt files (or a zip or "
-                                 "tar of it)", source=source)
+        raise UnknownFormatError(
+            "this is a single KITTI txt file; pass the folder of txt files (or a zip or tar of it)", source=source
+        )
     if head[0] in b"(]}c":  # how a protocol 0/1 pickle of a list or dict starts: MARK, EMPTY_LIST, EMPTY_DICT, GLOBAL
         return "pickle"
-    raise UnknownFormatError(f"unknown format (starts with {head[:8]!r}); expected a pickle (.pkl, .pkl.gz), a "
-                             "zip or tar of KITTI txt files, or a folder of them", source=source)
+    raise UnknownFormatError(
+        f"unknown format (starts with {head[:8]!r}); expected a pickle (.pkl, .pkl.gz), a "
+        "zip or tar of KITTI txt files, or a folder of them",
+        source=source,
+    )
 
 
 # ------------------------------------------------------------------------------------------ checking
+
 
 class _Budget:
     """Unpacked bytes and member count left; raises InputError when either runs out."""
@@ -216,10 +222,16 @@ class _Writer:
 
     def folder(self) -> Path:
         if not self.folders:
-            hint = (" This looks like a torch.save() file: export predictions as plain numpy arrays and "
-                    "pickle the list of per-frame dicts." if self.torch_like else "")
-            raise InputError(f"no .txt files in the archive (expected a folder of KITTI txt files, one per "
-                             f"frame).{hint}", source=self.source)
+            hint = (
+                " This looks like a torch.save() file: export predictions as plain numpy arrays and "
+                "pickle the list of per-frame dicts."
+                if self.torch_like
+                else ""
+            )
+            raise InputError(
+                f"no .txt files in the archive (expected a folder of KITTI txt files, one per frame).{hint}",
+                source=self.source,
+            )
         parent = self._pick()
         folder = self.folders[parent]
         self.names[str(folder)] = parent
@@ -233,8 +245,10 @@ class _Writer:
             if len(hits) == 1:
                 return hits[0]
         shown = ", ".join(sorted((p + "/") if p != "." else "./" for p in self.folders)[:5])
-        raise InputError(f"txt files in several folders ({shown}); pack one folder (or one named label_2/ or "
-                         "data/)", source=self.source)
+        raise InputError(
+            f"txt files in several folders ({shown}); pack one folder (or one named label_2/ or data/)",
+            source=self.source,
+        )
 
 
 # ----------------------------------------------------------------------------------------------- zip
@@ -254,10 +268,10 @@ def _check_zip_directory(file: IO[bytes], limits: ArchiveLimits, source: str) ->
     at = tail.rfind(b"PK\x05\x06")
     if at < 0 or len(tail) < at + 22:
         return  # zipfile reports the broken archive
-    entries, cd_size = struct.unpack("<HI", tail[at + 10:at + 16])
+    entries, cd_size = struct.unpack("<HI", tail[at + 10 : at + 16])
     z64 = tail.rfind(b"PK\x06\x06", 0, at)
     if (entries == 0xFFFF or cd_size == 0xFFFFFFFF) and z64 >= 0 and len(tail) >= z64 + 56:
-        entries, cd_size = struct.unpack("<QQ", tail[z64 + 32:z64 + 48])
+        entries, cd_size = struct.unpack("<QQ", tail[z64 + 32 : z64 + 48])
     if entries > limits.max_members or cd_size > limits.max_members * _CD_BYTES_PER_MEMBER:
         raise InputError(limits._members_message(), source=source)
 
@@ -276,8 +290,7 @@ def _zip_members(file: IO[bytes], writer: _Writer, budget: _Budget, source: str)
             name = _member_name(info.filename, source)
             mode = info.external_attr >> 16
             if stat.S_ISLNK(mode):
-                raise InputError(f"member {info.filename!r} is a symbolic link; links are not accepted",
-                                 source=source)
+                raise InputError(f"member {info.filename!r} is a symbolic link; links are not accepted", source=source)
             if stat.S_IFMT(mode) not in (0, stat.S_IFREG, stat.S_IFDIR):
                 raise InputError(f"member {info.filename!r} is not a regular file or folder", source=source)
             writer.saw(name)
@@ -293,12 +306,20 @@ def _zip_members(file: IO[bytes], writer: _Writer, budget: _Budget, source: str)
             try:
                 with zf.open(info) as src:
                     writer.write(name, src.read)
-            except (zipfile.BadZipFile, zlib.error, NotImplementedError, EOFError, OSError, RuntimeError,
-                    ValueError) as e:
+            except (
+                zipfile.BadZipFile,
+                zlib.error,
+                NotImplementedError,
+                EOFError,
+                OSError,
+                RuntimeError,
+                ValueError,
+            ) as e:
                 raise InputError(f"member {info.filename!r} cannot be unpacked ({e})", source=source) from None
 
 
 # ----------------------------------------------------------------------------------------------- tar
+
 
 class _CappedReader:
     """A read-only view of a decompressing stream that stops at the unpacked-size budget."""
@@ -361,14 +382,17 @@ def _tar_members(file: IO[bytes], writer: _Writer, budget: _Budget, source: str,
     except InputError:
         raise
     except (tarfile.TarError, OSError, EOFError, zlib.error, lzma.LZMAError, ValueError) as e:
-        raise InputError(f"not a readable tar archive, or a truncated one ({e or type(e).__name__})",
-                         source=source) from None
+        raise InputError(
+            f"not a readable tar archive, or a truncated one ({e or type(e).__name__})", source=source
+        ) from None
 
 
 # ------------------------------------------------------------------------------------------ public
 
-def extract_txt_folder(file: IO[bytes], kind: ArchiveKind, dest: Path, limits: ArchiveLimits,
-                       source: str) -> tuple[Path, dict[str, str]]:
+
+def extract_txt_folder(
+    file: IO[bytes], kind: ArchiveKind, dest: Path, limits: ArchiveLimits, source: str
+) -> tuple[Path, dict[str, str]]:
     """Unpack the txt files of a seekable zip or tar ``file`` into (a subfolder of) ``dest``.
 
     Returns the folder holding the chosen txt files and ``{written path: member name}`` (the folder itself

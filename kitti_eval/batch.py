@@ -77,9 +77,15 @@ def default_ranking(result: EvalResult) -> float:
     return sum(present) / len(present) if present else -math.inf
 
 
-def evaluate_many(gt: Annotations, paths: Sequence[Path], config: EvalConfig | None = None, *,
-                  progress: bool = True, on_error: Callable[[Path, Exception], None] | None = None,
-                  keep_curves: bool = False) -> list[Checkpoint]:
+def evaluate_many(
+    gt: Annotations,
+    paths: Sequence[Path],
+    config: EvalConfig | None = None,
+    *,
+    progress: bool = True,
+    on_error: Callable[[Path, Exception], None] | None = None,
+    keep_curves: bool = False,
+) -> list[Checkpoint]:
     """Evaluate every prediction file against ``gt``; a bad file raises unless ``on_error`` takes it."""
     from tqdm import tqdm
 
@@ -106,8 +112,13 @@ def _columns(results: Sequence[Checkpoint], keys: Sequence[ValueKey] | None) -> 
     return [ValueKey(cls, "3d", "moderate") for cls in classes]
 
 
-def render_batch(results: Sequence[Checkpoint], fmt: str = "table", *, keys: Sequence[ValueKey] | None = None,
-                 best_by: ValueKey | None = None) -> str:
+def render_batch(
+    results: Sequence[Checkpoint],
+    fmt: str = "table",
+    *,
+    keys: Sequence[ValueKey] | None = None,
+    best_by: ValueKey | None = None,
+) -> str:
     """A table over checkpoints (rows) and values (columns: moderate 3D AP per class by default)."""
     if not results:
         raise InputError("no prediction file could be evaluated")
@@ -135,17 +146,19 @@ def render_batch(results: Sequence[Checkpoint], fmt: str = "table", *, keys: Seq
     names = [str(k) for k in cols]
     rows = [[c.label] + [cell(k.read(c.result.to_dict())) for k in cols] for c in results]
     if fmt == "markdown":
-        lines = ["| checkpoint | " + " | ".join(f"`{n}`" for n in names) + " |",
-                 "|---|" + "---:|" * len(names)]
+        lines = ["| checkpoint | " + " | ".join(f"`{n}`" for n in names) + " |", "|---|" + "---:|" * len(names)]
         lines += ["| " + " | ".join(r) + (" ⭐" if c is best else "") + " |" for r, c in zip(rows, results)]
         return "\n".join(lines) + f"\n\nBest: **{best.label}** ({best.path}), {how}.\n"
     widths = [max(len(r[i]) for r in rows + [["checkpoint", *names]]) for i in range(len(names) + 1)]
-    header = "  ".join(h.ljust(widths[0]) if i == 0 else h.rjust(widths[i])
-                       for i, h in enumerate(["checkpoint", *names]))
+    header = "  ".join(
+        h.ljust(widths[0]) if i == 0 else h.rjust(widths[i]) for i, h in enumerate(["checkpoint", *names])
+    )
     lines = [header]
     for r, c in zip(rows, results):
-        lines.append("  ".join(v.ljust(widths[0]) if i == 0 else v.rjust(widths[i]) for i, v in enumerate(r))
-                     + ("  <- best" if c is best else ""))
+        lines.append(
+            "  ".join(v.ljust(widths[0]) if i == 0 else v.rjust(widths[i]) for i, v in enumerate(r))
+            + ("  <- best" if c is best else "")
+        )
     lines.append(f"best: {best.label} ({best.path}), {how}")
     return "\n".join(lines) + "\n"
 

@@ -121,8 +121,12 @@ def _timed(fn) -> float:  # noqa: ANN001
 
 
 def _run_child(gt: Path, pred: Path, repeat: int) -> dict[str, float]:
-    proc = subprocess.run([sys.executable, "-m", "kitti_eval.bench", "--child", str(gt), str(pred),
-                           "--repeat", str(repeat)], capture_output=True, text=True, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-m", "kitti_eval.bench", "--child", str(gt), str(pred), "--repeat", str(repeat)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     if proc.returncode != 0:
         raise RuntimeError(f"benchmark child failed: {proc.stderr.strip()[-2000:]}")
     return json.loads(proc.stdout)
@@ -154,8 +158,11 @@ def _cold(tmp: Path, gt: Path, pred: Path) -> dict[str, tuple[float, float]]:
     runs = {
         "kitti-eval --format json": None,
         "kitti-eval demo": [sys.executable, "-m", "kitti_eval.cli", "demo", "--format", "json"],
-        "compile the pickle loader only": [sys.executable, "-c", "from kitti_eval.safe_pickle import load_pickle; "
-                                           f"load_pickle({str(pred)!r}, source='bench')"],
+        "compile the pickle loader only": [
+            sys.executable,
+            "-c",
+            f"from kitti_eval.safe_pickle import load_pickle; load_pickle({str(pred)!r}, source='bench')",
+        ],
         "compile the evaluation kernels only": [sys.executable, "-m", "kitti_eval._jit"],
     }
     for k, (what, argv) in enumerate(runs.items()):
@@ -170,9 +177,26 @@ def _cold(tmp: Path, gt: Path, pred: Path) -> dict[str, tuple[float, float]]:
 
 def _generate(directory: Path, frames: int, seed: int) -> tuple[Path, Path]:
     """A KITTI-val-like set (~8 ground-truth boxes and ~40 detections a frame), written by a child process."""
-    subprocess.run([sys.executable, "-m", "kitti_eval.synth", "--frames", str(frames), "--seed", str(seed),
-                    "--dets-per-frame", "40", "--gt-per-frame", "8", "--out", str(directory)],
-                   check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "kitti_eval.synth",
+            "--frames",
+            str(frames),
+            "--seed",
+            str(seed),
+            "--dets-per-frame",
+            "40",
+            "--gt-per-frame",
+            "8",
+            "--out",
+            str(directory),
+        ],
+        check=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     return directory / "kitti_infos_val.pkl", directory / "result.pkl"
 
 
@@ -197,10 +221,12 @@ def _golden_inputs(case: Path, tmp: Path) -> tuple[Path, Path] | None:
 
 
 def _fmt_row(name: str, m: dict[str, float]) -> str:
-    return (f"{name:<18} {m['frames']:>7.0f} {m['pred_boxes']:>9.0f} {m['load_gt_s'] + m['load_pred_s']:>7.3f} "
-            f"{m['stage_overlaps_s']:>8.3f} {m['stage_matching_s']:>8.3f} {m['stage_ap_s']:>6.3f} "
-            f"{m['output_s']:>6.3f} {m['warm_eval_s']:>8.3f} {m['warm_eval_1core_s']:>8.3f} "
-            f"{m['peak_rss_mib']:>8.1f}")
+    return (
+        f"{name:<18} {m['frames']:>7.0f} {m['pred_boxes']:>9.0f} {m['load_gt_s'] + m['load_pred_s']:>7.3f} "
+        f"{m['stage_overlaps_s']:>8.3f} {m['stage_matching_s']:>8.3f} {m['stage_ap_s']:>6.3f} "
+        f"{m['output_s']:>6.3f} {m['warm_eval_s']:>8.3f} {m['warm_eval_1core_s']:>8.3f} "
+        f"{m['peak_rss_mib']:>8.1f}"
+    )
 
 
 def _verdict(ok: bool) -> str:
@@ -208,10 +234,15 @@ def _verdict(ok: bool) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m kitti_eval.bench", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--golden", type=Path, default=GOLDEN_DEFAULT,
-                   help=f"a golden case folder to include (default {GOLDEN_DEFAULT}, skipped if absent)")
+    p = argparse.ArgumentParser(
+        prog="python -m kitti_eval.bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--golden",
+        type=Path,
+        default=GOLDEN_DEFAULT,
+        help=f"a golden case folder to include (default {GOLDEN_DEFAULT}, skipped if absent)",
+    )
     p.add_argument("--scales", default="1,10", help="generated sets, in multiples of KITTI val's 3769 frames")
     p.add_argument("--repeat", type=int, default=5, help="repetitions of each warm measurement (best/median)")
     p.add_argument("--no-cold", action="store_true", help="skip the empty-cache (first run) measurement")
@@ -246,10 +277,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             cli[name] = (statistics.median(r[0] for r in runs), max(r[1] for r in runs))
         cold = None if args.no_cold else _cold(tmp, inputs[0][1], inputs[0][2])
 
-    print("Stages of one evaluation (seconds; the load and stages in a warm process, best of "
-          f"{args.repeat}; RSS = peak of the process, MiB)")
-    print(f"{'input':<18} {'frames':>7} {'pred box':>9} {'load':>7} {'overlaps':>8} {'matching':>8} {'AP':>6} "
-          f"{'output':>6} {'eval':>8} {'eval 1c':>8} {'peak RSS':>8}")
+    print(
+        "Stages of one evaluation (seconds; the load and stages in a warm process, best of "
+        f"{args.repeat}; RSS = peak of the process, MiB)"
+    )
+    print(
+        f"{'input':<18} {'frames':>7} {'pred box':>9} {'load':>7} {'overlaps':>8} {'matching':>8} {'AP':>6} "
+        f"{'output':>6} {'eval':>8} {'eval 1c':>8} {'peak RSS':>8}"
+    )
     for name, m in report.items():
         print(_fmt_row(name, m))
     print()
@@ -267,34 +302,64 @@ def main(argv: Sequence[str] | None = None) -> int:
     threads = int(ref["threads"])
     print(f"Targets (on {ref_name}; {threads} threads):")
     checks = [
-        (f"warm evaluation <= {TARGETS['warm_eval_s']} s", ref["warm_eval_s"] <= TARGETS["warm_eval_s"],
-         f"{ref['warm_eval_s']:.3f} s on {threads} cores, {ref['warm_eval_1core_s']:.3f} s on 1"),
-        (f"whole CLI process <= {TARGETS['cli_warm_s']} s (cache warm)", cli[ref_name][0] <= TARGETS["cli_warm_s"],
-         f"{cli[ref_name][0]:.2f} s"),
-        (f"peak memory <= {TARGETS['peak_rss_mib']:.0f} MiB", cli[ref_name][1] <= TARGETS["peak_rss_mib"],
-         f"{cli[ref_name][1]:.1f} MiB"),
+        (
+            f"warm evaluation <= {TARGETS['warm_eval_s']} s",
+            ref["warm_eval_s"] <= TARGETS["warm_eval_s"],
+            f"{ref['warm_eval_s']:.3f} s on {threads} cores, {ref['warm_eval_1core_s']:.3f} s on 1",
+        ),
+        (
+            f"whole CLI process <= {TARGETS['cli_warm_s']} s (cache warm)",
+            cli[ref_name][0] <= TARGETS["cli_warm_s"],
+            f"{cli[ref_name][0]:.2f} s",
+        ),
+        (
+            f"peak memory <= {TARGETS['peak_rss_mib']:.0f} MiB",
+            cli[ref_name][1] <= TARGETS["peak_rss_mib"],
+            f"{cli[ref_name][1]:.1f} MiB",
+        ),
     ]
     if cold:
         for what in ("kitti-eval --format json", "kitti-eval demo"):
             wall, cpu = cold[what]
-            checks.append((f"first {what} <= {TARGETS['cli_cold_s']:.0f} s wall, {TARGETS['cli_cold_cpu_s']:.0f} s CPU",
-                           wall <= TARGETS["cli_cold_s"] and cpu <= TARGETS["cli_cold_cpu_s"],
-                           f"{wall:.1f} s, {cpu:.1f} s CPU"))
+            checks.append(
+                (
+                    f"first {what} <= {TARGETS['cli_cold_s']:.0f} s wall, {TARGETS['cli_cold_cpu_s']:.0f} s CPU",
+                    wall <= TARGETS["cli_cold_s"] and cpu <= TARGETS["cli_cold_cpu_s"],
+                    f"{wall:.1f} s, {cpu:.1f} s CPU",
+                )
+            )
     if 1 in scales and 10 in scales:
         one, ten = report["generated 1x"], report["generated 10x"]
         t_ratio = ten["warm_eval_s"] / one["warm_eval_s"]
         m_ratio = cli["generated 10x"][1] / cli["generated 1x"][1]
         c_ratio = cli["generated 10x"][0] / cli["generated 1x"][0]
-        checks.append((f"10x frames: evaluation time <= {TARGETS['scale_ratio']:.0f}x",
-                       t_ratio <= TARGETS["scale_ratio"], f"{t_ratio:.2f}x"))
-        checks.append((f"10x frames: whole process time <= {TARGETS['scale_ratio']:.0f}x",
-                       c_ratio <= TARGETS["scale_ratio"], f"{c_ratio:.2f}x"))
-        checks.append((f"10x frames: peak memory <= {TARGETS['scale_ratio']:.0f}x", m_ratio <= TARGETS["scale_ratio"],
-                       f"{m_ratio:.2f}x"))
+        checks.append(
+            (
+                f"10x frames: evaluation time <= {TARGETS['scale_ratio']:.0f}x",
+                t_ratio <= TARGETS["scale_ratio"],
+                f"{t_ratio:.2f}x",
+            )
+        )
+        checks.append(
+            (
+                f"10x frames: whole process time <= {TARGETS['scale_ratio']:.0f}x",
+                c_ratio <= TARGETS["scale_ratio"],
+                f"{c_ratio:.2f}x",
+            )
+        )
+        checks.append(
+            (
+                f"10x frames: peak memory <= {TARGETS['scale_ratio']:.0f}x",
+                m_ratio <= TARGETS["scale_ratio"],
+                f"{m_ratio:.2f}x",
+            )
+        )
     for what, ok, figure in checks:
         print(f"  {_verdict(ok):<8} {what:<52} {figure}")
-    print("References on this machine type (KITTI val size, R40, one threshold set): official C++ devkit 37.4 s; "
-          "OpenPCDet's evaluator with its IoU on the CPU 186 s, 678 MiB.")
+    print(
+        "References on this machine type (KITTI val size, R40, one threshold set): official C++ devkit 37.4 s; "
+        "OpenPCDet's evaluator with its IoU on the CPU 186 s, 678 MiB."
+    )
     if not all(ok for _, ok, _ in checks):
         print("Exit status 3: a target is not met on this machine (the targets are for two quiet cores).")
         return 3

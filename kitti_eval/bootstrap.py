@@ -31,8 +31,15 @@ __all__ = ["resampled_ap", "frame_weights", "paired_bootstrap", "Comparison", "c
 
 
 @njit(cache=True, nogil=True)
-def _resampled_curves(valid: np.ndarray, tp_score: np.ndarray, tp_frame: np.ndarray, ev_score: np.ndarray,
-                      ev_frame: np.ndarray, ev_delta: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def _resampled_curves(
+    valid: np.ndarray,
+    tp_score: np.ndarray,
+    tp_frame: np.ndarray,
+    ev_score: np.ndarray,
+    ev_frame: np.ndarray,
+    ev_delta: np.ndarray,
+    weights: np.ndarray,
+) -> np.ndarray:
     """(B, 2, 41): precision and orientation similarity / (TP + FP) at each score threshold (zeros past the
     last; NaN where nothing is detected) for each row of frame weights (B, F), before max-interpolation."""
     n_b = weights.shape[0]
@@ -92,10 +99,20 @@ def resampled_ap(events: FrameEvents, weights: npt.ArrayLike) -> npt.NDArray[np.
     w = kernel_input(weights, np.int64)
     if w.ndim != 2 or w.shape[1] != events.valid.shape[0] or (w < 0).any():
         raise ValueError(f"Expected `weights` with shape (B, {events.valid.shape[0]}) of counts >= 0, got {w.shape}")
-    curves = envelope(_resampled_curves(events.valid, events.tp_score, events.tp_frame, events.ev_score,
-                                        events.ev_frame, events.ev_delta, w))
-    return np.stack([average_precisions(curves[:, 0], "R11"), average_precisions(curves[:, 0], "R40"),
-                     average_precisions(curves[:, 1], "R11"), average_precisions(curves[:, 1], "R40")], axis=1)
+    curves = envelope(
+        _resampled_curves(
+            events.valid, events.tp_score, events.tp_frame, events.ev_score, events.ev_frame, events.ev_delta, w
+        )
+    )
+    return np.stack(
+        [
+            average_precisions(curves[:, 0], "R11"),
+            average_precisions(curves[:, 0], "R40"),
+            average_precisions(curves[:, 1], "R11"),
+            average_precisions(curves[:, 1], "R40"),
+        ],
+        axis=1,
+    )
 
 
 def frame_weights(n_frames: int, n_resamples: int, seed: int) -> npt.NDArray[np.int64]:
@@ -108,9 +125,20 @@ def frame_weights(n_frames: int, n_resamples: int, seed: int) -> npt.NDArray[np.
 
 def _events(plan: Plan, workers: int | None) -> list[FrameEvents]:
     fo = plan.overlaps
-    return frame_events_many(fo.pair_offsets, (fo.bbox, fo.bev, fo.d3), plan.gt.offsets, plan.dt.offsets,
-                             plan.ignored_gt, plan.ignored_det, plan.dontcare, plan.dt.score, plan.gt.alpha,
-                             plan.dt.alpha, plan.jobs, workers=workers)
+    return frame_events_many(
+        fo.pair_offsets,
+        (fo.bbox, fo.bev, fo.d3),
+        plan.gt.offsets,
+        plan.dt.offsets,
+        plan.ignored_gt,
+        plan.ignored_det,
+        plan.dontcare,
+        plan.dt.score,
+        plan.gt.alpha,
+        plan.dt.alpha,
+        plan.jobs,
+        workers=workers,
+    )
 
 
 def _resampled_values(plan: Plan, weights: np.ndarray, workers: int | None) -> dict[ValueKey, np.ndarray]:
@@ -187,18 +215,29 @@ class Comparison:
             "resamples": self.resamples,
             "seed": self.seed,
             "notes": self.notes,
-            "values": [{"key": str(k), "a": va, "b": vb, "delta": d,
-                        "interval95": list(iv) if iv is not None else None}
-                       for k, va, vb, d, iv in self.rows()],
-            "num_det": {c: self.b["num_det"][c] - self.a["num_det"][c] for c in shared
-                        if c in self.a.get("num_det", {}) and c in self.b.get("num_det", {})},
+            "values": [
+                {"key": str(k), "a": va, "b": vb, "delta": d, "interval95": list(iv) if iv is not None else None}
+                for k, va, vb, d, iv in self.rows()
+            ],
+            "num_det": {
+                c: self.b["num_det"][c] - self.a["num_det"][c]
+                for c in shared
+                if c in self.a.get("num_det", {}) and c in self.b.get("num_det", {})
+            },
             "frames": self.b["frames"] - self.a["frames"] if "frames" in self.a and "frames" in self.b else None,
         }
 
 
-def paired_bootstrap(gt: Annotations, dt_a: Annotations, dt_b: Annotations, config: EvalConfig | None = None, *,
-                     resamples: int = 1000, seed: int = 0, workers: int | None = None,
-                     ) -> tuple[EvalResult, EvalResult, dict[ValueKey, tuple[float, float]]]:
+def paired_bootstrap(
+    gt: Annotations,
+    dt_a: Annotations,
+    dt_b: Annotations,
+    config: EvalConfig | None = None,
+    *,
+    resamples: int = 1000,
+    seed: int = 0,
+    workers: int | None = None,
+) -> tuple[EvalResult, EvalResult, dict[ValueKey, tuple[float, float]]]:
     """Evaluate A and B, and a 95% interval of B - A for every value from ``resamples`` paired resamples."""
     if resamples < 1:
         raise ValueError("resamples must be >= 1")
@@ -219,9 +258,13 @@ def paired_bootstrap(gt: Annotations, dt_a: Annotations, dt_b: Annotations, conf
     return evaluate(gt, dt_a, config, workers=workers), evaluate(gt, dt_b, config, workers=workers), intervals
 
 
-def compare_documents(a: Mapping[str, Any], b: Mapping[str, Any],
-                      intervals: Mapping[ValueKey, tuple[float, float]] | None = None, resamples: int = 0,
-                      seed: int | None = None) -> Comparison:
+def compare_documents(
+    a: Mapping[str, Any],
+    b: Mapping[str, Any],
+    intervals: Mapping[ValueKey, tuple[float, float]] | None = None,
+    resamples: int = 0,
+    seed: int | None = None,
+) -> Comparison:
     return Comparison(a, b, dict(intervals or {}), resamples, seed)
 
 
@@ -244,15 +287,25 @@ def render_comparison(cmp: Comparison, fmt: str = "table", *, every_value: bool 
 
     if fmt == "markdown":
         out = ["| value | A | B | B − A | 95% interval |", "|---|---:|---:|---:|---|"]
-        out += [f"| `{k}` | {num(a)} | {num(b)} | {num(d, True)}{significant(iv)} | {interval(iv)} |"
-                for k, a, b, d, iv in rows]
-        note = f"\n{cmp.resamples} paired bootstrap resamples over frames (seed {cmp.seed}); * : the interval " \
-               "excludes 0.\n" if cmp.resamples else "\n"
+        out += [
+            f"| `{k}` | {num(a)} | {num(b)} | {num(d, True)}{significant(iv)} | {interval(iv)} |"
+            for k, a, b, d, iv in rows
+        ]
+        note = (
+            f"\n{cmp.resamples} paired bootstrap resamples over frames (seed {cmp.seed}); * : the interval "
+            "excludes 0.\n"
+            if cmp.resamples
+            else "\n"
+        )
         return "\n".join(out) + "\n" + note + "".join(f"> note: {n}\n" for n in cmp.notes)
     out = [f"{'value':<34} {'A':>9} {'B':>9} {'B - A':>10}  {'95% interval' if cmp.resamples else ''}"]
-    out += [f"{str(k):<34} {num(a):>9} {num(b):>9} {num(d, True) + significant(iv):>10}  {interval(iv)}"
-            for k, a, b, d, iv in rows]
+    out += [
+        f"{str(k):<34} {num(a):>9} {num(b):>9} {num(d, True) + significant(iv):>10}  {interval(iv)}"
+        for k, a, b, d, iv in rows
+    ]
     if cmp.resamples:
-        out.append(f"{cmp.resamples} paired bootstrap resamples over frames (seed {cmp.seed}); "
-                   "* marks an interval that excludes 0")
+        out.append(
+            f"{cmp.resamples} paired bootstrap resamples over frames (seed {cmp.seed}); "
+            "* marks an interval that excludes 0"
+        )
     return "\n".join(out) + "\n"

@@ -16,8 +16,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["Calib", "calib_from_info", "lidar_to_camera", "camera_lidar_disagreement", "disagreeing_boxes",
-           "wrap_angle"]
+__all__ = [
+    "Calib",
+    "calib_from_info",
+    "lidar_to_camera",
+    "camera_lidar_disagreement",
+    "disagreeing_boxes",
+    "wrap_angle",
+]
 
 F64 = npt.NDArray[np.float64]
 
@@ -28,7 +34,7 @@ def _as4x4(m: Any, what: str) -> F64:
         return a
     if a.shape in ((3, 3), (3, 4)):
         out = np.eye(4)
-        out[:a.shape[0], :a.shape[1]] = a
+        out[: a.shape[0], : a.shape[1]] = a
         return out
     raise ValueError(f"{what} has shape {a.shape}, expected 3x3, 3x4 or 4x4")
 
@@ -95,9 +101,15 @@ def lidar_to_camera(boxes_lidar: npt.ArrayLike, calib: Calib) -> dict[str, F64]:
     return {"location": loc, "dimensions": dims, "rotation_y": ry, "alpha": alpha, "bbox": bbox}
 
 
-def disagreeing_boxes(location: npt.ArrayLike, rotation_y: npt.ArrayLike, boxes_lidar: npt.ArrayLike,
-                      velo_to_rect: npt.ArrayLike, *, max_distance: float = 0.1,
-                      max_yaw: float = 0.1) -> npt.NDArray[np.bool_]:
+def disagreeing_boxes(
+    location: npt.ArrayLike,
+    rotation_y: npt.ArrayLike,
+    boxes_lidar: npt.ArrayLike,
+    velo_to_rect: npt.ArrayLike,
+    *,
+    max_distance: float = 0.1,
+    max_yaw: float = 0.1,
+) -> npt.NDArray[np.bool_]:
     """(N,) which boxes' camera fields and LiDAR box disagree (location by more than ``max_distance`` metres
     in any coordinate, or yaw by more than ``max_yaw`` radians); ``velo_to_rect`` is (4, 4) or one (N, 4, 4)
     per box, so a whole set is checked in one call."""
@@ -112,11 +124,23 @@ def disagreeing_boxes(location: npt.ArrayLike, rotation_y: npt.ArrayLike, boxes_
     return far | turned
 
 
-def camera_lidar_disagreement(location: npt.ArrayLike, rotation_y: npt.ArrayLike, boxes_lidar: npt.ArrayLike,
-                              calib: Calib, *, max_distance: float = 0.1, max_yaw: float = 0.1) -> int:
+def camera_lidar_disagreement(
+    location: npt.ArrayLike,
+    rotation_y: npt.ArrayLike,
+    boxes_lidar: npt.ArrayLike,
+    calib: Calib,
+    *,
+    max_distance: float = 0.1,
+    max_yaw: float = 0.1,
+) -> int:
     """How many boxes of one frame disagree (see :func:`disagreeing_boxes`)."""
     loc = np.asarray(location, dtype=np.float64).reshape(-1, 3)
     if len(loc) != len(np.asarray(boxes_lidar).reshape(-1, 7)):
         return len(loc)
-    return int(np.count_nonzero(disagreeing_boxes(loc, rotation_y, boxes_lidar, calib.velo_to_rect,
-                                                  max_distance=max_distance, max_yaw=max_yaw)))
+    return int(
+        np.count_nonzero(
+            disagreeing_boxes(
+                loc, rotation_y, boxes_lidar, calib.velo_to_rect, max_distance=max_distance, max_yaw=max_yaw
+            )
+        )
+    )

@@ -36,33 +36,62 @@ def _iou_argument(text: str) -> str:
 
 
 def _add_config_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--protocol", choices=sorted(PROTOCOLS), default=None,
-                   help="official: the KITTI devkit's rules (default); openpcdet: what OpenPCDet prints")
-    p.add_argument("--classes", default=None,
-                   help=f"comma-separated classes (default {','.join(DEFAULT_CLASSES)}; "
-                        f"known: {','.join(KNOWN_CLASSES)})")
-    p.add_argument("--iou", type=_iou_argument, action="append", default=[], metavar="CLASS[:SET]=BBOX,BEV,3D",
-                   help="IoU thresholds for a class, for both sets or for 'strict'/'loose' only; repeatable")
-    p.add_argument("--ranges", metavar="EDGES",
-                   help="also evaluate by ground-plane distance from the camera, e.g. 0,30,50,inf (metres); boxes "
-                        "outside a range are ignored there, neither misses nor false positives")
-    p.add_argument("--lidar-only", action="store_true",
-                   help="BEV and 3D only: no 2D boxes needed, no 2D height filter, no difficulty unless a protocol "
-                        "file gives occlusion/truncation limits")
-    p.add_argument("--protocol-file", type=Path, metavar="TOML",
-                   help="classes, IoU thresholds, neighbour classes, difficulty limits, ranges, lidar_only, coco "
-                        "from a TOML file (see kitti_eval/protocol.py); flags given on the command line win")
-    p.add_argument("--coco", action="store_true",
-                   help="also COCO-style AP: the mean over ten IoU thresholds (Car 0.50:0.05:0.95, Pedestrian "
-                        "and Cyclist 0.25:0.05:0.70)")
+    p.add_argument(
+        "--protocol",
+        choices=sorted(PROTOCOLS),
+        default=None,
+        help="official: the KITTI devkit's rules (default); openpcdet: what OpenPCDet prints",
+    )
+    p.add_argument(
+        "--classes",
+        default=None,
+        help=f"comma-separated classes (default {','.join(DEFAULT_CLASSES)}; known: {','.join(KNOWN_CLASSES)})",
+    )
+    p.add_argument(
+        "--iou",
+        type=_iou_argument,
+        action="append",
+        default=[],
+        metavar="CLASS[:SET]=BBOX,BEV,3D",
+        help="IoU thresholds for a class, for both sets or for 'strict'/'loose' only; repeatable",
+    )
+    p.add_argument(
+        "--ranges",
+        metavar="EDGES",
+        help="also evaluate by ground-plane distance from the camera, e.g. 0,30,50,inf (metres); boxes "
+        "outside a range are ignored there, neither misses nor false positives",
+    )
+    p.add_argument(
+        "--lidar-only",
+        action="store_true",
+        help="BEV and 3D only: no 2D boxes needed, no 2D height filter, no difficulty unless a protocol "
+        "file gives occlusion/truncation limits",
+    )
+    p.add_argument(
+        "--protocol-file",
+        type=Path,
+        metavar="TOML",
+        help="classes, IoU thresholds, neighbour classes, difficulty limits, ranges, lidar_only, coco "
+        "from a TOML file (see kitti_eval/protocol.py); flags given on the command line win",
+    )
+    p.add_argument(
+        "--coco",
+        action="store_true",
+        help="also COCO-style AP: the mean over ten IoU thresholds (Car 0.50:0.05:0.95, Pedestrian "
+        "and Cyclist 0.25:0.05:0.70)",
+    )
 
 
 def _add_eval_options(p: argparse.ArgumentParser) -> None:
     _add_config_options(p)
-    p.add_argument("--format", type=OutputFormat, choices=list(OutputFormat),
-                   default=OutputFormat(os.environ.get("KITTI_EVAL_FORMAT", "table")),
-                   help="table: OpenPCDet's text; json: versioned schema; markdown: for CI summaries "
-                        "(default: table, or $KITTI_EVAL_FORMAT)")
+    p.add_argument(
+        "--format",
+        type=OutputFormat,
+        choices=list(OutputFormat),
+        default=OutputFormat(os.environ.get("KITTI_EVAL_FORMAT", "table")),
+        help="table: OpenPCDet's text; json: versioned schema; markdown: for CI summaries "
+        "(default: table, or $KITTI_EVAL_FORMAT)",
+    )
     p.add_argument("--curves", action="store_true", help="include the 41-point curves in the JSON output")
     p.add_argument("--output", "-o", type=Path, help="write the result here instead of stdout")
     p.add_argument("--quiet", "-q", action="store_true", help="do not print warnings")
@@ -72,36 +101,62 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Exact KITTI 3D object detection evaluation (2D, BEV, 3D, AOS; R11 and R40) on a CPU.",
-        epilog="Exit codes: 0 ok, 1 bad input, 2 usage error, 3 a gate rule failed ('kitti-eval gate').")
-    p.add_argument("--gt", type=Path,
-                   help="ground truth: a KITTI label_2 folder or an OpenPCDet infos .pkl[.gz]")
-    p.add_argument("--pred", action="append", metavar="PRED",
-                   help="predictions: a KITTI result folder (16-field txt) or an OpenPCDet result .pkl[.gz]; "
-                        "repeat it or give a quoted glob ('output/*/epoch_*/val/result.pkl') to evaluate many "
-                        "checkpoints in one process")
+        epilog="Exit codes: 0 ok, 1 bad input, 2 usage error, 3 a gate rule failed ('kitti-eval gate').",
+    )
+    p.add_argument("--gt", type=Path, help="ground truth: a KITTI label_2 folder or an OpenPCDet infos .pkl[.gz]")
+    p.add_argument(
+        "--pred",
+        action="append",
+        metavar="PRED",
+        help="predictions: a KITTI result folder (16-field txt) or an OpenPCDet result .pkl[.gz]; "
+        "repeat it or give a quoted glob ('output/*/epoch_*/val/result.pkl') to evaluate many "
+        "checkpoints in one process",
+    )
     _add_eval_options(p)
     from .loaders import FORMATS
 
     fmts = p.add_argument_group("input formats")
-    fmts.add_argument("--gt-format", choices=FORMATS, default=None,
-                      help="the ground truth's layout, instead of detecting it")
-    fmts.add_argument("--pred-format", choices=FORMATS, default=None,
-                      help="the predictions' layout, instead of detecting it")
-    fmts.add_argument("--split", type=Path, metavar="IMAGESETS_TXT",
-                      help="evaluate only the frames listed in this file (ImageSets/val.txt: one id a line); "
-                           "predictions for other frames are dropped with a warning")
+    fmts.add_argument(
+        "--gt-format", choices=FORMATS, default=None, help="the ground truth's layout, instead of detecting it"
+    )
+    fmts.add_argument(
+        "--pred-format", choices=FORMATS, default=None, help="the predictions' layout, instead of detecting it"
+    )
+    fmts.add_argument(
+        "--split",
+        type=Path,
+        metavar="IMAGESETS_TXT",
+        help="evaluate only the frames listed in this file (ImageSets/val.txt: one id a line); "
+        "predictions for other frames are dropped with a warning",
+    )
     many = p.add_argument_group("many checkpoints")
-    many.add_argument("--value", action="append", default=[], metavar="KEY",
-                      help="a column of the checkpoint table, e.g. Car/3d/moderate/R40 (default: moderate 3D "
-                           "AP of each class); repeatable")
+    many.add_argument(
+        "--value",
+        action="append",
+        default=[],
+        metavar="KEY",
+        help="a column of the checkpoint table, e.g. Car/3d/moderate/R40 (default: moderate 3D "
+        "AP of each class); repeatable",
+    )
     many.add_argument("--best-by", metavar="KEY", help="rank checkpoints by this value (default: mean moderate 3D AP)")
     many.add_argument("--plot", type=Path, metavar="PNG", help="save a plot of AP against epoch (needs matplotlib)")
-    p.add_argument("--plot-dir", type=Path, metavar="DIR",
-                   help="save precision-recall curves as PNGs (per class and metric; with several --pred, one "
-                        "overlay per class of the moderate 3D curves); needs matplotlib")
+    p.add_argument(
+        "--plot-dir",
+        type=Path,
+        metavar="DIR",
+        help="save precision-recall curves as PNGs (per class and metric; with several --pred, one "
+        "overlay per class of the moderate 3D curves); needs matplotlib",
+    )
     sub = p.add_subparsers(dest="command", metavar="COMMAND", title="commands (each has its own --help)")
-    for add in (_demo_parser, _gate_parser, _compare_parser, _frames_parser, _inspect_parser, _describe_parser,
-                _serve_parser):
+    for add in (
+        _demo_parser,
+        _gate_parser,
+        _compare_parser,
+        _frames_parser,
+        _inspect_parser,
+        _describe_parser,
+        _serve_parser,
+    ):
         add(sub)
     return p
 
@@ -109,9 +164,12 @@ def _parser() -> argparse.ArgumentParser:
 def _describe_parser(sub: Any) -> argparse.ArgumentParser:
     from .describe import KINDS
 
-    p = sub.add_parser("describe", help="what a ground-truth or prediction file holds",
-                       description="Sniff a ground-truth or prediction file: format, frames, boxes per class, "
-                                   "dtypes, dimension order, camera/LiDAR consistency.")
+    p = sub.add_parser(
+        "describe",
+        help="what a ground-truth or prediction file holds",
+        description="Sniff a ground-truth or prediction file: format, frames, boxes per class, "
+        "dtypes, dimension order, camera/LiDAR consistency.",
+    )
     p.add_argument("file", type=Path, help="a pickle, a KITTI txt folder, or a zip/tar of one")
     p.add_argument("--kind", choices=sorted(KINDS), help="read it as ground truth or predictions (default: guess)")
     p.add_argument("--gt", type=Path, help="infos with calibration, to check prediction locations against boxes_lidar")
@@ -128,8 +186,9 @@ def _describe(args: argparse.Namespace) -> int:
 
 def _serve_parser(sub: Any) -> argparse.ArgumentParser:
     """Listed for the help; :func:`main` hands everything after ``serve`` to the service's own parser."""
-    return sub.add_parser("serve", add_help=False, help="run the HTTP service and its web page (--help for its "
-                                                         "options)")
+    return sub.add_parser(
+        "serve", add_help=False, help="run the HTTP service and its web page (--help for its options)"
+    )
 
 
 def _serve(argv: Sequence[str]) -> int:
@@ -152,11 +211,16 @@ def _demo(args: argparse.Namespace) -> int:
 
 def _demo_parser(sub: Any) -> argparse.ArgumentParser:
     p = sub.add_parser(
-        "demo", help="evaluate the bundled demo set",
-        description="Evaluate the bundled synthetic demo set (nothing is downloaded).")
+        "demo",
+        help="evaluate the bundled demo set",
+        description="Evaluate the bundled synthetic demo set (nothing is downloaded).",
+    )
     _add_eval_options(p)
-    p.add_argument("--where", action="store_true",
-                   help="print the demo's ground-truth and prediction paths (one line, space-separated) and exit")
+    p.add_argument(
+        "--where",
+        action="store_true",
+        help="print the demo's ground-truth and prediction paths (one line, space-separated) and exit",
+    )
     p.set_defaults(run=_demo)
     return p
 
@@ -166,8 +230,13 @@ def _config(args: argparse.Namespace):  # noqa: ANN202 - EvalConfig, imported la
 
     return config_from_options(
         base=load_protocol_file(args.protocol_file) if getattr(args, "protocol_file", None) else None,
-        classes=args.classes, protocol=args.protocol, iou=args.iou or (), ranges=getattr(args, "ranges", None),
-        coco=getattr(args, "coco", False), lidar_only=getattr(args, "lidar_only", False))
+        classes=args.classes,
+        protocol=args.protocol,
+        iou=args.iou or (),
+        ranges=getattr(args, "ranges", None),
+        coco=getattr(args, "coco", False),
+        lidar_only=getattr(args, "lidar_only", False),
+    )
 
 
 def _emit(text: str, output: Path | None) -> None:
@@ -206,9 +275,14 @@ def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
     config = _config(args)
     warmer = _start_warm_up()
     load_warnings: list[str] = []
-    gt, dt = load_pair(gt_path, pred_path, gt_format=getattr(args, "gt_format", None),
-                       pred_format=getattr(args, "pred_format", None), split=getattr(args, "split", None),
-                       warnings=load_warnings)
+    gt, dt = load_pair(
+        gt_path,
+        pred_path,
+        gt_format=getattr(args, "gt_format", None),
+        pred_format=getattr(args, "pred_format", None),
+        split=getattr(args, "split", None),
+        warnings=load_warnings,
+    )
     _wait(warmer)
     plot_dir = getattr(args, "plot_dir", None)
     result = evaluate(gt, dt, config, keep_curves=args.curves or bool(plot_dir))
@@ -226,31 +300,53 @@ def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
 
 def _gate_parser(sub: Any) -> argparse.ArgumentParser:
     p = sub.add_parser(
-        "gate", help="check AP rules on a result (exit 3 when a rule fails)",
+        "gate",
+        help="check AP rules on a result (exit 3 when a rule fails)",
         description="Check AP rules on a result: floors, maximum drops against a baseline, required classes. "
-                    "Exit 0 when every rule passes, 3 when one fails, 1 on bad input, 2 on usage errors.",
+        "Exit 0 when every rule passes, 3 when one fails, 1 on bad input, 2 on usage errors.",
         epilog="Values are named Class/metric/difficulty[/R40|R11[/strict|loose]] (default R40, strict). "
-               "A rule on a value that is null (not evaluated) fails.")
+        "A rule on a value that is null (not evaluated) fails.",
+    )
     src = p.add_argument_group("the result to gate: a saved JSON result, or ground truth and predictions")
     src.add_argument("--result", type=Path, help="a JSON result written by 'kitti-eval --format json'")
     src.add_argument("--gt", type=Path, help="ground truth (evaluated with --pred)")
     src.add_argument("--pred", type=Path, help="predictions to evaluate")
     _add_config_options(p)
     rules = p.add_argument_group("rules")
-    rules.add_argument("--min", dest="floors", action="append", default=[], metavar="RULE",
-                       help="a floor such as 'Car/3d/moderate/R40 >= 78.5' (any of >=, >, <=, <); repeatable")
-    rules.add_argument("--max-drop", action="append", default=[], metavar="[VALUE=]N",
-                       help="largest allowed drop against --baseline, in AP points: N for every value, or "
-                            "Car/3d/moderate=N for one; repeatable")
-    rules.add_argument("--require-class", action="append", default=[], metavar="CLASS",
-                       help="fail unless this class was evaluated; repeatable")
+    rules.add_argument(
+        "--min",
+        dest="floors",
+        action="append",
+        default=[],
+        metavar="RULE",
+        help="a floor such as 'Car/3d/moderate/R40 >= 78.5' (any of >=, >, <=, <); repeatable",
+    )
+    rules.add_argument(
+        "--max-drop",
+        action="append",
+        default=[],
+        metavar="[VALUE=]N",
+        help="largest allowed drop against --baseline, in AP points: N for every value, or "
+        "Car/3d/moderate=N for one; repeatable",
+    )
+    rules.add_argument(
+        "--require-class",
+        action="append",
+        default=[],
+        metavar="CLASS",
+        help="fail unless this class was evaluated; repeatable",
+    )
     rules.add_argument("--rules", type=Path, help="rules from a TOML file (floor, max_drop, require_classes)")
-    p.add_argument("--baseline", type=Path,
-                   help="the result to compare with: a JSON result, or predictions evaluated against --gt")
+    p.add_argument(
+        "--baseline", type=Path, help="the result to compare with: a JSON result, or predictions evaluated against --gt"
+    )
     sig = p.add_argument_group("significance")
-    sig.add_argument("--significant", action="store_true",
-                     help="fail a drop only if a paired bootstrap over frames says it is significant (95%%); "
-                          "needs --gt, --pred and --baseline as predictions")
+    sig.add_argument(
+        "--significant",
+        action="store_true",
+        help="fail a drop only if a paired bootstrap over frames says it is significant (95%%); "
+        "needs --gt, --pred and --baseline as predictions",
+    )
     sig.add_argument("--bootstrap", type=int, default=1000, metavar="N", help="resamples for --significant")
     sig.add_argument("--seed", type=int, default=0, help="seed of the resampling (default 0)")
     out = p.add_argument_group("reports")
@@ -263,9 +359,11 @@ def _gate_parser(sub: Any) -> argparse.ArgumentParser:
 
 def _compare_parser(sub: Any) -> argparse.ArgumentParser:
     p = sub.add_parser(
-        "compare", help="per-value differences between two results",
+        "compare",
+        help="per-value differences between two results",
         description="Per-value differences B - A between two results, with paired bootstrap intervals over "
-                    "frames when both are predictions (--gt) and --bootstrap N is given.")
+        "frames when both are predictions (--gt) and --bootstrap N is given.",
+    )
     p.add_argument("a", type=Path, help="result A: a JSON result, or predictions (with --gt)")
     p.add_argument("b", type=Path, help="result B: a JSON result, or predictions (with --gt)")
     p.add_argument("--gt", type=Path, help="ground truth, to evaluate predictions given as A or B")
@@ -292,14 +390,24 @@ def _compare(args: argparse.Namespace) -> int:
         from .loaders import load_detections, load_ground_truth
 
         gt = load_ground_truth(args.gt)
-        res_a, res_b, intervals = paired_bootstrap(gt, load_detections(args.a), load_detections(args.b),
-                                                   _config(args), resamples=args.bootstrap, seed=args.seed)
+        res_a, res_b, intervals = paired_bootstrap(
+            gt,
+            load_detections(args.a),
+            load_detections(args.b),
+            _config(args),
+            resamples=args.bootstrap,
+            seed=args.seed,
+        )
         doc_a, doc_b = res_a.to_dict(), res_b.to_dict()
     else:
-        doc_a, doc_b = (_read_result_json(p) if j else _evaluate_doc(args, p)
-                        for p, j in zip((args.a, args.b), is_json))
-    text = render_comparison(compare_documents(doc_a, doc_b, intervals, args.bootstrap, args.seed if args.bootstrap
-                                               else None), args.format, every_value=args.all)
+        doc_a, doc_b = (
+            _read_result_json(p) if j else _evaluate_doc(args, p) for p, j in zip((args.a, args.b), is_json)
+        )
+    text = render_comparison(
+        compare_documents(doc_a, doc_b, intervals, args.bootstrap, args.seed if args.bootstrap else None),
+        args.format,
+        every_value=args.all,
+    )
     _emit(text, args.output)
     return EXIT_OK
 
@@ -323,14 +431,20 @@ def _add_slot_options(p: argparse.ArgumentParser, metrics: list[str]) -> None:
 
 def _frames_parser(sub: Any) -> argparse.ArgumentParser:
     p = sub.add_parser(
-        "frames", help="hits, false positives and misses per frame",
+        "frames",
+        help="hits, false positives and misses per frame",
         description="True positives, false positives and misses of every frame for one class, metric and "
-                    "difficulty, from the same matching as the AP; --worst N lists the frames with most errors.")
+        "difficulty, from the same matching as the AP; --worst N lists the frames with most errors.",
+    )
     p.add_argument("--gt", required=True, type=Path, help="ground truth")
     p.add_argument("--pred", required=True, type=Path, help="predictions")
     _add_slot_options(p, ["bbox", "bev", "3d"])
-    p.add_argument("--score-threshold", type=float, default=0.0,
-                   help="count detections scoring at least this (default 0: every detection)")
+    p.add_argument(
+        "--score-threshold",
+        type=float,
+        default=0.0,
+        help="count detections scoring at least this (default 0: every detection)",
+    )
     p.add_argument("--worst", type=int, metavar="N", help="only the N frames with most errors (FP + FN)")
     p.add_argument("--format", choices=["table", "csv", "json"], default="table")
     p.add_argument("--output", "-o", type=Path)
@@ -345,9 +459,15 @@ def _frames(args: argparse.Namespace) -> int:
 
     if args.worst is not None and args.worst < 1:
         raise ConfigError("--worst must be >= 1")
-    stats = frame_stats(*load_pair(args.gt, args.pred), _config(args), cls=args.cls,
-                        metric=args.metric, difficulty=args.difficulty, oset=args.oset,
-                        score_threshold=args.score_threshold)
+    stats = frame_stats(
+        *load_pair(args.gt, args.pred),
+        _config(args),
+        cls=args.cls,
+        metric=args.metric,
+        difficulty=args.difficulty,
+        oset=args.oset,
+        score_threshold=args.score_threshold,
+    )
     text = render_frames(stats, args.format, worst=args.worst)
     _emit(text, args.output)
     return EXIT_OK
@@ -355,20 +475,31 @@ def _frames(args: argparse.Namespace) -> int:
 
 def _inspect_parser(sub: Any) -> argparse.ArgumentParser:
     p = sub.add_parser(
-        "inspect", help="every box of one frame labelled by the matching, for one or more models",
+        "inspect",
+        help="every box of one frame labelled by the matching, for one or more models",
         description="One frame, one or more models: every detection labelled by the matching behind the AP "
-                    "(TP with its ground truth and IoU, FP and why, ignored, DontCare, below the score threshold, "
-                    "other class) and the ground truth each model missed.")
+        "(TP with its ground truth and IoU, FP and why, ignored, DontCare, below the score threshold, "
+        "other class) and the ground truth each model missed.",
+    )
     p.add_argument("--gt", required=True, type=Path, help="ground truth")
-    p.add_argument("--pred", required=True, type=Path, action="append",
-                   help="predictions of a model; repeat for several models")
-    p.add_argument("--name", action="append", default=[],
-                   help="a model's name, once per --pred in the same order (default: the folder after "
-                        "kitti_models/ in the path, else the file name)")
+    p.add_argument(
+        "--pred", required=True, type=Path, action="append", help="predictions of a model; repeat for several models"
+    )
+    p.add_argument(
+        "--name",
+        action="append",
+        default=[],
+        help="a model's name, once per --pred in the same order (default: the folder after "
+        "kitti_models/ in the path, else the file name)",
+    )
     p.add_argument("--frame", required=True, help="frame id, e.g. 000015 (or 15)")
     _add_slot_options(p, ["bbox", "bev", "3d", "aos"])
-    p.add_argument("--score-threshold", type=float, default=None,
-                   help="detections scoring below this take no part (default: all take part)")
+    p.add_argument(
+        "--score-threshold",
+        type=float,
+        default=None,
+        help="detections scoring below this take no part (default: all take part)",
+    )
     p.add_argument("--format", choices=["table", "json"], default="table")
     p.add_argument("--output", "-o", type=Path)
     _add_config_options(p)
@@ -385,8 +516,17 @@ def _inspect(args: argparse.Namespace) -> int:
     names = args.name or unique_names([model_name(p) for p in args.pred])  # inspect_frame refuses repeats
     gt, calibs = load_ground_truth_and_calibs(args.gt)
     models = [(name, load_detections(path, calibs=calibs, keep_lidar=True)) for name, path in zip(names, args.pred)]
-    report = inspect_frame(gt, models, args.frame, _config(args), cls=args.cls, metric=args.metric,
-                           difficulty=args.difficulty, oset=args.oset, score_threshold=args.score_threshold)
+    report = inspect_frame(
+        gt,
+        models,
+        args.frame,
+        _config(args),
+        cls=args.cls,
+        metric=args.metric,
+        difficulty=args.difficulty,
+        oset=args.oset,
+        score_threshold=args.score_threshold,
+    )
     text = inspection_json(report) if args.format == "json" else render_inspection(report)
     _emit(text, args.output)
     return EXIT_OK
@@ -416,8 +556,13 @@ def _gate(args: argparse.Namespace) -> int:
         run_gate,
     )
 
-    rules = rules_from_options(args.floors, args.max_drop, args.require_class, baseline=bool(args.baseline),
-                               also=rules_from_toml(args.rules) if args.rules else None)
+    rules = rules_from_options(
+        args.floors,
+        args.max_drop,
+        args.require_class,
+        baseline=bool(args.baseline),
+        also=rules_from_toml(args.rules) if args.rules else None,
+    )
     if args.result and (args.gt or args.pred):
         raise ConfigError("give either --result or --gt with --pred, not both")
     if not args.result and not (args.gt and args.pred):
@@ -431,15 +576,23 @@ def _gate(args: argparse.Namespace) -> int:
         from .loaders import load_detections, load_ground_truth
 
         res_base, res_now, intervals = paired_bootstrap(
-            load_ground_truth(args.gt), load_detections(args.baseline), load_detections(args.pred), _config(args),
-            resamples=args.bootstrap, seed=args.seed)
+            load_ground_truth(args.gt),
+            load_detections(args.baseline),
+            load_detections(args.pred),
+            _config(args),
+            resamples=args.bootstrap,
+            seed=args.seed,
+        )
         current, baseline = res_now.to_dict(), res_base.to_dict()
     else:
         current = _read_result_json(args.result) if args.result else _evaluate_doc(args, args.pred)
         baseline = None
         if args.baseline:
-            baseline = (_read_result_json(args.baseline) if args.baseline.suffix.lower() == ".json"
-                        else _evaluate_doc(args, args.baseline))
+            baseline = (
+                _read_result_json(args.baseline)
+                if args.baseline.suffix.lower() == ".json"
+                else _evaluate_doc(args, args.baseline)
+            )
     verdict = run_gate(current, rules, baseline, intervals)
     sys.stdout.write(render_verdict(verdict, show_passed=args.show_passed))
     if args.markdown:
@@ -468,8 +621,14 @@ def _run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int
     def skip(path: Path, error: Exception) -> None:
         _say(f"error: {error} (skipped)")
 
-    checkpoints = evaluate_many(gt, preds, config, progress=sys.stderr.isatty() and not args.quiet, on_error=skip,
-                                keep_curves=bool(args.plot_dir))
+    checkpoints = evaluate_many(
+        gt,
+        preds,
+        config,
+        progress=sys.stderr.isatty() and not args.quiet,
+        on_error=skip,
+        keep_curves=bool(args.plot_dir),
+    )
     text = render_batch(checkpoints, fmt, keys=keys or None, best_by=best_by)
     if args.plot:
         plot_batch(checkpoints, args.plot, keys=keys or None)

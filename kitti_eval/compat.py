@@ -62,9 +62,12 @@ def _value(v: float | None) -> float:
     return float("nan") if v is None else float(v)
 
 
-def get_official_eval_result(gt_annos: Sequence[Mapping[str, Any]], dt_annos: Sequence[Mapping[str, Any]],
-                             current_classes: Any, PR_detail_dict: dict[str, Any] | None = None,  # noqa: N803
-                             ) -> tuple[str, dict[str, float]]:
+def get_official_eval_result(
+    gt_annos: Sequence[Mapping[str, Any]],
+    dt_annos: Sequence[Mapping[str, Any]],
+    current_classes: Any,
+    PR_detail_dict: dict[str, Any] | None = None,  # noqa: N803
+) -> tuple[str, dict[str, float]]:
     """Evaluate like OpenPCDet's function of the same name; returns ``(text, ret_dict)``.
 
     ``gt_annos`` and ``dt_annos`` are lists of per-frame annos dicts paired by position. If
@@ -72,8 +75,10 @@ def get_official_eval_result(gt_annos: Sequence[Mapping[str, Any]], dt_annos: Se
     each shaped [class, difficulty, threshold set, 41] as OpenPCDet's.
     """
     if len(gt_annos) != len(dt_annos):
-        raise InputError(f"{len(gt_annos)} ground-truth frames but {len(dt_annos)} prediction frames; "
-                         "this function pairs frames by position")
+        raise InputError(
+            f"{len(gt_annos)} ground-truth frames but {len(dt_annos)} prediction frames; "
+            "this function pairs frames by position"
+        )
     ids = [f"{i:06d}" for i in range(len(gt_annos))]
     gt = Annotations.from_frames("ground_truth", "gt_annos", zip(ids, gt_annos))
     dt = Annotations.from_frames("detections", "dt_annos", zip(ids, dt_annos))

@@ -65,12 +65,13 @@ def _lidar_check(frames: Sequence[Mapping[str, Any]], calibs: Mapping[str, Any],
     from .calib import camera_lidar_disagreement, wrap_angle
     from .frames import normalize_frame_id
 
-    both = [f for f in frames if "boxes_lidar" in f and all(k in f for k in ("location", "dimensions",
-                                                                                  "rotation_y"))]
+    both = [f for f in frames if "boxes_lidar" in f and all(k in f for k in ("location", "dimensions", "rotation_y"))]
     lidar_only = [f for f in frames if "boxes_lidar" in f and "location" not in f]
     if lidar_only:
-        lines.append(f"LiDAR-only frames: {len(lidar_only)} (boxes_lidar without camera fields; evaluating them "
-                     "needs infos with calibration as --gt)")
+        lines.append(
+            f"LiDAR-only frames: {len(lidar_only)} (boxes_lidar without camera fields; evaluating them "
+            "needs infos with calibration as --gt)"
+        )
     if not both:
         return
     total = bad = bad_frames = 0
@@ -84,8 +85,9 @@ def _lidar_check(frames: Sequence[Mapping[str, Any]], calibs: Mapping[str, Any],
             bad_frames += 1
             total += len(ry)
             continue
-        wrong = (np.abs(wrap_angle(ry - wrap_angle(-lidar[:, 6] - np.pi / 2))) > 0.1) | \
-                (np.abs(dims - lidar[:, [3, 5, 4]]).max(axis=1, initial=0) > 0.1)
+        wrong = (np.abs(wrap_angle(ry - wrap_angle(-lidar[:, 6] - np.pi / 2))) > 0.1) | (
+            np.abs(dims - lidar[:, [3, 5, 4]]).max(axis=1, initial=0) > 0.1
+        )
         n = int(wrong.sum())
         calib = None
         fid = f.get("frame_id", f.get("sample_idx"))
@@ -102,8 +104,10 @@ def _lidar_check(frames: Sequence[Mapping[str, Any]], calibs: Mapping[str, Any],
         bad_frames += n > 0
     what = "yaw, dimensions and location" if located else "yaw and dimensions (give --gt infos to check locations)"
     verdict = "DISAGREE" if total and bad > 0.01 * total else "agree"
-    lines.append(f"camera vs LiDAR boxes ({what}): {verdict}: {bad} of {total} boxes differ by > 0.1 m or "
-                 f"> 0.1 rad, in {bad_frames} of {len(both)} frames")
+    lines.append(
+        f"camera vs LiDAR boxes ({what}): {verdict}: {bad} of {total} boxes differ by > 0.1 m or "
+        f"> 0.1 rad, in {bad_frames} of {len(both)} frames"
+    )
 
 
 def describe(path: str | Path, kind: str | None = None, gt: str | Path | None = None) -> str:
@@ -150,8 +154,7 @@ def describe(path: str | Path, kind: str | None = None, gt: str | Path | None = 
         if gt is not None:
             calibs = calibs_from_object(load_pickle(Path(gt), source=str(gt)))
         warnings: list[str] = []
-        if guess == "detections" and not calibs and any("boxes_lidar" in f and "location" not in f
-                                                         for f in frames):
+        if guess == "detections" and not calibs and any("boxes_lidar" in f and "location" not in f for f in frames):
             # LiDAR-only boxes cannot become camera boxes without calibration: count what is there
             annos = annotations_from_object(obj, guess, source=str(path), calibs=_PseudoCalibs(), warnings=warnings)
         else:
@@ -160,8 +163,11 @@ def describe(path: str | Path, kind: str | None = None, gt: str | Path | None = 
             _lidar_check(frames, calibs, lines)
         if frames:
             first = next((f for f in frames if np.size(f.get("name", ())) > 0), frames[0])
-            dtypes = ", ".join(f"{k} {np.asarray(v).dtype}{list(np.shape(v))[1:] or ''}"
-                               for k, v in first.items() if isinstance(v, np.ndarray))
+            dtypes = ", ".join(
+                f"{k} {np.asarray(v).dtype}{list(np.shape(v))[1:] or ''}"
+                for k, v in first.items()
+                if isinstance(v, np.ndarray)
+            )
             lines.append(f"fields (first non-empty frame): {dtypes}")
     lines.insert(1, f"format: {fmt}")
     lines.insert(2, f"kind: {'ground truth' if annos.kind == 'ground_truth' else 'predictions'}")

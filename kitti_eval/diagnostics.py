@@ -52,9 +52,15 @@ def with_class(config: EvalConfig | None, cls: str) -> EvalConfig:
     config = config or EvalConfig(classes=(cls,))
     if cls in config.classes:
         return config
-    return EvalConfig(classes=(*config.classes, cls), protocol=config.protocol, overlaps=dict(config.overlaps),
-                      difficulty=config.difficulty, threshold_sets=config.threshold_sets,
-                      neighbours=dict(config.neighbours), lidar_only=config.lidar_only)
+    return EvalConfig(
+        classes=(*config.classes, cls),
+        protocol=config.protocol,
+        overlaps=dict(config.overlaps),
+        difficulty=config.difficulty,
+        threshold_sets=config.threshold_sets,
+        neighbours=dict(config.neighbours),
+        lidar_only=config.lidar_only,
+    )
 
 
 def parse_slot(config: EvalConfig, metric: str, difficulty: str, oset: str) -> tuple[Metric, Difficulty]:
@@ -71,17 +77,33 @@ def parse_slot(config: EvalConfig, metric: str, difficulty: str, oset: str) -> t
 
 def slot_job(plan: Plan, cls: str, metric: Metric, difficulty: Difficulty, oset: str) -> MatchJob:
     """The matching behind one (class, metric, difficulty, threshold set) of ``plan``'s result."""
-    job = next((s.job for s in plan.slots if s.cls == cls and s.difficulty is difficulty and s.metric is metric
-                and s.oset == oset), None)
+    job = next(
+        (
+            s.job
+            for s in plan.slots
+            if s.cls == cls and s.difficulty is difficulty and s.metric is metric and s.oset == oset
+        ),
+        None,
+    )
     if job is None:
-        raise ConfigError(f"{cls} is not evaluated in {metric.value} under the {plan.config.protocol.name} "
-                          "protocol (no detection of it can be scored there)")
+        raise ConfigError(
+            f"{cls} is not evaluated in {metric.value} under the {plan.config.protocol.name} "
+            "protocol (no detection of it can be scored there)"
+        )
     return plan.jobs[job]
 
 
-def frame_stats(gt: Annotations, dt: Annotations, config: EvalConfig | None = None, *, cls: str = "Car",
-                metric: str = "3d", difficulty: str = "moderate", oset: str = "strict",
-                score_threshold: float = 0.0) -> FrameStats:
+def frame_stats(
+    gt: Annotations,
+    dt: Annotations,
+    config: EvalConfig | None = None,
+    *,
+    cls: str = "Car",
+    metric: str = "3d",
+    difficulty: str = "moderate",
+    oset: str = "strict",
+    score_threshold: float = 0.0,
+) -> FrameStats:
     """TP, FP and FN of every frame for one (class, metric, difficulty, threshold set) at a score threshold."""
     config = with_class(config, cls)
     m, d = parse_slot(config, metric, difficulty, oset)
@@ -89,9 +111,19 @@ def frame_stats(gt: Annotations, dt: Annotations, config: EvalConfig | None = No
     job = slot_job(plan, cls, m, d, oset)
     n = gt.num_frames
     fo = plan.overlaps
-    (events,) = frame_events_many(fo.pair_offsets, (fo.bbox, fo.bev, fo.d3), plan.gt.offsets, plan.dt.offsets,
-                                  plan.ignored_gt, plan.ignored_det, plan.dontcare, plan.dt.score, plan.gt.alpha,
-                                  plan.dt.alpha, [job])
+    (events,) = frame_events_many(
+        fo.pair_offsets,
+        (fo.bbox, fo.bev, fo.d3),
+        plan.gt.offsets,
+        plan.dt.offsets,
+        plan.ignored_gt,
+        plan.ignored_det,
+        plan.dontcare,
+        plan.dt.score,
+        plan.gt.alpha,
+        plan.dt.alpha,
+        [job],
+    )
     counts = np.zeros((n, 3))
     counts[:, 2] = events.valid
     on = events.ev_score >= score_threshold
@@ -103,10 +135,17 @@ def frame_stats(gt: Annotations, dt: Annotations, config: EvalConfig | None = No
 def frames_document(stats: FrameStats, *, worst: int | None = None) -> dict[str, Any]:
     """The frames (all, or the ``worst`` n) as a JSON-ready dict."""
     rows: Sequence[int] = stats.worst(worst) if worst else range(len(stats.frame_ids))
-    return {"class": stats.cls, "metric": stats.metric, "difficulty": stats.difficulty, "threshold_set": stats.oset,
-            "score_threshold": stats.score_threshold,
-            "frames": [{"frame": stats.frame_ids[i], "tp": int(stats.tp[i]), "fp": int(stats.fp[i]),
-                        "fn": int(stats.fn[i])} for i in rows]}
+    return {
+        "class": stats.cls,
+        "metric": stats.metric,
+        "difficulty": stats.difficulty,
+        "threshold_set": stats.oset,
+        "score_threshold": stats.score_threshold,
+        "frames": [
+            {"frame": stats.frame_ids[i], "tp": int(stats.tp[i]), "fp": int(stats.fp[i]), "fn": int(stats.fn[i])}
+            for i in rows
+        ],
+    }
 
 
 def render_frames(stats: FrameStats, fmt: str = "table", *, worst: int | None = None) -> str:
@@ -120,8 +159,10 @@ def render_frames(stats: FrameStats, fmt: str = "table", *, worst: int | None = 
         w.writerow(["frame", "tp", "fp", "fn"])
         w.writerows([stats.frame_ids[i], int(stats.tp[i]), int(stats.fp[i]), int(stats.fn[i])] for i in rows)
         return buf.getvalue()
-    head = (f"{stats.cls} {stats.metric} {stats.difficulty} ({stats.oset} IoU), detections scoring >= "
-            f"{stats.score_threshold:g}")
+    head = (
+        f"{stats.cls} {stats.metric} {stats.difficulty} ({stats.oset} IoU), detections scoring >= "
+        f"{stats.score_threshold:g}"
+    )
     lines = [head, f"{'frame':<12} {'TP':>4} {'FP':>4} {'FN':>4}"]
     lines += [f"{stats.frame_ids[i]:<12} {stats.tp[i]:>4} {stats.fp[i]:>4} {stats.fn[i]:>4}" for i in rows]
     lines.append(f"{'all frames':<12} {int(stats.tp.sum()):>4} {int(stats.fp.sum()):>4} {int(stats.fn.sum()):>4}")

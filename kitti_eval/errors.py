@@ -12,8 +12,9 @@ class KittiEvalError(Exception):
 class InputError(KittiEvalError):
     """Ground truth or predictions are malformed; names the source, frame and field where known."""
 
-    def __init__(self, message: str, *, source: str | None = None, frame: str | None = None,
-                 field: str | None = None) -> None:
+    def __init__(
+        self, message: str, *, source: str | None = None, frame: str | None = None, field: str | None = None
+    ) -> None:
         self.source = source
         self.frame = frame
         self.field = field

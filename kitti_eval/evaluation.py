@@ -40,9 +40,14 @@ from .result import EvalResult
 __all__ = ["evaluate", "plan_evaluation", "Plan", "ap_tables", "ignore_codes", "aos_enabled", "scored_metrics"]
 
 
-def ignore_codes(gt: Annotations, dt: Annotations, cls: str, difficulty: Difficulty, limits: DifficultyLimits,
-                 neighbours: Mapping[str, tuple[str, ...]] = NEIGHBOURS,
-                 ) -> tuple[npt.NDArray[np.int8], npt.NDArray[np.int8]]:
+def ignore_codes(
+    gt: Annotations,
+    dt: Annotations,
+    cls: str,
+    difficulty: Difficulty,
+    limits: DifficultyLimits,
+    neighbours: Mapping[str, tuple[str, ...]] = NEIGHBOURS,
+) -> tuple[npt.NDArray[np.int8], npt.NDArray[np.int8]]:
     """The devkit's ``cleanData``: which boxes count for ``cls`` at ``difficulty``.
 
     Ground truth: 0 = counts, 1 = ignored (a neighbour class such as Van for Car, or the class itself but
@@ -54,8 +59,11 @@ def ignore_codes(gt: Annotations, dt: Annotations, cls: str, difficulty: Difficu
     own = gt.is_class(cls)
     neighbour = gt.is_class(*neighbours.get(cls.lower(), ()))
     height = gt.bbox[:, 3] - gt.bbox[:, 1]
-    hard = ((gt.occluded > limits.max_occlusion[d]) | (gt.truncated > limits.max_truncation[d])
-            | (height <= limits.min_height[d]))
+    hard = (
+        (gt.occluded > limits.max_occlusion[d])
+        | (gt.truncated > limits.max_truncation[d])
+        | (height <= limits.min_height[d])
+    )
     ig = np.full(gt.num_boxes, -1, dtype=np.int8)
     ig[neighbour | (own & hard)] = 1
     ig[own & ~hard] = 0
@@ -65,9 +73,12 @@ def ignore_codes(gt: Annotations, dt: Annotations, cls: str, difficulty: Difficu
     return ig, idet
 
 
-def in_range_codes(ignored_gt: npt.NDArray[np.int8], ignored_det: npt.NDArray[np.int8],
-                   gt_inside: npt.NDArray[np.bool_], dt_inside: npt.NDArray[np.bool_],
-                   ) -> tuple[npt.NDArray[np.int8], npt.NDArray[np.int8]]:
+def in_range_codes(
+    ignored_gt: npt.NDArray[np.int8],
+    ignored_det: npt.NDArray[np.int8],
+    gt_inside: npt.NDArray[np.bool_],
+    dt_inside: npt.NDArray[np.bool_],
+) -> tuple[npt.NDArray[np.int8], npt.NDArray[np.int8]]:
     """Ignore codes within a distance range (:class:`~kitti_eval.protocol.DistanceRange`): ground truth
     outside it that takes part becomes ignored (1), and so does a counting detection (0) outside it."""
     ig = ignored_gt.copy()
@@ -144,8 +155,8 @@ class Plan:
     dontcare: npt.NDArray[np.bool_]
     overlaps: FrameOverlaps
     compute_aos: bool
-    ignored_gt: npt.NDArray[np.int8]     # (K, M), one row per (class, difficulty)
-    ignored_det: npt.NDArray[np.int8]    # (K, N)
+    ignored_gt: npt.NDArray[np.int8]  # (K, M), one row per (class, difficulty)
+    ignored_det: npt.NDArray[np.int8]  # (K, N)
     jobs: tuple[MatchJob, ...]
     slots: tuple[Slot, ...]
     #: per distance range of the config, the slots of that range's matchings (same layout as ``slots``)
@@ -171,15 +182,18 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
             if annos.missing_fields:
                 fname = "bbox" if "bbox" in annos.missing_fields else next(iter(annos.missing_fields))
                 frame = annos.missing_fields[fname]
-                raise InputError(f"no '{fname}' (an image field) for some boxes; a set without 2D boxes is "
-                                 "evaluated with --lidar-only (BEV and 3D)", source=annos.source, frame=frame,
-                                 field=fname)
+                raise InputError(
+                    f"no '{fname}' (an image field) for some boxes; a set without 2D boxes is "
+                    "evaluated with --lidar-only (BEV and 3D)",
+                    source=annos.source,
+                    frame=frame,
+                    field=fname,
+                )
     dt, missing = dt.aligned_to(gt.frame_ids)
     warnings = dimension_order_warnings(gt) + dimension_order_warnings(dt)
     if missing:
         shown = ", ".join(missing[:10]) + (f" and {len(missing) - 10} more" if len(missing) > 10 else "")
-        warnings.append(f"{len(missing)} of {gt.num_frames} frames have no predictions and count as empty: "
-                        f"{shown}")
+        warnings.append(f"{len(missing)} of {gt.num_frames} frames have no predictions and count as empty: {shown}")
     dontcare = _dontcare_rows(gt, protocol)
     t0 = time.perf_counter()
     fo = frame_overlaps(dt.bbox, dt.boxes_camera, dt.offsets, gt.bbox, gt.boxes_camera, gt.offsets, dontcare)
@@ -202,14 +216,26 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
         job = job_of.get((row, metric, thr))
         if job is None:
             job = job_of[(row, metric, thr)] = len(jobs)
-            jobs.append(MatchJob(metric=OVERLAP_METRICS.index(metric), codes=row, min_overlap=thr,
-                                 compute_aos=metric is Metric.BBOX and with_aos,
-                                 dontcare=metric in protocol.dontcare_metrics))
+            jobs.append(
+                MatchJob(
+                    metric=OVERLAP_METRICS.index(metric),
+                    codes=row,
+                    min_overlap=thr,
+                    compute_aos=metric is Metric.BBOX and with_aos,
+                    dontcare=metric in protocol.dontcare_metrics,
+                )
+            )
         return job
 
-    def add_jobs(ig: npt.NDArray[np.int8], idet: npt.NDArray[np.int8], cls: str, difficulty: Difficulty,
-                 evaluated: dict[Metric, bool], with_aos: bool,
-                 into: list[Slot]) -> int:
+    def add_jobs(
+        ig: npt.NDArray[np.int8],
+        idet: npt.NDArray[np.int8],
+        cls: str,
+        difficulty: Difficulty,
+        evaluated: dict[Metric, bool],
+        with_aos: bool,
+        into: list[Slot],
+    ) -> int:
         row = len(ig_rows)
         ig_rows.append(ig)
         idet_rows.append(idet)
@@ -234,22 +260,47 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
             if config.coco:
                 for metric in OVERLAP_METRICS:
                     coco_jobs[(cls, difficulty, metric)] = (
-                        tuple(job_for(row, metric, thr, with_aos) if evaluated[metric] else None
-                              for thr in coco_thresholds(cls)), with_aos)
+                        tuple(
+                            job_for(row, metric, thr, with_aos) if evaluated[metric] else None
+                            for thr in coco_thresholds(cls)
+                        ),
+                        with_aos,
+                    )
             for k, rng in enumerate(config.ranges):
-                ig_r, idet_r = in_range_codes(ig, idet, rng.contains(gt.ground_distance),
-                                              rng.contains(dt.ground_distance))
+                ig_r, idet_r = in_range_codes(
+                    ig, idet, rng.contains(gt.ground_distance), rng.contains(dt.ground_distance)
+                )
                 add_jobs(ig_r, idet_r, cls, difficulty, evaluated, with_aos, range_slots[k])
-    return Plan(gt=gt, dt=dt, config=config, missing=tuple(missing), warnings=tuple(warnings), dontcare=dontcare,
-                overlaps=fo, compute_aos=compute_aos, ignored_gt=np.stack(ig_rows), ignored_det=np.stack(idet_rows),
-                jobs=tuple(jobs), slots=tuple(slots), range_slots=tuple(tuple(r) for r in range_slots),
-                code_rows=code_rows, coco_jobs=coco_jobs,
-                num_gt=num_gt, num_det=num_det,
-                timings={"overlaps": overlap_seconds})
+    return Plan(
+        gt=gt,
+        dt=dt,
+        config=config,
+        missing=tuple(missing),
+        warnings=tuple(warnings),
+        dontcare=dontcare,
+        overlaps=fo,
+        compute_aos=compute_aos,
+        ignored_gt=np.stack(ig_rows),
+        ignored_det=np.stack(idet_rows),
+        jobs=tuple(jobs),
+        slots=tuple(slots),
+        range_slots=tuple(tuple(r) for r in range_slots),
+        code_rows=code_rows,
+        coco_jobs=coco_jobs,
+        num_gt=num_gt,
+        num_det=num_det,
+        timings={"overlaps": overlap_seconds},
+    )
 
 
-def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None, *,
-             keep_curves: bool = False, workers: int | None = None) -> EvalResult:
+def evaluate(
+    gt: Annotations,
+    dt: Annotations,
+    config: EvalConfig | None = None,
+    *,
+    keep_curves: bool = False,
+    workers: int | None = None,
+) -> EvalResult:
     """Evaluate detections against ground truth.
 
     Parameters
@@ -267,9 +318,24 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
     plan = plan_evaluation(gt, dt, config)
     t1 = clock()
     fo = plan.overlaps
-    counts = pr_counts_many(fo.pair_offsets, (fo.bbox, fo.bev, fo.d3), plan.gt.offsets, plan.dt.offsets,
-                            plan.ignored_gt, plan.ignored_det, plan.dontcare, plan.dt.score, plan.gt.alpha,
-                            plan.dt.alpha, plan.jobs, workers=workers) if plan.jobs else []
+    counts = (
+        pr_counts_many(
+            fo.pair_offsets,
+            (fo.bbox, fo.bev, fo.d3),
+            plan.gt.offsets,
+            plan.dt.offsets,
+            plan.ignored_gt,
+            plan.ignored_det,
+            plan.dontcare,
+            plan.dt.score,
+            plan.gt.alpha,
+            plan.dt.alpha,
+            plan.jobs,
+            workers=workers,
+        )
+        if plan.jobs
+        else []
+    )
     t2 = clock()
     job_curves = [curve_from_counts(c) for c in counts]
     ap, curves = ap_tables(plan, job_curves)
@@ -278,18 +344,28 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
     for rng, slots in zip(config.ranges, plan.range_slots):
         range_ap, _ = ap_tables(plan, job_curves, slots)
         inside = rng.contains(plan.gt.ground_distance)
-        range_gt = {cls: {d.label: int(np.sum((plan.ignored_gt[plan.code_rows[(cls, d)]] == 0) & inside))
-                          for d in Difficulty} for cls in config.classes}
+        range_gt = {
+            cls: {d.label: int(np.sum((plan.ignored_gt[plan.code_rows[(cls, d)]] == 0) & inside)) for d in Difficulty}
+            for cls in config.classes
+        }
         by_range.append({"label": rng.label, "min": rng.lo, "max": rng.hi, "ap": range_ap, "num_gt": range_gt})
     coco = _coco_table(plan, job_curves) if config.coco else None
-    timings = {"align": t1 - t0 - plan.timings["overlaps"], "overlaps": plan.timings["overlaps"],
-               "matching": t2 - t1, "ap": clock() - t2}
+    timings = {
+        "align": t1 - t0 - plan.timings["overlaps"],
+        "overlaps": plan.timings["overlaps"],
+        "matching": t2 - t1,
+        "ap": clock() - t2,
+    }
     return EvalResult(
         protocol=config.protocol.name,
         classes=tuple(config.classes),
         threshold_sets=tuple(config.threshold_sets),
-        overlaps={cls: {oset: {m.value: config.overlap(cls, oset, m) for m in OVERLAP_METRICS}
-                        for oset in config.threshold_sets} for cls in config.classes},
+        overlaps={
+            cls: {
+                oset: {m.value: config.overlap(cls, oset, m) for m in OVERLAP_METRICS} for oset in config.threshold_sets
+            }
+            for cls in config.classes
+        },
         ap=ap,
         num_gt=plan.num_gt,
         num_det=plan.num_det,
@@ -307,7 +383,8 @@ def evaluate(gt: Annotations, dt: Annotations, config: EvalConfig | None = None,
 def _coco_table(plan: Plan, job_curves: list[Curve]) -> dict:
     """``coco[recall][class][metric][difficulty]``: the mean AP over the class's COCO IoU thresholds."""
     out: dict[str, dict[str, dict[str, dict[str, float | None]]]] = {
-        r: {cls: {m.value: {} for m in ALL_METRICS} for cls in plan.config.classes} for r in RECALL_MODES}
+        r: {cls: {m.value: {} for m in ALL_METRICS} for cls in plan.config.classes} for r in RECALL_MODES
+    }
     for (cls, difficulty, metric), (jobs, with_aos) in plan.coco_jobs.items():
         targets = [(metric, "precision", True)]
         if metric is Metric.BBOX:
@@ -323,18 +400,22 @@ def _coco_table(plan: Plan, job_curves: list[Curve]) -> dict:
     return out
 
 
-def ap_tables(plan: Plan, job_curves: list[Curve],
-              slots: Sequence[Slot] | None = None,
-              ) -> tuple[dict, dict]:
+def ap_tables(
+    plan: Plan,
+    job_curves: list[Curve],
+    slots: Sequence[Slot] | None = None,
+) -> tuple[dict, dict]:
     """``ap[set][recall][class][metric][difficulty]`` and ``curves[set][class][metric][difficulty]`` from the
     curve of every job of ``plan`` (for ``slots``: the whole set by default, or one distance range's)."""
     config = plan.config
     ap: dict[str, dict[str, dict[str, dict[str, dict[str, float | None]]]]] = {
         oset: {r: {cls: {m.value: {} for m in ALL_METRICS} for cls in config.classes} for r in RECALL_MODES}
-        for oset in config.threshold_sets}
+        for oset in config.threshold_sets
+    }
     curves: dict[str, dict[str, dict[str, dict[str, Curve]]]] = {
-        oset: {cls: {m.value: {} for m in ALL_METRICS} for cls in config.classes} for oset in config.threshold_sets}
-    for cls, difficulty, metric, oset, job, with_aos in (plan.slots if slots is None else slots):
+        oset: {cls: {m.value: {} for m in ALL_METRICS} for cls in config.classes} for oset in config.threshold_sets
+    }
+    for cls, difficulty, metric, oset, job, with_aos in plan.slots if slots is None else slots:
         curve = None if job is None else job_curves[job]
         targets = [(metric, curve, "precision")]
         if metric is Metric.BBOX:
@@ -342,7 +423,8 @@ def ap_tables(plan: Plan, job_curves: list[Curve],
         for m, curve_, attr in targets:
             for r in RECALL_MODES:
                 ap[oset][r][cls][m.value][difficulty.label] = (
-                    None if curve_ is None else average_precision(getattr(curve_, attr), r))
+                    None if curve_ is None else average_precision(getattr(curve_, attr), r)
+                )
             if curve_ is not None:
                 curves[oset][cls][m.value][difficulty.label] = curve_
     return ap, curves

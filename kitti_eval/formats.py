@@ -93,8 +93,7 @@ def _finite_or_none(obj: object) -> object:
 
 def render_json(result: EvalResult, *, include_curves: bool = False) -> str:
     """The versioned JSON document (see :meth:`EvalResult.to_dict`)."""
-    return json.dumps(_finite_or_none(result.to_dict(include_curves=include_curves)), indent=2,
-                      allow_nan=False) + "\n"
+    return json.dumps(_finite_or_none(result.to_dict(include_curves=include_curves)), indent=2, allow_nan=False) + "\n"
 
 
 def render_markdown(result: EvalResult) -> str:
@@ -119,8 +118,11 @@ def render_markdown(result: EvalResult) -> str:
         out.append("|---|---|---:|---:|---:|")
         for cls in result.classes:
             for metric in ("bbox", "bev", "3d", "aos"):
-                vals = " | ".join(_num(rng["ap"]["strict"]["R40"][cls][metric][d], 2) for d in _DIFFS) \
-                    if "strict" in rng["ap"] else ""
+                vals = (
+                    " | ".join(_num(rng["ap"]["strict"]["R40"][cls][metric][d], 2) for d in _DIFFS)
+                    if "strict" in rng["ap"]
+                    else ""
+                )
                 out.append(f"| {cls} | {metric} | {vals} |")
         out.append("")
     if result.coco is not None:

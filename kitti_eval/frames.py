@@ -189,8 +189,9 @@ class Annotations:
         return {f: getattr(self, f)[lo:hi].copy() for f in ("name", *_NUMERIC_FIELDS)}
 
     @classmethod
-    def from_frames(cls, kind: Kind, source: str, frames: Iterable[tuple[object, Mapping[str, Any]]], *,
-                    keep_lidar: bool = False) -> Annotations:
+    def from_frames(
+        cls, kind: Kind, source: str, frames: Iterable[tuple[object, Mapping[str, Any]]], *, keep_lidar: bool = False
+    ) -> Annotations:
         """Validate per-frame field dicts and concatenate them.
 
         Parameters
@@ -215,19 +216,17 @@ class Annotations:
             try:
                 fid = normalize_frame_id(raw_id)
             except (TypeError, ValueError) as e:
-                raise InputError(f"bad frame id {raw_id!r}: {e}", source=source, frame=f"#{pos}",
-                                 field="frame_id") from None
+                raise InputError(
+                    f"bad frame id {raw_id!r}: {e}", source=source, frame=f"#{pos}", field="frame_id"
+                ) from None
             if fid in seen:
-                raise InputError(f"frame appears twice (entries #{seen[fid]} and #{pos})", source=source,
-                                 frame=fid)
+                raise InputError(f"frame appears twice (entries #{seen[fid]} and #{pos})", source=source, frame=fid)
             seen[fid] = pos
             if not isinstance(fields, Mapping):
-                raise InputError(f"expected a dict of arrays, got {type(fields).__name__}", source=source,
-                                 frame=fid)
+                raise InputError(f"expected a dict of arrays, got {type(fields).__name__}", source=source, frame=fid)
             missing = [f for f in _REQUIRED[kind] if f not in fields]
             if missing:
-                raise InputError(f"missing field(s) {', '.join(missing)}", source=source, frame=fid,
-                                 field=missing[0])
+                raise InputError(f"missing field(s) {', '.join(missing)}", source=source, frame=fid, field=missing[0])
             names = _names(fields["name"], None, {"source": source, "frame": fid, "field": "name"})
             n = len(names)
             cols["name"].append(names)
@@ -252,17 +251,21 @@ class Annotations:
         offsets = np.zeros(len(counts) + 1, dtype=np.int64)
         np.cumsum(counts, out=offsets[1:])
         joined: dict[str, np.ndarray] = {
-            "name": np.concatenate(cols["name"]) if cols["name"] else np.zeros(0, dtype="<U1")}
+            "name": np.concatenate(cols["name"]) if cols["name"] else np.zeros(0, dtype="<U1")
+        }
         for f, trailing in _NUMERIC_FIELDS.items():
             # a fresh float64 array: inputs are never aliased or mutated
-            arr = (np.concatenate(cols[f], dtype=np.float64) if cols[f]
-                   else np.zeros((0, *trailing), dtype=np.float64))
+            arr = np.concatenate(cols[f], dtype=np.float64) if cols[f] else np.zeros((0, *trailing), dtype=np.float64)
             finite = np.isfinite(arr)
             if not finite.all():
                 row = int(np.argwhere(~finite)[0][0])
                 frame = int(np.searchsorted(offsets, row, side="right")) - 1
-                raise InputError(f"non-finite value {arr.reshape(len(arr), -1)[row].tolist()} in box "
-                                 f"{row - int(offsets[frame])}", source=source, frame=ids[frame], field=f)
+                raise InputError(
+                    f"non-finite value {arr.reshape(len(arr), -1)[row].tolist()} in box {row - int(offsets[frame])}",
+                    source=source,
+                    frame=ids[frame],
+                    field=f,
+                )
             joined[f] = arr
         kept = None
         if keep_lidar:
@@ -271,10 +274,21 @@ class Annotations:
             if bad.any():
                 row = int(np.argmax(bad))
                 frame = int(np.searchsorted(offsets, row, side="right")) - 1
-                raise InputError(f"non-finite value in box {row - int(offsets[frame])}", source=source,
-                                 frame=ids[frame], field="boxes_lidar")
-        return cls(kind=kind, source=source, frame_ids=tuple(ids), offsets=offsets, missing_fields=absent,
-                   boxes_lidar=kept, **joined)
+                raise InputError(
+                    f"non-finite value in box {row - int(offsets[frame])}",
+                    source=source,
+                    frame=ids[frame],
+                    field="boxes_lidar",
+                )
+        return cls(
+            kind=kind,
+            source=source,
+            frame_ids=tuple(ids),
+            offsets=offsets,
+            missing_fields=absent,
+            boxes_lidar=kept,
+            **joined,
+        )
 
     def aligned_to(self, frame_ids: Sequence[str], *, reference: str = "ground truth") -> tuple[Annotations, list[str]]:
         """These boxes re-ordered to ``frame_ids`` (frames absent here become empty).
@@ -288,8 +302,9 @@ class Annotations:
         unknown = [fid for fid in self.frame_ids if fid not in wanted]
         if unknown:
             more = f" and {len(unknown) - 1} more" if len(unknown) > 1 else ""
-            raise InputError(f"predictions for a frame that is not in the {reference}{more}", source=self.source,
-                             frame=unknown[0])
+            raise InputError(
+                f"predictions for a frame that is not in the {reference}{more}", source=self.source, frame=unknown[0]
+            )
         missing = [fid for fid in frame_ids if fid not in mine]
         if not missing and tuple(frame_ids) == self.frame_ids:
             return self, []
@@ -300,8 +315,7 @@ class Annotations:
         mine = self.frame_index()
         absent = [fid for fid in frame_ids if fid not in mine]
         if absent:
-            raise InputError(f"no such frame ({len(absent)} asked for are absent)", source=self.source,
-                             frame=absent[0])
+            raise InputError(f"no such frame ({len(absent)} asked for are absent)", source=self.source, frame=absent[0])
         return self._take(frame_ids)
 
     def _take(self, frame_ids: Sequence[str]) -> Annotations:
@@ -318,9 +332,15 @@ class Annotations:
         offsets = np.zeros(len(frame_ids) + 1, dtype=np.int64)
         np.cumsum(counts, out=offsets[1:])
         fields = {f: getattr(self, f)[take] for f in ("name", *_NUMERIC_FIELDS)}
-        return Annotations(kind=self.kind, source=self.source, frame_ids=tuple(frame_ids), offsets=offsets,
-                           missing_fields=self.missing_fields,
-                           boxes_lidar=None if self.boxes_lidar is None else self.boxes_lidar[take], **fields)
+        return Annotations(
+            kind=self.kind,
+            source=self.source,
+            frame_ids=tuple(frame_ids),
+            offsets=offsets,
+            missing_fields=self.missing_fields,
+            boxes_lidar=None if self.boxes_lidar is None else self.boxes_lidar[take],
+            **fields,
+        )
 
 
 #: Typical (l, h, w) of KITTI classes, metres; used only to spot a swapped dimension order.
@@ -331,8 +351,7 @@ _TYPICAL_LHW: Mapping[str, tuple[float, float, float]] = {
 }
 #: boxes per class the median is taken over (the first ones; plenty for a warning)
 _MEDIAN_SAMPLE = 5000
-_ORDERS = {"lhw": (0, 1, 2), "hwl": (1, 2, 0), "lwh": (0, 2, 1), "hlw": (1, 0, 2), "whl": (2, 1, 0),
-           "wlh": (2, 0, 1)}
+_ORDERS = {"lhw": (0, 1, 2), "hwl": (1, 2, 0), "lwh": (0, 2, 1), "hlw": (1, 0, 2), "whl": (2, 1, 0), "wlh": (2, 0, 1)}
 
 
 def dimension_order_warnings(annos: Annotations, min_boxes: int = 5) -> list[str]:
@@ -360,5 +379,6 @@ def dimension_order_warnings(annos: Annotations, min_boxes: int = 5) -> list[str
             out.append(
                 f"{annos.source}: {kind} of class {cls!r} have median dimensions "
                 f"{tuple(round(float(v), 2) for v in med)} which look like ({', '.join(best)}) "
-                f"rather than (l, h, w); pickles store dimensions as l, h, w (txt files as h, w, l)")
+                f"rather than (l, h, w); pickles store dimensions as l, h, w (txt files as h, w, l)"
+            )
     return out

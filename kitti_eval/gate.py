@@ -37,9 +37,22 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
-__all__ = ["ValueKey", "Floor", "MaxDrop", "GateRules", "Check", "Verdict", "run_gate", "parse_floor",
-           "parse_max_drop", "rules_from_options", "rules_from_toml", "render_verdict", "render_verdict_markdown",
-           "render_junit"]
+__all__ = [
+    "ValueKey",
+    "Floor",
+    "MaxDrop",
+    "GateRules",
+    "Check",
+    "Verdict",
+    "run_gate",
+    "parse_floor",
+    "parse_max_drop",
+    "rules_from_options",
+    "rules_from_toml",
+    "render_verdict",
+    "render_verdict_markdown",
+    "render_junit",
+]
 
 _METRICS = tuple(m.value for m in ALL_METRICS)
 _DIFFS = tuple(d.label for d in Difficulty)
@@ -65,8 +78,7 @@ class ValueKey:
         if key.metric not in _METRICS:
             raise ConfigError(f"unknown metric {key.metric!r} in {text!r}; expected one of {', '.join(_METRICS)}")
         if key.difficulty not in _DIFFS:
-            raise ConfigError(f"unknown difficulty {key.difficulty!r} in {text!r}; expected one of "
-                              f"{', '.join(_DIFFS)}")
+            raise ConfigError(f"unknown difficulty {key.difficulty!r} in {text!r}; expected one of {', '.join(_DIFFS)}")
         if key.recall not in RECALL_MODES:
             raise ConfigError(f"unknown recall mode {key.recall!r} in {text!r}; expected R40 or R11")
         if key.oset not in THRESHOLD_SETS:
@@ -115,9 +127,11 @@ class GateRules:
     require_classes: tuple[str, ...] = ()
 
     def merged(self, other: GateRules) -> GateRules:
-        return GateRules(self.floors + other.floors, self.max_drops + other.max_drops,
-                         self.require_classes + tuple(c for c in other.require_classes
-                                                      if c not in self.require_classes))
+        return GateRules(
+            self.floors + other.floors,
+            self.max_drops + other.max_drops,
+            self.require_classes + tuple(c for c in other.require_classes if c not in self.require_classes),
+        )
 
     @property
     def empty(self) -> bool:
@@ -153,22 +167,30 @@ def parse_max_drop(text: str) -> MaxDrop:
     return MaxDrop(limit, ValueKey.parse(key_text) if key_text else None)
 
 
-def rules_from_options(floors: Sequence[str] = (), max_drops: Sequence[str] = (),
-                       require_classes: Sequence[str] = (), *, also: GateRules | None = None,
-                       baseline: bool) -> GateRules:
+def rules_from_options(
+    floors: Sequence[str] = (),
+    max_drops: Sequence[str] = (),
+    require_classes: Sequence[str] = (),
+    *,
+    also: GateRules | None = None,
+    baseline: bool,
+) -> GateRules:
     """Gate rules as the CLI's flags and the service's request give them (floors such as
     ``Car/3d/moderate >= 78.5``, drops such as ``0.5`` or ``Car/3d/moderate=1.0``, class names), merged with
     ``also`` (a rules file's). ``baseline``: whether a baseline is given (a maximum drop needs one).
 
     Raises ConfigError: a malformed rule, no rule at all, or a maximum drop without a baseline.
     """
-    rules = GateRules(tuple(parse_floor(r) for r in floors), tuple(parse_max_drop(d) for d in max_drops),
-                      tuple(require_classes))
+    rules = GateRules(
+        tuple(parse_floor(r) for r in floors), tuple(parse_max_drop(d) for d in max_drops), tuple(require_classes)
+    )
     if also is not None:
         rules = rules.merged(also)
     if rules.empty:
-        raise ConfigError("no rules: give a floor (--min), a maximum drop (--max-drop) or a required class "
-                          "(--require-class), or a rules file")
+        raise ConfigError(
+            "no rules: give a floor (--min), a maximum drop (--max-drop) or a required class "
+            "(--require-class), or a rules file"
+        )
     if rules.max_drops and not baseline:
         raise ConfigError("a maximum drop (--max-drop) needs a baseline")
     return rules
@@ -254,8 +276,12 @@ def _all_keys(doc: Mapping[str, Any]) -> Iterable[ValueKey]:
                         yield ValueKey(cls, metric, d, recall, oset)
 
 
-def run_gate(current: Mapping[str, Any], rules: GateRules, baseline: Mapping[str, Any] | None = None,
-             intervals: Mapping[ValueKey, tuple[float, float]] | None = None) -> Verdict:
+def run_gate(
+    current: Mapping[str, Any],
+    rules: GateRules,
+    baseline: Mapping[str, Any] | None = None,
+    intervals: Mapping[ValueKey, tuple[float, float]] | None = None,
+) -> Verdict:
     """Apply ``rules`` to a result document (``EvalResult.to_dict()`` or its JSON).
 
     ``intervals`` (optional): 95% bootstrap intervals of ``current - baseline`` per value. When given, a
@@ -269,9 +295,18 @@ def run_gate(current: Mapping[str, Any], rules: GateRules, baseline: Mapping[str
         present = cls in current.get("classes", [])
         evaluated = present and any(
             current["ap"][oset][recall][cls][m][d] is not None
-            for oset in current["threshold_sets"] for recall in RECALL_MODES for m in _METRICS for d in _DIFFS)
-        msg = ("" if evaluated else f"class {cls} is not in the result" if not present
-               else f"class {cls} was not evaluated (no detections of it?)")
+            for oset in current["threshold_sets"]
+            for recall in RECALL_MODES
+            for m in _METRICS
+            for d in _DIFFS
+        )
+        msg = (
+            ""
+            if evaluated
+            else f"class {cls} is not in the result"
+            if not present
+            else f"class {cls} was not evaluated (no detections of it?)"
+        )
         checks.append(Check(f"require class {cls}", cls, evaluated, message=msg))
     for floor in rules.floors:
         value = _read_or_none(current, floor.key)
@@ -279,8 +314,15 @@ def run_gate(current: Mapping[str, Any], rules: GateRules, baseline: Mapping[str
             checks.append(Check(str(floor), str(floor.key), False, message="value is null (not evaluated)"))
             continue
         ok = _OPS[floor.op](value, floor.bound)
-        checks.append(Check(str(floor), str(floor.key), ok, current=value,
-                            message="" if ok else f"{value:.4f} is not {floor.op} {floor.bound:g}"))
+        checks.append(
+            Check(
+                str(floor),
+                str(floor.key),
+                ok,
+                current=value,
+                message="" if ok else f"{value:.4f} is not {floor.op} {floor.bound:g}",
+            )
+        )
     if rules.max_drops:
         if baseline is None:
             raise ConfigError("a --max-drop rule needs a baseline (--baseline)")
@@ -300,8 +342,14 @@ def _read_or_none(doc: Mapping[str, Any], key: ValueKey) -> float | None:
     return key.read(doc)
 
 
-def _drop_check(key: ValueKey, limit: float, current: Mapping[str, Any], baseline: Mapping[str, Any],
-                intervals: Mapping[ValueKey, tuple[float, float]] | None, explicit: bool) -> Check:
+def _drop_check(
+    key: ValueKey,
+    limit: float,
+    current: Mapping[str, Any],
+    baseline: Mapping[str, Any],
+    intervals: Mapping[ValueKey, tuple[float, float]] | None,
+    explicit: bool,
+) -> Check:
     rule = f"{key} drop <= {limit:g}"
     now = _read_or_none(current, key)
     try:
@@ -336,26 +384,35 @@ def render_verdict(verdict: Verdict, *, show_passed: bool = False) -> str:
     head = f"{'':4} {'rule':<48} {'now':>9} {'base':>9} {'delta':>9}  note"
     lines = [head]
     for c in rows:
-        lines.append(f"{'ok' if c.passed else 'FAIL':<4} {c.rule:<48} {_f(c.current):>9} {_f(c.baseline):>9} "
-                     f"{_f(c.delta, sign=True):>9}  {c.message}")
+        lines.append(
+            f"{'ok' if c.passed else 'FAIL':<4} {c.rule:<48} {_f(c.current):>9} {_f(c.baseline):>9} "
+            f"{_f(c.delta, sign=True):>9}  {c.message}"
+        )
     hidden = len(verdict.checks) - len(rows)
     if hidden:
         lines.append(f"     ... and {hidden} passing checks not shown")
     n_fail = len(verdict.failures)
-    lines.append(f"gate: {'PASSED' if verdict.passed else 'FAILED'} "
-                 f"({len(verdict.checks) - n_fail} passed, {n_fail} failed)")
+    lines.append(
+        f"gate: {'PASSED' if verdict.passed else 'FAILED'} ({len(verdict.checks) - n_fail} passed, {n_fail} failed)"
+    )
     return "\n".join(lines) + "\n"
 
 
 def render_verdict_markdown(verdict: Verdict) -> str:
     status = "✅ passed" if verdict.passed else "❌ failed"
-    out = [f"### KITTI AP gate: {status}", "", "| | rule | now | baseline | delta | note |",
-           "|---|---|---:|---:|---:|---|"]
+    out = [
+        f"### KITTI AP gate: {status}",
+        "",
+        "| | rule | now | baseline | delta | note |",
+        "|---|---|---:|---:|---:|---|",
+    ]
     for c in sorted(verdict.checks, key=lambda c: c.passed):
         if c.passed and len(verdict.checks) > 40:
             continue
-        out.append(f"| {'✅' if c.passed else '❌'} | `{c.rule}` | {_f(c.current)} | {_f(c.baseline)} | "
-                   f"{_f(c.delta, sign=True)} | {c.message} |")
+        out.append(
+            f"| {'✅' if c.passed else '❌'} | `{c.rule}` | {_f(c.current)} | {_f(c.baseline)} | "
+            f"{_f(c.delta, sign=True)} | {c.message} |"
+        )
     n_fail = len(verdict.failures)
     out += ["", f"{len(verdict.checks) - n_fail} passed, {n_fail} failed."]
     return "\n".join(out) + "\n"
@@ -363,8 +420,14 @@ def render_verdict_markdown(verdict: Verdict) -> str:
 
 def render_junit(verdict: Verdict, name: str = "kitti-eval gate") -> str:
     """JUnit XML: one test case per check, failures as <failure>."""
-    suite = ET.Element("testsuite", name=name, tests=str(len(verdict.checks)),
-                       failures=str(len(verdict.failures)), errors="0", skipped="0")
+    suite = ET.Element(
+        "testsuite",
+        name=name,
+        tests=str(len(verdict.checks)),
+        failures=str(len(verdict.failures)),
+        errors="0",
+        skipped="0",
+    )
     for c in verdict.checks:
         case = ET.SubElement(suite, "testcase", classname="kitti_eval.gate", name=c.rule)
         if not c.passed:

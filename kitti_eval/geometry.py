@@ -63,8 +63,7 @@ def _iou_2d_kernel(a, b, first):  # pragma: no cover - compiled
     out = np.zeros((n, m))
     for i in range(n):
         for j in range(m):
-            out[i, j] = _overlap_2d(a[i, 0], a[i, 1], a[i, 2], a[i, 3], b[j, 0], b[j, 1], b[j, 2], b[j, 3],
-                                    first)
+            out[i, j] = _overlap_2d(a[i, 0], a[i, 1], a[i, 2], a[i, 3], b[j, 0], b[j, 1], b[j, 2], b[j, 3], first)
     return out
 
 
@@ -239,8 +238,23 @@ def _iou_rot_kernel(a, b, first, three_d):  # pragma: no cover - compiled
                 dy = _height_overlap(a[i, 1], a[i, 4], b[j, 1], b[j, 4])
                 if dy <= 0.0:
                     continue
-            inter = _bev_inter(a[i, 0], a[i, 2], a[i, 3], a[i, 5], a[i, 6], area_a[i], rad_a[i],
-                               b[j, 0], b[j, 2], b[j, 3], b[j, 5], b[j, 6], area_b[j], rad_b[j], buf)
+            inter = _bev_inter(
+                a[i, 0],
+                a[i, 2],
+                a[i, 3],
+                a[i, 5],
+                a[i, 6],
+                area_a[i],
+                rad_a[i],
+                b[j, 0],
+                b[j, 2],
+                b[j, 3],
+                b[j, 5],
+                b[j, 6],
+                area_b[j],
+                rad_b[j],
+                buf,
+            )
             if inter <= 0.0:
                 continue
             if three_d:
@@ -251,8 +265,9 @@ def _iou_rot_kernel(a, b, first, three_d):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _frame_overlaps_kernel(dt_bbox, dt_boxes, dt_off, gt_bbox, gt_boxes, gt_off, gt_first,
-                           pair_off):  # pragma: no cover - compiled
+def _frame_overlaps_kernel(
+    dt_bbox, dt_boxes, dt_off, gt_bbox, gt_boxes, gt_off, gt_first, pair_off
+):  # pragma: no cover - compiled
     n_pairs = pair_off[pair_off.shape[0] - 1]
     out_bbox = np.zeros(n_pairs)
     out_bev = np.zeros(n_pairs)
@@ -279,19 +294,36 @@ def _frame_overlaps_kernel(dt_bbox, dt_boxes, dt_off, gt_bbox, gt_boxes, gt_off,
                 k = base + i
                 first = gt_first[i]
                 # 2D: the devkit's arithmetic; the cheap rejection is inlined here
-                if min(dx2, gt_bbox[i, 2]) - max(dx1, gt_bbox[i, 0]) > 0.0 and \
-                        min(dy2, gt_bbox[i, 3]) - max(dy1, gt_bbox[i, 1]) > 0.0:
-                    out_bbox[k] = _overlap_2d(dx1, dy1, dx2, dy2, gt_bbox[i, 0], gt_bbox[i, 1], gt_bbox[i, 2],
-                                              gt_bbox[i, 3], first)
+                if (
+                    min(dx2, gt_bbox[i, 2]) - max(dx1, gt_bbox[i, 0]) > 0.0
+                    and min(dy2, gt_bbox[i, 3]) - max(dy1, gt_bbox[i, 1]) > 0.0
+                ):
+                    out_bbox[k] = _overlap_2d(
+                        dx1, dy1, dx2, dy2, gt_bbox[i, 0], gt_bbox[i, 1], gt_bbox[i, 2], gt_bbox[i, 3], first
+                    )
                 # BEV and 3D share one intersection; pairs whose bounding circles miss are 0
                 ex = gt_boxes[i, 0] - xd
                 ez = gt_boxes[i, 2] - zd
                 reach = (rd + rad_g[i]) * (1.0 + 1e-9)
                 if ex * ex + ez * ez > reach * reach:
                     continue
-                inter = _bev_inter(xd, zd, dt_boxes[j, 3], dt_boxes[j, 5], dt_boxes[j, 6], area_d[j], rd,
-                                   gt_boxes[i, 0], gt_boxes[i, 2], gt_boxes[i, 3], gt_boxes[i, 5],
-                                   gt_boxes[i, 6], area_g[i], rad_g[i], buf)
+                inter = _bev_inter(
+                    xd,
+                    zd,
+                    dt_boxes[j, 3],
+                    dt_boxes[j, 5],
+                    dt_boxes[j, 6],
+                    area_d[j],
+                    rd,
+                    gt_boxes[i, 0],
+                    gt_boxes[i, 2],
+                    gt_boxes[i, 3],
+                    gt_boxes[i, 5],
+                    gt_boxes[i, 6],
+                    area_g[i],
+                    rad_g[i],
+                    buf,
+                )
                 if inter <= 0.0:
                     continue
                 out_bev[k] = _ratio(inter, area_d[j], area_g[i], first)
@@ -338,11 +370,11 @@ def _offsets(value: object, name: str, n_rows: int, n_rows_name: str) -> npt.NDA
     steps = np.diff(out)
     if (steps < 0).any():
         f = int(np.argmax(steps < 0))
-        raise ValueError(f"Expected `{name}` to be non-decreasing, got {int(out[f])} then {int(out[f + 1])} "
-                         f"at frame {f}")
+        raise ValueError(
+            f"Expected `{name}` to be non-decreasing, got {int(out[f])} then {int(out[f + 1])} at frame {f}"
+        )
     if out[-1] != n_rows:
-        raise ValueError(f"Expected `{name}` to end at the {n_rows} rows of `{n_rows_name}`, "
-                         f"got {int(out[-1])}")
+        raise ValueError(f"Expected `{name}` to end at the {n_rows} rows of `{n_rows_name}`, got {int(out[-1])}")
     return out
 
 
@@ -453,9 +485,15 @@ class FrameOverlaps:
     d3: npt.NDArray[np.float64]
 
 
-def frame_overlaps(dt_bbox: npt.ArrayLike, dt_boxes: npt.ArrayLike, dt_offsets: npt.ArrayLike,
-                   gt_bbox: npt.ArrayLike, gt_boxes: npt.ArrayLike, gt_offsets: npt.ArrayLike,
-                   gt_first: npt.ArrayLike) -> FrameOverlaps:
+def frame_overlaps(
+    dt_bbox: npt.ArrayLike,
+    dt_boxes: npt.ArrayLike,
+    dt_offsets: npt.ArrayLike,
+    gt_bbox: npt.ArrayLike,
+    gt_boxes: npt.ArrayLike,
+    gt_offsets: npt.ArrayLike,
+    gt_first: npt.ArrayLike,
+) -> FrameOverlaps:
     """2D, BEV and 3D overlaps of all detection/ground-truth pairs of the same frame, for ``F`` frames.
 
     Parameters
@@ -487,11 +525,15 @@ def frame_overlaps(dt_bbox: npt.ArrayLike, dt_boxes: npt.ArrayLike, dt_offsets: 
     gt_bbox_ = _as_rows(gt_bbox, "gt_bbox", 4)
     gt_boxes_ = _as_rows(gt_boxes, "gt_boxes", 7)
     if dt_bbox_.shape[0] != dt_boxes_.shape[0]:
-        raise ValueError(f"Expected `dt_bbox` and `dt_boxes` with the same number of rows, got "
-                         f"{dt_bbox_.shape[0]} and {dt_boxes_.shape[0]}")
+        raise ValueError(
+            f"Expected `dt_bbox` and `dt_boxes` with the same number of rows, got "
+            f"{dt_bbox_.shape[0]} and {dt_boxes_.shape[0]}"
+        )
     if gt_bbox_.shape[0] != gt_boxes_.shape[0]:
-        raise ValueError(f"Expected `gt_bbox` and `gt_boxes` with the same number of rows, got "
-                         f"{gt_bbox_.shape[0]} and {gt_boxes_.shape[0]}")
+        raise ValueError(
+            f"Expected `gt_bbox` and `gt_boxes` with the same number of rows, got "
+            f"{gt_bbox_.shape[0]} and {gt_boxes_.shape[0]}"
+        )
     first = np.asarray(gt_first)
     if first.size == 0 and first.ndim == 1:
         first = first.astype(np.bool_)
@@ -503,10 +545,11 @@ def frame_overlaps(dt_bbox: npt.ArrayLike, dt_boxes: npt.ArrayLike, dt_offsets: 
     dt_off = _offsets(dt_offsets, "dt_offsets", dt_boxes_.shape[0], "dt_boxes")
     gt_off = _offsets(gt_offsets, "gt_offsets", gt_boxes_.shape[0], "gt_boxes")
     if dt_off.shape != gt_off.shape:
-        raise ValueError(f"Expected `dt_offsets` and `gt_offsets` with the same shape (F + 1,), got "
-                         f"{dt_off.shape} and {gt_off.shape}")
+        raise ValueError(
+            f"Expected `dt_offsets` and `gt_offsets` with the same shape (F + 1,), got "
+            f"{dt_off.shape} and {gt_off.shape}"
+        )
     pair_off = np.zeros(dt_off.shape[0], dtype=np.int64)
     np.cumsum(np.diff(dt_off) * np.diff(gt_off), out=pair_off[1:])
-    bbox, bev, d3 = _frame_overlaps_kernel(dt_bbox_, dt_boxes_, dt_off, gt_bbox_, gt_boxes_, gt_off, first,
-                                           pair_off)
+    bbox, bev, d3 = _frame_overlaps_kernel(dt_bbox_, dt_boxes_, dt_off, gt_bbox_, gt_boxes_, gt_off, first, pair_off)
     return FrameOverlaps(pair_offsets=pair_off, bbox=bbox, bev=bev, d3=d3)

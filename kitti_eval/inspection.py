@@ -86,8 +86,14 @@ def _box(annos: Annotations, row: int, index: int) -> dict[str, Any]:
     return out
 
 
-def _gt_roles(plan: Plan, cls: str, difficulty: Difficulty, job: MatchJob, g0: int, g1: int,
-              ) -> list[tuple[str, str | None]]:
+def _gt_roles(
+    plan: Plan,
+    cls: str,
+    difficulty: Difficulty,
+    job: MatchJob,
+    g0: int,
+    g1: int,
+) -> list[tuple[str, str | None]]:
     """(role, reason) of each ground-truth box of the frame: whether and why it counts."""
     gt, config = plan.gt, plan.config
     codes = plan.ignored_gt[job.codes]
@@ -114,9 +120,14 @@ def _gt_roles(plan: Plan, cls: str, difficulty: Difficulty, job: MatchJob, g0: i
                 why.append("outside the set")
             out.append(("ignored", f"harder than {difficulty.label}: " + ", ".join(why)))
         elif plan.dontcare[row]:
-            out.append(("dontcare", "covers false positives" if job.dontcare else
-                        f"not used in {OVERLAP_METRICS[job.metric].value} under the "
-                        f"{config.protocol.name} protocol"))
+            out.append(
+                (
+                    "dontcare",
+                    "covers false positives"
+                    if job.dontcare
+                    else f"not used in {OVERLAP_METRICS[job.metric].value} under the {config.protocol.name} protocol",
+                )
+            )
         else:
             out.append(("other_class", None))
     return out
@@ -136,12 +147,20 @@ def _fp_reason(ov: np.ndarray, a: int, codes: np.ndarray, gt_ref: np.ndarray, mi
     return "overlaps no ground truth of the class"
 
 
-def _label_model(plan: Plan, f: int, cls: str, metric: Metric, difficulty: Difficulty, job: MatchJob,
-                 score_threshold: float | None, roles: list[tuple[str, str | None]]) -> dict[str, Any]:
+def _label_model(
+    plan: Plan,
+    f: int,
+    cls: str,
+    metric: Metric,
+    difficulty: Difficulty,
+    job: MatchJob,
+    score_threshold: float | None,
+    roles: list[tuple[str, str | None]],
+) -> dict[str, Any]:
     gt, dt, fo = plan.gt, plan.dt, plan.overlaps
     g0, g1 = int(gt.offsets[f]), int(gt.offsets[f + 1])
     d0, d1 = int(dt.offsets[f]), int(dt.offsets[f + 1])
-    ov = (fo.bbox, fo.bev, fo.d3)[job.metric][fo.pair_offsets[f]:fo.pair_offsets[f + 1]].reshape(d1 - d0, g1 - g0)
+    ov = (fo.bbox, fo.bev, fo.d3)[job.metric][fo.pair_offsets[f] : fo.pair_offsets[f + 1]].reshape(d1 - d0, g1 - g0)
     codes = plan.ignored_gt[job.codes][g0:g1]
     det_codes = plan.ignored_det[job.codes][d0:d1]
     dontcare = plan.dontcare[g0:g1] if job.dontcare else None
@@ -153,8 +172,11 @@ def _label_model(plan: Plan, f: int, cls: str, metric: Metric, difficulty: Diffi
         row = d0 + a
         box = _box(dt, row, a)
         box["score"] = _shown(dt.score[row])
-        box["boxes_lidar"] = (None if dt.boxes_lidar is None or np.isnan(dt.boxes_lidar[row]).any()
-                              else [_shown(x) for x in dt.boxes_lidar[row]])
+        box["boxes_lidar"] = (
+            None
+            if dt.boxes_lidar is None or np.isnan(dt.boxes_lidar[row]).any()
+            else [_shown(x) for x in dt.boxes_lidar[row]]
+        )
         label = DET_LABELS[labels.det_label[a]]
         ref = int(labels.det_ref[a])
         reason = None
@@ -171,8 +193,12 @@ def _label_model(plan: Plan, f: int, cls: str, metric: Metric, difficulty: Diffi
             reason = f"inside DontCare region {ref}"
         elif label == "below_threshold":
             reason = f"score below {thr:g}"
-        box.update(label=label, gt=ref if label in ("tp", "ignored") and ref >= 0 else None,
-                   iou=_num(labels.det_overlap[a]) if ref >= 0 else None, reason=reason)
+        box.update(
+            label=label,
+            gt=ref if label in ("tp", "ignored") and ref >= 0 else None,
+            iou=_num(labels.det_overlap[a]) if ref >= 0 else None,
+            reason=reason,
+        )
         if label == "dontcare":
             box["dontcare_region"] = ref
         if label == "tp" and plan.compute_aos and metric is Metric.BBOX:
@@ -184,17 +210,35 @@ def _label_model(plan: Plan, f: int, cls: str, metric: Metric, difficulty: Diffi
         if roles[i][0] == "dontcare":
             label = "dontcare"
         ref = int(labels.gt_ref[i])
-        ground_truth.append({"index": i, "label": label, "detection": ref if ref >= 0 else None,
-                             "iou": _num(labels.det_overlap[ref]) if ref >= 0 else None})
-    return {"source": dt.source, "detections": detections, "ground_truth": ground_truth,
-            "missed": [g["index"] for g in ground_truth if g["label"] == "missed"],
-            "counts": {"tp": labels.tp, "fp": labels.fp, "fn": labels.fn}}
+        ground_truth.append(
+            {
+                "index": i,
+                "label": label,
+                "detection": ref if ref >= 0 else None,
+                "iou": _num(labels.det_overlap[ref]) if ref >= 0 else None,
+            }
+        )
+    return {
+        "source": dt.source,
+        "detections": detections,
+        "ground_truth": ground_truth,
+        "missed": [g["index"] for g in ground_truth if g["label"] == "missed"],
+        "counts": {"tp": labels.tp, "fp": labels.fp, "fn": labels.fn},
+    }
 
 
-def inspect_frame(gt: Annotations, models: Sequence[tuple[str, Annotations]], frame_id: str | int,
-                  config: EvalConfig | None = None, *, cls: str = "Car", metric: str = "3d",
-                  difficulty: str = "moderate", oset: str = "strict",
-                  score_threshold: float | None = None) -> dict[str, Any]:
+def inspect_frame(
+    gt: Annotations,
+    models: Sequence[tuple[str, Annotations]],
+    frame_id: str | int,
+    config: EvalConfig | None = None,
+    *,
+    cls: str = "Car",
+    metric: str = "3d",
+    difficulty: str = "moderate",
+    oset: str = "strict",
+    score_threshold: float | None = None,
+) -> dict[str, Any]:
     """Every box of one frame, for each of ``models`` (name, detections), labelled by the matching.
 
     Each model is matched against ``gt`` exactly as :func:`kitti_eval.evaluate` matches it (the same
@@ -213,9 +257,16 @@ def inspect_frame(gt: Annotations, models: Sequence[tuple[str, Annotations]], fr
     f = gt.frame_index().get(fid)
     if f is None:
         raise InputError("no such frame in the ground truth", source=gt.source, frame=fid)
-    out: dict[str, Any] = {"frame": fid, "class": cls, "metric": metric, "difficulty": d.label,
-                           "threshold_set": oset, "min_overlap": config.overlap(cls, oset, m),
-                           "score_threshold": score_threshold, "protocol": config.protocol.name}
+    out: dict[str, Any] = {
+        "frame": fid,
+        "class": cls,
+        "metric": metric,
+        "difficulty": d.label,
+        "threshold_set": oset,
+        "min_overlap": config.overlap(cls, oset, m),
+        "score_threshold": score_threshold,
+        "protocol": config.protocol.name,
+    }
     g0, g1 = int(gt.offsets[f]), int(gt.offsets[f + 1])
     reports: dict[str, Any] = {}
     roles: list[tuple[str, str | None]] = []
@@ -224,8 +275,9 @@ def inspect_frame(gt: Annotations, models: Sequence[tuple[str, Annotations]], fr
         job = slot_job(plan, cls, m, d, oset)
         roles = _gt_roles(plan, cls, d, job, g0, g1)
         reports[name] = _label_model(plan, f, cls, m, d, job, score_threshold, roles)
-    out["ground_truth"] = [{**_box(gt, g0 + i, i), "role": role, "reason": reason}
-                           for i, (role, reason) in enumerate(roles)]
+    out["ground_truth"] = [
+        {**_box(gt, g0 + i, i), "role": role, "reason": reason} for i, (role, reason) in enumerate(roles)
+    ]
     out["models"] = reports
     return out
 
@@ -255,22 +307,52 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
 def render_inspection(report: dict[str, Any]) -> str:
     """The report as readable text: the ground truth, then per model its detections and misses."""
     thr = report["score_threshold"]
-    head = (f"frame {report['frame']}: {report['class']} {report['metric']} {report['difficulty']} "
-            f"({report['threshold_set']} IoU > {report['min_overlap']:g}, {report['protocol']} protocol)"
-            + ("" if thr is None else f", detections scoring >= {thr:g}"))
+    head = (
+        f"frame {report['frame']}: {report['class']} {report['metric']} {report['difficulty']} "
+        f"({report['threshold_set']} IoU > {report['min_overlap']:g}, {report['protocol']} protocol)"
+        + ("" if thr is None else f", detections scoring >= {thr:g}")
+    )
     lines = [head, "", f"ground truth ({len(report['ground_truth'])} boxes)"]
-    lines += _table(["#", "name", "role", "trunc", "occ", "bbox", "dims (l h w)", "location", "ry", "why"],
-                    [[str(g["index"]), g["name"], g["role"], _fmt(g["truncated"]), _fmt(g["occluded"], 0),
-                      _fmt(g["bbox"], 1), _fmt(g["dimensions"]), _fmt(g["location"]), _fmt(g["rotation_y"]),
-                      g["reason"] or ""] for g in report["ground_truth"]])
+    lines += _table(
+        ["#", "name", "role", "trunc", "occ", "bbox", "dims (l h w)", "location", "ry", "why"],
+        [
+            [
+                str(g["index"]),
+                g["name"],
+                g["role"],
+                _fmt(g["truncated"]),
+                _fmt(g["occluded"], 0),
+                _fmt(g["bbox"], 1),
+                _fmt(g["dimensions"]),
+                _fmt(g["location"]),
+                _fmt(g["rotation_y"]),
+                g["reason"] or "",
+            ]
+            for g in report["ground_truth"]
+        ],
+    )
     for name, model in report["models"].items():
         c = model["counts"]
         lines += ["", f"{name} ({model['source']}): TP {c['tp']}  FP {c['fp']}  FN {c['fn']}"]
-        lines += _table(["#", "name", "score", "label", "gt", "iou", "bbox", "dims (l h w)", "location", "ry", "why"],
-                        [[str(det["index"]), det["name"], _fmt(det["score"], 3), det["label"], _fmt(det["gt"]),
-                          _fmt(det["iou"], 3), _fmt(det["bbox"], 1), _fmt(det["dimensions"]),
-                          _fmt(det["location"]), _fmt(det["rotation_y"]), det["reason"] or ""]
-                         for det in model["detections"]])
+        lines += _table(
+            ["#", "name", "score", "label", "gt", "iou", "bbox", "dims (l h w)", "location", "ry", "why"],
+            [
+                [
+                    str(det["index"]),
+                    det["name"],
+                    _fmt(det["score"], 3),
+                    det["label"],
+                    _fmt(det["gt"]),
+                    _fmt(det["iou"], 3),
+                    _fmt(det["bbox"], 1),
+                    _fmt(det["dimensions"]),
+                    _fmt(det["location"]),
+                    _fmt(det["rotation_y"]),
+                    det["reason"] or "",
+                ]
+                for det in model["detections"]
+            ],
+        )
         missed = ", ".join(str(i) for i in model["missed"]) or "none"
         lines.append(f"missed ground truth: {missed}")
     return "\n".join(lines) + "\n"

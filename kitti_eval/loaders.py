@@ -51,15 +51,46 @@ from .frames import Annotations, Kind, normalize_frame_id
 from .safe_pickle import load_pickle, load_pickles
 
 __all__ = [
-    "load_ground_truth", "load_detections", "load_annotations", "load_kitti_txt_dir", "parse_kitti_txt",
-    "annotations_from_object", "detect_format", "describe_format", "PICKLE_FORMATS", "KITTI_TXT_FIELDS",
-    "FORMATS", "load_pair", "load_ground_truth_and_calibs", "read_split", "apply_split", "calibs_from_object",
-    "extract_txt_archive", "is_archive", "ArchiveLimits",
+    "load_ground_truth",
+    "load_detections",
+    "load_annotations",
+    "load_kitti_txt_dir",
+    "parse_kitti_txt",
+    "annotations_from_object",
+    "detect_format",
+    "describe_format",
+    "PICKLE_FORMATS",
+    "KITTI_TXT_FIELDS",
+    "FORMATS",
+    "load_pair",
+    "load_ground_truth_and_calibs",
+    "read_split",
+    "apply_split",
+    "calibs_from_object",
+    "extract_txt_archive",
+    "is_archive",
+    "ArchiveLimits",
 ]
 
 #: the fields of a KITTI label line, in file order (``score`` only in detections)
-KITTI_TXT_FIELDS = ("type", "truncated", "occluded", "alpha", "x1", "y1", "x2", "y2", "h", "w", "l",
-                    "x", "y", "z", "ry", "score")
+KITTI_TXT_FIELDS = (
+    "type",
+    "truncated",
+    "occluded",
+    "alpha",
+    "x1",
+    "y1",
+    "x2",
+    "y2",
+    "h",
+    "w",
+    "l",
+    "x",
+    "y",
+    "z",
+    "ry",
+    "score",
+)
 _N_FIELDS = {"ground_truth": 15, "detections": 16}
 _KIND_WORD = {"ground_truth": "ground-truth", "detections": "result"}
 
@@ -69,22 +100,30 @@ Frames = Iterator[tuple[object, Mapping[str, Any]]]
 
 # ----------------------------------------------------------------------------------------- public API
 
+
 def load_ground_truth(path: PathLike, *, max_bytes: int | None = None, fmt: str | None = None) -> Annotations:
     """Ground truth from a KITTI ``label_2``-style txt folder (or a zip/tar of one) or an infos/annos pickle."""
     return load_annotations(path, "ground_truth", max_bytes=max_bytes, fmt=fmt)
 
 
-def load_detections(path: PathLike, *, max_bytes: int | None = None, fmt: str | None = None,
-                    calibs: Mapping[str, Any] | None = None, warnings: list[str] | None = None,
-                    keep_lidar: bool = False) -> Annotations:
+def load_detections(
+    path: PathLike,
+    *,
+    max_bytes: int | None = None,
+    fmt: str | None = None,
+    calibs: Mapping[str, Any] | None = None,
+    warnings: list[str] | None = None,
+    keep_lidar: bool = False,
+) -> Annotations:
     """Detections from a KITTI txt folder (16 fields; or a zip/tar of one) or a ``result.pkl``-style pickle.
 
     ``calibs`` ({frame id: :class:`kitti_eval.calib.Calib`}) converts LiDAR-only boxes and checks boxes that
     carry both; messages about the check are appended to ``warnings``. ``keep_lidar`` keeps the
     ``boxes_lidar`` as written, for display (:attr:`Annotations.boxes_lidar`).
     """
-    return load_annotations(path, "detections", max_bytes=max_bytes, fmt=fmt, calibs=calibs, warnings=warnings,
-                            keep_lidar=keep_lidar)
+    return load_annotations(
+        path, "detections", max_bytes=max_bytes, fmt=fmt, calibs=calibs, warnings=warnings, keep_lidar=keep_lidar
+    )
 
 
 def _check_fmt(fmt: str | None) -> None:
@@ -94,13 +133,22 @@ def _check_fmt(fmt: str | None) -> None:
 
 def _missing(p: Path, kind: Kind, source: str) -> InputError:
     what = "ground truth" if kind == "ground_truth" else "detections"
-    return InputError(f"no such file or directory (expected {what} as a KITTI txt folder, a zip/tar of one, or "
-                      "a pickle)", source=source)
+    return InputError(
+        f"no such file or directory (expected {what} as a KITTI txt folder, a zip/tar of one, or a pickle)",
+        source=source,
+    )
 
 
-def load_annotations(path: PathLike, kind: Kind, *, max_bytes: int | None = None, fmt: str | None = None,
-                     calibs: Mapping[str, Any] | None = None, warnings: list[str] | None = None,
-                     keep_lidar: bool = False) -> Annotations:
+def load_annotations(
+    path: PathLike,
+    kind: Kind,
+    *,
+    max_bytes: int | None = None,
+    fmt: str | None = None,
+    calibs: Mapping[str, Any] | None = None,
+    warnings: list[str] | None = None,
+    keep_lidar: bool = False,
+) -> Annotations:
     """A folder is read as KITTI txt files, a zip/tar as an archived txt folder, a file as a pickle.
 
     ``fmt`` (a name of :data:`FORMATS`) skips the detection of the layout.
@@ -116,18 +164,27 @@ def load_annotations(path: PathLike, kind: Kind, *, max_bytes: int | None = None
     if not p.exists():
         raise _missing(p, kind, source)
     if p.suffix.lower() == ".txt":
-        raise InputError("this is a single txt file; pass the folder that holds one KITTI txt file per "
-                         "frame", source=source)
+        raise InputError(
+            "this is a single txt file; pass the folder that holds one KITTI txt file per frame", source=source
+        )
     if fmt == "kitti_txt" or (fmt is None and input_kind(p, source) != "pickle"):
         return _load_txt_archive(p, kind, source)
     obj = load_pickle(p, source=source, max_bytes=max_bytes)
-    return annotations_from_object(obj, kind, source=source, fmt=fmt, calibs=calibs, warnings=warnings,
-                                   keep_lidar=keep_lidar)
+    return annotations_from_object(
+        obj, kind, source=source, fmt=fmt, calibs=calibs, warnings=warnings, keep_lidar=keep_lidar
+    )
 
 
-def annotations_from_object(obj: object, kind: Kind, *, source: str, fmt: str | None = None,
-                            calibs: Mapping[str, Any] | None = None,
-                            warnings: list[str] | None = None, keep_lidar: bool = False) -> Annotations:
+def annotations_from_object(
+    obj: object,
+    kind: Kind,
+    *,
+    source: str,
+    fmt: str | None = None,
+    calibs: Mapping[str, Any] | None = None,
+    warnings: list[str] | None = None,
+    keep_lidar: bool = False,
+) -> Annotations:
     """Annotations from an already unpickled object (e.g. an upload passed through ``load_pickle``).
 
     ``fmt`` forces a layout of :data:`PICKLE_FORMATS`; ``calibs``, ``warnings`` and ``keep_lidar``: see
@@ -149,13 +206,15 @@ def annotations_from_object(obj: object, kind: Kind, *, source: str, fmt: str | 
 
 # ---------------------------------------------------------------------------------------- KITTI txt
 
+
 def _txt_files(directory: Path) -> list[Path]:
     try:
         entries = list(os.scandir(directory))
     except OSError as e:
         raise InputError(f"cannot list the folder: {e.strerror or e}", source=str(directory)) from None
-    return [Path(e.path) for e in entries
-            if e.name.lower().endswith(".txt") and not e.name.startswith(".") and e.is_file()]
+    return [
+        Path(e.path) for e in entries if e.name.lower().endswith(".txt") and not e.name.startswith(".") and e.is_file()
+    ]
 
 
 def load_kitti_txt_dir(directory: PathLike, kind: Kind) -> Annotations:
@@ -171,8 +230,7 @@ def load_kitti_txt_dir(directory: PathLike, kind: Kind) -> Annotations:
         files = _txt_files(root / "data")  # OpenPCDet --save_to_file: final_result/data/*.txt
     if not files:
         subdirs = sorted(e.name for e in os.scandir(root) if e.is_dir())
-        hint = (f"; it has subfolders {', '.join(subdirs[:5])}: pass the one holding the txt files"
-                if subdirs else "")
+        hint = f"; it has subfolders {', '.join(subdirs[:5])}: pass the one holding the txt files" if subdirs else ""
         raise InputError(f"no .txt files in the folder{hint}", source=str(root))
     files.sort(key=lambda f: f.name)
 
@@ -193,17 +251,21 @@ def load_kitti_txt_dir(directory: PathLike, kind: Kind) -> Annotations:
     name_arr = np.array(names) if names else np.zeros(0, dtype="<U1")
     # columns after the type: trunc occ alpha x1 y1 x2 y2 h w l x y z ry [score]
     columns = {
-        "truncated": table[:, 0], "occluded": table[:, 1], "alpha": table[:, 2], "bbox": table[:, 3:7],
+        "truncated": table[:, 0],
+        "occluded": table[:, 1],
+        "alpha": table[:, 2],
+        "bbox": table[:, 3:7],
         "dimensions": table[:, [9, 7, 8]],  # h w l -> l h w
-        "location": table[:, 10:13], "rotation_y": table[:, 13],
+        "location": table[:, 10:13],
+        "rotation_y": table[:, 13],
     }
     if kind == "detections":
         columns["score"] = table[:, 14]
 
     def frames() -> Frames:
         for fid, lo, n in spans:
-            fields: dict[str, Any] = {k: v[lo:lo + n] for k, v in columns.items()}
-            fields["name"] = name_arr[lo:lo + n]
+            fields: dict[str, Any] = {k: v[lo : lo + n] for k, v in columns.items()}
+            fields["name"] = name_arr[lo : lo + n]
             yield fid, fields
 
     return Annotations.from_frames(kind, str(root), frames())
@@ -218,8 +280,7 @@ def _read_text(path: Path) -> str:
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
-        raise InputError(f"not a text file (byte {e.start} is not UTF-8)", source=str(path),
-                         frame=path.stem) from None
+        raise InputError(f"not a text file (byte {e.start} is not UTF-8)", source=str(path), frame=path.stem) from None
 
 
 def parse_kitti_txt(text: str, kind: Kind, *, frame: str, source: str) -> tuple[list[str], list[float]]:
@@ -257,7 +318,7 @@ def _split_frame(text: str, kind: Kind, frame: str, source: str) -> tuple[list[s
     names = tokens[0::width]
     del tokens[0::width]  # now width - 1 numbers per line
     if width > n_keep:  # a 16th field (score) in ground truth: dropped
-        del tokens[n_keep - 1::width - 1]
+        del tokens[n_keep - 1 :: width - 1]
     return lines, names, tokens
 
 
@@ -269,16 +330,21 @@ def _raise_bad_line(lines: list[str], kind: Kind, accepted: set[int], frame: str
             continue
         if n not in accepted:
             if kind == "ground_truth":
-                expected = ("15 fields (type truncated occluded alpha x1 y1 x2 y2 h w l x y z ry; a 16th, "
-                            "score, is also accepted)")
+                expected = (
+                    "15 fields (type truncated occluded alpha x1 y1 x2 y2 h w l x y z ry; a 16th, "
+                    "score, is also accepted)"
+                )
             else:
                 expected = "16 fields (type truncated occluded alpha x1 y1 x2 y2 h w l x y z ry score)"
             raise InputError(f"line {lineno}: expected {expected}, got {n}", source=source, frame=frame)
         if first_width is None:
             first_width = n
         elif n != first_width:
-            raise InputError(f"line {lineno}: {n} fields, but earlier lines have {first_width}; use one "
-                             "layout per file", source=source, frame=frame)
+            raise InputError(
+                f"line {lineno}: {n} fields, but earlier lines have {first_width}; use one layout per file",
+                source=source,
+                frame=frame,
+            )
     raise InputError("inconsistent field counts", source=source, frame=frame)  # pragma: no cover
 
 
@@ -290,12 +356,14 @@ def _raise_bad_number(lines: list[str], n_fields: int, frame: str, source: str) 
                 float(tok)
             except ValueError:
                 field = KITTI_TXT_FIELDS[k]
-                raise InputError(f"line {lineno}: {field} is not a number: {tok!r}", source=source,
-                                 frame=frame, field=field) from None
+                raise InputError(
+                    f"line {lineno}: {field} is not a number: {tok!r}", source=source, frame=frame, field=field
+                ) from None
     raise InputError("unparsable number", source=source, frame=frame)  # pragma: no cover
 
 
 # ------------------------------------------------------------------------------------------ pickles
+
 
 def _check_kind(kind: str) -> None:
     if kind not in _N_FIELDS:
@@ -332,14 +400,21 @@ _ANNOS_KEYS = frozenset({"name", "bbox", "dimensions", "location", "rotation_y"}
 
 def detect_format(obj: object, kind: Kind, *, source: str) -> str:
     """The name of the pickle layout of ``obj`` (a key of :data:`PICKLE_FORMATS`), or InputError."""
-    expected = ("a list of per-frame dicts (OpenPCDet kitti_infos_*.pkl, or annos dicts with frame_id)"
-                if kind == "ground_truth" else "a list of per-frame dicts (OpenPCDet result.pkl)")
+    expected = (
+        "a list of per-frame dicts (OpenPCDet kitti_infos_*.pkl, or annos dicts with frame_id)"
+        if kind == "ground_truth"
+        else "a list of per-frame dicts (OpenPCDet result.pkl)"
+    )
     expected += ", or a dict {frame id: annos dict}"
     if isinstance(obj, (list, tuple)):
         for i, entry in enumerate(obj):
             if not isinstance(entry, Mapping):
-                raise InputError(f"{_KIND_WORD[kind]} entry #{i} is {_type_name(entry)}, expected a dict; "
-                                 f"the file should hold {expected}", source=source, frame=f"#{i}")
+                raise InputError(
+                    f"{_KIND_WORD[kind]} entry #{i} is {_type_name(entry)}, expected a dict; "
+                    f"the file should hold {expected}",
+                    source=source,
+                    frame=f"#{i}",
+                )
         if not obj:
             raise InputError(f"the pickle holds an empty {type(obj).__name__}: no frames", source=source)
         first = obj[0]
@@ -347,23 +422,33 @@ def detect_format(obj: object, kind: Kind, *, source: str) -> str:
             return "mmdet3d_results"
         if _INFO_KEYS & first.keys() and "name" not in first:
             if kind == "detections":
-                raise InputError("this is an OpenPCDet infos file (ground-truth labels), not detections; "
-                                 "pass it as the ground truth and the result.pkl as the predictions",
-                                 source=source)
+                raise InputError(
+                    "this is an OpenPCDet infos file (ground-truth labels), not detections; "
+                    "pass it as the ground truth and the result.pkl as the predictions",
+                    source=source,
+                )
             return "openpcdet_infos"
         if "name" in first or "frame_id" in first:
             return "annos_list"
-        raise InputError(f"entry #0 has none of the expected keys: found {describe_format(obj)}; expected "
-                         f"{expected}", source=source, frame="#0")
+        raise InputError(
+            f"entry #0 has none of the expected keys: found {describe_format(obj)}; expected {expected}",
+            source=source,
+            frame="#0",
+        )
     if isinstance(obj, Mapping):
         if "data_list" in obj and "metainfo" in obj:
             if kind == "detections":
-                raise InputError("this is an mmdetection3d 1.x info file (metainfo/data_list: ground-truth "
-                                 "labels), not detections; pass it as the ground truth", source=source)
+                raise InputError(
+                    "this is an mmdetection3d 1.x info file (metainfo/data_list: ground-truth "
+                    "labels), not detections; pass it as the ground truth",
+                    source=source,
+                )
             return "mmdet3d_infos"
         if _ANNOS_KEYS & obj.keys():
-            raise InputError(f"this is a single frame's annos dict ({describe_format(obj)}); expected one "
-                             f"per frame: {expected}", source=source)
+            raise InputError(
+                f"this is a single frame's annos dict ({describe_format(obj)}); expected one per frame: {expected}",
+                source=source,
+            )
         if not obj:
             raise InputError("the pickle holds an empty dict: no frames", source=source)
         return "annos_by_frame"
@@ -378,8 +463,12 @@ def _frame_id(value: object, what: str, source: str, frame: str) -> object:
     if isinstance(value, np.ndarray) and value.ndim == 0:
         value = value[()]
     if not isinstance(value, _ID_TYPES) or isinstance(value, (bool, np.bool_)):
-        raise InputError(f"{what} is {_type_name(value)}, expected a string or an integer", source=source,
-                         frame=frame, field="frame_id")
+        raise InputError(
+            f"{what} is {_type_name(value)}, expected a string or an integer",
+            source=source,
+            frame=frame,
+            field="frame_id",
+        )
     return value
 
 
@@ -389,27 +478,41 @@ def _entry_frame_id(entry: Mapping[str, Any], i: int, source: str) -> object:
         if sub is None:
             continue
         if not isinstance(sub, Mapping):
-            raise InputError(f"infos entry #{i}: '{parent}' is {_type_name(sub)}, expected a dict",
-                             source=source, frame=f"#{i}", field=parent)
+            raise InputError(
+                f"infos entry #{i}: '{parent}' is {_type_name(sub)}, expected a dict",
+                source=source,
+                frame=f"#{i}",
+                field=parent,
+            )
         if sub.get(key) is not None:
             return _frame_id(sub[key], f"infos entry #{i}: {parent}.{key}", source, f"#{i}")
     if entry.get("frame_id") is not None:
         return _frame_id(entry["frame_id"], f"infos entry #{i}: frame_id", source, f"#{i}")
-    raise InputError(f"infos entry #{i} has no frame id (image.image_idx, point_cloud.lidar_idx or frame_id)",
-                     source=source, frame=f"#{i}")
+    raise InputError(
+        f"infos entry #{i} has no frame id (image.image_idx, point_cloud.lidar_idx or frame_id)",
+        source=source,
+        frame=f"#{i}",
+    )
 
 
 def _frames_openpcdet_infos(obj: Any, kind: Kind, source: str) -> Frames:
     for i, info in enumerate(obj):
         fid = _entry_frame_id(info, i, source)
         if "annos" not in info:
-            raise InputError(f"the infos have no labels ('annos' missing in entry #{i}): a test split? "
-                             "Ground truth needs the train/val infos or the label_2 folder", source=source,
-                             frame=str(fid))
+            raise InputError(
+                f"the infos have no labels ('annos' missing in entry #{i}): a test split? "
+                "Ground truth needs the train/val infos or the label_2 folder",
+                source=source,
+                frame=str(fid),
+            )
         annos = info["annos"]
         if not isinstance(annos, Mapping):
-            raise InputError(f"infos entry #{i}: 'annos' is {_type_name(annos)}, expected a dict",
-                             source=source, frame=str(fid), field="annos")
+            raise InputError(
+                f"infos entry #{i}: 'annos' is {_type_name(annos)}, expected a dict",
+                source=source,
+                frame=str(fid),
+                field="annos",
+            )
         yield fid, annos
 
 
@@ -417,8 +520,12 @@ def _frames_annos_list(obj: Any, kind: Kind, source: str) -> Frames:
     for i, entry in enumerate(obj):
         fid = entry.get("frame_id")
         if fid is None:
-            raise InputError(f"{_KIND_WORD[kind]} entry #{i} has no frame_id (frames are matched by id, "
-                             "never by position)", source=source, frame=f"#{i}", field="frame_id")
+            raise InputError(
+                f"{_KIND_WORD[kind]} entry #{i} has no frame_id (frames are matched by id, never by position)",
+                source=source,
+                frame=f"#{i}",
+                field="frame_id",
+            )
         yield _frame_id(fid, f"{_KIND_WORD[kind]} entry #{i}: frame_id", source, f"#{i}"), entry
 
 
@@ -440,33 +547,41 @@ PICKLE_FORMATS: dict[str, Callable[[Any, Kind, str], Frames]] = {
 
 # ------------------------------------------------------------------------------------ mmdetection3d 1.x
 
+
 def _frames_mmdet3d_infos(obj: Any, kind: Kind, source: str) -> Frames:
     meta = obj.get("metainfo")
     data_list = obj.get("data_list")
     if not isinstance(meta, Mapping) or not isinstance(data_list, (list, tuple)):
-        raise InputError("an mmdetection3d 1.x info file needs a 'metainfo' dict and a 'data_list' list",
-                         source=source)
+        raise InputError("an mmdetection3d 1.x info file needs a 'metainfo' dict and a 'data_list' list", source=source)
     if not data_list:
         raise InputError("an mmdetection3d 1.x info file with an empty data_list: no frames", source=source)
     cats = meta.get("categories")
     if not isinstance(cats, Mapping):
-        raise InputError("mmdetection3d 1.x info file without metainfo['categories'] (class name -> label)",
-                         source=source, field="metainfo")
+        raise InputError(
+            "mmdetection3d 1.x info file without metainfo['categories'] (class name -> label)",
+            source=source,
+            field="metainfo",
+        )
     label2cat: dict[int, str] = {}
     for name, label in cats.items():
         try:
             label2cat[int(label)] = str(name)
         except (TypeError, ValueError):
-            raise InputError(f"metainfo['categories'][{name!r}] is {label!r}, expected an integer label",
-                             source=source, field="metainfo") from None
+            raise InputError(
+                f"metainfo['categories'][{name!r}] is {label!r}, expected an integer label",
+                source=source,
+                field="metainfo",
+            ) from None
     label2cat.setdefault(-1, "DontCare")
     for i, entry in enumerate(data_list):
         if not isinstance(entry, Mapping):
-            raise InputError(f"data_list entry #{i} is {_type_name(entry)}, expected a dict", source=source,
-                             frame=f"#{i}")
+            raise InputError(
+                f"data_list entry #{i} is {_type_name(entry)}, expected a dict", source=source, frame=f"#{i}"
+            )
         if entry.get("sample_idx") is None:
-            raise InputError(f"data_list entry #{i} has no sample_idx", source=source, frame=f"#{i}",
-                             field="sample_idx")
+            raise InputError(
+                f"data_list entry #{i} has no sample_idx", source=source, frame=f"#{i}", field="sample_idx"
+            )
         fid = _frame_id(entry["sample_idx"], f"data_list entry #{i}: sample_idx", source, f"#{i}")
         try:
             shown = normalize_frame_id(fid)
@@ -474,16 +589,25 @@ def _frames_mmdet3d_infos(obj: Any, kind: Kind, source: str) -> Frames:
             shown = str(fid)
         instances = entry.get("instances")
         if instances is None:
-            raise InputError(f"data_list entry #{i} has no 'instances' (a test split?)", source=source,
-                             frame=shown, field="instances")
+            raise InputError(
+                f"data_list entry #{i} has no 'instances' (a test split?)",
+                source=source,
+                frame=shown,
+                field="instances",
+            )
         if not isinstance(instances, (list, tuple)):
-            raise InputError(f"'instances' is {_type_name(instances)}, expected a list", source=source,
-                             frame=shown, field="instances")
+            raise InputError(
+                f"'instances' is {_type_name(instances)}, expected a list",
+                source=source,
+                frame=shown,
+                field="instances",
+            )
         yield fid, _mmdet3d_instances(instances, label2cat, source, shown)
 
 
-def _mmdet3d_instances(instances: Sequence[Any], label2cat: Mapping[int, str], source: str,
-                       frame: str) -> dict[str, Any]:
+def _mmdet3d_instances(
+    instances: Sequence[Any], label2cat: Mapping[int, str], source: str, frame: str
+) -> dict[str, Any]:
     n = len(instances)
     names: list[str] = []
     cols: dict[str, list[Any]] = {k: [] for k in ("bbox", "bbox_3d", "truncated", "occluded", "alpha")}
@@ -497,8 +621,12 @@ def _mmdet3d_instances(instances: Sequence[Any], label2cat: Mapping[int, str], s
         try:
             names.append(label2cat[int(label)])
         except (KeyError, TypeError, ValueError):
-            raise InputError(f"instance #{j}: bbox_label {label!r} is not in metainfo['categories']",
-                             source=source, frame=frame, field="bbox_label") from None
+            raise InputError(
+                f"instance #{j}: bbox_label {label!r} is not in metainfo['categories']",
+                source=source,
+                frame=frame,
+                field="bbox_label",
+            ) from None
         for key, col in cols.items():
             col.append(inst[key])
     fields: dict[str, Any] = {"name": np.array(names) if n else np.zeros(0, dtype="<U1")}
@@ -508,8 +636,11 @@ def _mmdet3d_instances(instances: Sequence[Any], label2cat: Mapping[int, str], s
         for key in ("truncated", "occluded", "alpha"):
             fields[key] = np.asarray(cols[key], dtype=np.float64).reshape(n)
     except (TypeError, ValueError) as e:
-        raise InputError(f"instances: bbox must be 4 numbers, bbox_3d 7, truncated/occluded/alpha one ({e})",
-                         source=source, frame=frame) from None
+        raise InputError(
+            f"instances: bbox must be 4 numbers, bbox_3d 7, truncated/occluded/alpha one ({e})",
+            source=source,
+            frame=frame,
+        ) from None
     fields["location"] = box3d[:, 0:3]
     fields["dimensions"] = box3d[:, 3:6]
     fields["rotation_y"] = box3d[:, 6]
@@ -526,15 +657,27 @@ def _frames_mmdet3d_results(obj: Any, kind: Kind, source: str) -> Frames:
             if len(uniq) == 0:
                 if np.size(entry.get("score", ())) == 0:
                     continue  # mmdet3d writes an empty sample_idx for a frame without boxes: nothing to add
-                raise InputError(f"{_KIND_WORD[kind]} entry #{i} has boxes but an empty sample_idx",
-                                 source=source, frame=f"#{i}", field="sample_idx")
+                raise InputError(
+                    f"{_KIND_WORD[kind]} entry #{i} has boxes but an empty sample_idx",
+                    source=source,
+                    frame=f"#{i}",
+                    field="sample_idx",
+                )
             if len(uniq) > 1:
-                raise InputError(f"{_KIND_WORD[kind]} entry #{i}: sample_idx holds several frames "
-                                 f"{uniq[:4].tolist()}", source=source, frame=f"#{i}", field="sample_idx")
+                raise InputError(
+                    f"{_KIND_WORD[kind]} entry #{i}: sample_idx holds several frames {uniq[:4].tolist()}",
+                    source=source,
+                    frame=f"#{i}",
+                    field="sample_idx",
+                )
             raw = uniq[0]
         if raw is None:
-            raise InputError(f"{_KIND_WORD[kind]} entry #{i} has no sample_idx (frames are matched by id, "
-                             "never by position)", source=source, frame=f"#{i}", field="sample_idx")
+            raise InputError(
+                f"{_KIND_WORD[kind]} entry #{i} has no sample_idx (frames are matched by id, never by position)",
+                source=source,
+                frame=f"#{i}",
+                field="sample_idx",
+            )
         yield _frame_id(raw, f"{_KIND_WORD[kind]} entry #{i}: sample_idx", source, f"#{i}"), entry
 
 
@@ -542,13 +685,14 @@ def _check_layout(obj: object, fmt: str, source: str) -> None:
     """A forced format must at least have the right top-level type."""
     want = {"mmdet3d_infos": Mapping, "annos_by_frame": Mapping}.get(fmt, (list, tuple))
     if not isinstance(obj, want):
-        raise InputError(f"format {fmt!r} expects a {'dict' if want is Mapping else 'list'}; found "
-                         f"{describe_format(obj)}", source=source)
+        raise InputError(
+            f"format {fmt!r} expects a {'dict' if want is Mapping else 'list'}; found {describe_format(obj)}",
+            source=source,
+        )
     if want is not Mapping:
         for i, entry in enumerate(obj):
             if not isinstance(entry, Mapping):
-                raise InputError(f"entry #{i} is {_type_name(entry)}, expected a dict", source=source,
-                                 frame=f"#{i}")
+                raise InputError(f"entry #{i} is {_type_name(entry)}, expected a dict", source=source, frame=f"#{i}")
 
 
 PICKLE_FORMATS["mmdet3d_infos"] = _frames_mmdet3d_infos
@@ -610,8 +754,13 @@ def calibs_from_object(obj: object) -> Mapping[str, Any]:
                 if isinstance(entry, Mapping) and "images" in entry:
                     entries[normalize_frame_id(entry["sample_idx"])] = entry
             return _LazyCalibs(entries, _mmdet3d_calib)
-        items = (obj.items() if isinstance(obj, Mapping) else
-                 ((None, e) for e in obj) if isinstance(obj, (list, tuple)) else ())
+        items = (
+            obj.items()
+            if isinstance(obj, Mapping)
+            else ((None, e) for e in obj)
+            if isinstance(obj, (list, tuple))
+            else ()
+        )
         for i, (key, info) in enumerate(items):
             if isinstance(info, Mapping) and "calib" in info:
                 entries[normalize_frame_id(key if key is not None else _entry_frame_id(info, i, ""))] = info
@@ -624,8 +773,7 @@ def calibs_from_object(obj: object) -> Mapping[str, Any]:
 _CHECK_EVERY = 10
 
 
-def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str,
-                   warnings: list[str] | None) -> Frames:
+def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str, warnings: list[str] | None) -> Frames:
     """Detections: LiDAR-only frames converted to camera fields; frames with both checked for agreement."""
     from .calib import disagreeing_boxes, lidar_to_camera
     from .frames import normalize_frame_id
@@ -662,17 +810,23 @@ def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str
             continue
         arr = np.asarray(lidar)
         if arr.dtype.kind not in "iuf" and arr.size:
-            raise InputError(f"expected numbers, got dtype {arr.dtype}", source=source, frame=str(fid),
-                             field="boxes_lidar")
+            raise InputError(
+                f"expected numbers, got dtype {arr.dtype}", source=source, frame=str(fid), field="boxes_lidar"
+            )
         if arr.size == 0:
             arr = np.zeros((0, 7))
         if arr.ndim != 2 or arr.shape[1] != 7:
-            raise InputError(f"expected shape (N, 7), got {arr.shape}", source=source, frame=str(fid),
-                             field="boxes_lidar")
+            raise InputError(
+                f"expected shape (N, 7), got {arr.shape}", source=source, frame=str(fid), field="boxes_lidar"
+            )
         if calib is None:
-            raise InputError("LiDAR-only boxes (boxes_lidar without location/dimensions/rotation_y) need the "
-                             "frame's calibration: pass OpenPCDet (or mmdetection3d) infos as the ground truth",
-                             source=source, frame=str(fid), field="boxes_lidar")
+            raise InputError(
+                "LiDAR-only boxes (boxes_lidar without location/dimensions/rotation_y) need the "
+                "frame's calibration: pass OpenPCDet (or mmdetection3d) infos as the ground truth",
+                source=source,
+                frame=str(fid),
+                field="boxes_lidar",
+            )
         out = dict(fields)
         conv = lidar_to_camera(arr, calib)
         out.update(conv)
@@ -682,15 +836,20 @@ def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str
     if warnings is None or not both:
         return
     counts = [len(b[2]) for b in both]
-    flags = disagreeing_boxes(np.concatenate([b[0] for b in both]), np.concatenate([b[1] for b in both]),
-                              np.concatenate([b[2] for b in both]),
-                              np.repeat(np.stack([b[3] for b in both]), counts, axis=0))
+    flags = disagreeing_boxes(
+        np.concatenate([b[0] for b in both]),
+        np.concatenate([b[1] for b in both]),
+        np.concatenate([b[2] for b in both]),
+        np.repeat(np.stack([b[3] for b in both]), counts, axis=0),
+    )
     checked, bad = len(flags), int(np.count_nonzero(flags))
     bad_frames = int(np.count_nonzero(np.add.reduceat(flags, np.cumsum([0, *counts[:-1]])))) if checked else 0
     if bad > 0.01 * checked:
-        warnings.append(f"{source}: camera fields and boxes_lidar disagree (location > 0.1 m or yaw > 0.1 rad) "
-                        f"for {bad} of {checked} boxes checked (every {_CHECK_EVERY}th frame) in {bad_frames} "
-                        "frames; the camera fields are evaluated")
+        warnings.append(
+            f"{source}: camera fields and boxes_lidar disagree (location > 0.1 m or yaw > 0.1 rad) "
+            f"for {bad} of {checked} boxes checked (every {_CHECK_EVERY}th frame) in {bad_frames} "
+            "frames; the camera fields are evaluated"
+        )
 
 
 # ---------------------------------------------------------------------------------------- archives
@@ -747,6 +906,7 @@ def _load_txt_archive(p: Path, kind: Kind, source: str) -> Annotations:
 
 # ------------------------------------------------------------------------------ pairs and split files
 
+
 def read_split(path: PathLike) -> list[str]:
     """Frame ids of a KITTI ``ImageSets/<split>.txt`` (one a line; blank lines skipped), normalised."""
     from .frames import normalize_frame_id
@@ -790,8 +950,12 @@ def _is_pickle_file(p: Path, fmt: str | None) -> bool:
     return fmt is not None or input_kind(p) == "pickle"
 
 
-def load_ground_truth_and_calibs(gt_path: PathLike, *, fmt: str | None = None, max_bytes: int | None = None,
-                                 ) -> tuple[Annotations, Mapping[str, Any]]:
+def load_ground_truth_and_calibs(
+    gt_path: PathLike,
+    *,
+    fmt: str | None = None,
+    max_bytes: int | None = None,
+) -> tuple[Annotations, Mapping[str, Any]]:
     """Ground truth and, from an infos pickle, its calibration per frame (read once; empty for txt)."""
     _check_fmt(fmt)
     gp = Path(gt_path)
@@ -802,10 +966,17 @@ def load_ground_truth_and_calibs(gt_path: PathLike, *, fmt: str | None = None, m
     return load_ground_truth(gt_path, fmt=fmt, max_bytes=max_bytes), {}
 
 
-def load_pair(gt_path: PathLike, pred_path: PathLike, *, gt_format: str | None = None,
-              pred_format: str | None = None, split: PathLike | None = None,
-              warnings: list[str] | None = None, max_bytes: int | None = None,
-              keep_lidar: bool = False) -> tuple[Annotations, Annotations]:
+def load_pair(
+    gt_path: PathLike,
+    pred_path: PathLike,
+    *,
+    gt_format: str | None = None,
+    pred_format: str | None = None,
+    split: PathLike | None = None,
+    warnings: list[str] | None = None,
+    max_bytes: int | None = None,
+    keep_lidar: bool = False,
+) -> tuple[Annotations, Annotations]:
     """Ground truth and predictions, the pickle of ground truth read once (its calibration converts
     LiDAR-only predictions); with ``split``, only the listed frames (dropped prediction frames are
     reported in ``warnings``); ``keep_lidar``: see :func:`load_detections`."""
@@ -818,12 +989,20 @@ def load_pair(gt_path: PathLike, pred_path: PathLike, *, gt_format: str | None =
         gt = annotations_from_object(gt_obj, "ground_truth", source=str(gt_path), fmt=gt_format)
         calibs = calibs_from_object(gt_obj)
         del gt_obj
-        dt = annotations_from_object(next(objects), "detections", source=str(pred_path), fmt=pred_format,
-                                     calibs=calibs, warnings=warnings, keep_lidar=keep_lidar)
+        dt = annotations_from_object(
+            next(objects),
+            "detections",
+            source=str(pred_path),
+            fmt=pred_format,
+            calibs=calibs,
+            warnings=warnings,
+            keep_lidar=keep_lidar,
+        )
     else:
         gt, calibs = load_ground_truth_and_calibs(gt_path, fmt=gt_format, max_bytes=max_bytes)
-        dt = load_detections(pred_path, fmt=pred_format, calibs=calibs, warnings=warnings, max_bytes=max_bytes,
-                             keep_lidar=keep_lidar)
+        dt = load_detections(
+            pred_path, fmt=pred_format, calibs=calibs, warnings=warnings, max_bytes=max_bytes, keep_lidar=keep_lidar
+        )
     if split is not None:
         gt, dt, dropped = apply_split(gt, dt, read_split(split))
         if dropped and warnings is not None:

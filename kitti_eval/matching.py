@@ -35,8 +35,20 @@ from numba import njit
 
 from ._jit import kernel_input
 
-__all__ = ["PRCounts", "MatchJob", "FrameEvents", "FrameLabels", "pr_counts", "pr_counts_many", "frame_events_many",
-           "label_frame", "score_thresholds", "default_workers", "DET_LABELS", "GT_LABELS"]
+__all__ = [
+    "PRCounts",
+    "MatchJob",
+    "FrameEvents",
+    "FrameLabels",
+    "pr_counts",
+    "pr_counts_many",
+    "frame_events_many",
+    "label_frame",
+    "score_thresholds",
+    "default_workers",
+    "DET_LABELS",
+    "GT_LABELS",
+]
 
 _NO_DETECTION = -10000000.0
 
@@ -98,8 +110,14 @@ def _rank_descending(values: np.ndarray, out: np.ndarray) -> None:
 
 
 @njit(cache=True, nogil=True)
-def _best_overlaps(pair_offsets: np.ndarray, ov: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray,
-                   groups: np.ndarray, best: np.ndarray) -> None:
+def _best_overlaps(
+    pair_offsets: np.ndarray,
+    ov: np.ndarray,
+    gt_offsets: np.ndarray,
+    dt_offsets: np.ndarray,
+    groups: np.ndarray,
+    best: np.ndarray,
+) -> None:
     """Fill ``best`` (G, N), zeros on entry: each detection's largest overlap with each group's rows."""
     n_frames = gt_offsets.shape[0] - 1
     n_groups = groups.shape[0]
@@ -122,11 +140,11 @@ class Frames(NamedTuple):
     """The frames every matching of one evaluation shares (CSR offsets; see :func:`pr_counts`)."""
 
     pair_offsets: np.ndarray  # (F + 1,) int64: start of each frame's (detections x ground truth) block
-    gt_offsets: np.ndarray    # (F + 1,) int64
-    dt_offsets: np.ndarray    # (F + 1,) int64
-    score: np.ndarray         # (N,) float64 detection scores
-    gt_alpha: np.ndarray      # (M,) float64
-    dt_alpha: np.ndarray      # (N,) float64
+    gt_offsets: np.ndarray  # (F + 1,) int64
+    dt_offsets: np.ndarray  # (F + 1,) int64
+    score: np.ndarray  # (N,) float64 detection scores
+    gt_alpha: np.ndarray  # (M,) float64
+    dt_alpha: np.ndarray  # (N,) float64
 
 
 class Candidates(NamedTuple):
@@ -157,8 +175,16 @@ class Candidates(NamedTuple):
 
 
 @njit(cache=True, nogil=True)
-def _candidates(fr: Frames, ov: np.ndarray, ignored_gt: np.ndarray, ignored_det: np.ndarray, dontcare: np.ndarray,
-                best_gt: np.ndarray, best_dc: np.ndarray, min_overlap: float) -> Candidates:
+def _candidates(
+    fr: Frames,
+    ov: np.ndarray,
+    ignored_gt: np.ndarray,
+    ignored_det: np.ndarray,
+    dontcare: np.ndarray,
+    best_gt: np.ndarray,
+    best_dc: np.ndarray,
+    min_overlap: float,
+) -> Candidates:
     """Compact each frame to the rows that can play a part in one matching (see :class:`Candidates`).
 
     ``ov``: the (P,) overlaps of the metric; ``ignored_gt``/``ignored_det``: the job's ignore codes;
@@ -248,8 +274,21 @@ def _candidates(fr: Frames, ov: np.ndarray, ignored_gt: np.ndarray, ignored_det:
                 for c in range(width):
                     sub[k] = ov[base + j * n_gt + cols[c]]
                     k += 1
-    return Candidates(g_code, g_alpha, g_ptr, d_score, d_code, d_alpha, d_ptr, c_cnt, sub, sub_ptr, valid,
-                      free_fp[:n_free], free_frame[:n_free])
+    return Candidates(
+        g_code,
+        g_alpha,
+        g_ptr,
+        d_score,
+        d_code,
+        d_alpha,
+        d_ptr,
+        c_cnt,
+        sub,
+        sub_ptr,
+        valid,
+        free_fp[:n_free],
+        free_frame[:n_free],
+    )
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -287,8 +326,9 @@ def _frame_pass1(c: Candidates, f: int, min_overlap: float, tp_scores: np.ndarra
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _frame_pass2(c: Candidates, f: int, min_overlap: float, thresh: float, compute_aos: bool,
-                 assigned: np.ndarray, below: np.ndarray) -> tuple[int, int, int, float]:
+def _frame_pass2(
+    c: Candidates, f: int, min_overlap: float, thresh: float, compute_aos: bool, assigned: np.ndarray, below: np.ndarray
+) -> tuple[int, int, int, float]:
     """Pass 2 on frame ``f`` at score threshold ``thresh``: detections below it take no part; each
     ground-truth box takes the remaining detection of highest overlap (a too-small, ignored detection only
     if nothing else qualifies). Returns (tp, fp, fn, summed orientation similarity): unmatched valid ground
@@ -332,8 +372,10 @@ def _frame_pass2(c: Candidates, f: int, min_overlap: float, thresh: float, compu
         fp += int(not (assigned[a] or below[a] or c.d_code[d0 + a] == IGNORED))
     for k in range(c.c_cnt[f]):  # false positives that a DontCare region covers do not count
         for a in range(nd):
-            if not (assigned[a] or below[a] or c.d_code[d0 + a] == IGNORED) and \
-                    c.sub[o0 + a * width + n_g + k] > min_overlap:
+            if (
+                not (assigned[a] or below[a] or c.d_code[d0 + a] == IGNORED)
+                and c.sub[o0 + a * width + n_g + k] > min_overlap
+            ):
                 assigned[a] = True
                 fp -= 1
     return tp, fp, fn, similarity
@@ -357,7 +399,7 @@ def _pass1(c: Candidates, min_overlap: float) -> tuple[np.ndarray, np.ndarray]:
     n_tp = 0
     for f in range(c.valid.shape[0]):
         k = _frame_pass1(c, f, min_overlap, tp_scores[n_tp:], assigned)
-        tp_frames[n_tp:n_tp + k] = f
+        tp_frames[n_tp : n_tp + k] = f
         n_tp += k
     return tp_scores[:n_tp], tp_frames[:n_tp]
 
@@ -378,7 +420,7 @@ def _pass2(c: Candidates, thresholds: np.ndarray, min_overlap: float, compute_ao
     for f in range(c.valid.shape[0]):
         delta[0, 2] += c.valid[f]  # above every detection's score, every valid box is missed
         d0, m = c.d_ptr[f], c.d_ptr[f + 1] - c.d_ptr[f]
-        _rank_descending(c.d_score[d0:d0 + m], ranked)
+        _rank_descending(c.d_score[d0 : d0 + m], ranked)
         prev_tp, prev_fp, prev_fn, prev_sim = 0.0, 0.0, float(c.valid[f]), 0.0
         a = 0
         while a < m:
@@ -422,7 +464,7 @@ def _events(c: Candidates, min_overlap: float, compute_aos: bool):  # noqa: ANN2
     n_ev = 0
     for f in range(c.valid.shape[0]):
         d0, m = c.d_ptr[f], c.d_ptr[f + 1] - c.d_ptr[f]
-        _rank_descending(c.d_score[d0:d0 + m], ranked)
+        _rank_descending(c.d_score[d0 : d0 + m], ranked)
         prev_tp, prev_fp, prev_fn, prev_sim = 0.0, 0.0, float(c.valid[f]), 0.0
         a = 0
         while a < m:
@@ -454,8 +496,15 @@ GT_MATCHED, GT_MISSED, GT_IGNORED, GT_ABSORBED, GT_OTHER_CLASS = range(len(GT_LA
 
 
 @njit(cache=True, nogil=True)
-def _label_frame(ov: np.ndarray, ig: np.ndarray, idet: np.ndarray, dc: np.ndarray, score: np.ndarray,
-                 min_overlap: float, thresh: float):  # noqa: ANN202 - five arrays, see label_frame
+def _label_frame(
+    ov: np.ndarray,
+    ig: np.ndarray,
+    idet: np.ndarray,
+    dc: np.ndarray,
+    score: np.ndarray,
+    min_overlap: float,
+    thresh: float,
+):  # noqa: ANN202 - five arrays, see label_frame
     """Pass 2 of the matching on one frame at one score threshold, keeping who matched whom.
 
     The same steps as :func:`_frame_pass2`, on the frame's whole (detections x
@@ -558,9 +607,15 @@ class FrameLabels:
         return int(np.count_nonzero(self.gt_label == GT_MISSED))
 
 
-def label_frame(overlaps: npt.ArrayLike, ignored_gt: npt.ArrayLike, ignored_det: npt.ArrayLike,
-                dontcare: npt.ArrayLike | None, score: npt.ArrayLike, min_overlap: float,
-                score_threshold: float = -np.inf) -> FrameLabels:
+def label_frame(
+    overlaps: npt.ArrayLike,
+    ignored_gt: npt.ArrayLike,
+    ignored_det: npt.ArrayLike,
+    dontcare: npt.ArrayLike | None,
+    score: npt.ArrayLike,
+    min_overlap: float,
+    score_threshold: float = -np.inf,
+) -> FrameLabels:
     """Label every box of one frame as the devkit's second pass sees it at ``score_threshold``.
 
     Parameters
@@ -582,11 +637,12 @@ def label_frame(overlaps: npt.ArrayLike, ignored_gt: npt.ArrayLike, ignored_det:
     n_gt = ig.shape[0] if ig.ndim == 1 else -1
     dc = np.zeros(max(n_gt, 0), dtype=np.bool_) if dontcare is None else kernel_input(dontcare, np.bool_)
     if ig.ndim != 1 or idet.ndim != 1 or ov.shape != (idet.shape[0], n_gt):
-        raise ValueError(f"Expected `overlaps` (N, M) with `ignored_det` (N,) and `ignored_gt` (M,), got "
-                         f"{ov.shape}, {idet.shape} and {ig.shape}")
+        raise ValueError(
+            f"Expected `overlaps` (N, M) with `ignored_det` (N,) and `ignored_gt` (M,), got "
+            f"{ov.shape}, {idet.shape} and {ig.shape}"
+        )
     if dc.shape != (n_gt,) or sc.shape != idet.shape:
-        raise ValueError(f"Expected `dontcare` ({n_gt},) and `score` ({idet.shape[0]},), got {dc.shape} and "
-                         f"{sc.shape}")
+        raise ValueError(f"Expected `dontcare` ({n_gt},) and `score` ({idet.shape[0]},), got {dc.shape} and {sc.shape}")
     return FrameLabels(*_label_frame(ov, ig, idet, dc, sc, float(min_overlap), float(score_threshold)))
 
 
@@ -630,12 +686,21 @@ def score_thresholds(scores: npt.ArrayLike, num_gt: int, n_sample_pts: int = 41)
     return _score_thresholds(-np.sort(-s), int(num_gt), int(n_sample_pts))
 
 
-def pr_counts(pair_offsets: npt.NDArray[np.int64], overlaps: npt.NDArray[np.float64],
-              gt_offsets: npt.NDArray[np.int64], dt_offsets: npt.NDArray[np.int64],
-              ignored_gt: npt.NDArray[np.int8], ignored_det: npt.NDArray[np.int8],
-              dontcare: npt.NDArray[np.bool_] | None, score: npt.NDArray[np.float64],
-              gt_alpha: npt.NDArray[np.float64], dt_alpha: npt.NDArray[np.float64], min_overlap: float,
-              compute_aos: bool, n_sample_pts: int = 41) -> PRCounts:
+def pr_counts(
+    pair_offsets: npt.NDArray[np.int64],
+    overlaps: npt.NDArray[np.float64],
+    gt_offsets: npt.NDArray[np.int64],
+    dt_offsets: npt.NDArray[np.int64],
+    ignored_gt: npt.NDArray[np.int8],
+    ignored_det: npt.NDArray[np.int8],
+    dontcare: npt.NDArray[np.bool_] | None,
+    score: npt.NDArray[np.float64],
+    gt_alpha: npt.NDArray[np.float64],
+    dt_alpha: npt.NDArray[np.float64],
+    min_overlap: float,
+    compute_aos: bool,
+    n_sample_pts: int = 41,
+) -> PRCounts:
     """Match every frame and count TP/FP/FN (and orientation similarity) at each score threshold.
 
     Parameters
@@ -653,9 +718,20 @@ def pr_counts(pair_offsets: npt.NDArray[np.int64], overlaps: npt.NDArray[np.floa
     n_gt = int(np.asarray(gt_offsets)[-1])
     use_dc = dontcare is not None
     dc = dontcare if dontcare is not None else np.zeros(n_gt, dtype=np.bool_)
-    (counts,) = pr_counts_many(pair_offsets, [overlaps], gt_offsets, dt_offsets, np.asarray(ignored_gt)[None],
-                               np.asarray(ignored_det)[None], dc, score, gt_alpha, dt_alpha,
-                               [MatchJob(0, 0, float(min_overlap), bool(compute_aos), use_dc)], n_sample_pts)
+    (counts,) = pr_counts_many(
+        pair_offsets,
+        [overlaps],
+        gt_offsets,
+        dt_offsets,
+        np.asarray(ignored_gt)[None],
+        np.asarray(ignored_det)[None],
+        dc,
+        score,
+        gt_alpha,
+        dt_alpha,
+        [MatchJob(0, 0, float(min_overlap), bool(compute_aos), use_dc)],
+        n_sample_pts,
+    )
     return counts
 
 
@@ -679,9 +755,9 @@ class _Prepared:
     ig: np.ndarray
     idet: np.ndarray
     dc: np.ndarray
-    best: np.ndarray           # (3, G, N): per metric, per group (DontCare last)
+    best: np.ndarray  # (3, G, N): per metric, per group (DontCare last)
     job_group: list[int]
-    hands: list[list[int]]     # job indices per thread, largest jobs dealt first
+    hands: list[list[int]]  # job indices per thread, largest jobs dealt first
 
     def candidates(self, job: MatchJob, k: int) -> Candidates:
         """Job ``k``'s rows that can play a part (see :class:`Candidates`)."""
@@ -689,8 +765,16 @@ class _Prepared:
             dc, dc_best = self.dc, self.best[job.metric, -1]
         else:
             dc, dc_best = np.zeros_like(self.dc), np.zeros(self.best.shape[2])
-        return _candidates(self.frames, self.ov3[job.metric], self.ig[job.codes], self.idet[job.codes], dc,
-                           self.best[job.metric, self.job_group[k]], dc_best, float(job.min_overlap))
+        return _candidates(
+            self.frames,
+            self.ov3[job.metric],
+            self.ig[job.codes],
+            self.idet[job.codes],
+            dc,
+            self.best[job.metric, self.job_group[k]],
+            dc_best,
+            float(job.min_overlap),
+        )
 
     def pool_map(self, fn, items):  # noqa: ANN001, ANN201 - a thread map over the prepared hands
         if len(self.hands) == 1 or len(items) <= 1:
@@ -699,10 +783,20 @@ class _Prepared:
             return list(pool.map(fn, items))
 
 
-def _prepare(pair_offsets: npt.ArrayLike, overlaps: Sequence[npt.ArrayLike], gt_offsets: npt.ArrayLike,
-             dt_offsets: npt.ArrayLike, ignored_gt: npt.ArrayLike, ignored_det: npt.ArrayLike,
-             dontcare: npt.ArrayLike, score: npt.ArrayLike, gt_alpha: npt.ArrayLike, dt_alpha: npt.ArrayLike,
-             jobs: Sequence[MatchJob], workers: int | None) -> _Prepared:
+def _prepare(
+    pair_offsets: npt.ArrayLike,
+    overlaps: Sequence[npt.ArrayLike],
+    gt_offsets: npt.ArrayLike,
+    dt_offsets: npt.ArrayLike,
+    ignored_gt: npt.ArrayLike,
+    ignored_det: npt.ArrayLike,
+    dontcare: npt.ArrayLike,
+    score: npt.ArrayLike,
+    gt_alpha: npt.ArrayLike,
+    dt_alpha: npt.ArrayLike,
+    jobs: Sequence[MatchJob],
+    workers: int | None,
+) -> _Prepared:
     pair_offsets = kernel_input(pair_offsets, np.int64)
     gt_offsets = kernel_input(gt_offsets, np.int64)
     dt_offsets = kernel_input(dt_offsets, np.int64)
@@ -715,8 +809,9 @@ def _prepare(pair_offsets: npt.ArrayLike, overlaps: Sequence[npt.ArrayLike], gt_
     ig = kernel_input(ignored_gt, np.int8)
     idet = kernel_input(ignored_det, np.int8)
     if ig.ndim != 2 or ig.shape[1] != n_gt or idet.shape != (ig.shape[0], n_dt):
-        raise ValueError(f"Expected `ignored_gt` (K, {n_gt}) and `ignored_det` (K, {n_dt}), "
-                         f"got {ig.shape} and {idet.shape}")
+        raise ValueError(
+            f"Expected `ignored_gt` (K, {n_gt}) and `ignored_det` (K, {n_dt}), got {ig.shape} and {idet.shape}"
+        )
     dc = kernel_input(dontcare, np.bool_)
     gt_alpha = kernel_input(gt_alpha, np.float64)
     score = kernel_input(score, np.float64)
@@ -737,8 +832,7 @@ def _prepare(pair_offsets: npt.ArrayLike, overlaps: Sequence[npt.ArrayLike], gt_
         mask = ig[row] != -1
         group_of_row[row] = masks.setdefault(mask.tobytes(), (len(masks), mask))[0]
     job_group = [group_of_row[j.codes] for j in jobs]
-    groups = (np.stack([m for _, m in masks.values()] + [dc]) if n_gt
-              else np.zeros((len(masks) + 1, 0), dtype=np.bool_))
+    groups = np.stack([m for _, m in masks.values()] + [dc]) if n_gt else np.zeros((len(masks) + 1, 0), dtype=np.bool_)
     workers = default_workers() if workers is None else max(1, int(workers))
     metrics_used = sorted({j.metric for j in jobs})
     best = np.zeros((3, groups.shape[0], n_dt if metrics_used else 0), dtype=np.float64)
@@ -758,13 +852,22 @@ def _prepare(pair_offsets: npt.ArrayLike, overlaps: Sequence[npt.ArrayLike], gt_
     return prep
 
 
-def pr_counts_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.NDArray[np.float64]],
-                   gt_offsets: npt.NDArray[np.int64], dt_offsets: npt.NDArray[np.int64],
-                   ignored_gt: npt.NDArray[np.int8], ignored_det: npt.NDArray[np.int8],
-                   dontcare: npt.NDArray[np.bool_], score: npt.NDArray[np.float64],
-                   gt_alpha: npt.NDArray[np.float64], dt_alpha: npt.NDArray[np.float64],
-                   jobs: Sequence[MatchJob], n_sample_pts: int = 41, *, workers: int | None = None,
-                   ) -> list[PRCounts]:
+def pr_counts_many(
+    pair_offsets: npt.NDArray[np.int64],
+    overlaps: Sequence[npt.NDArray[np.float64]],
+    gt_offsets: npt.NDArray[np.int64],
+    dt_offsets: npt.NDArray[np.int64],
+    ignored_gt: npt.NDArray[np.int8],
+    ignored_det: npt.NDArray[np.int8],
+    dontcare: npt.NDArray[np.bool_],
+    score: npt.NDArray[np.float64],
+    gt_alpha: npt.NDArray[np.float64],
+    dt_alpha: npt.NDArray[np.float64],
+    jobs: Sequence[MatchJob],
+    n_sample_pts: int = 41,
+    *,
+    workers: int | None = None,
+) -> list[PRCounts]:
     """Run many independent matchings over the same frames, in parallel across jobs.
 
     Parameters
@@ -776,8 +879,20 @@ def pr_counts_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.N
     jobs : what to match; see :class:`MatchJob`
     workers : threads to spread the jobs over (default :func:`default_workers`)
     """
-    p = _prepare(pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score,
-                 gt_alpha, dt_alpha, jobs, workers)
+    p = _prepare(
+        pair_offsets,
+        overlaps,
+        gt_offsets,
+        dt_offsets,
+        ignored_gt,
+        ignored_det,
+        dontcare,
+        score,
+        gt_alpha,
+        dt_alpha,
+        jobs,
+        workers,
+    )
 
     def run(hand: list[int]) -> list[PRCounts]:
         return [_count(p.candidates(jobs[k], k), jobs[k], n_sample_pts) for k in hand]
@@ -796,10 +911,15 @@ def _count(c: Candidates, job: MatchJob, n_sample_pts: int) -> PRCounts:
     thresholds = score_thresholds(tp_scores, n_valid, n_sample_pts)
     if len(thresholds) > n_sample_pts:
         raise RuntimeError(f"{len(thresholds)} score thresholds for {n_sample_pts} recall samples")
-    pr = _pass2(c, thresholds, float(job.min_overlap), bool(job.compute_aos)) if len(thresholds) else \
-        np.zeros((0, 4))
-    return PRCounts(thresholds=thresholds, tp=pr[:, 0].copy(), fp=pr[:, 1].copy(), fn=pr[:, 2].copy(),
-                    similarity=pr[:, 3].copy(), num_valid_gt=n_valid)
+    pr = _pass2(c, thresholds, float(job.min_overlap), bool(job.compute_aos)) if len(thresholds) else np.zeros((0, 4))
+    return PRCounts(
+        thresholds=thresholds,
+        tp=pr[:, 0].copy(),
+        fp=pr[:, 1].copy(),
+        fn=pr[:, 2].copy(),
+        similarity=pr[:, 3].copy(),
+        num_valid_gt=n_valid,
+    )
 
 
 @dataclass(frozen=True)
@@ -821,15 +941,36 @@ class FrameEvents:
     compute_aos: bool
 
 
-def frame_events_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[npt.NDArray[np.float64]],
-                      gt_offsets: npt.NDArray[np.int64], dt_offsets: npt.NDArray[np.int64],
-                      ignored_gt: npt.NDArray[np.int8], ignored_det: npt.NDArray[np.int8],
-                      dontcare: npt.NDArray[np.bool_], score: npt.NDArray[np.float64],
-                      gt_alpha: npt.NDArray[np.float64], dt_alpha: npt.NDArray[np.float64],
-                      jobs: Sequence[MatchJob], *, workers: int | None = None) -> list[FrameEvents]:
+def frame_events_many(
+    pair_offsets: npt.NDArray[np.int64],
+    overlaps: Sequence[npt.NDArray[np.float64]],
+    gt_offsets: npt.NDArray[np.int64],
+    dt_offsets: npt.NDArray[np.int64],
+    ignored_gt: npt.NDArray[np.int8],
+    ignored_det: npt.NDArray[np.int8],
+    dontcare: npt.NDArray[np.bool_],
+    score: npt.NDArray[np.float64],
+    gt_alpha: npt.NDArray[np.float64],
+    dt_alpha: npt.NDArray[np.float64],
+    jobs: Sequence[MatchJob],
+    *,
+    workers: int | None = None,
+) -> list[FrameEvents]:
     """Per-frame step functions for the same jobs as :func:`pr_counts_many` (arguments alike)."""
-    p = _prepare(pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score,
-                 gt_alpha, dt_alpha, jobs, workers)
+    p = _prepare(
+        pair_offsets,
+        overlaps,
+        gt_offsets,
+        dt_offsets,
+        ignored_gt,
+        ignored_det,
+        dontcare,
+        score,
+        gt_alpha,
+        dt_alpha,
+        jobs,
+        workers,
+    )
 
     def run(k: int) -> FrameEvents:
         job = jobs[k]
@@ -838,8 +979,9 @@ def frame_events_many(pair_offsets: npt.NDArray[np.int64], overlaps: Sequence[np
         ev_s, ev_f, ev_d = _events(c, float(job.min_overlap), bool(job.compute_aos))
         order_tp = np.argsort(-tp_s, kind="stable")
         order_ev = np.argsort(-ev_s, kind="stable")
-        return FrameEvents(c.valid, tp_s[order_tp], tp_f[order_tp], ev_s[order_ev], ev_f[order_ev], ev_d[order_ev],
-                           job.compute_aos)
+        return FrameEvents(
+            c.valid, tp_s[order_tp], tp_f[order_tp], ev_s[order_ev], ev_f[order_ev], ev_d[order_ev], job.compute_aos
+        )
 
     order = [k for hand in p.hands for k in hand] if jobs else []
     out: list[FrameEvents | None] = [None] * len(jobs)

@@ -54,8 +54,13 @@ def curve_from_counts(counts: PRCounts, n_sample_pts: int = N_SAMPLE_PTS) -> Cur
             recall[:t] = counts.tp / (counts.tp + counts.fn)
             precision[:t] = counts.tp / (counts.tp + counts.fp)
             orientation[:t] = counts.similarity / (counts.tp + counts.fp)
-    return Curve(precision=envelope(precision), recall=envelope(recall), orientation=envelope(orientation),
-                 thresholds=counts.thresholds.copy(), num_valid_gt=counts.num_valid_gt)
+    return Curve(
+        precision=envelope(precision),
+        recall=envelope(recall),
+        orientation=envelope(orientation),
+        thresholds=counts.thresholds.copy(),
+        num_valid_gt=counts.num_valid_gt,
+    )
 
 
 def average_precision(values: Sequence[float] | npt.NDArray[np.float64], recall: str) -> float:

@@ -68,13 +68,27 @@ def plot_pr_curves(result: EvalResult, out_dir: str | Path, *, oset: str = "stri
                     ap = result.ap[oset]["R40"][cls][metric][label]
                     ax.plot(_RECALL, values, label=f"{label} (AP R40 {ap:.2f})")
             iou = result.overlaps[cls][oset]["bbox" if metric == "aos" else metric]
-            written.append(_save(plt, fig, ax, out / f"{cls}_{metric}_{oset}.png", f"{cls} {metric} (IoU {iou:.2f})",
-                                 "orientation similarity" if metric == "aos" else "precision"))
+            written.append(
+                _save(
+                    plt,
+                    fig,
+                    ax,
+                    out / f"{cls}_{metric}_{oset}.png",
+                    f"{cls} {metric} (IoU {iou:.2f})",
+                    "orientation similarity" if metric == "aos" else "precision",
+                )
+            )
     return written
 
 
-def plot_overlays(named: Sequence[tuple[str, EvalResult]], out_dir: str | Path, *, metric: str = "3d",
-                  difficulty: str = "moderate", oset: str = "strict") -> list[Path]:
+def plot_overlays(
+    named: Sequence[tuple[str, EvalResult]],
+    out_dir: str | Path,
+    *,
+    metric: str = "3d",
+    difficulty: str = "moderate",
+    oset: str = "strict",
+) -> list[Path]:
     """One PNG per class overlaying the curves of several results (e.g. checkpoints or models)."""
     plt = _pyplot()
     out = Path(out_dir)
@@ -92,6 +106,14 @@ def plot_overlays(named: Sequence[tuple[str, EvalResult]], out_dir: str | Path, 
         if not drawn:
             plt.close(fig)
             continue
-        written.append(_save(plt, fig, ax, out / f"{cls}_{metric}_{difficulty}_overlay.png",
-                             f"{cls} {metric} {difficulty}: {len(named)} results", "precision"))
+        written.append(
+            _save(
+                plt,
+                fig,
+                ax,
+                out / f"{cls}_{metric}_{difficulty}_overlay.png",
+                f"{cls} {metric} {difficulty}: {len(named)} results",
+                "precision",
+            )
+        )
     return written

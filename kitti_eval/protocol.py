@@ -25,22 +25,48 @@ import numpy as np
 from .errors import ConfigError
 
 __all__ = [
-    "Metric", "Difficulty", "DifficultyLimits", "Protocol", "EvalConfig",
-    "OVERLAP_METRICS", "ALL_METRICS", "THRESHOLD_SETS", "RECALL_MODES", "DEFAULT_CLASSES", "KNOWN_CLASSES",
-    "CLASS_OVERLAPS", "NEIGHBOURS", "DONTCARE", "N_SAMPLE_PTS", "RECALL_SAMPLE_INDICES", "INVALID_ALPHA",
-    "KITTI_DIFFICULTY", "OFFICIAL", "OPENPCDET", "PROTOCOLS", "get_protocol", "parse_iou_override",
-    "overlaps_from_overrides", "DistanceRange", "parse_ranges", "COCO_IOU_RANGES", "COCO_STEPS",
-    "coco_thresholds", "load_protocol_file", "NO_DIFFICULTY", "config_from_options",
+    "Metric",
+    "Difficulty",
+    "DifficultyLimits",
+    "Protocol",
+    "EvalConfig",
+    "OVERLAP_METRICS",
+    "ALL_METRICS",
+    "THRESHOLD_SETS",
+    "RECALL_MODES",
+    "DEFAULT_CLASSES",
+    "KNOWN_CLASSES",
+    "CLASS_OVERLAPS",
+    "NEIGHBOURS",
+    "DONTCARE",
+    "N_SAMPLE_PTS",
+    "RECALL_SAMPLE_INDICES",
+    "INVALID_ALPHA",
+    "KITTI_DIFFICULTY",
+    "OFFICIAL",
+    "OPENPCDET",
+    "PROTOCOLS",
+    "get_protocol",
+    "parse_iou_override",
+    "overlaps_from_overrides",
+    "DistanceRange",
+    "parse_ranges",
+    "COCO_IOU_RANGES",
+    "COCO_STEPS",
+    "coco_thresholds",
+    "load_protocol_file",
+    "NO_DIFFICULTY",
+    "config_from_options",
 ]
 
 
 class Metric(str, Enum):
     """What a detection is scored on."""
 
-    BBOX = "bbox"      # 2D image box IoU
-    BEV = "bev"        # bird's-eye-view rotated-rectangle IoU in the camera (x, z) plane
-    THREE_D = "3d"     # 3D IoU: BEV intersection x overlap of [y - h, y]
-    AOS = "aos"        # average orientation similarity, on the 2D matching
+    BBOX = "bbox"  # 2D image box IoU
+    BEV = "bev"  # bird's-eye-view rotated-rectangle IoU in the camera (x, z) plane
+    THREE_D = "3d"  # 3D IoU: BEV intersection x overlap of [y - h, y]
+    AOS = "aos"  # average orientation similarity, on the 2D matching
 
     def __str__(self) -> str:
         return self.value
@@ -79,50 +105,59 @@ class DifficultyLimits:
 
 KITTI_DIFFICULTY = DifficultyLimits()
 #: LiDAR-only evaluation without a difficulty rule: every box counts at every level
-NO_DIFFICULTY = DifficultyLimits(min_height=(-math.inf,) * 3, max_occlusion=(math.inf,) * 3,
-                                 max_truncation=(math.inf,) * 3)
+NO_DIFFICULTY = DifficultyLimits(
+    min_height=(-math.inf,) * 3, max_occlusion=(math.inf,) * 3, max_truncation=(math.inf,) * 3
+)
 
 #: The two IoU threshold sets OpenPCDet prints: the official one and a looser one.
 THRESHOLD_SETS: tuple[str, ...] = ("strict", "loose")
 
 #: IoU a match must *exceed* (strictly), per class and threshold set, as (bbox, bev, 3d).
-CLASS_OVERLAPS: Mapping[str, Mapping[str, tuple[float, float, float]]] = MappingProxyType({
-    "Car": {"strict": (0.7, 0.7, 0.7), "loose": (0.7, 0.5, 0.5)},
-    "Pedestrian": {"strict": (0.5, 0.5, 0.5), "loose": (0.5, 0.25, 0.25)},
-    "Cyclist": {"strict": (0.5, 0.5, 0.5), "loose": (0.5, 0.25, 0.25)},
-    "Van": {"strict": (0.7, 0.7, 0.7), "loose": (0.7, 0.5, 0.5)},
-    "Person_sitting": {"strict": (0.5, 0.5, 0.5), "loose": (0.5, 0.25, 0.25)},
-    "Truck": {"strict": (0.7, 0.7, 0.7), "loose": (0.5, 0.5, 0.5)},
-})
+CLASS_OVERLAPS: Mapping[str, Mapping[str, tuple[float, float, float]]] = MappingProxyType(
+    {
+        "Car": {"strict": (0.7, 0.7, 0.7), "loose": (0.7, 0.5, 0.5)},
+        "Pedestrian": {"strict": (0.5, 0.5, 0.5), "loose": (0.5, 0.25, 0.25)},
+        "Cyclist": {"strict": (0.5, 0.5, 0.5), "loose": (0.5, 0.25, 0.25)},
+        "Van": {"strict": (0.7, 0.7, 0.7), "loose": (0.7, 0.5, 0.5)},
+        "Person_sitting": {"strict": (0.5, 0.5, 0.5), "loose": (0.5, 0.25, 0.25)},
+        "Truck": {"strict": (0.7, 0.7, 0.7), "loose": (0.5, 0.5, 0.5)},
+    }
+)
 DEFAULT_CLASSES: tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")
 KNOWN_CLASSES: tuple[str, ...] = tuple(CLASS_OVERLAPS)
 
 #: Ground truth of a neighbour class is ignored for the evaluated class: never a miss, and a detection
 #: matched to it is neither a hit nor a false positive. Names compare case-insensitively.
-NEIGHBOURS: Mapping[str, tuple[str, ...]] = MappingProxyType({
-    "car": ("van",),
-    "pedestrian": ("person_sitting",),
-})
+NEIGHBOURS: Mapping[str, tuple[str, ...]] = MappingProxyType(
+    {
+        "car": ("van",),
+        "pedestrian": ("person_sitting",),
+    }
+)
 DONTCARE = "DontCare"
 
 #: Precision is sampled at 41 recall steps (0, 1/40, ..., 1).
 N_SAMPLE_PTS = 41
 #: Which of the 41 samples each AP averages: R40 = samples 1..40, R11 = samples 0, 4, ..., 40.
-RECALL_SAMPLE_INDICES: Mapping[str, tuple[int, ...]] = MappingProxyType({
-    "R11": tuple(range(0, N_SAMPLE_PTS, 4)),
-    "R40": tuple(range(1, N_SAMPLE_PTS)),
-})
+RECALL_SAMPLE_INDICES: Mapping[str, tuple[int, ...]] = MappingProxyType(
+    {
+        "R11": tuple(range(0, N_SAMPLE_PTS, 4)),
+        "R40": tuple(range(1, N_SAMPLE_PTS)),
+    }
+)
 RECALL_MODES: tuple[str, ...] = ("R11", "R40")
 #: COCO-style AP: the mean of the AP at ten IoU thresholds evenly spaced over a per-class interval (the
 #: same for bbox, bev and 3d); classes not listed use the first interval.
-COCO_IOU_RANGES: Mapping[str, tuple[float, float]] = MappingProxyType({
-    "car": (0.5, 0.95),
-    "van": (0.5, 0.95),
-    "truck": (0.5, 0.95),
-    "pedestrian": (0.25, 0.7),
-    "cyclist": (0.25, 0.7),
-    "person_sitting": (0.25, 0.7),
-})
+COCO_IOU_RANGES: Mapping[str, tuple[float, float]] = MappingProxyType(
+    {
+        "car": (0.5, 0.95),
+        "van": (0.5, 0.95),
+        "truck": (0.5, 0.95),
+        "pedestrian": (0.25, 0.7),
+        "cyclist": (0.25, 0.7),
+        "person_sitting": (0.25, 0.7),
+    }
+)
 COCO_STEPS = 10
 
 
@@ -190,7 +225,8 @@ def _check_overlap(cls: str, oset: str, values: object) -> tuple[float, float, f
         raise ConfigError(f"IoU thresholds for {cls}/{oset} must be three numbers (bbox, bev, 3d)") from None
     if len(triple) != 3 or not all(0.0 <= v < 1.0 for v in triple):
         raise ConfigError(
-            f"IoU thresholds for {cls}/{oset} must be three numbers in [0, 1) (bbox, bev, 3d), got {values!r}")
+            f"IoU thresholds for {cls}/{oset} must be three numbers in [0, 1) (bbox, bev, 3d), got {values!r}"
+        )
     return triple
 
 
@@ -367,13 +403,22 @@ class EvalConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "ranges", tuple(self.ranges))
-        object.__setattr__(self, "neighbours", MappingProxyType(
-            {k.lower(): tuple(v.lower() for v in vs) for k, vs in self.neighbours.items()}))
+        object.__setattr__(
+            self,
+            "neighbours",
+            MappingProxyType({k.lower(): tuple(v.lower() for v in vs) for k, vs in self.neighbours.items()}),
+        )
         if self.lidar_only:
             limits = NO_DIFFICULTY if self.difficulty == KITTI_DIFFICULTY else self.difficulty
-            object.__setattr__(self, "difficulty", DifficultyLimits(
-                min_height=(-math.inf,) * 3, max_occlusion=limits.max_occlusion,
-                max_truncation=limits.max_truncation))
+            object.__setattr__(
+                self,
+                "difficulty",
+                DifficultyLimits(
+                    min_height=(-math.inf,) * 3,
+                    max_occlusion=limits.max_occlusion,
+                    max_truncation=limits.max_truncation,
+                ),
+            )
         for r in self.ranges:
             if not isinstance(r, DistanceRange):
                 raise ConfigError(f"ranges must be DistanceRange values, got {r!r}")
@@ -398,8 +443,7 @@ class EvalConfig:
             user = {k: _check_overlap(cls, k, v) for k, v in given.get(cls.lower(), {}).items()}
             for k in user:
                 if k not in THRESHOLD_SETS:
-                    raise ConfigError(f"unknown threshold set {k!r} for {cls}; expected one of "
-                                      f"{list(THRESHOLD_SETS)}")
+                    raise ConfigError(f"unknown threshold set {k!r} for {cls}; expected one of {list(THRESHOLD_SETS)}")
             if not base and len(user) == 1:
                 (only,) = user.values()
                 user = dict.fromkeys(THRESHOLD_SETS, only)
@@ -407,7 +451,8 @@ class EvalConfig:
             if not base:
                 raise ConfigError(
                     f"class {cls!r} has no default IoU thresholds (known: {', '.join(KNOWN_CLASSES)}); "
-                    f"give them, e.g. --iou {cls}=0.7,0.7,0.7")
+                    f"give them, e.g. --iou {cls}=0.7,0.7,0.7"
+                )
             resolved[cls] = base
         object.__setattr__(self, "overlaps", MappingProxyType(resolved))
 
@@ -421,9 +466,17 @@ def _names(text: str) -> tuple[str, ...]:
     return tuple(p.strip() for p in text.split(",") if p.strip())
 
 
-def config_from_options(*, base: Mapping[str, Any] | None = None, classes: str | None = None,
-                        protocol: str | None = None, threshold_sets: str | None = None, iou: Sequence[str] = (),
-                        ranges: str | None = None, coco: bool = False, lidar_only: bool = False) -> EvalConfig:
+def config_from_options(
+    *,
+    base: Mapping[str, Any] | None = None,
+    classes: str | None = None,
+    protocol: str | None = None,
+    threshold_sets: str | None = None,
+    iou: Sequence[str] = (),
+    ranges: str | None = None,
+    coco: bool = False,
+    lidar_only: bool = False,
+) -> EvalConfig:
     """An :class:`EvalConfig` from options written as the CLI's flags and the service's form fields are.
 
     ``base``: keyword arguments of :class:`EvalConfig` to start from (a protocol file's); ``classes`` and
@@ -458,4 +511,3 @@ def config_from_options(*, base: Mapping[str, Any] | None = None, classes: str |
     if lidar_only:
         kwargs["lidar_only"] = True
     return EvalConfig(**kwargs)
-

@@ -51,8 +51,9 @@ class EvalResult:
     #: ten IoU thresholds (:func:`kitti_eval.protocol.coco_thresholds`); None otherwise
     coco: Mapping[str, Any] | None = None
 
-    def get(self, cls: str, metric: str | Metric, difficulty: str | Difficulty, recall: str = "R40",
-            oset: str = "strict") -> float | None:
+    def get(
+        self, cls: str, metric: str | Metric, difficulty: str | Difficulty, recall: str = "R40", oset: str = "strict"
+    ) -> float | None:
         """One value, e.g. ``result.get("Car", "3d", "moderate")`` (R40, strict thresholds)."""
         m = Metric(metric).value
         d = difficulty.label if isinstance(difficulty, Difficulty) else str(difficulty)
@@ -63,14 +64,21 @@ class EvalResult:
         """Back from :meth:`to_dict` (curves and timings are not kept), e.g. to render a stored result."""
         if doc.get("schema_version") != SCHEMA_VERSION:
             raise ValueError(f"expected schema_version {SCHEMA_VERSION}, got {doc.get('schema_version')!r}")
-        return cls(protocol=doc["protocol"], classes=tuple(doc["classes"]), threshold_sets=tuple(doc["threshold_sets"]),
-                   overlaps=copy.deepcopy(doc["overlaps"]), ap=copy.deepcopy(doc["ap"]),
-                   num_gt=copy.deepcopy(doc["num_gt"]), num_det=dict(doc["num_det"]), frames=int(doc["frames"]),
-                   frames_without_predictions=tuple(doc["frames_without_predictions"]),
-                   aos_evaluated=bool(doc["aos_evaluated"]), warnings=tuple(doc["warnings"]),
-                   ranges=tuple({**r, "max": math.inf if r["max"] is None else r["max"]}
-                                for r in doc.get("ranges", [])),
-                   coco=copy.deepcopy(doc.get("coco")))
+        return cls(
+            protocol=doc["protocol"],
+            classes=tuple(doc["classes"]),
+            threshold_sets=tuple(doc["threshold_sets"]),
+            overlaps=copy.deepcopy(doc["overlaps"]),
+            ap=copy.deepcopy(doc["ap"]),
+            num_gt=copy.deepcopy(doc["num_gt"]),
+            num_det=dict(doc["num_det"]),
+            frames=int(doc["frames"]),
+            frames_without_predictions=tuple(doc["frames_without_predictions"]),
+            aos_evaluated=bool(doc["aos_evaluated"]),
+            warnings=tuple(doc["warnings"]),
+            ranges=tuple({**r, "max": math.inf if r["max"] is None else r["max"]} for r in doc.get("ranges", [])),
+            coco=copy.deepcopy(doc.get("coco")),
+        )
 
     def to_dict(self, *, include_curves: bool = False) -> dict[str, Any]:
         """The JSON form (schema version :data:`SCHEMA_VERSION`); every key is always present."""
@@ -89,21 +97,37 @@ class EvalResult:
             "frames_without_predictions": list(self.frames_without_predictions),
             "aos_evaluated": self.aos_evaluated,
             "warnings": list(self.warnings),
-            "ranges": [{"label": r["label"], "min": r["min"], "max": None if math.isinf(r["max"]) else r["max"],
-                        "ap": copy.deepcopy(_plain(r["ap"])), "num_gt": copy.deepcopy(_plain(r["num_gt"]))}
-                       for r in self.ranges],
+            "ranges": [
+                {
+                    "label": r["label"],
+                    "min": r["min"],
+                    "max": None if math.isinf(r["max"]) else r["max"],
+                    "ap": copy.deepcopy(_plain(r["ap"])),
+                    "num_gt": copy.deepcopy(_plain(r["num_gt"])),
+                }
+                for r in self.ranges
+            ],
             "coco": copy.deepcopy(_plain(self.coco)) if self.coco is not None else None,
         }
         if include_curves and self.curves is not None:
             out["curves"] = {
-                oset: {cls: {m: {d: {"precision": [float(v) for v in (c.orientation if m == "aos" else c.precision)],
-                                     "recall": [float(v) for v in c.recall],
-                                     "thresholds": [float(v) for v in c.thresholds],
-                                     "num_valid_gt": c.num_valid_gt}
-                                 for d, c in by_d.items()}
-                             for m, by_d in by_m.items()}
-                       for cls, by_m in by_cls.items()}
-                for oset, by_cls in self.curves.items()}
+                oset: {
+                    cls: {
+                        m: {
+                            d: {
+                                "precision": [float(v) for v in (c.orientation if m == "aos" else c.precision)],
+                                "recall": [float(v) for v in c.recall],
+                                "thresholds": [float(v) for v in c.thresholds],
+                                "num_valid_gt": c.num_valid_gt,
+                            }
+                            for d, c in by_d.items()
+                        }
+                        for m, by_d in by_m.items()
+                    }
+                    for cls, by_m in by_cls.items()
+                }
+                for oset, by_cls in self.curves.items()
+            }
         return out
 
 

@@ -121,13 +121,18 @@ def _dtype_table() -> tuple[np.ndarray, np.ndarray]:
                 fields.add((state[5] if itemsize >= 0 else -1, state[6], state[7]))
                 mask |= 1 << bit
         assert len(fields) == 1, (code, fields)  # the same canonical fields for every size and order
-        (elsize, align, flags), = fields
+        ((elsize, align, flags),) = fields
         c = code.encode("ascii")
         rows.append((len(blob), len(c), ord(dt.kind), itemsize, mask, elsize, align, flags))
         blob.extend(c)
 
-    for kind, sizes in (("b", (1,)), ("i", (1, 2, 4, 8)), ("u", (1, 2, 4, 8)), ("f", (2, 4, 8, 16)),
-                        ("c", (8, 16, 32))):
+    for kind, sizes in (
+        ("b", (1,)),
+        ("i", (1, 2, 4, 8)),
+        ("u", (1, 2, 4, 8)),
+        ("f", (2, 4, 8, 16)),
+        ("c", (8, 16, 32)),
+    ):
         for size in sizes:
             code = f"{kind}{size}"
             try:
@@ -154,24 +159,32 @@ def _unsafe(source: str, module: str, name: str) -> UnsafePickleError:
         return UnsafePickleError(
             f"the pickle holds torch tensors (it refers to {qual}); it was not loaded. Export predictions "
             "as plain numpy arrays (e.g. call .numpy() on each tensor, or .cpu().numpy() on GPU tensors) "
-            "and pickle the list of per-frame dicts", source=source)
+            "and pickle the list of per-frame dicts",
+            source=source,
+        )
     if top in ("mmdet3d", "mmdet", "mmengine", "mmcv"):
         return UnsafePickleError(
             f"the pickle holds mmdet3d box objects or other OpenMMLab classes (it refers to {qual}); it was "
             "not loaded. Export predictions as plain numpy arrays (e.g. boxes.tensor.numpy(), and .numpy() "
             "on each tensor) in KITTI annos dicts (name, bbox, dimensions, location, rotation_y, score)",
-            source=source)
+            source=source,
+        )
     if top == "numpy":
         return UnsafePickleError(
             f"the pickle refers to {qual}, which is not accepted; only numpy arrays of numbers or "
             "fixed-width strings, numpy scalars and plain containers are accepted (nothing was imported "
-            "or called)", source=source)
+            "or called)",
+            source=source,
+        )
     return UnsafePickleError(
         f"the pickle refers to {qual}; only numpy arrays and plain containers (dict, list, tuple, str, "
-        "numbers) are accepted. Nothing was imported or called", source=source)
+        "numbers) are accepted. Nothing was imported or called",
+        source=source,
+    )
 
 
 # ------------------------------------------------------------------------------- scan errors to messages
+
 
 class _Nodes:
     """Read access to the scan's nodes, for messages."""
@@ -185,7 +198,7 @@ class _Nodes:
     def text(self, n: int) -> str:
         """A str node as the C unpickler decodes it (best effort: only for messages)."""
         w, _, a, b = (int(x) for x in self.nodes[n])
-        raw = bytes(self.data[a:a + b])
+        raw = bytes(self.data[a : a + b])
         op = (w >> _ps.OP_SHIFT) & 0xFF
         try:
             if op == ord("V"):
@@ -207,7 +220,7 @@ class _Nodes:
 
     def shape(self, n: int) -> tuple[int, ...]:
         a, b = int(self.nodes[n, _ps.A]), int(self.nodes[n, _ps.B])
-        return tuple(int(self.nodes[c, _ps.V]) for c in self.ch[a:a + b])
+        return tuple(int(self.nodes[c, _ps.V]) for c in self.ch[a : a + b])
 
     def dtype(self, n: int) -> np.dtype:
         kind, size = chr(int(self.nodes[n, _ps.A])), int(self.nodes[n, _ps.V])
@@ -215,14 +228,13 @@ class _Nodes:
 
 
 def _line(data: bytes, start: int) -> str:
-    line = bytes(data[start:start + 4096])
+    line = bytes(data[start : start + 4096])
     end = line.find(b"\n")
-    return line[:end if end >= 0 else len(line)].decode("utf-8", "replace")
+    return line[: end if end >= 0 else len(line)].decode("utf-8", "replace")
 
 
 def _scan_error(res: tuple[Any, ...], data: bytes, source: str) -> InputError:
-    code, pos, i0, i1, i2, nodes, ch = (int(res[0]), int(res[1]), int(res[2]), int(res[3]), int(res[4]),
-                                        res[5], res[6])
+    code, pos, i0, i1, i2, nodes, ch = (int(res[0]), int(res[1]), int(res[2]), int(res[3]), int(res[4]), res[5], res[6])
     nd = _Nodes(data, nodes, ch)
     if code == _ps.E_GLOBAL:
         if i0 == 0:
@@ -232,17 +244,16 @@ def _scan_error(res: tuple[Any, ...], data: bytes, source: str) -> InputError:
         _ps.E_NEWOBJ: "the pickle instantiates a class (NEWOBJ), which is not allowed",
         _ps.E_INST: "the pickle instantiates a class (INST/OBJ), which is not allowed",
         _ps.E_EXT: "the pickle uses copyreg extension codes, which are not accepted",
-        _ps.E_PERSID: "the pickle refers to external (persistent) objects, e.g. torch storages; they are not "
-                      "accepted",
+        _ps.E_PERSID: "the pickle refers to external (persistent) objects, e.g. torch storages; they are not accepted",
         _ps.E_CALL: f"the pickle calls {nd.describe(i0)}, which is not allowed",
         _ps.E_BUILD: f"the pickle sets the state of a {nd.describe(i0)}, which is not allowed (only fresh "
-                     "numpy arrays and dtypes)",
+        "numpy arrays and dtypes)",
         _ps.E_GLOBAL_VALUE: f"the pickle uses {nd.describe(i0)} as a value, which is not allowed",
         _ps.E_DTYPE_CODE: f"numpy dtype {nd.describe(i0)} is not accepted (only plain numeric, str, bytes and "
-                          "object dtypes; structured, datetime and void dtypes are refused)",
+        "object dtypes; structured, datetime and void dtypes are refused)",
         _ps.E_DTYPE_ARGS: "numpy.dtype is accepted only as numpy calls it: (code, align, copy=True)",
         _ps.E_DTYPE_STATE: "unsupported numpy dtype state: only the plain state numpy writes is accepted "
-                           "(structured dtypes and custom flags are refused)",
+        "(structured dtypes and custom flags are refused)",
         _ps.E_SUBTYPE: f"arrays of type {nd.describe(i0)} are not accepted, only numpy.ndarray",
         _ps.E_OBJ_ITEMS: "object arrays may hold only str, numbers, bytes and None",
         _ps.E_ENCODE: "_codecs.encode is accepted only to turn a str into latin-1 bytes",
@@ -253,8 +264,9 @@ def _scan_error(res: tuple[Any, ...], data: bytes, source: str) -> InputError:
         _ps.E_TARGET: f"the pickle adds items to a {nd.describe(i0)}, which is not allowed",
     }
     if code in refused:
-        return UnsafePickleError(f"{refused[code]}; it was not loaded (only numpy arrays and plain containers "
-                                 "are accepted)", source=source)
+        return UnsafePickleError(
+            f"{refused[code]}; it was not loaded (only numpy arrays and plain containers are accepted)", source=source
+        )
     if code == _ps.E_SIZE:
         shape, dt = nd.shape(i0), nd.dtype(i1)
         need = int(np.prod(shape, dtype=object)) * dt.itemsize
@@ -276,9 +288,9 @@ def _scan_error(res: tuple[Any, ...], data: bytes, source: str) -> InputError:
             _ps.E_KEYS: "dict keys or set items are tuples nested too deeply (too many elements to hash)",
             _ps.E_UNHASHABLE: f"a dict key or set item is a {nd.describe(i0)}, which cannot be hashed",
             _ps.E_CHANGED: "a container is changed after it was put into another one (recursive structures "
-                           "are not accepted)",
+            "are not accepted)",
             _ps.E_BUDGET: "the pickle builds far more array data or objects than it contains (a corrupt or "
-                          "hostile size)",
+            "hostile size)",
             _ps.E_OOB: "the pickle refers to out-of-band buffers, which are not supported",
             _ps.E_NOT_TUPLE: "call arguments must be a tuple",
             _ps.E_HEADER: "malformed numpy array header (numpy writes an empty int8 shell)",
@@ -292,13 +304,13 @@ def _scan_error(res: tuple[Any, ...], data: bytes, source: str) -> InputError:
             _ps.E_DTYPE_SIZE: f"bad string size {i1} in a numpy dtype",
             _ps.E_ARGS: "malformed call arguments for a numpy reconstructor",
         }.get(code, f"rejected by the check (code {code})")
-        if code in (_ps.E_OPCODE, _ps.E_UNDERFLOW, _ps.E_NOMARK, _ps.E_BADARG, _ps.E_MEMO, _ps.E_MEMO_RANGE,
-                    _ps.E_ODD):
+        if code in (_ps.E_OPCODE, _ps.E_UNDERFLOW, _ps.E_NOMARK, _ps.E_BADARG, _ps.E_MEMO, _ps.E_MEMO_RANGE, _ps.E_ODD):
             msg += f" (at byte {pos})"
     return InputError(f"not a readable pickle: {msg}", source=source)
 
 
 # --------------------------------------------------------------------------------------------- loading
+
 
 class _Reader:
     """The checked bytes as a file for the C unpickler: ``peek`` hands out all of them at once, so it parses
@@ -311,20 +323,20 @@ class _Reader:
         self._pos = 0
 
     def peek(self, n: int = 0) -> memoryview:
-        return self._view[self._pos:]
+        return self._view[self._pos :]
 
     def read(self, n: int = -1) -> memoryview:
         start = self._pos
         self._pos = len(self._view) if n is None or n < 0 else min(len(self._view), start + n)
-        return self._view[start:self._pos]
+        return self._view[start : self._pos]
 
     def readinto(self, buf: Any) -> int:
         chunk = self.read(len(buf))
-        buf[:len(chunk)] = chunk
+        buf[: len(chunk)] = chunk
         return len(chunk)
 
     def readline(self) -> bytes:
-        rest = bytes(self._view[self._pos:self._pos + (1 << 20)])
+        rest = bytes(self._view[self._pos : self._pos + (1 << 20)])
         end = rest.find(b"\n")
         return bytes(self.read(len(rest) if end < 0 else end + 1))
 
@@ -345,11 +357,23 @@ class _Unpickler(pickle.Unpickler):
 
 #: what each kind of scan node is in Python, to check the loaded result against the scan
 _RESULT_TYPES: dict[int, tuple[type, ...]] = {
-    _ps.K_NONE: (type(None),), _ps.K_INT: (int,), _ps.K_BIGINT: (int,), _ps.K_FLOAT: (float,),
-    _ps.K_STR: (str,), _ps.K_BYTES: (bytes,), _ps.K_BYTEARRAY: (bytearray,), _ps.K_TUPLE: (tuple,),
-    _ps.K_LIST: (list,), _ps.K_DICT: (dict,), _ps.K_SET: (set,), _ps.K_FROZENSET: (frozenset,),
-    _ps.K_ODICT: (collections.OrderedDict,), _ps.K_SHELL: (np.ndarray,), _ps.K_ARRAY: (np.ndarray,),
-    _ps.K_DTYPE: (np.dtype,), _ps.K_SCALAR: (np.generic,),
+    _ps.K_NONE: (type(None),),
+    _ps.K_INT: (int,),
+    _ps.K_BIGINT: (int,),
+    _ps.K_FLOAT: (float,),
+    _ps.K_STR: (str,),
+    _ps.K_BYTES: (bytes,),
+    _ps.K_BYTEARRAY: (bytearray,),
+    _ps.K_TUPLE: (tuple,),
+    _ps.K_LIST: (list,),
+    _ps.K_DICT: (dict,),
+    _ps.K_SET: (set,),
+    _ps.K_FROZENSET: (frozenset,),
+    _ps.K_ODICT: (collections.OrderedDict,),
+    _ps.K_SHELL: (np.ndarray,),
+    _ps.K_ARRAY: (np.ndarray,),
+    _ps.K_DTYPE: (np.dtype,),
+    _ps.K_SCALAR: (np.generic,),
 }
 
 
@@ -373,7 +397,7 @@ def _scan(data: bytes, source: str) -> tuple[Any, ...]:
         while True:
             work = [np.empty((sizes[0], 4), np.int64)] + [np.empty(k, np.int64) for k in sizes[1:]]
             work[_ps.ROOM_MEMO] = np.zeros(sizes[_ps.ROOM_MEMO], np.int64)  # pages zeroed as they are touched
-            work[_ps.ROOM_NODES][:len(_ps.BASE_NODES)] = _ps.BASE_NODES
+            work[_ps.ROOM_NODES][: len(_ps.BASE_NODES)] = _ps.BASE_NODES
             res = _ps.scan(u8, _GBLOB, _GTAB, _DBLOB, _DTAB, _budget(n), _MAX_DEPTH, _KEY_BUDGET, *work)
             if res[0] != _ps.E_ROOM:
                 break
@@ -391,24 +415,31 @@ def _build(data: bytes, res: tuple[Any, ...], source: str) -> object:
     try:
         obj = unpickler.load()
     except MemoryError:
-        raise InputError("not a readable pickle: it needs more memory than is available (corrupt sizes?)",
-                         source=source) from None
+        raise InputError(
+            "not a readable pickle: it needs more memory than is available (corrupt sizes?)", source=source
+        ) from None
     except UnsafePickleError:  # pragma: no cover - find_class disagreeing with the scan
         raise
     except Exception as e:  # noqa: BLE001 - only allowlisted code ran on checked arguments; bad input
         raise InputError(f"not a readable pickle: {type(e).__name__}: {e}", source=source) from None
     kind = int(nodes[result, _ps.W]) & _ps.KIND_MASK
     if not isinstance(obj, _RESULT_TYPES[kind]):  # pragma: no cover - the scan models what pickle builds
-        raise InputError(f"not a readable pickle: the loaded {type(obj).__name__} is not the "
-                         f"{_ps.KIND_NAMES[kind]} the check saw", source=source)
+        raise InputError(
+            f"not a readable pickle: the loaded {type(obj).__name__} is not the {_ps.KIND_NAMES[kind]} the check saw",
+            source=source,
+        )
     if isinstance(obj, int) and not isinstance(obj, bool) and obj == _TORCH_LEGACY_MAGIC:
-        raise UnsafePickleError("this is a torch.save() file (legacy format) holding torch tensors; it was "
-                                "not loaded. Export predictions as plain numpy arrays (e.g. .numpy() on each "
-                                "tensor) and pickle the list of per-frame dicts", source=source)
+        raise UnsafePickleError(
+            "this is a torch.save() file (legacy format) holding torch tensors; it was "
+            "not loaded. Export predictions as plain numpy arrays (e.g. .numpy() on each "
+            "tensor) and pickle the list of per-frame dicts",
+            source=source,
+        )
     return obj
 
 
 # ---------------------------------------------------------------------------------------------- input
+
 
 def _read_limited(read: Callable[..., bytes], max_bytes: int | None, what: str, source: str) -> bytes:
     chunks: list[bytes] = []
@@ -423,8 +454,9 @@ def _read_limited(read: Callable[..., bytes], max_bytes: int | None, what: str, 
         if not chunk:
             break
         if not isinstance(chunk, (bytes, bytearray, memoryview)):
-            raise InputError(f"expected binary data, got {type(chunk).__name__} (open the file in 'rb' mode)",
-                             source=source)
+            raise InputError(
+                f"expected binary data, got {type(chunk).__name__} (open the file in 'rb' mode)", source=source
+            )
         chunks.append(chunk if type(chunk) is bytes else bytes(chunk))
         total += len(chunk)
     if max_bytes is not None and total > max_bytes:
@@ -432,8 +464,7 @@ def _read_limited(read: Callable[..., bytes], max_bytes: int | None, what: str, 
     return chunks[0] if len(chunks) == 1 else b"".join(chunks)
 
 
-def _read_input(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str,
-                max_bytes: int | None) -> bytes:
+def _read_input(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str, max_bytes: int | None) -> bytes:
     if hasattr(path_or_fileobj, "read"):
         try:
             read = path_or_fileobj.read
@@ -467,20 +498,26 @@ def _sniff(data: bytes, source: str) -> None:
         raise InputError("not a readable pickle: the file is empty", source=source)
     data = bytes(data[:262])
     if data[:4] == _ZIP_MAGIC:
-        raise InputError("not a readable pickle: this is a zip archive (a torch.save() file or a numpy "
-                         ".npz?). "
-                         "Export predictions as plain numpy arrays and pickle the list of per-frame dicts",
-                         source=source)
+        raise InputError(
+            "not a readable pickle: this is a zip archive (a torch.save() file or a numpy "
+            ".npz?). "
+            "Export predictions as plain numpy arrays and pickle the list of per-frame dicts",
+            source=source,
+        )
     if data[257:262] == b"ustar":
-        raise InputError("not a readable pickle: this is a tar archive; extract it (KITTI txt folders are "
-                         "read as folders)", source=source)
+        raise InputError(
+            "not a readable pickle: this is a tar archive; extract it (KITTI txt folders are read as folders)",
+            source=source,
+        )
     if data[:6] == _NPY_MAGIC:
-        raise InputError("not a readable pickle: this is a numpy .npy file; pickle the list of per-frame "
-                         "dicts", source=source)
+        raise InputError(
+            "not a readable pickle: this is a numpy .npy file; pickle the list of per-frame dicts", source=source
+        )
 
 
-def load_pickle(path_or_fileobj: str | os.PathLike[str] | IO[bytes], *, source: str,
-                max_bytes: int | None = None) -> object:
+def load_pickle(
+    path_or_fileobj: str | os.PathLike[str] | IO[bytes], *, source: str, max_bytes: int | None = None
+) -> object:
     """Unpickle a file that may only hold numpy arrays, numpy scalars and plain containers.
 
     Parameters
@@ -500,8 +537,9 @@ def load_pickle(path_or_fileobj: str | os.PathLike[str] | IO[bytes], *, source: 
     return _build(*_checked(path_or_fileobj, source, max_bytes), source)
 
 
-def _checked(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str,
-             max_bytes: int | None) -> tuple[bytes, tuple[Any, ...]]:
+def _checked(
+    path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str, max_bytes: int | None
+) -> tuple[bytes, tuple[Any, ...]]:
     """The input's bytes and the scan's verdict on them (raises if it refused them)."""
     data = _read_input(path_or_fileobj, source, max_bytes)
     _sniff(data, source)
@@ -511,8 +549,9 @@ def _checked(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str,
     return data, res
 
 
-def load_pickles(paths: Sequence[str | os.PathLike[str]], *, sources: Sequence[str],
-                 max_bytes: int | None = None) -> Iterator[object]:
+def load_pickles(
+    paths: Sequence[str | os.PathLike[str]], *, sources: Sequence[str], max_bytes: int | None = None
+) -> Iterator[object]:
     """:func:`load_pickle` of several files, in order; while the caller works on one object, the next file
     is read and checked in a helper thread (the scan needs no GIL). Errors are raised where that file's
     object would be."""

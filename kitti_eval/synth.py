@@ -34,8 +34,18 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["generate", "write_infos", "write_results", "write_label_dir", "write_result_dir", "demo_paths",
-           "box_corners_image", "DEMO_ARGS", "IMAGE_SHAPE", "main"]
+__all__ = [
+    "generate",
+    "write_infos",
+    "write_results",
+    "write_label_dir",
+    "write_result_dir",
+    "demo_paths",
+    "box_corners_image",
+    "DEMO_ARGS",
+    "IMAGE_SHAPE",
+    "main",
+]
 
 F64 = npt.NDArray[np.float64]
 
@@ -48,13 +58,54 @@ _DEMO_FILES = ("kitti_infos_val.pkl.gz", "result.pkl.gz")
 
 # KITTI training calibration of frame 000000 (also the golden cases' calib.txt), parsed to float32 as
 # OpenPCDet's Calibration does.
-_P2 = np.array([7.215377e02, 0.0, 6.095593e02, 4.485728e01, 0.0, 7.215377e02, 1.728540e02, 2.163791e-01,
-                0.0, 0.0, 1.0, 2.745884e-03], dtype=np.float32).reshape(3, 4)
-_R0 = np.array([9.999239e-01, 9.837760e-03, -7.445048e-03, -9.869795e-03, 9.999421e-01, -4.278459e-03,
-                7.402527e-03, 4.351614e-03, 9.999631e-01], dtype=np.float32).reshape(3, 3)
-_V2C = np.array([7.533745e-03, -9.999714e-01, -6.166020e-04, -4.069766e-03, 1.480249e-02, 7.280733e-04,
-                 -9.998902e-01, -7.631618e-02, 9.998621e-01, 7.523790e-03, 1.480755e-02, -2.717806e-01],
-                dtype=np.float32).reshape(3, 4)
+_P2 = np.array(
+    [
+        7.215377e02,
+        0.0,
+        6.095593e02,
+        4.485728e01,
+        0.0,
+        7.215377e02,
+        1.728540e02,
+        2.163791e-01,
+        0.0,
+        0.0,
+        1.0,
+        2.745884e-03,
+    ],
+    dtype=np.float32,
+).reshape(3, 4)
+_R0 = np.array(
+    [
+        9.999239e-01,
+        9.837760e-03,
+        -7.445048e-03,
+        -9.869795e-03,
+        9.999421e-01,
+        -4.278459e-03,
+        7.402527e-03,
+        4.351614e-03,
+        9.999631e-01,
+    ],
+    dtype=np.float32,
+).reshape(3, 3)
+_V2C = np.array(
+    [
+        7.533745e-03,
+        -9.999714e-01,
+        -6.166020e-04,
+        -4.069766e-03,
+        1.480249e-02,
+        7.280733e-04,
+        -9.998902e-01,
+        -7.631618e-02,
+        9.998621e-01,
+        7.523790e-03,
+        1.480755e-02,
+        -2.717806e-01,
+    ],
+    dtype=np.float32,
+).reshape(3, 4)
 
 
 def _rect_to_lidar() -> F64:
@@ -69,8 +120,14 @@ def _rect_to_lidar() -> F64:
     v = _V2C.astype(np.float64).tolist()
     a = [[r0[i][0] * v[0][j] + r0[i][1] * v[1][j] + r0[i][2] * v[2][j] for j in range(3)] for i in range(3)]
     t = [r0[i][0] * v[0][3] + r0[i][1] * v[1][3] + r0[i][2] * v[2][3] for i in range(3)]
-    cof = [[a[(j + 1) % 3][(i + 1) % 3] * a[(j + 2) % 3][(i + 2) % 3]
-            - a[(j + 1) % 3][(i + 2) % 3] * a[(j + 2) % 3][(i + 1) % 3] for j in range(3)] for i in range(3)]
+    cof = [
+        [
+            a[(j + 1) % 3][(i + 1) % 3] * a[(j + 2) % 3][(i + 2) % 3]
+            - a[(j + 1) % 3][(i + 2) % 3] * a[(j + 2) % 3][(i + 1) % 3]
+            for j in range(3)
+        ]
+        for i in range(3)
+    ]
     det = a[0][0] * cof[0][0] + a[0][1] * cof[1][0] + a[0][2] * cof[2][0]
     inv = [[cof[i][j] / det for j in range(3)] for i in range(3)]
     out = np.eye(4)
@@ -86,10 +143,30 @@ _RECT_TO_LIDAR = _rect_to_lidar()
 # probability that the detector finds a near, unoccluded one, and the detector class (index into _PRED_NAMES).
 _GT_NAMES = ("Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram", "Misc")
 _GT_SHARE = np.array([28742, 2914, 1094, 4487, 222, 1627, 511, 973], dtype=np.float64)
-_GT_LHW = np.array([[3.88, 1.53, 1.63], [5.08, 2.21, 1.90], [10.1, 3.25, 2.58], [0.84, 1.76, 0.66],
-                    [0.80, 1.27, 0.59], [1.76, 1.74, 0.60], [16.1, 3.53, 2.54], [3.58, 1.91, 1.51]])
-_GT_LHW_SD = np.array([[0.43, 0.14, 0.10], [0.48, 0.30, 0.15], [2.9, 0.45, 0.20], [0.23, 0.11, 0.14],
-                       [0.20, 0.12, 0.10], [0.18, 0.09, 0.12], [5.0, 0.18, 0.15], [2.0, 0.6, 0.4]])
+_GT_LHW = np.array(
+    [
+        [3.88, 1.53, 1.63],
+        [5.08, 2.21, 1.90],
+        [10.1, 3.25, 2.58],
+        [0.84, 1.76, 0.66],
+        [0.80, 1.27, 0.59],
+        [1.76, 1.74, 0.60],
+        [16.1, 3.53, 2.54],
+        [3.58, 1.91, 1.51],
+    ]
+)
+_GT_LHW_SD = np.array(
+    [
+        [0.43, 0.14, 0.10],
+        [0.48, 0.30, 0.15],
+        [2.9, 0.45, 0.20],
+        [0.23, 0.11, 0.14],
+        [0.20, 0.12, 0.10],
+        [0.18, 0.09, 0.12],
+        [5.0, 0.18, 0.15],
+        [2.0, 0.6, 0.4],
+    ]
+)
 _GT_FIND = np.array([0.97, 0.45, 0.15, 0.90, 0.40, 0.88, 0.05, 0.10])
 _GT_AS = np.array([0, 0, 0, 1, 1, 2, 0, 0])
 _VEHICLE = np.array([True, True, True, False, False, True, True, False])  # mostly aligned with the road
@@ -102,8 +179,13 @@ _PRED_LHW = _GT_LHW[[0, 3, 5]]
 
 # ------------------------------------------------------------------------------------------------ geometry
 
-def box_corners_image(location: npt.ArrayLike, dimensions: npt.ArrayLike, rotation_y: npt.ArrayLike,
-                      image_shape: tuple[int, int] = IMAGE_SHAPE) -> tuple[F64, F64, F64]:
+
+def box_corners_image(
+    location: npt.ArrayLike,
+    dimensions: npt.ArrayLike,
+    rotation_y: npt.ArrayLike,
+    image_shape: tuple[int, int] = IMAGE_SHAPE,
+) -> tuple[F64, F64, F64]:
     """Project camera boxes into the image through the standard ``P2``.
 
     Parameters
@@ -182,8 +264,7 @@ def _visible(bbox: F64, raw: F64, min_depth: F64) -> tuple[npt.NDArray[np.bool_]
     return ok & (trunc <= 0.85), np.clip(trunc, 0.0, 1.0)
 
 
-def _rank_in_frame(frame: npt.NDArray[np.int64], keep: npt.NDArray[np.bool_],
-                   n_frames: int) -> npt.NDArray[np.int64]:
+def _rank_in_frame(frame: npt.NDArray[np.int64], keep: npt.NDArray[np.bool_], n_frames: int) -> npt.NDArray[np.int64]:
     """For rows sorted by frame: how many kept rows of the same frame come before each row."""
     k = keep.astype(np.int64)
     before = np.cumsum(k) - k
@@ -203,8 +284,9 @@ def _earlier_pairs(frame: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.int64],
     return i, j
 
 
-def _bev_overlap(loc: F64, dims: F64, ry: F64, i: npt.NDArray[np.int64], j: npt.NDArray[np.int64],
-                 margin: float) -> npt.NDArray[np.bool_]:
+def _bev_overlap(
+    loc: F64, dims: F64, ry: F64, i: npt.NDArray[np.int64], j: npt.NDArray[np.int64], margin: float
+) -> npt.NDArray[np.bool_]:
     """Whether the bird's-eye rectangles of boxes i and j, grown by ``margin``, overlap (separating axes)."""
     dx, dz = loc[j, 0] - loc[i, 0], loc[j, 2] - loc[i, 2]
     c, s = np.cos(ry), np.sin(ry)
@@ -212,16 +294,22 @@ def _bev_overlap(loc: F64, dims: F64, ry: F64, i: npt.NDArray[np.int64], j: npt.
     overlap = np.ones(len(i), dtype=bool)
     for ck, sk, _, _ in sides:
         for ax, az in ((ck, -sk), (sk, ck)):  # the length and width axes of each box, in (x, z)
-            reach = sum(hl * np.abs(cm * ax - sm * az) + hw * np.abs(sm * ax + cm * az)
-                        for cm, sm, hl, hw in sides)
+            reach = sum(hl * np.abs(cm * ax - sm * az) + hw * np.abs(sm * ax + cm * az) for cm, sm, hl, hw in sides)
             overlap &= np.abs(dx * ax + dz * az) < reach
     return overlap
 
 
 # ------------------------------------------------------------------------------------------ ground truth
 
-def _sample_objects(rng: np.random.Generator, cls: npt.NDArray[np.int64], lhw: F64, lhw_sd: F64,
-                    vehicle: npt.NDArray[np.bool_], z_beta: tuple[float, float]) -> tuple[F64, F64, F64]:
+
+def _sample_objects(
+    rng: np.random.Generator,
+    cls: npt.NDArray[np.int64],
+    lhw: F64,
+    lhw_sd: F64,
+    vehicle: npt.NDArray[np.bool_],
+    z_beta: tuple[float, float],
+) -> tuple[F64, F64, F64]:
     n = len(cls)
     z = 4.0 + 66.0 * rng.beta(*z_beta, n)
     x = z * np.tan(rng.uniform(-0.76, 0.76, n))
@@ -229,13 +317,17 @@ def _sample_objects(rng: np.random.Generator, cls: npt.NDArray[np.int64], lhw: F
     mean = lhw[cls]
     dims = np.maximum(mean * np.exp(rng.normal(0.0, 1.0, (n, 3)) * lhw_sd[cls] / mean), 0.25)
     aligned = vehicle & (rng.random(n) < 0.75)
-    ry = np.where(aligned, np.where(rng.random(n) < 0.5, -np.pi / 2, np.pi / 2) + rng.normal(0, 0.15, n),
-                  rng.uniform(-np.pi, np.pi, n))
+    ry = np.where(
+        aligned,
+        np.where(rng.random(n) < 0.5, -np.pi / 2, np.pi / 2) + rng.normal(0, 0.15, n),
+        rng.uniform(-np.pi, np.pi, n),
+    )
     return np.stack([x, y, z], axis=1), dims, _wrap(ry)
 
 
-def _ground_truth(rng: np.random.Generator, frames: int, gt_per_frame: float, dontcare_per_frame: float,
-                  empty_gt_frac: float) -> dict[str, np.ndarray]:
+def _ground_truth(
+    rng: np.random.Generator, frames: int, gt_per_frame: float, dontcare_per_frame: float, empty_gt_frac: float
+) -> dict[str, np.ndarray]:
     """Flat arrays of all ground-truth objects (frame-major, DontCare last in each frame)."""
     empty = rng.random(frames) < empty_gt_frac
     want = np.where(empty, 0, rng.poisson(gt_per_frame, frames))
@@ -253,8 +345,15 @@ def _ground_truth(rng: np.random.Generator, frames: int, gt_per_frame: float, do
     i, j = i[pick], j[pick]
     ok[j[_bev_overlap(loc, dims, ry, i, j, margin=0.3)]] = False  # a later candidate yields to an earlier one
     keep = ok & (_rank_in_frame(frame, ok, frames) < want[frame])
-    frame, cls, loc, dims, ry, bbox, trunc = frame[keep], cls[keep], loc[keep], dims[keep], ry[keep], bbox[keep], \
-        trunc[keep]
+    frame, cls, loc, dims, ry, bbox, trunc = (
+        frame[keep],
+        cls[keep],
+        loc[keep],
+        dims[keep],
+        ry[keep],
+        bbox[keep],
+        trunc[keep],
+    )
     n = len(frame)
     z = loc[:, 2]
     occ = np.digitize(0.75 * (z - 4.0) / 66.0 + rng.random(n), [0.7, 1.05, 1.42]).astype(np.float64)
@@ -269,8 +368,9 @@ def _ground_truth(rng: np.random.Generator, frames: int, gt_per_frame: float, do
     x1 = rng.uniform(0.0, 1180.0, m)
     yc = rng.normal(182.0, 10.0, m)
     hh = rng.uniform(10.0, 50.0, m)
-    dc_bbox = np.stack([x1, yc - hh / 2, np.minimum(x1 + rng.uniform(8.0, 140.0, m), IMAGE_SHAPE[1] - 1.0),
-                        yc + hh / 2], axis=1)
+    dc_bbox = np.stack(
+        [x1, yc - hh / 2, np.minimum(x1 + rng.uniform(8.0, 140.0, m), IMAGE_SHAPE[1] - 1.0), yc + hh / 2], axis=1
+    )
     dc_bbox = np.round(np.clip(dc_bbox, 0.0, [IMAGE_SHAPE[1] - 1.0, IMAGE_SHAPE[0] - 1.0] * 2), 2) + 0.0
     # concatenate objects and DontCare, DontCare last within each frame
     order = np.argsort(np.concatenate([frame * 2, dc_frame * 2 + 1]), kind="stable")
@@ -311,8 +411,15 @@ def _difficulty(bbox: npt.NDArray[np.float32], trunc: F64, occ: F64) -> npt.NDAr
 
 # ------------------------------------------------------------------------------------------- detections
 
-def _detections(rng: np.random.Generator, gt: dict[str, np.ndarray], frames: int, dets_per_frame: float,
-                empty_pred_frac: float, decimals: int | None) -> dict[str, np.ndarray]:
+
+def _detections(
+    rng: np.random.Generator,
+    gt: dict[str, np.ndarray],
+    frames: int,
+    dets_per_frame: float,
+    empty_pred_frac: float,
+    decimals: int | None,
+) -> dict[str, np.ndarray]:
     """Flat arrays of the detections of ``frames`` frames (frame-major, by descending score in a frame).
 
     ``gt`` holds the labelled objects (no DontCare) of these frames, ``frame`` counted from 0.
@@ -343,8 +450,7 @@ def _detections(rng: np.random.Generator, gt: dict[str, np.ndarray], frames: int
     flip = rng.random(len(idx)) < 0.04
     t_ry = t_ry + rng.normal(0.0, 1.0, len(idx)) * (_PRED_YAW_SD[t_cls] + 0.002 * z) + np.pi * flip
     miss = np.hypot(err[:, 0], err[:, 2]) / (0.15 + 0.1 * t_dims[:, 2])
-    logit = (2.6 - 1.0 * miss - 0.025 * z - 0.3 * g_occ[idx] - 0.8 * flip - 1.5 * wrong
-             + rng.normal(0.0, 0.7, len(idx)))
+    logit = 2.6 - 1.0 * miss - 0.025 * z - 0.3 * g_occ[idx] - 0.8 * flip - 1.5 * wrong + rng.normal(0.0, 0.7, len(idx))
     # false positives: near-duplicates of objects, and boxes anywhere in the scene
     lam = max((dets_per_frame * frames - n_tp) / live, 0.0)
     n_fp = np.where(empty, 0, rng.poisson(lam, frames))
@@ -359,7 +465,8 @@ def _detections(rng: np.random.Generator, gt: dict[str, np.ndarray], frames: int
     src = np.where(near, src, 0)
     if len(g_frame):
         shift = rng.normal(0.0, 1.0, (len(f_frame), 3)) * np.stack(
-            [1.0 + 0.02 * g_loc[src, 2], np.full(len(src), 0.1), 1.0 + 0.02 * g_loc[src, 2]], axis=1)
+            [1.0 + 0.02 * g_loc[src, 2], np.full(len(src), 0.1), 1.0 + 0.02 * g_loc[src, 2]], axis=1
+        )
         f_cls = np.where(near, _GT_AS[g_cls[src]], f_cls)
         f_loc = np.where(near[:, None], g_loc[src] + shift, f_loc)
         f_dims = np.where(near[:, None], g_dims[src] * np.exp(rng.normal(0.0, 0.15, (len(src), 3))), f_dims)
@@ -375,7 +482,7 @@ def _detections(rng: np.random.Generator, gt: dict[str, np.ndarray], frames: int
     bbox, raw, depth = box_corners_image(loc, dims, ry)
     ok, _ = _visible(bbox, raw, depth)
     ok &= np.all(dims > 0, axis=1)
-    fp_ok = ok[len(t_frame):]  # a view: keep the first n_fp visible false positives of each frame
+    fp_ok = ok[len(t_frame) :]  # a view: keep the first n_fp visible false positives of each frame
     fp_ok &= _rank_in_frame(f_frame, fp_ok, frames) < n_fp[f_frame]
     order = np.lexsort((-score, frame))
     order = order[ok[order]]
@@ -396,6 +503,7 @@ def _detections(rng: np.random.Generator, gt: dict[str, np.ndarray], frames: int
 
 # -------------------------------------------------------------------------------------- OpenPCDet dicts
 
+
 def _calib() -> dict[str, np.ndarray]:
     """OpenPCDet's ``calib`` entry: P2 and Tr_velo_to_cam float64 (float32 values), R0_rect float32."""
     p2 = np.concatenate([_P2, np.array([[0.0, 0.0, 0.0, 1.0]])], axis=0)
@@ -407,23 +515,55 @@ def _calib() -> dict[str, np.ndarray]:
 
 
 def _empty_gt_annos() -> dict[str, np.ndarray]:
-    return {"name": np.zeros(0), "truncated": np.zeros(0), "occluded": np.zeros(0), "alpha": np.zeros(0),
-            "bbox": np.zeros((0, 4), np.float32), "dimensions": np.zeros((0, 3)),
-            "location": np.zeros((0, 3), np.float32), "rotation_y": np.zeros(0), "score": np.zeros(0),
-            "difficulty": np.zeros(0, np.int32), "index": np.zeros(0, np.int32),
-            "gt_boxes_lidar": np.zeros((0, 7)), "num_points_in_gt": np.zeros(0, np.int32)}
+    return {
+        "name": np.zeros(0),
+        "truncated": np.zeros(0),
+        "occluded": np.zeros(0),
+        "alpha": np.zeros(0),
+        "bbox": np.zeros((0, 4), np.float32),
+        "dimensions": np.zeros((0, 3)),
+        "location": np.zeros((0, 3), np.float32),
+        "rotation_y": np.zeros(0),
+        "score": np.zeros(0),
+        "difficulty": np.zeros(0, np.int32),
+        "index": np.zeros(0, np.int32),
+        "gt_boxes_lidar": np.zeros((0, 7)),
+        "num_points_in_gt": np.zeros(0, np.int32),
+    }
 
 
 def _empty_prediction(frame_id: str) -> dict[str, Any]:
     """OpenPCDet's ``get_template_prediction(0)`` plus ``frame_id``: float64 zeros, ``name`` included."""
-    return {"name": np.zeros(0), "truncated": np.zeros(0), "occluded": np.zeros(0), "alpha": np.zeros(0),
-            "bbox": np.zeros((0, 4)), "dimensions": np.zeros((0, 3)), "location": np.zeros((0, 3)),
-            "rotation_y": np.zeros(0), "score": np.zeros(0), "boxes_lidar": np.zeros((0, 7)),
-            "frame_id": frame_id}
+    return {
+        "name": np.zeros(0),
+        "truncated": np.zeros(0),
+        "occluded": np.zeros(0),
+        "alpha": np.zeros(0),
+        "bbox": np.zeros((0, 4)),
+        "dimensions": np.zeros((0, 3)),
+        "location": np.zeros((0, 3)),
+        "rotation_y": np.zeros(0),
+        "score": np.zeros(0),
+        "boxes_lidar": np.zeros((0, 7)),
+        "frame_id": frame_id,
+    }
 
 
-_GT_FIELDS = ("name", "truncated", "occluded", "alpha", "bbox", "dimensions", "location", "rotation_y",
-              "score", "difficulty", "index", "gt_boxes_lidar", "num_points_in_gt")
+_GT_FIELDS = (
+    "name",
+    "truncated",
+    "occluded",
+    "alpha",
+    "bbox",
+    "dimensions",
+    "location",
+    "rotation_y",
+    "score",
+    "difficulty",
+    "index",
+    "gt_boxes_lidar",
+    "num_points_in_gt",
+)
 _DET_FIELDS = ("alpha", "bbox", "dimensions", "location", "rotation_y", "score", "boxes_lidar")
 
 
@@ -434,16 +574,21 @@ def _build_infos(gt: dict[str, np.ndarray], frames: int) -> list[dict[str, Any]]
     real = gt["cls"] >= 0
     bbox = gt["bbox"].astype(np.float32)
     cols = {
-        "name": gt["name"], "truncated": gt["truncated"], "occluded": gt["occluded"], "alpha": gt["alpha"],
-        "bbox": bbox, "dimensions": gt["dimensions"], "location": gt["location"].astype(np.float32),
-        "rotation_y": gt["rotation_y"], "score": np.full(len(real), -1.0),
+        "name": gt["name"],
+        "truncated": gt["truncated"],
+        "occluded": gt["occluded"],
+        "alpha": gt["alpha"],
+        "bbox": bbox,
+        "dimensions": gt["dimensions"],
+        "location": gt["location"].astype(np.float32),
+        "rotation_y": gt["rotation_y"],
+        "score": np.full(len(real), -1.0),
         "difficulty": _difficulty(bbox, gt["truncated"], gt["occluded"]),
         "index": np.where(real, np.arange(len(real)) - np.repeat(starts, counts), -1).astype(np.int32),
         "num_points_in_gt": gt["num_points_in_gt"],
     }
     # gt_boxes_lidar has no DontCare rows: (num_obj, 7), from the float32 locations as OpenPCDet's
-    lidar = _camera_to_lidar(cols["location"][real].astype(np.float64), gt["dimensions"][real],
-                             gt["rotation_y"][real])
+    lidar = _camera_to_lidar(cols["location"][real].astype(np.float64), gt["dimensions"][real], gt["rotation_y"][real])
     n_real = np.bincount(gt["frame"][real], minlength=frames)
     real_ends = np.cumsum(n_real)
     # np.array(list_of_names) in OpenPCDet: the width of a frame's longest name
@@ -456,14 +601,25 @@ def _build_infos(gt: dict[str, np.ndarray], frames: int) -> list[dict[str, Any]]
         idx = f"{f:06d}"
         lo, hi = int(starts[f]), int(ends[f])
         if hi > lo:
-            annos = {k: (cols[k][lo:hi].copy() if k != "gt_boxes_lidar" else
-                         lidar[real_ends[f] - n_real[f]:real_ends[f]].copy()) for k in _GT_FIELDS}
+            annos = {
+                k: (
+                    cols[k][lo:hi].copy()
+                    if k != "gt_boxes_lidar"
+                    else lidar[real_ends[f] - n_real[f] : real_ends[f]].copy()
+                )
+                for k in _GT_FIELDS
+            }
             annos["name"] = annos["name"].astype(f"<U{width[f]}")
         else:
             annos = _empty_gt_annos()
-        infos.append({"point_cloud": {"num_features": 4, "lidar_idx": idx},
-                      "image": {"image_idx": idx, "image_shape": np.array(IMAGE_SHAPE, dtype=np.int32)},
-                      "calib": _calib(), "annos": annos})
+        infos.append(
+            {
+                "point_cloud": {"num_features": 4, "lidar_idx": idx},
+                "image": {"image_idx": idx, "image_shape": np.array(IMAGE_SHAPE, dtype=np.int32)},
+                "calib": _calib(),
+                "annos": annos,
+            }
+        )
     return infos
 
 
@@ -492,10 +648,18 @@ def _build_results(det: dict[str, np.ndarray], first: int, numpy_frame_ids: bool
 _CHUNK = 2048
 
 
-def generate(frames: int, seed: int = 0, *, dets_per_frame: float = 10.0, gt_per_frame: float = 6.5,
-             dontcare_per_frame: float = 1.5, empty_gt_frac: float = 0.02, empty_pred_frac: float = 0.02,
-             pred_decimals: int | None = 4, numpy_frame_ids: bool = True,
-             ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+def generate(
+    frames: int,
+    seed: int = 0,
+    *,
+    dets_per_frame: float = 10.0,
+    gt_per_frame: float = 6.5,
+    dontcare_per_frame: float = 1.5,
+    empty_gt_frac: float = 0.02,
+    empty_pred_frac: float = 0.02,
+    pred_decimals: int | None = 4,
+    numpy_frame_ids: bool = True,
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """A synthetic KITTI validation set: ``(infos, results)`` as OpenPCDet's pickles hold them.
 
     Parameters
@@ -518,8 +682,11 @@ def generate(frames: int, seed: int = 0, *, dets_per_frame: float = 10.0, gt_per
     """
     if frames < 0:
         raise ValueError(f"Expected `frames` >= 0, got {frames}")
-    for name, value in (("dets_per_frame", dets_per_frame), ("gt_per_frame", gt_per_frame),
-                        ("dontcare_per_frame", dontcare_per_frame)):
+    for name, value in (
+        ("dets_per_frame", dets_per_frame),
+        ("gt_per_frame", gt_per_frame),
+        ("dontcare_per_frame", dontcare_per_frame),
+    ):
         if not value >= 0:
             raise ValueError(f"Expected `{name}` >= 0, got {value}")
     for name, value in (("empty_gt_frac", empty_gt_frac), ("empty_pred_frac", empty_pred_frac)):
@@ -546,6 +713,7 @@ def generate(frames: int, seed: int = 0, *, dets_per_frame: float = 10.0, gt_per
 
 
 # ------------------------------------------------------------------------------------------------ writers
+
 
 def _dump(path: str | Path, obj: object) -> None:
     path = Path(path)
@@ -580,13 +748,18 @@ def write_label_dir(directory: str | Path, infos: Sequence[dict[str, Any]]) -> N
     for info in infos:
         a = info["annos"]
         lines = []
-        num = np.concatenate([np.asarray(a["truncated"], np.float64)[:, None],
-                              np.asarray(a["occluded"], np.float64)[:, None],
-                              np.asarray(a["alpha"], np.float64)[:, None],
-                              np.asarray(a["bbox"], np.float64).reshape(-1, 4),
-                              np.asarray(a["dimensions"], np.float64).reshape(-1, 3)[:, [1, 2, 0]],
-                              np.asarray(a["location"], np.float64).reshape(-1, 3),
-                              np.asarray(a["rotation_y"], np.float64)[:, None]], axis=1).tolist()
+        num = np.concatenate(
+            [
+                np.asarray(a["truncated"], np.float64)[:, None],
+                np.asarray(a["occluded"], np.float64)[:, None],
+                np.asarray(a["alpha"], np.float64)[:, None],
+                np.asarray(a["bbox"], np.float64).reshape(-1, 4),
+                np.asarray(a["dimensions"], np.float64).reshape(-1, 3)[:, [1, 2, 0]],
+                np.asarray(a["location"], np.float64).reshape(-1, 3),
+                np.asarray(a["rotation_y"], np.float64)[:, None],
+            ],
+            axis=1,
+        ).tolist()
         for name, row in zip(np.asarray(a["name"]).tolist(), num):
             if name == "DontCare":
                 lines.append(_DC_LINE % tuple(row[3:7]))
@@ -600,12 +773,17 @@ def write_result_dir(directory: str | Path, results: Sequence[dict[str, Any]]) -
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     for r in results:
-        num = np.concatenate([np.asarray(r["alpha"], np.float64)[:, None],
-                              np.asarray(r["bbox"], np.float64).reshape(-1, 4),
-                              np.asarray(r["dimensions"], np.float64).reshape(-1, 3)[:, [1, 2, 0]],
-                              np.asarray(r["location"], np.float64).reshape(-1, 3),
-                              np.asarray(r["rotation_y"], np.float64)[:, None],
-                              np.asarray(r["score"], np.float64)[:, None]], axis=1).tolist()
+        num = np.concatenate(
+            [
+                np.asarray(r["alpha"], np.float64)[:, None],
+                np.asarray(r["bbox"], np.float64).reshape(-1, 4),
+                np.asarray(r["dimensions"], np.float64).reshape(-1, 3)[:, [1, 2, 0]],
+                np.asarray(r["location"], np.float64).reshape(-1, 3),
+                np.asarray(r["rotation_y"], np.float64)[:, None],
+                np.asarray(r["score"], np.float64)[:, None],
+            ],
+            axis=1,
+        ).tolist()
         names = np.asarray(r["name"]).tolist() if len(num) else []
         text = "".join(_DET_LINE % (name, *row) + "\n" for name, row in zip(names, num))
         (out / f"{r['frame_id']}.txt").write_text(text)
@@ -622,9 +800,11 @@ def demo_paths() -> tuple[Path, Path]:
 
 # ---------------------------------------------------------------------------------------- command line
 
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m kitti_eval.synth",
-                                     description="Write a synthetic KITTI validation set.")
+    parser = argparse.ArgumentParser(
+        prog="python -m kitti_eval.synth", description="Write a synthetic KITTI validation set."
+    )
     parser.add_argument("--frames", type=int, default=3769)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--dets-per-frame", type=float, default=10.0)
@@ -633,8 +813,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, help="output folder")
     parser.add_argument("--txt", action="store_true", help="also write label_2/ and pred/ txt folders")
     parser.add_argument("--gzip", action="store_true", help="write kitti_infos_val.pkl.gz and result.pkl.gz")
-    parser.add_argument("--demo", action="store_true",
-                        help="(re)write the bundled demo files (kitti_eval/data/demo); ignores the rest")
+    parser.add_argument(
+        "--demo", action="store_true", help="(re)write the bundled demo files (kitti_eval/data/demo); ignores the rest"
+    )
     args = parser.parse_args(argv)
     if args.frames < 0:
         parser.error("--frames must be >= 0")
@@ -645,8 +826,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         infos, results = generate(**DEMO_ARGS)
         gt_path, pred_path = demo_paths()
     else:
-        infos, results = generate(args.frames, args.seed, dets_per_frame=args.dets_per_frame,
-                                  gt_per_frame=args.gt_per_frame, dontcare_per_frame=args.dontcare_per_frame)
+        infos, results = generate(
+            args.frames,
+            args.seed,
+            dets_per_frame=args.dets_per_frame,
+            gt_per_frame=args.gt_per_frame,
+            dontcare_per_frame=args.dontcare_per_frame,
+        )
         ext = ".pkl.gz" if args.gzip else ".pkl"
         gt_path, pred_path = args.out / f"kitti_infos_val{ext}", args.out / f"result{ext}"
     write_infos(gt_path, infos)
@@ -657,8 +843,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     n_gt = sum(len(i["annos"]["name"]) for i in infos)
     n_dc = sum(int(np.sum(i["annos"]["index"] < 0)) for i in infos)
     n_det = sum(len(r["name"]) for r in results)
-    sys.stderr.write(f"synth: {len(infos)} frames, {n_gt - n_dc} objects + {n_dc} DontCare, "
-                     f"{n_det} detections -> {gt_path.parent} ({time.perf_counter() - t0:.1f} s)\n")
+    sys.stderr.write(
+        f"synth: {len(infos)} frames, {n_gt - n_dc} objects + {n_dc} DontCare, "
+        f"{n_det} detections -> {gt_path.parent} ({time.perf_counter() - t0:.1f} s)\n"
+    )
     return 0
 
 

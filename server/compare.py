@@ -17,8 +17,12 @@ _OTHER_GROUND_TRUTH = "the evaluations used different ground truth; the deltas c
 
 
 def _side(record: EvaluationRecord) -> dict[str, Any]:
-    return {"id": record.id, "created_at": iso(record.created_at), "ground_truth":
-            {"name": record.gt_name, "sha256": record.gt_sha256}, "labels": dict(record.labels)}
+    return {
+        "id": record.id,
+        "created_at": iso(record.created_at),
+        "ground_truth": {"name": record.gt_name, "sha256": record.gt_sha256},
+        "labels": dict(record.labels),
+    }
 
 
 def _name(record: EvaluationRecord) -> str:

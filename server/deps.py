@@ -23,12 +23,15 @@ def get_service(request: Request) -> Service:
 
 ServiceDep = Annotated[Service, Depends(get_service)]
 
-_bearer = HTTPBearer(auto_error=False, description="the admin token (KITTI_EVAL_ADMIN_TOKEN, or the one generated "
-                                                   "in <data_dir>/admin-token)")
+_bearer = HTTPBearer(
+    auto_error=False,
+    description="the admin token (KITTI_EVAL_ADMIN_TOKEN, or the one generated in <data_dir>/admin-token)",
+)
 
 
-def require_admin(service: ServiceDep,
-                  credentials: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)]) -> None:
+def require_admin(
+    service: ServiceDep, credentials: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)]
+) -> None:
     """401 without a bearer token, 403 with a wrong one."""
     if credentials is None:
         raise Unauthorized("this action needs the admin token: send 'Authorization: Bearer <token>'")
@@ -38,8 +41,11 @@ def require_admin(service: ServiceDep,
 
 AdminDep = Depends(require_admin)
 
-_MEDIA_TYPES = {"application/json": OutputFormat.JSON, "text/markdown": OutputFormat.MARKDOWN,
-                "text/plain": OutputFormat.TABLE}
+_MEDIA_TYPES = {
+    "application/json": OutputFormat.JSON,
+    "text/markdown": OutputFormat.MARKDOWN,
+    "text/plain": OutputFormat.TABLE,
+}
 
 
 def _from_accept(accept: str) -> OutputFormat:
@@ -59,9 +65,16 @@ def _from_accept(accept: str) -> OutputFormat:
     return best[1] if best else OutputFormat.JSON
 
 
-def negotiate_format(request: Request, format: Annotated[
-        str | None, Query(description="json (default), table (OpenPCDet's text) or markdown; overrides Accept "
-                                      "(application/json, text/plain, text/markdown)")] = None) -> OutputFormat:
+def negotiate_format(
+    request: Request,
+    format: Annotated[
+        str | None,
+        Query(
+            description="json (default), table (OpenPCDet's text) or markdown; overrides Accept "
+            "(application/json, text/plain, text/markdown)"
+        ),
+    ] = None,
+) -> OutputFormat:
     if format is not None:
         try:
             return OutputFormat(format)

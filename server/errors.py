@@ -20,8 +20,19 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from kitti_eval.errors import ConfigError, InputError, KittiEvalError, UnknownFormatError, UnsafePickleError
 
 __all__ = [
-    "ApiError", "NotFound", "Conflict", "Unauthorized", "Forbidden", "Busy", "NotReady", "PayloadTooLarge",
-    "ArchiveError", "BadRequest", "library_error_status", "error_body", "error_response",
+    "ApiError",
+    "NotFound",
+    "Conflict",
+    "Unauthorized",
+    "Forbidden",
+    "Busy",
+    "NotReady",
+    "PayloadTooLarge",
+    "ArchiveError",
+    "BadRequest",
+    "library_error_status",
+    "error_body",
+    "error_response",
     "install_error_handlers",
 ]
 
@@ -121,8 +132,9 @@ def error_body(code: str, message: str, **details: Any) -> dict[str, Any]:
     return {"error": err}
 
 
-def error_response(status: int, code: str, message: str, headers: Mapping[str, str] | None = None,
-                   **details: Any) -> JSONResponse:
+def error_response(
+    status: int, code: str, message: str, headers: Mapping[str, str] | None = None, **details: Any
+) -> JSONResponse:
     return JSONResponse(error_body(code, message, **details), status_code=status, headers=dict(headers or {}))
 
 
@@ -136,8 +148,9 @@ def _status_code_name(status: int) -> str:
 def _location(loc: tuple[Any, ...]) -> str:
     parts = [str(p) for p in loc]
     if parts and parts[0] in ("body", "query", "path", "header"):
-        where = {"body": "form field", "query": "query parameter", "path": "path parameter",
-                 "header": "header"}[parts[0]]
+        where = {"body": "form field", "query": "query parameter", "path": "path parameter", "header": "header"}[
+            parts[0]
+        ]
         return f"{where} '{'.'.join(parts[1:])}'" if len(parts) > 1 else where
     return ".".join(parts)
 

@@ -57,8 +57,15 @@ class EvalOptions:
 
     def config(self) -> EvalConfig:
         """The evaluation these options ask for: the library's reading of them, as for the CLI's flags."""
-        return config_from_options(classes=self.classes, protocol=self.protocol, threshold_sets=self.threshold_sets,
-                                   iou=self.iou, ranges=self.ranges, coco=self.coco, lidar_only=self.lidar_only)
+        return config_from_options(
+            classes=self.classes,
+            protocol=self.protocol,
+            threshold_sets=self.threshold_sets,
+            iou=self.iou,
+            ranges=self.ranges,
+            coco=self.coco,
+            lidar_only=self.lidar_only,
+        )
 
 
 def evaluate_document(gt: Annotations, dt: Annotations, config: EvalConfig, *, curves: bool = False) -> dict[str, Any]:
@@ -72,8 +79,9 @@ def summarize(doc: Mapping[str, Any]) -> dict[str, dict[str, float | None]]:
     """R40 AP at moderate difficulty with the strict thresholds (or the first set), per class and metric."""
     oset = "strict" if "strict" in doc["ap"] else next(iter(doc["ap"]))
     by_class = doc["ap"][oset]["R40"]
-    return {cls: {metric: values.get("moderate") for metric, values in metrics.items()}
-            for cls, metrics in by_class.items()}
+    return {
+        cls: {metric: values.get("moderate") for metric, values in metrics.items()} for cls, metrics in by_class.items()
+    }
 
 
 def parse_labels(fixed: Mapping[str, str | None], extra: Sequence[str]) -> dict[str, str]:

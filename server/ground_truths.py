@@ -57,8 +57,9 @@ class GroundTruthCache:
     """Loaded sets (ground truth, or kept predictions) by sha256, least recently used dropped first; each set
     is loaded once."""
 
-    def __init__(self, max_entries: int, max_bytes: int, *, what: str = "ground truth",
-                 setting: str = "KITTI_EVAL_GT_CACHE_MB") -> None:
+    def __init__(
+        self, max_entries: int, max_bytes: int, *, what: str = "ground truth", setting: str = "KITTI_EVAL_GT_CACHE_MB"
+    ) -> None:
         self.max_entries = max_entries
         self.max_bytes = max_bytes
         self.what = what
@@ -78,8 +79,9 @@ class GroundTruthCache:
     def put(self, key: str, annotations: Annotations) -> None:
         size = annotations_nbytes(annotations)
         if size > self.max_bytes:
-            log.warning("%s %s (%d MB) is larger than the cache (%s); not cached", self.what, key[:12], size >> 20,
-                        self.setting)
+            log.warning(
+                "%s %s (%d MB) is larger than the cache (%s); not cached", self.what, key[:12], size >> 20, self.setting
+            )
             return
         with self._lock:
             self._entries[key] = (annotations, size)
@@ -126,8 +128,10 @@ class GroundTruths:
     @staticmethod
     def check_name(name: str) -> str:
         if not _NAME.fullmatch(name):
-            raise BadRequest(f"ground-truth name {name!r} is not valid: 1-64 letters, digits, '.', '_' or '-', "
-                             "starting with a letter or digit")
+            raise BadRequest(
+                f"ground-truth name {name!r} is not valid: 1-64 letters, digits, '.', '_' or '-', "
+                "starting with a letter or digit"
+            )
         return name
 
     def register(self, name: str, upload: Upload, scratch: Path) -> GroundTruthRecord:
@@ -139,10 +143,16 @@ class GroundTruths:
         upload.file.seek(0)
         content = upload.file.read()
         record = GroundTruthRecord(
-            name=name, sha256=upload.sha256, format=str(loaded.format), filename=upload.filename,
-            storage=self._relative(upload.sha256, loaded.format), size_bytes=upload.size,
-            frames=loaded.annotations.num_frames, boxes=loaded.annotations.num_boxes,
-            created_at=datetime.now(timezone.utc))
+            name=name,
+            sha256=upload.sha256,
+            format=str(loaded.format),
+            filename=upload.filename,
+            storage=self._relative(upload.sha256, loaded.format),
+            size_bytes=upload.size,
+            frames=loaded.annotations.num_frames,
+            boxes=loaded.annotations.num_boxes,
+            created_at=datetime.now(timezone.utc),
+        )
         if not self.store.add_ground_truth(record, content):
             raise Conflict(f"a ground truth named {name!r} exists; delete it first or pick another name")
         self._keep_local(record, content, loaded.folder)
@@ -178,16 +188,18 @@ class GroundTruths:
             return target
         content = self.store.ground_truth_content(record.sha256)
         if content is None:
-            raise GroundTruthUnavailable(f"ground truth {record.name!r} has no stored file; an admin should "
-                                         "register it again")
+            raise GroundTruthUnavailable(
+                f"ground truth {record.name!r} has no stored file; an admin should register it again"
+            )
         scratch = self.root.parent / "tmp" / new_id()
         scratch.mkdir(parents=True)
         try:
             folder = None
             if record.format != str(InputFormat.PICKLE):
                 upload = receive_upload(io.BytesIO(content), record.filename, record.filename)
-                folder, _ = extract_txt_folder(upload.file, InputFormat(record.format), scratch, self.limits,
-                                               record.filename)
+                folder, _ = extract_txt_folder(
+                    upload.file, InputFormat(record.format), scratch, self.limits, record.filename
+                )
             return self._keep_local(record, content, folder)
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
@@ -200,14 +212,18 @@ class GroundTruths:
 
     def load(self, record: GroundTruthRecord) -> Annotations:
         """The loaded set (from the cache, or from storage once)."""
+
         def from_storage() -> Annotations:
             path = self._materialise(record)
             try:
                 return load_ground_truth(path)
             except KittiEvalError as e:
                 log.error("registered ground truth %r cannot be loaded from %s: %s", record.name, path, e)
-                raise GroundTruthUnavailable(f"ground truth {record.name!r} cannot be loaded from the server's "
-                                             "storage; an admin should register it again") from None
+                raise GroundTruthUnavailable(
+                    f"ground truth {record.name!r} cannot be loaded from the server's "
+                    "storage; an admin should register it again"
+                ) from None
+
         return self.cache.get_or_load(record.sha256, from_storage)
 
     def delete(self, name: str) -> GroundTruthRecord:

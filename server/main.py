@@ -65,8 +65,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             service.stop()
 
-    app = FastAPI(title="kitti-eval", version=__version__, description=_DESCRIPTION, lifespan=lifespan,
-                  debug=False)
+    app = FastAPI(title="kitti-eval", version=__version__, description=_DESCRIPTION, lifespan=lifespan, debug=False)
     app.state.service = service
     install_error_handlers(app)
     app.include_router(health.router)
@@ -78,9 +77,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     # outermost last: admission is decided before the body limit starts reading
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
-    app.add_middleware(AdmissionMiddleware, paths=frozenset({"/v1/evaluations", "/ui/evaluations"}),
-                       capacity=lambda: settings.max_concurrent_evals + settings.max_queued_evals,
-                       retry_after_s=lambda: settings.retry_after_s)
+    app.add_middleware(
+        AdmissionMiddleware,
+        paths=frozenset({"/v1/evaluations", "/ui/evaluations"}),
+        capacity=lambda: settings.max_concurrent_evals + settings.max_queued_evals,
+        retry_after_s=lambda: settings.retry_after_s,
+    )
     return app
 
 

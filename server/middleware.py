@@ -27,8 +27,7 @@ class BodyTooLarge(HTTPException):
 
 
 def _too_large_message(limit: int) -> str:
-    return (f"the request body is larger than the upload limit of {limit / (1 << 20):g} MB "
-            "(KITTI_EVAL_MAX_UPLOAD_MB)")
+    return f"the request body is larger than the upload limit of {limit / (1 << 20):g} MB (KITTI_EVAL_MAX_UPLOAD_MB)"
 
 
 async def _send_json(send: Send, status: int, body: dict[str, object], headers: dict[str, str]) -> None:
@@ -52,8 +51,9 @@ class BodyLimitMiddleware:
             return
         declared = _content_length(scope)
         if declared is not None and declared > self.limit:
-            await _send_json(send, 413, error_body("payload_too_large", _too_large_message(self.limit)),
-                             {"connection": "close"})
+            await _send_json(
+                send, 413, error_body("payload_too_large", _too_large_message(self.limit)), {"connection": "close"}
+            )
             return
         seen = 0
 
@@ -87,8 +87,9 @@ class AdmissionMiddleware:
     would refuse.
     """
 
-    def __init__(self, app: ASGIApp, *, paths: frozenset[str], capacity: Callable[[], int],
-                 retry_after_s: Callable[[], int]) -> None:
+    def __init__(
+        self, app: ASGIApp, *, paths: frozenset[str], capacity: Callable[[], int], retry_after_s: Callable[[], int]
+    ) -> None:
         self.app = app
         self.paths = paths
         self.capacity = capacity
@@ -101,9 +102,15 @@ class AdmissionMiddleware:
             return
         if self.in_flight >= self.capacity():
             retry = self.retry_after_s()
-            await _send_json(send, 503, error_body(
-                "busy", f"all evaluation slots are taken ({self.in_flight} requests in progress); "
-                        f"retry in {retry} s"), {"retry-after": str(retry), "connection": "close"})
+            await _send_json(
+                send,
+                503,
+                error_body(
+                    "busy",
+                    f"all evaluation slots are taken ({self.in_flight} requests in progress); retry in {retry} s",
+                ),
+                {"retry-after": str(retry), "connection": "close"},
+            )
             return
         self.in_flight += 1
         try:

@@ -9,9 +9,22 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .store import EvaluationRecord, GroundTruthRecord
 
-__all__ = ["ErrorBody", "ErrorResponse", "EvaluationMeta", "EvaluationResponse", "EvaluationSummary",
-           "EvaluationList", "GroundTruthOut", "GroundTruthList", "Comparison", "Health", "evaluation_meta",
-           "evaluation_response", "evaluation_summary", "ground_truth_out"]
+__all__ = [
+    "ErrorBody",
+    "ErrorResponse",
+    "EvaluationMeta",
+    "EvaluationResponse",
+    "EvaluationSummary",
+    "EvaluationList",
+    "GroundTruthOut",
+    "GroundTruthList",
+    "Comparison",
+    "Health",
+    "evaluation_meta",
+    "evaluation_response",
+    "evaluation_summary",
+    "ground_truth_out",
+]
 
 APValues = dict[str, dict[str, dict[str, dict[str, dict[str, float | None]]]]]
 
@@ -75,7 +88,8 @@ class EvaluationSummary(BaseModel):
     evaluation: EvaluationMeta
     protocol: str
     summary: dict[str, dict[str, float | None]] = Field(
-        description="R40 AP at moderate difficulty, strict thresholds: summary[class][metric]")
+        description="R40 AP at moderate difficulty, strict thresholds: summary[class][metric]"
+    )
 
 
 class EvaluationList(BaseModel):
@@ -109,8 +123,10 @@ class Comparison(BaseModel):
     resamples: int
     seed: int | None
     notes: list[str]
-    values: list[dict[str, Any]] = Field(description="every value both have: key Class/metric/difficulty/"
-                                                     "recall/set, a, b, delta = b - a (null where either is)")
+    values: list[dict[str, Any]] = Field(
+        description="every value both have: key Class/metric/difficulty/"
+        "recall/set, a, b, delta = b - a (null where either is)"
+    )
     num_det: dict[str, int] = Field(description="detections per class, other - base")
     frames: int | None
 
@@ -128,8 +144,12 @@ def evaluation_meta(record: EvaluationRecord) -> dict[str, Any]:
     return {
         "created_at": iso(record.created_at),
         "ground_truth": {"name": record.gt_name, "sha256": record.gt_sha256},
-        "predictions": {"filename": record.pred_filename, "sha256": record.pred_sha256, "size": record.pred_size,
-                        "format": record.pred_format},
+        "predictions": {
+            "filename": record.pred_filename,
+            "sha256": record.pred_sha256,
+            "size": record.pred_size,
+            "format": record.pred_format,
+        },
         "labels": dict(record.labels),
         "duration_ms": record.duration_ms,
     }
@@ -141,11 +161,22 @@ def evaluation_response(record: EvaluationRecord) -> dict[str, Any]:
 
 
 def evaluation_summary(record: EvaluationRecord) -> dict[str, Any]:
-    return {"id": record.id, "evaluation": evaluation_meta(record), "protocol": record.protocol,
-            "summary": dict(record.summary)}
+    return {
+        "id": record.id,
+        "evaluation": evaluation_meta(record),
+        "protocol": record.protocol,
+        "summary": dict(record.summary),
+    }
 
 
 def ground_truth_out(record: GroundTruthRecord) -> dict[str, Any]:
-    return {"name": record.name, "sha256": record.sha256, "format": record.format, "filename": record.filename,
-            "size_bytes": record.size_bytes, "frames": record.frames, "boxes": record.boxes,
-            "created_at": iso(record.created_at)}
+    return {
+        "name": record.name,
+        "sha256": record.sha256,
+        "format": record.format,
+        "filename": record.filename,
+        "size_bytes": record.size_bytes,
+        "frames": record.frames,
+        "boxes": record.boxes,
+        "created_at": iso(record.created_at),
+    }

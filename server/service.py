@@ -62,13 +62,16 @@ class Service:
         self.settings = settings
         self.data_dir = settings.data_dir.resolve()
         self.store = Store(settings.resolved_database_url)
-        self.limits = Limits(max_unpacked_bytes=settings.max_unpacked_bytes,
-                             max_members=settings.max_archive_members)
-        self.ground_truths = GroundTruths(self.store, self.data_dir / "ground-truths",
-                                          GroundTruthCache(settings.gt_cache_entries, settings.gt_cache_bytes),
-                                          self.limits)
-        self.predictions = GroundTruthCache(settings.pred_cache_entries, settings.gt_cache_bytes,
-                                            what="predictions", setting="KITTI_EVAL_GT_CACHE_MB")
+        self.limits = Limits(max_unpacked_bytes=settings.max_unpacked_bytes, max_members=settings.max_archive_members)
+        self.ground_truths = GroundTruths(
+            self.store,
+            self.data_dir / "ground-truths",
+            GroundTruthCache(settings.gt_cache_entries, settings.gt_cache_bytes),
+            self.limits,
+        )
+        self.predictions = GroundTruthCache(
+            settings.pred_cache_entries, settings.gt_cache_bytes, what="predictions", setting="KITTI_EVAL_GT_CACHE_MB"
+        )
         self.admin_token = ""
         self.warm = threading.Event()
         self.warmup_error: str | None = None
@@ -170,13 +173,21 @@ class Service:
             shutil.rmtree(path, ignore_errors=True)
 
     # -- evaluations ------------------------------------------------------------------------------------
-    def evaluate(self, predictions: FileIn, gt_name: str | None, gt_file: FileIn | None, options: EvalOptions,
-                 labels: Mapping[str, str]) -> EvaluationRecord:
+    def evaluate(
+        self,
+        predictions: FileIn,
+        gt_name: str | None,
+        gt_file: FileIn | None,
+        options: EvalOptions,
+        labels: Mapping[str, str],
+    ) -> EvaluationRecord:
         """Load, evaluate, store (committed) and return the record."""
         started = time.perf_counter()
         if (gt_name is None) == (gt_file is None):
-            raise BadRequest("give the ground truth either by name (form field 'gt', e.g. 'demo'; GET "
-                             "/v1/ground-truths lists them) or as a file (form field 'gt_file'), not both")
+            raise BadRequest(
+                "give the ground truth either by name (form field 'gt', e.g. 'demo'; GET "
+                "/v1/ground-truths lists them) or as a file (form field 'gt_file'), not both"
+            )
         config = options.config()  # bad options fail before any upload is read
         gt_record = self.ground_truths.record(gt_name) if gt_name is not None else None
         with self.scratch() as scratch:
@@ -197,14 +208,29 @@ class Service:
                 self.store.add_prediction_file(pred.sha256, pred.file.read())
                 self.predictions.put(pred.sha256, loaded.annotations)
         record = EvaluationRecord(
-            id=new_id(), created_at=datetime.now(timezone.utc), gt_name=gt_name, gt_sha256=gt_sha256,
-            pred_filename=pred.filename, pred_sha256=pred.sha256, pred_format=str(loaded.format),
-            pred_size=pred.size, protocol=doc["protocol"],
-            duration_ms=round((time.perf_counter() - started) * 1000, 3), summary=summarize(doc), result=doc,
-            labels=dict(labels), options=options.to_dict())
+            id=new_id(),
+            created_at=datetime.now(timezone.utc),
+            gt_name=gt_name,
+            gt_sha256=gt_sha256,
+            pred_filename=pred.filename,
+            pred_sha256=pred.sha256,
+            pred_format=str(loaded.format),
+            pred_size=pred.size,
+            protocol=doc["protocol"],
+            duration_ms=round((time.perf_counter() - started) * 1000, 3),
+            summary=summarize(doc),
+            result=doc,
+            labels=dict(labels),
+            options=options.to_dict(),
+        )
         self.store.add_evaluation(record)
-        log.info("evaluation %s: %s frames against %s in %.0f ms", record.id, doc["frames"],
-                 gt_name or "an uploaded ground truth", record.duration_ms)
+        log.info(
+            "evaluation %s: %s frames against %s in %.0f ms",
+            record.id,
+            doc["frames"],
+            gt_name or "an uploaded ground truth",
+            record.duration_ms,
+        )
         return record
 
     def evaluation(self, evaluation_id: str) -> EvaluationRecord:
@@ -217,46 +243,72 @@ class Service:
     def _kept_inputs(self, record: EvaluationRecord) -> tuple[Annotations, Annotations, EvalConfig]:
         """The ground truth, predictions and options of a stored evaluation, for looking at its frames."""
         if record.gt_name is None:
-            raise Conflict(f"evaluation {record.id} used a ground truth uploaded with the request, which is not "
-                           "kept; frames can be looked at for evaluations against a registered ground truth")
+            raise Conflict(
+                f"evaluation {record.id} used a ground truth uploaded with the request, which is not "
+                "kept; frames can be looked at for evaluations against a registered ground truth"
+            )
         if record.options is None:
-            raise Conflict(f"evaluation {record.id} was stored without its options; upload the predictions again "
-                           "to look at its frames")
+            raise Conflict(
+                f"evaluation {record.id} was stored without its options; upload the predictions again "
+                "to look at its frames"
+            )
         gt_record = self.store.get_ground_truth(record.gt_name)
         if gt_record is None or gt_record.sha256 != record.gt_sha256:
-            raise Conflict(f"the ground truth {record.gt_name!r} of evaluation {record.id} has been deleted or "
-                           "replaced since; its frames cannot be looked at")
+            raise Conflict(
+                f"the ground truth {record.gt_name!r} of evaluation {record.id} has been deleted or "
+                "replaced since; its frames cannot be looked at"
+            )
         config = EvalOptions.from_dict(record.options).config()
         gt = self.ground_truths.load(gt_record)
 
         def load_kept() -> Annotations:
             content = self.store.prediction_content(record.pred_sha256)
             if content is None:
-                raise Conflict(f"the predictions of evaluation {record.id} were not kept "
-                               "(KITTI_EVAL_KEEP_PREDICTIONS was off); upload them again to look at frames")
+                raise Conflict(
+                    f"the predictions of evaluation {record.id} were not kept "
+                    "(KITTI_EVAL_KEEP_PREDICTIONS was off); upload them again to look at frames"
+                )
             with self.scratch() as scratch:
                 upload = receive_upload(io.BytesIO(content), record.pred_filename, record.pred_filename)
                 return load_upload(upload, "detections", scratch, self.limits, keep_lidar=True).annotations
 
         return gt, self.predictions.get_or_load(record.pred_sha256, load_kept), config
 
-    def frames(self, evaluation_id: str, *, cls: str = "Car", metric: str = "3d", difficulty: str = "moderate",
-               oset: str = "strict", worst: int | None = 20, score_threshold: float = 0.0) -> dict[str, Any]:
+    def frames(
+        self,
+        evaluation_id: str,
+        *,
+        cls: str = "Car",
+        metric: str = "3d",
+        difficulty: str = "moderate",
+        oset: str = "strict",
+        worst: int | None = 20,
+        score_threshold: float = 0.0,
+    ) -> dict[str, Any]:
         """TP/FP/FN per frame of a stored evaluation (the ``worst`` n first, or all), as
         :func:`kitti_eval.diagnostics.frames_document`."""
         if worst is not None and worst < 1:
             raise BadRequest("worst must be at least 1")
         record = self.evaluation(evaluation_id)
         gt, dt, config = self._kept_inputs(record)
-        stats = frame_stats(gt, dt, config, cls=cls, metric=metric, difficulty=difficulty, oset=oset,
-                            score_threshold=score_threshold)
+        stats = frame_stats(
+            gt, dt, config, cls=cls, metric=metric, difficulty=difficulty, oset=oset, score_threshold=score_threshold
+        )
         doc = frames_document(stats, worst=worst)
         doc["evaluation"] = record.id
         return doc
 
-    def inspect(self, evaluation_ids: Sequence[str], frame_id: str, *, cls: str = "Car", metric: str = "3d",
-                difficulty: str = "moderate", oset: str = "strict",
-                score_threshold: float | None = None) -> dict[str, Any]:
+    def inspect(
+        self,
+        evaluation_ids: Sequence[str],
+        frame_id: str,
+        *,
+        cls: str = "Car",
+        metric: str = "3d",
+        difficulty: str = "moderate",
+        oset: str = "strict",
+        score_threshold: float | None = None,
+    ) -> dict[str, Any]:
         """One frame's boxes for several stored evaluations against the same ground truth, labelled by the
         matching (:func:`kitti_eval.inspection.inspect_frame`, under the first evaluation's options)."""
         ids = list(dict.fromkeys(evaluation_ids))
@@ -266,8 +318,9 @@ class Service:
             raise BadRequest(f"at most {MAX_INSPECTED} evaluations in one frame view")
         records = [self.evaluation(i) for i in ids]
         if len({r.gt_sha256 for r in records}) > 1:
-            raise Conflict("these evaluations used different ground truths; a frame view compares evaluations "
-                           "against the same one")
+            raise Conflict(
+                "these evaluations used different ground truths; a frame view compares evaluations against the same one"
+            )
         try:
             fid = normalize_frame_id(frame_id)
         except (TypeError, ValueError) as e:
@@ -277,8 +330,17 @@ class Service:
         if fid not in gt.frame_index():
             raise NotFound(f"no frame {fid} in the ground truth {records[0].gt_name!r}")
         names = unique_names([r.labels.get("model") or model_name(r.pred_filename) for r in records])
-        report = inspect_frame(gt, [(n, dt) for n, (_, dt, _) in zip(names, inputs)], fid, config, cls=cls,
-                               metric=metric, difficulty=difficulty, oset=oset, score_threshold=score_threshold)
+        report = inspect_frame(
+            gt,
+            [(n, dt) for n, (_, dt, _) in zip(names, inputs)],
+            fid,
+            config,
+            cls=cls,
+            metric=metric,
+            difficulty=difficulty,
+            oset=oset,
+            score_threshold=score_threshold,
+        )
         for name, record in zip(names, records):
             report["models"][name]["evaluation"] = record.id
             report["models"][name]["source"] = record.pred_filename

@@ -17,8 +17,9 @@ _MB = 1 << 20
 class Settings(BaseSettings):
     """Everything the service can be told; each field is also ``KITTI_EVAL_<FIELD>`` in the environment."""
 
-    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore", env_ignore_empty=True,
-                                      validate_default=True)
+    model_config = SettingsConfigDict(
+        env_prefix=ENV_PREFIX, extra="ignore", env_ignore_empty=True, validate_default=True
+    )
 
     data_dir: Path = Path("kitti-eval-data")
     """Holds the SQLite database (when ``database_url`` is unset), registered ground truths, the generated
@@ -80,7 +81,7 @@ class Settings(BaseSettings):
             return None
         for prefix in ("postgres://", "postgresql://"):
             if url.startswith(prefix):
-                return "postgresql+psycopg://" + url[len(prefix):]
+                return "postgresql+psycopg://" + url[len(prefix) :]
         return url
 
     @property

@@ -40,19 +40,29 @@ from sqlalchemy.dialects.postgresql import JSONB
 from sqlalchemy.engine import Engine, RowMapping
 from sqlalchemy.exc import IntegrityError
 
-__all__ = ["Store", "GroundTruthRecord", "EvaluationRecord", "metadata", "ground_truths", "ground_truth_files",
-           "evaluations", "evaluation_labels", "prediction_files"]
+__all__ = [
+    "Store",
+    "GroundTruthRecord",
+    "EvaluationRecord",
+    "metadata",
+    "ground_truths",
+    "ground_truth_files",
+    "evaluations",
+    "evaluation_labels",
+    "prediction_files",
+]
 
 metadata = MetaData()
 _JSON = JSON().with_variant(JSONB(), "postgresql")
 
 ground_truths = Table(
-    "ground_truths", metadata,
+    "ground_truths",
+    metadata,
     Column("name", String(64), primary_key=True),
     Column("sha256", String(64), nullable=False),
-    Column("format", String(16), nullable=False),        # pickle | zip | tar
-    Column("filename", String(255), nullable=False),     # the uploader's name for the file
-    Column("storage", String(255), nullable=False),      # path under the data folder
+    Column("format", String(16), nullable=False),  # pickle | zip | tar
+    Column("filename", String(255), nullable=False),  # the uploader's name for the file
+    Column("storage", String(255), nullable=False),  # path under the data folder
     Column("size_bytes", BigInteger, nullable=False),
     Column("frames", Integer, nullable=False),
     Column("boxes", Integer, nullable=False),
@@ -61,16 +71,18 @@ ground_truths = Table(
 
 #: the registered files themselves, by content, so that any server on the same database can load them
 ground_truth_files = Table(
-    "ground_truth_files", metadata,
+    "ground_truth_files",
+    metadata,
     Column("sha256", String(64), primary_key=True),
     Column("content", LargeBinary, nullable=False),
 )
 
 evaluations = Table(
-    "evaluations", metadata,
+    "evaluations",
+    metadata,
     Column("id", String(32), primary_key=True),
     Column("created_at", DateTime(timezone=True), nullable=False),
-    Column("gt_name", String(64), nullable=True),        # None: ground truth uploaded with the request
+    Column("gt_name", String(64), nullable=True),  # None: ground truth uploaded with the request
     Column("gt_sha256", String(64), nullable=False),
     Column("pred_filename", String(255), nullable=False),
     Column("pred_sha256", String(64), nullable=False),
@@ -78,22 +90,24 @@ evaluations = Table(
     Column("pred_size", BigInteger, nullable=False),
     Column("protocol", String(16), nullable=False),
     Column("duration_ms", Float, nullable=False),
-    Column("summary", _JSON, nullable=False),            # strict R40 moderate AP per class and metric
-    Column("result", _JSON, nullable=False),             # the document `kitti-eval --format json` prints
-    Column("options", _JSON, nullable=True),             # the request's options (None: stored before they were)
+    Column("summary", _JSON, nullable=False),  # strict R40 moderate AP per class and metric
+    Column("result", _JSON, nullable=False),  # the document `kitti-eval --format json` prints
+    Column("options", _JSON, nullable=True),  # the request's options (None: stored before they were)
     Index("ix_evaluations_created", "created_at", "id"),
     Index("ix_evaluations_gt", "gt_name", "created_at"),
 )
 
 #: uploaded predictions by content, kept so that frames of an evaluation can be looked at later
 prediction_files = Table(
-    "prediction_files", metadata,
+    "prediction_files",
+    metadata,
     Column("sha256", String(64), primary_key=True),
     Column("content", LargeBinary, nullable=False),
 )
 
 evaluation_labels = Table(
-    "evaluation_labels", metadata,
+    "evaluation_labels",
+    metadata,
     Column("evaluation_id", String(32), ForeignKey("evaluations.id", ondelete="CASCADE"), primary_key=True),
     Column("key", String(64), primary_key=True),
     Column("value", String(256), nullable=False),
@@ -183,8 +197,9 @@ class Store:
         for _ in range(2):  # a concurrent registration of the same file may insert its content first
             try:
                 with self.engine.begin() as conn:
-                    known = conn.execute(select(ground_truth_files.c.sha256)
-                                         .where(ground_truth_files.c.sha256 == record.sha256)).first()
+                    known = conn.execute(
+                        select(ground_truth_files.c.sha256).where(ground_truth_files.c.sha256 == record.sha256)
+                    ).first()
                     if known is None:
                         conn.execute(insert(ground_truth_files).values(sha256=record.sha256, content=content))
                     conn.execute(insert(ground_truths).values(**record.__dict__))
@@ -196,8 +211,9 @@ class Store:
 
     def ground_truth_content(self, sha256: str) -> bytes | None:
         with self.engine.connect() as conn:
-            row = conn.execute(select(ground_truth_files.c.content)
-                               .where(ground_truth_files.c.sha256 == sha256)).first()
+            row = conn.execute(
+                select(ground_truth_files.c.content).where(ground_truth_files.c.sha256 == sha256)
+            ).first()
         return None if row is None else bytes(row[0])
 
     def get_ground_truth(self, name: str) -> GroundTruthRecord | None:
@@ -217,8 +233,9 @@ class Store:
             if row is None:
                 return None, False
             conn.execute(delete(ground_truths).where(ground_truths.c.name == name))
-            shared = conn.execute(select(func.count()).select_from(ground_truths)
-                                  .where(ground_truths.c.sha256 == row["sha256"])).scalar_one()
+            shared = conn.execute(
+                select(func.count()).select_from(ground_truths).where(ground_truths.c.sha256 == row["sha256"])
+            ).scalar_one()
             if not shared:
                 conn.execute(delete(ground_truth_files).where(ground_truth_files.c.sha256 == row["sha256"]))
         return self._gt(row), bool(shared)
@@ -234,16 +251,17 @@ class Store:
         """Keep an uploaded predictions file (once per content)."""
         try:
             with self.engine.begin() as conn:
-                if conn.execute(select(prediction_files.c.sha256)
-                                .where(prediction_files.c.sha256 == sha256)).first() is None:
+                if (
+                    conn.execute(select(prediction_files.c.sha256).where(prediction_files.c.sha256 == sha256)).first()
+                    is None
+                ):
                     conn.execute(insert(prediction_files).values(sha256=sha256, content=content))
         except IntegrityError:  # the same file, kept concurrently by another request
             pass
 
     def prediction_content(self, sha256: str) -> bytes | None:
         with self.engine.connect() as conn:
-            row = conn.execute(select(prediction_files.c.content)
-                               .where(prediction_files.c.sha256 == sha256)).first()
+            row = conn.execute(select(prediction_files.c.content).where(prediction_files.c.sha256 == sha256)).first()
         return None if row is None else bytes(row[0])
 
     # -- evaluations -----------------------------------------------------------------------------------
@@ -252,8 +270,10 @@ class Store:
         with self.engine.begin() as conn:
             conn.execute(insert(evaluations).values(**values))
             if record.labels:
-                conn.execute(insert(evaluation_labels),
-                             [{"evaluation_id": record.id, "key": k, "value": v} for k, v in record.labels.items()])
+                conn.execute(
+                    insert(evaluation_labels),
+                    [{"evaluation_id": record.id, "key": k, "value": v} for k, v in record.labels.items()],
+                )
 
     def get_evaluation(self, evaluation_id: str) -> EvaluationRecord | None:
         with self.engine.connect() as conn:
@@ -263,16 +283,22 @@ class Store:
             labels = self._labels(conn, [evaluation_id])
         return self._evaluation(row, labels.get(evaluation_id, {}))
 
-    def list_evaluations(self, *, gt_name: str | None = None, labels: Mapping[str, str] | None = None,
-                         limit: int = 50, offset: int = 0) -> list[EvaluationRecord]:
+    def list_evaluations(
+        self, *, gt_name: str | None = None, labels: Mapping[str, str] | None = None, limit: int = 50, offset: int = 0
+    ) -> list[EvaluationRecord]:
         """Newest first, without the full results (the summary is there)."""
         columns = [c for c in evaluations.c if c.name != "result"]
         query = select(*columns)
         if gt_name is not None:
             query = query.where(evaluations.c.gt_name == gt_name)
         for key, value in (labels or {}).items():
-            query = query.where(exists().where(evaluation_labels.c.evaluation_id == evaluations.c.id,
-                                               evaluation_labels.c.key == key, evaluation_labels.c.value == value))
+            query = query.where(
+                exists().where(
+                    evaluation_labels.c.evaluation_id == evaluations.c.id,
+                    evaluation_labels.c.key == key,
+                    evaluation_labels.c.value == value,
+                )
+            )
         query = query.order_by(evaluations.c.created_at.desc(), evaluations.c.id.desc()).limit(limit).offset(offset)
         with self.engine.connect() as conn:
             rows = conn.execute(query).mappings().all()
@@ -284,8 +310,11 @@ class Store:
         out: dict[str, dict[str, str]] = {}
         if not ids:
             return out
-        rows = conn.execute(select(evaluation_labels).where(evaluation_labels.c.evaluation_id.in_(ids))
-                            .order_by(evaluation_labels.c.key))
+        rows = conn.execute(
+            select(evaluation_labels)
+            .where(evaluation_labels.c.evaluation_id.in_(ids))
+            .order_by(evaluation_labels.c.key)
+        )
         for eid, key, value in rows:
             out.setdefault(eid, {})[key] = value
         return out

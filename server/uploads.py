@@ -29,8 +29,17 @@ from kitti_eval.safe_pickle import load_pickle
 
 from .errors import ArchiveError
 
-__all__ = ["InputFormat", "Limits", "Upload", "Loaded", "receive_upload", "sniff", "extract_txt_folder",
-           "load_upload", "clean_filename"]
+__all__ = [
+    "InputFormat",
+    "Limits",
+    "Upload",
+    "Loaded",
+    "receive_upload",
+    "sniff",
+    "extract_txt_folder",
+    "load_upload",
+    "clean_filename",
+]
 
 _CHUNK = 1 << 20
 
@@ -54,9 +63,12 @@ class Limits:
 
     @property
     def archive(self) -> ArchiveLimits:
-        return ArchiveLimits(max_members=self.max_members, max_unpacked_bytes=self.max_unpacked_bytes,
-                             members_setting="KITTI_EVAL_MAX_ARCHIVE_MEMBERS",
-                             bytes_setting="KITTI_EVAL_MAX_UNPACKED_MB")
+        return ArchiveLimits(
+            max_members=self.max_members,
+            max_unpacked_bytes=self.max_unpacked_bytes,
+            members_setting="KITTI_EVAL_MAX_ARCHIVE_MEMBERS",
+            bytes_setting="KITTI_EVAL_MAX_UNPACKED_MB",
+        )
 
 
 @dataclass(frozen=True)
@@ -98,6 +110,7 @@ def receive_upload(file: IO[bytes], filename: str | None, default_name: str) -> 
 
 # ------------------------------------------------------------------------------------------- sniffing
 
+
 def sniff(file: IO[bytes], source: str) -> InputFormat:
     """What an upload is, from its content: the library's test (:func:`kitti_eval.archives.sniff_input`), so a
     file loads the same way here and through the CLI."""
@@ -106,8 +119,10 @@ def sniff(file: IO[bytes], source: str) -> InputFormat:
 
 # ------------------------------------------------------------------------------------------ archives
 
-def extract_txt_folder(file: IO[bytes], fmt: InputFormat, dest: Path, limits: Limits,
-                       source: str) -> tuple[Path, dict[str, str]]:
+
+def extract_txt_folder(
+    file: IO[bytes], fmt: InputFormat, dest: Path, limits: Limits, source: str
+) -> tuple[Path, dict[str, str]]:
     """Unpack the txt files of an archive into ``dest``; returns their folder and {path: member name}.
 
     :func:`kitti_eval.archives.extract_txt_folder` does the work; its refusals become ArchiveError (same
@@ -126,6 +141,7 @@ def extract_txt_folder(file: IO[bytes], fmt: InputFormat, dest: Path, limits: Li
 
 
 # -------------------------------------------------------------------------------------------- loading
+
 
 def _relabel(e: InputError, names: dict[str, str], source: str) -> InputError:
     """The same error with the scratch path replaced by 'upload:member' (no server paths reach clients)."""

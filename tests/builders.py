@@ -10,24 +10,57 @@ import numpy as np
 from kitti_eval.frames import Annotations
 
 
-def box(name: str = "Car", *, x: float = 0.0, z: float = 20.0, y: float = 1.6, dims: Sequence[float] = (3.9, 1.5, 1.6),
-        ry: float = 0.0, alpha: float = 0.0, x1: float = 100.0, y1: float = 150.0, width_px: float = 80.0,
-        height_px: float = 60.0, truncated: float = 0.0, occluded: float = 0.0, score: float | None = None,
-        bbox: Sequence[float] | None = None) -> dict[str, Any]:
+def box(
+    name: str = "Car",
+    *,
+    x: float = 0.0,
+    z: float = 20.0,
+    y: float = 1.6,
+    dims: Sequence[float] = (3.9, 1.5, 1.6),
+    ry: float = 0.0,
+    alpha: float = 0.0,
+    x1: float = 100.0,
+    y1: float = 150.0,
+    width_px: float = 80.0,
+    height_px: float = 60.0,
+    truncated: float = 0.0,
+    occluded: float = 0.0,
+    score: float | None = None,
+    bbox: Sequence[float] | None = None,
+) -> dict[str, Any]:
     """One object; dims are (l, h, w); bbox defaults to (x1, y1, x1 + width_px, y1 + height_px)."""
-    b = dict(name=name, truncated=truncated, occluded=occluded, alpha=alpha,
-             bbox=list(bbox) if bbox is not None else [x1, y1, x1 + width_px, y1 + height_px],
-             dimensions=list(dims), location=[x, y, z], rotation_y=ry)
+    b = dict(
+        name=name,
+        truncated=truncated,
+        occluded=occluded,
+        alpha=alpha,
+        bbox=list(bbox) if bbox is not None else [x1, y1, x1 + width_px, y1 + height_px],
+        dimensions=list(dims),
+        location=[x, y, z],
+        rotation_y=ry,
+    )
     if score is not None:
         b["score"] = score
     return b
 
 
-def dontcare(bbox: Sequence[float], *, location: Sequence[float] = (-1000.0, -1000.0, -1000.0),
-             dims: Sequence[float] = (-1.0, -1.0, -1.0)) -> dict[str, Any]:
+def dontcare(
+    bbox: Sequence[float],
+    *,
+    location: Sequence[float] = (-1000.0, -1000.0, -1000.0),
+    dims: Sequence[float] = (-1.0, -1.0, -1.0),
+) -> dict[str, Any]:
     """A KITTI DontCare line: a 2D region, with the -1000 / -1 placeholders for 3D unless given."""
-    return dict(name="DontCare", truncated=-1.0, occluded=-1.0, alpha=-10.0, bbox=list(bbox),
-                dimensions=list(dims), location=list(location), rotation_y=-10.0)
+    return dict(
+        name="DontCare",
+        truncated=-1.0,
+        occluded=-1.0,
+        alpha=-10.0,
+        bbox=list(bbox),
+        dimensions=list(dims),
+        location=list(location),
+        rotation_y=-10.0,
+    )
 
 
 def annotations(kind: str, frames: Sequence[Sequence[dict[str, Any]]], ids: Sequence[str] | None = None) -> Annotations:

@@ -43,8 +43,10 @@ def bev_polygon(box) -> Polygon:
     u = (math.cos(ry), -math.sin(ry))
     v = (math.sin(ry), math.cos(ry))
     hl, hw = abs(l) / 2, abs(w) / 2
-    corners = [(x + sl * hl * u[0] + sw * hw * v[0], z + sl * hl * u[1] + sw * hw * v[1])
-               for sl, sw in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+    corners = [
+        (x + sl * hl * u[0] + sw * hw * v[0], z + sl * hl * u[1] + sw * hw * v[1])
+        for sl, sw in ((1, 1), (-1, 1), (-1, -1), (1, -1))
+    ]
     return Polygon(corners)
 
 

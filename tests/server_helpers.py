@@ -38,6 +38,7 @@ def golden_bytes(name: str) -> bytes:
 
 # ------------------------------------------------------------------------------------------ in-process
 
+
 @contextlib.contextmanager
 def app_client(data_dir: Path, **settings: Any) -> Iterator[TestClient]:
     """A TestClient on a fresh app (lifespan run), waiting until /readyz says ready."""
@@ -61,9 +62,16 @@ def wait_ready(get: Any, timeout: float = READY_TIMEOUT_S) -> None:
         time.sleep(0.05)
 
 
-def upload(client: Any, data: bytes, filename: str = "result.pkl", *, gt: str | None = "demo",
-           fields: dict[str, Any] | None = None, params: dict[str, str] | None = None,
-           gt_file: tuple[str, bytes] | None = None) -> httpx.Response:
+def upload(
+    client: Any,
+    data: bytes,
+    filename: str = "result.pkl",
+    *,
+    gt: str | None = "demo",
+    fields: dict[str, Any] | None = None,
+    params: dict[str, str] | None = None,
+    gt_file: tuple[str, bytes] | None = None,
+) -> httpx.Response:
     form = dict(fields or {})
     if gt is not None:
         form["gt"] = gt
@@ -73,10 +81,15 @@ def upload(client: Any, data: bytes, filename: str = "result.pkl", *, gt: str | 
     return client.post("/v1/evaluations", data=form, files=files, params=params or {})
 
 
-def register(client: Any, name: str, data: bytes, filename: str,
-             headers: dict[str, str] | None = None) -> httpx.Response:
-    return client.post("/v1/ground-truths", data={"name": name}, files={"file": (filename, data)},
-                       headers=ADMIN if headers is None else headers)
+def register(
+    client: Any, name: str, data: bytes, filename: str, headers: dict[str, str] | None = None
+) -> httpx.Response:
+    return client.post(
+        "/v1/ground-truths",
+        data={"name": name},
+        files={"file": (filename, data)},
+        headers=ADMIN if headers is None else headers,
+    )
 
 
 def assert_error(response: httpx.Response, status: int | tuple[int, ...], *needles: str) -> dict[str, Any]:
@@ -94,6 +107,7 @@ def assert_error(response: httpx.Response, status: int | tuple[int, ...], *needl
 
 
 # ------------------------------------------------------------------------------------------ archives
+
 
 def tar_of(files: dict[str, bytes], compression: str = "gz") -> bytes:
     buf = io.BytesIO()
@@ -125,6 +139,7 @@ def golden_txt(archive: str) -> dict[str, bytes]:
 
 # ------------------------------------------------------------------------------------------ real server
 
+
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -153,8 +168,23 @@ class LiveServer:
         log = open(self.log_path, "ab")  # noqa: SIM115 - closed in stop()
         self._log = log
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "server.main:app", "--host", "127.0.0.1", "--port", str(self.port),
-             "--log-level", "warning"], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+            [
+                sys.executable,
+                "-m",
+                "uvicorn",
+                "server.main:app",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(self.port),
+                "--log-level",
+                "warning",
+            ],
+            cwd=ROOT,
+            env=env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
         deadline = time.monotonic() + timeout
         with httpx.Client(base_url=self.url, timeout=5) as client:
             while True:

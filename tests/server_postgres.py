@@ -28,8 +28,10 @@ def find_postgres_bin() -> Path | None:
         folder = Path(found).resolve().parent
         if (folder / "initdb").exists():
             return folder
-    candidates = sorted(glob.glob("/usr/lib/postgresql/*/bin/pg_ctl"),
-                        key=lambda p: [int(x) if x.isdigit() else 0 for x in Path(p).parts[-3].split(".")])
+    candidates = sorted(
+        glob.glob("/usr/lib/postgresql/*/bin/pg_ctl"),
+        key=lambda p: [int(x) if x.isdigit() else 0 for x in Path(p).parts[-3].split(".")],
+    )
     return Path(candidates[-1]).parent if candidates else None
 
 
@@ -40,8 +42,10 @@ def _as_nobody() -> bool:
 def why_no_postgres() -> str | None:
     """None when a cluster can be started here, else the reason to skip."""
     if find_postgres_bin() is None:
-        return ("no PostgreSQL binaries (pg_ctl/initdb on PATH or /usr/lib/postgresql/*/bin); "
-                "install Debian's 'postgresql' package to run this test")
+        return (
+            "no PostgreSQL binaries (pg_ctl/initdb on PATH or /usr/lib/postgresql/*/bin); "
+            "install Debian's 'postgresql' package to run this test"
+        )
     if _as_nobody() and shutil.which("runuser") is None:
         return "running as root and 'runuser' is missing, so the cluster cannot run as an unprivileged user"
     return None
@@ -73,15 +77,29 @@ class PostgresCluster:
             cmd = ["runuser", "-u", "nobody", "--", *cmd]
         proc = subprocess.run(cmd, cwd=self.root, capture_output=True, text=True, timeout=timeout)
         if proc.returncode != 0:
-            raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}\n"
-                               f"{self.log()}")
+            raise RuntimeError(
+                f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}\n{self.log()}"
+            )
 
     def start(self) -> PostgresCluster:
-        self._run("initdb", "-D", str(self.data), "-U", "postgres", "--auth=trust", "-E", "UTF8", "--locale=C",
-                  "--no-sync")
+        self._run(
+            "initdb", "-D", str(self.data), "-U", "postgres", "--auth=trust", "-E", "UTF8", "--locale=C", "--no-sync"
+        )
         options = f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1 -c max_connections=60"
-        self._run("pg_ctl", "-D", str(self.data), "-o", options, "-l", str(self.root / "postgres.log"), "-w",
-                  "-t", "60", "start", timeout=90)
+        self._run(
+            "pg_ctl",
+            "-D",
+            str(self.data),
+            "-o",
+            options,
+            "-l",
+            str(self.root / "postgres.log"),
+            "-w",
+            "-t",
+            "60",
+            "start",
+            timeout=90,
+        )
         self.started = True
         self._wait_accepting()
         return self
@@ -92,8 +110,9 @@ class PostgresCluster:
         deadline = time.monotonic() + timeout
         while True:
             try:
-                with psycopg.connect(host="127.0.0.1", port=self.port, user="postgres", dbname="postgres",
-                                     connect_timeout=2):
+                with psycopg.connect(
+                    host="127.0.0.1", port=self.port, user="postgres", dbname="postgres", connect_timeout=2
+                ):
                     return
             except psycopg.OperationalError:
                 if time.monotonic() > deadline:

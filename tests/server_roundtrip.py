@@ -29,19 +29,28 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--runs", type=int, default=5)
     args = parser.parse_args(argv)
     pred = args.pred.read_bytes()
-    with tempfile.TemporaryDirectory() as tmp, LiveServer(Path(tmp) / "data", max_upload_mb=256,
-                                                          max_unpacked_mb=1024) as server:
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        LiveServer(Path(tmp) / "data", max_upload_mb=256, max_unpacked_mb=1024) as server,
+    ):
         with server.client(timeout=300) as c:
             t0 = time.perf_counter()
-            r = c.post("/v1/ground-truths", data={"name": "kitti-val"}, headers=ADMIN,
-                       files={"file": (args.gt.name, args.gt.read_bytes())})
+            r = c.post(
+                "/v1/ground-truths",
+                data={"name": "kitti-val"},
+                headers=ADMIN,
+                files={"file": (args.gt.name, args.gt.read_bytes())},
+            )
             r.raise_for_status()
             print(f"register ground truth: {time.perf_counter() - t0:.2f} s, {r.json()['frames']} frames")  # noqa: T201
 
             def once() -> tuple[float, float]:
                 t = time.perf_counter()
-                resp = c.post("/v1/evaluations", data={"gt": "kitti-val"},
-                              files={"predictions": (args.pred.name, pred, "application/octet-stream")})
+                resp = c.post(
+                    "/v1/evaluations",
+                    data={"gt": "kitti-val"},
+                    files={"predictions": (args.pred.name, pred, "application/octet-stream")},
+                )
                 elapsed = time.perf_counter() - t
                 resp.raise_for_status()
                 return elapsed, resp.json()["evaluation"]["duration_ms"] / 1000
@@ -51,9 +60,11 @@ def main(argv: list[str] | None = None) -> int:
             runs = [once() for _ in range(args.runs)]
     walls = [w for w, _ in runs]
     servers = [s for _, s in runs]
-    print(f"{args.pred.name}: {len(pred) / 1e6:.1f} MB, {args.runs} warm uploads: round trip "  # noqa: T201
-          f"median {statistics.median(walls):.2f} s (min {min(walls):.2f}, max {max(walls):.2f}); "
-          f"server-side median {statistics.median(servers):.2f} s")
+    print(
+        f"{args.pred.name}: {len(pred) / 1e6:.1f} MB, {args.runs} warm uploads: round trip "  # noqa: T201
+        f"median {statistics.median(walls):.2f} s (min {min(walls):.2f}, max {max(walls):.2f}); "
+        f"server-side median {statistics.median(servers):.2f} s"
+    )
     return 0
 
 

@@ -26,8 +26,9 @@ def checkpoints(tmp_path):
         for r in results:
             n = len(r["score"])
             keep = np.arange(n) % keep_every == 0
-            thinned.append({k: (v[keep] if isinstance(v, np.ndarray) and v.shape[:1] == (n,) else v)
-                            for k, v in r.items()})
+            thinned.append(
+                {k: (v[keep] if isinstance(v, np.ndarray) and v.shape[:1] == (n,) else v) for k, v in r.items()}
+            )
         p = tmp_path / "output" / "pointpillar" / "eval" / f"epoch_{epoch}" / "val" / "result.pkl"
         p.parent.mkdir(parents=True)
         p.write_bytes(pickle.dumps(thinned))
@@ -51,8 +52,25 @@ def test_batch_equals_single_evaluations(capsys, checkpoints):
 def test_batch_table_names_the_best_and_plots(capsys, checkpoints, tmp_path):
     root, paths = checkpoints
     png = tmp_path / "ap.png"
-    assert main(["--gt", str(GT), "--pred", str(paths[0]), "--pred", str(paths[1]), "--plot", str(png),
-                 "--value", "Car/3d/moderate", "--value", "Car/bev/hard/R11"]) == 0
+    assert (
+        main(
+            [
+                "--gt",
+                str(GT),
+                "--pred",
+                str(paths[0]),
+                "--pred",
+                str(paths[1]),
+                "--plot",
+                str(png),
+                "--value",
+                "Car/3d/moderate",
+                "--value",
+                "Car/bev/hard/R11",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out.splitlines()
     assert out[0].split()[:3] == ["checkpoint", "Car/3d/moderate/R40/strict", "Car/bev/hard/R11/strict"]
     assert out[1].startswith("epoch 2") and out[2].startswith("epoch 10") and out[2].endswith("<- best")
@@ -84,11 +102,26 @@ def test_plot_dir_writes_pr_curves_and_overlays(capsys, checkpoints, tmp_path):
     out = tmp_path / "curves"
     assert main(["--gt", str(GT), "--pred", str(checkpoints[1][1]), "--plot-dir", str(out)]) == 0
     names = sorted(p.name for p in out.iterdir())
-    assert names == sorted(f"{c}_{m}_strict.png" for c in ("Car", "Pedestrian", "Cyclist")
-                           for m in ("bbox", "bev", "3d", "aos"))
+    assert names == sorted(
+        f"{c}_{m}_strict.png" for c in ("Car", "Pedestrian", "Cyclist") for m in ("bbox", "bev", "3d", "aos")
+    )
     assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in out.iterdir())
     over = tmp_path / "overlay"
-    assert main(["--gt", str(GT), "--pred", str(checkpoints[1][0]), "--pred", str(checkpoints[1][1]),
-                 "--plot-dir", str(over)]) == 0
-    assert sorted(p.name for p in over.iterdir()) == [f"{c}_3d_moderate_overlay.png"
-                                                      for c in ("Car", "Cyclist", "Pedestrian")]
+    assert (
+        main(
+            [
+                "--gt",
+                str(GT),
+                "--pred",
+                str(checkpoints[1][0]),
+                "--pred",
+                str(checkpoints[1][1]),
+                "--plot-dir",
+                str(over),
+            ]
+        )
+        == 0
+    )
+    assert sorted(p.name for p in over.iterdir()) == [
+        f"{c}_3d_moderate_overlay.png" for c in ("Car", "Cyclist", "Pedestrian")
+    ]

@@ -36,6 +36,7 @@ def test_every_frame_once_reproduces_evaluate(case, protocol):
 
 def _keys(doc):
     from kitti_eval.gate import keys_of
+
     return keys_of(doc)
 
 
@@ -55,8 +56,11 @@ def test_weights_zero_outside_a_subset_equal_evaluating_the_subset():
 
 
 def _as_annotations(kind, frames, source):
-    return Annotations.from_frames(kind, source, [((r.get("frame_id") or r["image"]["image_idx"]),
-                                                   r if kind == "detections" else r["annos"]) for r in frames])
+    return Annotations.from_frames(
+        kind,
+        source,
+        [((r.get("frame_id") or r["image"]["image_idx"]), r if kind == "detections" else r["annos"]) for r in frames],
+    )
 
 
 def test_interval_covers_a_known_difference_and_is_zero_when_nothing_changed():
@@ -97,8 +101,24 @@ def test_cli_compare_and_significant_gate(capsys, tmp_path):
 
     g = GOLDEN / "small"
     gt, pred = g / "kitti_infos_val.pkl", g / "result.pkl"
-    assert main(["compare", str(pred), str(pred), "--gt", str(gt), "--bootstrap", "50", "--format", "json",
-                 "--classes", "Car"]) == 0
+    assert (
+        main(
+            [
+                "compare",
+                str(pred),
+                str(pred),
+                "--gt",
+                str(gt),
+                "--bootstrap",
+                "50",
+                "--format",
+                "json",
+                "--classes",
+                "Car",
+            ]
+        )
+        == 0
+    )
     doc = json.loads(capsys.readouterr().out)
     assert doc["resamples"] == 50 and all(v["delta"] in (0.0, None) for v in doc["values"])
     assert all(v["interval95"] == [0.0, 0.0] for v in doc["values"] if v["a"] is not None)
@@ -109,7 +129,25 @@ def test_cli_compare_and_significant_gate(capsys, tmp_path):
     assert "Car/3d/moderate/R40/strict" in capsys.readouterr().out
     assert main(["compare", str(saved), str(pred), "--gt", str(gt), "--bootstrap", "10"]) == 2
     # the gate with --significant: identical predictions cannot drop significantly
-    assert main(["gate", "--gt", str(gt), "--pred", str(pred), "--baseline", str(pred), "--max-drop", "0",
-                 "--significant", "--bootstrap", "30", "--classes", "Car"]) == 0
-    assert main(["gate", "--result", str(saved), "--baseline", str(saved), "--max-drop", "0",
-                 "--significant"]) == 2
+    assert (
+        main(
+            [
+                "gate",
+                "--gt",
+                str(gt),
+                "--pred",
+                str(pred),
+                "--baseline",
+                str(pred),
+                "--max-drop",
+                "0",
+                "--significant",
+                "--bootstrap",
+                "30",
+                "--classes",
+                "Car",
+            ]
+        )
+        == 0
+    )
+    assert main(["gate", "--result", str(saved), "--baseline", str(saved), "--max-drop", "0", "--significant"]) == 2

@@ -39,8 +39,12 @@ def test_table_reproduces_openpcdet_layout(capsys):
     def row(key, digits):
         return ", ".join(f"{expected[f'Car_{key}/{d}_R40']:.{digits}f}" for d in ("easy", "moderate", "hard"))
 
-    assert r40 == ["bbox AP:" + row("image", 4), "bev  AP:" + row("bev", 4), "3d   AP:" + row("3d", 4),
-                   "aos  AP:" + row("aos", 2)]
+    assert r40 == [
+        "bbox AP:" + row("image", 4),
+        "bev  AP:" + row("bev", 4),
+        "3d   AP:" + row("3d", 4),
+        "aos  AP:" + row("aos", 2),
+    ]
 
 
 def test_json_schema_has_every_key(capsys):
@@ -67,8 +71,9 @@ def test_markdown_has_a_row_per_class_and_metric(capsys):
 
 
 def test_custom_iou_and_classes(capsys):
-    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--format", "json", "--classes", "Car",
-                       "--iou", "Car:strict=0.5,0.5,0.5")
+    code, out, _ = run(
+        capsys, "--gt", GT, "--pred", PRED, "--format", "json", "--classes", "Car", "--iou", "Car:strict=0.5,0.5,0.5"
+    )
     doc = json.loads(out)
     assert code == 0 and doc["classes"] == ["Car"]
     assert doc["overlaps"]["Car"]["strict"] == {"bbox": 0.5, "bev": 0.5, "3d": 0.5}
@@ -78,13 +83,16 @@ def test_custom_iou_and_classes(capsys):
     assert loose >= strict
 
 
-@pytest.mark.parametrize("argv", [
-    [],
-    ["--gt", "x"],
-    ["--gt", "a", "--pred", "b", "--protocol", "nope"],
-    ["--gt", "a", "--pred", "b", "--iou", "Car=0.7"],
-    ["--gt", "a", "--pred", "b", "--format", "xml"],
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        [],
+        ["--gt", "x"],
+        ["--gt", "a", "--pred", "b", "--protocol", "nope"],
+        ["--gt", "a", "--pred", "b", "--iou", "Car=0.7"],
+        ["--gt", "a", "--pred", "b", "--format", "xml"],
+    ],
+)
 def test_usage_errors_exit_2(capsys, argv):
     code, out, err = run(capsys, *argv)
     assert code == 2 and out == ""
@@ -94,8 +102,9 @@ def test_usage_errors_exit_2(capsys, argv):
 def test_unknown_class_without_thresholds_is_a_usage_error(capsys):
     code, _, err = run(capsys, "--gt", GT, "--pred", PRED, "--classes", "Bus")
     assert code == 2 and "Bus" in err and "Traceback" not in err
-    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--classes", "Car,Bus", "--iou", "Bus=0.7,0.7,0.7",
-                       "--format", "json")
+    code, out, _ = run(
+        capsys, "--gt", GT, "--pred", PRED, "--classes", "Car,Bus", "--iou", "Bus=0.7,0.7,0.7", "--format", "json"
+    )
     assert code == 0 and json.loads(out)["ap"]["strict"]["R40"]["Bus"]["3d"]["easy"] is None
 
 
@@ -110,6 +119,7 @@ def test_hostile_pickle_exits_1_without_running(capsys, tmp_path):
     class Evil:
         def __reduce__(self):
             import os
+
             return (os.system, (f"touch {canary}",))
 
     bad = tmp_path / "result.pkl"
@@ -205,8 +215,9 @@ def test_lidar_only_and_protocol_file_flags(capsys, tmp_path):
     assert code == 0 and doc["classes"] == ["Car"] and doc["protocol"] == "openpcdet"
     assert doc["overlaps"]["Car"]["strict"] == {"bbox": 0.7, "bev": 0.6, "3d": 0.6}
     # a flag on the command line wins over the file
-    code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--protocol-file", f, "--protocol", "official",
-                       "--format", "json")
+    code, out, _ = run(
+        capsys, "--gt", GT, "--pred", PRED, "--protocol-file", f, "--protocol", "official", "--format", "json"
+    )
     assert json.loads(out)["protocol"] == "official"
     f.write_text("nonsense = 1\n")
     assert run(capsys, "--gt", GT, "--pred", PRED, "--protocol-file", f)[0] == 2

@@ -34,16 +34,25 @@ from kitti_eval.safe_pickle import load_pickle
 from kitti_eval.synth import generate
 
 SMALL = Path(__file__).parent / "data" / "golden" / "small"
-CATEGORIES = {"Pedestrian": 0, "Cyclist": 1, "Car": 2, "Van": 3, "Truck": 4, "Person_sitting": 5, "Tram": 6,
-              "Misc": 7, "DontCare": -1}
+CATEGORIES = {
+    "Pedestrian": 0,
+    "Cyclist": 1,
+    "Car": 2,
+    "Van": 3,
+    "Truck": 4,
+    "Person_sitting": 5,
+    "Tram": 6,
+    "Misc": 7,
+    "DontCare": -1,
+}
 CAMERA = ("location", "dimensions", "rotation_y", "alpha", "bbox")
 
 
 # --------------------------------------------------------------------------------------------- helpers
 
+
 def golden():
-    return (load_pickle(SMALL / "kitti_infos_val.pkl", source="gt"),
-            load_pickle(SMALL / "result.pkl", source="pred"))
+    return (load_pickle(SMALL / "kitti_infos_val.pkl", source="gt"), load_pickle(SMALL / "result.pkl", source="pred"))
 
 
 def flat_ap(result) -> dict[tuple, float | None]:
@@ -82,22 +91,41 @@ def to_mmdet3d_infos(infos: list[dict]) -> dict:
         instances = []
         for j in range(len(a["name"])):
             label = CATEGORIES[str(a["name"][j])]
-            instances.append({
-                "bbox": [float(v) for v in a["bbox"][j]], "bbox_label": label,
-                "bbox_3d": [float(v) for v in (*a["location"][j], *a["dimensions"][j], a["rotation_y"][j])],
-                "bbox_label_3d": label, "truncated": float(a["truncated"][j]), "occluded": int(a["occluded"][j]),
-                "alpha": float(a["alpha"][j]), "difficulty": 0, "index": j, "group_id": j,
-            })
+            instances.append(
+                {
+                    "bbox": [float(v) for v in a["bbox"][j]],
+                    "bbox_label": label,
+                    "bbox_3d": [float(v) for v in (*a["location"][j], *a["dimensions"][j], a["rotation_y"][j])],
+                    "bbox_label_3d": label,
+                    "truncated": float(a["truncated"][j]),
+                    "occluded": int(a["occluded"][j]),
+                    "alpha": float(a["alpha"][j]),
+                    "difficulty": 0,
+                    "index": j,
+                    "group_id": j,
+                }
+            )
         p2 = np.eye(4)
         p2[:3] = calib.p2
-        data_list.append({
-            "sample_idx": int(info["image"]["image_idx"]),
-            "images": {"CAM2": {"img_path": f"{info['image']['image_idx']}.png", "height": h, "width": w,
-                                "cam2img": p2.tolist(), "lidar2cam": calib.velo_to_rect.tolist()}},
-            "instances": instances,
-        })
-    return {"metainfo": {"categories": dict(CATEGORIES), "dataset": "kitti", "info_version": "1.1"},
-            "data_list": data_list}
+        data_list.append(
+            {
+                "sample_idx": int(info["image"]["image_idx"]),
+                "images": {
+                    "CAM2": {
+                        "img_path": f"{info['image']['image_idx']}.png",
+                        "height": h,
+                        "width": w,
+                        "cam2img": p2.tolist(),
+                        "lidar2cam": calib.velo_to_rect.tolist(),
+                    }
+                },
+                "instances": instances,
+            }
+        )
+    return {
+        "metainfo": {"categories": dict(CATEGORIES), "dataset": "kitti", "info_version": "1.1"},
+        "data_list": data_list,
+    }
 
 
 def to_mmdet3d_results(results: list[dict]) -> list[dict]:
@@ -164,6 +192,7 @@ def reference():
 
 # ------------------------------------------------------------------------------------ mmdetection3d 1.x
 
+
 def test_mmdet3d_infos_and_results_give_the_golden_ap(reference, tmp_path):
     infos, results = golden()
     gt_path = dump(tmp_path / "kitti_infos_val.pkl", to_mmdet3d_infos(infos))
@@ -215,6 +244,7 @@ def test_mmdet3d_pickle_with_torch_is_refused(tmp_path):
 
 # ------------------------------------------------------------------------------------------- archives
 
+
 def test_zip_and_tar_archives_equal_the_txt_route(tmp_path):
     label_dir, pred_dir = txt_folders(tmp_path)
     txt = evaluate(load_ground_truth(label_dir), load_detections(pred_dir))
@@ -227,26 +257,32 @@ def test_zip_and_tar_archives_equal_the_txt_route(tmp_path):
 
 
 def test_archive_prefers_label_2_or_data(tmp_path):
-    both = zip_of({"training/label_2/000000.txt": GOOD_LINE[:-5] + b"\n", "training/calib/000000.txt": b"P0: 1\n"},
-                  tmp_path / "a.zip")
+    both = zip_of(
+        {"training/label_2/000000.txt": GOOD_LINE[:-5] + b"\n", "training/calib/000000.txt": b"P0: 1\n"},
+        tmp_path / "a.zip",
+    )
     assert load_ground_truth(both).num_boxes == 1
-    result = tar_of({"final_result/data/000007.txt": GOOD_LINE, "final_result/x/000001.txt": GOOD_LINE},
-                    tmp_path / "r.tar.gz")
+    result = tar_of(
+        {"final_result/data/000007.txt": GOOD_LINE, "final_result/x/000001.txt": GOOD_LINE}, tmp_path / "r.tar.gz"
+    )
     assert load_detections(result).frame_ids == ("000007",)
     two = zip_of({"a/000000.txt": GOOD_LINE, "b/000001.txt": GOOD_LINE}, tmp_path / "two.zip")
     with pytest.raises(InputError, match="several folders"):
         load_detections(two)
 
 
-@pytest.mark.parametrize("members, message", [
-    ({"../000000.txt": GOOD_LINE}, "outside"),
-    ({"/etc/000000.txt": GOOD_LINE}, "absolute"),
-    ({"pred/0\x1b.txt": GOOD_LINE}, "control characters"),
-    ({"pred/readme.md": b"x"}, "no .txt files"),
-])
+@pytest.mark.parametrize(
+    "members, message",
+    [
+        ({"../000000.txt": GOOD_LINE}, "outside"),
+        ({"/etc/000000.txt": GOOD_LINE}, "absolute"),
+        ({"pred/0\x1b.txt": GOOD_LINE}, "control characters"),
+        ({"pred/readme.md": b"x"}, "no .txt files"),
+    ],
+)
 @pytest.mark.parametrize("container", ["zip", "tar"])
 def test_unsafe_archives_are_refused(tmp_path, members, message, container):
-    path = (zip_of(members, tmp_path / "p.zip") if container == "zip" else tar_of(members, tmp_path / "p.tar.gz"))
+    path = zip_of(members, tmp_path / "p.zip") if container == "zip" else tar_of(members, tmp_path / "p.tar.gz")
     with pytest.raises(InputError, match=message):
         load_detections(path)
 
@@ -265,7 +301,7 @@ def test_zip_symlink_and_limits(tmp_path):
     path = tmp_path / "s.zip"
     with zipfile.ZipFile(path, "w") as zf:
         info = zipfile.ZipInfo("pred/000000.txt")
-        info.external_attr = (0o120777 << 16)
+        info.external_attr = 0o120777 << 16
         zf.writestr(info, "/etc/passwd")
     with pytest.raises(InputError, match="link"):
         load_detections(path)
@@ -286,6 +322,7 @@ def test_zip_symlink_and_limits(tmp_path):
 
 # ---------------------------------------------------------------------------------------------- split
 
+
 def test_split_subsets_ground_truth_and_drops_other_predictions(tmp_path, capsys):
     infos, results = golden()
     ids = [f"{i:06d}" for i in range(0, 50, 2)]
@@ -296,20 +333,37 @@ def test_split_subsets_ground_truth_and_drops_other_predictions(tmp_path, capsys
     gt, dt = load_pair(SMALL / "kitti_infos_val.pkl", SMALL / "result.pkl", split=split, warnings=warnings)
     assert gt.frame_ids == tuple(ids) and set(dt.frame_ids) <= set(ids)
     assert any("25 frames outside the split" in w for w in warnings)
-    want = evaluate(annotations_from_object([infos[i] for i in range(0, 50, 2)], "ground_truth", source="g"),
-                    annotations_from_object([results[i] for i in range(0, 50, 2)], "detections", source="p"))
+    want = evaluate(
+        annotations_from_object([infos[i] for i in range(0, 50, 2)], "ground_truth", source="g"),
+        annotations_from_object([results[i] for i in range(0, 50, 2)], "detections", source="p"),
+    )
     assert max_ap_difference(evaluate(gt, dt), want) == 0.0
     out = tmp_path / "r.json"
-    code = main(["--gt", str(SMALL / "kitti_infos_val.pkl"), "--pred", str(SMALL / "result.pkl"),
-                 "--split", str(split), "--format", "json", "--output", str(out)])
+    code = main(
+        [
+            "--gt",
+            str(SMALL / "kitti_infos_val.pkl"),
+            "--pred",
+            str(SMALL / "result.pkl"),
+            "--split",
+            str(split),
+            "--format",
+            "json",
+            "--output",
+            str(out),
+        ]
+    )
     assert code == 0
     assert "25 frames outside the split" in capsys.readouterr().err
     split.write_text("000000\n999999\n")
-    assert main(["--gt", str(SMALL / "kitti_infos_val.pkl"), "--pred", str(SMALL / "result.pkl"),
-                 "--split", str(split)]) == 1
+    assert (
+        main(["--gt", str(SMALL / "kitti_infos_val.pkl"), "--pred", str(SMALL / "result.pkl"), "--split", str(split)])
+        == 1
+    )
 
 
 # -------------------------------------------------------------------------------------- LiDAR-only boxes
+
 
 def test_lidar_to_camera_reproduces_the_synthetic_camera_fields():
     infos, results = generate(30, seed=3, pred_decimals=None)
@@ -349,16 +403,66 @@ def test_lidar_only_predictions_evaluate_like_their_camera_fields(reference, tmp
     with pytest.raises(InputError, match="calibration"):
         load_detections(path)
     # through the CLI, and with mmdetection3d infos as the source of calibration
-    assert main(["--gt", str(SMALL / "kitti_infos_val.pkl"), "--pred", str(path), "--quiet",
-                 "--output", str(tmp_path / "o.txt")]) == 0
+    assert (
+        main(
+            [
+                "--gt",
+                str(SMALL / "kitti_infos_val.pkl"),
+                "--pred",
+                str(path),
+                "--quiet",
+                "--output",
+                str(tmp_path / "o.txt"),
+            ]
+        )
+        == 0
+    )
     # the subcommands that evaluate load the pair the same way
-    assert main(["frames", "--gt", str(SMALL / "kitti_infos_val.pkl"), "--pred", str(path),
-                 "--output", str(tmp_path / "f.txt")]) == 0
-    assert main(["compare", str(SMALL / "result.pkl"), str(path), "--gt", str(SMALL / "kitti_infos_val.pkl"),
-                 "--output", str(tmp_path / "c.txt")]) == 0
+    assert (
+        main(
+            [
+                "frames",
+                "--gt",
+                str(SMALL / "kitti_infos_val.pkl"),
+                "--pred",
+                str(path),
+                "--output",
+                str(tmp_path / "f.txt"),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "compare",
+                str(SMALL / "result.pkl"),
+                str(path),
+                "--gt",
+                str(SMALL / "kitti_infos_val.pkl"),
+                "--output",
+                str(tmp_path / "c.txt"),
+            ]
+        )
+        == 0
+    )
     inspect_out = tmp_path / "i.txt"
-    assert main(["inspect", "--gt", str(SMALL / "kitti_infos_val.pkl"), "--pred", str(path), "--frame",
-                 gt.frame_ids[0], "--output", str(inspect_out)]) == 0
+    assert (
+        main(
+            [
+                "inspect",
+                "--gt",
+                str(SMALL / "kitti_infos_val.pkl"),
+                "--pred",
+                str(path),
+                "--frame",
+                gt.frame_ids[0],
+                "--output",
+                str(inspect_out),
+            ]
+        )
+        == 0
+    )
     mm = dump(tmp_path / "mm.pkl", to_mmdet3d_infos(infos))
     gt2, dt2 = load_pair(mm, path)
     assert np.abs(dt2.location - dt.location).max() < 1e-9
@@ -385,17 +489,38 @@ def test_camera_lidar_disagreement_warns(tmp_path, capsys):
 
 # ----------------------------------------------------------------------------------------- the CLI
 
+
 def test_cli_format_options(tmp_path):
     infos, results = golden()
     gt_path = dump(tmp_path / "gt.pkl", to_mmdet3d_infos(infos))
     pred_path = dump(tmp_path / "pred.pkl", to_mmdet3d_results(results))
     out = tmp_path / "o.json"
-    assert main(["--gt", str(gt_path), "--pred", str(pred_path), "--gt-format", "mmdet3d_infos",
-                 "--pred-format", "mmdet3d_results", "--format", "json", "--output", str(out), "-q"]) == 0
+    assert (
+        main(
+            [
+                "--gt",
+                str(gt_path),
+                "--pred",
+                str(pred_path),
+                "--gt-format",
+                "mmdet3d_infos",
+                "--pred-format",
+                "mmdet3d_results",
+                "--format",
+                "json",
+                "--output",
+                str(out),
+                "-q",
+            ]
+        )
+        == 0
+    )
     assert main(["--gt", str(gt_path), "--pred", str(pred_path), "--gt-format", "openpcdet_infos"]) == 1
     assert main(["--gt", str(gt_path), "--pred", str(pred_path), "--gt-format", "bogus"]) == 2
-    assert main(["--gt", str(SMALL / "label_2.tar.gz"), "--pred", str(SMALL / "pred.tar.gz"), "-q",
-                 "--output", str(out)]) == 0
+    assert (
+        main(["--gt", str(SMALL / "label_2.tar.gz"), "--pred", str(SMALL / "pred.tar.gz"), "-q", "--output", str(out)])
+        == 0
+    )
 
 
 def test_describe_reports(tmp_path, capsys):
@@ -422,12 +547,14 @@ def test_pointpillars_dicts_keyed_by_frame_give_the_golden_ap(reference, tmp_pat
     """PointPillars writes {int frame id: info} infos and {int frame id: annos} results."""
     infos, results = golden()
     gt_path = dump(tmp_path / "infos.pkl", {int(i["image"]["image_idx"]): i for i in infos})
-    pred_path = dump(tmp_path / "results.pkl", {int(r["frame_id"]): {k: v for k, v in r.items() if k != "frame_id"}
-                                                for r in results})
+    pred_path = dump(
+        tmp_path / "results.pkl", {int(r["frame_id"]): {k: v for k, v in r.items() if k != "frame_id"} for r in results}
+    )
     assert max_ap_difference(evaluate(load_ground_truth(gt_path), load_detections(pred_path)), reference) <= 1e-9
 
 
 # ------------------------------------------------------------------- one test of what a file is, CLI and service
+
 
 def _same_file_cases(tmp_path: Path) -> dict[str, tuple[str, bytes]]:
     import gzip as gz
@@ -451,8 +578,16 @@ def _same_file_cases(tmp_path: Path) -> dict[str, tuple[str, bytes]]:
     }
 
 
-@pytest.mark.parametrize("case", ["a zip named like a pickle", "a pickle named like a zip",
-                                  "a gzipped pickle named like a tar", "a single KITTI txt file", "something else"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "a zip named like a pickle",
+        "a pickle named like a zip",
+        "a gzipped pickle named like a tar",
+        "a single KITTI txt file",
+        "something else",
+    ],
+)
 def test_a_file_loads_the_same_way_through_the_cli_and_the_service(tmp_path: Path, case: str) -> None:
     """The CLI's loader and the service's upload path decide what a file is by the same test of its content,
     whatever its name: the same boxes, or the same refusal."""
@@ -463,9 +598,17 @@ def test_a_file_loads_the_same_way_through_the_cli_and_the_service(tmp_path: Pat
     path.parent.mkdir()
     path.write_bytes(data)
     outcomes = []
-    for load in (lambda: load_detections(path),
-                 lambda: load_upload(receive_upload(io.BytesIO(data), name, "upload"), "detections",
-                                     tmp_path / "scratch", Limits(1 << 30, 1000)).annotations):
+    for load in (
+        lambda: load_detections(path),
+        lambda: (
+            load_upload(
+                receive_upload(io.BytesIO(data), name, "upload"),
+                "detections",
+                tmp_path / "scratch",
+                Limits(1 << 30, 1000),
+            ).annotations
+        ),
+    ):
         try:
             dt = load()
             outcomes.append(("loaded", dt.frame_ids, dt.num_boxes, dt.score.tolist()))

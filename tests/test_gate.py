@@ -29,8 +29,16 @@ GT, PRED = GOLDEN / "kitti_infos_val.pkl", GOLDEN / "result.pkl"
 
 def doc(values: dict[str, float | None], classes=("Car", "Pedestrian")) -> dict:
     """A minimal result document: every value 50.0 unless given as 'Class/metric/difficulty' (R40, strict)."""
-    ap = {oset: {r: {c: {m: dict.fromkeys(("easy", "moderate", "hard"), 50.0) for m in ("bbox", "bev", "3d", "aos")}
-                     for c in classes} for r in ("R11", "R40")} for oset in ("strict", "loose")}
+    ap = {
+        oset: {
+            r: {
+                c: {m: dict.fromkeys(("easy", "moderate", "hard"), 50.0) for m in ("bbox", "bev", "3d", "aos")}
+                for c in classes
+            }
+            for r in ("R11", "R40")
+        }
+        for oset in ("strict", "loose")
+    }
     for key, v in values.items():
         k = ValueKey.parse(key)
         ap[k.oset][k.recall][k.cls][k.metric][k.difficulty] = v
@@ -55,8 +63,13 @@ def test_floor_on_a_class_the_result_lacks_is_bad_input():
 
 
 def test_required_class_must_be_evaluated():
-    nulls = {f"Pedestrian/{m}/{d}/{r}/{s}": None for m in ("bbox", "bev", "3d", "aos")
-             for d in ("easy", "moderate", "hard") for r in ("R11", "R40") for s in ("strict", "loose")}
+    nulls = {
+        f"Pedestrian/{m}/{d}/{r}/{s}": None
+        for m in ("bbox", "bev", "3d", "aos")
+        for d in ("easy", "moderate", "hard")
+        for r in ("R11", "R40")
+        for s in ("strict", "loose")
+    }
     verdict = run_gate(doc(nulls), GateRules(require_classes=("Car", "Pedestrian", "Cyclist")))
     failed = {c.key: c.message for c in verdict.failures}
     assert set(failed) == {"Pedestrian", "Cyclist"}
@@ -66,8 +79,8 @@ def test_required_class_must_be_evaluated():
 def test_max_drop_against_baseline():
     base = doc({"Car/3d/moderate": 80.0})
     rules = GateRules(max_drops=(MaxDrop(0.5),))
-    assert run_gate(doc({"Car/3d/moderate": 79.5}), rules, base).passed       # drop 0.5: allowed
-    verdict = run_gate(doc({"Car/3d/moderate": 79.4}), rules, base)           # drop 0.6: not
+    assert run_gate(doc({"Car/3d/moderate": 79.5}), rules, base).passed  # drop 0.5: allowed
+    verdict = run_gate(doc({"Car/3d/moderate": 79.4}), rules, base)  # drop 0.6: not
     assert [c.key for c in verdict.failures] == ["Car/3d/moderate/R40/strict"]
     assert verdict.failures[0].delta == pytest.approx(-0.6)
     # a per-value limit overrides the blanket one
@@ -91,8 +104,10 @@ def test_insignificant_drop_passes_with_a_note():
 
 def test_rules_from_toml(tmp_path):
     f = tmp_path / "gate.toml"
-    f.write_text('require_classes = ["Car"]\n[[floor]]\nvalue = "Car/3d/moderate"\nmin = 60\n'
-                 '[max_drop]\nall = 0.5\n"Pedestrian/3d/moderate/R11" = 2\n')
+    f.write_text(
+        'require_classes = ["Car"]\n[[floor]]\nvalue = "Car/3d/moderate"\nmin = 60\n'
+        '[max_drop]\nall = 0.5\n"Pedestrian/3d/moderate/R11" = 2\n'
+    )
     rules = rules_from_toml(f)
     assert rules.require_classes == ("Car",)
     assert rules.floors[0].key == ValueKey("Car", "3d", "moderate") and rules.floors[0].bound == 60
@@ -112,8 +127,10 @@ def test_bad_rules_are_config_errors(bad):
 
 
 def test_junit_and_markdown_reports():
-    verdict = run_gate(doc({"Car/3d/moderate": 10.0}), GateRules(floors=(
-        parse_floor("Car/3d/moderate >= 60"), parse_floor("Car/bev/moderate >= 40"))))
+    verdict = run_gate(
+        doc({"Car/3d/moderate": 10.0}),
+        GateRules(floors=(parse_floor("Car/3d/moderate >= 60"), parse_floor("Car/bev/moderate >= 40"))),
+    )
     root = ET.fromstring(render_junit(verdict))
     assert root.tag == "testsuite" and root.get("tests") == "2" and root.get("failures") == "1"
     cases = root.findall("testcase")
@@ -135,8 +152,18 @@ def test_cli_gate_exit_codes(capsys, tmp_path):
     code, out, _ = run(capsys, "gate", "--result", result, "--min", f"Car/3d/moderate >= {value - 0.01}")
     assert code == 0 and "PASSED" in out
     junit, md = tmp_path / "g.xml", tmp_path / "g.md"
-    code, out, _ = run(capsys, "gate", "--result", result, "--min", f"Car/3d/moderate >= {value + 0.01}",
-                       "--junit", junit, "--markdown", md)
+    code, out, _ = run(
+        capsys,
+        "gate",
+        "--result",
+        result,
+        "--min",
+        f"Car/3d/moderate >= {value + 0.01}",
+        "--junit",
+        junit,
+        "--markdown",
+        md,
+    )
     assert code == 3 and "FAILED" in out
     assert ET.parse(junit).getroot().get("failures") == "1" and "❌" in md.read_text()
     # evaluate and gate in one go, against a baseline given as predictions: identical -> no drop
@@ -152,7 +179,7 @@ def test_cli_gate_exit_codes(capsys, tmp_path):
 
 
 def test_cli_gate_usage_and_input_errors(capsys, tmp_path):
-    assert run(capsys, "gate", "--gt", GT, "--pred", PRED)[0] == 2                      # no rules
+    assert run(capsys, "gate", "--gt", GT, "--pred", PRED)[0] == 2  # no rules
     assert run(capsys, "gate", "--result", tmp_path / "x.json", "--min", "Car/3d/easy >= 1")[0] == 1
     (tmp_path / "bad.json").write_text('{"hello": 1}')
     code, _, err = run(capsys, "gate", "--result", tmp_path / "bad.json", "--min", "Car/3d/easy >= 1")

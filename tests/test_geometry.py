@@ -42,8 +42,9 @@ _SIZES = np.array([[3.9, 1.56, 1.6], [0.8, 1.75, 0.6], [1.76, 1.74, 0.6]])
 
 def random_boxes(rng, n):
     sizes = _SIZES[rng.integers(0, 3, n)] * rng.uniform(0.8, 1.2, (n, 3))
-    return np.column_stack([rng.uniform(-30, 30, n), rng.uniform(0.5, 2.5, n), rng.uniform(2, 70, n), sizes,
-                            rng.uniform(-PI, PI, n)])
+    return np.column_stack(
+        [rng.uniform(-30, 30, n), rng.uniform(0.5, 2.5, n), rng.uniform(2, 70, n), sizes, rng.uniform(-PI, PI, n)]
+    )
 
 
 def jitter(rng, boxes, scale=1.0):
@@ -218,8 +219,16 @@ def test_degenerate_boxes_are_zero_never_nan(impl):
     point = box(z=10.0, l=0.0, h=0.0, w=0.0)
     negative_h = box(z=10.0, l=4.0, h=-1.0, w=1.7)
     for crit in ("union", "first"):
-        for x, y in ((flat, flat), (flat, normal), (normal, flat), (point, point), (thin, thin),
-                     (thin, normal), (normal, negative_h), (negative_h, negative_h)):
+        for x, y in (
+            (flat, flat),
+            (flat, normal),
+            (normal, flat),
+            (point, point),
+            (thin, thin),
+            (thin, normal),
+            (normal, negative_h),
+            (negative_h, negative_h),
+        ):
             v = one(impl.iou_3d, x, y, crit)
             assert v == 0.0, (x, y, crit)
         assert one(impl.iou_bev, flat, flat, crit) == pytest.approx(1, abs=1e-12)  # BEV has an area
@@ -302,9 +311,9 @@ def _pairs(rng, n):
     b = jitter(rng, a)
     k = n // 10
     b[:k] = random_boxes(rng, k)  # mostly disjoint
-    b[k:2 * k] = a[k:2 * k]
-    b[k:2 * k, 0] += rng.choice([-1, 1], k) * a[k:2 * k, 3] * np.cos(a[k:2 * k, 6]) / 2  # half along length
-    b[k:2 * k, 2] -= rng.choice([-1, 1], k) * a[k:2 * k, 3] * np.sin(a[k:2 * k, 6]) / 2
+    b[k : 2 * k] = a[k : 2 * k]
+    b[k : 2 * k, 0] += rng.choice([-1, 1], k) * a[k : 2 * k, 3] * np.cos(a[k : 2 * k, 6]) / 2  # half along length
+    b[k : 2 * k, 2] -= rng.choice([-1, 1], k) * a[k : 2 * k, 3] * np.sin(a[k : 2 * k, 6]) / 2
     return a, b
 
 
@@ -313,8 +322,8 @@ def test_kernel_matches_naive_on_random_pairs():
     a, b = _pairs(rng, 3000)
     for crit in ("union", "first"):
         for fast, slow in ((iou_bev, iou_bev_naive), (iou_3d, iou_3d_naive)):
-            got = np.array([fast(a[i:i + 1], b[i:i + 1], crit)[0, 0] for i in range(len(a))])
-            want = np.array([slow(a[i:i + 1], b[i:i + 1], crit)[0, 0] for i in range(len(a))])
+            got = np.array([fast(a[i : i + 1], b[i : i + 1], crit)[0, 0] for i in range(len(a))])
+            want = np.array([slow(a[i : i + 1], b[i : i + 1], crit)[0, 0] for i in range(len(a))])
             np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
             # the set covers real overlaps and misses
             assert (got > 0.3).sum() > 750 and (got == 0).sum() > 100
@@ -416,8 +425,7 @@ def test_frame_overlaps_matches_pairwise_per_frame():
     gt_of_pair = np.concatenate([np.tile(np.arange(gt_off[f], gt_off[f + 1]), n_dt[f]) for f in frames])
     dt_of_pair = np.concatenate([np.repeat(np.arange(dt_off[f], dt_off[f + 1]), n_gt[f]) for f in frames])
     scored_first = gt_first[gt_of_pair] & (res.bev > 0)
-    iou = np.array([iou_bev(dt_boxes[j:j + 1], gt_boxes[i:i + 1])[0, 0]
-                    for j, i in zip(dt_of_pair, gt_of_pair)])
+    iou = np.array([iou_bev(dt_boxes[j : j + 1], gt_boxes[i : i + 1])[0, 0] for j, i in zip(dt_of_pair, gt_of_pair)])
     assert scored_first.sum() >= 3
     assert (res.bev[scored_first] != iou[scored_first]).all()
     assert np.array_equal(res.bev[~gt_first[gt_of_pair]], iou[~gt_first[gt_of_pair]])
@@ -473,8 +481,15 @@ def test_frame_overlaps_validation():
     dt_bbox, dt_boxes, dt_off, gt_bbox, gt_boxes, gt_off, gt_first = _frames(rng)
 
     def call(**kw):
-        args = dict(dt_bbox=dt_bbox, dt_boxes=dt_boxes, dt_offsets=dt_off, gt_bbox=gt_bbox, gt_boxes=gt_boxes,
-                    gt_offsets=gt_off, gt_first=gt_first)
+        args = dict(
+            dt_bbox=dt_bbox,
+            dt_boxes=dt_boxes,
+            dt_offsets=dt_off,
+            gt_bbox=gt_bbox,
+            gt_boxes=gt_boxes,
+            gt_offsets=gt_off,
+            gt_first=gt_first,
+        )
         args.update(kw)
         return frame_overlaps(**args)
 

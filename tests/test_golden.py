@@ -35,8 +35,22 @@ def case(request, tmp_path_factory):
 
 def run_json(gt, pred, protocol, tmp_path, *extra):
     out = tmp_path / f"{protocol}.json"
-    code = main(["--gt", str(gt), "--pred", str(pred), "--protocol", protocol, "--format", "json",
-                 "--output", str(out), "--quiet", *extra])
+    code = main(
+        [
+            "--gt",
+            str(gt),
+            "--pred",
+            str(pred),
+            "--protocol",
+            protocol,
+            "--format",
+            "json",
+            "--output",
+            str(out),
+            "--quiet",
+            *extra,
+        ]
+    )
     assert code == 0
     return json.loads(out.read_text())
 

@@ -27,8 +27,12 @@ GOLDEN = Path(__file__).parent / "data" / "golden" / "small"
 
 def labels_kernel(frame, min_overlap, thresh=float("-inf")):
     got = label_frame(frame["ov"], frame["ig"], frame["idet"], frame["dc"], frame["score"], min_overlap, thresh)
-    return ([DET_LABELS[c] for c in got.det_label], got.det_ref.tolist(), [GT_LABELS[c] for c in got.gt_label],
-            got.gt_ref.tolist())
+    return (
+        [DET_LABELS[c] for c in got.det_label],
+        got.det_ref.tolist(),
+        [GT_LABELS[c] for c in got.gt_label],
+        got.gt_ref.tolist(),
+    )
 
 
 LABELLERS = [pytest.param(labels_kernel, id="kernel"), pytest.param(labels_naive, id="twin")]
@@ -36,11 +40,17 @@ LABELLERS = [pytest.param(labels_kernel, id="kernel"), pytest.param(labels_naive
 
 def frame(ov, ig, idet, score, dc=None):
     ov = np.array(ov, dtype=float).reshape(len(idet), len(ig))
-    return dict(ov=ov, ig=np.array(ig, np.int8), idet=np.array(idet, np.int8),
-                dc=np.zeros(len(ig), bool) if dc is None else np.array(dc, bool), score=np.array(score, float))
+    return dict(
+        ov=ov,
+        ig=np.array(ig, np.int8),
+        idet=np.array(idet, np.int8),
+        dc=np.zeros(len(ig), bool) if dc is None else np.array(dc, bool),
+        score=np.array(score, float),
+    )
 
 
 # ------------------------------------------------------------------------------------- hand-made frames
+
 
 @pytest.mark.parametrize("labeller", LABELLERS)
 def test_second_pass_takes_the_highest_overlap_not_the_highest_score(labeller):
@@ -69,21 +79,39 @@ def test_a_too_small_detection_absorbs_a_box_that_then_is_no_miss(labeller):
 @pytest.mark.parametrize("labeller", LABELLERS)
 def test_a_match_of_ignored_ground_truth_is_neither_hit_nor_error(labeller):
     # ground truth 0 is a Van (code 1 for Car), 1 another class (-1), 2 DontCare (-1, suppresses)
-    f = frame([[0.9, 0.9, 0.0], [0.0, 0.0, 0.8], [0.0, 0.0, 0.0], [0.2, 0.0, 0.0]], ig=[1, -1, -1],
-              idet=[0, 0, -1, 0], score=[0.9, 0.8, 0.7, 0.6], dc=[False, False, True])
-    assert labeller(f, 0.7) == (["ignored", "dontcare", "other_class", "fp"], [0, 2, -1, -1],
-                                ["ignored", "other_class", "other_class"], [0, -1, -1])
+    f = frame(
+        [[0.9, 0.9, 0.0], [0.0, 0.0, 0.8], [0.0, 0.0, 0.0], [0.2, 0.0, 0.0]],
+        ig=[1, -1, -1],
+        idet=[0, 0, -1, 0],
+        score=[0.9, 0.8, 0.7, 0.6],
+        dc=[False, False, True],
+    )
+    assert labeller(f, 0.7) == (
+        ["ignored", "dontcare", "other_class", "fp"],
+        [0, 2, -1, -1],
+        ["ignored", "other_class", "other_class"],
+        [0, -1, -1],
+    )
 
 
 @pytest.mark.parametrize("labeller", LABELLERS)
 def test_empty_frames(labeller):
-    assert labeller(frame(np.zeros((0, 2)), ig=[0, 1], idet=[], score=[]), 0.5) == ([], [], ["missed", "ignored"],
-                                                                                      [-1, -1])
+    assert labeller(frame(np.zeros((0, 2)), ig=[0, 1], idet=[], score=[]), 0.5) == (
+        [],
+        [],
+        ["missed", "ignored"],
+        [-1, -1],
+    )
     assert labeller(frame(np.zeros((2, 0)), ig=[], idet=[0, -1], score=[0.5, 0.4]), 0.5) == (
-        ["fp", "other_class"], [-1, -1], [], [])
+        ["fp", "other_class"],
+        [-1, -1],
+        [],
+        [],
+    )
 
 
 # ------------------------------------------------------------------------------------- random frames
+
 
 @pytest.mark.parametrize("seed", range(6))
 def test_kernel_equals_twin_and_counts_equal_the_statistics(seed):
@@ -119,10 +147,16 @@ def test_inputs_are_checked_and_never_changed():
 
 # ------------------------------------------------------------------------------ whole sets and reports
 
-@pytest.mark.parametrize("cls, metric, difficulty, thresh", [("Car", "3d", "moderate", 0.0),
-                                                             ("Car", "bev", "easy", 0.5),
-                                                             ("Pedestrian", "bbox", "hard", 0.3),
-                                                             ("Cyclist", "3d", "moderate", 0.1)])
+
+@pytest.mark.parametrize(
+    "cls, metric, difficulty, thresh",
+    [
+        ("Car", "3d", "moderate", 0.0),
+        ("Car", "bev", "easy", 0.5),
+        ("Pedestrian", "bbox", "hard", 0.3),
+        ("Cyclist", "3d", "moderate", 0.1),
+    ],
+)
 def test_every_frames_labels_add_up_to_its_counts(cls, metric, difficulty, thresh):
     gt = load_ground_truth(GOLDEN / "kitti_infos_val.pkl")
     dt = load_detections(GOLDEN / "result.pkl")
@@ -137,10 +171,16 @@ def test_every_frames_labels_add_up_to_its_counts(cls, metric, difficulty, thres
     for f in range(gt.num_frames):
         g0, g1 = plan.gt.offsets[f], plan.gt.offsets[f + 1]
         d0, d1 = plan.dt.offsets[f], plan.dt.offsets[f + 1]
-        ov = ov_all[fo.pair_offsets[f]:fo.pair_offsets[f + 1]].reshape(d1 - d0, g1 - g0)
-        got = label_frame(ov, plan.ignored_gt[job.codes][g0:g1], plan.ignored_det[job.codes][d0:d1],
-                          plan.dontcare[g0:g1] if job.dontcare else None, plan.dt.score[d0:d1], job.min_overlap,
-                          thresh)
+        ov = ov_all[fo.pair_offsets[f] : fo.pair_offsets[f + 1]].reshape(d1 - d0, g1 - g0)
+        got = label_frame(
+            ov,
+            plan.ignored_gt[job.codes][g0:g1],
+            plan.ignored_det[job.codes][d0:d1],
+            plan.dontcare[g0:g1] if job.dontcare else None,
+            plan.dt.score[d0:d1],
+            job.min_overlap,
+            thresh,
+        )
         assert (got.tp, got.fp, got.fn) == (stats.tp[f], stats.fp[f], stats.fn[f]), gt.frame_ids[f]
         checked += got.tp + got.fp + got.fn
     assert checked > 0
@@ -148,22 +188,34 @@ def test_every_frames_labels_add_up_to_its_counts(cls, metric, difficulty, thres
 
 def scene():
     """One frame: a car seen twice (one duplicate), a Van, a car too far occluded for moderate, DontCare."""
-    gt = annotations("ground_truth", [[
-        box("Car", x=0.0, z=20.0, x1=100, width_px=80, height_px=60),
-        box("Van", x=6.0, z=25.0, x1=400, width_px=80, height_px=60),
-        box("Car", x=-6.0, z=30.0, x1=600, width_px=80, height_px=60, occluded=2),
-        dontcare([900, 150, 1000, 210]),
-        box("Car", x=12.0, z=40.0, x1=1100, width_px=60, height_px=40),
-    ]], ids=["000015"])
-    dt = annotations("detections", [[
-        box("Car", x=0.0, z=20.0, x1=100, width_px=80, height_px=60, score=0.9),    # TP of gt 0
-        box("Car", x=0.1, z=20.1, x1=102, width_px=80, height_px=60, score=0.8),    # duplicate of gt 0
-        box("Car", x=6.0, z=25.0, x1=400, width_px=80, height_px=60, score=0.7),    # on the Van: ignored
-        box("Car", x=-6.0, z=30.0, x1=600, width_px=80, height_px=60, score=0.6),   # on the occluded car
-        box("Car", x=30.0, z=60.0, x1=910, y1=160, width_px=40, height_px=40, score=0.5),  # in DontCare
-        box("Pedestrian", x=2.0, z=10.0, dims=(0.8, 1.7, 0.6), x1=300, score=0.95),  # other class
-        box("Car", x=-20.0, z=15.0, x1=10, width_px=50, height_px=40, score=0.05),  # a plain false positive
-    ]], ids=["000015"])
+    gt = annotations(
+        "ground_truth",
+        [
+            [
+                box("Car", x=0.0, z=20.0, x1=100, width_px=80, height_px=60),
+                box("Van", x=6.0, z=25.0, x1=400, width_px=80, height_px=60),
+                box("Car", x=-6.0, z=30.0, x1=600, width_px=80, height_px=60, occluded=2),
+                dontcare([900, 150, 1000, 210]),
+                box("Car", x=12.0, z=40.0, x1=1100, width_px=60, height_px=40),
+            ]
+        ],
+        ids=["000015"],
+    )
+    dt = annotations(
+        "detections",
+        [
+            [
+                box("Car", x=0.0, z=20.0, x1=100, width_px=80, height_px=60, score=0.9),  # TP of gt 0
+                box("Car", x=0.1, z=20.1, x1=102, width_px=80, height_px=60, score=0.8),  # duplicate of gt 0
+                box("Car", x=6.0, z=25.0, x1=400, width_px=80, height_px=60, score=0.7),  # on the Van: ignored
+                box("Car", x=-6.0, z=30.0, x1=600, width_px=80, height_px=60, score=0.6),  # on the occluded car
+                box("Car", x=30.0, z=60.0, x1=910, y1=160, width_px=40, height_px=40, score=0.5),  # in DontCare
+                box("Pedestrian", x=2.0, z=10.0, dims=(0.8, 1.7, 0.6), x1=300, score=0.95),  # other class
+                box("Car", x=-20.0, z=15.0, x1=10, width_px=50, height_px=40, score=0.05),  # a plain false positive
+            ]
+        ],
+        ids=["000015"],
+    )
     return gt, dt
 
 
@@ -177,8 +229,15 @@ def test_report_of_a_hand_made_scene():
     assert "occlusion 2 > 1" in report["ground_truth"][2]["reason"]
     model = report["models"]["mine"]
     labels = [(d["label"], d["gt"]) for d in model["detections"]]
-    assert labels == [("tp", 0), ("fp", None), ("ignored", 1), ("ignored", 2), ("dontcare", None),
-                      ("other_class", None), ("fp", None)]
+    assert labels == [
+        ("tp", 0),
+        ("fp", None),
+        ("ignored", 1),
+        ("ignored", 2),
+        ("dontcare", None),
+        ("other_class", None),
+        ("fp", None),
+    ]
     assert model["detections"][0]["iou"] == pytest.approx(1.0)
     assert model["detections"][1]["reason"].startswith("duplicate: ground truth 0")
     assert model["detections"][4]["dontcare_region"] == 3
@@ -187,8 +246,9 @@ def test_report_of_a_hand_made_scene():
     assert model["counts"] == {"tp": 1, "fp": 2, "fn": 1}
     assert [g["label"] for g in model["ground_truth"]] == ["matched", "ignored", "ignored", "dontcare", "missed"]
     # a score threshold drops the low ones: the plain false positive is gone, the rest stays
-    high = inspect_frame(gt, [("mine", dt)], "000015", EvalConfig(classes=("Car",)), metric="bbox",
-                         score_threshold=0.55)["models"]["mine"]
+    high = inspect_frame(
+        gt, [("mine", dt)], "000015", EvalConfig(classes=("Car",)), metric="bbox", score_threshold=0.55
+    )["models"]["mine"]
     assert [d["label"] for d in high["detections"]][4:] == ["below_threshold", "other_class", "below_threshold"]
     assert high["counts"] == {"tp": 1, "fp": 1, "fn": 1}
     text = render_inspection(report)
@@ -243,10 +303,30 @@ def test_cli_inspect_errors(tmp_path, capsys):
     gt_path, pred_path = demo_paths()
     assert main(["inspect", "--gt", str(gt_path), "--pred", str(pred_path), "--frame", "999999"]) == 1
     assert "frame 999999" in capsys.readouterr().err
-    assert main(["inspect", "--gt", str(gt_path), "--pred", str(pred_path), "--name", "a", "--name", "b",
-                 "--frame", "1"]) == 2
-    assert main(["inspect", "--gt", str(gt_path), "--pred", str(pred_path), "--pred", str(pred_path),
-                 "--name", "a", "--name", "a", "--frame", "1"]) == 2
+    assert (
+        main(["inspect", "--gt", str(gt_path), "--pred", str(pred_path), "--name", "a", "--name", "b", "--frame", "1"])
+        == 2
+    )
+    assert (
+        main(
+            [
+                "inspect",
+                "--gt",
+                str(gt_path),
+                "--pred",
+                str(pred_path),
+                "--pred",
+                str(pred_path),
+                "--name",
+                "a",
+                "--name",
+                "a",
+                "--frame",
+                "1",
+            ]
+        )
+        == 2
+    )
 
 
 def test_boxes_lidar_are_kept_only_when_asked_and_checked():
@@ -255,11 +335,18 @@ def test_boxes_lidar_are_kept_only_when_asked_and_checked():
     kept = load_detections(pred_path, keep_lidar=True)
     assert kept.boxes_lidar.shape == (kept.num_boxes, 7) and np.isfinite(kept.boxes_lidar).all()
     sub = kept.subset(kept.frame_ids[2:4])
-    np.testing.assert_array_equal(sub.boxes_lidar, kept.boxes_lidar[kept.offsets[2]:kept.offsets[4]])
+    np.testing.assert_array_equal(sub.boxes_lidar, kept.boxes_lidar[kept.offsets[2] : kept.offsets[4]])
     from kitti_eval.frames import Annotations
 
-    fields = dict(name=np.array(["Car"]), bbox=np.zeros((1, 4)), dimensions=np.ones((1, 3)),
-                  location=np.ones((1, 3)), rotation_y=np.zeros(1), score=np.ones(1), boxes_lidar=np.zeros((1, 6)))
+    fields = dict(
+        name=np.array(["Car"]),
+        bbox=np.zeros((1, 4)),
+        dimensions=np.ones((1, 3)),
+        location=np.ones((1, 3)),
+        rotation_y=np.zeros(1),
+        score=np.ones(1),
+        boxes_lidar=np.zeros((1, 6)),
+    )
     with pytest.raises(InputError) as e:
         Annotations.from_frames("detections", "r.pkl", [("7", fields)], keep_lidar=True)
     assert (e.value.frame, e.value.field) == ("000007", "boxes_lidar")

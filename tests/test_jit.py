@@ -51,8 +51,22 @@ def _entry_points(tmp_path: Path) -> None:
     frame_stats(gt, dt)
     inspect_frame(gt, [("a", dt), ("b", dt)], gt.frame_ids[3])
     describe(pred_path, gt=gt_path)
-    assert cli.main(["--gt", str(gt_path), "--pred", str(pred_path), "--format", "json",
-                     "--output", str(tmp_path / "out.json"), "--quiet"]) == 0
+    assert (
+        cli.main(
+            [
+                "--gt",
+                str(gt_path),
+                "--pred",
+                str(pred_path),
+                "--format",
+                "json",
+                "--output",
+                str(tmp_path / "out.json"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     with gzip.open(pred_path) as fh:
         load_pickle(io.BytesIO(fh.read()), source="upload")  # the service's path: a file object
     _jit.warm_up()  # the service's warm-up
@@ -62,8 +76,11 @@ def _dispatchers() -> list[numba.core.registry.CPUDispatcher]:
     found = []
     for info in pkgutil.iter_modules(kitti_eval.__path__, "kitti_eval."):
         module = importlib.import_module(info.name)
-        found += [v for v in vars(module).values() if isinstance(v, numba.core.registry.CPUDispatcher)
-                  and v.py_func.__module__ == info.name]
+        found += [
+            v
+            for v in vars(module).values()
+            if isinstance(v, numba.core.registry.CPUDispatcher) and v.py_func.__module__ == info.name
+        ]
     return found
 
 

@@ -28,31 +28,32 @@ from kitti_eval.loaders import (
 # (name, truncated, occluded, alpha, bbox, (l, h, w), location, rotation_y[, score])
 GT = {
     "000000": [
-        ("Car", 0.0, 0, -1.58, (587.01, 173.33, 614.12, 200.12), (3.64, 1.65, 1.67),
-         (-0.65, 1.71, 46.70), -1.59),
-        ("Car", 0.12, 1, 1.85, (387.63, 181.54, 423.81, 203.12), (4.26, 1.52, 1.57),
-         (-16.53, 2.39, 58.49), 1.57),
-        ("Pedestrian", 0.0, 0, -0.20, (712.40, 143.00, 810.73, 307.92), (1.20, 1.89, 0.48),
-         (1.84, 1.47, 8.41), 0.01),
-        ("DontCare", -1.0, -1, -10.0, (800.38, 163.67, 825.45, 184.07), (-1.0, -1.0, -1.0),
-         (-1000.0, -1000.0, -1000.0), -10.0),
+        ("Car", 0.0, 0, -1.58, (587.01, 173.33, 614.12, 200.12), (3.64, 1.65, 1.67), (-0.65, 1.71, 46.70), -1.59),
+        ("Car", 0.12, 1, 1.85, (387.63, 181.54, 423.81, 203.12), (4.26, 1.52, 1.57), (-16.53, 2.39, 58.49), 1.57),
+        ("Pedestrian", 0.0, 0, -0.20, (712.40, 143.00, 810.73, 307.92), (1.20, 1.89, 0.48), (1.84, 1.47, 8.41), 0.01),
+        (
+            "DontCare",
+            -1.0,
+            -1,
+            -10.0,
+            (800.38, 163.67, 825.45, 184.07),
+            (-1.0, -1.0, -1.0),
+            (-1000.0, -1000.0, -1000.0),
+            -10.0,
+        ),
     ],
     "000001": [],
     "000002": [
-        ("Cyclist", 0.0, 2, 2.10, (400.0, 170.0, 450.0, 240.0), (1.76, 1.74, 0.60),
-         (-5.20, 1.80, 15.40), 1.77),
+        ("Cyclist", 0.0, 2, 2.10, (400.0, 170.0, 450.0, 240.0), (1.76, 1.74, 0.60), (-5.20, 1.80, 15.40), 1.77),
     ],
 }
 DET = {
     "000000": [
-        ("Car", -1, -1, -1.5811, (586.9, 173.1, 614.5, 200.2), (3.7, 1.6, 1.65),
-         (-0.62, 1.70, 46.65), -1.5936, 0.9512),
-        ("Pedestrian", -1, -1, -0.21, (710.0, 145.0, 812.0, 305.0), (1.1, 1.85, 0.5),
-         (1.80, 1.45, 8.40), 0.02, 0.6125),
+        ("Car", -1, -1, -1.5811, (586.9, 173.1, 614.5, 200.2), (3.7, 1.6, 1.65), (-0.62, 1.70, 46.65), -1.5936, 0.9512),
+        ("Pedestrian", -1, -1, -0.21, (710.0, 145.0, 812.0, 305.0), (1.1, 1.85, 0.5), (1.80, 1.45, 8.40), 0.02, 0.6125),
     ],
     "000001": [
-        ("Car", -1, -1, 0.5, (100.0, 180.0, 160.0, 210.0), (3.9, 1.5, 1.6),
-         (-20.0, 1.7, 40.0), 0.05, 0.1033),
+        ("Car", -1, -1, 0.5, (100.0, 180.0, 160.0, 210.0), (3.9, 1.5, 1.6), (-20.0, 1.7, 40.0), 0.05, 0.1033),
     ],
     "000002": [],
 }
@@ -60,9 +61,18 @@ DET = {
 
 def _txt_line(obj: tuple, with_score: bool) -> str:
     name, trunc, occ, alpha, bbox, (length, height, width), loc, ry = obj[:8]
-    fields = [name, f"{trunc:.2f}", f"{occ:d}", f"{alpha:.2f}", *(f"{v:.2f}" for v in bbox),
-              f"{height:.2f}", f"{width:.2f}", f"{length:.2f}",  # the file order: h w l
-              *(f"{v:.2f}" for v in loc), f"{ry:.2f}"]
+    fields = [
+        name,
+        f"{trunc:.2f}",
+        f"{occ:d}",
+        f"{alpha:.2f}",
+        *(f"{v:.2f}" for v in bbox),
+        f"{height:.2f}",
+        f"{width:.2f}",
+        f"{length:.2f}",  # the file order: h w l
+        *(f"{v:.2f}" for v in loc),
+        f"{ry:.2f}",
+    ]
     if with_score:
         fields.append(f"{obj[8]:.4f}")
     return " ".join(fields)
@@ -78,9 +88,18 @@ def write_txt(folder: Path, frames: dict, with_score: bool) -> Path:
 def annos(objs: list[tuple], detections: bool) -> dict[str, np.ndarray]:
     """One frame as OpenPCDet stores it (float32 boxes; its float64 zero template when empty)."""
     if not objs and detections:
-        return {"name": np.zeros(0), "truncated": np.zeros(0), "occluded": np.zeros(0), "alpha": np.zeros(0),
-                "bbox": np.zeros((0, 4)), "dimensions": np.zeros((0, 3)), "location": np.zeros((0, 3)),
-                "rotation_y": np.zeros(0), "score": np.zeros(0), "boxes_lidar": np.zeros((0, 7))}
+        return {
+            "name": np.zeros(0),
+            "truncated": np.zeros(0),
+            "occluded": np.zeros(0),
+            "alpha": np.zeros(0),
+            "bbox": np.zeros((0, 4)),
+            "dimensions": np.zeros((0, 3)),
+            "location": np.zeros((0, 3)),
+            "rotation_y": np.zeros(0),
+            "score": np.zeros(0),
+            "boxes_lidar": np.zeros((0, 7)),
+        }
     n = len(objs)
     out = {
         "name": np.array([o[0] for o in objs], dtype="<U10") if objs else np.zeros(0, dtype="<U10"),
@@ -105,13 +124,19 @@ def annos(objs: list[tuple], detections: bool) -> dict[str, np.ndarray]:
 
 
 def infos(frames: dict = GT) -> list[dict]:
-    return [{
-        "point_cloud": {"num_features": 4, "lidar_idx": fid},
-        "image": {"image_idx": fid, "image_shape": np.array([375, 1242], dtype=np.int32)},
-        "calib": {"P2": np.eye(4, dtype=np.float32), "R0_rect": np.eye(4, dtype=np.float32),
-                  "Tr_velo_to_cam": np.eye(4, dtype=np.float32)},
-        "annos": annos(objs, detections=False),
-    } for fid, objs in frames.items()]
+    return [
+        {
+            "point_cloud": {"num_features": 4, "lidar_idx": fid},
+            "image": {"image_idx": fid, "image_shape": np.array([375, 1242], dtype=np.int32)},
+            "calib": {
+                "P2": np.eye(4, dtype=np.float32),
+                "R0_rect": np.eye(4, dtype=np.float32),
+                "Tr_velo_to_cam": np.eye(4, dtype=np.float32),
+            },
+            "annos": annos(objs, detections=False),
+        }
+        for fid, objs in frames.items()
+    ]
 
 
 def results(frames: dict = DET) -> list[dict]:
@@ -138,6 +163,7 @@ def assert_same(a, b, atol: float = 0.0) -> None:
 
 
 # ---------------------------------------------------------------------------------------- txt route
+
 
 def test_ground_truth_txt_folder(tmp_path: Path) -> None:
     folder = write_txt(tmp_path / "label_2", GT, with_score=False)
@@ -209,15 +235,15 @@ def test_detections_with_15_fields_name_the_frame_and_line(tmp_path: Path) -> No
     with pytest.raises(InputError) as err:
         load_detections(folder)
     assert err.value.frame == "000000"
-    assert ("line 4: expected 16 fields (type truncated occluded alpha x1 y1 x2 y2 h w l x y z ry score), "
-            "got 15") in str(err.value)
+    assert (
+        "line 4: expected 16 fields (type truncated occluded alpha x1 y1 x2 y2 h w l x y z ry score), got 15"
+    ) in str(err.value)
 
 
 def test_ground_truth_with_14_fields(tmp_path: Path) -> None:
     folder = tmp_path / "gt"
     folder.mkdir()
-    (folder / "000004.txt").write_text("Car 0.00 0 -1.58 587.01 173.33 614.12 200.12 1.65 1.67 3.64 -0.65 "
-                                       "1.71\n")
+    (folder / "000004.txt").write_text("Car 0.00 0 -1.58 587.01 173.33 614.12 200.12 1.65 1.67 3.64 -0.65 1.71\n")
     with pytest.raises(InputError, match=r"frame 000004: line 1: expected 15 fields .* got 13"):
         load_ground_truth(folder)
 
@@ -225,8 +251,9 @@ def test_ground_truth_with_14_fields(tmp_path: Path) -> None:
 def test_mixed_15_and_16_fields_in_one_ground_truth_file(tmp_path: Path) -> None:
     folder = tmp_path / "gt"
     folder.mkdir()
-    (folder / "000004.txt").write_text(_txt_line(GT["000000"][0], False) + "\n" +
-                                       _txt_line(DET["000000"][0], True) + "\n")
+    (folder / "000004.txt").write_text(
+        _txt_line(GT["000000"][0], False) + "\n" + _txt_line(DET["000000"][0], True) + "\n"
+    )
     with pytest.raises(InputError, match="line 2: 16 fields, but earlier lines have 15"):
         load_ground_truth(folder)
 
@@ -251,8 +278,7 @@ def test_non_finite_values_are_reported_by_from_frames(tmp_path: Path) -> None:
 
 
 def test_parse_kitti_txt_directly() -> None:
-    names, values = parse_kitti_txt(_txt_line(DET["000000"][0], True) + "\n\n", "detections", frame="1",
-                                    source="s")
+    names, values = parse_kitti_txt(_txt_line(DET["000000"][0], True) + "\n\n", "detections", frame="1", source="s")
     assert names == ["Car"] and len(values) == 15 and values[-1] == 0.9512
     names, values = parse_kitti_txt(_txt_line(DET["000000"][0], True), "ground_truth", frame="1", source="s")
     assert len(values) == 14 and values[-1] == -1.59
@@ -276,6 +302,7 @@ def test_a_single_txt_file_is_refused_with_a_hint(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------- pickle route
+
 
 def test_openpcdet_infos(tmp_path: Path) -> None:
     gt = load_ground_truth(dump(tmp_path / "kitti_infos_val.pkl", infos()))
@@ -378,8 +405,10 @@ def test_duplicate_frame_is_reported(tmp_path: Path) -> None:
 def test_dict_keyed_by_frame_id(tmp_path: Path) -> None:
     # PointPillars: {int image_idx: annos}; empty frames as 1-D empty arrays
     dets = {int(fid): annos(objs, detections=True) for fid, objs in DET.items()}
-    dets[2] = {k: np.array([]) for k in ("name", "truncated", "occluded", "alpha", "bbox", "dimensions",
-                                         "location", "rotation_y", "score")}
+    dets[2] = {
+        k: np.array([])
+        for k in ("name", "truncated", "occluded", "alpha", "bbox", "dimensions", "location", "rotation_y", "score")
+    }
     dt = load_detections(dump(tmp_path / "results.pkl", dets))
     assert dt.frame_ids == ("000000", "000001", "000002") and dt.counts.tolist() == [2, 1, 0]
     gt_annos = {fid: annos(objs, detections=False) for fid, objs in GT.items()}
@@ -401,12 +430,15 @@ def test_ground_truth_as_annos_dicts_with_frame_id() -> None:
         annotations_from_object(entries, "ground_truth", source="gt")
 
 
-@pytest.mark.parametrize("obj, found", [
-    (np.zeros(3), "found a numpy array of shape (3,)"),
-    ("000001", "found str"),
-    (42, "found int"),
-    ([1, 2], "ground-truth entry #0 is int"),
-])
+@pytest.mark.parametrize(
+    "obj, found",
+    [
+        (np.zeros(3), "found a numpy array of shape (3,)"),
+        ("000001", "found str"),
+        (42, "found int"),
+        ([1, 2], "ground-truth entry #0 is int"),
+    ],
+)
 def test_wrong_top_level_type(tmp_path: Path, obj: object, found: str) -> None:
     with pytest.raises(InputError) as err:
         load_ground_truth(dump(tmp_path / "x.pkl", obj))
@@ -430,10 +462,16 @@ def test_detect_and_describe_format() -> None:
     assert detect_format(infos(), "ground_truth", source="x") == "openpcdet_infos"
     assert detect_format(results(), "detections", source="x") == "annos_list"
     assert detect_format({0: {}}, "detections", source="x") == "annos_by_frame"
-    assert set(PICKLE_FORMATS) == {"openpcdet_infos", "annos_list", "annos_by_frame", "mmdet3d_infos",
-                                   "mmdet3d_results"}
-    assert describe_format(infos()) == \
-        "a list of 3 entries, the first a dict with keys [annos, calib, image, point_cloud]"
+    assert set(PICKLE_FORMATS) == {
+        "openpcdet_infos",
+        "annos_list",
+        "annos_by_frame",
+        "mmdet3d_infos",
+        "mmdet3d_results",
+    }
+    assert (
+        describe_format(infos()) == "a list of 3 entries, the first a dict with keys [annos, calib, image, point_cloud]"
+    )
     assert describe_format({1: 2}) == "a dict with 1 keys [1]"
     assert describe_format(np.zeros((2, 3))) == "a numpy array of shape (2, 3) and dtype float64"
 
@@ -448,6 +486,7 @@ def test_unsafe_pickles_are_refused_by_the_loaders(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------- golden small
+
 
 def _golden_small() -> Path | None:
     here = Path(__file__).parent / "data" / "golden" / "small"

@@ -19,9 +19,17 @@ def random_frames(rng, n_frames, max_gt=6, max_dt=12):
         idet = rng.choice([0, 0, 0, 1, -1], size=nd).astype(np.int8)
         ov = rng.random((nd, ng)) * (rng.random((nd, ng)) < 0.4)
         ov[rng.random((nd, ng)) < 0.1] = 0.7  # exactly at the threshold: never a match
-        frames.append(dict(ov=ov, ig=ig, idet=idet, dc=dc,
-                           score=np.round(rng.random(nd), 2),  # ties on purpose
-                           gt_alpha=rng.uniform(-np.pi, np.pi, ng), dt_alpha=rng.uniform(-np.pi, np.pi, nd)))
+        frames.append(
+            dict(
+                ov=ov,
+                ig=ig,
+                idet=idet,
+                dc=dc,
+                score=np.round(rng.random(nd), 2),  # ties on purpose
+                gt_alpha=rng.uniform(-np.pi, np.pi, ng),
+                dt_alpha=rng.uniform(-np.pi, np.pi, nd),
+            )
+        )
     return frames
 
 
@@ -35,9 +43,18 @@ def flatten(frames):
         dt_off.append(dt_off[-1] + len(f["idet"]))
         pair_off.append(pair_off[-1] + f["ov"].size)
     cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in cols.items()}
-    return (np.array(pair_off), cat["ov"].astype(float), np.array(gt_off), np.array(dt_off),
-            cat["ig"].astype(np.int8), cat["idet"].astype(np.int8), cat["dc"].astype(bool), cat["score"],
-            cat["gt_alpha"], cat["dt_alpha"])
+    return (
+        np.array(pair_off),
+        cat["ov"].astype(float),
+        np.array(gt_off),
+        np.array(dt_off),
+        cat["ig"].astype(np.int8),
+        cat["idet"].astype(np.int8),
+        cat["dc"].astype(bool),
+        cat["score"],
+        cat["gt_alpha"],
+        cat["dt_alpha"],
+    )
 
 
 @pytest.mark.parametrize("seed", range(12))
@@ -91,13 +108,37 @@ def test_recall_steps_for_many_hits_give_41_thresholds():
 
 def test_empty_inputs():
     z = np.zeros(0)
-    got = pr_counts(np.zeros(2, np.int64), z, np.zeros(2, np.int64), np.zeros(2, np.int64),
-                    np.zeros(0, np.int8), np.zeros(0, np.int8), None, z, z, z, 0.7, True)
+    got = pr_counts(
+        np.zeros(2, np.int64),
+        z,
+        np.zeros(2, np.int64),
+        np.zeros(2, np.int64),
+        np.zeros(0, np.int8),
+        np.zeros(0, np.int8),
+        None,
+        z,
+        z,
+        z,
+        0.7,
+        True,
+    )
     assert got.thresholds.shape == (0,) and got.num_valid_gt == 0
 
 
 def test_shape_mismatch_is_rejected():
     z = np.zeros(0)
     with pytest.raises(ValueError, match="same shape"):
-        pr_counts(np.zeros(3, np.int64), z, np.zeros(2, np.int64), np.zeros(2, np.int64),
-                  np.zeros(0, np.int8), np.zeros(0, np.int8), None, z, z, z, 0.7, False)
+        pr_counts(
+            np.zeros(3, np.int64),
+            z,
+            np.zeros(2, np.int64),
+            np.zeros(2, np.int64),
+            np.zeros(0, np.int8),
+            np.zeros(0, np.int8),
+            None,
+            z,
+            z,
+            z,
+            0.7,
+            False,
+        )

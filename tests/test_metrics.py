@@ -43,8 +43,14 @@ def test_envelope_is_the_running_maximum_from_the_right() -> None:
 
 def test_curve_from_counts_by_hand() -> None:
     # two thresholds: 3 TP 1 FP 1 FN, then 4 TP 4 FP 0 FN; orientation similarity 2.5 then 3.0
-    counts = PRCounts(thresholds=np.array([0.9, 0.5]), tp=np.array([3.0, 4.0]), fp=np.array([1.0, 4.0]),
-                      fn=np.array([1.0, 0.0]), similarity=np.array([2.5, 3.0]), num_valid_gt=4)
+    counts = PRCounts(
+        thresholds=np.array([0.9, 0.5]),
+        tp=np.array([3.0, 4.0]),
+        fp=np.array([1.0, 4.0]),
+        fn=np.array([1.0, 0.0]),
+        similarity=np.array([2.5, 3.0]),
+        num_valid_gt=4,
+    )
     c = curve_from_counts(counts)
     assert c.precision[:3].tolist() == [3 / 4, 4 / 8, 0.0]
     assert c.recall[:3].tolist() == [4 / 4, 4 / 4, 0.0]  # interpolated like precision: 3/4 becomes max(3/4, 4/4)

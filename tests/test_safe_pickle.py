@@ -52,6 +52,7 @@ class Reducer:
 
 # ------------------------------------------------------------------------------------------- hostile
 
+
 def _payloads(canary: Path) -> dict[str, object]:
     cmd = f"touch {canary}"
     return {
@@ -63,10 +64,12 @@ def _payloads(canary: Path) -> dict[str, object]:
         "functools.partial": Reducer(functools.partial(os.system, cmd), ()),
         "importlib.import_module": Reducer(importlib.import_module, ("antigravity",)),
         "builtins.open": Reducer(builtins.open, (str(canary), "w")),
-        "nested in list in dict": {"frames": [{"name": np.array(["Car"]), "score": np.ones(1),
-                                               "extra": [1, Reducer(os.system, (cmd,))]}]},
-        "as the state of an array": Reducer(_reconstruct, (np.ndarray, (0,), b"b"),
-                                            (1, (1,), np.dtype("O"), False, [Reducer(os.system, (cmd,))])),
+        "nested in list in dict": {
+            "frames": [{"name": np.array(["Car"]), "score": np.ones(1), "extra": [1, Reducer(os.system, (cmd,))]}]
+        },
+        "as the state of an array": Reducer(
+            _reconstruct, (np.ndarray, (0,), b"b"), (1, (1,), np.dtype("O"), False, [Reducer(os.system, (cmd,))])
+        ),
     }
 
 
@@ -93,8 +96,7 @@ def test_hand_written_protocol0_global_is_refused_naming_it(tmp_path: Path) -> N
 def test_getattr_chain_through_builtins_is_refused(tmp_path: Path) -> None:
     canary = tmp_path / "CANARY"
     # getattr(__import__('os'), 'system')('touch CANARY'), written by hand at protocol 0
-    data = (f"cbuiltins\ngetattr\n(cbuiltins\n__import__\n(S'os'\ntRS'system'\ntR(S'touch {canary}'\ntR."
-            ).encode()
+    data = (f"cbuiltins\ngetattr\n(cbuiltins\n__import__\n(S'os'\ntRS'system'\ntR(S'touch {canary}'\ntR.").encode()
     with pytest.raises(UnsafePickleError, match=r"builtins\.getattr"):
         loads(data)
     assert not canary.exists()
@@ -102,8 +104,7 @@ def test_getattr_chain_through_builtins_is_refused(tmp_path: Path) -> None:
 
 def test_nothing_is_imported(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     canary = tmp_path / "CANARY"
-    (tmp_path / "kitti_eval_canary_mod.py").write_text(
-        f"open({str(canary)!r}, 'w').close()\ndef run():\n    pass\n")
+    (tmp_path / "kitti_eval_canary_mod.py").write_text(f"open({str(canary)!r}, 'w').close()\ndef run():\n    pass\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     mod = b"kitti_eval_canary_mod"
     stack_global = b"\x80\x04\x8c" + bytes([len(mod)]) + mod + b"\x8c\x03run\x93)R."
@@ -125,8 +126,10 @@ def test_torch_tensor_pickle_gets_the_torch_message() -> None:
 
 def test_torch_storage_inside_a_result_list_gets_the_torch_message() -> None:
     # [{'frame_id': '000001', 'score': torch.FloatStorage...}] as a protocol-2 pickle
-    data = (b"\x80\x02]q\x00}q\x01(X\x08\x00\x00\x00frame_idq\x02X\x06\x00\x00\x00000001q\x03"
-            b"X\x05\x00\x00\x00scoreq\x04ctorch\nFloatStorage\nq\x05)Rq\x06ua.")
+    data = (
+        b"\x80\x02]q\x00}q\x01(X\x08\x00\x00\x00frame_idq\x02X\x06\x00\x00\x00000001q\x03"
+        b"X\x05\x00\x00\x00scoreq\x04ctorch\nFloatStorage\nq\x05)Rq\x06ua."
+    )
     with pytest.raises(UnsafePickleError, match="torch tensors"):
         loads(data)
 
@@ -145,12 +148,15 @@ def test_legacy_torch_save_and_zip_files_are_recognised() -> None:
         loads(b"PK\x03\x04" + b"\0" * 100)
 
 
-@pytest.mark.parametrize("data", [
-    b"\x80\x02cnumpy\nmemmap\nq\x00.",
-    b"\x80\x02cnumpy.ma.core\n_mareconstruct\nq\x00.",
-    b"\x80\x02cnumpy.lib.npyio\nNpzFile\nq\x00.",
-    b"\x80\x02cnumpy.testing\nassert_equal\nq\x00.",
-])
+@pytest.mark.parametrize(
+    "data",
+    [
+        b"\x80\x02cnumpy\nmemmap\nq\x00.",
+        b"\x80\x02cnumpy.ma.core\n_mareconstruct\nq\x00.",
+        b"\x80\x02cnumpy.lib.npyio\nNpzFile\nq\x00.",
+        b"\x80\x02cnumpy.testing\nassert_equal\nq\x00.",
+    ],
+)
 def test_other_numpy_globals_are_refused(data: bytes) -> None:
     with pytest.raises(UnsafePickleError, match="numpy"):
         loads(data)
@@ -163,6 +169,7 @@ def test_masked_array_and_numpy_classes_are_refused() -> None:
 
 
 # -------------------------------------------------- numpy-level attacks on the allowlisted callables
+
 
 def test_structured_dtype_with_fields_outside_the_item_is_refused() -> None:
     # numpy itself accepts this state and then reads 1000 bytes past each element
@@ -178,8 +185,9 @@ def test_object_flags_on_a_plain_dtype_are_refused() -> None:
         loads(pickle.dumps(evil, protocol=2))
 
 
-@pytest.mark.parametrize("dtype", [np.dtype([("a", "<f8"), ("b", "<i4")]), np.dtype("V8"), np.dtype("M8[s]"),
-                                   np.dtype([("a", "<f8", (2,))])])
+@pytest.mark.parametrize(
+    "dtype", [np.dtype([("a", "<f8"), ("b", "<i4")]), np.dtype("V8"), np.dtype("M8[s]"), np.dtype([("a", "<f8", (2,))])]
+)
 def test_structured_void_and_datetime_arrays_are_refused(dtype: np.dtype) -> None:
     with pytest.raises(UnsafePickleError):
         loads(pickle.dumps(np.zeros(2, dtype=dtype), protocol=2))
@@ -225,8 +233,12 @@ def test_codecs_encode_only_does_latin1() -> None:
 
 
 def test_object_arrays_may_hold_only_plain_items() -> None:
-    assert loads(pickle.dumps(np.array(["Car", 1, 2.5, None], dtype=object), protocol=2)).tolist() == \
-        ["Car", 1, 2.5, None]
+    assert loads(pickle.dumps(np.array(["Car", 1, 2.5, None], dtype=object), protocol=2)).tolist() == [
+        "Car",
+        1,
+        2.5,
+        None,
+    ]
     nested = np.empty(1, dtype=object)
     nested[0] = np.zeros(2)
     for obj in (np.array([{"a": 1}, 2], dtype=object), nested):
@@ -288,8 +300,13 @@ LEGIT = {
     "object str": np.array(["Car", "Van"], dtype=object),
     "0-d": np.array(3.5),
 }
-SCALARS = {"float32": np.float32(1.5), "str_": np.str_("000001"), "int64": np.int64(-7),
-           "bool_": np.bool_(True), "float64": np.float64(0.1)}
+SCALARS = {
+    "float32": np.float32(1.5),
+    "str_": np.str_("000001"),
+    "int64": np.int64(-7),
+    "bool_": np.bool_(True),
+    "float64": np.float64(0.1),
+}
 
 
 @pytest.mark.parametrize("protocol", PROTOCOLS)
@@ -314,8 +331,10 @@ def test_numpy_scalars_round_trip(protocol: int, name: str) -> None:
 @pytest.mark.parametrize("protocol", PROTOCOLS)
 def test_containers_round_trip(protocol: int) -> None:
     obj = {
-        "frames": [{"frame_id": np.str_("000001"), "name": np.array(["Car"]), "score": np.float32([0.9])},
-                   {"frame_id": 2, "name": np.zeros(0), "bbox": np.zeros((0, 4))}],
+        "frames": [
+            {"frame_id": np.str_("000001"), "name": np.array(["Car"]), "score": np.float32([0.9])},
+            {"frame_id": 2, "name": np.zeros(0), "bbox": np.zeros((0, 4))},
+        ],
         "meta": ("kitti", 1, 2.5, None, True, b"raw", b""),
         "ordered": collections.OrderedDict([("b", 1), ("a", [1, 2, 3])]),
         (1, "key"): {"nested": [[{"x": -1.0}]]},
@@ -355,10 +374,19 @@ def test_gzip_round_trip_from_path_and_file_object(tmp_path: Path, protocol: int
 
 def test_allowlist_is_what_the_docs_say() -> None:
     assert {f"{m}.{n}" for m, n in ALLOWED_GLOBALS} == {
-        "numpy.core.multiarray._reconstruct", "numpy._core.multiarray._reconstruct",
-        "numpy.core.numeric._frombuffer", "numpy._core.numeric._frombuffer",
-        "numpy.ndarray", "numpy.dtype", "numpy.core.multiarray.scalar", "numpy._core.multiarray.scalar",
-        "_codecs.encode", "collections.OrderedDict", "builtins.bytes", "__builtin__.bytes"}
+        "numpy.core.multiarray._reconstruct",
+        "numpy._core.multiarray._reconstruct",
+        "numpy.core.numeric._frombuffer",
+        "numpy._core.numeric._frombuffer",
+        "numpy.ndarray",
+        "numpy.dtype",
+        "numpy.core.multiarray.scalar",
+        "numpy._core.multiarray.scalar",
+        "_codecs.encode",
+        "collections.OrderedDict",
+        "builtins.bytes",
+        "__builtin__.bytes",
+    }
 
 
 def test_numpy1_module_names_are_accepted() -> None:
@@ -426,6 +454,7 @@ def test_max_bytes_bounds_decompressed_and_plain_input(tmp_path: Path) -> None:
 # tests cover the scan's model of _pickle.c opcode by opcode, its limits, and (by truncation and random
 # mutation) that nothing it accepts can crash the interpreter or yield anything but plain data.
 
+
 @pytest.fixture(params=["compiled", "python"])
 def scan_mode(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
     """Run a test with the compiled scan and with its main loop as plain Python (the same checks)."""
@@ -491,31 +520,69 @@ def post_check(obj: object, depth: int = 0) -> None:
 
 
 def _dtypes() -> list[np.dtype]:
-    out = [np.dtype(c) for c in ("?", "i1", "i2", "i4", "i8", "u1", "u2", "u4", "u8", "f2", "f4", "f8", "c8",
-                                 "c16", "U1", "U7", "S1", "S5", ">i4", ">f8", ">c16", ">U3", "O")]
+    out = [
+        np.dtype(c)
+        for c in (
+            "?",
+            "i1",
+            "i2",
+            "i4",
+            "i8",
+            "u1",
+            "u2",
+            "u4",
+            "u8",
+            "f2",
+            "f4",
+            "f8",
+            "c8",
+            "c16",
+            "U1",
+            "U7",
+            "S1",
+            "S5",
+            ">i4",
+            ">f8",
+            ">c16",
+            ">U3",
+            "O",
+        )
+    ]
     out += [np.dtype(np.longdouble), np.dtype(np.clongdouble)]
     return out
 
 
 def _rich(protocol: int) -> dict[str, object]:
     """Every kind of value load_pickle accepts, as pickle writes it at ``protocol``."""
-    arrays = [np.zeros((2, 3), dtype=dt) + (np.array("ab", dtype=dt) if dt.kind in "US" else 1) for dt in _dtypes()
-              if dt.kind != "O"]
-    arrays += [np.array(["Car", 1, 2.5, None, b"x", np.float32(3)], dtype=object),
-               np.frombuffer(bytes(range(256)) * 2, np.uint8),  # every byte value (escapes at protocol 0)
-               np.array(7.25), np.zeros((0, 7)), np.zeros(0, "U1"), np.asfortranarray(np.arange(6.0).reshape(2, 3)),
-               np.arange(24.0).reshape(2, 3, 4).transpose(1, 0, 2)]  # neither C nor F (axis order at protocol 5)
+    arrays = [
+        np.zeros((2, 3), dtype=dt) + (np.array("ab", dtype=dt) if dt.kind in "US" else 1)
+        for dt in _dtypes()
+        if dt.kind != "O"
+    ]
+    arrays += [
+        np.array(["Car", 1, 2.5, None, b"x", np.float32(3)], dtype=object),
+        np.frombuffer(bytes(range(256)) * 2, np.uint8),  # every byte value (escapes at protocol 0)
+        np.array(7.25),
+        np.zeros((0, 7)),
+        np.zeros(0, "U1"),
+        np.asfortranarray(np.arange(6.0).reshape(2, 3)),
+        np.arange(24.0).reshape(2, 3, 4).transpose(1, 0, 2),
+    ]  # neither C nor F (axis order at protocol 5)
     scalars = [np.dtype(dt).type(1) for dt in _dtypes() if dt.kind not in "USO"]
     scalars += [np.str_("000001"), np.bytes_(b"ab\x00c"), np.float64("nan")]
     strings = [str(i) for i in range(300)]
     obj: dict[str, object] = {
-        "arrays": arrays, "scalars": scalars, "dtypes": [np.dtype("f4"), np.dtype(">U5")],
+        "arrays": arrays,
+        "scalars": scalars,
+        "dtypes": [np.dtype("f4"), np.dtype(">U5")],
         "nested": [[{"a": (1, (2, (3,)))}], (), [], {}, ((),)],
         "str": ["", "plain", "ünïcødé \u20ac \U0001f600", "back\\slash\nnew line\r\x1a\x00", "'\""],
         "bytes": [b"", b"raw\x00\xff\\\n", bytes(range(256)) * 2],
-        "ints": [0, 1, -1, 255, 256, 65535, 65536, 2**31 - 1, -2**31, 2**63, -2**63 - 1, 2**70, -2**3000],
-        "floats": [0.0, -0.0, 1.5, 1e308, float("inf"), float("nan")], "consts": [None, True, False],
-        "od": collections.OrderedDict([("b", 1), ("a", [1, 2, 3])]), (1, "tuple key"): "v",
+        "ints": [0, 1, -1, 255, 256, 65535, 65536, 2**31 - 1, -(2**31), 2**63, -(2**63) - 1, 2**70, -(2**3000)],
+        "floats": [0.0, -0.0, 1.5, 1e308, float("inf"), float("nan")],
+        "consts": [None, True, False],
+        "od": collections.OrderedDict([("b", 1), ("a", [1, 2, 3])]),
+        (1, "tuple key"): "v",
         "memo": strings + strings,  # > 256 memo entries, each fetched again (LONG_BINGET)
         "shared": [arrays[0], arrays[0]],
     }
@@ -536,71 +603,99 @@ def test_every_kind_of_value_round_trips(protocol: int, scan_mode: str) -> None:
     assert out["shared"][0] is out["shared"][1]  # type: ignore[index]
 
 
-@pytest.mark.parametrize("data, expected", [
-    (b"S'abc'\n.", "abc"),                                   # STRING (protocol 0, quoted)
-    (b"S\"a\\x41\\n\"\n.", "aA\n"),                          # STRING with escapes
-    (b"U\x03abc.", "abc"),                                   # SHORT_BINSTRING
-    (b"T\x03\x00\x00\x00abc.", "abc"),                        # BINSTRING
-    (b"\x8d\x02\x00\x00\x00\x00\x00\x00\x00\xc3\xa9.", "\xe9"),  # BINUNICODE8
-    (b"\x8e\x02\x00\x00\x00\x00\x00\x00\x00ab.", b"ab"),      # BINBYTES8
-    (b"B\x02\x00\x00\x00ab.", b"ab"),                         # BINBYTES
-    (b"Vab\\u00e9\\x\n.", "ab\xe9\\x"),                      # UNICODE with an escape and a lone backslash
-    (b"I01\n.", True), (b"I00\n.", False), (b"I7\n.", 7), (b"I-12\n.", -12), (b"I010\n.", 8),  # INT
-    (b"L123L\n.", 123), (b"L99999999999999999999999\n.", 99999999999999999999999),  # LONG
-    (b"F1.5\n.", 1.5),                                       # FLOAT
-    (b"\x8b\x02\x00\x00\x00\xff\x7f.", 32767),               # LONG4
-    (b"\x8a\x01\xff.", -1), (b"\x8a\x00.", 0),               # LONG1
-    (b"K\x012\x86.", (1, 1)),                                # DUP
-    (b"K\x01K\x020\x85.", (1,)),                             # POP of an object
-    (b"K\x01(0\x85.", (1,)),                                 # POP of a MARK
-    (b"K\x01(K\x02K\x031\x85.", (1,)),                       # POP_MARK
-    (b"(K\x01K\x02l.", [1, 2]), (b"(K\x01K\x02d.", {1: 2}),  # LIST, DICT
-    (b"(K\x01\x91.", frozenset({1})), (b"\x8f(K\x01\x90.", {1}),  # FROZENSET, ADDITEMS
-    (b"K\x01p5\n0g5\n.", 1),                                 # PUT / GET (protocol 0)
-    (b"K\x01r\x00\x01\x00\x000j\x00\x01\x00\x00.", 1),       # LONG_BINPUT / LONG_BINGET
-    (b"K\x01q\x07\x94\x94h\x07\x85.", (1,)),                 # MEMOIZE after an explicit PUT
-    (b"\x80\x05\x95\x03\x00\x00\x00\x00\x00\x00\x00K\x01.", 1),  # FRAME
-    (b"\x80\x02K\x01.trailing bytes are ignored", 1),
-])
+@pytest.mark.parametrize(
+    "data, expected",
+    [
+        (b"S'abc'\n.", "abc"),  # STRING (protocol 0, quoted)
+        (b'S"a\\x41\\n"\n.', "aA\n"),  # STRING with escapes
+        (b"U\x03abc.", "abc"),  # SHORT_BINSTRING
+        (b"T\x03\x00\x00\x00abc.", "abc"),  # BINSTRING
+        (b"\x8d\x02\x00\x00\x00\x00\x00\x00\x00\xc3\xa9.", "\xe9"),  # BINUNICODE8
+        (b"\x8e\x02\x00\x00\x00\x00\x00\x00\x00ab.", b"ab"),  # BINBYTES8
+        (b"B\x02\x00\x00\x00ab.", b"ab"),  # BINBYTES
+        (b"Vab\\u00e9\\x\n.", "ab\xe9\\x"),  # UNICODE with an escape and a lone backslash
+        (b"I01\n.", True),
+        (b"I00\n.", False),
+        (b"I7\n.", 7),
+        (b"I-12\n.", -12),
+        (b"I010\n.", 8),  # INT
+        (b"L123L\n.", 123),
+        (b"L99999999999999999999999\n.", 99999999999999999999999),  # LONG
+        (b"F1.5\n.", 1.5),  # FLOAT
+        (b"\x8b\x02\x00\x00\x00\xff\x7f.", 32767),  # LONG4
+        (b"\x8a\x01\xff.", -1),
+        (b"\x8a\x00.", 0),  # LONG1
+        (b"K\x012\x86.", (1, 1)),  # DUP
+        (b"K\x01K\x020\x85.", (1,)),  # POP of an object
+        (b"K\x01(0\x85.", (1,)),  # POP of a MARK
+        (b"K\x01(K\x02K\x031\x85.", (1,)),  # POP_MARK
+        (b"(K\x01K\x02l.", [1, 2]),
+        (b"(K\x01K\x02d.", {1: 2}),  # LIST, DICT
+        (b"(K\x01\x91.", frozenset({1})),
+        (b"\x8f(K\x01\x90.", {1}),  # FROZENSET, ADDITEMS
+        (b"K\x01p5\n0g5\n.", 1),  # PUT / GET (protocol 0)
+        (b"K\x01r\x00\x01\x00\x000j\x00\x01\x00\x00.", 1),  # LONG_BINPUT / LONG_BINGET
+        (b"K\x01q\x07\x94\x94h\x07\x85.", (1,)),  # MEMOIZE after an explicit PUT
+        (b"\x80\x05\x95\x03\x00\x00\x00\x00\x00\x00\x00K\x01.", 1),  # FRAME
+        (b"\x80\x02K\x01.trailing bytes are ignored", 1),
+    ],
+)
 def test_hand_written_opcodes(data: bytes, expected: object) -> None:
     out = loads(data)
     assert same(out, expected) and same(out, pickle.loads(data), strides=True)
 
 
-@pytest.mark.parametrize("data, match", [
-    (b"(i__builtin__\nbytes\n.", "INST"),
-    (b"\x80\x02ccollections\nOrderedDict\n)o.", "INST"),
-    (b"Pfoo\n.", "persistent"),
-    (b"\x80\x02\x83\x01\x00.", "extension"), (b"\x80\x02\x84\x01\x00\x00\x00.", "extension"),
-    (b"\x80\x04ccollections\nOrderedDict\n)}\x92.", "NEWOBJ"),
-    (b"\x80\x04]ccollections\nOrderedDict\na.", "as a value"),  # a global is never a value
-    (b"\x80\x04ccollections\nOrderedDict\n.", "as a value"),
-    (b"\x80\x04cnumpy\nndarray\n)R.", "calls numpy.ndarray"),
-    (b"\x80\x04\x8c\x01aK\x01\x85R.", "calls 'a'"),
-    (b"\x80\x02cnumpy\ndtype\nX\x02\x00\x00\x00f8K\x00K\x01\x87R.", "dtype"),  # align/copy as int, not bool
-    (b"\x80\x02cnumpy\ndtype\nX\x02\x00\x00\x00f8\x89\x89\x87R.", "dtype"),   # copy=False: numpy's shared dtype
-    (b"\x80\x02cnumpy.core.multiarray\n_reconstruct\ncnumpy\nndarray\nK\x00\x85C\x01b\x87RK\x01K\x02s.",
-     "adds items to a numpy array"),
-    (b"\x80\x02K\x01K\x02K\x03(u.", "adds items to a int"),  # a no-op for _pickle.c, never written
-])
+@pytest.mark.parametrize(
+    "data, match",
+    [
+        (b"(i__builtin__\nbytes\n.", "INST"),
+        (b"\x80\x02ccollections\nOrderedDict\n)o.", "INST"),
+        (b"Pfoo\n.", "persistent"),
+        (b"\x80\x02\x83\x01\x00.", "extension"),
+        (b"\x80\x02\x84\x01\x00\x00\x00.", "extension"),
+        (b"\x80\x04ccollections\nOrderedDict\n)}\x92.", "NEWOBJ"),
+        (b"\x80\x04]ccollections\nOrderedDict\na.", "as a value"),  # a global is never a value
+        (b"\x80\x04ccollections\nOrderedDict\n.", "as a value"),
+        (b"\x80\x04cnumpy\nndarray\n)R.", "calls numpy.ndarray"),
+        (b"\x80\x04\x8c\x01aK\x01\x85R.", "calls 'a'"),
+        (b"\x80\x02cnumpy\ndtype\nX\x02\x00\x00\x00f8K\x00K\x01\x87R.", "dtype"),  # align/copy as int, not bool
+        (b"\x80\x02cnumpy\ndtype\nX\x02\x00\x00\x00f8\x89\x89\x87R.", "dtype"),  # copy=False: numpy's shared dtype
+        (
+            b"\x80\x02cnumpy.core.multiarray\n_reconstruct\ncnumpy\nndarray\nK\x00\x85C\x01b\x87RK\x01K\x02s.",
+            "adds items to a numpy array",
+        ),
+        (b"\x80\x02K\x01K\x02K\x03(u.", "adds items to a int"),  # a no-op for _pickle.c, never written
+    ],
+)
 def test_scan_refusals(data: bytes, match: str, scan_mode: str) -> None:
     with pytest.raises(UnsafePickleError, match=match):
         loads(data)
 
 
-@pytest.mark.parametrize("data, match", [
-    (b"\x80\x02}]Ns.", "cannot be hashed"),                                 # a list as a dict key
-    (b"\x80\x02]q\x00h\x00a.", "recursive"),                                 # l.append(l)
-    (b"\x80\x02]q\x00\x85h\x00K\x02a.", "recursive"),                       # a list changed inside a tuple
-    (b"\x80\x02Nr\xff\xff\xff\x7f.", "memo index"),                         # the C memo would take 16 GB
-    (b"\x80\x05\x97.", "out-of-band"), (b"\x80\x05C\x01a\x98.", "out-of-band"),
-    (b"\x80\x02(u.", "underflow"), (b"\x80\x02(K\x01\x85(\x86.", "underflow"),
-    (b"\x80\x02K\x01t.", "MARK"), (b"\x80\x02\x8c.", "ends before"), (b"\x80\x06N.", "malformed"),
-    (b"\x80\x02\x8b\xff\xff\xff\xffN.", "malformed"), (b"\x80\x02g1x\n.", "malformed"),
-    (b"\x80\x02}(K\x01d.", "odd"),
-    (b"\x80\x05cnumpy._core.numeric\n_frombuffer\n(C\x00cnumpy\ndtype\nX\x02\x00\x00\x00O8\x89\x88\x87R"
-     b"(K\x03X\x01\x00\x00\x00|NNNJ\xff\xff\xff\xffJ\xff\xff\xff\xffK?tbK\x00\x85X\x01\x00\x00\x00CtR.", "raw buffer"),
-])
+@pytest.mark.parametrize(
+    "data, match",
+    [
+        (b"\x80\x02}]Ns.", "cannot be hashed"),  # a list as a dict key
+        (b"\x80\x02]q\x00h\x00a.", "recursive"),  # l.append(l)
+        (b"\x80\x02]q\x00\x85h\x00K\x02a.", "recursive"),  # a list changed inside a tuple
+        (b"\x80\x02Nr\xff\xff\xff\x7f.", "memo index"),  # the C memo would take 16 GB
+        (b"\x80\x05\x97.", "out-of-band"),
+        (b"\x80\x05C\x01a\x98.", "out-of-band"),
+        (b"\x80\x02(u.", "underflow"),
+        (b"\x80\x02(K\x01\x85(\x86.", "underflow"),
+        (b"\x80\x02K\x01t.", "MARK"),
+        (b"\x80\x02\x8c.", "ends before"),
+        (b"\x80\x06N.", "malformed"),
+        (b"\x80\x02\x8b\xff\xff\xff\xffN.", "malformed"),
+        (b"\x80\x02g1x\n.", "malformed"),
+        (b"\x80\x02}(K\x01d.", "odd"),
+        (
+            b"\x80\x05cnumpy._core.numeric\n_frombuffer\n(C\x00cnumpy\ndtype\nX\x02\x00\x00\x00O8\x89\x88\x87R"
+            b"(K\x03X\x01\x00\x00\x00|NNNJ\xff\xff\xff\xffJ\xff\xff\xff\xffK?tbK\x00\x85X\x01\x00\x00\x00CtR.",
+            "raw buffer",
+        ),
+    ],
+)
 def test_scan_rejects_malformed_input(data: bytes, match: str, scan_mode: str) -> None:
     with pytest.raises(InputError, match=match) as err:
         loads(data)
@@ -629,15 +724,16 @@ def test_dtype_states_are_the_ones_numpy_writes() -> None:
                 data = pickle.dumps(np.ones(2, d), protocol=protocol)
                 assert same(loads(data), pickle.loads(data), strides=True)
                 np.testing.assert_array_equal(loads(data), np.ones(2, d))
-    for state in [(3, "|", None, None, None, -1, -1, 0),    # a multi-byte number with no byte order
-                  (3, "<", None, None, None, 8, -1, 0),     # explicit size on a fixed-size dtype
-                  (3, "<", None, None, None, -1, -1, 16),   # custom flags
-                  (4, "<", None, None, None, -1, -1, 0)]:   # another version
+    for state in [
+        (3, "|", None, None, None, -1, -1, 0),  # a multi-byte number with no byte order
+        (3, "<", None, None, None, 8, -1, 0),  # explicit size on a fixed-size dtype
+        (3, "<", None, None, None, -1, -1, 16),  # custom flags
+        (4, "<", None, None, None, -1, -1, 0),
+    ]:  # another version
         with pytest.raises(UnsafePickleError, match="dtype"):
             loads(pickle.dumps(Reducer(np.dtype, ("f8", False, True), state), protocol=2))
     with pytest.raises(InputError, match="string size 6"):
-        loads(pickle.dumps(Reducer(np.dtype, ("U1", False, True), (3, "<", None, None, None, 6, 4, 8)),
-                           protocol=2))
+        loads(pickle.dumps(Reducer(np.dtype, ("U1", False, True), (3, "<", None, None, None, 6, 4, 8)), protocol=2))
 
 
 def _nested(opener: bytes, closer: bytes, n: int) -> bytes:
@@ -647,7 +743,7 @@ def _nested(opener: bytes, closer: bytes, n: int) -> bytes:
 @pytest.mark.parametrize("n", [99, 1000, 1_000_000])
 def test_deep_nesting_is_refused_before_anything_is_built(n: int, scan_mode: str) -> None:
     lists = b"\x80\x04" + b"]" * n + b"a" * (n - 1) + b"."  # [[[...]]]
-    frozensets = _nested(b"(", b"\x91", n)                  # frozenset({frozenset({...})})
+    frozensets = _nested(b"(", b"\x91", n)  # frozenset({frozenset({...})})
     tuples = _nested(b"(", b"t", n)
     dicts = b"\x80\x04" + b"}K\x00" * (n - 1) + b"}" + b"s" * (n - 1) + b"."  # {0: {0: {...}}}
     for data in (lists, frozensets, tuples, dicts):
@@ -664,9 +760,11 @@ def test_a_million_deep_tuple_key_is_refused_in_process() -> None:
     with pytest.raises(InputError, match="nested too deeply"):
         loads(data)
     # ... and the same as a set item, a frozenset item and a nested key
-    for data in (b"\x80\x04\x8f(N" + b"\x85" * 1_000_000 + b"\x90.",
-                 b"\x80\x04(N" + b"\x85" * 1_000_000 + b"\x91.",
-                 b"\x80\x04}N" + b"\x85" * 1_000_000 + b"K\x01\x86Ns."):
+    for data in (
+        b"\x80\x04\x8f(N" + b"\x85" * 1_000_000 + b"\x90.",
+        b"\x80\x04(N" + b"\x85" * 1_000_000 + b"\x91.",
+        b"\x80\x04}N" + b"\x85" * 1_000_000 + b"K\x01\x86Ns.",
+    ):
         with pytest.raises(InputError, match="nested too deeply"):
             loads(data)
 
@@ -683,9 +781,16 @@ def test_a_tuple_key_that_would_hash_for_ever_is_refused() -> None:
 
 
 def _small_pickles() -> list[bytes]:
-    frame = {"frame_id": "000001", "name": np.array(["Car", "Pedestrian"]), "score": np.float32([0.9, 0.1]),
-             "bbox": np.zeros((2, 4)), "s": np.float32(2.5), "od": collections.OrderedDict(a=(1, b"x")),
-             "big": 2**70, "obj": np.array(["Car", None], dtype=object)}
+    frame = {
+        "frame_id": "000001",
+        "name": np.array(["Car", "Pedestrian"]),
+        "score": np.float32([0.9, 0.1]),
+        "bbox": np.zeros((2, 4)),
+        "s": np.float32(2.5),
+        "od": collections.OrderedDict(a=(1, b"x")),
+        "big": 2**70,
+        "obj": np.array(["Car", None], dtype=object),
+    }
     return [pickle.dumps(frame, protocol=p) for p in PROTOCOLS]
 
 
@@ -715,7 +820,7 @@ def test_random_mutations_never_crash_and_yield_only_plain_data(scan_mode: str) 
             elif r < 0.9:
                 data.insert(k, rng.randrange(256))
             else:
-                data[k:k] = data[rng.randrange(len(data)):][:rng.randrange(1, 12)]
+                data[k:k] = data[rng.randrange(len(data)) :][: rng.randrange(1, 12)]
         try:
             out = loads(bytes(data))
         except UnsafePickleError:

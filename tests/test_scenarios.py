@@ -147,7 +147,7 @@ def test_a_detection_under_the_height_limit_is_ignored_not_false():
 def test_truncation_and_occlusion_limits_are_inclusive():
     gts = one_car_per_frame(40)
     gts[0][0]["truncated"] = 0.15  # == easy limit: still easy
-    gts[1][0]["occluded"] = 1.0    # > easy limit 0: not easy, but moderate
+    gts[1][0]["occluded"] = 1.0  # > easy limit 0: not easy, but moderate
     r = run(gts, hits(40))
     assert r.num_gt["Car"] == {"easy": 39, "moderate": 40, "hard": 40}
 
@@ -223,8 +223,7 @@ def test_frames_without_predictions_count_as_empty_and_are_reported():
 
 def test_ground_truth_against_itself_is_perfect_in_every_metric():
     # 41 identical-box pairs, including yaw at +-pi and rotated boxes: exact IoU is 1
-    gts = [[box("Car", ry=r, alpha=r) for r in (math.pi, -math.pi, 0.3, -1.2)][k % 4:k % 4 + 1]
-           for k in range(41)]
+    gts = [[box("Car", ry=r, alpha=r) for r in (math.pi, -math.pi, 0.3, -1.2)][k % 4 : k % 4 + 1] for k in range(41)]
     dets = [[{**g[0], "score": 0.5 + k / 100}] for k, g in enumerate(gts)]
     for config in (CAR, CAR_PCDET):
         r = run(gts, dets, config)
@@ -242,8 +241,8 @@ def test_official_is_default_and_protocols_differ_only_where_documented():
 def test_distance_ranges_ignore_what_lies_outside():
     from kitti_eval.protocol import parse_ranges
 
-    near = one_car_per_frame(40)                                   # z = 20 m
-    far = [[box("Car", z=40.0, x1=300.0)] for _ in range(40)]      # z = 40 m, never detected
+    near = one_car_per_frame(40)  # z = 20 m
+    far = [[box("Car", z=40.0, x1=300.0)] for _ in range(40)]  # z = 40 m, never detected
     dets = hits(40) + [[] for _ in range(40)]
     dets[0].append(box("Car", x=-15.0, z=40.0, x1=900.0, score=1.0))  # a false positive at 42.7 m
     config = EvalConfig(classes=("Car",), ranges=parse_ranges("0,30,50"))
@@ -268,8 +267,11 @@ def test_a_box_on_a_range_edge_belongs_to_the_farther_range():
     from kitti_eval.protocol import DistanceRange, parse_ranges
 
     edge = [[box("Car", z=30.0)] for _ in range(41)]
-    r = run(edge, [[box("Car", z=30.0, score=0.9 - i / 1000)] for i in range(41)],
-            EvalConfig(classes=("Car",), ranges=parse_ranges("0,30,inf")))
+    r = run(
+        edge,
+        [[box("Car", z=30.0, score=0.9 - i / 1000)] for i in range(41)],
+        EvalConfig(classes=("Car",), ranges=parse_ranges("0,30,inf")),
+    )
     assert [x["num_gt"]["Car"]["easy"] for x in r.ranges] == [0, 41]
     assert r.ranges[1]["label"] == "30m+" and r.ranges[1]["ap"]["strict"]["R11"]["Car"]["bev"]["hard"] == 100.0
     assert DistanceRange(0, 30).label == "0-30m"
@@ -305,8 +307,11 @@ def _lidar_frames(kind, frames):
     keep = ("name", "dimensions", "location", "rotation_y", "score")
     out = []
     for i, objs in enumerate(frames):
-        d = {k: np.array([o[k] for o in objs], dtype="<U20" if k == "name" else np.float64) for k in keep
-             if kind == "detections" or k != "score"}
+        d = {
+            k: np.array([o[k] for o in objs], dtype="<U20" if k == "name" else np.float64)
+            for k in keep
+            if kind == "detections" or k != "score"
+        }
         for k, width in (("dimensions", 3), ("location", 3)):
             d[k] = d[k].reshape(-1, width)
         out.append((f"{i:06d}", d))
@@ -341,8 +346,10 @@ def test_protocol_file_custom_class_neighbours_and_difficulty(tmp_path):
     from kitti_eval.protocol import load_protocol_file
 
     f = tmp_path / "bus.toml"
-    f.write_text('classes = ["Bus"]\n[overlaps.Bus]\nstrict = [0.7, 0.6, 0.6]\n'
-                 '[neighbours]\nBus = ["Tram"]\n[difficulty]\nmin_height = [40, 25, 10]\n')
+    f.write_text(
+        'classes = ["Bus"]\n[overlaps.Bus]\nstrict = [0.7, 0.6, 0.6]\n'
+        '[neighbours]\nBus = ["Tram"]\n[difficulty]\nmin_height = [40, 25, 10]\n'
+    )
     config = EvalConfig(**load_protocol_file(f))
     assert config.overlaps["Bus"] == {"strict": (0.7, 0.6, 0.6), "loose": (0.7, 0.6, 0.6)}
     bus = dict(dims=(12.0, 3.2, 2.5), width_px=150.0, height_px=90.0)
@@ -360,8 +367,12 @@ def test_bad_protocol_files(tmp_path):
     from kitti_eval.errors import ConfigError
     from kitti_eval.protocol import load_protocol_file
 
-    for text, needle in (("bogus = 1", "unknown keys"), ("classes = 'Car'", "list of names"),
-                         ("[difficulty]\nmin_height = [1, 2]", "three numbers"), ("x = [", "not valid TOML")):
+    for text, needle in (
+        ("bogus = 1", "unknown keys"),
+        ("classes = 'Car'", "list of names"),
+        ("[difficulty]\nmin_height = [1, 2]", "three numbers"),
+        ("x = [", "not valid TOML"),
+    ):
         f = tmp_path / "p.toml"
         f.write_text(text)
         with pytest.raises(ConfigError, match=needle):

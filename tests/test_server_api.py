@@ -35,8 +35,9 @@ META = ("id", "evaluation")
 
 def cli(tmp_path: Path, gt: Path, pred: Path, fmt: str = "json", *extra: str) -> str:
     out = tmp_path / f"cli.{fmt}"
-    assert cli_main(["--gt", str(gt), "--pred", str(pred), "--format", fmt, "--output", str(out), "--quiet",
-                     *extra]) == 0
+    assert (
+        cli_main(["--gt", str(gt), "--pred", str(pred), "--format", fmt, "--output", str(out), "--quiet", *extra]) == 0
+    )
     return out.read_text()
 
 
@@ -52,6 +53,7 @@ def client(tmp_path_factory):
 
 # --------------------------------------------------------------------------------------------- basics
 
+
 def test_openapi_documents_the_versioned_endpoints(client) -> None:
     spec = client.get("/openapi.json").json()
     paths = spec["paths"]
@@ -63,8 +65,19 @@ def test_openapi_documents_the_versioned_endpoints(client) -> None:
     assert "/healthz" in paths and "/readyz" in paths
     form = spec["components"]["schemas"]
     body = next(v for k, v in form.items() if k.startswith("Body_create_evaluation"))
-    assert {"predictions", "gt", "gt_file", "protocol", "classes", "threshold_sets", "iou", "model", "commit",
-            "epoch", "label"} <= set(body["properties"])
+    assert {
+        "predictions",
+        "gt",
+        "gt_file",
+        "protocol",
+        "classes",
+        "threshold_sets",
+        "iou",
+        "model",
+        "commit",
+        "epoch",
+        "label",
+    } <= set(body["properties"])
     assert "HTTPBearer" in spec["components"]["securitySchemes"]
 
 
@@ -102,8 +115,12 @@ def test_uploading_the_demo_gives_the_cli_json_with_an_id(client, tmp_path) -> N
 def test_table_and_markdown_when_asked(client, tmp_path, how, fmt, media) -> None:
     kw = {"params": {"format": fmt}} if how == "query" else {}
     if how == "accept":
-        r = client.post("/v1/evaluations", data={"gt": "demo"}, files={"predictions": ("r.pkl.gz", DEMO_PRED)},
-                        headers={"Accept": f"{media}, application/json;q=0.5"})
+        r = client.post(
+            "/v1/evaluations",
+            data={"gt": "demo"},
+            files={"predictions": ("r.pkl.gz", DEMO_PRED)},
+            headers={"Accept": f"{media}, application/json;q=0.5"},
+        )
     else:
         r = upload(client, DEMO_PRED, "r.pkl.gz", **kw)
     assert r.status_code == 201, r.text
@@ -122,12 +139,29 @@ def test_unknown_format_and_evaluation(client) -> None:
 
 
 def test_options_protocol_classes_thresholds_iou_curves(client, tmp_path) -> None:
-    fields = {"protocol": "openpcdet", "classes": "Car,Van", "threshold_sets": "strict", "iou": "Car=0.6,0.5,0.5",
-              "curves": "true"}
+    fields = {
+        "protocol": "openpcdet",
+        "classes": "Car,Van",
+        "threshold_sets": "strict",
+        "iou": "Car=0.6,0.5,0.5",
+        "curves": "true",
+    }
     r = upload(client, DEMO_PRED, "r.pkl.gz", fields=fields)
     assert r.status_code == 201, r.text
-    expected = json.loads(cli(tmp_path, *demo_paths(), "json", "--protocol", "openpcdet", "--classes", "Car,Van",
-                              "--iou", "Car=0.6,0.5,0.5", "--curves"))
+    expected = json.loads(
+        cli(
+            tmp_path,
+            *demo_paths(),
+            "json",
+            "--protocol",
+            "openpcdet",
+            "--classes",
+            "Car,Van",
+            "--iou",
+            "Car=0.6,0.5,0.5",
+            "--curves",
+        )
+    )
     body = doc_of(r.json())
     assert body["threshold_sets"] == ["strict"] and body["classes"] == ["Car", "Van"]
     assert body["overlaps"]["Car"]["strict"] == {"bbox": 0.6, "bev": 0.5, "3d": 0.5}
@@ -135,16 +169,19 @@ def test_options_protocol_classes_thresholds_iou_curves(client, tmp_path) -> Non
     assert body["curves"]["strict"] == expected["curves"]["strict"]
 
 
-@pytest.mark.parametrize("fields,needle", [
-    ({"protocol": "devkit"}, "protocol"),
-    ({"classes": "Bus"}, "bus"),
-    ({"classes": " , "}, "no classes"),
-    ({"threshold_sets": "medium"}, "threshold set"),
-    ({"iou": "Car=0.7,0.7"}, "iou"),
-    ({"iou": "Car=1.5,0.7,0.7"}, "[0, 1)"),
-    ({"label": "no-equals-sign"}, "key=value"),
-    ({"label": "bad key!=1"}, "label key"),
-])
+@pytest.mark.parametrize(
+    "fields,needle",
+    [
+        ({"protocol": "devkit"}, "protocol"),
+        ({"classes": "Bus"}, "bus"),
+        ({"classes": " , "}, "no classes"),
+        ({"threshold_sets": "medium"}, "threshold set"),
+        ({"iou": "Car=0.7,0.7"}, "iou"),
+        ({"iou": "Car=1.5,0.7,0.7"}, "[0, 1)"),
+        ({"label": "no-equals-sign"}, "key=value"),
+        ({"label": "bad key!=1"}, "label key"),
+    ],
+)
 def test_bad_options_are_422_before_anything_is_loaded(client, fields, needle) -> None:
     assert_error(upload(client, DEMO_PRED, fields=fields), 422, needle)
 
@@ -168,6 +205,7 @@ def test_ground_truth_uploaded_with_the_request(client, tmp_path) -> None:
 
 # ------------------------------------------------------------------------------------- history, compare
 
+
 def test_history_filters_by_ground_truth_and_labels_newest_first(tmp_path) -> None:
     with app_client(tmp_path / "data") as c:
         assert register(c, "small", golden_bytes("kitti_infos_val.pkl"), "kitti_infos_val.pkl").status_code == 201
@@ -180,10 +218,12 @@ def test_history_filters_by_ground_truth_and_labels_newest_first(tmp_path) -> No
         assert [i["id"] for i in everything["items"]] == [other, *reversed(ids)]
         assert everything["next_offset"] is None
         assert [i["id"] for i in c.get("/v1/evaluations", params={"gt": "small"}).json()["items"]] == ids[::-1]
-        assert [i["id"] for i in c.get("/v1/evaluations", params={"model": "a", "epoch": "1"}).json()["items"]] == \
-            [ids[1]]
-        assert [i["id"] for i in c.get("/v1/evaluations", params={"label": ["team=x", "run=7"]}).json()["items"]] == \
-            [other]
+        assert [i["id"] for i in c.get("/v1/evaluations", params={"model": "a", "epoch": "1"}).json()["items"]] == [
+            ids[1]
+        ]
+        assert [i["id"] for i in c.get("/v1/evaluations", params={"label": ["team=x", "run=7"]}).json()["items"]] == [
+            other
+        ]
         assert c.get("/v1/evaluations", params={"label": "team=y"}).json()["items"] == []
         page = c.get("/v1/evaluations", params={"limit": 2, "offset": 1}).json()
         assert [i["id"] for i in page["items"]] == [ids[2], ids[1]] and page["next_offset"] == 3
@@ -222,6 +262,7 @@ def test_comparison_gives_per_value_deltas(client) -> None:
 
 # --------------------------------------------------------------------------------------------- admin
 
+
 def test_admin_actions_need_the_token(client) -> None:
     data = golden_bytes("kitti_infos_val.pkl")
     assert_error(register(client, "gt-a", data, "i.pkl", headers={}), 401, "token")
@@ -245,8 +286,10 @@ def test_admin_actions_need_the_token(client) -> None:
 
 def test_ground_truth_from_a_label_2_archive_and_shared_storage(client, tmp_path) -> None:
     labels = golden_txt("label_2.tar.gz")
-    for name, blob, fname in (("txt-tar", golden_bytes("label_2.tar.gz"), "label_2.tar.gz"),
-                              ("txt-zip", zip_of(labels), "label_2.zip")):
+    for name, blob, fname in (
+        ("txt-tar", golden_bytes("label_2.tar.gz"), "label_2.tar.gz"),
+        ("txt-zip", zip_of(labels), "label_2.zip"),
+    ):
         r = register(client, name, blob, fname)
         assert r.status_code == 201, r.text
         assert r.json()["frames"] == 50
@@ -273,12 +316,18 @@ def test_generated_admin_token_is_kept_in_the_data_dir(tmp_path) -> None:
 
 # ---------------------------------------------------------------------------------------------- limits
 
+
 def _multipart(fields: dict[str, str], name: str, filename: str, payload: bytes) -> tuple[bytes, str]:
     boundary = "testboundary0123456789"
-    parts = [f'--{boundary}\r\nContent-Disposition: form-data; name="{k}"\r\n\r\n{v}\r\n'.encode()
-             for k, v in fields.items()]
-    parts.append(f'--{boundary}\r\nContent-Disposition: form-data; name="{name}"; filename="{filename}"\r\n'
-                 f"Content-Type: application/octet-stream\r\n\r\n".encode() + payload + b"\r\n")
+    parts = [
+        f'--{boundary}\r\nContent-Disposition: form-data; name="{k}"\r\n\r\n{v}\r\n'.encode() for k, v in fields.items()
+    ]
+    parts.append(
+        f'--{boundary}\r\nContent-Disposition: form-data; name="{name}"; filename="{filename}"\r\n'
+        f"Content-Type: application/octet-stream\r\n\r\n".encode()
+        + payload
+        + b"\r\n"
+    )
     parts.append(f"--{boundary}--\r\n".encode())
     return b"".join(parts), f"multipart/form-data; boundary={boundary}"
 
@@ -291,7 +340,7 @@ def test_oversized_upload_is_413_declared_or_streamed(tmp_path) -> None:
 
         def chunks():  # no Content-Length: the cap must hold while the body streams
             for i in range(0, len(body), 64 * 1024):
-                yield body[i:i + 64 * 1024]
+                yield body[i : i + 64 * 1024]
 
         r = c.post("/v1/evaluations", content=chunks(), headers={"content-type": ctype})
         assert_error(r, 413, "upload limit")
@@ -329,8 +378,10 @@ def test_saturated_service_answers_503_with_retry_after(tmp_path, monkeypatch) -
 def test_queued_requests_wait_for_a_slot(tmp_path) -> None:
     with app_client(tmp_path / "data", max_concurrent_evals=1, max_queued_evals=6) as c:
         out: list[int] = []
-        threads = [threading.Thread(target=lambda: out.append(upload(c, golden_bytes("result.pkl")).status_code))
-                   for _ in range(6)]
+        threads = [
+            threading.Thread(target=lambda: out.append(upload(c, golden_bytes("result.pkl")).status_code))
+            for _ in range(6)
+        ]
         for t in threads:
             t.start()
         for t in threads:
@@ -373,6 +424,7 @@ def test_an_unexpected_failure_is_a_500_without_details(tmp_path, monkeypatch) -
 
 
 # ------------------------------------------------------------------------------------------ durability
+
 
 def test_evaluations_survive_a_restart_and_scratch_is_cleaned(tmp_path) -> None:
     data_dir = tmp_path / "data"
@@ -420,6 +472,7 @@ def test_serve_reports_usage_errors(capsys) -> None:
 
 
 # ------------------------------------------------------------------------------------------- the cache
+
 
 def test_ground_truth_cache_is_bounded_and_loads_each_set_once() -> None:
     from kitti_eval.loaders import load_ground_truth
@@ -481,6 +534,9 @@ def test_registered_files_come_back_from_the_database(tmp_path) -> None:
             again = upload(c, golden_bytes("result.pkl"), gt=name).json()
             assert doc_of(again) == doc_of(body)
     assert sorted(p.name for p in (data_dir / "ground-truths").iterdir()) == sorted(
-        [f"{before['pkl']['evaluation']['ground_truth']['sha256']}.pkl",
-         before["txt"]["evaluation"]["ground_truth"]["sha256"],
-         f"{before['demo']['evaluation']['ground_truth']['sha256']}.pkl"])
+        [
+            f"{before['pkl']['evaluation']['ground_truth']['sha256']}.pkl",
+            before["txt"]["evaluation"]["ground_truth"]["sha256"],
+            f"{before['demo']['evaluation']['ground_truth']['sha256']}.pkl",
+        ]
+    )

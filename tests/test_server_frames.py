@@ -30,8 +30,7 @@ def worse_predictions() -> bytes:
         keep = np.ones(len(anno["name"]), dtype=bool)
         cars = np.flatnonzero(anno["name"] == "Car")
         keep[cars[::2]] = False
-        anno = {k: (v[keep] if isinstance(v, np.ndarray) and v.shape[:1] == keep.shape else v)
-                for k, v in anno.items()}
+        anno = {k: (v[keep] if isinstance(v, np.ndarray) and v.shape[:1] == keep.shape else v) for k, v in anno.items()}
         anno["score"] = anno["score"] * 0.5
         out.append(anno)
     return gzip.compress(pickle.dumps(out))
@@ -41,8 +40,9 @@ def worse_predictions() -> bytes:
 def service(tmp_path_factory):
     data = tmp_path_factory.mktemp("frames") / "data"
     with app_client(data) as c:
-        a = upload(c, DEMO_PRED, "output/kitti_models/pointpillar/default/result.pkl.gz",
-                   fields={"model": "pointpillar"})
+        a = upload(
+            c, DEMO_PRED, "output/kitti_models/pointpillar/default/result.pkl.gz", fields={"model": "pointpillar"}
+        )
         b = upload(c, worse_predictions(), "result.pkl.gz")
         assert a.status_code == b.status_code == 201, (a.text, b.text)
         yield c, data, a.json()["id"], b.json()["id"]
@@ -56,11 +56,13 @@ def demo():
 def test_worst_frames_equal_the_library(service, demo) -> None:
     c, _, a, _ = service
     gt, dt = demo
-    r = c.get(f"/v1/evaluations/{a}/frames", params={"class": "Pedestrian", "metric": "bev", "difficulty": "hard",
-                                                      "worst": 5})
+    r = c.get(
+        f"/v1/evaluations/{a}/frames", params={"class": "Pedestrian", "metric": "bev", "difficulty": "hard", "worst": 5}
+    )
     assert r.status_code == 200, r.text
-    want = frames_document(frame_stats(gt, dt, EvalConfig(), cls="Pedestrian", metric="bev", difficulty="hard"),
-                           worst=5)
+    want = frames_document(
+        frame_stats(gt, dt, EvalConfig(), cls="Pedestrian", metric="bev", difficulty="hard"), worst=5
+    )
     assert r.json() == {**want, "evaluation": a}
     assert len(r.json()["frames"]) == 5 and r.json()["frames"][0]["fp"] + r.json()["frames"][0]["fn"] > 0
     every = c.get(f"/v1/evaluations/{a}/frames", params={"worst": 10_000}).json()["frames"]
@@ -79,8 +81,9 @@ def test_one_frame_for_two_evaluations_equals_the_library(service, demo) -> None
     want = inspect_frame(gt, [("pointpillar", dt)], fid, EvalConfig(), metric="bbox", score_threshold=0.2)
     got_a = body["models"]["pointpillar"]
     assert got_a["evaluation"] == a and got_a["source"] == "result.pkl.gz"
-    assert {k: v for k, v in got_a.items() if k not in ("evaluation", "source")} == \
-        {k: v for k, v in want["models"]["pointpillar"].items() if k != "source"}
+    assert {k: v for k, v in got_a.items() if k not in ("evaluation", "source")} == {
+        k: v for k, v in want["models"]["pointpillar"].items() if k != "source"
+    }
     assert body["ground_truth"] == want["ground_truth"]
     got_b = body["models"]["result"]
     assert len(got_b["detections"]) < len(got_a["detections"])

@@ -33,8 +33,24 @@ def client(tmp_path_factory):
 
 def cli_json(tmp_path: Path, gt: Path, pred: Path, protocol: str) -> dict:
     out = tmp_path / "cli.json"
-    assert cli_main(["--gt", str(gt), "--pred", str(pred), "--protocol", protocol, "--format", "json",
-                     "--output", str(out), "--quiet"]) == 0
+    assert (
+        cli_main(
+            [
+                "--gt",
+                str(gt),
+                "--pred",
+                str(pred),
+                "--protocol",
+                protocol,
+                "--format",
+                "json",
+                "--output",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     return json.loads(out.read_text())
 
 
@@ -47,8 +63,10 @@ def predictions(kind: str) -> tuple[str, bytes]:
         "tar.xz": ("pred.tar.xz", tar_of(pred, compression="xz")),
         "zip": ("pred.zip", zip_of(pred)),
         "zip-flat": ("pred.zip", zip_of({Path(k).name: v for k, v in pred.items()})),
-        "zip-final_result": ("final_result.zip",
-                             zip_of({f"final_result/data/{Path(k).name}": v for k, v in pred.items()})),
+        "zip-final_result": (
+            "final_result.zip",
+            zip_of({f"final_result/data/{Path(k).name}": v for k, v in pred.items()}),
+        ),
     }[kind]
 
 
@@ -57,8 +75,10 @@ def predictions(kind: str) -> tuple[str, bytes]:
 def test_upload_equals_the_cli(client, txt_dirs, tmp_path, kind, protocol) -> None:
     filename, data = predictions(kind)
     if kind == "pkl":  # the pickle route: infos against result.pkl
-        gt_name, expected = "small-pkl", cli_json(tmp_path, GOLDEN / "kitti_infos_val.pkl", GOLDEN / "result.pkl",
-                                                  protocol)
+        gt_name, expected = (
+            "small-pkl",
+            cli_json(tmp_path, GOLDEN / "kitti_infos_val.pkl", GOLDEN / "result.pkl", protocol),
+        )
     else:  # the txt route: label_2 against the pred folder
         gt_name, expected = "small-txt", cli_json(tmp_path, txt_dirs["label_2"], txt_dirs["pred"], protocol)
     r = upload(client, data, filename, gt=gt_name, fields={"protocol": protocol})

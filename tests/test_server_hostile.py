@@ -39,6 +39,7 @@ try:
 except ImportError:  # pragma: no cover - numpy < 2
     from numpy.core.multiarray import _reconstruct
 
+
 @pytest.fixture(scope="module")
 def canary_env(tmp_path_factory):
     root = tmp_path_factory.mktemp("hostile")
@@ -85,8 +86,15 @@ def test_hostile_pickle_is_refused_and_nothing_runs(client, canary_env, name) ->
     still_serving(client)
 
 
-@pytest.mark.parametrize("name", ["os.system, protocol 2", "builtins.getattr(__import__('os'), 'system') chain",
-                                  "GLOBAL of a module that writes the canary on import", "gzip-wrapped os.system"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "os.system, protocol 2",
+        "builtins.getattr(__import__('os'), 'system') chain",
+        "GLOBAL of a module that writes the canary on import",
+        "gzip-wrapped os.system",
+    ],
+)
 def test_hostile_ground_truth_is_refused_too(client, canary_env, name) -> None:
     canary, evil_npy = canary_env
     data = hostile_pickles(canary, evil_npy)[name]
@@ -100,6 +108,7 @@ def test_hostile_ground_truth_is_refused_too(client, canary_env, name) -> None:
 
 
 # ------------------------------------------------------------------------------------------- malformed
+
 
 def _golden_results() -> list[dict]:
     return load_pickle(GOLDEN / "result.pkl", source="golden")  # type: ignore[return-value]
@@ -132,7 +141,7 @@ def _zip_symlink() -> bytes:
     with zipfile.ZipFile(buf, "w") as zf:
         info = zipfile.ZipInfo("pred/000000.txt")
         info.create_system = 3
-        info.external_attr = (0o120777 << 16)
+        info.external_attr = 0o120777 << 16
         zf.writestr(info, "/etc/passwd")
     return buf.getvalue()
 
@@ -202,67 +211,124 @@ def malformed_cases() -> dict[str, tuple[str, Callable[[], bytes], tuple[str, ..
         "a pickled int": ("result.pkl", lambda: pickle.dumps(42), ("expected",)),
         "a list of strings": ("result.pkl", lambda: pickle.dumps(["a", "b"]), ("entry #0", "expected a dict")),
         "an empty list": ("result.pkl", lambda: pickle.dumps([]), ("no frames",)),
-        "missing key score": ("result.pkl", lambda: results_with(lambda r: r[2].pop("score")),
-                              ("frame 000002", "score", "missing")),
+        "missing key score": (
+            "result.pkl",
+            lambda: results_with(lambda r: r[2].pop("score")),
+            ("frame 000002", "score", "missing"),
+        ),
         "missing frame_id": ("result.pkl", lambda: results_with(lambda r: r[2].pop("frame_id")), ("frame_id",)),
-        "wrong type: score as strings": ("result.pkl", lambda: results_with(
-            _set(2, "score", np.array(["high"] * 14))), ("frame 000002", "score")),
-        "wrong type: frame_id a float": ("result.pkl", lambda: results_with(_set(3, "frame_id", 3.5)),
-                                         ("frame_id", "float")),
-        "NaN location": ("result.pkl", lambda: results_with(lambda r: r[1]["location"].__setitem__((0, 0), np.nan)),
-                         ("frame 000001", "location", "non-finite")),
-        "inf dimensions": ("result.pkl", lambda: results_with(
-            lambda r: r[1]["dimensions"].__setitem__((0, 1), np.inf)), ("frame 000001", "dimensions", "non-finite")),
-        "negative array size in a pickle": ("result.pkl", lambda: pickle.dumps(
-            Reducer(_reconstruct, (np.ndarray, (0,), b"b"), (1, (-5,), np.dtype("f8"), False, b"")), protocol=2),
-                                            ("result.pkl",)),
+        "wrong type: score as strings": (
+            "result.pkl",
+            lambda: results_with(_set(2, "score", np.array(["high"] * 14))),
+            ("frame 000002", "score"),
+        ),
+        "wrong type: frame_id a float": (
+            "result.pkl",
+            lambda: results_with(_set(3, "frame_id", 3.5)),
+            ("frame_id", "float"),
+        ),
+        "NaN location": (
+            "result.pkl",
+            lambda: results_with(lambda r: r[1]["location"].__setitem__((0, 0), np.nan)),
+            ("frame 000001", "location", "non-finite"),
+        ),
+        "inf dimensions": (
+            "result.pkl",
+            lambda: results_with(lambda r: r[1]["dimensions"].__setitem__((0, 1), np.inf)),
+            ("frame 000001", "dimensions", "non-finite"),
+        ),
+        "negative array size in a pickle": (
+            "result.pkl",
+            lambda: pickle.dumps(
+                Reducer(_reconstruct, (np.ndarray, (0,), b"b"), (1, (-5,), np.dtype("f8"), False, b"")), protocol=2
+            ),
+            ("result.pkl",),
+        ),
         "negative member size in a tar": ("pred.tar", _tar_negative_size, ("negative size",)),
-        "bbox of the wrong shape": ("result.pkl", lambda: results_with(
-            lambda r: r[2].__setitem__("bbox", r[2]["bbox"][:, :3])), ("frame 000002", "bbox", "shape")),
-        "field lengths disagree": ("result.pkl", lambda: results_with(
-            lambda r: r[2].__setitem__("name", np.append(r[2]["name"], "Car"))), ("frame 000002", "shape")),
-        "a frame listed twice": ("result.pkl", lambda: results_with(_set(3, "frame_id", "000002")),
-                                 ("000002", "twice")),
-        "a frame the ground truth does not have": ("result.pkl", lambda: results_with(
-            _set(4, "frame_id", "999999")), ("999999",)),
+        "bbox of the wrong shape": (
+            "result.pkl",
+            lambda: results_with(lambda r: r[2].__setitem__("bbox", r[2]["bbox"][:, :3])),
+            ("frame 000002", "bbox", "shape"),
+        ),
+        "field lengths disagree": (
+            "result.pkl",
+            lambda: results_with(lambda r: r[2].__setitem__("name", np.append(r[2]["name"], "Car"))),
+            ("frame 000002", "shape"),
+        ),
+        "a frame listed twice": (
+            "result.pkl",
+            lambda: results_with(_set(3, "frame_id", "000002")),
+            ("000002", "twice"),
+        ),
+        "a frame the ground truth does not have": (
+            "result.pkl",
+            lambda: results_with(_set(4, "frame_id", "999999")),
+            ("999999",),
+        ),
         "the infos file uploaded as predictions": ("kitti_infos_val.pkl", _infos_dict, ("infos",)),
-        "an mmdetection3d 1.x info dict": ("result.pkl", lambda: pickle.dumps({"metainfo": {}, "data_list": []}),
-                                           ("mmdetection3d",)),
+        "an mmdetection3d 1.x info dict": (
+            "result.pkl",
+            lambda: pickle.dumps({"metainfo": {}, "data_list": []}),
+            ("mmdetection3d",),
+        ),
         "gzip magic then garbage": ("result.pkl.gz", lambda: b"\x1f\x8b\x08\x00garbage-not-deflate" * 3, ("gzip",)),
         "zip with ../": ("pred.zip", lambda: zip_of({"../../etc/000000.txt": _good_line()}), ("outside",)),
         "zip with an absolute path": ("pred.zip", lambda: zip_of({"/etc/000000.txt": _good_line()}), ("absolute",)),
         "zip with a windows drive path": ("pred.zip", lambda: zip_of({"C:/x/000000.txt": _good_line()}), ("absolute",)),
         "zip with a symlink member": ("pred.zip", _zip_symlink, ("symbolic link",)),
         "zip bomb": ("pred.zip", _zip_bomb, ("unpacks to more than",)),
-        "zip with too many members": ("pred.zip", lambda: zip_of({f"pred/{i:06d}.txt": b"" for i in range(500)}),
-                                      ("more than 200 members",)),
+        "zip with too many members": (
+            "pred.zip",
+            lambda: zip_of({f"pred/{i:06d}.txt": b"" for i in range(500)}),
+            ("more than 200 members",),
+        ),
         "zip with a duplicate member": ("pred.zip", _zip_duplicate, ("listed twice",)),
-        "zip with a control character in a name": ("pred.zip", lambda: zip_of({"pred/0\x1b[2J.txt": b""}),
-                                                   ("control characters",)),
+        "zip with a control character in a name": (
+            "pred.zip",
+            lambda: zip_of({"pred/0\x1b[2J.txt": b""}),
+            ("control characters",),
+        ),
         "corrupt zip": ("pred.zip", lambda: b"PK\x03\x04" + b"\x00garbage" * 10, ("not a readable zip",)),
-        "zip without txt files (a torch.save file?)": ("model.pt", lambda: zip_of({"archive/data.pkl": b"\x80\x02."}),
-                                                      ("no .txt files", "torch.save")),
-        "zip with txt files in two folders": ("pred.zip", lambda: zip_of({"a/000000.txt": _good_line(),
-                                                                         "b/000001.txt": _good_line()}),
-                                              ("several folders",)),
+        "zip without txt files (a torch.save file?)": (
+            "model.pt",
+            lambda: zip_of({"archive/data.pkl": b"\x80\x02."}),
+            ("no .txt files", "torch.save"),
+        ),
+        "zip with txt files in two folders": (
+            "pred.zip",
+            lambda: zip_of({"a/000000.txt": _good_line(), "b/000001.txt": _good_line()}),
+            ("several folders",),
+        ),
         "tar with a character device": ("pred.tar.gz", lambda: _tar_special(tarfile.CHRTYPE), ("device",)),
         "tar with a fifo": ("pred.tar.gz", lambda: _tar_special(tarfile.FIFOTYPE), ("device or fifo",)),
         "tar with a symlink": ("pred.tar.gz", lambda: _tar_special(tarfile.SYMTYPE, linkname="/etc/passwd"), ("link",)),
-        "tar with a hard link": ("pred.tar.gz", lambda: _tar_special(tarfile.LNKTYPE, linkname="/etc/passwd"),
-                                 ("link",)),
+        "tar with a hard link": (
+            "pred.tar.gz",
+            lambda: _tar_special(tarfile.LNKTYPE, linkname="/etc/passwd"),
+            ("link",),
+        ),
         "tar with ../": ("pred.tar.gz", lambda: tar_of({"../000000.txt": _good_line()}), ("outside",)),
-        "tar with an absolute path": ("pred.tar.gz", lambda: tar_of({"/etc/000000.txt": _good_line()}),
-                                      ("absolute",)),
+        "tar with an absolute path": ("pred.tar.gz", lambda: tar_of({"/etc/000000.txt": _good_line()}), ("absolute",)),
         "tar bomb": ("pred.tar.gz", _tar_bomb, ("unpacks to more than",)),
         "truncated tar.gz": ("pred.tar.gz", lambda: golden_bytes("pred.tar.gz")[:5000], ("truncated",)),
         "bzip2 data that is not a tar": ("pred.tar.bz2", lambda: __import__("bz2").compress(b"hello" * 100), ("tar",)),
-        "txt line with the wrong number of fields": ("pred.zip", lambda: _txt_with("000003", b"Car 0 0 0 1 2 3\n"),
-                                                     ("000003", "16 fields")),
-        "txt with a field that is not a number": ("pred.zip", lambda: _txt_with(
-            "000004", _good_line().replace(b" ", b" x", 1).replace(b" x", b" ", 1).rsplit(b" ", 1)[0] + b" high\n"),
-                                                   ("000004", "score")),
-        "txt with nan coordinates": ("pred.zip", lambda: _txt_with(
-            "000005", b"Car -1 -1 0.1 10 20 110 120 1.5 1.6 3.9 nan 1.5 20 0.1 0.9\n"), ("000005", "non-finite")),
+        "txt line with the wrong number of fields": (
+            "pred.zip",
+            lambda: _txt_with("000003", b"Car 0 0 0 1 2 3\n"),
+            ("000003", "16 fields"),
+        ),
+        "txt with a field that is not a number": (
+            "pred.zip",
+            lambda: _txt_with(
+                "000004", _good_line().replace(b" ", b" x", 1).replace(b" x", b" ", 1).rsplit(b" ", 1)[0] + b" high\n"
+            ),
+            ("000004", "score"),
+        ),
+        "txt with nan coordinates": (
+            "pred.zip",
+            lambda: _txt_with("000005", b"Car -1 -1 0.1 10 20 110 120 1.5 1.6 3.9 nan 1.5 20 0.1 0.9\n"),
+            ("000005", "non-finite"),
+        ),
         "txt that is not UTF-8": ("pred.zip", lambda: _txt_with("000006", b"\xff\xfe\x00binary"), ("000006",)),
         "unknown format (a PNG)": ("result.pkl", lambda: b"\x89PNG\r\n\x1a\n" + b"\0" * 100, ("unknown format",)),
         "a single KITTI txt file": ("000000.txt", _good_line, ("single KITTI txt file",)),
@@ -311,8 +377,12 @@ def test_oversized_upload_is_413(client) -> None:
 def test_missing_or_broken_form_is_422(client) -> None:
     assert_error(client.post("/v1/evaluations", data={"gt": "small"}), 422, "predictions")
     assert_error(client.post("/v1/evaluations", content=b"not a form", headers={"content-type": "text/plain"}), 422)
-    assert_error(client.post("/v1/evaluations", content=b"--x\r\ngarbage",
-                             headers={"content-type": "multipart/form-data; boundary=x"}), (400, 422))
+    assert_error(
+        client.post(
+            "/v1/evaluations", content=b"--x\r\ngarbage", headers={"content-type": "multipart/form-data; boundary=x"}
+        ),
+        (400, 422),
+    )
     still_serving(client)
 
 
@@ -328,7 +398,7 @@ def _zip_with_lying_entry_count(n: int) -> bytes:
     """n members, but the end record claims 1: zipfile trusts the directory size, not the count."""
     data = bytearray(zip_of({f"pred/{i:06d}.txt": b"" for i in range(n)}))
     at = data.rfind(b"PK\x05\x06")
-    data[at + 8:at + 12] = (1).to_bytes(2, "little") * 2
+    data[at + 8 : at + 12] = (1).to_bytes(2, "little") * 2
     return bytes(data)
 
 

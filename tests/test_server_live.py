@@ -23,8 +23,9 @@ CONCURRENT = 32
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
-    server = LiveServer(tmp_path_factory.mktemp("live") / "data", max_concurrent_evals=2,
-                        max_queued_evals=CONCURRENT, max_upload_mb=8)
+    server = LiveServer(
+        tmp_path_factory.mktemp("live") / "data", max_concurrent_evals=2, max_queued_evals=CONCURRENT, max_upload_mb=8
+    )
     with server:
         with server.client() as c:
             assert register(c, "small", golden_bytes("kitti_infos_val.pkl"), "kitti_infos_val.pkl").status_code == 201
@@ -32,8 +33,11 @@ def live(tmp_path_factory):
 
 
 def post(client: httpx.Client, data: bytes, gt: str = "small", **fields: str) -> httpx.Response:
-    return client.post("/v1/evaluations", data={"gt": gt, **fields},
-                       files={"predictions": ("result.pkl", data, "application/octet-stream")})
+    return client.post(
+        "/v1/evaluations",
+        data={"gt": gt, **fields},
+        files={"predictions": ("result.pkl", data, "application/octet-stream")},
+    )
 
 
 def test_started_with_one_command_demo_ready(live) -> None:
@@ -42,8 +46,11 @@ def test_started_with_one_command_demo_ready(live) -> None:
         assert c.get("/readyz").json() == {"status": "ready"}
         assert "demo" in [g["name"] for g in c.get("/v1/ground-truths").json()["items"]]
         assert "/v1/evaluations" in c.get("/openapi.json").json()["paths"]
-        r = c.post("/v1/evaluations", data={"gt": "demo"},
-                   files={"predictions": ("result.pkl.gz", (ROOT / "kitti_eval/data/demo/result.pkl.gz").read_bytes())})
+        r = c.post(
+            "/v1/evaluations",
+            data={"gt": "demo"},
+            files={"predictions": ("result.pkl.gz", (ROOT / "kitti_eval/data/demo/result.pkl.gz").read_bytes())},
+        )
         assert r.status_code == 201, r.text
         assert r.json()["frames"] == 200
 
@@ -80,16 +87,23 @@ def test_hostile_and_malformed_uploads_do_not_hurt_the_live_server(live, tmp_pat
     canary = tmp_path / "CANARY"
     payloads = hostile_pickles(canary, tmp_path / "missing.npy")
     with live.client() as c:
-        for name in ("os.system, protocol 2", "builtins.getattr(__import__('os'), 'system') chain",
-                     "subprocess.Popen", "torch._utils._rebuild_tensor_v2, hand-written", "gzip-wrapped os.system",
-                     "deep nesting: 100k nested lists", "huge allocation: one buffer reused as 300 arrays"):
+        for name in (
+            "os.system, protocol 2",
+            "builtins.getattr(__import__('os'), 'system') chain",
+            "subprocess.Popen",
+            "torch._utils._rebuild_tensor_v2, hand-written",
+            "gzip-wrapped os.system",
+            "deep nesting: 100k nested lists",
+            "huge allocation: one buffer reused as 300 arrays",
+        ):
             r = post(c, payloads[name])
             assert r.status_code == 422, (name, r.text)
             assert set(r.json()) == {"error"} and "Traceback" not in r.text
         for data in (b"", b"\x80\x04\x95garbage", b"PK\x03\x04broken"):
             assert post(c, data).status_code == 422
-        big = c.post("/v1/evaluations", data={"gt": "small"},
-                     files={"predictions": ("big.pkl", b"\x80\x04" + b"\0" * (9 << 20))})
+        big = c.post(
+            "/v1/evaluations", data={"gt": "small"}, files={"predictions": ("big.pkl", b"\x80\x04" + b"\0" * (9 << 20))}
+        )
         assert big.status_code == 413 and big.json()["error"]["code"] == "payload_too_large"
         assert post(c, golden_bytes("result.pkl")).status_code == 201
     assert not canary.exists()
@@ -162,8 +176,9 @@ def test_serve_entry_point_runs_the_service(tmp_path) -> None:
     port = free_port()
     args = ["--port", str(port), "--data-dir", str(tmp_path / "d"), "--log-level", "warning"]
     env_code = f"import sys; from server.main import serve; sys.exit(serve({args!r}))"
-    proc = subprocess.Popen([sys.executable, "-c", env_code], cwd=ROOT, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", env_code], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     try:
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=5) as c:
             wait_ready(c.get)
@@ -177,4 +192,3 @@ def test_serve_entry_point_runs_the_service(tmp_path) -> None:
             proc.kill()
             proc.wait(5)
     assert proc.returncode in (0, -15)  # uvicorn re-raises SIGTERM after a clean shutdown
-

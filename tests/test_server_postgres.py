@@ -42,8 +42,13 @@ def test_core_flow_on_postgres(postgres, tmp_path) -> None:
         assert register(c, "small-txt", golden_bytes("label_2.tar.gz"), "label_2.tar.gz").status_code == 201
         assert_error(register(c, "small", golden_bytes("kitti_infos_val.pkl"), "i.pkl"), 409)
         a = upload(c, golden_bytes("result.pkl"), gt="small", fields={"model": "m", "epoch": "1"})
-        b = upload(c, zip_of(golden_txt("pred.tar.gz")), "pred.zip", gt="small-txt",
-                   fields={"model": "m", "epoch": "2", "label": "team=pg"})
+        b = upload(
+            c,
+            zip_of(golden_txt("pred.tar.gz")),
+            "pred.zip",
+            gt="small-txt",
+            fields={"model": "m", "epoch": "2", "label": "team=pg"},
+        )
         assert a.status_code == 201 and b.status_code == 201, (a.text, b.text)
         a, b = a.json(), b.json()
         assert c.get(f"/v1/evaluations/{a['id']}").json() == a
@@ -70,11 +75,15 @@ def test_concurrent_uploads_and_sigkill_on_postgres(postgres, tmp_path) -> None:
     acked: list[str] = []
     lock = threading.Lock()
     try:
+
         def sender() -> None:
             with server.client(timeout=60) as c:
                 for _ in range(3):
-                    r = c.post("/v1/evaluations", data={"gt": "demo", "label": "db=pg"},
-                               files={"predictions": ("r.pkl", golden_bytes("result.pkl"))})
+                    r = c.post(
+                        "/v1/evaluations",
+                        data={"gt": "demo", "label": "db=pg"},
+                        files={"predictions": ("r.pkl", golden_bytes("result.pkl"))},
+                    )
                     assert r.status_code == 201, r.text
                     with lock:
                         acked.append(r.json()["id"])

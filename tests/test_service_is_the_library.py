@@ -15,10 +15,14 @@ from server.evaluator import EvalOptions
 _OPTIONS = [
     ([], {}),
     (["--classes", "Car,Van", "--protocol", "openpcdet"], {"classes": "Car,Van", "protocol": "openpcdet"}),
-    (["--iou", "Car=0.7,0.6,0.6", "--iou", "Car:loose=0.5,0.3,0.3"],
-     {"iou": ("Car=0.7,0.6,0.6", "Car:loose=0.5,0.3,0.3")}),
-    (["--classes", "Car,Bus", "--iou", "Bus=0.7,0.7,0.7", "--ranges", "0,30,inf", "--coco"],
-     {"classes": "Car,Bus", "iou": ("Bus=0.7,0.7,0.7",), "ranges": "0,30,inf", "coco": True}),
+    (
+        ["--iou", "Car=0.7,0.6,0.6", "--iou", "Car:loose=0.5,0.3,0.3"],
+        {"iou": ("Car=0.7,0.6,0.6", "Car:loose=0.5,0.3,0.3")},
+    ),
+    (
+        ["--classes", "Car,Bus", "--iou", "Bus=0.7,0.7,0.7", "--ranges", "0,30,inf", "--coco"],
+        {"classes": "Car,Bus", "iou": ("Bus=0.7,0.7,0.7",), "ranges": "0,30,inf", "coco": True},
+    ),
     (["--lidar-only", "--classes", " Car , Pedestrian "], {"lidar_only": True, "classes": " Car , Pedestrian "}),
 ]
 
@@ -34,11 +38,14 @@ def test_options_read_the_same_through_the_cli_and_the_service(flags: list[str],
     assert _cli(flags) == options.config()
 
 
-@pytest.mark.parametrize("flags, fields", [
-    (["--iou", "Car=0.7,0.6"], {"iou": ("Car=0.7,0.6",)}),
-    (["--ranges", "30,0"], {"ranges": "30,0"}),
-    (["--classes", "Bus"], {"classes": "Bus"}),
-])
+@pytest.mark.parametrize(
+    "flags, fields",
+    [
+        (["--iou", "Car=0.7,0.6"], {"iou": ("Car=0.7,0.6",)}),
+        (["--ranges", "30,0"], {"ranges": "30,0"}),
+        (["--classes", "Bus"], {"classes": "Bus"}),
+    ],
+)
 def test_bad_options_are_refused_with_the_same_words(flags: list[str], fields: dict, capsys) -> None:
     """The same rule refuses them (the CLI reports a malformed --iou as a usage error, exit 2)."""
     with pytest.raises(ConfigError) as service_error:
@@ -56,12 +63,17 @@ def _two_demo_evaluations(client) -> list[str]:  # noqa: ANN001 - a TestClient
     return [upload(client, data, "result.pkl.gz").json()["id"] for _ in range(2)]
 
 
-@pytest.mark.parametrize("body, flags", [
-    ({"min": ["Car/3d/moderate >= 10"]}, ["--min", "Car/3d/moderate >= 10"]),
-    ({"min": ["Car/3d/moderate >= 99"], "require_classes": ["Cyclist", "Truck"]},
-     ["--min", "Car/3d/moderate >= 99", "--require-class", "Cyclist", "--require-class", "Truck"]),
-    ({"max_drop": ["0.5", "Car/bev/hard=0.1"]}, ["--max-drop", "0.5", "--max-drop", "Car/bev/hard=0.1"]),
-])
+@pytest.mark.parametrize(
+    "body, flags",
+    [
+        ({"min": ["Car/3d/moderate >= 10"]}, ["--min", "Car/3d/moderate >= 10"]),
+        (
+            {"min": ["Car/3d/moderate >= 99"], "require_classes": ["Cyclist", "Truck"]},
+            ["--min", "Car/3d/moderate >= 99", "--require-class", "Cyclist", "--require-class", "Truck"],
+        ),
+        ({"max_drop": ["0.5", "Car/bev/hard=0.1"]}, ["--max-drop", "0.5", "--max-drop", "Car/bev/hard=0.1"]),
+    ],
+)
 def test_gate_verdicts_equal_the_clis(body: dict, flags: list[str], tmp_path: Path) -> None:
     """The same rules on the same two results: the service's JUnit report is the CLI's, to the byte."""
     from kitti_eval import cli
@@ -69,12 +81,14 @@ def test_gate_verdicts_equal_the_clis(body: dict, flags: list[str], tmp_path: Pa
 
     with app_client(tmp_path / "data") as client:
         current, base = _two_demo_evaluations(client)
-        answer = client.post("/v1/gates", params={"format": "junit"},
-                             json={"evaluation": current, "baseline": base, **body})
+        answer = client.post(
+            "/v1/gates", params={"format": "junit"}, json={"evaluation": current, "baseline": base, **body}
+        )
     gt, pred = demo_paths()
     junit = tmp_path / "gate.xml"
-    code = cli.main(["gate", "--gt", str(gt), "--pred", str(pred), "--baseline", str(pred), *flags,
-                     "--junit", str(junit)])
+    code = cli.main(
+        ["gate", "--gt", str(gt), "--pred", str(pred), "--baseline", str(pred), *flags, "--junit", str(junit)]
+    )
     assert (answer.status_code, code) in ((200, 0), (412, 3))
     assert answer.text == junit.read_text()
 
@@ -86,8 +100,11 @@ def test_gate_rules_are_refused_with_the_same_words(tmp_path: Path, capsys: pyte
     gt, pred = demo_paths()
     with app_client(tmp_path / "data") as client:
         current, _ = _two_demo_evaluations(client)
-        for body, flags in (({}, []), ({"max_drop": ["0.5"]}, ["--max-drop", "0.5"]),
-                            ({"min": ["Car/3d >= 1"]}, ["--min", "Car/3d >= 1"])):
+        for body, flags in (
+            ({}, []),
+            ({"max_drop": ["0.5"]}, ["--max-drop", "0.5"]),
+            ({"min": ["Car/3d >= 1"]}, ["--min", "Car/3d >= 1"]),
+        ):
             message = client.post("/v1/gates", json={"evaluation": current, **body}).json()["error"]["message"]
             assert cli.main(["gate", "--gt", str(gt), "--pred", str(pred), *flags]) == 2
             assert message in capsys.readouterr().err

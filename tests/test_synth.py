@@ -11,17 +11,59 @@ import pytest
 
 from kitti_eval import synth
 
-GT_KEYS = ["name", "truncated", "occluded", "alpha", "bbox", "dimensions", "location", "rotation_y", "score",
-           "difficulty", "index", "gt_boxes_lidar", "num_points_in_gt"]
-GT_DTYPES = {"truncated": np.float64, "occluded": np.float64, "alpha": np.float64, "bbox": np.float32,
-             "dimensions": np.float64, "location": np.float32, "rotation_y": np.float64, "score": np.float64,
-             "difficulty": np.int32, "index": np.int32, "gt_boxes_lidar": np.float64,
-             "num_points_in_gt": np.int32}
-DET_KEYS = ["name", "truncated", "occluded", "alpha", "bbox", "dimensions", "location", "rotation_y", "score",
-            "boxes_lidar", "frame_id"]
-DET_DTYPES = {"truncated": np.float64, "occluded": np.float64, "alpha": np.float32, "bbox": np.float32,
-              "dimensions": np.float32, "location": np.float32, "rotation_y": np.float32, "score": np.float32,
-              "boxes_lidar": np.float32}
+GT_KEYS = [
+    "name",
+    "truncated",
+    "occluded",
+    "alpha",
+    "bbox",
+    "dimensions",
+    "location",
+    "rotation_y",
+    "score",
+    "difficulty",
+    "index",
+    "gt_boxes_lidar",
+    "num_points_in_gt",
+]
+GT_DTYPES = {
+    "truncated": np.float64,
+    "occluded": np.float64,
+    "alpha": np.float64,
+    "bbox": np.float32,
+    "dimensions": np.float64,
+    "location": np.float32,
+    "rotation_y": np.float64,
+    "score": np.float64,
+    "difficulty": np.int32,
+    "index": np.int32,
+    "gt_boxes_lidar": np.float64,
+    "num_points_in_gt": np.int32,
+}
+DET_KEYS = [
+    "name",
+    "truncated",
+    "occluded",
+    "alpha",
+    "bbox",
+    "dimensions",
+    "location",
+    "rotation_y",
+    "score",
+    "boxes_lidar",
+    "frame_id",
+]
+DET_DTYPES = {
+    "truncated": np.float64,
+    "occluded": np.float64,
+    "alpha": np.float32,
+    "bbox": np.float32,
+    "dimensions": np.float32,
+    "location": np.float32,
+    "rotation_y": np.float32,
+    "score": np.float32,
+    "boxes_lidar": np.float32,
+}
 TRAILING = {"bbox": (4,), "dimensions": (3,), "location": (3,), "gt_boxes_lidar": (7,), "boxes_lidar": (7,)}
 
 
@@ -46,14 +88,14 @@ def _project(calib: dict, loc: np.ndarray, dims: np.ndarray, ry: np.ndarray) -> 
     out = []
     for (x, y, z), (l, h, w), r in zip(loc.astype(float), dims.astype(float), ry.astype(float)):
         rot = np.array([[np.cos(r), 0, np.sin(r)], [0, 1, 0], [-np.sin(r), 0, np.cos(r)]])
-        corners = np.array([[sx * l / 2, sy * h, sz * w / 2]
-                            for sx in (-1, 1) for sy in (0, -1) for sz in (-1, 1)])
+        corners = np.array([[sx * l / 2, sy * h, sz * w / 2] for sx in (-1, 1) for sy in (0, -1) for sz in (-1, 1)])
         pts = corners @ rot.T + [x, y, z]
         uvw = np.c_[pts, np.ones(8)] @ calib["P2"][:3].T
         assert np.all(uvw[:, 2] > 0), "a box behind the camera"
         u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
-        out.append([np.clip(u.min(), 0, 1241), np.clip(v.min(), 0, 374), np.clip(u.max(), 0, 1241),
-                    np.clip(v.max(), 0, 374)])
+        out.append(
+            [np.clip(u.min(), 0, 1241), np.clip(v.min(), 0, 374), np.clip(u.max(), 0, 1241), np.clip(v.max(), 0, 374)]
+        )
     return np.array(out).reshape(-1, 4)
 
 
@@ -95,12 +137,15 @@ _DEMO_ULPS = 4
 
 # ----------------------------------------------------------------------------------------------- structure
 
+
 def test_deterministic_for_a_seed() -> None:
     _assert_same(synth.generate(25, seed=5, dets_per_frame=8), synth.generate(25, seed=5, dets_per_frame=8))
     other = synth.generate(25, seed=6, dets_per_frame=8)[0]
     same = synth.generate(25, seed=5, dets_per_frame=8)[0]
-    assert any(len(a["annos"]["name"]) != len(b["annos"]["name"]) or
-               not np.array_equal(a["annos"]["bbox"], b["annos"]["bbox"]) for a, b in zip(same, other))
+    assert any(
+        len(a["annos"]["name"]) != len(b["annos"]["name"]) or not np.array_equal(a["annos"]["bbox"], b["annos"]["bbox"])
+        for a, b in zip(same, other)
+    )
 
 
 def test_ground_truth_does_not_depend_on_detection_settings() -> None:
@@ -134,9 +179,11 @@ def test_infos_structure_matches_openpcdet(data) -> None:
             assert a["name"].dtype == f"<U{max(len(s) for s in a['name'])}"
             assert np.all(a["score"] == -1)
             assert a["index"][_real(a)].tolist() == list(range(int(_real(a).sum())))
-    np.testing.assert_allclose(infos[0]["calib"]["P2"][:3], [[721.5377, 0, 609.5593, 44.85728],
-                                                            [0, 721.5377, 172.854, 0.2163791],
-                                                            [0, 0, 1, 0.002745884]], rtol=1e-6)
+    np.testing.assert_allclose(
+        infos[0]["calib"]["P2"][:3],
+        [[721.5377, 0, 609.5593, 44.85728], [0, 721.5377, 172.854, 0.2163791], [0, 0, 1, 0.002745884]],
+        rtol=1e-6,
+    )
 
 
 def test_results_structure_matches_openpcdet(data) -> None:
@@ -200,6 +247,7 @@ def test_dontcare_rows_are_last_and_kitti_shaped(data) -> None:
 
 # ------------------------------------------------------------------------------------------------ geometry
 
+
 def test_gt_2d_box_is_the_clipped_projection(data) -> None:
     infos, _ = data
     for info in infos:
@@ -242,8 +290,9 @@ def test_lidar_boxes_come_from_the_inverse_calibration(data) -> None:
         want = _to_lidar(info["calib"], a["location"][r], a["dimensions"][r], a["rotation_y"][r])
         np.testing.assert_allclose(a["gt_boxes_lidar"], want, atol=1e-4, rtol=0)
         if len(det["score"]):
-            want = _to_lidar(info["calib"], det["location"], det["dimensions"].astype(float),
-                             det["rotation_y"].astype(float))
+            want = _to_lidar(
+                info["calib"], det["location"], det["dimensions"].astype(float), det["rotation_y"].astype(float)
+            )
             np.testing.assert_allclose(det["boxes_lidar"], want, atol=2e-4, rtol=0)
 
 
@@ -301,8 +350,15 @@ def test_difficulty_follows_openpcdet_levels(data) -> None:
         a = info["annos"]
         for b, t, o, d in zip(a["bbox"], a["truncated"], a["occluded"], a["difficulty"]):
             h = float(b[3]) - float(b[1]) + 1
-            want = (0 if h >= 40 and t <= 0.15 and o <= 0 else 1 if h >= 25 and t <= 0.3 and o <= 1
-                    else 2 if h >= 25 and t <= 0.5 and o <= 2 else -1)
+            want = (
+                0
+                if h >= 40 and t <= 0.15 and o <= 0
+                else 1
+                if h >= 25 and t <= 0.3 and o <= 1
+                else 2
+                if h >= 25 and t <= 0.5 and o <= 2
+                else -1
+            )
             assert d == want
 
 
@@ -338,6 +394,7 @@ def test_arguments_are_checked() -> None:
 
 
 # ------------------------------------------------------------------------------------------------- writers
+
 
 def test_pickle_writers_round_trip(data, tmp_path: Path) -> None:
     infos, results = data
@@ -395,13 +452,22 @@ def test_result_dir_round_trips_to_four_decimals(data, tmp_path: Path) -> None:
             assert len(f) == 16 and f[0] == r["name"][k] and f[1:3] == ["-1", "-1"]
             assert all(len(v.split(".")[1]) == 4 for v in f[3:])
             v = [float(x) for x in f[3:]]
-            want = [r["alpha"][k], *r["bbox"][k], r["dimensions"][k][1], r["dimensions"][k][2],
-                    r["dimensions"][k][0], *r["location"][k], r["rotation_y"][k], r["score"][k]]
+            want = [
+                r["alpha"][k],
+                *r["bbox"][k],
+                r["dimensions"][k][1],
+                r["dimensions"][k][2],
+                r["dimensions"][k][0],
+                *r["location"][k],
+                r["rotation_y"][k],
+                r["score"][k],
+            ]
             np.testing.assert_allclose(v, np.array(want, dtype=np.float64), atol=6e-5, rtol=0)
     assert empties > 0
 
 
 # -------------------------------------------------------------------------------------- demo and the CLI
+
 
 def test_bundled_demo_is_generate_200_seed_7() -> None:
     assert synth.DEMO_ARGS == {"frames": 200, "seed": 7, "dets_per_frame": 12.0}

@@ -29,8 +29,10 @@ WAIT_S = 30
 if not (CHROMIUM.exists() and CHROMEDRIVER.exists()):
     missing = ", ".join(str(p) for p in (CHROMIUM, CHROMEDRIVER) if not p.exists())
     if os.environ.get("KITTI_EVAL_BROWSER_TESTS") == "require":
-        pytest.fail(f"KITTI_EVAL_BROWSER_TESTS=require but {missing} is missing (apt-get install chromium "
-                    "chromium-driver)", pytrace=False)
+        pytest.fail(
+            f"KITTI_EVAL_BROWSER_TESTS=require but {missing} is missing (apt-get install chromium chromium-driver)",
+            pytrace=False,
+        )
     pytest.skip(f"no browser: {missing} is missing", allow_module_level=True)
 
 webdriver = pytest.importorskip("selenium.webdriver")
@@ -64,10 +66,19 @@ def live(tmp_path_factory):
 def browser(tmp_path_factory):
     options = webdriver.ChromeOptions()
     options.binary_location = str(CHROMIUM)
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                "--no-first-run", "--disable-quic", "--window-size=1280,1600",
-                f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}"):
+    for arg in (
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-dev-shm-usage",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--no-first-run",
+        "--disable-quic",
+        "--window-size=1280,1600",
+        f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}",
+    ):
         options.add_argument(arg)
     driver = webdriver.Chrome(options=options, service=DriverService(executable_path=str(CHROMEDRIVER)))
     driver.set_page_load_timeout(60)
@@ -92,8 +103,7 @@ def perturbed(tmp_path_factory) -> Path:
     for frame in results:
         n = len(frame["score"])
         keep = np.arange(n) % 3 != 2
-        changed = {k: v[keep] if isinstance(v, np.ndarray) and v.ndim and len(v) == n else v
-                   for k, v in frame.items()}
+        changed = {k: v[keep] if isinstance(v, np.ndarray) and v.ndim and len(v) == n else v for k, v in frame.items()}
         changed["score"] = np.clip(changed["score"] * rng.uniform(0.8, 1.0, keep.sum()), 0, 1).astype(np.float32)
         out.append(changed)
     path = tmp_path_factory.mktemp("perturbed") / "perturbed.pkl.gz"
@@ -175,8 +185,10 @@ def test_drag_and_drop_fills_the_file_input(live, browser, state, perturbed) -> 
     state["ids"].append(evaluation_id)
     check_scores(browser, live, evaluation_id)
     with live.client() as c:
-        assert c.get(f"/v1/evaluations/{evaluation_id}").json()["evaluation"]["predictions"]["filename"] \
+        assert (
+            c.get(f"/v1/evaluations/{evaluation_id}").json()["evaluation"]["predictions"]["filename"]
             == "perturbed.pkl.gz"
+        )
 
 
 def test_compare_two_from_the_history(live, browser, state) -> None:

@@ -65,8 +65,11 @@ class Page(HTMLParser):
 
     def classes(self, tag: str, first: str, scope: str | None = None) -> list[list[str]]:
         """The other classes of each ``tag`` whose class list starts with ``first`` (in ``scope`` if given)."""
-        return [a["class"].split()[1:] for (t, a), sc in zip(self.tags, self.scopes)
-                if t == tag and a.get("class", "").split()[:1] == [first] and (scope is None or sc == scope)]
+        return [
+            a["class"].split()[1:]
+            for (t, a), sc in zip(self.tags, self.scopes)
+            if t == tag and a.get("class", "").split()[:1] == [first] and (scope is None or sc == scope)
+        ]
 
     def all_text(self) -> str:
         return " ".join(t.strip() for t in self.text if t.strip())
@@ -74,9 +77,14 @@ class Page(HTMLParser):
 
 def ap_values(doc: dict[str, Any]) -> dict[str, float | None]:
     """``"<set>/<recall>/<class>/<metric>/<difficulty>" -> value`` of a JSON document's ``ap``."""
-    return {f"{s}/{r}/{c}/{m}/{d}": v
-            for s, by_recall in doc["ap"].items() for r, by_class in by_recall.items()
-            for c, by_metric in by_class.items() for m, by_diff in by_metric.items() for d, v in by_diff.items()}
+    return {
+        f"{s}/{r}/{c}/{m}/{d}": v
+        for s, by_recall in doc["ap"].items()
+        for r, by_class in by_recall.items()
+        for c, by_metric in by_class.items()
+        for m, by_diff in by_metric.items()
+        for d, v in by_diff.items()
+    }
 
 
 def submit(client: Any, data: bytes = DEMO_PRED, filename: str = "result.pkl.gz", **fields: str) -> Any:
@@ -112,12 +120,14 @@ def client(tmp_path_factory):
 def two(client) -> tuple[str, str]:
     """Two evaluations of the demo: the bundled predictions (official) and the golden ones (openpcdet)."""
     first = evaluation_id(submit(client, model="pointpillars"))
-    second = evaluation_id(submit(client, golden_bytes("result.pkl"), "result.pkl", protocol="openpcdet",
-                                  model="second"))
+    second = evaluation_id(
+        submit(client, golden_bytes("result.pkl"), "result.pkl", protocol="openpcdet", model="second")
+    )
     return first, second
 
 
 # ------------------------------------------------------------------------------------------------- home
+
 
 def test_home_has_the_upload_form_and_the_ground_truths(client) -> None:
     r = client.get("/")
@@ -147,6 +157,7 @@ def test_history_lists_evaluations_newest_first_with_the_summary(client, two) ->
 
 
 # ------------------------------------------------------------------------------------------- evaluation
+
 
 def test_evaluation_page_values_equal_the_json(client, two) -> None:
     first, _ = two
@@ -211,6 +222,7 @@ def test_unknown_evaluation_is_an_html_404(client) -> None:
 
 # ---------------------------------------------------------------------------------------------- compare
 
+
 def test_compare_shows_b_minus_a_with_colours_and_notes(client, two) -> None:
     first, second = two
     a = client.get(f"/v1/evaluations/{first}").json()
@@ -253,6 +265,7 @@ def test_compare_errors_are_html(client, two) -> None:
 
 # ----------------------------------------------------------------------------------------------- upload
 
+
 def test_upload_redirects_to_the_new_evaluation(client) -> None:
     eid = evaluation_id(submit(client, model="redirected"))
     body = client.get(f"/v1/evaluations/{eid}").json()
@@ -260,15 +273,22 @@ def test_upload_redirects_to_the_new_evaluation(client) -> None:
     assert body["protocol"] == "official" and body["frames"] == 200 and "curves" in body
 
 
-@pytest.mark.parametrize(("files", "fields", "status", "needle"), [
-    ({"predictions": ("x.pkl", b"not a pickle")}, {"gt": "demo"}, 422, "x.pkl: unknown format"),
-    ({"predictions": ("result.pkl.gz", DEMO_PRED)}, {"gt": "nope"}, 404, "no ground truth named 'nope'"),
-    ({"predictions": ("", b"")}, {"gt": "demo"}, 422, "choose a predictions file"),
-    (None, {"gt": "demo"}, 422, "choose a predictions file"),
-    ({"predictions": ("result.pkl.gz", DEMO_PRED)}, {"gt": "demo", "protocol": "nuscenes"}, 422,
-     "unknown protocol 'nuscenes'"),
-    ({"predictions": ("result.pkl.gz", DEMO_PRED)}, {"gt": "demo", "model": "x" * 300}, 422, "at most 256"),
-])
+@pytest.mark.parametrize(
+    ("files", "fields", "status", "needle"),
+    [
+        ({"predictions": ("x.pkl", b"not a pickle")}, {"gt": "demo"}, 422, "x.pkl: unknown format"),
+        ({"predictions": ("result.pkl.gz", DEMO_PRED)}, {"gt": "nope"}, 404, "no ground truth named 'nope'"),
+        ({"predictions": ("", b"")}, {"gt": "demo"}, 422, "choose a predictions file"),
+        (None, {"gt": "demo"}, 422, "choose a predictions file"),
+        (
+            {"predictions": ("result.pkl.gz", DEMO_PRED)},
+            {"gt": "demo", "protocol": "nuscenes"},
+            422,
+            "unknown protocol 'nuscenes'",
+        ),
+        ({"predictions": ("result.pkl.gz", DEMO_PRED)}, {"gt": "demo", "model": "x" * 300}, 422, "at most 256"),
+    ],
+)
 def test_bad_uploads_render_the_home_page_with_the_error(client, files, fields, status, needle) -> None:
     if files is None:
         r = client.post("/ui/evaluations", data=fields, follow_redirects=False)
@@ -286,20 +306,28 @@ def test_the_upload_cap_applies_to_the_form(tmp_path) -> None:
         assert submit(c, big).status_code == 413  # declared length: refused before the body is read
 
         boundary = "kitti-eval-boundary"
-        body = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"gt\"\r\n\r\ndemo\r\n"
-                f"--{boundary}\r\nContent-Disposition: form-data; name=\"predictions\"; filename=\"r.pkl.gz\"\r\n"
-                f"Content-Type: application/octet-stream\r\n\r\n").encode() + big + f"\r\n--{boundary}--\r\n".encode()
+        body = (
+            (
+                f'--{boundary}\r\nContent-Disposition: form-data; name="gt"\r\n\r\ndemo\r\n'
+                f'--{boundary}\r\nContent-Disposition: form-data; name="predictions"; filename="r.pkl.gz"\r\n'
+                f"Content-Type: application/octet-stream\r\n\r\n"
+            ).encode()
+            + big
+            + f"\r\n--{boundary}--\r\n".encode()
+        )
 
         def chunks():
             for i in range(0, len(body), 8192):
-                yield body[i:i + 8192]
+                yield body[i : i + 8192]
 
-        r = c.post("/ui/evaluations", content=chunks(),
-                   headers={"Content-Type": f"multipart/form-data; boundary={boundary}"})
+        r = c.post(
+            "/ui/evaluations", content=chunks(), headers={"Content-Type": f"multipart/form-data; boundary={boundary}"}
+        )
         assert_html_error(r, 413, "larger than the upload limit")
 
 
 # ----------------------------------------------------------------------------------------------- frames
+
 
 def frame_rows(page: Page) -> list[dict[str, Any]]:
     """The links of the worst-frames table: frame id and href."""
@@ -311,8 +339,9 @@ def worst_table(html: str) -> list[list[str]]:
     """The worst-frames table's cells as text, row by row."""
     body = html.split('<table class="frames">', 1)[1].split("</table>", 1)[0]
     rows = re.findall(r"<tr>(.*?)</tr>", body, flags=re.S)[1:]
-    return [[re.sub(r"<[^>]+>", "", c).strip() for c in re.findall(r"<td[^>]*>(.*?)</td>", r, flags=re.S)]
-            for r in rows]
+    return [
+        [re.sub(r"<[^>]+>", "", c).strip() for c in re.findall(r"<td[^>]*>(.*?)</td>", r, flags=re.S)] for r in rows
+    ]
 
 
 def test_worst_frames_equal_the_json_and_link_to_the_frame_view(client, two) -> None:
@@ -322,15 +351,18 @@ def test_worst_frames_equal_the_json_and_link_to_the_frame_view(client, two) -> 
     assert worst_table(html) == [[f["frame"], str(f["tp"]), str(f["fp"]), str(f["fn"])] for f in expected]
     rows = frame_rows(Page(html))
     assert [r["frame"] for r in rows] == [f["frame"] for f in expected] and len(rows) == 20
-    assert rows[0]["href"] == (f"/frames/{expected[0]['frame']}?e={first}&cls=Car&metric=3d&difficulty=moderate"
-                               "&set=strict")
+    assert rows[0]["href"] == (
+        f"/frames/{expected[0]['frame']}?e={first}&cls=Car&metric=3d&difficulty=moderate&set=strict"
+    )
 
 
 def test_worst_frames_follow_the_selectors(client, two) -> None:
     first, _ = two
     params = {"cls": "Pedestrian", "metric": "bev", "difficulty": "hard", "set": "loose"}
-    expected = client.get(f"/v1/evaluations/{first}/frames", params={
-        "class": "Pedestrian", "metric": "bev", "difficulty": "hard", "set": "loose"}).json()["frames"]
+    expected = client.get(
+        f"/v1/evaluations/{first}/frames",
+        params={"class": "Pedestrian", "metric": "bev", "difficulty": "hard", "set": "loose"},
+    ).json()["frames"]
     html = client.get(f"/evaluations/{first}", params=params).text
     assert worst_table(html) == [[f["frame"], str(f["tp"]), str(f["fp"]), str(f["fn"])] for f in expected]
     page = Page(html)
@@ -344,8 +376,7 @@ def test_worst_frames_show_why_they_cannot(client, two) -> None:
     r = client.get(f"/evaluations/{first}", params={"cls": "Bogus"})
     assert r.status_code == 200 and "Bogus" in Page(r.text).all_text()
     assert '<table class="frames">' not in r.text
-    uploaded = upload(client, DEMO_PRED, "result.pkl.gz", gt=None,
-                      gt_file=("gt.pkl.gz", demo_paths()[0].read_bytes()))
+    uploaded = upload(client, DEMO_PRED, "result.pkl.gz", gt=None, gt_file=("gt.pkl.gz", demo_paths()[0].read_bytes()))
     assert uploaded.status_code == 201
     r = client.get(f"/evaluations/{uploaded.json()['id']}")
     assert r.status_code == 200
@@ -363,24 +394,28 @@ def test_frame_view_shows_the_labels_of_each_evaluation(client, two) -> None:
     assert [a["data-evaluation"] for t, a in page.tags if t == "section"] == [first, second]
     assert page.svgs == 2
     gt_roles = [g["role"] for g in expected["ground_truth"]]
-    assert [c[0] for c in page.classes("span", "badge")[:len(gt_roles)]] == gt_roles
+    assert [c[0] for c in page.classes("span", "badge")[: len(gt_roles)]] == gt_roles
     drawn_gt = [g for g in expected["ground_truth"] if min(g["dimensions"]) > 0]  # DontCare has no box
     assert len(drawn_gt) < len(gt_roles)
     for name, model in expected["models"].items():
         eid = model["evaluation"]
         labels = [d["label"] for d in model["detections"]]
         assert page.classes("tr", "det", eid) == [[label] for label in labels]
-        assert [c for c in page.classes("span", "badge", eid) if c[0] not in ("tp", "fp", "fn")] == \
-            [[label] for label in labels if label not in ("tp", "fp")]
+        assert [c for c in page.classes("span", "badge", eid) if c[0] not in ("tp", "fp", "fn")] == [
+            [label] for label in labels if label not in ("tp", "fp")
+        ]
         missed = set(model["missed"])
-        assert page.classes("g", "box", eid) == [["gt", "missed"] if g["index"] in missed else ["gt"]
-                                                 for g in drawn_gt] + [[label] for label in labels]
+        assert page.classes("g", "box", eid) == [
+            ["gt", "missed"] if g["index"] in missed else ["gt"] for g in drawn_gt
+        ] + [[label] for label in labels]
         text = page.all_text()
         assert name in text
         assert f"TP {model['counts']['tp']}" in text and f"FP {model['counts']['fp']}" in text
     remove = [a["href"] for t, a in page.tags if t == "a" and "remove" in a.get("class", "")]
-    assert remove == [f"/frames/{frame}?e={second}&cls=Car&metric=3d&difficulty=moderate&set=strict",
-                      f"/frames/{frame}?e={first}&cls=Car&metric=3d&difficulty=moderate&set=strict"]
+    assert remove == [
+        f"/frames/{frame}?e={second}&cls=Car&metric=3d&difficulty=moderate&set=strict",
+        f"/frames/{frame}?e={first}&cls=Car&metric=3d&difficulty=moderate&set=strict",
+    ]
 
 
 def test_frame_view_offers_the_other_evaluations(client, two) -> None:
@@ -401,18 +436,22 @@ def test_frame_view_score_threshold(client, two) -> None:
     assert "below_threshold" in rows
 
 
-@pytest.mark.parametrize(("query", "status", "needle"), [
-    ("/frames/999999?e={first}", 404, "no frame 999999"),
-    ("/frames/000000?e=nope", 404, "no evaluation with id 'nope'"),
-    ("/frames/000000", 422, "name at least one evaluation"),
-    ("/frames/000000?e={first}&score=high", 422, "score threshold must be a number"),
-    ("/frames/000000?e={first}&cls=Bogus", 422, "Bogus"),
-    ("/frames/000000?e={first}&e={uploaded}", 409, "different ground truths"),
-])
+@pytest.mark.parametrize(
+    ("query", "status", "needle"),
+    [
+        ("/frames/999999?e={first}", 404, "no frame 999999"),
+        ("/frames/000000?e=nope", 404, "no evaluation with id 'nope'"),
+        ("/frames/000000", 422, "name at least one evaluation"),
+        ("/frames/000000?e={first}&score=high", 422, "score threshold must be a number"),
+        ("/frames/000000?e={first}&cls=Bogus", 422, "Bogus"),
+        ("/frames/000000?e={first}&e={uploaded}", 409, "different ground truths"),
+    ],
+)
 def test_frame_view_errors_are_html(client, two, query, status, needle) -> None:
     first, _ = two
-    uploaded = upload(client, golden_bytes("result.pkl"), gt=None,
-                      gt_file=("gt.pkl", golden_bytes("kitti_infos_val.pkl"))).json()["id"]
+    uploaded = upload(
+        client, golden_bytes("result.pkl"), gt=None, gt_file=("gt.pkl", golden_bytes("kitti_infos_val.pkl"))
+    ).json()["id"]
     page = assert_html_error(client.get(query.format(first=first, uploaded=uploaded)), status, needle)
     assert any(t == "form" for t, _ in page.tags)  # the choices stay on the page
 
@@ -432,8 +471,13 @@ def _external(url: str) -> bool:
 
 def test_no_page_or_static_file_fetches_from_the_internet(client, two) -> None:
     first, second = two
-    pages = ["/", f"/evaluations/{first}", f"/compare?a={first}&b={second}", "/evaluations/nope",
-             f"/frames/000000?e={first}"]
+    pages = [
+        "/",
+        f"/evaluations/{first}",
+        f"/compare?a={first}&b={second}",
+        "/evaluations/nope",
+        f"/frames/000000?e={first}",
+    ]
     static = sorted(p for p in STATIC_DIR.iterdir() if p.is_file())
     assert {p.name for p in static} == {"app.css", "app.js"}
     for path in pages:
@@ -460,10 +504,11 @@ def test_pages_are_not_in_the_openapi_document(client) -> None:
 
 # -------------------------------------------------------------------------------------------------- SVG
 
+
 def test_plot_maps_recall_and_precision_to_the_corners() -> None:
     plot = Plot(width=200, height=100, left=30, right=10, top=5, bottom=20)
-    assert plot.point(0.0, 0.0) == (30.0, 80.0)   # bottom-left of the chart area
-    assert plot.point(1.0, 1.0) == (190.0, 5.0)   # top-right
+    assert plot.point(0.0, 0.0) == (30.0, 80.0)  # bottom-left of the chart area
+    assert plot.point(1.0, 1.0) == (190.0, 5.0)  # top-right
     assert plot.point(0.5, 0.25) == (110.0, 61.25)
 
 
@@ -494,8 +539,13 @@ def test_bev_view_draws_z_up_and_x_right_at_one_scale() -> None:
     near = {"index": 0, "name": "Car", "location": [0.0, 1.6, 5.0], "dimensions": [2.0, 1.5, 2.0], "rotation_y": 0.0}
     far = {**near, "index": 1, "location": [10.0, 1.6, 30.0]}
     det = {**far, "index": 0, "label": "fp", "score": 0.5}
-    dontcare = {"index": 2, "name": "DontCare", "location": [-1000.0, -1000.0, -1000.0],
-                "dimensions": [-1.0, -1.0, -1.0], "rotation_y": -10.0}
+    dontcare = {
+        "index": 2,
+        "name": "DontCare",
+        "location": [-1000.0, -1000.0, -1000.0],
+        "dimensions": [-1.0, -1.0, -1.0],
+        "rotation_y": -10.0,
+    }
     view = bev_view([near, far, dontcare], [det], width=300, height=300)
     assert [b.kind for b in view.boxes] == ["gt", "gt", "fp"]  # no box for DontCare, nor room made for it
     assert view.step == 5.0
@@ -513,4 +563,3 @@ def test_bev_view_draws_z_up_and_x_right_at_one_scale() -> None:
     assert cy > ny and 0 <= cx <= 300  # the camera is below (behind) everything
     (hx0, hy0), (hx1, hy1) = view.boxes[0].heading
     assert hx1 > hx0 and hy1 == pytest.approx(hy0)  # rotation 0 faces +x, to the right
-

@@ -31,8 +31,10 @@ _errors: dict[int | str, dict[str, Any]] = {
 }
 router = APIRouter(prefix="/v1/evaluations", tags=["evaluations"], responses=_errors)
 
-_TEXT_RESPONSES: dict[str, Any] = {"text/plain": {"schema": {"type": "string"}},
-                                   "text/markdown": {"schema": {"type": "string"}}}
+_TEXT_RESPONSES: dict[str, Any] = {
+    "text/plain": {"schema": {"type": "string"}},
+    "text/markdown": {"schema": {"type": "string"}},
+}
 _MEDIA = {OutputFormat.TABLE: "text/plain; charset=utf-8", OutputFormat.MARKDOWN: "text/markdown; charset=utf-8"}
 
 
@@ -46,28 +48,44 @@ def _respond(record: EvaluationRecord, fmt: OutputFormat, status: int = 200) -> 
 
 
 @router.post(
-    "", status_code=201, response_model=EvaluationResponse, summary="Evaluate uploaded predictions",
-    responses={201: {"content": _TEXT_RESPONSES, "description": "the evaluation, stored"},
-               413: {"model": ErrorResponse, "description": "the upload is larger than KITTI_EVAL_MAX_UPLOAD_MB"},
-               503: {"model": ErrorResponse, "description": "every evaluation slot is taken; see Retry-After"}})
+    "",
+    status_code=201,
+    response_model=EvaluationResponse,
+    summary="Evaluate uploaded predictions",
+    responses={
+        201: {"content": _TEXT_RESPONSES, "description": "the evaluation, stored"},
+        413: {"model": ErrorResponse, "description": "the upload is larger than KITTI_EVAL_MAX_UPLOAD_MB"},
+        503: {"model": ErrorResponse, "description": "every evaluation slot is taken; see Retry-After"},
+    },
+)
 async def create_evaluation(
     service: ServiceDep,
     fmt: FormatDep,
-    predictions: Annotated[UploadFile, File(description="an OpenPCDet result.pkl (or .pkl.gz), or a zip/tar of "
-                                                        "KITTI result txt files (16 fields, one file per frame)")],
+    predictions: Annotated[
+        UploadFile,
+        File(
+            description="an OpenPCDet result.pkl (or .pkl.gz), or a zip/tar of "
+            "KITTI result txt files (16 fields, one file per frame)"
+        ),
+    ],
     gt: Annotated[str | None, Form(description="name of a registered ground truth, e.g. demo")] = None,
-    gt_file: Annotated[UploadFile | None, File(description="instead of gt: an infos .pkl[.gz] or a zip/tar of a "
-                                                           "label_2 folder, used for this evaluation only")] = None,
+    gt_file: Annotated[
+        UploadFile | None,
+        File(
+            description="instead of gt: an infos .pkl[.gz] or a zip/tar of a "
+            "label_2 folder, used for this evaluation only"
+        ),
+    ] = None,
     protocol: Annotated[Literal["official", "openpcdet"], Form()] = "official",
     classes: Annotated[str, Form(description="comma-separated, e.g. Car,Van")] = "Car,Pedestrian,Cyclist",
     threshold_sets: Annotated[str, Form(description="strict, loose or strict,loose")] = "strict,loose",
-    iou: Annotated[list[str] | None, Form(description="IoU thresholds as the CLI's --iou: CLASS[:SET]=BBOX,BEV,3D; "
-                                                       "repeatable")] = None,
+    iou: Annotated[
+        list[str] | None, Form(description="IoU thresholds as the CLI's --iou: CLASS[:SET]=BBOX,BEV,3D; repeatable")
+    ] = None,
     curves: Annotated[bool, Form(description="include the 41-point curves in the JSON")] = False,
     ranges: Annotated[str | None, Form(description="also by distance, e.g. 0,30,50,inf (as --ranges)")] = None,
     coco: Annotated[bool, Form(description="also COCO-style AP over ten IoU thresholds (as --coco)")] = False,
-    lidar_only: Annotated[bool, Form(description="BEV and 3D only, for sets without images (as --lidar-only)")
-                          ] = False,
+    lidar_only: Annotated[bool, Form(description="BEV and 3D only, for sets without images (as --lidar-only)")] = False,
     model: Annotated[str | None, Form(description="label: the model's name")] = None,
     commit: Annotated[str | None, Form(description="label: the code commit")] = None,
     epoch: Annotated[str | None, Form(description="label: the training epoch")] = None,
@@ -76,11 +94,20 @@ async def create_evaluation(
     """Evaluate `predictions` against a ground truth and store the result with the inputs' sha256 and the
     labels. The JSON is the document `kitti-eval --format json` prints, plus `id` and `evaluation`."""
     labels = parse_labels({"model": model, "commit": commit, "epoch": epoch}, label or [])
-    options = EvalOptions(protocol=protocol, classes=classes, threshold_sets=threshold_sets, iou=tuple(iou or ()),
-                          curves=curves, ranges=ranges, coco=coco, lidar_only=lidar_only)
+    options = EvalOptions(
+        protocol=protocol,
+        classes=classes,
+        threshold_sets=threshold_sets,
+        iou=tuple(iou or ()),
+        curves=curves,
+        ranges=ranges,
+        coco=coco,
+        lidar_only=lidar_only,
+    )
     gt_in = FileIn(gt_file.file, gt_file.filename) if gt_file is not None else None
-    record = await service.run(service.evaluate, FileIn(predictions.file, predictions.filename), gt or None, gt_in,
-                               options, labels)
+    record = await service.run(
+        service.evaluate, FileIn(predictions.file, predictions.filename), gt or None, gt_in, options, labels
+    )
     return _respond(record, fmt, status=201)
 
 
@@ -98,19 +125,30 @@ def list_evaluations(
     labels = parse_labels({"model": model, "commit": commit, "epoch": epoch}, label or [])
     records = service.store.list_evaluations(gt_name=gt, labels=labels, limit=limit + 1, offset=offset)
     more = len(records) > limit
-    return {"items": [evaluation_summary(r) for r in records[:limit]], "limit": limit, "offset": offset,
-            "next_offset": offset + limit if more else None}
+    return {
+        "items": [evaluation_summary(r) for r in records[:limit]],
+        "limit": limit,
+        "offset": offset,
+        "next_offset": offset + limit if more else None,
+    }
 
 
-@router.get("/{evaluation_id}", response_model=EvaluationResponse, summary="One evaluation",
-            responses={200: {"content": _TEXT_RESPONSES}})
+@router.get(
+    "/{evaluation_id}",
+    response_model=EvaluationResponse,
+    summary="One evaluation",
+    responses={200: {"content": _TEXT_RESPONSES}},
+)
 def get_evaluation(service: ServiceDep, fmt: FormatDep, evaluation_id: str) -> Response:
     return _respond(service.evaluation(evaluation_id), fmt)
 
 
-@router.get("/{evaluation_id}/compare/{other_id}", response_model=Comparison,
-            summary="Per-value differences: other minus base",
-            responses={200: {"content": {"text/markdown": {"schema": {"type": "string"}}}}})
+@router.get(
+    "/{evaluation_id}/compare/{other_id}",
+    response_model=Comparison,
+    summary="Per-value differences: other minus base",
+    responses={200: {"content": {"text/markdown": {"schema": {"type": "string"}}}}},
+)
 def compare_evaluations(service: ServiceDep, fmt: FormatDep, evaluation_id: str, other_id: str) -> Response:
     base, other = service.evaluation(evaluation_id), service.evaluation(other_id)
     comparison = compare(base, other)

@@ -10,12 +10,19 @@ from fastapi import APIRouter, Query
 from ..deps import ServiceDep
 from ..schemas import ErrorResponse
 
-router = APIRouter(tags=["frames"], responses={
-    404: {"model": ErrorResponse, "description": "unknown evaluation or frame"},
-    409: {"model": ErrorResponse, "description": "the evaluation's inputs were not kept (ground truth uploaded with "
-                                                  "the request, or predictions not kept), or the evaluations used "
-                                                  "different ground truths"},
-    422: {"model": ErrorResponse, "description": "unknown class, metric, difficulty or set"}})
+router = APIRouter(
+    tags=["frames"],
+    responses={
+        404: {"model": ErrorResponse, "description": "unknown evaluation or frame"},
+        409: {
+            "model": ErrorResponse,
+            "description": "the evaluation's inputs were not kept (ground truth uploaded with "
+            "the request, or predictions not kept), or the evaluations used "
+            "different ground truths",
+        },
+        422: {"model": ErrorResponse, "description": "unknown class, metric, difficulty or set"},
+    },
+)
 
 ClassQ = Annotated[str, Query(alias="class", description="the class, e.g. Car")]
 MetricQ = Annotated[Literal["bbox", "bev", "3d", "aos"], Query(description="overlap metric (aos: the 2D matching)")]
@@ -24,31 +31,53 @@ SetQ = Annotated[Literal["strict", "loose"], Query(alias="set", description="IoU
 
 
 @router.get("/v1/evaluations/{evaluation_id}/frames", summary="TP, FP and FN per frame, worst first")
-async def evaluation_frames(service: ServiceDep, evaluation_id: str, cls: ClassQ = "Car", metric: MetricQ = "3d",
-                            difficulty: DifficultyQ = "moderate", oset: SetQ = "strict",
-                            worst: Annotated[int | None, Query(ge=1, description="only the N frames with most "
-                                                                                  "errors (FP + FN)")] = 20,
-                            score_threshold: Annotated[float, Query(description="count detections scoring at "
-                                                                                "least this")] = 0.0,
-                            ) -> dict[str, Any]:
+async def evaluation_frames(
+    service: ServiceDep,
+    evaluation_id: str,
+    cls: ClassQ = "Car",
+    metric: MetricQ = "3d",
+    difficulty: DifficultyQ = "moderate",
+    oset: SetQ = "strict",
+    worst: Annotated[int | None, Query(ge=1, description="only the N frames with most errors (FP + FN)")] = 20,
+    score_threshold: Annotated[float, Query(description="count detections scoring at least this")] = 0.0,
+) -> dict[str, Any]:
     """The counts come from the same matching as the AP (as `kitti-eval frames`): frames ranked by FP + FN,
     ties by more misses. Needs an evaluation against a registered ground truth whose predictions were kept."""
-    return await service.run(lambda: service.frames(evaluation_id, cls=cls, metric=metric, difficulty=difficulty,
-                                                    oset=oset, worst=worst, score_threshold=score_threshold))
+    return await service.run(
+        lambda: service.frames(
+            evaluation_id,
+            cls=cls,
+            metric=metric,
+            difficulty=difficulty,
+            oset=oset,
+            worst=worst,
+            score_threshold=score_threshold,
+        )
+    )
 
 
 @router.get("/v1/frames/{frame_id}", summary="One frame's boxes, labelled, for several evaluations")
-async def inspect_frame(service: ServiceDep, frame_id: str,
-                        evaluation: Annotated[list[str], Query(description="evaluation id; repeat for several "
-                                                                           "(same ground truth)")],
-                        cls: ClassQ = "Car", metric: MetricQ = "3d", difficulty: DifficultyQ = "moderate",
-                        oset: SetQ = "strict",
-                        score_threshold: Annotated[float | None, Query(description="detections scoring below "
-                                                                                   "this take no part")] = None,
-                        ) -> dict[str, Any]:
+async def inspect_frame(
+    service: ServiceDep,
+    frame_id: str,
+    evaluation: Annotated[list[str], Query(description="evaluation id; repeat for several (same ground truth)")],
+    cls: ClassQ = "Car",
+    metric: MetricQ = "3d",
+    difficulty: DifficultyQ = "moderate",
+    oset: SetQ = "strict",
+    score_threshold: Annotated[float | None, Query(description="detections scoring below this take no part")] = None,
+) -> dict[str, Any]:
     """As `kitti-eval inspect --format json`: the ground truth with its role for the class, and per
     evaluation every detection labelled (tp with its ground truth and IoU, fp and why, ignored, dontcare,
     below_threshold, other_class), the ground truth's labels, the missed boxes and the counts."""
-    return await service.run(lambda: service.inspect(evaluation, frame_id, cls=cls, metric=metric,
-                                                     difficulty=difficulty, oset=oset,
-                                                     score_threshold=score_threshold))
+    return await service.run(
+        lambda: service.inspect(
+            evaluation,
+            frame_id,
+            cls=cls,
+            metric=metric,
+            difficulty=difficulty,
+            oset=oset,
+            score_threshold=score_threshold,
+        )
+    )

@@ -16,9 +16,14 @@ from ..errors import BadRequest, NotFound
 from ..evaluator import parse_labels
 from ..schemas import ErrorResponse
 
-router = APIRouter(prefix="/v1/gates", tags=["gates"],
-                   responses={404: {"model": ErrorResponse, "description": "unknown evaluation or no baseline"},
-                              422: {"model": ErrorResponse, "description": "invalid rules"}})
+router = APIRouter(
+    prefix="/v1/gates",
+    tags=["gates"],
+    responses={
+        404: {"model": ErrorResponse, "description": "unknown evaluation or no baseline"},
+        422: {"model": ErrorResponse, "description": "invalid rules"},
+    },
+)
 
 
 class GateRequest(BaseModel):
@@ -27,8 +32,10 @@ class GateRequest(BaseModel):
     evaluation: str = Field(description="id of the evaluation to gate")
     baseline: str | None = Field(None, description="id of the baseline evaluation")
     baseline_label: str | None = Field(
-        None, description="instead of baseline: the newest evaluation with this label (key=value, e.g. "
-                          "branch=main) against the same ground truth")
+        None,
+        description="instead of baseline: the newest evaluation with this label (key=value, e.g. "
+        "branch=main) against the same ground truth",
+    )
     min: list[str] = Field(default_factory=list, description="floors, e.g. 'Car/3d/moderate >= 78.5'")
     max_drop: list[str] = Field(default_factory=list, description="'0.5' (every value) or 'Car/3d/moderate=1.0'")
     require_classes: list[str] = Field(default_factory=list)
@@ -54,17 +61,24 @@ class GateResponse(BaseModel):
 def _rules(req: GateRequest) -> GateRules:
     """The library's reading of the rules (the CLI's): min are floors, max_drop maximum drops."""
     try:
-        return rules_from_options(req.min, req.max_drop, req.require_classes,
-                                  baseline=bool(req.baseline or req.baseline_label))
+        return rules_from_options(
+            req.min, req.max_drop, req.require_classes, baseline=bool(req.baseline or req.baseline_label)
+        )
     except ConfigError as e:
         raise BadRequest(str(e)) from None
 
 
-@router.post("", response_model=GateResponse, summary="Check AP rules on a stored evaluation",
-             responses={412: {"model": GateResponse, "description": "a rule failed (same body as 200)"}})
-def run_gate_request(req: GateRequest, service: ServiceDep,
-                     format: Literal["json", "markdown", "junit"] = Query("json"),  # noqa: A002
-                     ) -> Response:
+@router.post(
+    "",
+    response_model=GateResponse,
+    summary="Check AP rules on a stored evaluation",
+    responses={412: {"model": GateResponse, "description": "a rule failed (same body as 200)"}},
+)
+def run_gate_request(
+    req: GateRequest,
+    service: ServiceDep,
+    format: Literal["json", "markdown", "junit"] = Query("json"),  # noqa: A002
+) -> Response:
     """200 when every rule passes, 412 when one fails (so `curl --fail-with-body` gates a CI job), with the
     verdict as JSON, Markdown or JUnit XML."""
     rules = _rules(req)
@@ -74,8 +88,11 @@ def run_gate_request(req: GateRequest, service: ServiceDep,
         baseline = service.evaluation(req.baseline)
     elif req.baseline_label:
         wanted = parse_labels({}, [req.baseline_label])
-        found = [r for r in service.store.list_evaluations(gt_name=current.gt_name, labels=wanted, limit=2)
-                 if r.id != current.id]
+        found = [
+            r
+            for r in service.store.list_evaluations(gt_name=current.gt_name, labels=wanted, limit=2)
+            if r.id != current.id
+        ]
         if not found:
             raise NotFound(f"no evaluation labelled {req.baseline_label} against the same ground truth")
         baseline = service.evaluation(found[0].id)
@@ -90,7 +107,20 @@ def run_gate_request(req: GateRequest, service: ServiceDep,
     if format == "junit":
         return Response(render_junit(verdict), status_code=status, media_type="application/xml")
     body: dict[str, Any] = {
-        "passed": verdict.passed, "evaluation": current.id, "baseline": baseline.id if baseline else None,
-        "checks": [{"rule": c.rule, "key": c.key, "passed": c.passed, "current": c.current,
-                    "baseline": c.baseline, "delta": c.delta, "message": c.message} for c in verdict.checks]}
+        "passed": verdict.passed,
+        "evaluation": current.id,
+        "baseline": baseline.id if baseline else None,
+        "checks": [
+            {
+                "rule": c.rule,
+                "key": c.key,
+                "passed": c.passed,
+                "current": c.current,
+                "baseline": c.baseline,
+                "delta": c.delta,
+                "message": c.message,
+            }
+            for c in verdict.checks
+        ],
+    }
     return JSONResponse(body, status_code=status)

@@ -12,8 +12,11 @@ from ..ground_truths import NAME_PATTERN
 from ..schemas import ErrorResponse, GroundTruthList, GroundTruthOut, ground_truth_out
 from ..service import FileIn
 
-router = APIRouter(prefix="/v1/ground-truths", tags=["ground truths"],
-                   responses={404: {"model": ErrorResponse, "description": "no ground truth of that name"}})
+router = APIRouter(
+    prefix="/v1/ground-truths",
+    tags=["ground truths"],
+    responses={404: {"model": ErrorResponse, "description": "no ground truth of that name"}},
+)
 
 _admin_errors: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorResponse, "description": "no admin token given"},
@@ -21,11 +24,18 @@ _admin_errors: dict[int | str, dict[str, Any]] = {
 }
 
 
-@router.post("", status_code=201, response_model=GroundTruthOut, dependencies=[AdminDep],
-             summary="Register a named ground truth (admin)",
-             responses={**_admin_errors,
-                        409: {"model": ErrorResponse, "description": "the name is taken"},
-                        422: {"model": ErrorResponse, "description": "invalid or unsafe file"}})
+@router.post(
+    "",
+    status_code=201,
+    response_model=GroundTruthOut,
+    dependencies=[AdminDep],
+    summary="Register a named ground truth (admin)",
+    responses={
+        **_admin_errors,
+        409: {"model": ErrorResponse, "description": "the name is taken"},
+        422: {"model": ErrorResponse, "description": "invalid or unsafe file"},
+    },
+)
 async def register_ground_truth(
     service: ServiceDep,
     name: Annotated[str, Form(pattern=NAME_PATTERN, description="e.g. kitti-val")],
@@ -33,8 +43,9 @@ async def register_ground_truth(
 ) -> JSONResponse:
     """Validate the file by loading it, keep it, and make it available as `gt=<name>`."""
     record = await service.run(service.register_ground_truth, name, FileIn(file.file, file.filename))
-    return JSONResponse(ground_truth_out(record), status_code=201,
-                        headers={"Location": f"/v1/ground-truths/{record.name}"})
+    return JSONResponse(
+        ground_truth_out(record), status_code=201, headers={"Location": f"/v1/ground-truths/{record.name}"}
+    )
 
 
 @router.get("", response_model=GroundTruthList, summary="Registered ground truths")
@@ -47,8 +58,13 @@ def get_ground_truth(service: ServiceDep, name: str) -> dict[str, Any]:
     return ground_truth_out(service.ground_truths.record(name))
 
 
-@router.delete("/{name}", status_code=204, dependencies=[AdminDep], responses=_admin_errors,
-               summary="Delete a registered ground truth (admin); evaluations made with it stay")
+@router.delete(
+    "/{name}",
+    status_code=204,
+    dependencies=[AdminDep],
+    responses=_admin_errors,
+    summary="Delete a registered ground truth (admin); evaluations made with it stay",
+)
 def delete_ground_truth(service: ServiceDep, name: str) -> Response:
     service.ground_truths.delete(name)
     return Response(status_code=204)

@@ -16,8 +16,12 @@ async def healthz() -> dict[str, str]:
     return {"status": "ok"}
 
 
-@router.get("/readyz", response_model=Health, summary="Ready to evaluate (kernels warm, database reachable)",
-            responses={503: {"model": ErrorResponse, "description": "warming up, or the database is unavailable"}})
+@router.get(
+    "/readyz",
+    response_model=Health,
+    summary="Ready to evaluate (kernels warm, database reachable)",
+    responses={503: {"model": ErrorResponse, "description": "warming up, or the database is unavailable"}},
+)
 def readyz(service: ServiceDep) -> dict[str, str]:
     problem = service.readiness()
     if problem is not None:

@@ -67,9 +67,13 @@ def delta_class(value: float | None) -> str:
 
 
 def _env() -> jinja2.Environment:
-    env = jinja2.Environment(loader=jinja2.FileSystemLoader(_TEMPLATES_DIR),
-                             autoescape=jinja2.select_autoescape(["html"]), undefined=jinja2.StrictUndefined,
-                             trim_blocks=True, lstrip_blocks=True)
+    env = jinja2.Environment(
+        loader=jinja2.FileSystemLoader(_TEMPLATES_DIR),
+        autoescape=jinja2.select_autoescape(["html"]),
+        undefined=jinja2.StrictUndefined,
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
     env.filters.update(fmt=fmt, full=full, signed=signed, delta_class=delta_class, iso=iso)
     return env
 
@@ -105,6 +109,7 @@ def model_name(record: EvaluationRecord) -> str:
 
 # -------------------------------------------------------------------------------------------------- home
 
+
 def _history(service: Service) -> list[dict[str, Any]]:
     rows = []
     for record in service.store.list_evaluations(limit=_HISTORY):
@@ -113,12 +118,26 @@ def _history(service: Service) -> list[dict[str, Any]]:
     return rows
 
 
-def _home(request: Request, service: Service, *, status: int = 200, error: str | None = None,
-          form: Mapping[str, str] | None = None) -> Response:
-    return _render(request, "home.html", status, error=error, form=dict(form or {}),
-                   ground_truths=[g.name for g in service.store.list_ground_truths()],
-                   protocols=sorted(PROTOCOLS), history=_history(service), summary_classes=_SUMMARY_CLASSES,
-                   max_upload_bytes=service.settings.max_upload_bytes)
+def _home(
+    request: Request,
+    service: Service,
+    *,
+    status: int = 200,
+    error: str | None = None,
+    form: Mapping[str, str] | None = None,
+) -> Response:
+    return _render(
+        request,
+        "home.html",
+        status,
+        error=error,
+        form=dict(form or {}),
+        ground_truths=[g.name for g in service.store.list_ground_truths()],
+        protocols=sorted(PROTOCOLS),
+        history=_history(service),
+        summary_classes=_SUMMARY_CLASSES,
+        max_upload_bytes=service.settings.max_upload_bytes,
+    )
 
 
 @router.get("/")
@@ -135,20 +154,27 @@ async def upload(request: Request, service: ServiceDep) -> Response:
             values = {k: v for k, v in form.items() if isinstance(v, str)}
             predictions = form.get("predictions")
             if not isinstance(predictions, UploadFile) or not predictions.filename:
-                raise BadRequest("choose a predictions file (a result.pkl, .pkl.gz, or a zip/tar of KITTI txt "
-                                 "results)")
+                raise BadRequest("choose a predictions file (a result.pkl, .pkl.gz, or a zip/tar of KITTI txt results)")
             labels = parse_labels({"model": values.get("model", "").strip()}, [])
             options = EvalOptions(protocol=values.get("protocol", "official"), curves=True)
-            record = await service.run(service.evaluate, FileIn(predictions.file, predictions.filename),
-                                       values.get("gt") or None, None, options, labels)
+            record = await service.run(
+                service.evaluate,
+                FileIn(predictions.file, predictions.filename),
+                values.get("gt") or None,
+                None,
+                options,
+                labels,
+            )
     except (ApiError, KittiEvalError, HTTPException) as e:
         message = e.detail if isinstance(e, HTTPException) else str(e)
-        return await anyio.to_thread.run_sync(partial(_home, request, service, status=_status(e),
-                                                      error=str(message), form=values))
+        return await anyio.to_thread.run_sync(
+            partial(_home, request, service, status=_status(e), error=str(message), form=values)
+        )
     return RedirectResponse(f"/evaluations/{quote(record.id)}", status_code=303)
 
 
 # -------------------------------------------------------------------------------------------- evaluation
+
 
 def score_tables(result: Mapping[str, Any]) -> list[dict[str, Any]]:
     """One table per threshold set and recall mode: rows class × metric, cells per difficulty."""
@@ -156,10 +182,17 @@ def score_tables(result: Mapping[str, Any]) -> list[dict[str, Any]]:
     for oset in result["threshold_sets"]:
         for recall in _RECALLS:
             by_class = result["ap"][oset][recall]
-            rows = [{"cls": cls, "metric": metric,
-                     "cells": [{"key": f"{oset}/{recall}/{cls}/{metric}/{d}", "value": values.get(d)}
-                               for d in _DIFFICULTIES]}
-                    for cls in result["classes"] for metric, values in by_class[cls].items()]
+            rows = [
+                {
+                    "cls": cls,
+                    "metric": metric,
+                    "cells": [
+                        {"key": f"{oset}/{recall}/{cls}/{metric}/{d}", "value": values.get(d)} for d in _DIFFICULTIES
+                    ],
+                }
+                for cls in result["classes"]
+                for metric, values in by_class[cls].items()
+            ]
             overlaps = {cls: result["overlaps"][cls][oset] for cls in result["classes"]}
             tables.append({"set": oset, "recall": recall, "rows": rows, "overlaps": overlaps})
     return tables
@@ -174,8 +207,11 @@ def curve_charts(result: Mapping[str, Any]) -> list[dict[str, Any]]:
     for oset, by_class in curves.items():
         classes = []
         for cls, by_metric in by_class.items():
-            charts = [{"metric": metric, "chart": pr_chart(by_difficulty, result["ap"][oset]["R40"][cls][metric])}
-                      for metric, by_difficulty in by_metric.items() if by_difficulty]
+            charts = [
+                {"metric": metric, "chart": pr_chart(by_difficulty, result["ap"][oset]["R40"][cls][metric])}
+                for metric, by_difficulty in by_metric.items()
+                if by_difficulty
+            ]
             classes.append({"cls": cls, "charts": charts})
         out.append({"set": oset, "classes": classes})
     return out
@@ -184,8 +220,17 @@ def curve_charts(result: Mapping[str, Any]) -> list[dict[str, Any]]:
 async def _worst_frames(service: Service, record: EvaluationRecord, choice: Mapping[str, str]) -> dict[str, Any]:
     section: dict[str, Any] = {"rows": [], "error": None}
     try:
-        found = await service.run(partial(service.frames, record.id, cls=choice["cls"], metric=choice["metric"],
-                                          difficulty=choice["difficulty"], oset=choice["set"], worst=_WORST))
+        found = await service.run(
+            partial(
+                service.frames,
+                record.id,
+                cls=choice["cls"],
+                metric=choice["metric"],
+                difficulty=choice["difficulty"],
+                oset=choice["set"],
+                worst=_WORST,
+            )
+        )
     except (ApiError, KittiEvalError) as e:
         section["error"] = str(e)
         return section
@@ -197,9 +242,15 @@ async def _worst_frames(service: Service, record: EvaluationRecord, choice: Mapp
 
 
 @router.get("/evaluations/{evaluation_id}")
-async def evaluation_page(request: Request, service: ServiceDep, evaluation_id: str, cls: str | None = None,
-                          metric: str = "3d", difficulty: str = "moderate",
-                          oset: Annotated[str | None, Query(alias="set")] = None) -> Response:
+async def evaluation_page(
+    request: Request,
+    service: ServiceDep,
+    evaluation_id: str,
+    cls: str | None = None,
+    metric: str = "3d",
+    difficulty: str = "moderate",
+    oset: Annotated[str | None, Query(alias="set")] = None,
+) -> Response:
     try:
         record = await anyio.to_thread.run_sync(service.evaluation, evaluation_id)
     except ApiError as e:
@@ -207,16 +258,33 @@ async def evaluation_page(request: Request, service: ServiceDep, evaluation_id: 
     result = record.result
     assert result is not None
     sets = list(result["threshold_sets"])
-    choice = {"cls": cls or result["classes"][0], "metric": metric, "difficulty": difficulty,
-              "set": oset or ("strict" if "strict" in sets else sets[0])}
-    return _render(request, "evaluation.html", record=record, result=result, name=model_name(record),
-                   tables=score_tables(result), curves=curve_charts(result), choice=choice,
-                   choices={"cls": result["classes"], "metric": result["metrics"],
-                            "difficulty": result["difficulties"], "set": sets},
-                   worst=await _worst_frames(service, record, choice))
+    choice = {
+        "cls": cls or result["classes"][0],
+        "metric": metric,
+        "difficulty": difficulty,
+        "set": oset or ("strict" if "strict" in sets else sets[0]),
+    }
+    return _render(
+        request,
+        "evaluation.html",
+        record=record,
+        result=result,
+        name=model_name(record),
+        tables=score_tables(result),
+        curves=curve_charts(result),
+        choice=choice,
+        choices={
+            "cls": result["classes"],
+            "metric": result["metrics"],
+            "difficulty": result["difficulties"],
+            "set": sets,
+        },
+        worst=await _worst_frames(service, record, choice),
+    )
 
 
 # ------------------------------------------------------------------------------------------------ compare
+
 
 def compare_tables(comparison: Mapping[str, Any]) -> list[dict[str, Any]]:
     """The comparison's values per threshold set and recall mode (R40 first): rows class × metric, cells
@@ -227,10 +295,17 @@ def compare_tables(comparison: Mapping[str, Any]) -> list[dict[str, Any]]:
         cell = {"key": f"{oset}/{recall}/{cls}/{metric}/{d}", "a": v["a"], "b": v["b"], "delta": v["delta"]}
         tables.setdefault((oset, recall), {}).setdefault((cls, metric), {})[d] = cell
     order = sorted(tables, key=lambda t: (comparison_sets(comparison).index(t[0]), _RECALLS.index(t[1])))
-    return [{"set": oset, "recall": recall,
-             "rows": [{"cls": cls, "metric": metric, "cells": [cells[d] for d in _DIFFICULTIES]}
-                      for (cls, metric), cells in tables[(oset, recall)].items()]}
-            for oset, recall in order]
+    return [
+        {
+            "set": oset,
+            "recall": recall,
+            "rows": [
+                {"cls": cls, "metric": metric, "cells": [cells[d] for d in _DIFFICULTIES]}
+                for (cls, metric), cells in tables[(oset, recall)].items()
+            ],
+        }
+        for oset, recall in order
+    ]
 
 
 def comparison_sets(comparison: Mapping[str, Any]) -> list[str]:
@@ -239,8 +314,13 @@ def comparison_sets(comparison: Mapping[str, Any]) -> list[str]:
 
 
 @router.get("/compare")
-def compare_page(request: Request, service: ServiceDep, a: str | None = None, b: str | None = None,
-                 e: Annotated[list[str] | None, Query()] = None) -> Response:
+def compare_page(
+    request: Request,
+    service: ServiceDep,
+    a: str | None = None,
+    b: str | None = None,
+    e: Annotated[list[str] | None, Query()] = None,
+) -> Response:
     """``?a=<base>&b=<other>``; or ``?e=<id>&e=<id>`` (the history form without JavaScript), older first."""
     try:
         if a is None and b is None and e is not None and len(e) == 2:
@@ -252,11 +332,19 @@ def compare_page(request: Request, service: ServiceDep, a: str | None = None, b:
         return _error_page(request, exc)
     assert base.result is not None and other.result is not None
     comparison = compare(base, other)
-    return _render(request, "compare.html", base=base, other=other, names=(model_name(base), model_name(other)),
-                   comparison=comparison, tables=compare_tables(comparison))
+    return _render(
+        request,
+        "compare.html",
+        base=base,
+        other=other,
+        names=(model_name(base), model_name(other)),
+        comparison=comparison,
+        tables=compare_tables(comparison),
+    )
 
 
 # -------------------------------------------------------------------------------------------------- frame
+
 
 def _parse_score(text: str | None) -> float | None:
     if text is None or not text.strip():
@@ -267,8 +355,9 @@ def _parse_score(text: str | None) -> float | None:
         raise BadRequest(f"score threshold must be a number, got {text!r}") from None
 
 
-def frame_models(data: Mapping[str, Any], ids: Sequence[str],
-                 url: Callable[[Sequence[str]], str]) -> list[dict[str, Any]]:
+def frame_models(
+    data: Mapping[str, Any], ids: Sequence[str], url: Callable[[Sequence[str]], str]
+) -> list[dict[str, Any]]:
     """Per evaluation of an inspected frame: its rows and counts as inspected, a bird's-eye view (all views of
     the frame at one scale) and the link that drops it from the view."""
     models = data["models"]
@@ -276,37 +365,73 @@ def frame_models(data: Mapping[str, Any], ids: Sequence[str],
     out = []
     for name, model in models.items():
         others = [i for i in ids if i != model["evaluation"]]
-        out.append({"name": name, **model,
-                    "bev": bev_view(data["ground_truth"], model["detections"], missed=model["missed"],
-                                    extent=everything),
-                    "remove": url(others) if others else None})
+        out.append(
+            {
+                "name": name,
+                **model,
+                "bev": bev_view(data["ground_truth"], model["detections"], missed=model["missed"], extent=everything),
+                "remove": url(others) if others else None,
+            }
+        )
     return out
 
 
 @router.get("/frames/{frame_id}")
-async def frame_page(request: Request, service: ServiceDep, frame_id: str,
-                     e: Annotated[list[str] | None, Query()] = None, cls: str = "Car", metric: str = "3d",
-                     difficulty: str = "moderate", oset: Annotated[str, Query(alias="set")] = "strict",
-                     score: str | None = None) -> Response:
+async def frame_page(
+    request: Request,
+    service: ServiceDep,
+    frame_id: str,
+    e: Annotated[list[str] | None, Query()] = None,
+    cls: str = "Car",
+    metric: str = "3d",
+    difficulty: str = "moderate",
+    oset: Annotated[str, Query(alias="set")] = "strict",
+    score: str | None = None,
+) -> Response:
     """One frame: the ground truth, then each evaluation's detections with their labels, side by side."""
     ids = list(dict.fromkeys(i for i in e or () if i))  # the "add" select may send an empty value
     choice = {"cls": cls, "metric": metric, "difficulty": difficulty, "set": oset, "score": score or ""}
 
     def url(with_ids: Sequence[str]) -> str:
-        return _url(f"/frames/{quote(frame_id)}", e=list(with_ids), cls=cls, metric=metric, difficulty=difficulty,
-                    set=oset, score=score or None)
+        return _url(
+            f"/frames/{quote(frame_id)}",
+            e=list(with_ids),
+            cls=cls,
+            metric=metric,
+            difficulty=difficulty,
+            set=oset,
+            score=score or None,
+        )
 
     listed = await anyio.to_thread.run_sync(partial(service.store.list_evaluations, limit=_HISTORY))
     history = [{"id": r.id, "name": model_name(r), "created_at": r.created_at} for r in listed if r.id not in ids]
-    context: dict[str, Any] = {"frame": frame_id, "ids": ids, "choice": choice, "history": history,
-                               "classes": list(dict.fromkeys((*KNOWN_CLASSES, cls))),
-                               "metrics": [m.value for m in ALL_METRICS], "difficulties": _DIFFICULTIES, "data": None,
-                               "models": [], "error": None}
+    context: dict[str, Any] = {
+        "frame": frame_id,
+        "ids": ids,
+        "choice": choice,
+        "history": history,
+        "classes": list(dict.fromkeys((*KNOWN_CLASSES, cls))),
+        "metrics": [m.value for m in ALL_METRICS],
+        "difficulties": _DIFFICULTIES,
+        "data": None,
+        "models": [],
+        "error": None,
+    }
     try:
         if not ids:
             raise BadRequest("name at least one evaluation: /frames/<frame>?e=<evaluation id>")
-        data = await service.run(partial(service.inspect, ids, frame_id, cls=cls, metric=metric,
-                                         difficulty=difficulty, oset=oset, score_threshold=_parse_score(score)))
+        data = await service.run(
+            partial(
+                service.inspect,
+                ids,
+                frame_id,
+                cls=cls,
+                metric=metric,
+                difficulty=difficulty,
+                oset=oset,
+                score_threshold=_parse_score(score),
+            )
+        )
     except (ApiError, KittiEvalError) as exc:
         context["error"] = str(exc)
         return _render(request, "frame.html", _status(exc), **context)

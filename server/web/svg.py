@@ -23,6 +23,7 @@ def points_attr(points: Sequence[Point]) -> str:
 
 # ------------------------------------------------------------------------------------- precision-recall
 
+
 @dataclass(frozen=True)
 class Plot:
     """A ``width`` × ``height`` SVG whose chart area (axes 0..1 on both sides) leaves the given margins."""
@@ -77,8 +78,11 @@ def sample_recalls(n: int) -> list[float]:
     return [i / (n - 1) for i in range(n)] if n > 1 else [0.0] * n
 
 
-def pr_chart(curves: Mapping[str, Mapping[str, Sequence[float]]], ap: Mapping[str, float | None] | None = None,
-             plot: Plot | None = None) -> PRChart:
+def pr_chart(
+    curves: Mapping[str, Mapping[str, Sequence[float]]],
+    ap: Mapping[str, float | None] | None = None,
+    plot: Plot | None = None,
+) -> PRChart:
     """The precision-recall lines of one class and metric, one per difficulty.
 
     Parameters
@@ -95,13 +99,20 @@ def pr_chart(curves: Mapping[str, Mapping[str, Sequence[float]]], ap: Mapping[st
     for difficulty, curve in curves.items():
         precision = [float(p) for p in curve["precision"]]
         xs = sample_recalls(len(precision))
-        lines.append(PRLine(difficulty, points_attr([plot.point(r, p) for r, p in zip(xs, precision)]),
-                            len(precision), (ap or {}).get(difficulty)))
+        lines.append(
+            PRLine(
+                difficulty,
+                points_attr([plot.point(r, p) for r, p in zip(xs, precision)]),
+                len(precision),
+                (ap or {}).get(difficulty),
+            )
+        )
     ticks = [(f"{v:.1f}", *plot.point(v, v)) for v in (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)]
     return PRChart(plot, lines, ticks)
 
 
 # ------------------------------------------------------------------------------------------ bird's eye
+
 
 def bev_corners(location: Sequence[float], dimensions: Sequence[float], rotation_y: float) -> list[Point]:
     """Ground-plane corners ``(x, z)`` of a camera-frame box, in order around the box.
@@ -119,15 +130,21 @@ def bev_corners(location: Sequence[float], dimensions: Sequence[float], rotation
     x, _, z = (float(v) for v in location)
     length, _, width = (float(v) for v in dimensions)
     cos_r, sin_r = math.cos(rotation_y), math.sin(rotation_y)
-    return [(x + a * cos_r + b * sin_r, z - a * sin_r + b * cos_r)
-            for a, b in ((length / 2, width / 2), (length / 2, -width / 2),
-                         (-length / 2, -width / 2), (-length / 2, width / 2))]
+    return [
+        (x + a * cos_r + b * sin_r, z - a * sin_r + b * cos_r)
+        for a, b in (
+            (length / 2, width / 2),
+            (length / 2, -width / 2),
+            (-length / 2, -width / 2),
+            (-length / 2, width / 2),
+        )
+    ]
 
 
 @dataclass(frozen=True)
 class BevBox:
-    kind: str          # "gt" or a detection label (tp, fp, ignored, ...)
-    points: str        # the polygon's ``points`` attribute
+    kind: str  # "gt" or a detection label (tp, fp, ignored, ...)
+    points: str  # the polygon's ``points`` attribute
     heading: tuple[Point, Point]  # from the centre to the middle of the front edge
     title: str
 
@@ -182,9 +199,15 @@ def _grid_step(span: float) -> float:
     return 10.0 ** math.ceil(math.log10(span / 10))
 
 
-def bev_view(ground_truth: Sequence[Mapping[str, Any]], detections: Sequence[Mapping[str, Any]], *,
-             missed: Collection[int] = (), extent: Sequence[Mapping[str, Any]] = (), width: int = 360,
-             height: int = 360) -> BevView:
+def bev_view(
+    ground_truth: Sequence[Mapping[str, Any]],
+    detections: Sequence[Mapping[str, Any]],
+    *,
+    missed: Collection[int] = (),
+    extent: Sequence[Mapping[str, Any]] = (),
+    width: int = 360,
+    height: int = 360,
+) -> BevView:
     """Ground truth (kind ``gt``, or ``gt missed``) and detections (kind = their ``label``) seen from above,
     z up, x right.
 
@@ -196,6 +219,7 @@ def bev_view(ground_truth: Sequence[Mapping[str, Any]], detections: Sequence[Map
     extent : more rows that only widen the view (the other evaluations' detections, so that several views
         of one frame share a scale)
     """
+
     def corners(row: Mapping[str, Any]) -> list[Point]:
         return bev_corners(row["location"], row["dimensions"], float(row["rotation_y"]))
 
@@ -210,11 +234,22 @@ def bev_view(ground_truth: Sequence[Mapping[str, Any]], detections: Sequence[Map
         front = ((cs[0][0] + cs[1][0]) / 2, (cs[0][1] + cs[1][1]) / 2)
         return BevBox(kind, points_attr([frame(c) for c in cs]), (frame((float(x), float(z))), frame(front)), title)
 
-    boxes = [box(r, "gt missed" if r["index"] in missed else "gt",
-                 f"GT {r['index']} {r.get('name', '')}{' (missed)' if r['index'] in missed else ''}") for r in placed]
-    boxes += [box(r, str(r.get("label", "")),
-                  f"detection {r['index']} {r.get('name', '')} {r.get('label', '')} score {float(r['score']):.3f}")
-              for r in found]
+    boxes = [
+        box(
+            r,
+            "gt missed" if r["index"] in missed else "gt",
+            f"GT {r['index']} {r.get('name', '')}{' (missed)' if r['index'] in missed else ''}",
+        )
+        for r in placed
+    ]
+    boxes += [
+        box(
+            r,
+            str(r.get("label", "")),
+            f"detection {r['index']} {r.get('name', '')} {r.get('label', '')} score {float(r['score']):.3f}",
+        )
+        for r in found
+    ]
     left, bottom = frame.xmin, frame.zmin
     right, top = left + (width - 2 * frame.pad) / frame.scale, bottom + (height - 2 * frame.pad) / frame.scale
     step = _grid_step(max(right - left, top - bottom))
