@@ -740,7 +740,7 @@ def _nested(opener: bytes, closer: bytes, n: int) -> bytes:
     return b"\x80\x04" + opener * n + closer * n + b"."
 
 
-@pytest.mark.parametrize("n", [99, 1000, 1_000_000])
+@pytest.mark.parametrize("n", [99, 1000, pytest.param(1_000_000, marks=pytest.mark.slow)])
 def test_deep_nesting_is_refused_before_anything_is_built(n: int, scan_mode: str) -> None:
     lists = b"\x80\x04" + b"]" * n + b"a" * (n - 1) + b"."  # [[[...]]]
     frozensets = _nested(b"(", b"\x91", n)  # frozenset({frozenset({...})})

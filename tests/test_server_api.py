@@ -45,12 +45,6 @@ def doc_of(body: dict) -> dict:
     return {k: v for k, v in body.items() if k not in META}
 
 
-@pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    with app_client(tmp_path_factory.mktemp("api") / "data") as c:
-        yield c
-
-
 # --------------------------------------------------------------------------------------------- basics
 
 

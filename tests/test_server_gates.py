@@ -7,15 +7,9 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
-from server_helpers import app_client, assert_error, upload
+from server_helpers import assert_error, upload
 
 from kitti_eval.synth import demo_paths
-
-
-@pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    with app_client(tmp_path_factory.mktemp("gates") / "data") as c:
-        yield c
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import tarfile
 from pathlib import Path
 
 import pytest
-from server_helpers import GOLDEN, app_client, golden_bytes, golden_txt, register, tar_of, upload, zip_of
+from server_helpers import GOLDEN, golden_bytes, golden_txt, register, tar_of, upload, zip_of
 
 from kitti_eval.cli import main as cli_main
 
@@ -24,8 +24,8 @@ def txt_dirs(tmp_path_factory) -> dict[str, Path]:
 
 
 @pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    with app_client(tmp_path_factory.mktemp("golden") / "data") as c:
+def client(service_client):
+    with service_client() as c:
         assert register(c, "small-pkl", golden_bytes("kitti_infos_val.pkl"), "kitti_infos_val.pkl").status_code == 201
         assert register(c, "small-txt", golden_bytes("label_2.tar.gz"), "label_2.tar.gz").status_code == 201
         yield c

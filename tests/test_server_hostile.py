@@ -21,7 +21,6 @@ import pytest
 from server_helpers import (
     ADMIN,
     GOLDEN,
-    app_client,
     assert_error,
     golden_bytes,
     golden_txt,
@@ -55,9 +54,8 @@ def canary_env(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    data_dir = tmp_path_factory.mktemp("hostile-server") / "data"
-    with app_client(data_dir, max_upload_mb=2, max_unpacked_mb=4, max_archive_members=200) as c:
+def client(service_client):
+    with service_client(max_upload_mb=2, max_unpacked_mb=4, max_archive_members=200) as c:
         assert register(c, "small", golden_bytes("kitti_infos_val.pkl"), "kitti_infos_val.pkl").status_code == 201
         yield c
 

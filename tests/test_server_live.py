@@ -119,6 +119,7 @@ def test_admin_token_on_the_live_server(live) -> None:
         assert c.delete("/v1/ground-truths/live-gt", headers=ADMIN).status_code == 204
 
 
+@pytest.mark.slow
 def test_sigkill_right_after_acknowledged_uploads_loses_none(tmp_path) -> None:
     data_dir = tmp_path / "data"
     server = LiveServer(data_dir, max_concurrent_evals=2, max_queued_evals=16).start()
@@ -172,6 +173,7 @@ def test_sigkill_right_after_acknowledged_uploads_loses_none(tmp_path) -> None:
         server.stop()
 
 
+@pytest.mark.slow
 def test_serve_entry_point_runs_the_service(tmp_path) -> None:
     port = free_port()
     args = ["--port", str(port), "--data-dir", str(tmp_path / "d"), "--log-level", "warning"]

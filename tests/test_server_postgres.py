@@ -69,6 +69,7 @@ def test_core_flow_on_postgres(postgres, tmp_path) -> None:
         assert c.get("/readyz").status_code == 200
 
 
+@pytest.mark.slow
 def test_concurrent_uploads_and_sigkill_on_postgres(postgres, tmp_path) -> None:
     data_dir = tmp_path / "data"
     server = LiveServer(data_dir, database_url=postgres.url, max_concurrent_evals=2, max_queued_evals=16).start()

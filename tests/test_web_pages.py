@@ -111,12 +111,6 @@ def assert_html_error(response: Any, status: int, *needles: str) -> Page:
 
 
 @pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    with app_client(tmp_path_factory.mktemp("web") / "data") as c:
-        yield c
-
-
-@pytest.fixture(scope="module")
 def two(client) -> tuple[str, str]:
     """Two evaluations of the demo: the bundled predictions (official) and the golden ones (openpcdet)."""
     first = evaluation_id(submit(client, model="pointpillars"))
