@@ -327,17 +327,19 @@ def _frame_pass1(c: Candidates, f: int, min_overlap: float, tp_scores: np.ndarra
 
 @njit(cache=True, nogil=True, inline="always")
 def _frame_pass2(
-    c: Candidates, f: int, min_overlap: float, thresh: float, compute_aos: bool, assigned: np.ndarray, below: np.ndarray
+    c: Candidates, f: int, min_overlap: float, thresh: float, compute_aos: bool, taken: np.ndarray, below: np.ndarray
 ) -> tuple[int, int, int, float]:
     """Pass 2 on frame ``f`` at score threshold ``thresh``: detections below it take no part; each
     ground-truth box takes the remaining detection of highest overlap (a too-small, ignored detection only
     if nothing else qualifies). Returns (tp, fp, fn, summed orientation similarity): unmatched valid ground
     truth is a miss, unassigned valid detections are false positives unless a DontCare region covers them.
-    ``assigned``/``below``: scratch space for the frame's detections.
+
+    ``taken`` (out, int64, one per detection of the frame): the ground-truth row (frame-local, compacted) a
+    detection took, ``-2 - k`` if DontCare region ``k`` covers it, else -1. ``below``: scratch space.
     """
     ga, n_g, d0, nd, o0, width = _frame_rows(c, f)
     for a in range(nd):
-        assigned[a] = False
+        taken[a] = -1
         below[a] = c.d_score[d0 + a] < thresh
     tp = 0
     fn = 0
@@ -347,7 +349,7 @@ def _frame_pass2(
         max_overlap = 0.0
         det_ignored = False
         for a in range(nd):
-            if assigned[a] or below[a]:
+            if taken[a] != -1 or below[a]:
                 continue
             overlap = c.sub[o0 + a * width + i]
             if overlap <= min_overlap:
@@ -362,21 +364,21 @@ def _frame_pass2(
         if det_a < 0:
             fn += int(c.g_code[ga + i] == VALID)
             continue
-        assigned[det_a] = True
+        taken[det_a] = i
         if c.g_code[ga + i] == VALID and c.d_code[d0 + det_a] == VALID:
             tp += 1
             if compute_aos:
                 similarity += (1.0 + np.cos(c.g_alpha[ga + i] - c.d_alpha[d0 + det_a])) / 2.0
     fp = 0
     for a in range(nd):
-        fp += int(not (assigned[a] or below[a] or c.d_code[d0 + a] == IGNORED))
+        fp += int(not (taken[a] != -1 or below[a] or c.d_code[d0 + a] == IGNORED))
     for k in range(c.c_cnt[f]):  # false positives that a DontCare region covers do not count
         for a in range(nd):
             if (
-                not (assigned[a] or below[a] or c.d_code[d0 + a] == IGNORED)
+                not (taken[a] != -1 or below[a] or c.d_code[d0 + a] == IGNORED)
                 and c.sub[o0 + a * width + n_g + k] > min_overlap
             ):
-                assigned[a] = True
+                taken[a] = -2 - k
                 fp -= 1
     return tp, fp, fn, similarity
 
@@ -413,7 +415,7 @@ def _pass2(c: Candidates, thresholds: np.ndarray, min_overlap: float, compute_ao
     """
     n_thr = thresholds.shape[0]
     widest = _widest(c.d_ptr)
-    assigned = np.empty(widest, dtype=np.bool_)
+    taken = np.empty(widest, dtype=np.int64)
     below = np.empty(widest, dtype=np.bool_)
     ranked = np.empty(widest, dtype=np.float64)
     delta = np.zeros((n_thr, 4), dtype=np.float64)
@@ -429,7 +431,7 @@ def _pass2(c: Candidates, thresholds: np.ndarray, min_overlap: float, compute_ao
                 break  # this and the remaining detections never reach a threshold
             while a < m and ranked[a] >= thresholds[t]:
                 a += 1
-            tp, fp, fn, sim = _frame_pass2(c, f, min_overlap, thresholds[t], compute_aos, assigned, below)
+            tp, fp, fn, sim = _frame_pass2(c, f, min_overlap, thresholds[t], compute_aos, taken, below)
             delta[t, 0] += tp - prev_tp
             delta[t, 1] += fp - prev_fp
             delta[t, 2] += fn - prev_fn
@@ -454,7 +456,7 @@ def _events(c: Candidates, min_overlap: float, compute_aos: bool):  # noqa: ANN2
     weighted sums of the events with score >= t.
     """
     widest = _widest(c.d_ptr)
-    assigned = np.empty(widest, dtype=np.bool_)
+    taken = np.empty(widest, dtype=np.int64)
     below = np.empty(widest, dtype=np.bool_)
     ranked = np.empty(widest, dtype=np.float64)
     n_ev_max = c.d_ptr[c.d_ptr.shape[0] - 1] + c.free_fp.shape[0]
@@ -471,7 +473,7 @@ def _events(c: Candidates, min_overlap: float, compute_aos: bool):  # noqa: ANN2
             level = ranked[a]
             while a < m and ranked[a] >= level:
                 a += 1
-            tp, fp, fn, sim = _frame_pass2(c, f, min_overlap, level, compute_aos, assigned, below)
+            tp, fp, fn, sim = _frame_pass2(c, f, min_overlap, level, compute_aos, taken, below)
             ev_score[n_ev] = level
             ev_frame[n_ev] = f
             ev_delta[n_ev, 0] = tp - prev_tp
@@ -496,87 +498,13 @@ GT_MATCHED, GT_MISSED, GT_IGNORED, GT_ABSORBED, GT_OTHER_CLASS = range(len(GT_LA
 
 
 @njit(cache=True, nogil=True)
-def _label_frame(
-    ov: np.ndarray,
-    ig: np.ndarray,
-    idet: np.ndarray,
-    dc: np.ndarray,
-    score: np.ndarray,
-    min_overlap: float,
-    thresh: float,
-):  # noqa: ANN202 - five arrays, see label_frame
-    """Pass 2 of the matching on one frame at one score threshold, keeping who matched whom.
-
-    The same steps as :func:`_frame_pass2`, on the frame's whole (detections x
-    ground truth) overlap matrix in file order.
-    """
-    nd, ng = ov.shape
-    det_label = np.full(nd, -1, dtype=np.int8)
-    det_ref = np.full(nd, -1, dtype=np.int64)
-    det_ov = np.full(nd, np.nan, dtype=np.float64)
-    gt_label = np.full(ng, -1, dtype=np.int8)
-    gt_ref = np.full(ng, -1, dtype=np.int64)
-    assigned = np.zeros(nd, dtype=np.bool_)
-    below = np.zeros(nd, dtype=np.bool_)
-    for a in range(nd):
-        below[a] = score[a] < thresh
-    for i in range(ng):
-        if ig[i] == OTHER_CLASS:
-            gt_label[i] = GT_OTHER_CLASS
-            continue
-        det_a = -1
-        valid_detection = _NO_DETECTION
-        max_overlap = 0.0
-        assigned_ignored_det = False
-        for a in range(nd):
-            if idet[a] == OTHER_CLASS or assigned[a] or below[a]:
-                continue
-            overlap = ov[a, i]
-            if overlap > min_overlap and (overlap > max_overlap or assigned_ignored_det) and idet[a] == VALID:
-                max_overlap = overlap
-                det_a = a
-                valid_detection = 1.0
-                assigned_ignored_det = False
-            elif overlap > min_overlap and valid_detection == _NO_DETECTION and idet[a] == IGNORED:
-                det_a = a
-                valid_detection = 1.0
-                assigned_ignored_det = True
-        if valid_detection == _NO_DETECTION:
-            gt_label[i] = GT_MISSED if ig[i] == VALID else GT_IGNORED
-            continue
-        assigned[det_a] = True
-        det_ref[det_a] = i
-        det_ov[det_a] = ov[det_a, i]
-        gt_ref[i] = det_a
-        if ig[i] == IGNORED or idet[det_a] == IGNORED:
-            det_label[det_a] = DET_IGNORED
-            gt_label[i] = GT_IGNORED if ig[i] == IGNORED else GT_ABSORBED
-        else:
-            det_label[det_a] = DET_TP
-            gt_label[i] = GT_MATCHED
-    for a in range(nd):
-        if assigned[a]:
-            continue
-        if idet[a] == OTHER_CLASS:
-            det_label[a] = DET_OTHER_CLASS
-        elif below[a]:
-            det_label[a] = DET_BELOW_THRESHOLD
-        elif idet[a] == IGNORED:
-            det_label[a] = DET_IGNORED
-        else:
-            det_label[a] = DET_FP
-    for c in range(ng):
-        if not dc[c]:
-            continue
-        for a in range(nd):
-            if assigned[a] or idet[a] != VALID or below[a]:
-                continue
-            if ov[a, c] > min_overlap:
-                assigned[a] = True
-                det_label[a] = DET_DONTCARE
-                det_ref[a] = c
-                det_ov[a] = ov[a, c]
-    return det_label, det_ref, det_ov, gt_label, gt_ref
+def _frame_taken(c: Candidates, min_overlap: float, thresh: float) -> np.ndarray:
+    """Pass 2 on the one frame of ``c``: what each of its detections took (see :func:`_frame_pass2`)."""
+    n = max(c.d_ptr[1], 1)
+    taken = np.empty(n, dtype=np.int64)
+    below = np.empty(n, dtype=np.bool_)
+    _frame_pass2(c, 0, min_overlap, thresh, False, taken, below)
+    return taken[: c.d_ptr[1]]
 
 
 @dataclass(frozen=True)
@@ -643,7 +571,47 @@ def label_frame(
         )
     if dc.shape != (n_gt,) or sc.shape != idet.shape:
         raise ValueError(f"Expected `dontcare` ({n_gt},) and `score` ({idet.shape[0]},), got {dc.shape} and {sc.shape}")
-    return FrameLabels(*_label_frame(ov, ig, idet, dc, sc, float(min_overlap), float(score_threshold)))
+    return _labels(ov, ig, idet, dc, sc, float(min_overlap), float(score_threshold))
+
+
+def _labels(
+    ov: np.ndarray, ig: np.ndarray, idet: np.ndarray, dc: np.ndarray, score: np.ndarray, min_overlap: float, thr: float
+) -> FrameLabels:
+    """The frame compacted as for an evaluation, pass 2 (:func:`_frame_pass2`, the one the AP counts come
+    from), and each box's label read off what every detection took."""
+    nd, ng = ov.shape
+    part, dcs = np.flatnonzero(ig != OTHER_CLASS), np.flatnonzero(dc)
+    best_gt = ov[:, part].max(axis=1, initial=0.0)
+    best_dc = ov[:, dcs].max(axis=1, initial=0.0)
+    frames = Frames(np.array([0, nd * ng]), np.array([0, ng]), np.array([0, nd]), score, np.zeros(ng), np.zeros(nd))
+    c = _candidates(frames, ov.reshape(-1), ig, idet, dc, best_gt, best_dc, min_overlap)
+    taken = _frame_taken(c, min_overlap, thr)
+    cand = np.flatnonzero((idet != OTHER_CLASS) & (best_gt > min_overlap))
+    det_label = np.full(nd, DET_FP, dtype=np.int8)
+    det_ref = np.full(nd, -1, dtype=np.int64)
+    det_ov = np.full(nd, np.nan)
+    gt_label = np.where(ig == OTHER_CLASS, GT_OTHER_CLASS, np.where(ig == VALID, GT_MISSED, GT_IGNORED)).astype(np.int8)
+    gt_ref = np.full(ng, -1, dtype=np.int64)
+    det_label[idet == IGNORED] = DET_IGNORED
+    for a, t in zip(cand.tolist(), taken.tolist()):
+        if t >= 0:  # took ground truth part[t]
+            i = int(part[t])
+            det_ref[a], det_ov[a], gt_ref[i] = i, ov[a, i], a
+            if ig[i] == VALID and idet[a] == VALID:
+                det_label[a], gt_label[i] = DET_TP, GT_MATCHED
+            else:
+                det_label[a] = DET_IGNORED
+                gt_label[i] = GT_IGNORED if ig[i] == IGNORED else GT_ABSORBED
+        elif t <= -2:  # a DontCare region covers it
+            det_label[a], det_ref[a], det_ov[a] = DET_DONTCARE, dcs[-2 - t], ov[a, dcs[-2 - t]]
+    rest = np.setdiff1d(np.flatnonzero(idet == VALID), cand)  # valid but matching nothing: FP or under DontCare
+    for a in rest.tolist():
+        covering = np.flatnonzero(ov[a, dcs] > min_overlap)
+        if len(covering) and score[a] >= thr:
+            det_label[a], det_ref[a], det_ov[a] = DET_DONTCARE, dcs[covering[0]], ov[a, dcs[covering[0]]]
+    det_label[(score < thr) & (idet != OTHER_CLASS)] = DET_BELOW_THRESHOLD
+    det_label[idet == OTHER_CLASS] = DET_OTHER_CLASS
+    return FrameLabels(det_label, det_ref, det_ov, gt_label, gt_ref)
 
 
 @dataclass(frozen=True)
