@@ -84,6 +84,7 @@ def _dispatchers() -> list[numba.core.registry.CPUDispatcher]:
     return found
 
 
+@pytest.mark.skipif(numba.config.DISABLE_JIT, reason="NUMBA_DISABLE_JIT: nothing is compiled")
 def test_entry_points_compile_nothing_once_warm(tmp_path: Path) -> None:
     _jit.warm_up()
     compiles = _Compiles()
@@ -96,6 +97,7 @@ def test_entry_points_compile_nothing_once_warm(tmp_path: Path) -> None:
     assert several == {}  # one compiled version of every kernel
 
 
+@pytest.mark.skipif(numba.config.DISABLE_JIT, reason="NUMBA_DISABLE_JIT: nothing is compiled")
 def test_the_listener_sees_a_compile() -> None:
     """The check above can fail: a kernel that is not in the cache is compiled and counted."""
 
@@ -110,6 +112,7 @@ def test_the_listener_sees_a_compile() -> None:
     assert compiles.names == [twice.py_func.__qualname__]
 
 
+@pytest.mark.skipif(numba.config.DISABLE_JIT, reason="NUMBA_DISABLE_JIT: no dispatchers")
 @pytest.mark.parametrize("marker", ["eval", "load"])
 def test_cache_markers_name_existing_kernels(marker: str) -> None:
     """The files the CLI looks for to decide whether it compiles are written for kernels that exist."""
