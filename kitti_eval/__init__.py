@@ -12,17 +12,17 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
+from .core.protocol import OFFICIAL, OPENPCDET, EvalConfig, Metric, Protocol
 from .errors import ConfigError, InputError, KittiEvalError, UnsafePickleError
-from .protocol import OFFICIAL, OPENPCDET, EvalConfig, Metric, Protocol
 
 __version__ = "0.1.0"
 
 _LAZY = {
-    "evaluate": "kitti_eval.evaluation",
-    "EvalResult": "kitti_eval.result",
-    "Annotations": "kitti_eval.frames",
-    "load_ground_truth": "kitti_eval.loaders",
-    "load_detections": "kitti_eval.loaders",
+    "evaluate": "kitti_eval.core.evaluation",
+    "EvalResult": "kitti_eval.core.result",
+    "Annotations": "kitti_eval.core.frames",
+    "load_ground_truth": "kitti_eval.io.loaders",
+    "load_detections": "kitti_eval.io.loaders",
     "get_official_eval_result": "kitti_eval.compat",
 }
 

@@ -40,7 +40,7 @@ def _cache_places() -> list[tuple[Path, bool]]:
     if custom:
         return [(Path(custom), True)]
     user = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "numba"
-    return [(_PACKAGE / "__pycache__", False), (user, True)]
+    return [(_PACKAGE, True), (user, True)]  # the package and its sub-packages keep their own __pycache__
 
 
 def _cached(markers: tuple[str, ...]) -> bool:
@@ -81,9 +81,9 @@ def warm_up(everything: bool = True) -> None:
     """Compile (or load from the cache) the kernels: those an evaluation calls, and with ``everything``
     those of every other entry point too (the pickle scan, per-frame events and the bootstrap, the frame
     labels, the IoU functions). A tiny generated scene has the array types of every real input."""
-    from .evaluation import evaluate
-    from .frames import Annotations
-    from .synth import generate
+    from .core.evaluation import evaluate
+    from .core.frames import Annotations
+    from .io.synth import generate
 
     infos, results = generate(4, seed=0)
     gt = Annotations.from_frames("ground_truth", "warm-up", [(i["image"]["image_idx"], i["annos"]) for i in infos])
@@ -91,11 +91,11 @@ def warm_up(everything: bool = True) -> None:
     evaluate(gt, dt)
     if not everything:
         return
-    from .bootstrap import paired_bootstrap
-    from .diagnostics import frame_stats
-    from .geometry import iou_2d, iou_3d, iou_bev
-    from .inspection import inspect_frame
-    from .safe_pickle import load_pickle
+    from .analysis.bootstrap import paired_bootstrap
+    from .analysis.diagnostics import frame_stats
+    from .analysis.inspection import inspect_frame
+    from .core.geometry import iou_2d, iou_3d, iou_bev
+    from .io.safe_pickle import load_pickle
 
     load_pickle(io.BytesIO(pickle.dumps(results, protocol=4)), source="warm-up")
     paired_bootstrap(gt, dt, dt, resamples=2)

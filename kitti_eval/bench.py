@@ -75,9 +75,9 @@ def _child(gt_path: str, pred_path: str, repeat: int) -> dict[str, float]:
     out: dict[str, float] = {}
     clock = time.perf_counter
     t = clock()
-    from .evaluation import evaluate
-    from .formats import render_json
-    from .loaders import load_detections, load_ground_truth
+    from .core.evaluation import evaluate
+    from .io.loaders import load_detections, load_ground_truth
+    from .report.formats import render_json
 
     out["import_s"] = clock() - t
     t = clock()
@@ -103,7 +103,7 @@ def _child(gt_path: str, pred_path: str, repeat: int) -> dict[str, float]:
     render_json(result)
     out["output_s"] = clock() - t
     out["rss_after_eval_mib"] = _peak_rss_mib()
-    from .matching import default_workers
+    from .core.matching import default_workers
 
     out["warm_eval_1core_s"] = min(_timed(lambda: evaluate(gt, dt, workers=1)) for _ in range(repeat))
     out["threads"] = default_workers()
@@ -161,7 +161,7 @@ def _cold(tmp: Path, gt: Path, pred: Path) -> dict[str, tuple[float, float]]:
         "compile the pickle loader only": [
             sys.executable,
             "-c",
-            f"from kitti_eval.safe_pickle import load_pickle; load_pickle({str(pred)!r}, source='bench')",
+            f"from kitti_eval.io.safe_pickle import load_pickle; load_pickle({str(pred)!r}, source='bench')",
         ],
         "compile the evaluation kernels only": [sys.executable, "-m", "kitti_eval._jit"],
     }
@@ -181,7 +181,7 @@ def _generate(directory: Path, frames: int, seed: int) -> tuple[Path, Path]:
         [
             sys.executable,
             "-m",
-            "kitti_eval.synth",
+            "kitti_eval.io.synth",
             "--frames",
             str(frames),
             "--seed",

@@ -14,9 +14,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from .core.protocol import DEFAULT_CLASSES, KNOWN_CLASSES, PROTOCOLS, THRESHOLD_SETS
 from .errors import ConfigError, InputError, KittiEvalError
-from .formats import OutputFormat
-from .protocol import DEFAULT_CLASSES, KNOWN_CLASSES, PROTOCOLS, THRESHOLD_SETS
+from .report.formats import OutputFormat
 
 __all__ = ["main"]
 
@@ -26,7 +26,7 @@ EXIT_OK, EXIT_INPUT, EXIT_USAGE, EXIT_GATE = 0, 1, 2, 3
 
 def _iou_argument(text: str) -> str:
     """argparse check of an ``--iou`` value; the text itself goes to :func:`overlaps_from_overrides`."""
-    from .protocol import parse_iou_override
+    from .core.protocol import parse_iou_override
 
     try:
         parse_iou_override(text)
@@ -72,7 +72,7 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
         type=Path,
         metavar="TOML",
         help="classes, IoU thresholds, neighbour classes, difficulty limits, ranges, lidar_only, coco "
-        "from a TOML file (see kitti_eval/protocol.py); flags given on the command line win",
+        "from a TOML file (see kitti_eval/core/protocol.py); flags given on the command line win",
     )
     p.add_argument(
         "--coco",
@@ -113,7 +113,7 @@ def _parser() -> argparse.ArgumentParser:
         "checkpoints in one process",
     )
     _add_eval_options(p)
-    from .loaders import FORMATS
+    from .io.loaders import FORMATS
 
     fmts = p.add_argument_group("input formats")
     fmts.add_argument(
@@ -162,7 +162,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _describe_parser(sub: Any) -> argparse.ArgumentParser:
-    from .describe import KINDS
+    from .io.describe import KINDS
 
     p = sub.add_parser(
         "describe",
@@ -178,7 +178,7 @@ def _describe_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def _describe(args: argparse.Namespace) -> int:
-    from .describe import describe
+    from .io.describe import describe
 
     _emit(describe(args.file, args.kind, args.gt), None)
     return EXIT_OK
@@ -200,7 +200,7 @@ def _serve(argv: Sequence[str]) -> int:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from .synth import demo_paths
+    from .io.synth import demo_paths
 
     gt_path, pred_path = demo_paths()
     if args.where:
@@ -226,7 +226,7 @@ def _demo_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def _config(args: argparse.Namespace):  # noqa: ANN202 - EvalConfig, imported lazily
-    from .protocol import config_from_options, load_protocol_file
+    from .core.protocol import config_from_options, load_protocol_file
 
     return config_from_options(
         base=load_protocol_file(args.protocol_file) if getattr(args, "protocol_file", None) else None,
@@ -268,9 +268,9 @@ def _wait(warmer: object | None) -> None:
 
 
 def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
-    from .evaluation import evaluate
-    from .formats import render
-    from .loaders import load_pair
+    from .core.evaluation import evaluate
+    from .io.loaders import load_pair
+    from .report.formats import render
 
     config = _config(args)
     warmer = _start_warm_up()
@@ -287,7 +287,7 @@ def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
     plot_dir = getattr(args, "plot_dir", None)
     result = evaluate(gt, dt, config, keep_curves=args.curves or bool(plot_dir))
     if plot_dir:
-        from .plots import plot_pr_curves
+        from .report.plots import plot_pr_curves
 
         plot_pr_curves(result, plot_dir)
     text = render(result, args.format, include_curves=args.curves)
@@ -378,7 +378,8 @@ def _compare_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def _compare(args: argparse.Namespace) -> int:
-    from .bootstrap import compare_documents, paired_bootstrap, render_comparison
+    from .analysis.bootstrap import paired_bootstrap
+    from .analysis.compare import compare_documents, render_comparison
 
     if args.bootstrap < 0:
         raise ConfigError("--bootstrap must be >= 0")
@@ -387,7 +388,7 @@ def _compare(args: argparse.Namespace) -> int:
     if args.bootstrap:
         if any(is_json) or args.gt is None:
             raise ConfigError("--bootstrap needs predictions for both A and B, and --gt")
-        from .loaders import load_detections, load_ground_truth
+        from .io.loaders import load_detections, load_ground_truth
 
         gt = load_ground_truth(args.gt)
         res_a, res_b, intervals = paired_bootstrap(
@@ -413,8 +414,8 @@ def _compare(args: argparse.Namespace) -> int:
 
 
 def _evaluate_doc(args: argparse.Namespace, pred: Path) -> dict:
-    from .evaluation import evaluate
-    from .loaders import load_pair
+    from .core.evaluation import evaluate
+    from .io.loaders import load_pair
 
     if args.gt is None:
         raise ConfigError(f"{pred} is not a JSON result; evaluating it needs --gt")
@@ -454,8 +455,8 @@ def _frames_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def _frames(args: argparse.Namespace) -> int:
-    from .diagnostics import frame_stats, render_frames
-    from .loaders import load_pair
+    from .analysis.diagnostics import frame_stats, render_frames
+    from .io.loaders import load_pair
 
     if args.worst is not None and args.worst < 1:
         raise ConfigError("--worst must be >= 1")
@@ -508,8 +509,8 @@ def _inspect_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def _inspect(args: argparse.Namespace) -> int:
-    from .inspection import inspect_frame, inspection_json, model_name, render_inspection, unique_names
-    from .loaders import load_detections, load_ground_truth_and_calibs
+    from .analysis.inspection import inspect_frame, inspection_json, model_name, render_inspection, unique_names
+    from .io.loaders import load_detections, load_ground_truth_and_calibs
 
     if args.name and len(args.name) != len(args.pred):
         raise ConfigError(f"--name given {len(args.name)} times for {len(args.pred)} --pred")
@@ -547,7 +548,7 @@ def _read_result_json(path: Path) -> dict:
 
 
 def _gate(args: argparse.Namespace) -> int:
-    from .gate import (
+    from .analysis.gate import (
         render_junit,
         render_verdict,
         render_verdict_markdown,
@@ -572,8 +573,8 @@ def _gate(args: argparse.Namespace) -> int:
     if args.significant:
         if not (args.gt and args.pred and args.baseline) or args.baseline.suffix.lower() == ".json":
             raise ConfigError("--significant needs --gt, --pred and a --baseline given as predictions")
-        from .bootstrap import paired_bootstrap
-        from .loaders import load_detections, load_ground_truth
+        from .analysis.bootstrap import paired_bootstrap
+        from .io.loaders import load_detections, load_ground_truth
 
         res_base, res_now, intervals = paired_bootstrap(
             load_ground_truth(args.gt),
@@ -603,9 +604,9 @@ def _gate(args: argparse.Namespace) -> int:
 
 
 def _run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int:
-    from .batch import evaluate_many, plot_batch, render_batch
-    from .gate import ValueKey
-    from .loaders import load_ground_truth
+    from .analysis.batch import evaluate_many, plot_batch, render_batch
+    from .analysis.gate import ValueKey
+    from .io.loaders import load_ground_truth
 
     config = _config(args)
     keys = [ValueKey.parse(k) for k in args.value]
@@ -633,7 +634,7 @@ def _run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int
     if args.plot:
         plot_batch(checkpoints, args.plot, keys=keys or None)
     if args.plot_dir:
-        from .plots import plot_overlays
+        from .report.plots import plot_overlays
 
         plot_overlays([(c.label, c.result) for c in checkpoints], args.plot_dir)
     _emit(text, args.output)
@@ -651,7 +652,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return int(args.run(args))
         if args.gt is None or not args.pred:
             parser.error("the following arguments are required: --gt, --pred (or a command)")
-        from .batch import expand_predictions
+        from .analysis.batch import expand_predictions
 
         preds = expand_predictions(args.pred)
         if len(preds) == 1 and not args.plot and not (args.plot_dir and len(args.pred) > 1):

@@ -14,12 +14,12 @@ from typing import Any
 
 import numpy as np
 
+from .core.evaluation import evaluate
+from .core.frames import Annotations
+from .core.protocol import OPENPCDET, EvalConfig
+from .core.result import EvalResult
 from .errors import ConfigError, InputError
-from .evaluation import evaluate
-from .formats import render_table
-from .frames import Annotations
-from .protocol import OPENPCDET, EvalConfig
-from .result import EvalResult
+from .report.formats import render_table
 
 __all__ = ["get_official_eval_result", "ret_dict"]
 

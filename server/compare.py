@@ -1,4 +1,4 @@
-"""Two stored evaluations compared: the library's comparison (:mod:`kitti_eval.bootstrap`, the CLI's
+"""Two stored evaluations compared: the library's comparison (:mod:`kitti_eval.analysis.bootstrap`, the CLI's
 ``compare``) of their documents, with the records' ids and labels, and a note when their ground truths
 differ (which only the service knows)."""
 
@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from kitti_eval.bootstrap import compare_documents, render_comparison
+from kitti_eval.analysis.compare import compare_documents, render_comparison
 
 from .schemas import iso
 from .store import EvaluationRecord

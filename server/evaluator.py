@@ -1,4 +1,4 @@
-"""Request options to an :class:`~kitti_eval.protocol.EvalConfig`, and the one call of ``evaluate`` here.
+"""Request options to an :class:`~kitti_eval.core.protocol.EvalConfig`, and the one call of ``evaluate`` here.
 
 Evaluations run on several threads at once: the library's kernels are compiled ``nogil`` and keep no
 state, so that is safe.
@@ -13,10 +13,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from kitti_eval.evaluation import evaluate
-from kitti_eval.formats import render_json
-from kitti_eval.frames import Annotations
-from kitti_eval.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
+from kitti_eval.core.evaluation import evaluate
+from kitti_eval.core.frames import Annotations
+from kitti_eval.core.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
+from kitti_eval.report.formats import render_json
 
 from .errors import BadRequest
 

@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
+from kitti_eval.core.frames import Annotations
 from kitti_eval.errors import KittiEvalError
-from kitti_eval.frames import Annotations
-from kitti_eval.loaders import load_ground_truth
+from kitti_eval.io.loaders import load_ground_truth
 
 from .errors import ApiError, BadRequest, Conflict, NotFound
 from .store import GroundTruthRecord, Store, new_id

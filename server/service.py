@@ -25,11 +25,11 @@ import anyio
 import anyio.to_thread
 
 from kitti_eval._jit import warm_up
-from kitti_eval.diagnostics import frame_stats, frames_document
-from kitti_eval.frames import Annotations, normalize_frame_id
-from kitti_eval.inspection import inspect_frame, model_name, unique_names
-from kitti_eval.protocol import EvalConfig
-from kitti_eval.synth import demo_paths
+from kitti_eval.analysis.diagnostics import frame_stats, frames_document
+from kitti_eval.analysis.inspection import inspect_frame, model_name, unique_names
+from kitti_eval.core.frames import Annotations, normalize_frame_id
+from kitti_eval.core.protocol import EvalConfig
+from kitti_eval.io.synth import demo_paths
 
 from .errors import BadRequest, Conflict, NotFound
 from .evaluator import EvalOptions, evaluate_document, summarize
@@ -286,7 +286,7 @@ class Service:
         score_threshold: float = 0.0,
     ) -> dict[str, Any]:
         """TP/FP/FN per frame of a stored evaluation (the ``worst`` n first, or all), as
-        :func:`kitti_eval.diagnostics.frames_document`."""
+        :func:`kitti_eval.analysis.diagnostics.frames_document`."""
         if worst is not None and worst < 1:
             raise BadRequest("worst must be at least 1")
         record = self.evaluation(evaluation_id)
@@ -310,7 +310,7 @@ class Service:
         score_threshold: float | None = None,
     ) -> dict[str, Any]:
         """One frame's boxes for several stored evaluations against the same ground truth, labelled by the
-        matching (:func:`kitti_eval.inspection.inspect_frame`, under the first evaluation's options)."""
+        matching (:func:`kitti_eval.analysis.inspection.inspect_frame`, under the first evaluation's options)."""
         ids = list(dict.fromkeys(evaluation_ids))
         if not ids:
             raise BadRequest("name at least one evaluation")

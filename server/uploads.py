@@ -3,9 +3,9 @@
 An upload is one of
 
 * a pickle, plain or gzipped (OpenPCDet ``result.pkl`` / ``kitti_infos_val.pkl``): read only through
-  :func:`kitti_eval.safe_pickle.load_pickle`, with the decompressed size capped;
+  :func:`kitti_eval.io.safe_pickle.load_pickle`, with the decompressed size capped;
 * a zip or a tar (plain, gz, bz2, xz) of KITTI txt files (a ``label_2`` or result folder), unpacked by
-  :func:`kitti_eval.archives.extract_txt_folder` (the library's one safe extractor: no absolute paths, no
+  :func:`kitti_eval.io.archives.extract_txt_folder` (the library's one safe extractor: no absolute paths, no
   ``..``, no links, devices, fifos or sparse files, at most ``max_members`` members and
   ``max_unpacked_bytes`` unpacked, only the ``.txt`` files of one folder written, flat, into a scratch
   folder the service owns; nothing is ever extracted with ``extractall``). Its refusals are reported as
@@ -20,12 +20,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
-from kitti_eval import archives
-from kitti_eval.archives import ArchiveKind, ArchiveLimits, sniff_input
+from kitti_eval.core.frames import Annotations, Kind
 from kitti_eval.errors import InputError, UnsafePickleError
-from kitti_eval.frames import Annotations, Kind
-from kitti_eval.loaders import annotations_from_object, load_kitti_txt_dir
-from kitti_eval.safe_pickle import load_pickle
+from kitti_eval.io import archives
+from kitti_eval.io.archives import ArchiveKind, ArchiveLimits, sniff_input
+from kitti_eval.io.loaders import annotations_from_object, load_kitti_txt_dir
+from kitti_eval.io.safe_pickle import load_pickle
 
 from .errors import ArchiveError
 
@@ -112,7 +112,7 @@ def receive_upload(file: IO[bytes], filename: str | None, default_name: str) -> 
 
 
 def sniff(file: IO[bytes], source: str) -> InputFormat:
-    """What an upload is, from its content: the library's test (:func:`kitti_eval.archives.sniff_input`), so a
+    """What an upload is, from its content: the library's test (:func:`kitti_eval.io.archives.sniff_input`), so a
     file loads the same way here and through the CLI."""
     return InputFormat(sniff_input(file, source))
 
@@ -125,7 +125,7 @@ def extract_txt_folder(
 ) -> tuple[Path, dict[str, str]]:
     """Unpack the txt files of an archive into ``dest``; returns their folder and {path: member name}.
 
-    :func:`kitti_eval.archives.extract_txt_folder` does the work; its refusals become ArchiveError (same
+    :func:`kitti_eval.io.archives.extract_txt_folder` does the work; its refusals become ArchiveError (same
     message: it names the upload and archive members only, never a server path).
     """
     if fmt is InputFormat.ZIP:
@@ -155,7 +155,7 @@ def _relabel(e: InputError, names: dict[str, str], source: str) -> InputError:
 
 def load_upload(upload: Upload, kind: Kind, scratch: Path, limits: Limits, *, keep_lidar: bool = False) -> Loaded:
     """Identify, unpack and load one upload as ground truth or detections (``keep_lidar``: see
-    :func:`kitti_eval.loaders.load_detections`).
+    :func:`kitti_eval.io.loaders.load_detections`).
 
     Raises InputError / UnsafePickleError (from the library), ArchiveError or UnknownFormatError; every
     message names the upload by the client's file name.

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from kitti_eval.frames import Annotations
+from kitti_eval.core.frames import Annotations
 
 
 def box(

@@ -1,6 +1,6 @@
 """Slow, obvious twins of the kernels, for tests only: pure Python loops and shapely polygons.
 
-Coordinate frame as in :mod:`kitti_eval.geometry`: a camera box is ``x, y, z, l, h, w, ry`` with the
+Coordinate frame as in :mod:`kitti_eval.core.geometry`: a camera box is ``x, y, z, l, h, w, ry`` with the
 bottom centre at (x, y, z), y down; in bird's-eye view a rectangle of the (x, z) plane with length axis
 (cos ry, -sin ry) and width axis (sin ry, cos ry).
 """

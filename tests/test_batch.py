@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kitti_eval.batch import epoch_of, expand_predictions
+from kitti_eval.analysis.batch import epoch_of, expand_predictions
 from kitti_eval.cli import main
 
 GOLDEN = Path(__file__).parent / "data" / "golden" / "small"

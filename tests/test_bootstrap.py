@@ -7,13 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kitti_eval.bootstrap import _resampled_values, frame_weights, paired_bootstrap
-from kitti_eval.evaluation import evaluate, plan_evaluation
-from kitti_eval.frames import Annotations
-from kitti_eval.gate import ValueKey
-from kitti_eval.loaders import load_detections, load_ground_truth
-from kitti_eval.protocol import OPENPCDET, EvalConfig
-from kitti_eval.synth import generate
+from kitti_eval.analysis.bootstrap import _resampled_values, frame_weights, paired_bootstrap
+from kitti_eval.analysis.gate import ValueKey
+from kitti_eval.core.evaluation import evaluate, plan_evaluation
+from kitti_eval.core.frames import Annotations
+from kitti_eval.core.protocol import OPENPCDET, EvalConfig
+from kitti_eval.io.loaders import load_detections, load_ground_truth
+from kitti_eval.io.synth import generate
 
 GOLDEN = Path(__file__).parent / "data" / "golden"
 
@@ -35,7 +35,7 @@ def test_every_frame_once_reproduces_evaluate(case, protocol):
 
 
 def _keys(doc):
-    from kitti_eval.gate import keys_of
+    from kitti_eval.analysis.gate import keys_of
 
     return keys_of(doc)
 

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from builders import annotations, box, hits, one_car_per_frame
 
+from kitti_eval.analysis.diagnostics import frame_stats, render_frames
 from kitti_eval.cli import main
-from kitti_eval.diagnostics import frame_stats, render_frames
-from kitti_eval.evaluation import plan_evaluation
-from kitti_eval.loaders import load_detections, load_ground_truth
-from kitti_eval.matching import pr_counts_many
-from kitti_eval.protocol import Difficulty, EvalConfig, Metric
+from kitti_eval.core.evaluation import plan_evaluation
+from kitti_eval.core.matching import pr_counts_many
+from kitti_eval.core.protocol import Difficulty, EvalConfig, Metric
+from kitti_eval.io.loaders import load_detections, load_ground_truth
 
 GOLDEN = Path(__file__).parent / "data" / "golden" / "small"
 

@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kitti_eval.calib import calib_from_info, lidar_to_camera, wrap_angle
 from kitti_eval.cli import main
-from kitti_eval.describe import describe
+from kitti_eval.core.evaluation import evaluate
 from kitti_eval.errors import InputError
-from kitti_eval.evaluation import evaluate
-from kitti_eval.loaders import (
+from kitti_eval.io.calib import calib_from_info, lidar_to_camera, wrap_angle
+from kitti_eval.io.describe import describe
+from kitti_eval.io.loaders import (
     annotations_from_object,
     calibs_from_object,
     extract_txt_archive,
@@ -30,8 +30,8 @@ from kitti_eval.loaders import (
     load_pair,
     read_split,
 )
-from kitti_eval.safe_pickle import load_pickle
-from kitti_eval.synth import generate
+from kitti_eval.io.safe_pickle import load_pickle
+from kitti_eval.io.synth import generate
 
 SMALL = Path(__file__).parent / "data" / "golden" / "small"
 CATEGORIES = {
@@ -305,7 +305,7 @@ def test_zip_symlink_and_limits(tmp_path):
         zf.writestr(info, "/etc/passwd")
     with pytest.raises(InputError, match="link"):
         load_detections(path)
-    from kitti_eval.loaders import ArchiveLimits
+    from kitti_eval.io.loaders import ArchiveLimits
 
     many = zip_of({f"pred/{i:06d}.txt": GOOD_LINE for i in range(20)}, tmp_path / "m.zip")
     (tmp_path / "out").mkdir()
@@ -560,7 +560,7 @@ def _same_file_cases(tmp_path: Path) -> dict[str, tuple[str, bytes]]:
     import gzip as gz
     import zipfile
 
-    from kitti_eval.synth import write_result_dir
+    from kitti_eval.io.synth import write_result_dir
 
     pred_dir = tmp_path / "pred"
     write_result_dir(pred_dir, generate(3, seed=1)[1])

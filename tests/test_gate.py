@@ -9,9 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from kitti_eval.cli import main
-from kitti_eval.errors import ConfigError, InputError
-from kitti_eval.gate import (
+from kitti_eval.analysis.gate import (
     GateRules,
     MaxDrop,
     ValueKey,
@@ -22,6 +20,8 @@ from kitti_eval.gate import (
     rules_from_toml,
     run_gate,
 )
+from kitti_eval.cli import main
+from kitti_eval.errors import ConfigError, InputError
 
 GOLDEN = Path(__file__).parent / "data" / "golden" / "small"
 GT, PRED = GOLDEN / "kitti_infos_val.pkl", GOLDEN / "result.pkl"

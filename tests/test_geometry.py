@@ -1,4 +1,4 @@
-"""kitti_eval.geometry: 2D / BEV / 3D overlaps, checked against geometry and against slow shapely twins."""
+"""kitti_eval.core.geometry: 2D / BEV / 3D overlaps, checked against geometry and against slow shapely twins."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from naive import iou_2d_naive, iou_3d_naive, iou_bev_naive
 
-from kitti_eval.geometry import FrameOverlaps, frame_overlaps, iou_2d, iou_3d, iou_bev
+from kitti_eval.core.geometry import FrameOverlaps, frame_overlaps, iou_2d, iou_3d, iou_bev
 
 PI = math.pi
 IMPLS = {

@@ -12,15 +12,15 @@ from builders import annotations, box, dontcare
 from naive_matching import labels_naive, statistics_naive
 from test_matching import random_frames
 
+from kitti_eval.analysis.diagnostics import frame_stats, parse_slot, slot_job
+from kitti_eval.analysis.inspection import inspect_frame, model_name, render_inspection, unique_names
 from kitti_eval.cli import main
-from kitti_eval.diagnostics import frame_stats, parse_slot, slot_job
+from kitti_eval.core.evaluation import plan_evaluation
+from kitti_eval.core.matching import DET_LABELS, GT_LABELS, label_frame
+from kitti_eval.core.protocol import EvalConfig
 from kitti_eval.errors import ConfigError, InputError
-from kitti_eval.evaluation import plan_evaluation
-from kitti_eval.inspection import inspect_frame, model_name, render_inspection, unique_names
-from kitti_eval.loaders import load_detections, load_ground_truth
-from kitti_eval.matching import DET_LABELS, GT_LABELS, label_frame
-from kitti_eval.protocol import EvalConfig
-from kitti_eval.synth import demo_paths
+from kitti_eval.io.loaders import load_detections, load_ground_truth
+from kitti_eval.io.synth import demo_paths
 
 GOLDEN = Path(__file__).parent / "data" / "golden" / "small"
 
@@ -336,7 +336,7 @@ def test_boxes_lidar_are_kept_only_when_asked_and_checked():
     assert kept.boxes_lidar.shape == (kept.num_boxes, 7) and np.isfinite(kept.boxes_lidar).all()
     sub = kept.subset(kept.frame_ids[2:4])
     np.testing.assert_array_equal(sub.boxes_lidar, kept.boxes_lidar[kept.offsets[2] : kept.offsets[4]])
-    from kitti_eval.frames import Annotations
+    from kitti_eval.core.frames import Annotations
 
     fields = dict(
         name=np.array(["Car"]),

@@ -14,8 +14,8 @@ from numba.core import event
 
 import kitti_eval
 from kitti_eval import _jit
-from kitti_eval.safe_pickle import load_pickle
-from kitti_eval.synth import demo_paths
+from kitti_eval.io.safe_pickle import load_pickle
+from kitti_eval.io.synth import demo_paths
 
 
 class _Compiles(event.Listener):
@@ -34,11 +34,11 @@ class _Compiles(event.Listener):
 def _entry_points(tmp_path: Path) -> None:
     """Each public entry point once, on the bundled demo (the first ten frames where the work is heavy)."""
     from kitti_eval import cli, evaluate, get_official_eval_result, load_detections, load_ground_truth
-    from kitti_eval.batch import evaluate_many
-    from kitti_eval.bootstrap import paired_bootstrap
-    from kitti_eval.describe import describe
-    from kitti_eval.diagnostics import frame_stats
-    from kitti_eval.inspection import inspect_frame
+    from kitti_eval.analysis.batch import evaluate_many
+    from kitti_eval.analysis.bootstrap import paired_bootstrap
+    from kitti_eval.analysis.diagnostics import frame_stats
+    from kitti_eval.analysis.inspection import inspect_frame
+    from kitti_eval.io.describe import describe
 
     gt_path, pred_path = demo_paths()
     gt, dt = load_ground_truth(gt_path), load_detections(pred_path)
@@ -74,7 +74,7 @@ def _entry_points(tmp_path: Path) -> None:
 
 def _dispatchers() -> list[numba.core.registry.CPUDispatcher]:
     found = []
-    for info in pkgutil.iter_modules(kitti_eval.__path__, "kitti_eval."):
+    for info in pkgutil.walk_packages(kitti_eval.__path__, "kitti_eval."):
         module = importlib.import_module(info.name)
         found += [
             v

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from kitti_eval.errors import InputError, UnsafePickleError
-from kitti_eval.loaders import (
+from kitti_eval.io.loaders import (
     PICKLE_FORMATS,
     annotations_from_object,
     describe_format,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from naive_matching import pr_counts_naive, thresholds_naive
 
-from kitti_eval.matching import pr_counts, score_thresholds
+from kitti_eval.core.matching import pr_counts, score_thresholds
 
 
 def random_frames(rng, n_frames, max_gt=6, max_dt=12):

@@ -1,12 +1,12 @@
-"""Curves and AP (kitti_eval.metrics): the interpolation and the R11/R40 averages, stated as arithmetic."""
+"""Curves and AP (kitti_eval.core.metrics): the interpolation and the R11/R40 averages, stated as arithmetic."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from kitti_eval.matching import PRCounts
-from kitti_eval.metrics import average_precision, average_precisions, curve_from_counts, envelope
+from kitti_eval.core.matching import PRCounts
+from kitti_eval.core.metrics import average_precision, average_precisions, curve_from_counts, envelope
 
 
 def test_r40_and_r11_of_a_ramp() -> None:

@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import kitti_eval._pickle_scan as _pickle_scan
-import kitti_eval.safe_pickle as safe_pickle
+import kitti_eval.io._pickle_scan as _pickle_scan
+import kitti_eval.io.safe_pickle as safe_pickle
 from kitti_eval.errors import InputError, UnsafePickleError
-from kitti_eval.safe_pickle import ALLOWED_GLOBALS, load_pickle
+from kitti_eval.io.safe_pickle import ALLOWED_GLOBALS, load_pickle
 
 try:
     from numpy._core.multiarray import _reconstruct
@@ -450,7 +450,7 @@ def test_max_bytes_bounds_decompressed_and_plain_input(tmp_path: Path) -> None:
 
 # =============================================================================== the scan (_pickle_scan)
 #
-# load_pickle runs the C unpickler only on bytes that kitti_eval._pickle_scan.scan has checked. These
+# load_pickle runs the C unpickler only on bytes that kitti_eval.io._pickle_scan.scan has checked. These
 # tests cover the scan's model of _pickle.c opcode by opcode, its limits, and (by truncation and random
 # mutation) that nothing it accepts can crash the interpreter or yield anything but plain data.
 

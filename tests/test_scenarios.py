@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from builders import annotations, box, dontcare, hits, one_car_per_frame
 
-from kitti_eval.evaluation import evaluate
-from kitti_eval.protocol import OFFICIAL, OPENPCDET, EvalConfig
+from kitti_eval.core.evaluation import evaluate
+from kitti_eval.core.protocol import OFFICIAL, OPENPCDET, EvalConfig
 
 CAR = EvalConfig(classes=("Car",))
 CAR_PCDET = EvalConfig(classes=("Car",), protocol=OPENPCDET)
@@ -239,7 +239,7 @@ def test_official_is_default_and_protocols_differ_only_where_documented():
 
 
 def test_distance_ranges_ignore_what_lies_outside():
-    from kitti_eval.protocol import parse_ranges
+    from kitti_eval.core.protocol import parse_ranges
 
     near = one_car_per_frame(40)  # z = 20 m
     far = [[box("Car", z=40.0, x1=300.0)] for _ in range(40)]  # z = 40 m, never detected
@@ -264,7 +264,7 @@ def test_distance_ranges_ignore_what_lies_outside():
 
 
 def test_a_box_on_a_range_edge_belongs_to_the_farther_range():
-    from kitti_eval.protocol import DistanceRange, parse_ranges
+    from kitti_eval.core.protocol import DistanceRange, parse_ranges
 
     edge = [[box("Car", z=30.0)] for _ in range(41)]
     r = run(
@@ -293,7 +293,7 @@ def test_coco_style_ap_is_the_mean_over_ten_thresholds():
 
 
 def test_coco_thresholds_per_class():
-    from kitti_eval.protocol import coco_thresholds
+    from kitti_eval.core.protocol import coco_thresholds
 
     assert coco_thresholds("Car")[0] == 0.5 and coco_thresholds("Car")[-1] == 0.95
     assert coco_thresholds("Cyclist")[0] == 0.25 and coco_thresholds("cyclist")[-1] == pytest.approx(0.7)
@@ -302,7 +302,7 @@ def test_coco_thresholds_per_class():
 
 def _lidar_frames(kind, frames):
     """Frames as a LiDAR-only dataset has them: no 2D box, alpha, truncation or occlusion."""
-    from kitti_eval.frames import Annotations
+    from kitti_eval.core.frames import Annotations
 
     keep = ("name", "dimensions", "location", "rotation_y", "score")
     out = []
@@ -343,7 +343,7 @@ def test_lidar_only_mode_has_no_height_filter():
 
 
 def test_protocol_file_custom_class_neighbours_and_difficulty(tmp_path):
-    from kitti_eval.protocol import load_protocol_file
+    from kitti_eval.core.protocol import load_protocol_file
 
     f = tmp_path / "bus.toml"
     f.write_text(
@@ -364,8 +364,8 @@ def test_protocol_file_custom_class_neighbours_and_difficulty(tmp_path):
 
 
 def test_bad_protocol_files(tmp_path):
+    from kitti_eval.core.protocol import load_protocol_file
     from kitti_eval.errors import ConfigError
-    from kitti_eval.protocol import load_protocol_file
 
     for text, needle in (
         ("bogus = 1", "unknown keys"),

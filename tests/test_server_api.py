@@ -24,7 +24,7 @@ from server_helpers import (
 )
 
 from kitti_eval.cli import main as cli_main
-from kitti_eval.synth import demo_paths
+from kitti_eval.io.synth import demo_paths
 from server import Settings, create_app
 from server.ground_truths import GroundTruthCache, annotations_nbytes
 from server.service import Service
@@ -469,7 +469,7 @@ def test_serve_reports_usage_errors(capsys) -> None:
 
 
 def test_ground_truth_cache_is_bounded_and_loads_each_set_once() -> None:
-    from kitti_eval.loaders import load_ground_truth
+    from kitti_eval.io.loaders import load_ground_truth
 
     gt = load_ground_truth(GOLDEN / "kitti_infos_val.pkl")
     size = annotations_nbytes(gt)

@@ -31,7 +31,7 @@ from server_helpers import (
 )
 from server_payloads import CANARY_MOD, Reducer, hostile_pickles
 
-from kitti_eval.safe_pickle import load_pickle
+from kitti_eval.io.safe_pickle import load_pickle
 
 try:
     from numpy._core.multiarray import _reconstruct

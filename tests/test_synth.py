@@ -1,4 +1,4 @@
-"""kitti_eval.synth: OpenPCDet's structures exactly, self-consistent geometry, writers, the bundled demo."""
+"""kitti_eval.io.synth: OpenPCDet's structures exactly, self-consistent geometry, writers, the bundled demo."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kitti_eval import synth
+from kitti_eval.io import synth
 
 GT_KEYS = [
     "name",

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from server_helpers import LiveServer
 
-from kitti_eval.safe_pickle import load_pickle
-from kitti_eval.synth import demo_paths
+from kitti_eval.io.safe_pickle import load_pickle
+from kitti_eval.io.synth import demo_paths
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")

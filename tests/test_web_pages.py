@@ -12,7 +12,7 @@ import pytest
 from server_helpers import app_client, golden_bytes, upload
 
 from kitti_eval.cli import main as cli_main
-from kitti_eval.synth import demo_paths
+from kitti_eval.io.synth import demo_paths
 from server.web import STATIC_DIR
 from server.web.svg import Plot, bev_corners, bev_view, pr_chart
 

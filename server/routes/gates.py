@@ -8,8 +8,15 @@ from fastapi import APIRouter, Query
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
+from kitti_eval.analysis.gate import (
+    GateRules,
+    Verdict,
+    render_junit,
+    render_verdict_markdown,
+    rules_from_options,
+    run_gate,
+)
 from kitti_eval.errors import ConfigError
-from kitti_eval.gate import GateRules, Verdict, render_junit, render_verdict_markdown, rules_from_options, run_gate
 
 from ..deps import ServiceDep
 from ..errors import BadRequest, NotFound

@@ -20,8 +20,8 @@ from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
 from starlette.templating import Jinja2Templates
 
+from kitti_eval.core.protocol import ALL_METRICS, KNOWN_CLASSES, PROTOCOLS
 from kitti_eval.errors import KittiEvalError
-from kitti_eval.protocol import ALL_METRICS, KNOWN_CLASSES, PROTOCOLS
 
 from ..compare import compare
 from ..deps import ServiceDep

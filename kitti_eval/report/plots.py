@@ -10,9 +10,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .errors import ConfigError
-from .protocol import N_SAMPLE_PTS, Difficulty
-from .result import EvalResult
+from ..core.protocol import N_SAMPLE_PTS, Difficulty
+from ..core.result import EvalResult
+from ..errors import ConfigError
 
 __all__ = ["plot_pr_curves", "plot_overlays"]
 

@@ -18,13 +18,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .errors import ConfigError, InputError
-from .evaluation import evaluate
-from .frames import Annotations
+from ..core.evaluation import evaluate
+from ..core.frames import Annotations
+from ..core.protocol import EvalConfig
+from ..core.result import EvalResult
+from ..errors import ConfigError, InputError
+from ..io.loaders import load_detections
 from .gate import ValueKey
-from .loaders import load_detections
-from .protocol import EvalConfig
-from .result import EvalResult
 
 __all__ = ["expand_predictions", "Checkpoint", "evaluate_many", "default_ranking", "render_batch", "plot_batch"]
 

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
-from .frames import Annotations, Kind, dimension_order_warnings
+from ..core.frames import Annotations, Kind, dimension_order_warnings
+from ..errors import InputError
 
 __all__ = ["describe", "KINDS"]
 
@@ -62,8 +62,8 @@ def _guess_kind(fmt: str, frames: Sequence[Mapping[str, Any]]) -> Kind:
 
 
 def _lidar_check(frames: Sequence[Mapping[str, Any]], calibs: Mapping[str, Any], lines: list[str]) -> None:
+    from ..core.frames import normalize_frame_id
     from .calib import camera_lidar_disagreement, wrap_angle
-    from .frames import normalize_frame_id
 
     both = [f for f in frames if "boxes_lidar" in f and all(k in f for k in ("location", "dimensions", "rotation_y"))]
     lidar_only = [f for f in frames if "boxes_lidar" in f and "location" not in f]

@@ -1,7 +1,7 @@
 """Per-frame diagnostics: TP / FP / FN of every frame for one class, metric and difficulty, worst first.
 
 The counts come from the same matching as the AP (each frame's recorded steps, see
-:func:`kitti_eval.matching.frame_events_many`), read at a score threshold: every detection scoring at
+:func:`kitti_eval.core.matching.frame_events_many`), read at a score threshold: every detection scoring at
 least the threshold takes part, exactly as in the devkit's second pass.
 """
 
@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .errors import ConfigError
-from .evaluation import Plan, plan_evaluation
-from .frames import Annotations
-from .matching import MatchJob, frame_events_many
-from .protocol import THRESHOLD_SETS, Difficulty, EvalConfig, Metric
+from ..core.evaluation import Plan, plan_evaluation
+from ..core.frames import Annotations
+from ..core.matching import MatchJob, frame_events_many
+from ..core.protocol import THRESHOLD_SETS, Difficulty, EvalConfig, Metric
+from ..errors import ConfigError
 
 __all__ = ["FrameStats", "frame_stats", "frames_document", "render_frames", "with_class", "parse_slot", "slot_job"]
 

@@ -48,7 +48,7 @@ class EvalResult:
     #: ``ap``), "num_gt" (valid ground truth in the range per class and difficulty)}
     ranges: tuple[Mapping[str, Any], ...] = ()
     #: COCO-style AP when asked for: ``coco[recall][class][metric][difficulty]``, the mean over the class's
-    #: ten IoU thresholds (:func:`kitti_eval.protocol.coco_thresholds`); None otherwise
+    #: ten IoU thresholds (:func:`kitti_eval.core.protocol.coco_thresholds`); None otherwise
     coco: Mapping[str, Any] | None = None
 
     def get(

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from .errors import InputError
+from ..errors import InputError
 from .frames import Annotations, dimension_order_warnings
 from .geometry import FrameOverlaps, frame_overlaps
 from .matching import MatchJob, pr_counts_many
@@ -79,7 +79,7 @@ def in_range_codes(
     gt_inside: npt.NDArray[np.bool_],
     dt_inside: npt.NDArray[np.bool_],
 ) -> tuple[npt.NDArray[np.int8], npt.NDArray[np.int8]]:
-    """Ignore codes within a distance range (:class:`~kitti_eval.protocol.DistanceRange`): ground truth
+    """Ignore codes within a distance range (:class:`~kitti_eval.core.protocol.DistanceRange`): ground truth
     outside it that takes part becomes ignored (1), and so does a counting detection (0) outside it."""
     ig = ignored_gt.copy()
     ig[(ig != -1) & ~gt_inside] = 1

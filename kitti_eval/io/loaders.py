@@ -11,7 +11,7 @@ Formats
   score, is accepted and ignored) and exactly 16 for detections; dimensions are written h, w, l and are
   reordered to the l, h, w of :class:`Annotations`. A folder without ``.txt`` files but with a ``data/``
   subfolder that has them (OpenPCDet's ``final_result/data``) is read from there.
-* Pickles (read only through :func:`kitti_eval.safe_pickle.load_pickle`, gzip or not), by detected format:
+* Pickles (read only through :func:`kitti_eval.io.safe_pickle.load_pickle`, gzip or not), by detected format:
 
   ==================  ====================================================================================
   ``openpcdet_infos``  list of OpenPCDet info dicts (``image``/``point_cloud``/``annos``): ground truth
@@ -27,9 +27,9 @@ Formats
   ==================  ====================================================================================
 
   Detections that carry only ``boxes_lidar`` (OpenPCDet LiDAR convention) are converted to the camera frame
-  with each frame's calibration (:mod:`kitti_eval.calib`), taken from the ground-truth infos; see
+  with each frame's calibration (:mod:`kitti_eval.io.calib`), taken from the ground-truth infos; see
   :func:`load_pair`. Zip and tar archives of a KITTI txt folder are unpacked safely (:func:`extract_txt_archive`,
-  over :mod:`kitti_eval.archives`).
+  over :mod:`kitti_eval.io.archives`).
 
   New formats are added to :data:`PICKLE_FORMATS` with a detector in :func:`detect_format`.
 """
@@ -45,9 +45,9 @@ from typing import Any
 
 import numpy as np
 
+from ..core.frames import Annotations, Kind, normalize_frame_id
+from ..errors import InputError
 from .archives import ArchiveLimits, InputKind, extract_txt_folder, sniff_archive, sniff_input
-from .errors import InputError
-from .frames import Annotations, Kind, normalize_frame_id
 from .safe_pickle import load_pickle, load_pickles
 
 __all__ = [
@@ -117,7 +117,7 @@ def load_detections(
 ) -> Annotations:
     """Detections from a KITTI txt folder (16 fields; or a zip/tar of one) or a ``result.pkl``-style pickle.
 
-    ``calibs`` ({frame id: :class:`kitti_eval.calib.Calib`}) converts LiDAR-only boxes and checks boxes that
+    ``calibs`` ({frame id: :class:`kitti_eval.io.calib.Calib`}) converts LiDAR-only boxes and checks boxes that
     carry both; messages about the check are appended to ``warnings``. ``keep_lidar`` keeps the
     ``boxes_lidar`` as written, for display (:attr:`Annotations.boxes_lidar`).
     """
@@ -708,7 +708,7 @@ _CAMERA_FIELDS = ("location", "dimensions", "rotation_y")
 
 
 class _LazyCalibs(Mapping[str, Any]):
-    """{frame id: :class:`kitti_eval.calib.Calib`}, each worked out from its entry when first asked for (the
+    """{frame id: :class:`kitti_eval.io.calib.Calib`}, each worked out from its entry when first asked for (the
     loader asks for a few frames: those with LiDAR boxes only, and every tenth one to compare both); a
     frame whose calibration cannot be read is missing."""
 
@@ -741,11 +741,11 @@ def _mmdet3d_calib(entry: Mapping[str, Any]) -> Any:
 
 
 def calibs_from_object(obj: object) -> Mapping[str, Any]:
-    """{frame id: :class:`kitti_eval.calib.Calib`} from ground-truth infos (OpenPCDet list, PointPillars
+    """{frame id: :class:`kitti_eval.io.calib.Calib`} from ground-truth infos (OpenPCDet list, PointPillars
     dict, mmdetection3d 1.x), each read when first used; empty when the object has no calibration. Never
     raises (a frame whose calibration cannot be read is missing)."""
+    from ..core.frames import normalize_frame_id
     from .calib import calib_from_info
-    from .frames import normalize_frame_id
 
     entries: dict[str, Any] = {}
     try:
@@ -775,8 +775,8 @@ _CHECK_EVERY = 10
 
 def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str, warnings: list[str] | None) -> Frames:
     """Detections: LiDAR-only frames converted to camera fields; frames with both checked for agreement."""
+    from ..core.frames import normalize_frame_id
     from .calib import disagreeing_boxes, lidar_to_camera
-    from .frames import normalize_frame_id
 
     # frames with both camera fields and LiDAR boxes: every CHECK_EVERY-th is collected, then checked in
     # one vectorised call (a broken conversion shows in any sample; checking all costs ~0.1 s on KITTI val)
@@ -859,7 +859,7 @@ _DEFAULT_LIMITS = ArchiveLimits()
 
 def input_kind(path: PathLike, source: str | None = None) -> InputKind:
     """What a file holds, from its content (the same test the service makes of an upload):
-    :func:`kitti_eval.archives.sniff_input`. Raises InputError (UnknownFormatError for other content)."""
+    :func:`kitti_eval.io.archives.sniff_input`. Raises InputError (UnknownFormatError for other content)."""
     try:
         with open(path, "rb") as fh:
             return sniff_input(fh, str(path) if source is None else source)
@@ -878,7 +878,7 @@ def is_archive(path: PathLike) -> bool:
 def extract_txt_archive(path: PathLike, dest: PathLike, *, limits: ArchiveLimits = _DEFAULT_LIMITS) -> Path:
     """Unpack the ``.txt`` files of one folder of a zip or tar into a subfolder of ``dest``; returns it.
 
-    A thin wrapper over :func:`kitti_eval.archives.extract_txt_folder` (which see for the checks and for
+    A thin wrapper over :func:`kitti_eval.io.archives.extract_txt_folder` (which see for the checks and for
     which folder is taken when several hold txt files); anything that is not a zip is read as a tar.
     """
     source = str(path)
@@ -909,7 +909,7 @@ def _load_txt_archive(p: Path, kind: Kind, source: str) -> Annotations:
 
 def read_split(path: PathLike) -> list[str]:
     """Frame ids of a KITTI ``ImageSets/<split>.txt`` (one a line; blank lines skipped), normalised."""
-    from .frames import normalize_frame_id
+    from ..core.frames import normalize_frame_id
 
     text = _read_text(Path(path))
     ids: list[str] = []

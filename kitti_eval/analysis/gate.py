@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .errors import ConfigError, InputError
-from .protocol import ALL_METRICS, RECALL_MODES, THRESHOLD_SETS, Difficulty
+from ..core.protocol import ALL_METRICS, RECALL_MODES, THRESHOLD_SETS, Difficulty
+from ..errors import ConfigError, InputError
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -429,7 +429,7 @@ def render_junit(verdict: Verdict, name: str = "kitti-eval gate") -> str:
         skipped="0",
     )
     for c in verdict.checks:
-        case = ET.SubElement(suite, "testcase", classname="kitti_eval.gate", name=c.rule)
+        case = ET.SubElement(suite, "testcase", classname="kitti_eval.analysis.gate", name=c.rule)
         if not c.passed:
             failure = ET.SubElement(case, "failure", message=c.message or "failed")
             failure.text = f"current={_f(c.current)} baseline={_f(c.baseline)} delta={_f(c.delta, sign=True)}"

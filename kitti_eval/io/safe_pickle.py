@@ -15,7 +15,7 @@ imports nothing and calls only numpy's reconstructors, with the arguments numpy 
 * ``collections.OrderedDict`` without arguments (its items come by ``SETITEMS``),
 * ``builtins.bytes`` without arguments (how protocols 0-2 store ``b""``, e.g. an empty array's data).
 
-How: :func:`kitti_eval._pickle_scan.scan` (numba) first runs the whole opcode stream through a model of
+How: :func:`kitti_eval.io._pickle_scan.scan` (numba) first runs the whole opcode stream through a model of
 CPython's C unpickler and refuses the pickle unless every call and every ``BUILD`` is one of the above with
 checked arguments and states, nesting, hashing, the memo and the bytes built stay bounded (see its
 docstring); only then does the C unpickler (:class:`pickle.Unpickler`) build the objects from the same
@@ -38,8 +38,8 @@ from typing import IO, Any, cast
 
 import numpy as np
 
+from ..errors import InputError, UnsafePickleError
 from . import _pickle_scan as _ps
-from .errors import InputError, UnsafePickleError
 
 __all__ = ["load_pickle", "load_pickles", "ALLOWED_GLOBALS", "GZIP_MAGIC"]
 

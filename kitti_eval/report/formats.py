@@ -7,8 +7,8 @@ import json
 import math
 from typing import Any
 
-from .protocol import Difficulty
-from .result import EvalResult
+from ..core.protocol import Difficulty
+from ..core.result import EvalResult
 
 __all__ = ["OutputFormat", "render", "render_table", "render_json", "render_markdown"]
 
@@ -48,7 +48,7 @@ def render_table(result: EvalResult) -> str:
 
 def _coco_blocks(result: EvalResult) -> list[str]:
     """``Car coco AP@0.50:0.05:0.95:`` (R11) and ``Car coco AP_R40@...`` blocks."""
-    from .protocol import coco_thresholds
+    from ..core.protocol import coco_thresholds
 
     assert result.coco is not None
     lines: list[str] = []

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import IO, Literal
 
-from .errors import InputError, UnknownFormatError
+from ..errors import InputError, UnknownFormatError
 
 __all__ = ["ArchiveLimits", "ArchiveKind", "InputKind", "sniff_archive", "sniff_input", "extract_txt_folder"]
 

@@ -1,4 +1,4 @@
-"""Comparing two sets of predictions: per-value deltas and paired bootstrap intervals over frames.
+"""The paired bootstrap over frames: 95% intervals of B - A for every value (see :mod:`.compare`).
 
 A resample draws frames with replacement (the same draw for both prediction sets: paired). Nothing is
 re-matched: each frame's counts are step functions of the score threshold (:func:`frame_events_many`),
@@ -9,25 +9,20 @@ reproduces :func:`kitti_eval.evaluate`.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Any
-
 import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from ._jit import kernel_input
-from .errors import InputError
-from .evaluation import Plan, evaluate, plan_evaluation
-from .frames import Annotations
+from .._jit import kernel_input
+from ..core.evaluation import Plan, evaluate, plan_evaluation
+from ..core.frames import Annotations
+from ..core.matching import FrameEvents, default_workers, frame_events_many, threshold_step
+from ..core.metrics import average_precisions, envelope
+from ..core.protocol import N_SAMPLE_PTS, EvalConfig, Metric
+from ..core.result import EvalResult
 from .gate import ValueKey
-from .matching import FrameEvents, default_workers, frame_events_many, threshold_step
-from .metrics import average_precisions, envelope
-from .protocol import N_SAMPLE_PTS, EvalConfig, Metric
-from .result import EvalResult
 
-__all__ = ["resampled_ap", "frame_weights", "paired_bootstrap", "Comparison", "compare_documents"]
+__all__ = ["resampled_ap", "frame_weights", "paired_bootstrap"]
 
 
 @njit(cache=True, nogil=True)
@@ -94,7 +89,7 @@ def resampled_ap(events: FrameEvents, weights: npt.ArrayLike) -> npt.NDArray[np.
     Returns
     -------
     (B, 4) float64: precision AP R11, R40 and orientation AP R11, R40, in percent (the curves interpolated
-    and averaged by :mod:`kitti_eval.metrics`, as every AP is)
+    and averaged by :mod:`kitti_eval.core.metrics`, as every AP is)
     """
     w = kernel_input(weights, np.int64)
     if w.ndim != 2 or w.shape[1] != events.valid.shape[0] or (w < 0).any():
@@ -163,71 +158,6 @@ def _resampled_values(plan: Plan, weights: np.ndarray, workers: int | None) -> d
     return out
 
 
-@dataclass(frozen=True)
-class Comparison:
-    """Two results side by side: per value A, B, B - A, and (with a bootstrap) a 95% interval of B - A."""
-
-    a: Mapping[str, Any]
-    b: Mapping[str, Any]
-    intervals: Mapping[ValueKey, tuple[float, float]]
-    resamples: int
-    seed: int | None
-
-    def rows(self) -> list[tuple[ValueKey, float | None, float | None, float | None, tuple[float, float] | None]]:
-        from .gate import keys_of
-
-        out = []
-        shared = set(self.b.get("classes", ()))
-        for key in keys_of(self.a):
-            if key.cls not in shared:  # said in the notes
-                continue
-            va = key.read(self.a)
-            try:
-                vb = key.read(self.b)
-            except InputError:  # a class only A has
-                vb = None
-            delta = None if va is None or vb is None else vb - va
-            out.append((key, va, vb, delta, self.intervals.get(key)))
-        return out
-
-    @property
-    def notes(self) -> list[str]:
-        """What makes the two hard to compare: another protocol, other IoU thresholds, classes in one only."""
-        a, b = self.a, self.b
-        out = []
-        if a.get("protocol") != b.get("protocol"):
-            out.append(f"different protocols: {a.get('protocol')} and {b.get('protocol')}")
-        only = sorted(set(a.get("classes", ())).symmetric_difference(b.get("classes", ())))
-        if only:
-            out.append(f"classes in only one of them are not compared: {', '.join(only)}")
-        for cls in (c for c in a.get("classes", ()) if c in b.get("classes", ())):
-            for oset in (s for s in a.get("threshold_sets", ()) if s in b.get("threshold_sets", ())):
-                if a["overlaps"][cls][oset] != b["overlaps"][cls][oset]:
-                    out.append(f"{cls}/{oset}: different IoU thresholds")
-        return out
-
-    def to_dict(self) -> dict[str, Any]:
-        """``values``: every value of A with B's and B - A (and the interval with a bootstrap); ``num_det``
-        and ``frames``: B - A of the counts; ``notes``: see :attr:`notes`."""
-        shared = [c for c in self.a.get("classes", ()) if c in self.b.get("classes", ())]
-        return {
-            "schema_version": 1,
-            "resamples": self.resamples,
-            "seed": self.seed,
-            "notes": self.notes,
-            "values": [
-                {"key": str(k), "a": va, "b": vb, "delta": d, "interval95": list(iv) if iv is not None else None}
-                for k, va, vb, d, iv in self.rows()
-            ],
-            "num_det": {
-                c: self.b["num_det"][c] - self.a["num_det"][c]
-                for c in shared
-                if c in self.a.get("num_det", {}) and c in self.b.get("num_det", {})
-            },
-            "frames": self.b["frames"] - self.a["frames"] if "frames" in self.a and "frames" in self.b else None,
-        }
-
-
 def paired_bootstrap(
     gt: Annotations,
     dt_a: Annotations,
@@ -256,56 +186,3 @@ def paired_bootstrap(
         lo, hi = np.percentile(delta, [2.5, 97.5])
         intervals[key] = (float(lo), float(hi))
     return evaluate(gt, dt_a, config, workers=workers), evaluate(gt, dt_b, config, workers=workers), intervals
-
-
-def compare_documents(
-    a: Mapping[str, Any],
-    b: Mapping[str, Any],
-    intervals: Mapping[ValueKey, tuple[float, float]] | None = None,
-    resamples: int = 0,
-    seed: int | None = None,
-) -> Comparison:
-    return Comparison(a, b, dict(intervals or {}), resamples, seed)
-
-
-def render_comparison(cmp: Comparison, fmt: str = "table", *, every_value: bool = False) -> str:
-    """The comparison as a table (R40 strict values unless ``every_value``), Markdown, or JSON."""
-    import json
-
-    if fmt == "json":
-        return json.dumps(cmp.to_dict(), indent=2, allow_nan=False) + "\n"
-    rows = [r for r in cmp.rows() if every_value or (r[0].recall == "R40" and r[0].oset == "strict")]
-
-    def num(v: float | None, sign: bool = False) -> str:
-        return "-" if v is None else (f"{v:+.4f}" if sign else f"{v:.4f}")
-
-    def interval(iv: tuple[float, float] | None) -> str:
-        return "" if iv is None else f"[{iv[0]:+.4f}, {iv[1]:+.4f}]"
-
-    def significant(iv: tuple[float, float] | None) -> str:
-        return "*" if iv is not None and (iv[0] > 0 or iv[1] < 0) else ""
-
-    if fmt == "markdown":
-        out = ["| value | A | B | B − A | 95% interval |", "|---|---:|---:|---:|---|"]
-        out += [
-            f"| `{k}` | {num(a)} | {num(b)} | {num(d, True)}{significant(iv)} | {interval(iv)} |"
-            for k, a, b, d, iv in rows
-        ]
-        note = (
-            f"\n{cmp.resamples} paired bootstrap resamples over frames (seed {cmp.seed}); * : the interval "
-            "excludes 0.\n"
-            if cmp.resamples
-            else "\n"
-        )
-        return "\n".join(out) + "\n" + note + "".join(f"> note: {n}\n" for n in cmp.notes)
-    out = [f"{'value':<34} {'A':>9} {'B':>9} {'B - A':>10}  {'95% interval' if cmp.resamples else ''}"]
-    out += [
-        f"{str(k):<34} {num(a):>9} {num(b):>9} {num(d, True) + significant(iv):>10}  {interval(iv)}"
-        for k, a, b, d, iv in rows
-    ]
-    if cmp.resamples:
-        out.append(
-            f"{cmp.resamples} paired bootstrap resamples over frames (seed {cmp.seed}); "
-            "* marks an interval that excludes 0"
-        )
-    return "\n".join(out) + "\n"

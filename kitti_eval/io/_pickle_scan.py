@@ -1,4 +1,4 @@
-"""The check behind :func:`kitti_eval.safe_pickle.load_pickle`: a model of CPython's C unpickler over types.
+"""The check behind :func:`kitti_eval.io.safe_pickle.load_pickle`: a model of CPython's C unpickler over types.
 
 :func:`scan` reads a pickle (protocols 0-5) opcode by opcode, exactly as ``_pickle.c`` frames it, and keeps
 for every value only what the checks need: its kind, an int's value, where a str or bytes lies and how long

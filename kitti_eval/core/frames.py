@@ -20,7 +20,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
-from .errors import InputError
+from ..errors import InputError
 
 __all__ = ["Annotations", "normalize_frame_id", "dimension_order_warnings"]
 
@@ -148,7 +148,7 @@ class Annotations:
 
     @cached_property
     def boxes_camera(self) -> npt.NDArray[np.float64]:
-        """(N, 7) x, y, z, l, h, w, ry in the camera frame: the layout of :mod:`kitti_eval.geometry`."""
+        """(N, 7) x, y, z, l, h, w, ry in the camera frame: the layout of :mod:`kitti_eval.core.geometry`."""
         return np.concatenate([self.location, self.dimensions, self.rotation_y[:, None]], axis=1)
 
     @cached_property

@@ -17,7 +17,7 @@ the same seed gives the same ground truth whatever the detection settings.
 
 Command line::
 
-    python -m kitti_eval.synth --frames 3769 --seed 0 --dets-per-frame 40 --out DIR [--txt] [--gzip]
+    python -m kitti_eval.io.synth --frames 3769 --seed 0 --dets-per-frame 40 --out DIR [--txt] [--gzip]
 """
 
 from __future__ import annotations
@@ -794,7 +794,7 @@ def demo_paths() -> tuple[Path, Path]:
 
     Made by ``generate(**DEMO_ARGS)`` (200 frames, seed 7, 12 detections a frame).
     """
-    root = Path(__file__).resolve().parent / "data" / "demo"
+    root = Path(__file__).resolve().parent.parent / "data" / "demo"
     return root / _DEMO_FILES[0], root / _DEMO_FILES[1]
 
 
@@ -803,7 +803,7 @@ def demo_paths() -> tuple[Path, Path]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m kitti_eval.synth", description="Write a synthetic KITTI validation set."
+        prog="python -m kitti_eval.io.synth", description="Write a synthetic KITTI validation set."
     )
     parser.add_argument("--frames", type=int, default=3769)
     parser.add_argument("--seed", type=int, default=0)

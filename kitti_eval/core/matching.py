@@ -13,7 +13,7 @@ This is the KITTI devkit's ``eval_class`` for one (class, difficulty, metric, Io
    detections are false positives unless a DontCare region covers them; AOS sums (1 + cos(dalpha)) / 2
    over true positives.
 
-Ignore codes (computed by :mod:`kitti_eval.evaluation` from the protocol; named VALID, IGNORED, OTHER_CLASS):
+Ignore codes (computed by :mod:`kitti_eval.core.evaluation` from the protocol; named VALID, IGNORED, OTHER_CLASS):
 ``ignored_gt``: 0 = valid, 1 = ignored (neighbour class or outside the difficulty), -1 = other class;
 ``ignored_det``: 0 = valid, 1 = ignored (too small in 2D), -1 = other class.
 
@@ -33,7 +33,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from ._jit import kernel_input
+from .._jit import kernel_input
 
 __all__ = [
     "PRCounts",

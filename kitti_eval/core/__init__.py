@@ -1,0 +1,1 @@
+"""The evaluation itself: the KITTI rules as data, boxes, overlaps, matching, curves and AP, results."""

@@ -1,0 +1,1 @@
+"""Writing results: OpenPCDet's table, the JSON document, Markdown, precision-recall plots."""
