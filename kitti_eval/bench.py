@@ -77,7 +77,7 @@ def _child(gt_path: str, pred_path: str, repeat: int) -> dict[str, float]:
     t = clock()
     from .core.evaluation import evaluate
     from .io.loaders import load_detections, load_ground_truth
-    from .report.formats import render_json
+    from .report.render import render_json
 
     out["import_s"] = clock() - t
     t = clock()

@@ -16,7 +16,7 @@ from typing import Any
 
 from .core.protocol import DEFAULT_CLASSES, KNOWN_CLASSES, PROTOCOLS, THRESHOLD_SETS
 from .errors import ConfigError, InputError, KittiEvalError
-from .report.formats import OutputFormat
+from .report.render import OutputFormat
 
 __all__ = ["main"]
 
@@ -270,7 +270,7 @@ def _wait(warmer: object | None) -> None:
 def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
     from .core.evaluation import evaluate
     from .io.loaders import load_pair
-    from .report.formats import render
+    from .report.render import render
 
     config = _config(args)
     warmer = _start_warm_up()

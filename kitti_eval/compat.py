@@ -19,7 +19,7 @@ from .core.frames import Annotations
 from .core.protocol import OPENPCDET, EvalConfig
 from .core.result import EvalResult
 from .errors import ConfigError, InputError
-from .report.formats import render_table
+from .report.render import render_table
 
 __all__ = ["get_official_eval_result", "ret_dict"]
 

@@ -8,7 +8,7 @@ from typing import Annotated
 from fastapi import Depends, Query, Request, Security
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from kitti_eval.report.formats import OutputFormat
+from kitti_eval.report.render import OutputFormat
 
 from .errors import BadRequest, Forbidden, Unauthorized
 from .service import Service

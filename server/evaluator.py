@@ -16,7 +16,7 @@ from typing import Any
 from kitti_eval.core.evaluation import evaluate
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
-from kitti_eval.report.formats import render_json
+from kitti_eval.report.render import render_json
 
 from .errors import BadRequest
 

@@ -8,7 +8,7 @@ from fastapi import APIRouter, File, Form, Query, UploadFile
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 
 from kitti_eval.core.result import EvalResult
-from kitti_eval.report.formats import OutputFormat, render
+from kitti_eval.report.render import OutputFormat, render
 
 from ..compare import compare, render_comparison_markdown
 from ..deps import FormatDep, ServiceDep
