@@ -16,7 +16,7 @@ from numba import njit
 from .._jit import kernel_input
 from ..core.evaluation import Plan, evaluate, plan_evaluation
 from ..core.frames import Annotations
-from ..core.matching import FrameEvents, default_workers, frame_events_many, threshold_step
+from ..core.matching import FrameEvents, default_workers, threshold_step
 from ..core.metrics import average_precisions, envelope
 from ..core.protocol import N_SAMPLE_PTS, EvalConfig, Metric
 from ..core.result import EvalResult
@@ -118,27 +118,9 @@ def frame_weights(n_frames: int, n_resamples: int, seed: int) -> npt.NDArray[np.
     return rng.multinomial(n_frames, np.full(n_frames, 1.0 / n_frames), size=n_resamples).astype(np.int64)
 
 
-def _events(plan: Plan, workers: int | None) -> list[FrameEvents]:
-    fo = plan.overlaps
-    return frame_events_many(
-        fo.pair_offsets,
-        (fo.bbox, fo.bev, fo.d3),
-        plan.gt.offsets,
-        plan.dt.offsets,
-        plan.ignored_gt,
-        plan.ignored_det,
-        plan.dontcare,
-        plan.dt.score,
-        plan.gt.alpha,
-        plan.dt.alpha,
-        plan.jobs,
-        workers=workers,
-    )
-
-
 def _resampled_values(plan: Plan, weights: np.ndarray, workers: int | None) -> dict[ValueKey, np.ndarray]:
     """Every value of the result under each resample: {key: (B,)} (keys the protocol evaluates)."""
-    events = _events(plan, workers)
+    events = plan.events(workers=workers)
     n_workers = default_workers() if workers is None else max(1, workers)
     if n_workers > 1 and len(events) > 1:
         from concurrent.futures import ThreadPoolExecutor

@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from ..core.evaluation import Plan, plan_evaluation
 from ..core.frames import Annotations
-from ..core.matching import MatchJob, frame_events_many
+from ..core.matching import MatchJob
 from ..core.protocol import THRESHOLD_SETS, Difficulty, EvalConfig, Metric
 from ..errors import ConfigError
 
@@ -110,20 +110,7 @@ def frame_stats(
     plan = plan_evaluation(gt, dt, config)
     job = slot_job(plan, cls, m, d, oset)
     n = gt.num_frames
-    fo = plan.overlaps
-    (events,) = frame_events_many(
-        fo.pair_offsets,
-        (fo.bbox, fo.bev, fo.d3),
-        plan.gt.offsets,
-        plan.dt.offsets,
-        plan.ignored_gt,
-        plan.ignored_det,
-        plan.dontcare,
-        plan.dt.score,
-        plan.gt.alpha,
-        plan.dt.alpha,
-        [job],
-    )
+    (events,) = plan.events([job])
     counts = np.zeros((n, 3))
     counts[:, 2] = events.valid
     on = events.ev_score >= score_threshold

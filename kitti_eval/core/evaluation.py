@@ -10,7 +10,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -18,7 +18,7 @@ import numpy.typing as npt
 from ..errors import InputError
 from .frames import Annotations, dimension_order_warnings
 from .geometry import FrameOverlaps, frame_overlaps
-from .matching import MatchJob, pr_counts_many
+from .matching import FrameEvents, MatchJob, PRCounts, frame_events_many, pr_counts_many
 from .metrics import Curve, average_precision, curve_from_counts
 from .protocol import (
     ALL_METRICS,
@@ -170,6 +170,32 @@ class Plan:
     num_det: dict[str, int]
     timings: dict[str, float]
 
+    def _matching_inputs(self) -> tuple[Any, Any, Any, Any, Any, Any, Any, Any, Any, Any]:
+        """The arguments every matching of the plan shares (see :func:`kitti_eval.core.matching.pr_counts`)."""
+        fo = self.overlaps
+        return (
+            fo.pair_offsets,
+            (fo.bbox, fo.bev, fo.d3),
+            self.gt.offsets,
+            self.dt.offsets,
+            self.ignored_gt,
+            self.ignored_det,
+            self.dontcare,
+            self.dt.score,
+            self.gt.alpha,
+            self.dt.alpha,
+        )
+
+    def counts(self, jobs: Sequence[MatchJob] | None = None, *, workers: int | None = None) -> list[PRCounts]:
+        """The TP/FP/FN counts of ``jobs`` (default: every job of the plan) at their score thresholds."""
+        jobs = self.jobs if jobs is None else jobs
+        return pr_counts_many(*self._matching_inputs(), jobs, workers=workers) if jobs else []
+
+    def events(self, jobs: Sequence[MatchJob] | None = None, *, workers: int | None = None) -> list[FrameEvents]:
+        """Each frame's share of ``jobs``' counts as step functions of the score threshold (default: every job)."""
+        jobs = self.jobs if jobs is None else jobs
+        return frame_events_many(*self._matching_inputs(), jobs, workers=workers) if jobs else []
+
 
 def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None = None) -> Plan:
     """Align detections to the ground truth's frames, compute overlaps, and list the matchings needed."""
@@ -317,25 +343,7 @@ def evaluate(
     t0 = clock()
     plan = plan_evaluation(gt, dt, config)
     t1 = clock()
-    fo = plan.overlaps
-    counts = (
-        pr_counts_many(
-            fo.pair_offsets,
-            (fo.bbox, fo.bev, fo.d3),
-            plan.gt.offsets,
-            plan.dt.offsets,
-            plan.ignored_gt,
-            plan.ignored_det,
-            plan.dontcare,
-            plan.dt.score,
-            plan.gt.alpha,
-            plan.dt.alpha,
-            plan.jobs,
-            workers=workers,
-        )
-        if plan.jobs
-        else []
-    )
+    counts = plan.counts(workers=workers)
     t2 = clock()
     job_curves = [curve_from_counts(c) for c in counts]
     ap, curves = ap_tables(plan, job_curves)
