@@ -226,6 +226,9 @@ def test_history_filters_by_ground_truth_and_labels_newest_first(tmp_path) -> No
         full = c.get(f"/v1/evaluations/{ids[2]}").json()
         assert item["summary"]["Car"]["3d"] == full["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"]
         assert_error(c.get("/v1/evaluations", params={"limit": 0}), 422, "limit")
+        for offset in (2**63, 2**64, -1, 10**9 + 1):  # 2**63 overflowed the database's integer: a 500
+            assert_error(c.get("/v1/evaluations", params={"offset": offset}), 422, "offset")
+        assert c.get("/v1/evaluations", params={"offset": 10**9}).json()["items"] == []
 
 
 def test_comparison_gives_per_value_deltas(client) -> None:

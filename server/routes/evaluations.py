@@ -120,7 +120,7 @@ def list_evaluations(
     epoch: str | None = None,
     label: Annotated[list[str] | None, Query(description="key=value; repeatable; all must match")] = None,
     limit: Annotated[int, Query(ge=1, le=500)] = 50,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Annotated[int, Query(ge=0, le=1_000_000_000, description="skip this many (at most 10^9)")] = 0,
 ) -> dict[str, Any]:
     labels = parse_labels({"model": model, "commit": commit, "epoch": epoch}, label or [])
     records = service.store.list_evaluations(gt_name=gt, labels=labels, limit=limit + 1, offset=offset)
