@@ -619,3 +619,22 @@ def test_a_file_loads_the_same_way_through_the_cli_and_the_service(tmp_path: Pat
         assert outcomes[0][0] == "UnknownFormatError"
     else:
         assert outcomes[0][0] == "loaded" and outcomes[0][1] == ("000000", "000001", "000002")
+
+
+def test_class_names_that_are_not_text_are_refused_naming_the_frame(tmp_path: Path, capsys) -> None:
+    """A name array of bytes with a non-ASCII byte was a UnicodeDecodeError (a traceback from the CLI, a 500
+    from the service); it is bad input, named by frame and field."""
+    results = generate(3, seed=1)[1]
+    results[1]["name"] = np.array([b"Car\xff"] * len(results[1]["score"]))
+    path = tmp_path / "result.pkl"
+    path.write_bytes(pickle.dumps(results, protocol=4))
+    with pytest.raises(InputError, match="not ASCII") as err:
+        load_detections(path)
+    assert err.value.frame == "000001" and err.value.field == "name"
+    infos = tmp_path / "infos.pkl"
+    infos.write_bytes(pickle.dumps(generate(3, seed=1)[0], protocol=4))
+    assert main(["--gt", str(infos), "--pred", str(path)]) == 1
+    assert "not ASCII" in capsys.readouterr().err
+    results[1]["name"] = np.array([b"Car"] * len(results[1]["score"]))  # ASCII bytes are names
+    path.write_bytes(pickle.dumps(results, protocol=4))
+    assert load_detections(path).num_frames == 3

@@ -32,6 +32,7 @@ from server_helpers import (
 from server_payloads import CANARY_MOD, Reducer, hostile_pickles
 
 from kitti_eval.io.safe_pickle import load_pickle
+from kitti_eval.io.synth import generate
 
 try:
     from numpy._core.multiarray import _reconstruct
@@ -405,3 +406,10 @@ def test_a_huge_zip_directory_is_refused_before_it_is_read(client) -> None:
     err = assert_error(upload(client, _zip_with_lying_entry_count(5000), "pred.zip", gt="small"), 422, "members")
     assert err["code"] == "invalid_archive"
     still_serving(client)
+
+
+def test_class_names_that_are_not_text_are_a_422_not_a_500(client) -> None:
+    results = generate(3, seed=1)[1]
+    results[0]["name"] = np.array([b"Car\xff"] * len(results[0]["score"]))
+    response = upload(client, pickle.dumps(results, protocol=4), "result.pkl")
+    assert_error(response, 422, "not ASCII", "frame 000000")

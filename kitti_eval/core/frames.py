@@ -76,7 +76,11 @@ def _names(value: Any, n_hint: int | None, where: dict[str, str]) -> npt.NDArray
     if arr.dtype.kind == "U":
         return arr
     if arr.dtype.kind == "S":
-        return arr.astype("U")
+        try:
+            return np.char.decode(arr, "ascii")
+        except UnicodeDecodeError as e:
+            bad = next(bytes(v) for v in arr.ravel() if not bytes(v).isascii())
+            raise InputError(f"class names must be text; {bad[:40]!r} is not ASCII ({e.reason})", **where) from None
     if arr.dtype.kind == "O" and all(isinstance(v, (str, np.str_)) for v in arr):
         return arr.astype("U")
     raise InputError(f"expected class names as strings, got dtype {arr.dtype}", **where)
