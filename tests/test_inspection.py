@@ -166,7 +166,7 @@ def test_every_frames_labels_add_up_to_its_counts(cls, metric, difficulty, thres
     m, d = parse_slot(config, metric, difficulty, "strict")
     job = slot_job(plan, cls, m, d, "strict")
     fo = plan.overlaps
-    ov_all = (fo.bbox, fo.bev, fo.d3)[job.metric]
+    ov_all = (fo.bbox, fo.bev, fo.d3)[job.overlap]
     checked = 0
     for f in range(gt.num_frames):
         g0, g1 = plan.gt.offsets[f], plan.gt.offsets[f + 1]

@@ -125,7 +125,7 @@ def _gt_roles(
                     "dontcare",
                     "covers false positives"
                     if job.dontcare
-                    else f"not used in {OVERLAP_METRICS[job.metric].value} under the {config.protocol.name} protocol",
+                    else f"not used in {OVERLAP_METRICS[job.overlap].value} under the {config.protocol.name} protocol",
                 )
             )
         else:
@@ -160,7 +160,7 @@ def _label_model(
     gt, dt, fo = plan.gt, plan.dt, plan.overlaps
     g0, g1 = int(gt.offsets[f]), int(gt.offsets[f + 1])
     d0, d1 = int(dt.offsets[f]), int(dt.offsets[f + 1])
-    ov = (fo.bbox, fo.bev, fo.d3)[job.metric][fo.pair_offsets[f] : fo.pair_offsets[f + 1]].reshape(d1 - d0, g1 - g0)
+    ov = (fo.bbox, fo.bev, fo.d3)[job.overlap][fo.pair_offsets[f] : fo.pair_offsets[f + 1]].reshape(d1 - d0, g1 - g0)
     codes = plan.ignored_gt[job.codes][g0:g1]
     det_codes = plan.ignored_det[job.codes][d0:d1]
     dontcare = plan.dontcare[g0:g1] if job.dontcare else None

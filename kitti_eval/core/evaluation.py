@@ -26,6 +26,7 @@ from .protocol import (
     INVALID_ALPHA,
     MISSING_COORD,
     NEIGHBOURS,
+    OVERLAP_INDEX,
     OVERLAP_METRICS,
     RECALL_MODES,
     Difficulty,
@@ -244,7 +245,7 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
             job = job_of[(row, metric, thr)] = len(jobs)
             jobs.append(
                 MatchJob(
-                    metric=OVERLAP_METRICS.index(metric),
+                    overlap=OVERLAP_INDEX[metric],
                     codes=row,
                     min_overlap=thr,
                     compute_aos=metric is Metric.BBOX and with_aos,

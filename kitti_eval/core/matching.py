@@ -616,10 +616,12 @@ def _labels(
 
 @dataclass(frozen=True)
 class MatchJob:
-    """One matching: which overlaps (index into ``overlaps``), which ignore-code row, the IoU a match must
-    exceed, whether to sum orientation similarity, and whether DontCare rows suppress false positives."""
+    """One matching: which overlap arrays (``overlap``: position in the list the matching is given; the
+    evaluation gives bbox, BEV, 3D, so ``protocol.OVERLAP_INDEX[metric]``), which ignore-code row, the IoU
+    a match must exceed, whether to sum orientation similarity, and whether DontCare rows suppress false
+    positives."""
 
-    metric: int
+    overlap: int
     codes: int
     min_overlap: float
     compute_aos: bool
@@ -730,16 +732,16 @@ class _Prepared:
     def candidates(self, job: MatchJob, k: int) -> Candidates:
         """Job ``k``'s rows that can play a part (see :class:`Candidates`)."""
         if job.dontcare:
-            dc, dc_best = self.dc, self.best[job.metric, -1]
+            dc, dc_best = self.dc, self.best[job.overlap, -1]
         else:
             dc, dc_best = np.zeros_like(self.dc), np.zeros(self.best.shape[2])
         return _candidates(
             self.frames,
-            self.ov3[job.metric],
+            self.ov3[job.overlap],
             self.ig[job.codes],
             self.idet[job.codes],
             dc,
-            self.best[job.metric, self.job_group[k]],
+            self.best[job.overlap, self.job_group[k]],
             dc_best,
             float(job.min_overlap),
         )
@@ -789,7 +791,7 @@ def _prepare(
     if score.shape != (n_dt,) or dt_alpha.shape != (n_dt,):
         raise ValueError(f"Expected detection arrays with shape ({n_dt},)")
     for job in jobs:
-        if not (0 <= job.metric < len(ovs) and 0 <= job.codes < ig.shape[0]):
+        if not (0 <= job.overlap < len(ovs) and 0 <= job.codes < ig.shape[0]):
             raise ValueError(f"{job} refers to overlaps or ignore codes that were not given")
     ov3 = (ovs + [ovs[0]] * 3)[:3]
     # the ground truth taking part depends only on the ignore-code row (per class, not per difficulty)
@@ -802,7 +804,7 @@ def _prepare(
     job_group = [group_of_row[j.codes] for j in jobs]
     groups = np.stack([m for _, m in masks.values()] + [dc]) if n_gt else np.zeros((len(masks) + 1, 0), dtype=np.bool_)
     workers = default_workers() if workers is None else max(1, int(workers))
-    metrics_used = sorted({j.metric for j in jobs})
+    metrics_used = sorted({j.overlap for j in jobs})
     best = np.zeros((3, groups.shape[0], n_dt if metrics_used else 0), dtype=np.float64)
     # jobs differ a lot in cost (by class): deal them out like cards, largest first, one hand per thread
     row_cost = {row: int(np.count_nonzero(idet[row] != -1)) for row in rows}

@@ -31,6 +31,7 @@ __all__ = [
     "Protocol",
     "EvalConfig",
     "OVERLAP_METRICS",
+    "OVERLAP_INDEX",
     "ALL_METRICS",
     "THRESHOLD_SETS",
     "RECALL_MODES",
@@ -75,6 +76,8 @@ class Metric(str, Enum):
 #: Metrics that have their own overlap measure (AOS rides on the 2D matching).
 OVERLAP_METRICS: tuple[Metric, ...] = (Metric.BBOX, Metric.BEV, Metric.THREE_D)
 ALL_METRICS: tuple[Metric, ...] = (Metric.BBOX, Metric.BEV, Metric.THREE_D, Metric.AOS)
+#: Where each overlap metric sits in per-metric triples (thresholds, overlap arrays): bbox 0, BEV 1, 3D 2.
+OVERLAP_INDEX: Mapping[Metric, int] = MappingProxyType({m: i for i, m in enumerate(OVERLAP_METRICS)})
 
 
 class Difficulty(IntEnum):
@@ -459,7 +462,7 @@ class EvalConfig:
     def overlap(self, cls: str, oset: str, metric: Metric) -> float:
         """The IoU a match of class ``cls`` must exceed in ``metric`` (AOS uses the bbox threshold)."""
         m = Metric.BBOX if metric is Metric.AOS else metric
-        return self.overlaps[cls][oset][OVERLAP_METRICS.index(m)]
+        return self.overlaps[cls][oset][OVERLAP_INDEX[m]]
 
 
 def _names(text: str) -> tuple[str, ...]:
