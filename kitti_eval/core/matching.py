@@ -24,16 +24,18 @@ matched once per distinct set of above-threshold detections rather than once per
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 from numba import njit
 
 from .._jit import kernel_input
+
+_T = TypeVar("_T")
 
 __all__ = [
     "PRCounts",
@@ -752,6 +754,15 @@ class _Prepared:
         with ThreadPoolExecutor(max_workers=len(self.hands)) as pool:
             return list(pool.map(fn, items))
 
+    def map_jobs(self, fn: Callable[[int], _T]) -> list[_T]:
+        """``[fn(0), fn(1), ...]`` over the jobs, each thread running one hand in the order it was dealt."""
+        out: list[Any] = [None] * sum(len(hand) for hand in self.hands)
+        results = self.pool_map(lambda hand: [fn(k) for k in hand], self.hands)
+        for hand, values in zip(self.hands, results):
+            for k, value in zip(hand, values):
+                out[k] = value
+        return out
+
 
 def _prepare(
     pair_offsets: npt.ArrayLike,
@@ -864,14 +875,7 @@ def pr_counts_many(
         workers,
     )
 
-    def run(hand: list[int]) -> list[PRCounts]:
-        return [_count(p.candidates(jobs[k], k), jobs[k], n_sample_pts) for k in hand]
-
-    out: list[PRCounts | None] = [None] * len(jobs)
-    for hand, counts in zip(p.hands, p.pool_map(run, p.hands)):
-        for k, c in zip(hand, counts):
-            out[k] = c
-    return out  # type: ignore[return-value]
+    return p.map_jobs(lambda k: _count(p.candidates(jobs[k], k), jobs[k], n_sample_pts))
 
 
 def _count(c: Candidates, job: MatchJob, n_sample_pts: int) -> PRCounts:
@@ -953,8 +957,4 @@ def frame_events_many(
             c.valid, tp_s[order_tp], tp_f[order_tp], ev_s[order_ev], ev_f[order_ev], ev_d[order_ev], job.compute_aos
         )
 
-    order = [k for hand in p.hands for k in hand] if jobs else []
-    out: list[FrameEvents | None] = [None] * len(jobs)
-    for k, events in zip(order, p.pool_map(run, order)):
-        out[k] = events
-    return out  # type: ignore[return-value]
+    return p.map_jobs(run)
