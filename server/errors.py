@@ -138,7 +138,15 @@ def error_response(
     return JSONResponse(error_body(code, message, **details), status_code=status, headers=dict(headers or {}))
 
 
+#: statuses whose HTTP phrase is not the code the service's own error of that status uses
+_SERVICE_CODES = {PayloadTooLarge.status_code: PayloadTooLarge.code}
+
+
 def _status_code_name(status: int) -> str:
+    """The code of an HTTPException's status: the service's own where it has one (so a 413 is
+    ``payload_too_large`` whether the middleware or a route refuses the body), else the HTTP phrase."""
+    if status in _SERVICE_CODES:
+        return _SERVICE_CODES[status]
     try:
         return HTTPStatus(status).phrase.lower().replace(" ", "_").replace("-", "_")
     except ValueError:
