@@ -892,3 +892,27 @@ def test_a_pickle_of_millions_of_tiny_objects_is_refused_before_they_are_built(f
     assert not isinstance(err.value, UnsafePickleError)
     assert safe_pickle._budget(len(data)) < 96 << 20
     loads(b"\x80\x04" + flood * 1000 + b".")  # a thousand are fine
+
+
+def test_only_tuple_keys_count_against_the_hashing_budget(monkeypatch: pytest.MonkeyPatch, scan_mode: str) -> None:
+    """Hashing a str or int key is cheap (and cached for str); only tuple keys, whose hash walks every element,
+    count. A set of 300k frames of 15 keys each hashes 4.5M plain keys and must load."""
+    monkeypatch.setattr(safe_pickle, "_KEY_BUDGET", 100)
+    frames = [{"frame_id": f"{i:06d}", "score": 0.5, "name": "Car"} for i in range(200)]  # 600 str keys
+    assert loads(pickle.dumps(frames, protocol=4)) == frames
+    keys = {(i, i + 1, i + 2): None for i in range(40)}  # 120 tuple elements hashed
+    with pytest.raises(InputError, match="too many elements to hash"):
+        loads(pickle.dumps(keys, protocol=4))
+    assert loads(pickle.dumps(dict(list(keys.items())[:30]), protocol=4)) == dict(list(keys.items())[:30])
+
+
+def test_items_put_into_containers_count_against_the_budget() -> None:
+    """A dict entry takes 30-50 bytes in CPython however short its pickle (a memoized key and True: 3 bytes).
+    Frames of ten such entries: 330 KB of pickle that builds 7.5 MB, within the budget (32 MiB + 8x); a
+    million empty frames with an id each (56 MB of pickle, 700 MB built) is refused before it is built."""
+    frame = {f"k{j}": True for j in range(10)}
+    small = pickle.dumps([dict(frame) for _ in range(10_000)], protocol=4)
+    assert len(loads(small)) == 10_000  # type: ignore[arg-type]
+    big = pickle.dumps([dict(frame) for _ in range(400_000)], protocol=4)  # 13 MB, ~140 MB of dicts
+    with pytest.raises(InputError, match="far more array data or objects"):
+        loads(big)

@@ -20,10 +20,12 @@ every container operation the C unpickler would perform is an allowed one:
   is already inside another one (so there are no cycles and depths are final when computed); dict keys
   and set members hashable;
 * nesting at most ``max_depth`` deep (CPython's tuple hash recurses in C without a guard) and at most
-  ``key_budget`` tuple elements hashed in all (a shared-child tuple DAG would hash for ever);
+  ``key_budget`` elements of tuple keys hashed in all (a shared-child tuple DAG would hash for ever; str
+  and number keys are cheap and do not count);
 * what the C unpickler will hold -- array bytes (counted at every BUILD, call and encode, shared inputs
-  each time), 32 bytes an object, 8 a stack slot -- within ``budget`` (a small pickle cannot make a huge
-  array, nor millions of empty containers); memo indices within the number of memo writes + 1024
+  each time), 32 bytes an object, 24 an item put into a container, 8 a stack slot -- within ``budget`` (a
+  small pickle cannot make a huge array, nor millions of empty containers or dict entries); memo indices
+  within the number of memo writes + 1024
   (``_pickle.c`` sizes its memo array by the largest index);
 * no NEWOBJ(_EX), INST, OBJ, EXT1/2/4, (BIN)PERSID, NEXT_BUFFER, READONLY_BUFFER.
 
@@ -175,6 +177,7 @@ _NONE, _TRUE, _FALSE, _FLOAT, _BIGINT, _INT0 = 0, 1, 2, 3, 4, 5  # shared nodes;
 _FIRST = _INT0 + 256
 _SAT = 1 << 62
 _OBJECT_BYTES = 32  # what the budget charges for each object the C unpickler makes (an empty dict is 80)
+_ITEM_BYTES = 24  # ... and for each item put into a container (a dict takes 30-50 bytes an entry, a list 8 an item)
 _MAX_DIMS = 64
 
 
@@ -501,11 +504,12 @@ def _build(data, nodes, ch, dtab, target, state):
 
 @njit(cache=True, nogil=True, inline="always")
 def _hash_cost(nodes, k):
-    """Elements hashed when node k is a dict key or set member; -1 if it cannot be hashed."""
+    """Tuple elements hashed when node k is a dict key or set member (0 for the other hashable kinds: their
+    hash is cheap, or cached for str); -1 if it cannot be hashed."""
     w = nodes[k, W]
     if not (1 << (w & KIND_MASK)) & _HASHABLE or w & F_UNHASHABLE:
         return -1
-    return nodes[k, V] if w & KIND_MASK == K_TUPLE else 1
+    return nodes[k, V] if w & KIND_MASK == K_TUPLE else 0
 
 
 @njit(cache=True, nogil=True)
@@ -843,6 +847,7 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                 if (1 << (kw & KIND_MASK)) & _MUTABLE:
                     nodes[k, W] |= F_PLACED
             b = sp - first
+            spent += _ITEM_BYTES * b
             sp = first
             if target >= 0:
                 nodes[target, W], nodes[target, V] = w, v
