@@ -21,8 +21,9 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import InputError
+from .protocol import DONTCARE, SIZE_NOT_GIVEN
 
-__all__ = ["Annotations", "normalize_frame_id", "dimension_order_warnings"]
+__all__ = ["Annotations", "normalize_frame_id", "dimension_order_warnings", "check_sizes"]
 
 Kind = Literal["ground_truth", "detections"]
 
@@ -47,6 +48,48 @@ IMAGE_FIELDS: Mapping[Kind, Mapping[str, float]] = {
     "ground_truth": {"bbox": 0.0, "alpha": -10.0, "truncated": 0.0, "occluded": 0.0},
     "detections": {"bbox": 0.0, "alpha": -10.0},
 }
+
+
+def check_sizes(
+    kind: Kind,
+    names: npt.NDArray[np.str_],
+    dimensions: npt.NDArray[np.float64],
+    offsets: np.ndarray,
+    ids: Sequence[str],
+    source: str,
+) -> None:
+    """The size rule: a box has a volume, or says that its size is not given.
+
+    Every box but a DontCare region (any case) needs l, h and w > 0: a box without volume overlaps nothing, so it
+    would silently count as missed (ground truth) or as a false positive (detections). Detections may instead
+    write :data:`~kitti_eval.core.protocol.SIZE_NOT_GIVEN` (-1), as KITTI result files do for BEV-only (h) and
+    2D-only (l, h and w) submissions; the devkit then does not score them in 3D (BEV) (see
+    :func:`kitti_eval.core.evaluation.scored_metrics`). Zero or any other negative size is refused, naming the
+    frame, the box and its class.
+    """
+    ok = dimensions > 0
+    if kind == "detections":
+        ok |= dimensions == SIZE_NOT_GIVEN
+    rows = np.flatnonzero(~ok.all(axis=1))
+    if not len(rows):
+        return
+    rows = rows[np.char.lower(names[rows]) != DONTCARE.lower()]
+    if not len(rows):
+        return
+    row = int(rows[0])
+    frame = int(np.searchsorted(offsets, row, side="right")) - 1
+    rule = (
+        "l, h and w must be > 0 for every ground-truth box but DontCare"
+        if kind == "ground_truth"
+        else "each of l, h and w must be > 0, or -1 for 'not given' (BEV-only or 2D-only results)"
+    )
+    raise InputError(
+        f"box {row - int(offsets[frame])} ({names[row]}) has dimensions (l, h, w) = "
+        f"{tuple(float(v) for v in dimensions[row])}; {rule}",
+        source=source,
+        frame=ids[frame],
+        field="dimensions",
+    )
 
 
 def normalize_frame_id(value: object) -> str:
@@ -271,6 +314,7 @@ class Annotations:
                     field=f,
                 )
             joined[f] = arr
+        check_sizes(kind, joined["name"], joined["dimensions"], offsets, ids, source)
         kept = None
         if keep_lidar:
             kept = np.concatenate(lidar, dtype=np.float64) if lidar else np.zeros((0, 7), dtype=np.float64)

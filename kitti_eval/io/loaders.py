@@ -198,7 +198,7 @@ def annotations_from_object(
         fmt = detect_format(obj, kind, source=source)
     else:
         _check_layout(obj, fmt, source)
-    frames = PICKLE_FORMATS[fmt](obj, kind, source)
+    frames = PICKLE_FORMATS[fmt](obj, kind, source, warnings if warnings is not None else [])
     if kind == "detections":
         frames = _camera_fields(frames, calibs, source, warnings)
     return Annotations.from_frames(kind, source, frames, keep_lidar=keep_lidar and kind == "detections")
@@ -472,7 +472,9 @@ def _frame_id(value: object, what: str, source: str, frame: str) -> object:
     return value
 
 
-def _entry_frame_id(entry: Mapping[str, Any], i: int, source: str) -> object:
+def _entry_frame_id(entry: Mapping[str, Any], i: int, source: str, fallbacks: list[int] | None = None) -> object:
+    """An infos entry's frame id: ``image.image_idx``, else ``point_cloud.lidar_idx`` (the entry's index is then
+    added to ``fallbacks``), else ``frame_id``."""
     for parent, key in (("image", "image_idx"), ("point_cloud", "lidar_idx")):
         sub = entry.get(parent)
         if sub is None:
@@ -485,6 +487,8 @@ def _entry_frame_id(entry: Mapping[str, Any], i: int, source: str) -> object:
                 field=parent,
             )
         if sub.get(key) is not None:
+            if parent == "point_cloud" and fallbacks is not None:
+                fallbacks.append(i)
             return _frame_id(sub[key], f"infos entry #{i}: {parent}.{key}", source, f"#{i}")
     if entry.get("frame_id") is not None:
         return _frame_id(entry["frame_id"], f"infos entry #{i}: frame_id", source, f"#{i}")
@@ -495,9 +499,13 @@ def _entry_frame_id(entry: Mapping[str, Any], i: int, source: str) -> object:
     )
 
 
-def _frames_openpcdet_infos(obj: Any, kind: Kind, source: str) -> Frames:
+def _frames_openpcdet_infos(obj: Any, kind: Kind, source: str, warnings: list[str]) -> Frames:
+    fallbacks: list[int] = []
+    first = None
     for i, info in enumerate(obj):
-        fid = _entry_frame_id(info, i, source)
+        fid = _entry_frame_id(info, i, source, fallbacks)
+        if fallbacks and first is None:
+            first = fid
         if "annos" not in info:
             raise InputError(
                 f"the infos have no labels ('annos' missing in entry #{i}): a test split? "
@@ -514,9 +522,21 @@ def _frames_openpcdet_infos(obj: Any, kind: Kind, source: str) -> Frames:
                 field="annos",
             )
         yield fid, annos
+    if fallbacks:
+        warnings.append(
+            f"{source}: {len(fallbacks)} entries have no image.image_idx; their point_cloud.lidar_idx is used as the "
+            f"frame id (the first: entry #{fallbacks[0]}, frame {_shown_id(first)})"
+        )
 
 
-def _frames_annos_list(obj: Any, kind: Kind, source: str) -> Frames:
+def _shown_id(fid: object) -> str:
+    try:
+        return normalize_frame_id(fid)
+    except (TypeError, ValueError):
+        return str(fid)
+
+
+def _frames_annos_list(obj: Any, kind: Kind, source: str, warnings: list[str]) -> Frames:
     for i, entry in enumerate(obj):
         fid = entry.get("frame_id")
         if fid is None:
@@ -529,7 +549,7 @@ def _frames_annos_list(obj: Any, kind: Kind, source: str) -> Frames:
         yield _frame_id(fid, f"{_KIND_WORD[kind]} entry #{i}: frame_id", source, f"#{i}"), entry
 
 
-def _frames_annos_by_frame(obj: Any, kind: Kind, source: str) -> Frames:
+def _frames_annos_by_frame(obj: Any, kind: Kind, source: str, warnings: list[str]) -> Frames:
     for pos, (key, value) in enumerate(obj.items()):
         key = _frame_id(key, f"key #{pos} of the dict", source, f"#{pos}")
         if kind == "ground_truth" and isinstance(value, Mapping) and "annos" in value and "name" not in value:
@@ -538,7 +558,7 @@ def _frames_annos_by_frame(obj: Any, kind: Kind, source: str) -> Frames:
 
 
 #: pickle layout name -> generator of (frame id, fields) for :meth:`Annotations.from_frames`
-PICKLE_FORMATS: dict[str, Callable[[Any, Kind, str], Frames]] = {
+PICKLE_FORMATS: dict[str, Callable[[Any, Kind, str, list[str]], Frames]] = {
     "openpcdet_infos": _frames_openpcdet_infos,
     "annos_list": _frames_annos_list,
     "annos_by_frame": _frames_annos_by_frame,
@@ -548,7 +568,7 @@ PICKLE_FORMATS: dict[str, Callable[[Any, Kind, str], Frames]] = {
 # ------------------------------------------------------------------------------------ mmdetection3d 1.x
 
 
-def _frames_mmdet3d_infos(obj: Any, kind: Kind, source: str) -> Frames:
+def _frames_mmdet3d_infos(obj: Any, kind: Kind, source: str, warnings: list[str]) -> Frames:
     meta = obj.get("metainfo")
     data_list = obj.get("data_list")
     if not isinstance(meta, Mapping) or not isinstance(data_list, (list, tuple)):
@@ -583,10 +603,7 @@ def _frames_mmdet3d_infos(obj: Any, kind: Kind, source: str) -> Frames:
                 f"data_list entry #{i} has no sample_idx", source=source, frame=f"#{i}", field="sample_idx"
             )
         fid = _frame_id(entry["sample_idx"], f"data_list entry #{i}: sample_idx", source, f"#{i}")
-        try:
-            shown = normalize_frame_id(fid)
-        except (TypeError, ValueError):
-            shown = str(fid)
+        shown = _shown_id(fid)
         instances = entry.get("instances")
         if instances is None:
             raise InputError(
@@ -647,7 +664,7 @@ def _mmdet3d_instances(
     return fields
 
 
-def _frames_mmdet3d_results(obj: Any, kind: Kind, source: str) -> Frames:
+def _frames_mmdet3d_results(obj: Any, kind: Kind, source: str, warnings: list[str]) -> Frames:
     for i, entry in enumerate(obj):
         raw = entry.get("sample_idx")
         if isinstance(raw, (list, tuple)):
@@ -773,6 +790,19 @@ def calibs_from_object(obj: object) -> Mapping[str, Any]:
 _CHECK_EVERY = 10
 
 
+def _numeric_boxes(lidar: Any, location: Any, rotation_y: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(location, rotation_y, boxes_lidar) as float64 when they are numbers of the shapes (N, 3), (N,) and
+    (N, 7) with N > 0; None otherwise (from_frames then names what is wrong)."""
+    arrays = [np.asarray(v) for v in (location, rotation_y, lidar)]
+    if any(a.dtype.kind not in "iuf" for a in arrays):
+        return None
+    loc, ry, box = arrays
+    n = len(box) if box.ndim else 0
+    if n == 0 or loc.shape != (n, 3) or ry.shape != (n,) or box.shape != (n, 7):
+        return None
+    return loc.astype(np.float64), ry.astype(np.float64), box.astype(np.float64)
+
+
 def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str, warnings: list[str] | None) -> Frames:
     """Detections: LiDAR-only frames converted to camera fields; frames with both checked for agreement."""
     from ..core.frames import normalize_frame_id
@@ -797,12 +827,10 @@ def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str
                 calib = None
         lidar = fields["boxes_lidar"]
         if has_camera:
-            if calib is not None and np.size(lidar) and np.shape(lidar)[-1:] == (7,):
-                box = np.asarray(lidar, dtype=np.float64).reshape(-1, 7)
-                loc = np.asarray(fields["location"], dtype=np.float64).reshape(-1, 3)
-                ry = np.asarray(fields["rotation_y"], dtype=np.float64).reshape(-1)
-                if len(loc) == len(box) == len(ry):
-                    both.append((loc, ry, box, calib.velo_to_rect))
+            if calib is not None:
+                sample = _numeric_boxes(lidar, fields["location"], fields["rotation_y"])
+                if sample is not None:
+                    both.append((*sample, calib.velo_to_rect))
             yield fid, fields
             continue
         if any(k in fields for k in _CAMERA_FIELDS):
@@ -955,13 +983,14 @@ def load_ground_truth_and_calibs(
     *,
     fmt: str | None = None,
     max_bytes: int | None = None,
+    warnings: list[str] | None = None,
 ) -> tuple[Annotations, Mapping[str, Any]]:
     """Ground truth and, from an infos pickle, its calibration per frame (read once; empty for txt)."""
     _check_fmt(fmt)
     gp = Path(gt_path)
     if _is_pickle_file(gp, fmt):
         obj = load_pickle(gp, source=str(gt_path), max_bytes=max_bytes)
-        gt = annotations_from_object(obj, "ground_truth", source=str(gt_path), fmt=fmt)
+        gt = annotations_from_object(obj, "ground_truth", source=str(gt_path), fmt=fmt, warnings=warnings)
         return gt, calibs_from_object(obj)
     return load_ground_truth(gt_path, fmt=fmt, max_bytes=max_bytes), {}
 
@@ -986,7 +1015,7 @@ def load_pair(
         # the predictions are read and checked in a helper thread while the ground truth is converted
         objects = load_pickles([gt_path, pred_path], sources=[str(gt_path), str(pred_path)], max_bytes=max_bytes)
         gt_obj = next(objects)
-        gt = annotations_from_object(gt_obj, "ground_truth", source=str(gt_path), fmt=gt_format)
+        gt = annotations_from_object(gt_obj, "ground_truth", source=str(gt_path), fmt=gt_format, warnings=warnings)
         calibs = calibs_from_object(gt_obj)
         del gt_obj
         dt = annotations_from_object(
@@ -999,7 +1028,7 @@ def load_pair(
             keep_lidar=keep_lidar,
         )
     else:
-        gt, calibs = load_ground_truth_and_calibs(gt_path, fmt=gt_format, max_bytes=max_bytes)
+        gt, calibs = load_ground_truth_and_calibs(gt_path, fmt=gt_format, max_bytes=max_bytes, warnings=warnings)
         dt = load_detections(
             pred_path, fmt=pred_format, calibs=calibs, warnings=warnings, max_bytes=max_bytes, keep_lidar=keep_lidar
         )
