@@ -114,3 +114,51 @@ def test_load_pair_reports_the_lidar_idx_fallback(tmp_path: Path) -> None:
         f"{tmp_path / 'infos.pkl'}: 1 entries have no image.image_idx; their point_cloud.lidar_idx is used as the "
         "frame id (the first: entry #1, frame 000001)"
     ]
+
+
+# ------------------------------------------------------------------------------------------- archives
+
+
+def _tar_gz(path: Path, members: dict[str, bytes]) -> Path:
+    import io
+    import tarfile
+
+    with tarfile.open(path, "w:gz") as tf:
+        for name, data in members.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tf.addfile(info, io.BytesIO(data))
+    return path
+
+
+def _written(folder: Path) -> int:
+    return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+
+
+def test_a_tar_member_is_charged_its_declared_size_before_it_is_written(tmp_path: Path) -> None:
+    from kitti_eval.io.archives import ArchiveLimits, extract_txt_folder
+
+    bomb = _tar_gz(tmp_path / "pred.tar.gz", {"pred/000000.txt": b"0" * (3 << 20)})  # 3 MB of zeros, 3 KB packed
+    dest = tmp_path / "out"
+    with open(bomb, "rb") as fh, pytest.raises(InputError, match="unpacks to more than 1 MB"):
+        extract_txt_folder(fh, "tar", dest, ArchiveLimits(max_unpacked_bytes=1 << 20), "pred.tar.gz")
+    assert not dest.exists() or _written(dest) == 0
+    ok = _tar_gz(tmp_path / "ok.tar.gz", {"pred/000000.txt": b"x" * 600_000, "pred/000001.txt": b"y" * 400_000})
+    with open(ok, "rb") as fh:  # exactly what is declared fits: 1,000,000 bytes of a 1 MiB cap, counted once
+        folder, _ = extract_txt_folder(fh, "tar", tmp_path / "ok", ArchiveLimits(max_unpacked_bytes=1 << 20), "ok")
+    assert _written(folder) == 1_000_000
+
+
+def test_a_txt_file_larger_than_any_kitti_frame_is_refused_unread(tmp_path: Path) -> None:
+    from kitti_eval.io.archives import MAX_TXT_FILE_BYTES, ArchiveLimits, extract_txt_folder
+
+    big = b"Car 0 0 0 0 0 1 1 1 1 1 1 1 1 1 0.5\n" * (MAX_TXT_FILE_BYTES // 36 + 1)
+    folder = tmp_path / "pred"
+    folder.mkdir()
+    (folder / "000000.txt").write_bytes(big)
+    with pytest.raises(InputError, match=r"larger than 16 MB; a KITTI txt file holds one frame") as err:
+        load_detections(folder)
+    assert err.value.frame == "000000"
+    archive = _tar_gz(tmp_path / "pred.tar.gz", {"pred/000000.txt": big})
+    with open(archive, "rb") as fh, pytest.raises(InputError, match=r"larger than 16 MB; a KITTI txt file"):
+        extract_txt_folder(fh, "tar", tmp_path / "out", ArchiveLimits(), "pred.tar.gz")

@@ -29,7 +29,16 @@ from typing import IO, Literal
 
 from ..errors import InputError, UnknownFormatError
 
-__all__ = ["ArchiveLimits", "ArchiveKind", "InputKind", "sniff_archive", "sniff_input", "extract_txt_folder"]
+__all__ = [
+    "ArchiveLimits",
+    "ArchiveKind",
+    "InputKind",
+    "MAX_TXT_FILE_BYTES",
+    "sniff_archive",
+    "sniff_input",
+    "extract_txt_folder",
+    "too_large_txt",
+]
 
 ArchiveKind = Literal["zip", "tar"]
 InputKind = Literal["pickle", "zip", "tar"]
@@ -40,6 +49,9 @@ _ZIP_MAGICS = (b"PK\x03\x04", b"PK\x05\x06")
 _BZ2_MAGIC = b"BZh"
 _XZ_MAGIC = b"\xfd7zXZ\x00"
 _MAX_NAME = 1024
+#: the most one KITTI txt file (one frame) may hold, in an archive or a folder: a frame of 10,000 boxes is
+#: about 1 MB; the parser holds a file's tokens in memory at once
+MAX_TXT_FILE_BYTES = 16 << 20
 _DRIVE = re.compile(r"^[A-Za-z]:")
 #: when txt files sit in several folders, the first of these names that exactly one of them has wins
 _PREFERRED_FOLDERS = ("label_2", "data")
@@ -167,6 +179,14 @@ class _Budget:
             raise InputError(self.limits._bytes_message("zip"), source=self.source)
 
 
+def too_large_txt(name: str, source: str) -> InputError:
+    return InputError(
+        f"{name} is larger than {MAX_TXT_FILE_BYTES >> 20} MB; a KITTI txt file holds one frame (a few KB)",
+        source=source,
+        frame=PurePosixPath(name).stem,
+    )
+
+
 def _member_name(raw: str, source: str) -> str:
     """The member's path, normalised to 'a/b/c', or InputError for anything that could escape."""
     if len(raw) > _MAX_NAME:
@@ -204,7 +224,9 @@ class _Writer:
         if PurePosixPath(name).name == "data.pkl":
             self.torch_like = True
 
-    def write(self, name: str, read: Callable[[int], bytes]) -> None:
+    def write(self, name: str, read: Callable[[int], bytes], *, charged: bool = False) -> None:
+        """Write one member; its bytes are charged to the budget as they come unless ``charged`` (the
+        caller charged its exact size already)."""
         parent = str(PurePosixPath(name).parent)
         base = PurePosixPath(name).name
         folder = self.folders.get(parent)
@@ -215,9 +237,14 @@ class _Writer:
         if str(target) in self.names:
             raise InputError(f"member {name!r} is listed twice", source=self.source)
         self.names[str(target)] = name
+        size = 0
         with open(target, "xb") as out:
             while chunk := read(_CHUNK):
-                self.budget.spend(len(chunk))
+                size += len(chunk)
+                if size > MAX_TXT_FILE_BYTES:
+                    raise too_large_txt(name, self.source)
+                if not charged:
+                    self.budget.spend(len(chunk))
                 out.write(chunk)
 
     def folder(self) -> Path:
@@ -300,6 +327,8 @@ def _zip_members(file: IO[bytes], writer: _Writer, budget: _Budget, source: str)
                 raise InputError(f"member {info.filename!r} is encrypted", source=source)
             budget.spend(info.file_size)  # what the headers claim, all of it, before writing anything
             if _wanted(name):
+                if info.file_size > MAX_TXT_FILE_BYTES:
+                    raise too_large_txt(name, source)
                 wanted.append((name, info))
         budget.bytes_left = budget.limits.max_unpacked_bytes  # now count what is really written
         for name, info in wanted:
@@ -372,13 +401,15 @@ def _tar_members(file: IO[bytes], writer: _Writer, budget: _Budget, source: str,
                     raise InputError(f"member {member.name!r} has a negative size", source=source)
                 if member.issparse() or not member.isreg():
                     raise InputError(f"member {member.name!r} is not a regular file", source=source)
+                budget.spend(member.size)  # a tar member holds exactly its header's size: charged before reading
                 if not name or not _wanted(name):
-                    budget.spend(member.size)
                     continue
+                if member.size > MAX_TXT_FILE_BYTES:
+                    raise too_large_txt(name, source)
                 src = tf.extractfile(member)
                 if src is None:  # pragma: no cover - isreg() members always have data
                     continue
-                writer.write(name, src.read)
+                writer.write(name, src.read, charged=True)
     except InputError:
         raise
     except (tarfile.TarError, OSError, EOFError, zlib.error, lzma.LZMAError, ValueError) as e:

@@ -47,7 +47,15 @@ import numpy as np
 
 from ..core.frames import Annotations, Kind, normalize_frame_id
 from ..errors import InputError
-from .archives import ArchiveLimits, InputKind, extract_txt_folder, sniff_archive, sniff_input
+from .archives import (
+    MAX_TXT_FILE_BYTES,
+    ArchiveLimits,
+    InputKind,
+    extract_txt_folder,
+    sniff_archive,
+    sniff_input,
+    too_large_txt,
+)
 from .safe_pickle import load_pickle, load_pickles
 
 __all__ = [
@@ -274,7 +282,11 @@ def load_kitti_txt_dir(directory: PathLike, kind: Kind) -> Annotations:
 def _read_text(path: Path) -> str:
     try:
         with open(path, "rb") as fh:
-            raw = fh.read()
+            if os.fstat(fh.fileno()).st_size > MAX_TXT_FILE_BYTES:
+                raise too_large_txt(path.name, str(path))
+            raw = fh.read(MAX_TXT_FILE_BYTES + 1)
+            if len(raw) > MAX_TXT_FILE_BYTES:  # a file that grew, or a pipe
+                raise too_large_txt(path.name, str(path))
     except OSError as e:
         raise InputError(f"cannot read: {e.strerror or e}", source=str(path), frame=path.stem) from None
     try:
