@@ -10,7 +10,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from kitti_eval.report.render import OutputFormat
 
-from .errors import BadRequest, Forbidden, Unauthorized
+from .errors import BadRequest, Forbidden, Unauthorized, echo
 from .service import Service
 
 __all__ = ["get_service", "ServiceDep", "require_admin", "AdminDep", "negotiate_format", "FormatDep"]
@@ -79,7 +79,7 @@ def negotiate_format(
         try:
             return OutputFormat(format)
         except ValueError:
-            raise BadRequest(f"format must be one of json, table, markdown; got {format!r}") from None
+            raise BadRequest(f"format must be one of json, table, markdown; got {echo(format)}") from None
     return _from_accept(request.headers.get("accept", ""))
 
 

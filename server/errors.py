@@ -31,6 +31,10 @@ __all__ = [
     "ArchiveError",
     "BadRequest",
     "library_error_status",
+    "MAX_MESSAGE_CHARS",
+    "MAX_ECHO_CHARS",
+    "clip",
+    "echo",
     "error_body",
     "error_response",
     "install_error_handlers",
@@ -126,9 +130,31 @@ def library_error_status(exc: KittiEvalError) -> tuple[int, str]:
     return next((s, c) for cls, s, c in _LIBRARY_ERRORS if isinstance(exc, cls))
 
 
+#: longest message an error body carries: messages quote client input, which may be of any length
+MAX_MESSAGE_CHARS = 1000
+#: longest client value a message quotes in full (and the longest ``frame``/``field`` detail)
+MAX_ECHO_CHARS = 100
+
+
+def clip(text: str, limit: int = MAX_MESSAGE_CHARS) -> str:
+    """``text``, or its first ``limit`` characters, an ellipsis and how long it was."""
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}… ({len(text)} characters in all)"
+
+
+def echo(value: object, limit: int = MAX_ECHO_CHARS) -> str:
+    """A client's value quoted in a message (as ``repr``), its first ``limit`` characters only when longer."""
+    text = value if isinstance(value, str) else str(value)
+    if len(text) <= limit:
+        return repr(text)
+    return f"{text[:limit]!r}… ({len(text)} characters)"
+
+
 def error_body(code: str, message: str, **details: Any) -> dict[str, Any]:
-    err: dict[str, Any] = {"code": code, "message": message}
-    err.update({k: v for k, v in details.items() if v is not None})
+    """The error shape; the message and string details are cut to a bounded length whatever they quote."""
+    err: dict[str, Any] = {"code": code, "message": clip(message)}
+    err.update({k: clip(v, MAX_ECHO_CHARS) if isinstance(v, str) else v for k, v in details.items() if v is not None})
     return {"error": err}
 
 

@@ -18,7 +18,7 @@ from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
 from kitti_eval.report.render import render_json
 
-from .errors import BadRequest
+from .errors import BadRequest, echo
 
 __all__ = ["EvalOptions", "evaluate_document", "summarize", "parse_labels", "LABEL_KEY_PATTERN"]
 
@@ -90,16 +90,18 @@ def parse_labels(fixed: Mapping[str, str | None], extra: Sequence[str]) -> dict[
     for item in extra:
         key, sep, value = item.partition("=")
         if not sep:
-            raise BadRequest(f"label {item!r}: expected key=value")
+            raise BadRequest(f"label {echo(item)}: expected key=value")
         key = key.strip()
         if key in labels:
-            raise BadRequest(f"label {key!r} is given twice")
+            raise BadRequest(f"label {echo(key)} is given twice")
         labels[key] = value
     if len(labels) > _MAX_LABELS:
         raise BadRequest(f"at most {_MAX_LABELS} labels")
     for key, value in labels.items():
         if not _LABEL_KEY.fullmatch(key):
-            raise BadRequest(f"label key {key!r}: 1-64 letters, digits, '_', '.' or '-'")
+            raise BadRequest(f"label key {echo(key)}: 1-64 letters, digits, '_', '.' or '-'")
         if len(value) > _MAX_LABEL_VALUE or not value.isprintable():
-            raise BadRequest(f"label {key!r}: the value must be printable and at most {_MAX_LABEL_VALUE} characters")
+            raise BadRequest(
+                f"label {echo(key)}: the value must be printable and at most {_MAX_LABEL_VALUE} characters"
+            )
     return labels

@@ -26,7 +26,7 @@ from kitti_eval.core.frames import Annotations
 from kitti_eval.errors import KittiEvalError
 from kitti_eval.io.loaders import load_ground_truth
 
-from .errors import ApiError, BadRequest, Conflict, NotFound
+from .errors import ApiError, BadRequest, Conflict, NotFound, echo
 from .store import GroundTruthRecord, Store, new_id
 from .uploads import InputFormat, Limits, Upload, extract_txt_folder, load_upload, receive_upload
 
@@ -129,7 +129,7 @@ class GroundTruths:
     def check_name(name: str) -> str:
         if not _NAME.fullmatch(name):
             raise BadRequest(
-                f"ground-truth name {name!r} is not valid: 1-64 letters, digits, '.', '_' or '-', "
+                f"ground-truth name {echo(name)} is not valid: 1-64 letters, digits, '.', '_' or '-', "
                 "starting with a letter or digit"
             )
         return name
@@ -207,7 +207,7 @@ class GroundTruths:
     def record(self, name: str) -> GroundTruthRecord:
         record = self.store.get_ground_truth(name)
         if record is None:
-            raise NotFound(f"no ground truth named {name!r}; GET /v1/ground-truths lists them")
+            raise NotFound(f"no ground truth named {echo(name)}; GET /v1/ground-truths lists them")
         return record
 
     def load(self, record: GroundTruthRecord) -> Annotations:
@@ -229,7 +229,7 @@ class GroundTruths:
     def delete(self, name: str) -> GroundTruthRecord:
         record, shared = self.store.delete_ground_truth(name)
         if record is None:
-            raise NotFound(f"no ground truth named {name!r}")
+            raise NotFound(f"no ground truth named {echo(name)}")
         if not shared:
             self.cache.evict(record.sha256)
             path = self.root.parent / record.storage

@@ -31,7 +31,10 @@ APValues = dict[str, dict[str, dict[str, dict[str, dict[str, float | None]]]]]
 
 class ErrorBody(BaseModel):
     code: str = Field(description="machine-readable, e.g. invalid_input, unsafe_pickle, payload_too_large, busy")
-    message: str = Field(description="what went wrong, naming the file, frame and field where known")
+    message: str = Field(
+        description="what went wrong, naming the file, frame and field where known; at most 1000 characters "
+        "(a longer one is cut and says how long it was)"
+    )
     frame: str | None = Field(None, description="the frame at fault, for input errors")
     field: str | None = Field(None, description="the field at fault, for input errors")
 

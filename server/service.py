@@ -31,7 +31,7 @@ from kitti_eval.core.frames import Annotations, normalize_frame_id
 from kitti_eval.core.protocol import EvalConfig
 from kitti_eval.io.synth import demo_paths
 
-from .errors import BadRequest, Conflict, NotFound
+from .errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, clip, echo
 from .evaluator import EvalOptions, evaluate_document, summarize
 from .ground_truths import GroundTruthCache, GroundTruths
 from .settings import Settings
@@ -236,7 +236,7 @@ class Service:
     def evaluation(self, evaluation_id: str) -> EvaluationRecord:
         record = self.store.get_evaluation(evaluation_id)
         if record is None:
-            raise NotFound(f"no evaluation with id {evaluation_id!r}")
+            raise NotFound(f"no evaluation with id {echo(evaluation_id)}")
         return record
 
     # -- frames ------------------------------------------------------------------------------------------
@@ -324,11 +324,11 @@ class Service:
         try:
             fid = normalize_frame_id(frame_id)
         except (TypeError, ValueError) as e:
-            raise BadRequest(f"bad frame id {frame_id!r}: {e}") from None
+            raise BadRequest(f"bad frame id {echo(frame_id)}: {e}") from None
         inputs = [self._kept_inputs(r) for r in records]
         gt, _, config = inputs[0]
         if fid not in gt.frame_index():
-            raise NotFound(f"no frame {fid} in the ground truth {records[0].gt_name!r}")
+            raise NotFound(f"no frame {clip(fid, MAX_ECHO_CHARS)} in the ground truth {records[0].gt_name!r}")
         names = unique_names([r.labels.get("model") or model_name(r.pred_filename) for r in records])
         report = inspect_frame(
             gt,

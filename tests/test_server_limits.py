@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 
 import pytest
@@ -67,3 +68,86 @@ def test_a_json_body_over_the_cap_is_the_same_413(client) -> None:
     for content in (body, chunked(body)):
         response = client.post("/v1/gates", content=content, headers={"content-type": "application/json"})
         assert assert_error(response, 413, "upload limit")["code"] == "payload_too_large"
+
+
+# ------------------------------------------------------------------------------------------ echoed input
+
+HUGE = "A" * 60_000
+
+
+def assert_short_error(response, status: int | tuple[int, ...], length: str = "(60000 characters)") -> dict:
+    """A 4xx JSON error that quotes the client's 60 kB value only in part, and says how long it was (the value
+    quoted by the service, or the whole message when the library quoted it)."""
+    err = assert_error(response, status)
+    assert len(response.content) < 2000, (len(response.content), response.text[:300])
+    assert "AAAA" in err["message"] and "…" in err["message"], err["message"][:300]
+    assert length in err["message"], err["message"][-300:]
+    return err
+
+
+@pytest.mark.parametrize("field", ["classes", "threshold_sets", "ranges", "iou"])
+def test_a_huge_evaluation_option_is_quoted_in_part(client, field) -> None:
+    # the library quotes the bad value (twice, for a class name): the error body cuts the message
+    response = upload(client, golden_bytes("result.pkl"), fields={field: HUGE})
+    err = assert_short_error(response, 422, "characters in all)")
+    assert len(err["message"]) < 1100
+
+
+@pytest.mark.parametrize(
+    "request_args",
+    [
+        ("POST", "/v1/evaluations", {"label": HUGE}),  # a label without '='
+        ("POST", "/v1/evaluations", {"label": HUGE + "=1"}),  # a key that is not a label key
+        ("GET", "/v1/evaluations", {"label": HUGE}),
+        ("GET", "/v1/evaluations/some-id", {"format": HUGE}),
+        ("GET", f"/v1/evaluations/{HUGE}", {}),
+        ("GET", f"/v1/ground-truths/{HUGE}", {}),
+        ("DELETE", f"/v1/ground-truths/{HUGE}", {}),
+    ],
+    ids=["label-form", "label-key", "label-query", "format", "evaluation-id", "ground-truth", "delete"],
+)
+def test_a_huge_form_path_or_query_value_is_quoted_in_part(client, request_args) -> None:
+    method, path, values = request_args
+    if method == "POST":
+        response = upload(client, golden_bytes("result.pkl"), fields=values)
+    else:
+        response = client.request(method, path, params=values, headers=ADMIN)
+    assert_short_error(response, (404, 422))
+
+
+def test_a_huge_frame_id_is_quoted_in_part(client) -> None:
+    evaluation = upload(client, golden_bytes("result.pkl")).json()["id"]
+    response = client.get(f"/v1/frames/{'9' * 60_000}", params={"evaluation": evaluation})
+    err = assert_error(response, 404)
+    assert len(response.content) < 2000 and "60000 characters in all" in err["message"], response.text[:300]
+    response = client.get(f"/v1/evaluations/{evaluation}/frames", params={"class": HUGE})
+    assert_short_error(response, 422, "characters in all)")
+
+
+@pytest.mark.parametrize(
+    ("method", "path", "field"),
+    [
+        ("POST", "/ui/evaluations", "model"),  # the home page re-fills the form and says what is wrong
+        ("GET", "/evaluations/{id}", "cls"),  # the worst-frames section says why it is empty
+        ("GET", "/frames/000001", "score"),
+        ("GET", "/frames/000001", "cls"),
+        ("GET", "/evaluations/{huge}", None),
+    ],
+)
+def test_web_pages_quote_a_huge_value_in_part(client, method, path, field) -> None:
+    evaluation = upload(client, golden_bytes("result.pkl")).json()["id"]
+    path = path.format(id=evaluation, huge=HUGE)
+
+    def page(value: str):
+        if method == "POST":
+            form = {"gt": "demo", field: value}
+            files = {"predictions": ("result.pkl", golden_bytes("result.pkl"))}
+            return client.post(path, data=form, files=files, follow_redirects=False)
+        return client.get(path, params={"e": evaluation, field: value} if field else {})
+
+    huge = page(HUGE)
+    small = page("B" * 300)  # as wrong, but short
+    assert huge.status_code < 500 and huge.status_code == small.status_code, huge.text[:300]
+    assert huge.headers["content-type"].startswith("text/html")
+    assert len(huge.content) < len(small.content) + 3000, (len(huge.content), len(small.content))
+    assert re.search(r"… \((60000|\d+ characters in all)", huge.text), huge.text[-500:]

@@ -25,7 +25,7 @@ from kitti_eval.errors import KittiEvalError
 
 from ..compare import compare
 from ..deps import ServiceDep
-from ..errors import ApiError, BadRequest, library_error_status
+from ..errors import MAX_ECHO_CHARS, ApiError, BadRequest, clip, echo, library_error_status
 from ..evaluator import EvalOptions, parse_labels
 from ..schemas import iso
 from ..service import FileIn, Service
@@ -93,7 +93,7 @@ def _render(request: Request, template: str, status_code: int = 200, /, **contex
 
 
 def _error_page(request: Request, exc: ApiError | KittiEvalError) -> Response:
-    return _render(request, "error.html", _status(exc), status=_status(exc), message=str(exc))
+    return _render(request, "error.html", _status(exc), status=_status(exc), message=clip(str(exc)))
 
 
 def _url(path: str, **params: Any) -> str:
@@ -167,8 +167,9 @@ async def upload(request: Request, service: ServiceDep) -> Response:
             )
     except (ApiError, KittiEvalError, HTTPException) as e:
         message = e.detail if isinstance(e, HTTPException) else str(e)
+        refill = {k: clip(v) for k, v in values.items()}  # the form as sent, within bounds
         return await anyio.to_thread.run_sync(
-            partial(_home, request, service, status=_status(e), error=str(message), form=values)
+            partial(_home, request, service, status=_status(e), error=clip(str(message)), form=refill)
         )
     return RedirectResponse(f"/evaluations/{quote(record.id)}", status_code=303)
 
@@ -232,7 +233,7 @@ async def _worst_frames(service: Service, record: EvaluationRecord, choice: Mapp
             )
         )
     except (ApiError, KittiEvalError) as e:
-        section["error"] = str(e)
+        section["error"] = clip(str(e))
         return section
     for row in found["frames"]:
         row = dict(row)
@@ -352,7 +353,7 @@ def _parse_score(text: str | None) -> float | None:
     try:
         return float(text)
     except ValueError:
-        raise BadRequest(f"score threshold must be a number, got {text!r}") from None
+        raise BadRequest(f"score threshold must be a number, got {echo(text)}") from None
 
 
 def frame_models(
@@ -390,7 +391,9 @@ async def frame_page(
 ) -> Response:
     """One frame: the ground truth, then each evaluation's detections with their labels, side by side."""
     ids = list(dict.fromkeys(i for i in e or () if i))  # the "add" select may send an empty value
-    choice = {"cls": cls, "metric": metric, "difficulty": difficulty, "set": oset, "score": score or ""}
+    # the choice as the form shows it again (a value of any length is shown in part)
+    choice = {k: clip(v, MAX_ECHO_CHARS) for k, v in (("cls", cls), ("metric", metric), ("difficulty", difficulty))}
+    choice.update(set=clip(oset, MAX_ECHO_CHARS), score=clip(score or "", MAX_ECHO_CHARS))
 
     def url(with_ids: Sequence[str]) -> str:
         return _url(
@@ -406,11 +409,11 @@ async def frame_page(
     listed = await anyio.to_thread.run_sync(partial(service.store.list_evaluations, limit=_HISTORY))
     history = [{"id": r.id, "name": model_name(r), "created_at": r.created_at} for r in listed if r.id not in ids]
     context: dict[str, Any] = {
-        "frame": frame_id,
+        "frame": clip(frame_id, MAX_ECHO_CHARS),
         "ids": ids,
         "choice": choice,
         "history": history,
-        "classes": list(dict.fromkeys((*KNOWN_CLASSES, cls))),
+        "classes": list(dict.fromkeys((*KNOWN_CLASSES, choice["cls"]))),
         "metrics": [m.value for m in ALL_METRICS],
         "difficulties": _DIFFICULTIES,
         "data": None,
@@ -433,7 +436,7 @@ async def frame_page(
             )
         )
     except (ApiError, KittiEvalError) as exc:
-        context["error"] = str(exc)
+        context["error"] = clip(str(exc))
         return _render(request, "frame.html", _status(exc), **context)
     context.update(data=data, models=frame_models(data, ids, url))
     return _render(request, "frame.html", **context)
