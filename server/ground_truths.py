@@ -17,6 +17,7 @@ import shutil
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -27,7 +28,7 @@ from kitti_eval.errors import KittiEvalError
 from kitti_eval.io.loaders import load_ground_truth
 
 from .errors import ApiError, BadRequest, Conflict, NotFound, echo
-from .store import GroundTruthRecord, Store, new_id
+from .store import GroundTruthRecord, Store
 from .uploads import InputFormat, Limits, Upload, extract_txt_folder, load_upload, receive_upload
 
 __all__ = ["GroundTruths", "GroundTruthCache", "NAME_PATTERN", "annotations_nbytes"]
@@ -119,11 +120,19 @@ class GroundTruthCache:
 class GroundTruths:
     """Register, look up, load and delete named ground-truth sets."""
 
-    def __init__(self, store: Store, root: Path, cache: GroundTruthCache, limits: Limits) -> None:
+    def __init__(
+        self,
+        store: Store,
+        root: Path,
+        cache: GroundTruthCache,
+        limits: Limits,
+        scratch: Callable[[], AbstractContextManager[Path]],
+    ) -> None:
         self.store = store
         self.root = root
         self.cache = cache
         self.limits = limits
+        self.scratch = scratch
 
     @staticmethod
     def check_name(name: str) -> str:
@@ -191,9 +200,7 @@ class GroundTruths:
             raise GroundTruthUnavailable(
                 f"ground truth {record.name!r} has no stored file; an admin should register it again"
             )
-        scratch = self.root.parent / "tmp" / new_id()
-        scratch.mkdir(parents=True)
-        try:
+        with self.scratch() as scratch:
             folder = None
             if record.format != str(InputFormat.PICKLE):
                 upload = receive_upload(io.BytesIO(content), record.filename, record.filename)
@@ -201,8 +208,6 @@ class GroundTruths:
                     upload.file, InputFormat(record.format), scratch, self.limits, record.filename
                 )
             return self._keep_local(record, content, folder)
-        finally:
-            shutil.rmtree(scratch, ignore_errors=True)
 
     def record(self, name: str) -> GroundTruthRecord:
         record = self.store.get_ground_truth(name)

@@ -11,11 +11,10 @@ import io
 import logging
 import os
 import secrets
-import shutil
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Mapping, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -34,6 +33,7 @@ from kitti_eval.io.synth import demo_paths
 from .errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, clip, echo
 from .evaluator import EvalOptions, evaluate_document, summarize
 from .ground_truths import GroundTruthCache, GroundTruths
+from .scratch import ScratchSpace
 from .settings import Settings
 from .store import EvaluationRecord, GroundTruthRecord, Store, new_id
 from .uploads import Limits, load_upload, receive_upload
@@ -44,7 +44,6 @@ log = logging.getLogger("kitti_eval.server")
 T = TypeVar("T")
 
 DEMO_NAME = "demo"
-_STALE_SCRATCH_S = 3600
 #: most evaluations one frame view compares
 MAX_INSPECTED = 8
 
@@ -63,11 +62,13 @@ class Service:
         self.data_dir = settings.data_dir.resolve()
         self.store = Store(settings.resolved_database_url)
         self.limits = Limits(max_unpacked_bytes=settings.max_unpacked_bytes, max_members=settings.max_archive_members)
+        self.scratch_space = ScratchSpace(self.data_dir)
         self.ground_truths = GroundTruths(
             self.store,
             self.data_dir / "ground-truths",
             GroundTruthCache(settings.gt_cache_entries, settings.gt_cache_bytes),
             self.limits,
+            self.scratch,
         )
         self.predictions = GroundTruthCache(
             settings.pred_cache_entries, settings.gt_cache_bytes, what="predictions", setting="KITTI_EVAL_GT_CACHE_MB"
@@ -81,8 +82,7 @@ class Service:
     def start(self) -> None:
         """Create folders and tables, register the demo, start the warm-up (called from the lifespan)."""
         self._limiter = anyio.CapacityLimiter(self.settings.max_concurrent_evals)
-        (self.data_dir / "tmp").mkdir(parents=True, exist_ok=True)
-        self._clean_scratch()
+        self.scratch_space.open()  # and removes what processes killed meanwhile left
         self.store.create_schema()
         self.admin_token = self._admin_token()
         if self.settings.register_demo:
@@ -94,16 +94,7 @@ class Service:
 
     def stop(self) -> None:
         self.store.dispose()
-
-    def _clean_scratch(self) -> None:
-        """Remove scratch folders a killed process left (old ones only: another worker may share the folder)."""
-        now = time.time()
-        for entry in (self.data_dir / "tmp").iterdir():
-            try:
-                if now - entry.stat().st_mtime > _STALE_SCRATCH_S:
-                    shutil.rmtree(entry, ignore_errors=True)
-            except OSError:
-                pass
+        self.scratch_space.close()
 
     def _admin_token(self) -> str:
         if self.settings.admin_token is not None:
@@ -163,14 +154,9 @@ class Service:
         """Run blocking work on a worker thread, at most ``max_concurrent_evals`` at once."""
         return await anyio.to_thread.run_sync(func, *args, limiter=self._limiter)
 
-    @contextmanager
-    def scratch(self) -> Iterator[Path]:
-        path = self.data_dir / "tmp" / new_id()
-        path.mkdir(parents=True)
-        try:
-            yield path
-        finally:
-            shutil.rmtree(path, ignore_errors=True)
+    def scratch(self) -> AbstractContextManager[Path]:
+        """A new scratch folder of this process's (:class:`~server.scratch.ScratchSpace`), removed on the way out."""
+        return self.scratch_space.folder()
 
     # -- evaluations ------------------------------------------------------------------------------------
     def evaluate(

@@ -23,7 +23,8 @@ class Settings(BaseSettings):
 
     data_dir: Path = Path("kitti-eval-data")
     """Holds the SQLite database (when ``database_url`` is unset), registered ground truths, the generated
-    admin token and the scratch space of uploads being processed."""
+    admin token, the scratch space of uploads being processed (``tmp/``) and the locks that tell whose
+    scratch folders they are (``run/``: what a killed process left is removed at the next start)."""
 
     database_url: str | None = None
     """SQLAlchemy URL. Unset: ``sqlite:///<data_dir>/kitti-eval.db`` (WAL). ``postgresql://user:pw@host/db``
