@@ -8,9 +8,10 @@ Data goes to stdout (or ``--output``); warnings and progress go to stderr.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,57 @@ def _iou_argument(text: str) -> str:
     return text
 
 
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
+
+
+#: input-limit flag -> the environment variable it sets for this process (the loaders read it)
+_LIMIT_FLAGS = {"max_input_mb": "KITTI_EVAL_MAX_UNPACKED_MB", "max_frames": "KITTI_EVAL_MAX_FRAMES"}
+
+
+def _add_limit_options(p: argparse.ArgumentParser) -> None:
+    limits = p.add_argument_group("input limits (untrusted input is refused past them)")
+    limits.add_argument(
+        "--max-input-mb",
+        type=_positive,
+        metavar="MB",
+        help="largest pickle after decompression, and largest unpacked txt archive "
+        "(default: 512, or $KITTI_EVAL_MAX_UNPACKED_MB)",
+    )
+    limits.add_argument(
+        "--max-frames",
+        type=_positive,
+        metavar="N",
+        help="most frames one input may hold (default: 200000, or $KITTI_EVAL_MAX_FRAMES)",
+    )
+
+
+@contextlib.contextmanager
+def _limits_from(args: argparse.Namespace) -> Iterator[None]:
+    """The limit flags given, as the environment variables every loader reads, for the command's duration."""
+    before = {env: os.environ.get(env) for env in _LIMIT_FLAGS.values()}
+    try:
+        for flag, env in _LIMIT_FLAGS.items():
+            value = getattr(args, flag, None)
+            if value is not None:
+                os.environ[env] = repr(value)
+        yield
+    finally:
+        for env, value in before.items():
+            if value is None:
+                os.environ.pop(env, None)
+            else:
+                os.environ[env] = value
+
+
 def _add_config_options(p: argparse.ArgumentParser) -> None:
+    _add_limit_options(p)
     p.add_argument(
         "--protocol",
         choices=sorted(PROTOCOLS),
@@ -641,6 +692,21 @@ def _run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int
     return EXIT_OK if len(checkpoints) == len(preds) else EXIT_INPUT
 
 
+def _command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    if args.command is not None:
+        return int(args.run(args))
+    if args.gt is None or not args.pred:
+        parser.error("the following arguments are required: --gt, --pred (or a command)")
+    from .analysis.batch import expand_predictions
+
+    preds = expand_predictions(args.pred)
+    if len(preds) == 1 and not args.plot and not (args.plot_dir and len(args.pred) > 1):
+        return _run(args.gt, preds[0], args)
+    if args.gt_format or args.pred_format or args.split:
+        raise ConfigError("--gt-format, --pred-format and --split work with one --pred only")
+    return _run_many(args.gt, preds, args)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
@@ -648,18 +714,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _serve(argv[1:])
         parser = _parser()
         args = parser.parse_args(argv)
-        if args.command is not None:
-            return int(args.run(args))
-        if args.gt is None or not args.pred:
-            parser.error("the following arguments are required: --gt, --pred (or a command)")
-        from .analysis.batch import expand_predictions
-
-        preds = expand_predictions(args.pred)
-        if len(preds) == 1 and not args.plot and not (args.plot_dir and len(args.pred) > 1):
-            return _run(args.gt, preds[0], args)
-        if args.gt_format or args.pred_format or args.split:
-            raise ConfigError("--gt-format, --pred-format and --split work with one --pred only")
-        return _run_many(args.gt, preds, args)
+        with _limits_from(args):
+            return _command(parser, args)
     except SystemExit as e:  # argparse: usage errors exit 2, --help exits 0
         return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
     except ConfigError as e:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import enum
 import hashlib
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
@@ -24,7 +25,7 @@ from kitti_eval.core.frames import Annotations, Kind
 from kitti_eval.errors import InputError, UnsafePickleError
 from kitti_eval.io import archives
 from kitti_eval.io.archives import ArchiveKind, ArchiveLimits, sniff_input
-from kitti_eval.io.loaders import annotations_from_object, load_kitti_txt_dir
+from kitti_eval.io.loaders import annotations_from_object, input_limits, load_kitti_txt_dir
 from kitti_eval.io.safe_pickle import load_pickle
 
 from .errors import ArchiveError
@@ -60,6 +61,12 @@ class Limits:
 
     max_unpacked_bytes: int
     max_members: int
+    #: frames one upload may hold; None: the library's (KITTI_EVAL_MAX_FRAMES, else 200,000)
+    max_frames: int | None = None
+
+    @property
+    def frames(self) -> int:
+        return self.max_frames if self.max_frames is not None else input_limits()[1]
 
     @property
     def archive(self) -> ArchiveLimits:
@@ -153,20 +160,39 @@ def _relabel(e: InputError, names: dict[str, str], source: str) -> InputError:
     return cls(e.message, source=where, frame=e.frame, field=e.field)
 
 
-def load_upload(upload: Upload, kind: Kind, scratch: Path, limits: Limits, *, keep_lidar: bool = False) -> Loaded:
-    """Identify, unpack and load one upload as ground truth or detections (``keep_lidar``: see
-    :func:`kitti_eval.io.loaders.load_detections`).
+def load_upload(
+    upload: Upload,
+    kind: Kind,
+    scratch: Path,
+    limits: Limits,
+    *,
+    keep_lidar: bool = False,
+    known_frames: Collection[str] | None = None,
+) -> Loaded:
+    """Identify, unpack and load one upload as ground truth or detections (``keep_lidar``, ``known_frames``:
+    see :func:`kitti_eval.io.loaders.load_detections`). A pickle of more frames than the limit is refused
+    before it is built.
 
     Raises InputError / UnsafePickleError (from the library), ArchiveError or UnknownFormatError; every
     message names the upload by the client's file name.
     """
     fmt = sniff(upload.file, upload.filename)
     if fmt is InputFormat.PICKLE:
-        obj = load_pickle(upload.file, source=upload.filename, max_bytes=limits.max_unpacked_bytes)
-        return Loaded(fmt, annotations_from_object(obj, kind, source=upload.filename, keep_lidar=keep_lidar), None)
+        obj = load_pickle(
+            upload.file, source=upload.filename, max_bytes=limits.max_unpacked_bytes, max_entries=limits.frames
+        )
+        annotations = annotations_from_object(
+            obj,
+            kind,
+            source=upload.filename,
+            keep_lidar=keep_lidar,
+            max_frames=limits.frames,
+            known_frames=known_frames,
+        )
+        return Loaded(fmt, annotations, None)
     folder, names = extract_txt_folder(upload.file, fmt, scratch, limits, upload.filename)
     try:
-        annotations = load_kitti_txt_dir(folder, kind)
+        annotations = load_kitti_txt_dir(folder, kind, max_frames=limits.frames, known_frames=known_frames)
     except InputError as e:
         raise _relabel(e, names, upload.filename) from None
     return Loaded(fmt, annotations, folder)

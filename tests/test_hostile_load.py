@@ -3,6 +3,7 @@ frame-count claims, byte limits of the CLI, archive members charged before they 
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -162,3 +163,94 @@ def test_a_txt_file_larger_than_any_kitti_frame_is_refused_unread(tmp_path: Path
     archive = _tar_gz(tmp_path / "pred.tar.gz", {"pred/000000.txt": big})
     with open(archive, "rb") as fh, pytest.raises(InputError, match=r"larger than 16 MB; a KITTI txt file"):
         extract_txt_folder(fh, "tar", tmp_path / "out", ArchiveLimits(), "pred.tar.gz")
+
+
+# -------------------------------------------------------------------------------------- frame claims
+
+
+def test_a_pickle_claiming_more_frames_than_the_limit_is_refused_before_it_is_built(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from kitti_eval.io import safe_pickle
+
+    build = safe_pickle._build
+
+    def never(data: bytes, res: tuple, source: str) -> object:
+        assert not source.endswith("result.pkl"), "the C unpickler ran on the predictions"
+        return build(data, res, source)
+
+    empty = results({"000002": []})[0]
+    path = dump(tmp_path / "result.pkl", [dict(empty, frame_id=f"{i:06d}") for i in range(101)])
+    monkeypatch.setenv("KITTI_EVAL_MAX_FRAMES", "100")
+    monkeypatch.setattr(safe_pickle, "_build", never)
+    with pytest.raises(InputError, match="the pickle is a list of 101 entries, more than the limit of 100 frames"):
+        load_detections(path)
+    with pytest.raises(InputError, match="a list of 101 entries"):
+        load_detections(path, max_frames=100)
+    monkeypatch.delenv("KITTI_EVAL_MAX_FRAMES")
+    with pytest.raises(InputError, match="a list of 101 entries"):
+        load_pair(dump(tmp_path / "infos.pkl", infos()), path, max_frames=100)
+
+
+class _Poison(dict):  # type: ignore[type-arg]
+    """A frame that fails the test if its fields are read."""
+
+    def __getitem__(self, key: object) -> object:
+        raise AssertionError("a frame after the refused one was converted")
+
+    get = __getitem__  # type: ignore[assignment]
+
+
+def test_other_layouts_are_refused_at_the_first_frame_past_the_limit(tmp_path: Path) -> None:
+    by_frame = {f"{i:06d}": annos for i, annos in enumerate(r for r in results() for _ in range(2))}
+    by_frame["999999"] = _Poison()
+    with pytest.raises(InputError, match="more than the limit of 6 frames") as err:
+        annotations_from_object(by_frame, "detections", source="d", max_frames=6)
+    assert err.value.frame == "999999"
+    write_txt(tmp_path / "pred", {f"{i:06d}": [] for i in range(7)}, with_score=True)
+    with pytest.raises(InputError, match="7 txt files, more than the limit of 6 frames"):
+        load_detections(tmp_path / "pred", max_frames=6)
+
+
+def test_predictions_of_frames_not_in_the_ground_truth_stop_at_the_first(tmp_path: Path) -> None:
+    entries = results() + [dict(results()[0], frame_id="777777")] + [_Poison(frame_id=f"8{i:05d}") for i in range(3)]
+    with pytest.raises(InputError, match="predictions for a frame that is not in the ground truth") as err:
+        annotations_from_object(entries, "detections", source="r", known_frames={"000000", "000001", "000002"})
+    assert err.value.frame == "777777"
+    pred = write_txt(tmp_path / "pred", {**DET, "000003": []}, with_score=True)
+    with pytest.raises(InputError, match="not in the ground truth") as err:
+        load_pair(dump(tmp_path / "infos.pkl", infos()), pred)
+    assert err.value.frame == "000003"
+
+
+# ------------------------------------------------------------------------------------- CLI byte limits
+
+
+def test_the_cli_has_default_input_limits_that_flags_and_the_environment_change(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import gzip
+    import pickle
+
+    from kitti_eval.cli import main
+    from kitti_eval.io.loaders import input_limits
+
+    monkeypatch.delenv("KITTI_EVAL_MAX_UNPACKED_MB", raising=False)
+    monkeypatch.delenv("KITTI_EVAL_MAX_FRAMES", raising=False)
+    assert input_limits() == (512 << 20, 200_000)
+    gt = dump(tmp_path / "infos.pkl", infos())
+    bomb = tmp_path / "result.pkl.gz"  # 3 MB of pickle in 3 KB
+    bomb.write_bytes(gzip.compress(pickle.dumps([b"\0" * (3 << 20)], protocol=4)))
+    assert main(["--gt", str(gt), "--pred", str(bomb), "--max-input-mb", "2"]) == 1
+    assert "decompressed gzip data is larger than the limit of 2097152 bytes" in capsys.readouterr().err
+    monkeypatch.setenv("KITTI_EVAL_MAX_UNPACKED_MB", "1")
+    assert main(["--gt", str(gt), "--pred", str(bomb)]) == 1
+    assert "larger than the limit of 1048576 bytes" in capsys.readouterr().err
+    monkeypatch.setenv("KITTI_EVAL_MAX_UNPACKED_MB", "lots")
+    assert main(["--gt", str(gt), "--pred", str(bomb)]) == 2
+    assert "KITTI_EVAL_MAX_UNPACKED_MB='lots': expected a number > 0" in capsys.readouterr().err
+    monkeypatch.delenv("KITTI_EVAL_MAX_UNPACKED_MB")
+    assert main(["--gt", str(gt), "--pred", str(bomb), "--max-frames", "0"]) == 2
+    assert main(["--gt", str(gt), "--pred", str(dump(tmp_path / "r.pkl", results())), "--max-frames", "2"]) == 1
+    assert "a list of 3 entries, more than the limit of 2 frames" in capsys.readouterr().err
+    assert "KITTI_EVAL_MAX_FRAMES" not in os.environ  # the flags hold for the command only

@@ -12,7 +12,7 @@ the camera y axis; ``bbox`` is the 2D image box (x1, y1, x2, y2) in pixels.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any, Literal
@@ -237,7 +237,14 @@ class Annotations:
 
     @classmethod
     def from_frames(
-        cls, kind: Kind, source: str, frames: Iterable[tuple[object, Mapping[str, Any]]], *, keep_lidar: bool = False
+        cls,
+        kind: Kind,
+        source: str,
+        frames: Iterable[tuple[object, Mapping[str, Any]]],
+        *,
+        keep_lidar: bool = False,
+        max_frames: int | None = None,
+        known_frames: Collection[str] | None = None,
     ) -> Annotations:
         """Validate per-frame field dicts and concatenate them.
 
@@ -250,6 +257,9 @@ class Annotations:
             and ``score`` (N,) for detections or ``truncated``/``occluded`` (N,) for ground truth.
             Empty frames may use any empty arrays (OpenPCDet writes float zeros for ``name``).
         keep_lidar : also keep each frame's ``boxes_lidar`` (N, 7) where present, for display
+        max_frames : refuse more frames than this, before converting the first one past it
+        known_frames : the frame ids there may be (those of the ground truth, for predictions); another is
+            refused before it is converted
         """
         if kind not in _REQUIRED:
             raise ValueError(f"kind must be 'ground_truth' or 'detections', got {kind!r}")
@@ -268,6 +278,12 @@ class Annotations:
                 ) from None
             if fid in seen:
                 raise InputError(f"frame appears twice (entries #{seen[fid]} and #{pos})", source=source, frame=fid)
+            if max_frames is not None and pos >= max_frames:
+                raise InputError(
+                    f"more than the limit of {max_frames} frames (KITTI_EVAL_MAX_FRAMES)", source=source, frame=fid
+                )
+            if known_frames is not None and fid not in known_frames:
+                raise InputError("predictions for a frame that is not in the ground truth", source=source, frame=fid)
             seen[fid] = pos
             if not isinstance(fields, Mapping):
                 raise InputError(f"expected a dict of arrays, got {type(fields).__name__}", source=source, frame=fid)

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import os
 from array import array
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from itertools import chain
 from pathlib import Path
 from typing import Any
@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from ..core.frames import Annotations, Kind, normalize_frame_id
-from ..errors import InputError
+from ..errors import ConfigError, InputError
 from .archives import (
     MAX_TXT_FILE_BYTES,
     ArchiveLimits,
@@ -106,12 +106,51 @@ PathLike = str | os.PathLike[str]
 Frames = Iterator[tuple[object, Mapping[str, Any]]]
 
 
-# ----------------------------------------------------------------------------------------- public API
+# ------------------------------------------------------------------------------------------ limits
+
+#: the environment variables that set the limits on one input (the service reads the same ones)
+MAX_INPUT_ENV = "KITTI_EVAL_MAX_UNPACKED_MB"
+MAX_FRAMES_ENV = "KITTI_EVAL_MAX_FRAMES"
+DEFAULT_MAX_INPUT_MB = 512
+DEFAULT_MAX_FRAMES = 200_000
 
 
-def load_ground_truth(path: PathLike, *, max_bytes: int | None = None, fmt: str | None = None) -> Annotations:
+def input_limits() -> tuple[int, int]:
+    """``(max_bytes, max_frames)`` for one input, from :data:`MAX_INPUT_ENV` / :data:`MAX_FRAMES_ENV` or the
+    defaults (512 MB, 200,000 frames; KITTI val is 22 MB and 3,769 frames).
+
+    ``max_bytes`` caps a pickle after decompression and the unpacked txt files of an archive; ``max_frames``
+    caps the frames of one input (a pickle's top-level list is refused before it is built, other layouts
+    before a frame beyond the cap is converted). Every loader uses these unless given its own.
+    """
+    out = []
+    for env, default, unit in ((MAX_INPUT_ENV, DEFAULT_MAX_INPUT_MB, 1 << 20), (MAX_FRAMES_ENV, DEFAULT_MAX_FRAMES, 1)):
+        raw = os.environ.get(env, "").strip()
+        try:
+            value = float(raw) if raw else default
+        except ValueError:
+            value = -1
+        if not value > 0 or value == float("inf"):
+            raise ConfigError(f"{env}={raw!r}: expected a number > 0")
+        out.append(int(value * unit))
+    return out[0], out[1]
+
+
+def _limits(max_bytes: int | None, max_frames: int | None) -> tuple[int, int]:
+    if max_bytes is not None and max_frames is not None:
+        return max_bytes, max_frames
+    env_bytes, env_frames = input_limits()
+    return (env_bytes if max_bytes is None else max_bytes), (env_frames if max_frames is None else max_frames)
+
+
+# ------------------------------------------------------------------------------------------ public API
+
+
+def load_ground_truth(
+    path: PathLike, *, max_bytes: int | None = None, fmt: str | None = None, max_frames: int | None = None
+) -> Annotations:
     """Ground truth from a KITTI ``label_2``-style txt folder (or a zip/tar of one) or an infos/annos pickle."""
-    return load_annotations(path, "ground_truth", max_bytes=max_bytes, fmt=fmt)
+    return load_annotations(path, "ground_truth", max_bytes=max_bytes, fmt=fmt, max_frames=max_frames)
 
 
 def load_detections(
@@ -122,15 +161,27 @@ def load_detections(
     calibs: Mapping[str, Any] | None = None,
     warnings: list[str] | None = None,
     keep_lidar: bool = False,
+    max_frames: int | None = None,
+    known_frames: Collection[str] | None = None,
 ) -> Annotations:
     """Detections from a KITTI txt folder (16 fields; or a zip/tar of one) or a ``result.pkl``-style pickle.
 
     ``calibs`` ({frame id: :class:`kitti_eval.io.calib.Calib`}) converts LiDAR-only boxes and checks boxes that
     carry both; messages about the check are appended to ``warnings``. ``keep_lidar`` keeps the
-    ``boxes_lidar`` as written, for display (:attr:`Annotations.boxes_lidar`).
+    ``boxes_lidar`` as written, for display (:attr:`Annotations.boxes_lidar`). ``known_frames`` (the ground
+    truth's frame ids): a frame outside them is refused as soon as it is read. ``max_bytes``, ``max_frames``:
+    see :func:`input_limits` (None: its values).
     """
     return load_annotations(
-        path, "detections", max_bytes=max_bytes, fmt=fmt, calibs=calibs, warnings=warnings, keep_lidar=keep_lidar
+        path,
+        "detections",
+        max_bytes=max_bytes,
+        fmt=fmt,
+        calibs=calibs,
+        warnings=warnings,
+        keep_lidar=keep_lidar,
+        max_frames=max_frames,
+        known_frames=known_frames,
     )
 
 
@@ -156,19 +207,23 @@ def load_annotations(
     calibs: Mapping[str, Any] | None = None,
     warnings: list[str] | None = None,
     keep_lidar: bool = False,
+    max_frames: int | None = None,
+    known_frames: Collection[str] | None = None,
 ) -> Annotations:
     """A folder is read as KITTI txt files, a zip/tar as an archived txt folder, a file as a pickle.
 
-    ``fmt`` (a name of :data:`FORMATS`) skips the detection of the layout.
+    ``fmt`` (a name of :data:`FORMATS`) skips the detection of the layout; the rest: see
+    :func:`load_detections`.
     """
     _check_kind(kind)
     _check_fmt(fmt)
+    max_bytes, max_frames = _limits(max_bytes, max_frames)
     p = Path(path)
     source = str(path)
     if p.is_dir():
         if fmt not in (None, "kitti_txt"):
             raise InputError(f"a folder is read as KITTI txt files, not as {fmt!r}", source=source)
-        return load_kitti_txt_dir(p, kind)
+        return load_kitti_txt_dir(p, kind, max_frames=max_frames, known_frames=known_frames)
     if not p.exists():
         raise _missing(p, kind, source)
     if p.suffix.lower() == ".txt":
@@ -176,10 +231,18 @@ def load_annotations(
             "this is a single txt file; pass the folder that holds one KITTI txt file per frame", source=source
         )
     if fmt == "kitti_txt" or (fmt is None and input_kind(p, source) != "pickle"):
-        return _load_txt_archive(p, kind, source)
-    obj = load_pickle(p, source=source, max_bytes=max_bytes)
+        return _load_txt_archive(p, kind, source, max_bytes, max_frames, known_frames)
+    obj = load_pickle(p, source=source, max_bytes=max_bytes, max_entries=max_frames)
     return annotations_from_object(
-        obj, kind, source=source, fmt=fmt, calibs=calibs, warnings=warnings, keep_lidar=keep_lidar
+        obj,
+        kind,
+        source=source,
+        fmt=fmt,
+        calibs=calibs,
+        warnings=warnings,
+        keep_lidar=keep_lidar,
+        max_frames=max_frames,
+        known_frames=known_frames,
     )
 
 
@@ -192,11 +255,12 @@ def annotations_from_object(
     calibs: Mapping[str, Any] | None = None,
     warnings: list[str] | None = None,
     keep_lidar: bool = False,
+    max_frames: int | None = None,
+    known_frames: Collection[str] | None = None,
 ) -> Annotations:
     """Annotations from an already unpickled object (e.g. an upload passed through ``load_pickle``).
 
-    ``fmt`` forces a layout of :data:`PICKLE_FORMATS`; ``calibs``, ``warnings`` and ``keep_lidar``: see
-    :func:`load_detections`.
+    ``fmt`` forces a layout of :data:`PICKLE_FORMATS`; the rest: see :func:`load_detections`.
     """
     _check_kind(kind)
     _check_fmt(fmt)
@@ -209,7 +273,14 @@ def annotations_from_object(
     frames = PICKLE_FORMATS[fmt](obj, kind, source, warnings if warnings is not None else [])
     if kind == "detections":
         frames = _camera_fields(frames, calibs, source, warnings)
-    return Annotations.from_frames(kind, source, frames, keep_lidar=keep_lidar and kind == "detections")
+    return Annotations.from_frames(
+        kind,
+        source,
+        frames,
+        keep_lidar=keep_lidar and kind == "detections",
+        max_frames=_limits(None, max_frames)[1],
+        known_frames=known_frames,
+    )
 
 
 # ---------------------------------------------------------------------------------------- KITTI txt
@@ -225,7 +296,9 @@ def _txt_files(directory: Path) -> list[Path]:
     ]
 
 
-def load_kitti_txt_dir(directory: PathLike, kind: Kind) -> Annotations:
+def load_kitti_txt_dir(
+    directory: PathLike, kind: Kind, *, max_frames: int | None = None, known_frames: Collection[str] | None = None
+) -> Annotations:
     """One KITTI txt file per frame; the frame id is the file stem (``000015.txt`` -> ``"000015"``).
 
     Files are read in name order; files not ending in ``.txt`` (and hidden files) are ignored; an empty
@@ -241,6 +314,11 @@ def load_kitti_txt_dir(directory: PathLike, kind: Kind) -> Annotations:
         hint = f"; it has subfolders {', '.join(subdirs[:5])}: pass the one holding the txt files" if subdirs else ""
         raise InputError(f"no .txt files in the folder{hint}", source=str(root))
     files.sort(key=lambda f: f.name)
+    max_frames = _limits(None, max_frames)[1]
+    if len(files) > max_frames:
+        raise InputError(
+            f"{len(files)} txt files, more than the limit of {max_frames} frames ({MAX_FRAMES_ENV})", source=str(root)
+        )
 
     n_values = _N_FIELDS[kind] - 1  # numbers per line that are kept (score dropped for ground truth)
     names: list[str] = []
@@ -276,7 +354,7 @@ def load_kitti_txt_dir(directory: PathLike, kind: Kind) -> Annotations:
             fields["name"] = name_arr[lo : lo + n]
             yield fid, fields
 
-    return Annotations.from_frames(kind, str(root), frames())
+    return Annotations.from_frames(kind, str(root), frames(), max_frames=max_frames, known_frames=known_frames)
 
 
 def _read_text(path: Path) -> str:
@@ -931,14 +1009,17 @@ def extract_txt_archive(path: PathLike, dest: PathLike, *, limits: ArchiveLimits
     return folder
 
 
-def _load_txt_archive(p: Path, kind: Kind, source: str) -> Annotations:
+def _load_txt_archive(
+    p: Path, kind: Kind, source: str, max_bytes: int, max_frames: int, known_frames: Collection[str] | None
+) -> Annotations:
     import dataclasses
     import tempfile
 
+    limits = ArchiveLimits(max_unpacked_bytes=max_bytes, bytes_setting=MAX_INPUT_ENV)
     with tempfile.TemporaryDirectory(prefix="kitti-eval-") as tmp:
-        folder = extract_txt_archive(p, tmp)
+        folder = extract_txt_archive(p, tmp, limits=limits)
         try:
-            annos = load_kitti_txt_dir(folder, kind)
+            annos = load_kitti_txt_dir(folder, kind, max_frames=max_frames, known_frames=known_frames)
         except InputError as e:
             raise InputError(e.message, source=source, frame=e.frame, field=e.field) from None
     return dataclasses.replace(annos, source=source)
@@ -996,15 +1077,19 @@ def load_ground_truth_and_calibs(
     fmt: str | None = None,
     max_bytes: int | None = None,
     warnings: list[str] | None = None,
+    max_frames: int | None = None,
 ) -> tuple[Annotations, Mapping[str, Any]]:
     """Ground truth and, from an infos pickle, its calibration per frame (read once; empty for txt)."""
     _check_fmt(fmt)
+    max_bytes, max_frames = _limits(max_bytes, max_frames)
     gp = Path(gt_path)
     if _is_pickle_file(gp, fmt):
-        obj = load_pickle(gp, source=str(gt_path), max_bytes=max_bytes)
-        gt = annotations_from_object(obj, "ground_truth", source=str(gt_path), fmt=fmt, warnings=warnings)
+        obj = load_pickle(gp, source=str(gt_path), max_bytes=max_bytes, max_entries=max_frames)
+        gt = annotations_from_object(
+            obj, "ground_truth", source=str(gt_path), fmt=fmt, warnings=warnings, max_frames=max_frames
+        )
         return gt, calibs_from_object(obj)
-    return load_ground_truth(gt_path, fmt=fmt, max_bytes=max_bytes), {}
+    return load_ground_truth(gt_path, fmt=fmt, max_bytes=max_bytes, max_frames=max_frames), {}
 
 
 def load_pair(
@@ -1017,17 +1102,24 @@ def load_pair(
     warnings: list[str] | None = None,
     max_bytes: int | None = None,
     keep_lidar: bool = False,
+    max_frames: int | None = None,
 ) -> tuple[Annotations, Annotations]:
     """Ground truth and predictions, the pickle of ground truth read once (its calibration converts
     LiDAR-only predictions); with ``split``, only the listed frames (dropped prediction frames are
-    reported in ``warnings``); ``keep_lidar``: see :func:`load_detections`."""
+    reported in ``warnings``); otherwise a prediction frame that is not in the ground truth is refused as
+    soon as it is read. ``keep_lidar``, ``max_bytes``, ``max_frames``: see :func:`load_detections`."""
     _check_fmt(pred_format)
     _check_fmt(gt_format)
+    max_bytes, max_frames = _limits(max_bytes, max_frames)
     if _is_pickle_file(Path(gt_path), gt_format) and _is_pickle_file(Path(pred_path), pred_format):
         # the predictions are read and checked in a helper thread while the ground truth is converted
-        objects = load_pickles([gt_path, pred_path], sources=[str(gt_path), str(pred_path)], max_bytes=max_bytes)
+        objects = load_pickles(
+            [gt_path, pred_path], sources=[str(gt_path), str(pred_path)], max_bytes=max_bytes, max_entries=max_frames
+        )
         gt_obj = next(objects)
-        gt = annotations_from_object(gt_obj, "ground_truth", source=str(gt_path), fmt=gt_format, warnings=warnings)
+        gt = annotations_from_object(
+            gt_obj, "ground_truth", source=str(gt_path), fmt=gt_format, warnings=warnings, max_frames=max_frames
+        )
         calibs = calibs_from_object(gt_obj)
         del gt_obj
         dt = annotations_from_object(
@@ -1038,11 +1130,22 @@ def load_pair(
             calibs=calibs,
             warnings=warnings,
             keep_lidar=keep_lidar,
+            max_frames=max_frames,
+            known_frames=None if split is not None else gt.frame_index(),
         )
     else:
-        gt, calibs = load_ground_truth_and_calibs(gt_path, fmt=gt_format, max_bytes=max_bytes, warnings=warnings)
+        gt, calibs = load_ground_truth_and_calibs(
+            gt_path, fmt=gt_format, max_bytes=max_bytes, warnings=warnings, max_frames=max_frames
+        )
         dt = load_detections(
-            pred_path, fmt=pred_format, calibs=calibs, warnings=warnings, max_bytes=max_bytes, keep_lidar=keep_lidar
+            pred_path,
+            fmt=pred_format,
+            calibs=calibs,
+            warnings=warnings,
+            max_bytes=max_bytes,
+            keep_lidar=keep_lidar,
+            max_frames=max_frames,
+            known_frames=None if split is not None else gt.frame_index(),
         )
     if split is not None:
         gt, dt, dropped = apply_split(gt, dt, read_split(split))

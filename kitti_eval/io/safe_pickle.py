@@ -56,6 +56,7 @@ _NPY_MAGIC = b"\x93NUMPY"
 #: what ``torch.save`` writes first in its legacy (non-zip) format: a pickled int
 _TORCH_LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
 _MAX_DEPTH = 100
+Buffer = bytes | bytearray  # a pickle's bytes: as read, or gathered from a decompressing reader
 _KEY_BUDGET = 1 << 22  # elements of tuples hashed as dict keys and set members, in all
 
 
@@ -189,7 +190,7 @@ def _unsafe(source: str, module: str, name: str) -> UnsafePickleError:
 class _Nodes:
     """Read access to the scan's nodes, for messages."""
 
-    def __init__(self, data: bytes, nodes: np.ndarray, ch: np.ndarray) -> None:
+    def __init__(self, data: Buffer, nodes: np.ndarray, ch: np.ndarray) -> None:
         self.data, self.nodes, self.ch = data, nodes, ch
 
     def kind(self, n: int) -> int:
@@ -227,13 +228,13 @@ class _Nodes:
         return np.dtype(f"{kind}{size // 4 if kind == 'U' else size}")
 
 
-def _line(data: bytes, start: int) -> str:
+def _line(data: Buffer, start: int) -> str:
     line = bytes(data[start : start + 4096])
     end = line.find(b"\n")
     return line[: end if end >= 0 else len(line)].decode("utf-8", "replace")
 
 
-def _scan_error(res: tuple[Any, ...], data: bytes, source: str) -> InputError:
+def _scan_error(res: tuple[Any, ...], data: Buffer, source: str) -> InputError:
     code, pos, i0, i1, i2, nodes, ch = (int(res[0]), int(res[1]), int(res[2]), int(res[3]), int(res[4]), res[5], res[6])
     nd = _Nodes(data, nodes, ch)
     if code == _ps.E_GLOBAL:
@@ -318,7 +319,7 @@ class _Reader:
 
     __slots__ = ("_view", "_pos")
 
-    def __init__(self, data: bytes) -> None:
+    def __init__(self, data: Buffer) -> None:
         self._view = memoryview(data).cast("B")
         self._pos = 0
 
@@ -344,7 +345,7 @@ class _Reader:
 class _Unpickler(pickle.Unpickler):
     """The C unpickler, handing out the allowlisted globals (the scan has seen every one it will ask for)."""
 
-    def __init__(self, data: bytes) -> None:
+    def __init__(self, data: Buffer) -> None:
         # the C unpickler reads any buffer (memoryviews, without copies), not only bytes
         super().__init__(_Reader(data), fix_imports=False, encoding="ASCII", errors="strict")  # type: ignore[arg-type]
 
@@ -385,7 +386,7 @@ def _budget(n: int) -> int:
     return 8 * n + (32 << 20)
 
 
-def _scan(data: bytes, source: str) -> tuple[Any, ...]:
+def _scan(data: Buffer, source: str) -> tuple[Any, ...]:
     """Run the scan, with work arrays sized for common pickles and grown (by rerunning it) when too small."""
     u8 = np.frombuffer(data, np.uint8)
     if u8.flags.writeable:  # one compiled specialization (read-only input) whatever the source
@@ -409,7 +410,7 @@ def _scan(data: bytes, source: str) -> tuple[Any, ...]:
     return (*res[:5], work[_ps.ROOM_NODES][:nn], work[_ps.ROOM_CH][:nch], int(res[7]))
 
 
-def _build(data: bytes, res: tuple[Any, ...], source: str) -> object:
+def _build(data: Buffer, res: tuple[Any, ...], source: str) -> object:
     """The objects of a pickle the scan accepted (``res``), built by the C unpickler."""
     nodes, result = res[5], int(res[7])
     unpickler = _Unpickler(data)
@@ -442,30 +443,41 @@ def _build(data: bytes, res: tuple[Any, ...], source: str) -> object:
 # ---------------------------------------------------------------------------------------------- input
 
 
-def _read_limited(read: Callable[..., bytes], max_bytes: int | None, what: str, source: str) -> bytes:
-    chunks: list[bytes] = []
+_READ_CHUNK = 64 << 20
+
+
+def _read_limited(
+    read: Callable[..., bytes], max_bytes: int | None, what: str, source: str, chunk: int | None = None
+) -> Buffer:
+    """Everything ``read`` gives, up to ``max_bytes`` (InputError past it). ``chunk``: read that much at a
+    time into one growing buffer (a decompressing reader would otherwise hold a second copy of it all)."""
+    parts: list[bytes] = []
+    buf = bytearray()
     total = 0
-    while True:
-        if max_bytes is None:
-            chunk = read()  # to the end (a short read just means another round)
-        elif total > max_bytes:
+    while max_bytes is None or total <= max_bytes:
+        want = -1 if max_bytes is None else max_bytes + 1 - total
+        if chunk is not None:
+            want = chunk if want < 0 else min(want, chunk)
+        data = read(want) if want >= 0 else read()
+        if not data:
             break
-        else:
-            chunk = read(max_bytes + 1 - total)
-        if not chunk:
-            break
-        if not isinstance(chunk, (bytes, bytearray, memoryview)):
+        if not isinstance(data, (bytes, bytearray, memoryview)):
             raise InputError(
-                f"expected binary data, got {type(chunk).__name__} (open the file in 'rb' mode)", source=source
+                f"expected binary data, got {type(data).__name__} (open the file in 'rb' mode)", source=source
             )
-        chunks.append(chunk if type(chunk) is bytes else bytes(chunk))
-        total += len(chunk)
+        total += len(data)
+        if chunk is not None:
+            buf += data
+        else:
+            parts.append(data if type(data) is bytes else bytes(data))
     if max_bytes is not None and total > max_bytes:
         raise InputError(f"{what} is larger than the limit of {max_bytes} bytes", source=source)
-    return chunks[0] if len(chunks) == 1 else b"".join(chunks)
+    if chunk is not None:
+        return buf
+    return parts[0] if len(parts) == 1 else b"".join(parts)
 
 
-def _read_input(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str, max_bytes: int | None) -> bytes:
+def _read_input(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str, max_bytes: int | None) -> Buffer:
     if hasattr(path_or_fileobj, "read"):
         try:
             read = path_or_fileobj.read
@@ -486,7 +498,7 @@ def _read_input(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str
     if bytes(data[:2]) == GZIP_MAGIC:
         try:
             with gzip.GzipFile(fileobj=io.BytesIO(data), mode="rb") as gz:
-                data = _read_limited(gz.read, max_bytes, "the decompressed gzip data", source)
+                data = _read_limited(gz.read, max_bytes, "the decompressed gzip data", source, _READ_CHUNK)
         except InputError:
             raise
         except (OSError, EOFError, zlib.error, ValueError, MemoryError) as e:
@@ -494,7 +506,7 @@ def _read_input(path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str
     return data
 
 
-def _sniff(data: bytes, source: str) -> None:
+def _sniff(data: Buffer, source: str) -> None:
     if not len(data):
         raise InputError("not a readable pickle: the file is empty", source=source)
     data = bytes(data[:262])
@@ -517,7 +529,11 @@ def _sniff(data: bytes, source: str) -> None:
 
 
 def load_pickle(
-    path_or_fileobj: str | os.PathLike[str] | IO[bytes], *, source: str, max_bytes: int | None = None
+    path_or_fileobj: str | os.PathLike[str] | IO[bytes],
+    *,
+    source: str,
+    max_bytes: int | None = None,
+    max_entries: int | None = None,
 ) -> object:
     """Unpickle a file that may only hold numpy arrays, numpy scalars and plain containers.
 
@@ -526,6 +542,8 @@ def load_pickle(
     path_or_fileobj : a path, or a binary file object (read to its end)
     source : a name for messages (usually the path or the upload's name)
     max_bytes : refuse input (after gzip decompression) larger than this; ``None``: no limit
+    max_entries : refuse a pickle of a list or tuple with more items than this (a set of more frames than
+        the limit), before anything is built; ``None``: no limit
 
     gzip input (magic ``1f 8b``) is decompressed transparently, whatever the file name.
 
@@ -535,28 +553,42 @@ def load_pickle(
         tensors, mmdet3d boxes) or sets state that numpy would not write; nothing was imported or called
     InputError : missing, empty, truncated or corrupt input, or input over ``max_bytes``
     """
-    return _build(*_checked(path_or_fileobj, source, max_bytes), source)
+    return _build(*_checked(path_or_fileobj, source, max_bytes, max_entries), source)
 
 
 def _checked(
-    path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str, max_bytes: int | None
-) -> tuple[bytes, tuple[Any, ...]]:
+    path_or_fileobj: str | os.PathLike[str] | IO[bytes], source: str, max_bytes: int | None, max_entries: int | None
+) -> tuple[Buffer, tuple[Any, ...]]:
     """The input's bytes and the scan's verdict on them (raises if it refused them)."""
     data = _read_input(path_or_fileobj, source, max_bytes)
     _sniff(data, source)
     res = _scan(data, source)
     if res[0] != _ps.OK:
         raise _scan_error(res, data, source)
+    if max_entries is not None:
+        root = res[5][res[7]]
+        kind = int(root[_ps.W]) & _ps.KIND_MASK
+        n = int(root[_ps.V]) if kind == _ps.K_LIST else int(root[_ps.B]) if kind == _ps.K_TUPLE else 0
+        if n > max_entries:
+            raise InputError(
+                f"the pickle is a {_ps.KIND_NAMES[kind]} of {n} entries, more than the limit of {max_entries} "
+                "frames (KITTI_EVAL_MAX_FRAMES)",
+                source=source,
+            )
     return data, res
 
 
 def load_pickles(
-    paths: Sequence[str | os.PathLike[str]], *, sources: Sequence[str], max_bytes: int | None = None
+    paths: Sequence[str | os.PathLike[str]],
+    *,
+    sources: Sequence[str],
+    max_bytes: int | None = None,
+    max_entries: int | None = None,
 ) -> Iterator[object]:
     """:func:`load_pickle` of several files, in order; while the caller works on one object, the next file
     is read and checked in a helper thread (the scan needs no GIL). Errors are raised where that file's
     object would be."""
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="kitti-eval pickle check") as pool:
-        pending = [pool.submit(_checked, p, s, max_bytes) for p, s in zip(paths, sources)]
+        pending = [pool.submit(_checked, p, s, max_bytes, max_entries) for p, s in zip(paths, sources)]
         for future, source in zip(pending, sources):
             yield _build(*future.result(), source)
