@@ -254,3 +254,26 @@ def test_the_cli_has_default_input_limits_that_flags_and_the_environment_change(
     assert main(["--gt", str(gt), "--pred", str(dump(tmp_path / "r.pkl", results())), "--max-frames", "2"]) == 1
     assert "a list of 3 entries, more than the limit of 2 frames" in capsys.readouterr().err
     assert "KITTI_EVAL_MAX_FRAMES" not in os.environ  # the flags hold for the command only
+
+
+# -------------------------------------------------------------------------------------- text
+
+
+def test_numpy_strings_that_are_not_text_are_refused(tmp_path: Path) -> None:
+    """numpy builds str arrays and scalars from raw bytes without checking; a code point above U+10FFFF makes
+    every later use of the string raise SystemError (found by the loader fuzz target)."""
+    bad = np.frombuffer(b"C\x00\x00\x00a\x00\x7f\x00r\x00\x00\x00", dtype="<U3")
+    entries = results()
+    entries[2]["name"] = bad
+    entries[2]["score"] = np.float32([0.5])
+    for f in ("truncated", "occluded", "alpha", "rotation_y"):
+        entries[2][f] = np.zeros(1)
+    entries[2].update(bbox=np.zeros((1, 4)), dimensions=np.ones((1, 3)), location=np.zeros((1, 3)))
+    with pytest.raises(InputError, match="class names must be text; a name holds a code point above") as err:
+        load_detections(dump(tmp_path / "result.pkl", entries))
+    assert (err.value.frame, err.value.field) == ("000002", "name")
+    entries = results()
+    entries[1]["frame_id"] = bad.byteswap().view(">U3")[0]  # a non-native byte order, too
+    with pytest.raises(InputError, match=r"bad frame id <not text>: it is not text") as err:
+        load_detections(dump(tmp_path / "result.pkl", entries))
+    assert err.value.frame == "#1"

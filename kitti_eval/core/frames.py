@@ -23,7 +23,7 @@ import numpy.typing as npt
 from ..errors import InputError
 from .protocol import DONTCARE, SIZE_NOT_GIVEN
 
-__all__ = ["Annotations", "normalize_frame_id", "dimension_order_warnings", "check_sizes"]
+__all__ = ["Annotations", "normalize_frame_id", "shown_frame_id", "dimension_order_warnings", "check_sizes"]
 
 Kind = Literal["ground_truth", "detections"]
 
@@ -92,8 +92,31 @@ def check_sizes(
     )
 
 
+_MAX_CODE_POINT = 0x10FFFF
+
+
+def _is_text(arr: np.ndarray) -> bool:
+    """A numpy str array holds only code points Python can represent. numpy builds ``U`` arrays and scalars
+    from raw bytes without checking; a code point above U+10FFFF makes every use of the str raise
+    SystemError."""
+    if arr.dtype.kind != "U" or arr.size == 0 or arr.dtype.itemsize == 0:
+        return True
+    codes = np.ascontiguousarray(arr).view(np.dtype(arr.dtype.byteorder + "u4"))
+    return int(codes.max()) <= _MAX_CODE_POINT
+
+
+def shown_frame_id(value: object) -> str:
+    """A frame id for messages: normalised where it can be, else a safe description."""
+    try:
+        return normalize_frame_id(value)
+    except (TypeError, ValueError):
+        return "<not text>" if isinstance(value, np.str_) else repr(value)[:80]
+
+
 def normalize_frame_id(value: object) -> str:
     """A frame's key: digits are zero-padded to six (``15``, ``'15'`` and ``'000015'`` are one frame)."""
+    if isinstance(value, np.str_) and not _is_text(np.asarray(value)):
+        raise ValueError("it is not text (a code point above U+10FFFF)")
     if isinstance(value, (bool, np.bool_)):
         raise TypeError("a frame id cannot be a boolean")
     if isinstance(value, (int, np.integer)):
@@ -117,6 +140,8 @@ def _names(value: Any, n_hint: int | None, where: dict[str, str]) -> npt.NDArray
     if arr.ndim != 1:
         raise InputError(f"expected a 1-D array of class names, got shape {arr.shape}", **where)
     if arr.dtype.kind == "U":
+        if not _is_text(arr):
+            raise InputError("class names must be text; a name holds a code point above U+10FFFF", **where)
         return arr
     if arr.dtype.kind == "S":
         try:
@@ -274,7 +299,7 @@ class Annotations:
                 fid = normalize_frame_id(raw_id)
             except (TypeError, ValueError) as e:
                 raise InputError(
-                    f"bad frame id {raw_id!r}: {e}", source=source, frame=f"#{pos}", field="frame_id"
+                    f"bad frame id {shown_frame_id(raw_id)}: {e}", source=source, frame=f"#{pos}", field="frame_id"
                 ) from None
             if fid in seen:
                 raise InputError(f"frame appears twice (entries #{seen[fid]} and #{pos})", source=source, frame=fid)

@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.frames import Annotations, Kind, normalize_frame_id
+from ..core.frames import Annotations, Kind, normalize_frame_id, shown_frame_id
 from ..errors import ConfigError, InputError
 from .archives import (
     MAX_TXT_FILE_BYTES,
@@ -601,29 +601,22 @@ def _frames_openpcdet_infos(obj: Any, kind: Kind, source: str, warnings: list[st
                 f"the infos have no labels ('annos' missing in entry #{i}): a test split? "
                 "Ground truth needs the train/val infos or the label_2 folder",
                 source=source,
-                frame=str(fid),
+                frame=shown_frame_id(fid),
             )
         annos = info["annos"]
         if not isinstance(annos, Mapping):
             raise InputError(
                 f"infos entry #{i}: 'annos' is {_type_name(annos)}, expected a dict",
                 source=source,
-                frame=str(fid),
+                frame=shown_frame_id(fid),
                 field="annos",
             )
         yield fid, annos
     if fallbacks:
         warnings.append(
             f"{source}: {len(fallbacks)} entries have no image.image_idx; their point_cloud.lidar_idx is used as the "
-            f"frame id (the first: entry #{fallbacks[0]}, frame {_shown_id(first)})"
+            f"frame id (the first: entry #{fallbacks[0]}, frame {shown_frame_id(first)})"
         )
-
-
-def _shown_id(fid: object) -> str:
-    try:
-        return normalize_frame_id(fid)
-    except (TypeError, ValueError):
-        return str(fid)
 
 
 def _frames_annos_list(obj: Any, kind: Kind, source: str, warnings: list[str]) -> Frames:
@@ -693,7 +686,7 @@ def _frames_mmdet3d_infos(obj: Any, kind: Kind, source: str, warnings: list[str]
                 f"data_list entry #{i} has no sample_idx", source=source, frame=f"#{i}", field="sample_idx"
             )
         fid = _frame_id(entry["sample_idx"], f"data_list entry #{i}: sample_idx", source, f"#{i}")
-        shown = _shown_id(fid)
+        shown = shown_frame_id(fid)
         instances = entry.get("instances")
         if instances is None:
             raise InputError(
@@ -851,7 +844,6 @@ def calibs_from_object(obj: object) -> Mapping[str, Any]:
     """{frame id: :class:`kitti_eval.io.calib.Calib`} from ground-truth infos (OpenPCDet list, PointPillars
     dict, mmdetection3d 1.x), each read when first used; empty when the object has no calibration. Never
     raises (a frame whose calibration cannot be read is missing)."""
-    from ..core.frames import normalize_frame_id
     from .calib import calib_from_info
 
     entries: dict[str, Any] = {}
@@ -895,7 +887,6 @@ def _numeric_boxes(lidar: Any, location: Any, rotation_y: Any) -> tuple[np.ndarr
 
 def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str, warnings: list[str] | None) -> Frames:
     """Detections: LiDAR-only frames converted to camera fields; frames with both checked for agreement."""
-    from ..core.frames import normalize_frame_id
     from .calib import disagreeing_boxes, lidar_to_camera
 
     # frames with both camera fields and LiDAR boxes: every CHECK_EVERY-th is collected, then checked in
@@ -929,20 +920,23 @@ def _camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str
         arr = np.asarray(lidar)
         if arr.dtype.kind not in "iuf" and arr.size:
             raise InputError(
-                f"expected numbers, got dtype {arr.dtype}", source=source, frame=str(fid), field="boxes_lidar"
+                f"expected numbers, got dtype {arr.dtype}",
+                source=source,
+                frame=shown_frame_id(fid),
+                field="boxes_lidar",
             )
         if arr.size == 0:
             arr = np.zeros((0, 7))
         if arr.ndim != 2 or arr.shape[1] != 7:
             raise InputError(
-                f"expected shape (N, 7), got {arr.shape}", source=source, frame=str(fid), field="boxes_lidar"
+                f"expected shape (N, 7), got {arr.shape}", source=source, frame=shown_frame_id(fid), field="boxes_lidar"
             )
         if calib is None:
             raise InputError(
                 "LiDAR-only boxes (boxes_lidar without location/dimensions/rotation_y) need the "
                 "frame's calibration: pass OpenPCDet (or mmdetection3d) infos as the ground truth",
                 source=source,
-                frame=str(fid),
+                frame=shown_frame_id(fid),
                 field="boxes_lidar",
             )
         out = dict(fields)
@@ -1030,7 +1024,6 @@ def _load_txt_archive(
 
 def read_split(path: PathLike) -> list[str]:
     """Frame ids of a KITTI ``ImageSets/<split>.txt`` (one a line; blank lines skipped), normalised."""
-    from ..core.frames import normalize_frame_id
 
     text = _read_text(Path(path))
     ids: list[str] = []
