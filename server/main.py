@@ -20,7 +20,7 @@ from pydantic import ValidationError
 from kitti_eval import __version__
 
 from .errors import install_error_handlers
-from .middleware import AdmissionMiddleware, BodyLimitMiddleware
+from .middleware import AdmissionMiddleware, BodyMiddleware
 from .routes import evaluations, frames, gates, ground_truths, health
 from .service import Service
 from .settings import Settings
@@ -75,13 +75,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(frames.router)
     app.include_router(web_router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
-    # outermost last: admission is decided before the body limit starts reading
-    app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
+    # outermost last: a request is admitted to the evaluations once its body has arrived in full
     app.add_middleware(
         AdmissionMiddleware,
         paths=frozenset({"/v1/evaluations", "/ui/evaluations"}),
-        capacity=lambda: settings.max_concurrent_evals + settings.max_queued_evals,
+        capacity=lambda: settings.evaluation_places,
         retry_after_s=lambda: settings.retry_after_s,
+    )
+    app.add_middleware(
+        BodyMiddleware,
+        limit=settings.max_upload_bytes,
+        timeout_s=settings.body_timeout_s,
+        max_receiving=settings.receiving_bodies,
+        retry_after_s=lambda: settings.retry_after_s,
+        spool_dir=service.data_dir / "tmp",
     )
     return app
 

@@ -1,22 +1,47 @@
-"""Two ASGI guards that act before a request body is read: the upload cap and evaluation admission.
+"""Two ASGI guards: the request body, received in full before the app sees it, then evaluation admission.
 
-Starlette spools uploaded files to disk but puts no cap on their total size (its ``max_part_size`` covers
-plain form fields only), and FastAPI parses the whole form before a route runs. So the cap is enforced on
-the byte stream itself: a declared ``Content-Length`` over the cap is refused before anything is read,
-and a body that grows past it (chunked, or a lying header) is cut off while it streams.
+:class:`BodyMiddleware` (outermost) receives every request body itself, so that a slow sender holds no
+evaluation place while it sends:
+
+* a declared ``Content-Length`` over the upload cap is refused with 413 before anything is read;
+* at most ``max_receiving`` bodies are received at once; past that, 503 with Retry-After;
+* a body must arrive in full within ``timeout_s``, or it is answered 408 and its connection closed;
+* a body that grows past the cap (chunked, or a lying header) is not read further, and the app is called
+  with a ``receive`` that raises :class:`BodyTooLarge`, so the JSON API and the web page answer that 413 as
+  they answer their other errors;
+* a client that goes away mid-body gets nothing, and the app is not called.
+
+A body is kept in memory up to a few MB, beyond that in an unnamed temporary file in the service's scratch
+folder (the operating system removes it when it is closed, or when the process dies); the app then reads it
+through a ``receive`` that replays it. Starlette spools uploaded files to disk too but puts no cap on their
+total size (its ``max_part_size`` covers plain form fields only), and FastAPI parses the whole form before a
+route runs, which is why the cap is enforced on the byte stream here.
+
+:class:`AdmissionMiddleware` (inside it) counts the evaluation requests in progress, whose bodies have
+arrived by then, and answers 503 with Retry-After past the capacity.
 """
 
 from __future__ import annotations
 
 import json
+import tempfile
 from collections.abc import Callable
+from pathlib import Path
+from typing import IO
 
+import anyio
+import anyio.to_thread
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from .errors import error_body
 
-__all__ = ["BodyLimitMiddleware", "AdmissionMiddleware", "BodyTooLarge"]
+__all__ = ["BodyMiddleware", "AdmissionMiddleware", "BodyTooLarge"]
+
+#: a body larger than this goes to a temporary file
+SPOOL_BYTES = 2 << 20
+#: what is written to (and replayed from) the temporary file at a time
+_CHUNK = 1 << 20
 
 
 class BodyTooLarge(HTTPException):
@@ -38,53 +63,165 @@ async def _send_json(send: Send, status: int, body: dict[str, object], headers: 
     await send({"type": "http.response.body", "body": raw})
 
 
-class BodyLimitMiddleware:
-    """Refuse request bodies over ``limit`` bytes with 413, whether declared or streamed."""
+def _header(scope: Scope, name: bytes) -> bytes | None:
+    for key, value in scope.get("headers", ()):
+        if key == name:
+            return bytes(value)
+    return None
 
-    def __init__(self, app: ASGIApp, limit: int) -> None:
+
+def _content_length(scope: Scope) -> int | None:
+    value = _header(scope, b"content-length")
+    if value is None:
+        return None
+    try:
+        return int(value)
+    except ValueError:
+        return None
+
+
+class _Body:
+    """A request body as it arrives: in memory up to ``SPOOL_BYTES``, then in an unnamed temporary file."""
+
+    def __init__(self, spool_dir: Path | None) -> None:
+        self.spool_dir = spool_dir
+        self.size = 0
+        self.pending = bytearray()  # not yet written to the file (all of it while there is no file)
+        self.file: IO[bytes] | None = None
+
+    async def add(self, data: bytes) -> None:
+        self.size += len(data)
+        self.pending += data
+        if self.file is None and len(self.pending) > SPOOL_BYTES:
+            self.file = await anyio.to_thread.run_sync(self._open)
+        if self.file is not None and len(self.pending) >= _CHUNK:
+            await self._flush()
+
+    def _open(self) -> IO[bytes]:
+        return tempfile.TemporaryFile(dir=self.spool_dir if self.spool_dir and self.spool_dir.is_dir() else None)
+
+    async def _flush(self) -> None:
+        assert self.file is not None
+        data, self.pending = bytes(self.pending), bytearray()
+        await anyio.to_thread.run_sync(self.file.write, data)
+
+    def replay(self, then: Receive) -> Receive:
+        """A ``receive`` that hands the body over again, then passes on to ``then`` (for ``http.disconnect``)."""
+        done = False
+
+        async def receive() -> Message:
+            nonlocal done
+            if done:
+                return await then()
+            if self.file is None:
+                done = True
+                return {"type": "http.request", "body": bytes(self.pending), "more_body": False}
+            chunk = await anyio.to_thread.run_sync(self.file.read, _CHUNK)
+            done = self.file.tell() >= self.size
+            return {"type": "http.request", "body": chunk, "more_body": not done}
+
+        return receive
+
+    async def finish(self) -> None:
+        """All of it has arrived: the rest goes to the file, which is rewound for the replay."""
+        if self.file is not None:
+            await self._flush()
+            await anyio.to_thread.run_sync(self.file.seek, 0)
+
+    def close(self) -> None:
+        self.pending = bytearray()
+        if self.file is not None:
+            self.file.close()
+            self.file = None
+
+
+class BodyMiddleware:
+    """Receive each request body in full before the app runs: capped, on a deadline, a bounded number at once."""
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        *,
+        limit: int,
+        timeout_s: float,
+        max_receiving: int,
+        retry_after_s: Callable[[], int],
+        spool_dir: Path | None = None,
+    ) -> None:
         self.app = app
         self.limit = limit
+        self.timeout_s = timeout_s
+        self.max_receiving = max_receiving
+        self.retry_after_s = retry_after_s
+        self.spool_dir = spool_dir
+        self.receiving = 0
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
         declared = _content_length(scope)
+        if not declared and _header(scope, b"transfer-encoding") is None:
+            await self.app(scope, receive, send)  # no body
+            return
         if declared is not None and declared > self.limit:
             await _send_json(
                 send, 413, error_body("payload_too_large", _too_large_message(self.limit)), {"connection": "close"}
             )
             return
-        seen = 0
-
-        async def limited_receive() -> Message:
-            nonlocal seen
-            message = await receive()
-            if message["type"] == "http.request":
-                seen += len(message.get("body", b""))
-                if seen > self.limit:
-                    raise BodyTooLarge(self.limit)
-            return message
-
-        await self.app(scope, limited_receive, send)
-
-
-def _content_length(scope: Scope) -> int | None:
-    for key, value in scope.get("headers", ()):
-        if key == b"content-length":
+        if self.receiving >= self.max_receiving:
+            retry = self.retry_after_s()
+            message = f"too many request bodies are being received ({self.receiving}); retry in {retry} s"
+            await _send_json(send, 503, error_body("busy", message), {"retry-after": str(retry), "connection": "close"})
+            return
+        body = _Body(self.spool_dir)
+        try:
+            self.receiving += 1
             try:
-                return int(value)
-            except ValueError:
-                return None
-    return None
+                outcome = await self._receive(receive, body)
+            finally:
+                self.receiving -= 1
+            if outcome == "complete":
+                await body.finish()
+                await self.app(scope, body.replay(receive), send)
+            elif outcome == "too_large":
+                body.close()
+                await self.app(scope, self._too_large, send)
+            elif outcome == "late":
+                body.close()
+                message = f"the request body did not arrive within {self.timeout_s:g} s (KITTI_EVAL_BODY_TIMEOUT_S)"
+                await _send_json(send, 408, error_body("request_timeout", message), {"connection": "close"})
+            # "gone": the client disconnected; there is no one to answer
+        finally:
+            body.close()
+
+    async def _receive(self, receive: Receive, body: _Body) -> str:
+        """Read the body into ``body``: complete, too_large, late or gone."""
+        with anyio.move_on_after(self.timeout_s):
+            while True:
+                message = await receive()
+                if message["type"] == "http.disconnect":
+                    return "gone"
+                if message["type"] != "http.request":
+                    continue
+                chunk = message.get("body", b"")
+                if body.size + len(chunk) > self.limit:
+                    return "too_large"
+                await body.add(chunk)
+                if not message.get("more_body", False):
+                    return "complete"
+        return "late"
+
+    async def _too_large(self) -> Message:
+        raise BodyTooLarge(self.limit)
 
 
 class AdmissionMiddleware:
-    """Admit at most ``capacity()`` evaluation requests at once (uploading, waiting or running).
+    """Admit at most ``capacity()`` evaluation requests at once (waiting for a slot or running).
 
-    The count lives on the event loop (no lock needed). A request past the capacity gets 503 with
-    Retry-After before its body is read, so a saturated server does not spend time receiving uploads it
-    would refuse.
+    It runs inside :class:`BodyMiddleware`, so a request is counted from the moment its body has arrived, and
+    a client slow to send its upload holds no place. The count lives on the event loop (no lock needed). A
+    request past the capacity gets 503 with Retry-After and is not queued.
     """
 
     def __init__(

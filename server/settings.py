@@ -49,6 +49,15 @@ class Settings(BaseSettings):
     retry_after_s: Annotated[int, Field(ge=1)] = 2
     """The Retry-After a 503 carries."""
 
+    body_timeout_s: Annotated[float, Field(gt=0)] = 120.0
+    """Time a request body may take to arrive in full; a slower one is answered 408 and its connection closed.
+    A body is received before its request takes an evaluation place, so slow senders hold no evaluation place,
+    only a receiving one (``max_receiving_bodies``) and for this long at most. 120 s is 200 MB at 1.7 MB/s."""
+
+    max_receiving_bodies: Annotated[int | None, Field(gt=0)] = None
+    """Request bodies received at the same time; past that the service answers 503 with Retry-After. Unset:
+    four times the evaluation places, ``4 * (max_concurrent_evals + max_queued_evals)`` (40 by default)."""
+
     admin_token: SecretStr | None = None
     """Bearer token for registering and deleting ground truths. Unset: one is generated on first start and
     kept in ``<data_dir>/admin-token`` (readable by the server's user only)."""
@@ -88,6 +97,15 @@ class Settings(BaseSettings):
     @property
     def resolved_database_url(self) -> str:
         return self.database_url or f"sqlite:///{self.data_dir.resolve() / 'kitti-eval.db'}"
+
+    @property
+    def evaluation_places(self) -> int:
+        """Evaluation requests admitted at once: running and queued."""
+        return self.max_concurrent_evals + self.max_queued_evals
+
+    @property
+    def receiving_bodies(self) -> int:
+        return self.max_receiving_bodies or 4 * self.evaluation_places
 
     @property
     def max_upload_bytes(self) -> int:

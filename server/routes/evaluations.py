@@ -54,8 +54,12 @@ def _respond(record: EvaluationRecord, fmt: OutputFormat, status: int = 200) -> 
     summary="Evaluate uploaded predictions",
     responses={
         201: {"content": _TEXT_RESPONSES, "description": "the evaluation, stored"},
+        408: {"model": ErrorResponse, "description": "the upload took longer than KITTI_EVAL_BODY_TIMEOUT_S to arrive"},
         413: {"model": ErrorResponse, "description": "the upload is larger than KITTI_EVAL_MAX_UPLOAD_MB"},
-        503: {"model": ErrorResponse, "description": "every evaluation slot is taken; see Retry-After"},
+        503: {
+            "model": ErrorResponse,
+            "description": "every evaluation slot is taken, or too many uploads are arriving; see Retry-After",
+        },
     },
 )
 async def create_evaluation(

@@ -1,0 +1,302 @@
+"""Slow clients against a real uvicorn: bodies sent a byte at a time do not hold evaluation places, and a body
+that misses its deadline is answered 408.
+
+The service keeps its default places (2 evaluating + 8 queued = 10). Ten clients open uploads and send their
+bodies one byte every 50 ms; meanwhile a normal upload must get its 201, and each slow one a 408 once the
+(shortened) body deadline passes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import anyio
+import pytest
+from server_helpers import ROOT, LiveServer
+
+from server.middleware import SPOOL_BYTES, BodyMiddleware, BodyTooLarge
+
+SLOW_CLIENTS = 10
+RECEIVING = 12  # bodies received at once: the slow clients and the normal upload fit
+BODY_TIMEOUT_S = 3
+PAUSE_S = 0.05
+DEMO_PRED = (ROOT / "kitti_eval/data/demo/result.pkl.gz").read_bytes()
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory):
+    data_dir = tmp_path_factory.mktemp("slow") / "data"
+    with LiveServer(data_dir, body_timeout_s=BODY_TIMEOUT_S, max_receiving_bodies=RECEIVING) as server:
+        yield server
+
+
+def multipart(gt: str, payload: bytes) -> tuple[bytes, str]:
+    boundary = "slow-client-boundary"
+    body = (
+        f'--{boundary}\r\nContent-Disposition: form-data; name="gt"\r\n\r\n{gt}\r\n'
+        f'--{boundary}\r\nContent-Disposition: form-data; name="predictions"; filename="result.pkl.gz"\r\n'
+        "Content-Type: application/octet-stream\r\n\r\n"
+    ).encode()
+    return body + payload + f"\r\n--{boundary}--\r\n".encode(), f"multipart/form-data; boundary={boundary}"
+
+
+@dataclass
+class SlowClient:
+    """An upload whose body goes out one byte per ``PAUSE_S`` until the server answers (or ``stop``)."""
+
+    port: int
+    path: str = "/v1/evaluations"
+    sent: int = 0
+    status: int | None = None
+    body: dict = field(default_factory=dict)
+    answered_at: float | None = None
+    error: BaseException | None = None
+
+    def run(self, stop: threading.Event) -> None:
+        try:
+            self._run(stop)
+        except BaseException as e:  # noqa: BLE001 - reported by the test
+            self.error = e
+
+    def _run(self, stop: threading.Event) -> None:
+        body, ctype = multipart("demo", DEMO_PRED)
+        with socket.create_connection(("127.0.0.1", self.port), timeout=15) as sock:
+            head = (
+                f"POST {self.path} HTTP/1.1\r\nHost: 127.0.0.1:{self.port}\r\nContent-Type: {ctype}\r\n"
+                f"Content-Length: {len(body)}\r\n\r\n"
+            )
+            sock.sendall(head.encode())
+            while self.sent < len(body) and not stop.is_set():
+                readable, _, _ = select.select([sock], [], [], PAUSE_S)
+                if readable:  # the server answered: stop sending, read it
+                    break
+                sock.sendall(body[self.sent : self.sent + 1])
+                self.sent += 1
+            if stop.is_set():
+                return
+            raw = b""
+            while chunk := sock.recv(65536):
+                raw += chunk
+        self.answered_at = time.monotonic()
+        head, _, payload = raw.partition(b"\r\n\r\n")
+        self.status = int(head.split(b" ", 2)[1])
+        self.body = json.loads(payload)
+
+
+def test_slow_bodies_do_not_starve_uploads_and_miss_their_deadline(live) -> None:
+    import httpx
+
+    stop = threading.Event()
+    slow = [SlowClient(live.port) for _ in range(SLOW_CLIENTS)]
+    threads = [threading.Thread(target=c.run, args=(stop,)) for c in slow]
+    started = time.monotonic()
+    for t in threads:
+        t.start()
+    try:
+        time.sleep(0.5)  # every slow client has sent its head and a few bytes
+        assert all(c.sent > 0 and c.status is None for c in slow), [(c.sent, c.status, c.error) for c in slow]
+        with httpx.Client(base_url=live.url, timeout=30) as client:
+            t0 = time.monotonic()
+            response = client.post(
+                "/v1/evaluations", data={"gt": "demo"}, files={"predictions": ("result.pkl.gz", DEMO_PRED)}
+            )
+            upload_s = time.monotonic() - t0
+        assert response.status_code == 201, response.text
+        assert response.json()["frames"] == 200
+        assert all(c.status is None for c in slow)  # they were still sending all along
+        print(f"\nupload while {SLOW_CLIENTS} clients trickle: {upload_s:.3f} s")
+        for t in threads:
+            t.join(BODY_TIMEOUT_S + 10)
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(10)
+    for c in slow:
+        assert c.error is None, c.error
+        assert c.status == 408, (c.status, c.body)
+        assert c.body["error"]["code"] == "request_timeout"
+        assert f"{BODY_TIMEOUT_S} s" in c.body["error"]["message"]
+        assert "KITTI_EVAL_BODY_TIMEOUT_S" in c.body["error"]["message"]
+        assert c.answered_at is not None
+        assert BODY_TIMEOUT_S - 0.5 < c.answered_at - started < BODY_TIMEOUT_S + 3
+        assert c.sent < BODY_TIMEOUT_S / PAUSE_S + 10  # nothing was read after the deadline
+
+
+def open_upload(port: int, declared: int = 10_000) -> socket.socket:
+    """An upload whose head and first bytes are sent, and no more."""
+    sock = socket.create_connection(("127.0.0.1", port), timeout=15)
+    head = (
+        f"POST /v1/evaluations HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
+        f"Content-Type: multipart/form-data; boundary=b\r\nContent-Length: {declared}\r\n\r\n--b\r\n"
+    )
+    sock.sendall(head.encode())
+    return sock
+
+
+def answered(sock: socket.socket) -> bool:
+    return bool(select.select([sock], [], [], 0)[0])
+
+
+def test_bodies_received_at_once_are_bounded_and_a_gone_client_frees_its_place(live) -> None:
+    import httpx
+
+    held = [open_upload(live.port) for _ in range(RECEIVING)]
+    try:
+        time.sleep(0.3)
+        assert not any(answered(s) for s in held)  # past the 10 evaluation places: all are being received
+        with httpx.Client(base_url=live.url, timeout=10) as client:
+            busy = client.post("/v1/evaluations", data={"gt": "demo"}, files={"predictions": ("r.pkl", b"x")})
+        assert busy.status_code == 503, busy.text
+        assert busy.headers["retry-after"] == "2"
+        assert busy.json()["error"]["code"] == "busy"
+        assert "request bodies are being received (12)" in busy.json()["error"]["message"]
+        assert not any(answered(s) for s in held)
+        for sock in held:  # gone mid-body: their places are free again
+            sock.close()
+        held = []
+        time.sleep(0.3)
+        held = [open_upload(live.port) for _ in range(RECEIVING - 1)]
+        with httpx.Client(base_url=live.url, timeout=30) as client:
+            ok = client.post("/v1/evaluations", data={"gt": "demo"}, files={"predictions": ("r.pkl.gz", DEMO_PRED)})
+        assert ok.status_code == 201, ok.text
+        assert not any(answered(s) for s in held)
+    finally:
+        for sock in held:
+            sock.close()
+
+
+# ------------------------------------------------------------------------------------- in process (ASGI)
+
+MB = 1 << 20
+
+
+class Recorder:
+    """An app that reads the whole body and answers 200; or raises, when told to."""
+
+    def __init__(self, fail: bool = False) -> None:
+        self.fail = fail
+        self.body: bytes | None = None
+        self.error: BaseException | None = None
+
+    async def __call__(self, scope, receive, send) -> None:
+        data = b""
+        try:
+            while True:
+                message = await receive()
+                data += message.get("body", b"")
+                if not message.get("more_body", False):
+                    break
+        except BodyTooLarge as e:
+            self.error = e
+            return
+        self.body = data
+        if self.fail:
+            raise RuntimeError("the app failed")
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"ok"})
+
+
+def call(app, messages: list[dict], *, limit: int = 64 * MB, timeout_s: float = 5, spool_dir: Path | None = None):
+    """Run BodyMiddleware(app) on one POST whose body arrives as ``messages`` (then nothing, ever); the
+    messages it sent back."""
+    sent: list[dict] = []
+    pending = list(messages)
+
+    async def receive() -> dict:
+        if pending:
+            return pending.pop(0)
+        await anyio.sleep_forever()
+        raise AssertionError("unreachable")
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+
+    scope = {
+        "type": "http",
+        "method": "POST",
+        "path": "/v1/evaluations",
+        "headers": [(b"transfer-encoding", b"chunked")],
+    }
+    middleware = BodyMiddleware(
+        app, limit=limit, timeout_s=timeout_s, max_receiving=4, retry_after_s=lambda: 2, spool_dir=spool_dir
+    )
+    anyio.run(middleware, scope, receive, send)
+    assert middleware.receiving == 0
+    return sent
+
+
+def chunks_of(data: bytes, size: int = 64 * 1024) -> list[dict]:
+    return [
+        {"type": "http.request", "body": data[i : i + size], "more_body": i + size < len(data)}
+        for i in range(0, len(data), size)
+    ]
+
+
+@pytest.fixture
+def spools(monkeypatch) -> list:
+    """The temporary files the middleware opens."""
+    import tempfile
+
+    opened = []
+    original = tempfile.TemporaryFile
+
+    def recording(*args, **kwargs):
+        f = original(*args, **kwargs)
+        opened.append(f)
+        return f
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", recording)
+    return opened
+
+
+def test_a_large_body_is_spooled_unnamed_and_replayed_whole(spools, tmp_path) -> None:
+    data = os.urandom(5 * MB + 123)
+    app = Recorder()
+    sent = call(app, chunks_of(data), spool_dir=tmp_path)
+    assert app.body == data
+    assert sent[0]["status"] == 200
+    assert len(spools) == 1 and spools[0].closed
+    assert list(tmp_path.iterdir()) == []  # unnamed: nothing to remove if the process dies
+
+
+def test_a_small_body_stays_in_memory(spools) -> None:
+    data = os.urandom(SPOOL_BYTES)
+    app = Recorder()
+    call(app, chunks_of(data))
+    assert app.body == data and spools == []
+
+
+@pytest.mark.parametrize("case", ["app fails", "client gone", "deadline", "too large"])
+def test_the_spool_is_closed_however_the_request_ends(spools, tmp_path, case) -> None:
+    data = os.urandom(3 * MB)
+    app = Recorder(fail=case == "app fails")
+    messages = chunks_of(data)
+    if case == "client gone":
+        messages = messages[:-1] + [{"type": "http.disconnect"}]
+    elif case in ("deadline", "too large"):
+        messages[-1]["more_body"] = True  # and then nothing more arrives
+    if case == "too large":
+        messages.append({"type": "http.request", "body": b"x" * MB, "more_body": True})
+    kwargs = {"timeout_s": 0.3} if case == "deadline" else {"limit": 3 * MB + 10} if case == "too large" else {}
+    if case == "app fails":
+        with pytest.raises(RuntimeError, match="the app failed"):
+            call(app, messages, spool_dir=tmp_path)
+        sent = []
+    else:
+        sent = call(app, messages, spool_dir=tmp_path, **kwargs)
+    assert len(spools) == 1 and spools[0].closed
+    if case == "client gone":
+        assert sent == [] and app.body is None and app.error is None  # no one to answer; the app never ran
+    elif case == "deadline":
+        assert sent[0]["status"] == 408 and app.body is None
+        assert json.loads(sent[1]["body"])["error"]["code"] == "request_timeout"
+        assert (b"connection", b"close") in sent[0]["headers"]
+    elif case == "too large":
+        assert isinstance(app.error, BodyTooLarge) and app.error.status_code == 413
