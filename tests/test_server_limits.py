@@ -151,3 +151,16 @@ def test_web_pages_quote_a_huge_value_in_part(client, method, path, field) -> No
     assert huge.headers["content-type"].startswith("text/html")
     assert len(huge.content) < len(small.content) + 3000, (len(huge.content), len(small.content))
     assert re.search(r"… \((60000|\d+ characters in all)", huge.text), huge.text[-500:]
+
+
+# ------------------------------------------------------------------------------------------ bounded numbers
+
+
+@pytest.mark.parametrize("score", ["nan", "inf", "-inf", "1e400", str(2**63), "-" + "9" * 400, "abc", "%ff"])
+def test_the_frame_page_refuses_a_score_that_is_no_bounded_number(client, score) -> None:
+    evaluation = upload(client, golden_bytes("result.pkl")).json()["id"]
+    page = client.get(f"/frames/000001?e={evaluation}&score={score}")
+    assert page.status_code == 422, page.text[:300]
+    assert page.headers["content-type"].startswith("text/html")
+    assert "score threshold must be a number between -1e+09 and 1e+09" in page.text
+    assert client.get(f"/frames/000001?e={evaluation}&score=0.5").status_code == 200

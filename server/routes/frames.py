@@ -28,6 +28,10 @@ ClassQ = Annotated[str, Query(alias="class", description="the class, e.g. Car")]
 MetricQ = Annotated[Literal["bbox", "bev", "3d", "aos"], Query(description="overlap metric (aos: the 2D matching)")]
 DifficultyQ = Annotated[Literal["easy", "moderate", "hard"], Query()]
 SetQ = Annotated[Literal["strict", "loose"], Query(alias="set", description="IoU threshold set")]
+#: scores are finite numbers; a threshold beyond this bound selects all or nothing
+MAX_SCORE = 1e9
+#: most frames a listing asks for (KITTI val has 3769)
+MAX_WORST = 1_000_000
 
 
 @router.get("/v1/evaluations/{evaluation_id}/frames", summary="TP, FP and FN per frame, worst first")
@@ -38,8 +42,13 @@ async def evaluation_frames(
     metric: MetricQ = "3d",
     difficulty: DifficultyQ = "moderate",
     oset: SetQ = "strict",
-    worst: Annotated[int | None, Query(ge=1, description="only the N frames with most errors (FP + FN)")] = 20,
-    score_threshold: Annotated[float, Query(description="count detections scoring at least this")] = 0.0,
+    worst: Annotated[
+        int | None, Query(ge=1, le=MAX_WORST, description="only the N frames with most errors (FP + FN), 1..10^6")
+    ] = 20,
+    score_threshold: Annotated[
+        float,
+        Query(ge=-MAX_SCORE, le=MAX_SCORE, allow_inf_nan=False, description="count detections scoring at least this"),
+    ] = 0.0,
 ) -> dict[str, Any]:
     """The counts come from the same matching as the AP (as `kitti-eval frames`): frames ranked by FP + FN,
     ties by more misses. Needs an evaluation against a registered ground truth whose predictions were kept."""
@@ -65,7 +74,15 @@ async def inspect_frame(
     metric: MetricQ = "3d",
     difficulty: DifficultyQ = "moderate",
     oset: SetQ = "strict",
-    score_threshold: Annotated[float | None, Query(description="detections scoring below this take no part")] = None,
+    score_threshold: Annotated[
+        float | None,
+        Query(
+            ge=-MAX_SCORE,
+            le=MAX_SCORE,
+            allow_inf_nan=False,
+            description="detections scoring below this take no part",
+        ),
+    ] = None,
 ) -> dict[str, Any]:
     """As `kitti-eval inspect --format json`: the ground truth with its role for the class, and per
     evaluation every detection labelled (tp with its ground truth and IoU, fp and why, ignored, dontcare,

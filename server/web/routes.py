@@ -6,6 +6,7 @@ The pages read the same records the JSON API serves and render them with Jinja2;
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from functools import partial
 from pathlib import Path
@@ -27,6 +28,7 @@ from ..compare import compare
 from ..deps import ServiceDep
 from ..errors import MAX_ECHO_CHARS, ApiError, BadRequest, clip, echo, library_error_status
 from ..evaluator import EvalOptions, parse_labels
+from ..routes.frames import MAX_SCORE
 from ..schemas import iso
 from ..service import FileIn, Service
 from ..store import EvaluationRecord
@@ -348,12 +350,16 @@ def compare_page(
 
 
 def _parse_score(text: str | None) -> float | None:
+    """The score threshold of the frame page: empty for none, else a finite number within the API's bound."""
     if text is None or not text.strip():
         return None
     try:
-        return float(text)
+        score = float(text)
     except ValueError:
-        raise BadRequest(f"score threshold must be a number, got {echo(text)}") from None
+        score = math.nan
+    if not -MAX_SCORE <= score <= MAX_SCORE:  # also not NaN
+        raise BadRequest(f"score threshold must be a number between {-MAX_SCORE:g} and {MAX_SCORE:g}, got {echo(text)}")
+    return score
 
 
 def frame_models(
