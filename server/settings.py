@@ -43,8 +43,9 @@ class Settings(BaseSettings):
     """Evaluations (loading, validating, matching) running at the same time, each on its own thread."""
 
     max_queued_evals: Annotated[int, Field(ge=0)] = 8
-    """Evaluation requests admitted beyond those running (uploading, or waiting for a slot); past that the
-    service answers 503 with Retry-After."""
+    """Evaluation requests admitted beyond those running (waiting for a slot); past that the service answers
+    503 with Retry-After. A request is admitted once its upload has arrived in full, so clients still sending
+    take no place here (see ``max_receiving_bodies``)."""
 
     retry_after_s: Annotated[int, Field(ge=1)] = 2
     """The Retry-After a 503 carries."""
