@@ -413,3 +413,16 @@ def test_class_names_that_are_not_text_are_a_422_not_a_500(client) -> None:
     results[0]["name"] = np.array([b"Car\xff"] * len(results[0]["score"]))
     response = upload(client, pickle.dumps(results, protocol=4), "result.pkl")
     assert_error(response, 422, "not ASCII", "frame 000000")
+
+
+def test_a_prediction_frame_outside_the_ground_truth_is_refused_where_it_is_read(client) -> None:
+    def add_unknown(results: list) -> None:
+        results.insert(1, dict(results[0], frame_id="777777"))
+
+    err = assert_error(upload(client, results_with(add_unknown), gt="small"), 422, "not in the ground truth")
+    assert err["frame"] == "777777"
+    txt = golden_txt("pred.tar.gz")
+    txt["pred/777777.txt"] = _good_line()
+    err = assert_error(upload(client, zip_of(txt), "pred.zip", gt="small"), 422, "not in the ground truth")
+    assert err["frame"] == "777777"
+    still_serving(client)
