@@ -133,13 +133,31 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _output_format(text: str) -> OutputFormat:
+    """An output format by name, any case (``--format`` or ``$KITTI_EVAL_FORMAT``)."""
+    try:
+        return OutputFormat(text.strip().lower())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"unknown format {text!r}; expected one of {', '.join(f.value for f in OutputFormat)}"
+        ) from None
+
+
+def _default_format() -> OutputFormat:
+    raw = os.environ.get("KITTI_EVAL_FORMAT", "").strip()
+    try:
+        return _output_format(raw) if raw else OutputFormat.TABLE
+    except argparse.ArgumentTypeError as e:
+        raise ConfigError(f"KITTI_EVAL_FORMAT: {e}") from None
+
+
 def _add_eval_options(p: argparse.ArgumentParser) -> None:
     _add_config_options(p)
     p.add_argument(
         "--format",
-        type=OutputFormat,
+        type=_output_format,
         choices=list(OutputFormat),
-        default=OutputFormat(os.environ.get("KITTI_EVAL_FORMAT", "table")),
+        default=_default_format(),
         help="table: OpenPCDet's text; json: versioned schema; markdown: for CI summaries "
         "(default: table, or $KITTI_EVAL_FORMAT)",
     )

@@ -221,3 +221,25 @@ def test_lidar_only_and_protocol_file_flags(capsys, tmp_path):
     assert json.loads(out)["protocol"] == "official"
     f.write_text("nonsense = 1\n")
     assert run(capsys, "--gt", GT, "--pred", PRED, "--protocol-file", f)[0] == 2
+
+
+def test_kitti_eval_format_is_read_in_any_case_and_a_bad_one_is_a_usage_error(capsys, monkeypatch):
+    monkeypatch.setenv("KITTI_EVAL_FORMAT", "JSON")
+    code, out, _ = run(capsys, "demo")
+    assert code == 0 and json.loads(out)["schema_version"] == 1
+    monkeypatch.setenv("KITTI_EVAL_FORMAT", "xml")
+    for argv in (["demo"], ["--help"], ["gate", "--help"]):
+        code, out, err = run(capsys, *argv)
+        assert code == 2 and out == ""
+        assert "KITTI_EVAL_FORMAT: unknown format 'xml'; expected one of table, json, markdown" in err
+
+
+def test_a_mistyped_class_gets_a_suggestion(capsys):
+    code, _, err = run(capsys, "demo", "--classes", "Cars")
+    assert code == 2
+    assert "class 'Cars' has no default IoU thresholds; did you mean 'Car'?" in err
+    code, out, err = run(capsys, "demo", "--classes", "Cars,Pedestrian", "--iou", "Cars=0.7,0.7,0.7")
+    assert code == 0 and "Pedestrian AP" in out
+    assert "class 'Cars' has neither ground truth nor detections, so every AP of it is n/a; did you mean 'Car'?" in err
+    code, _, err = run(capsys, "demo", "--classes", "Bus", "--iou", "Bus=0.5,0.5,0.5")
+    assert code == 0 and "class 'Bus' has neither ground truth nor detections, so every AP of it is n/a\n" in err

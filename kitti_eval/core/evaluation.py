@@ -35,6 +35,7 @@ from .protocol import (
     Metric,
     Protocol,
     coco_thresholds,
+    did_you_mean,
 )
 from .result import EvalResult
 
@@ -117,6 +118,18 @@ def scored_metrics(dt: Annotations, cls: str) -> dict[Metric, bool]:
         Metric.BEV: bool(np.any(ground)),
         Metric.THREE_D: bool(np.any(ground & (y != MISSING_COORD) & (h > 0))),
     }
+
+
+def _absent_class_warnings(gt: Annotations, dt: Annotations, config: EvalConfig) -> list[str]:
+    """A requested class with neither ground truth nor detections is n/a everywhere: usually a typo."""
+    absent = [c for c in config.classes if not gt.is_class(c).any() and not dt.is_class(c).any()]
+    if not absent:
+        return []
+    present = sorted(set(np.unique(gt.name).tolist()) | set(np.unique(dt.name).tolist()))
+    return [
+        f"class {c!r} has neither ground truth nor detections, so every AP of it is n/a{did_you_mean(c, present)}"
+        for c in absent
+    ]
 
 
 def _dontcare_rows(gt: Annotations, protocol: Protocol) -> npt.NDArray[np.bool_]:
@@ -217,7 +230,7 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
                     field=fname,
                 )
     dt, missing = dt.aligned_to(gt.frame_ids)
-    warnings = dimension_order_warnings(gt) + dimension_order_warnings(dt)
+    warnings = dimension_order_warnings(gt) + dimension_order_warnings(dt) + _absent_class_warnings(gt, dt, config)
     if missing:
         shown = ", ".join(missing[:10]) + (f" and {len(missing) - 10} more" if len(missing) > 10 else "")
         warnings.append(f"{len(missing)} of {gt.num_frames} frames have no predictions and count as empty: {shown}")

@@ -12,6 +12,7 @@ Two protocols share these tables and differ only in the flags of :class:`Protoco
 
 from __future__ import annotations
 
+import difflib
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -162,6 +163,14 @@ COCO_IOU_RANGES: Mapping[str, tuple[float, float]] = MappingProxyType(
     }
 )
 COCO_STEPS = 10
+
+
+def did_you_mean(name: str, candidates: Sequence[str]) -> str:
+    """``"; did you mean 'Car'?"`` for the candidate closest to a mistyped class name (compared
+    case-insensitively), or ``""`` when none is close."""
+    by_lower = {c.lower(): c for c in candidates}
+    close = difflib.get_close_matches(name.lower(), list(by_lower), n=1, cutoff=0.6)
+    return f"; did you mean {by_lower[close[0]]!r}?" if close and close[0] != name.lower() else ""
 
 
 def coco_thresholds(cls: str) -> tuple[float, ...]:
@@ -456,8 +465,8 @@ class EvalConfig:
             base.update(user)
             if not base:
                 raise ConfigError(
-                    f"class {cls!r} has no default IoU thresholds (known: {', '.join(KNOWN_CLASSES)}); "
-                    f"give them, e.g. --iou {cls}=0.7,0.7,0.7"
+                    f"class {cls!r} has no default IoU thresholds{did_you_mean(cls, KNOWN_CLASSES)} (known: "
+                    f"{', '.join(KNOWN_CLASSES)}); for a class of your own, give them, e.g. --iou {cls}=0.7,0.7,0.7"
                 )
             resolved[cls] = base
         object.__setattr__(self, "overlaps", MappingProxyType(resolved))
