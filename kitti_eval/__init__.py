@@ -23,7 +23,7 @@ _LAZY = {
     "Annotations": "kitti_eval.core.frames",
     "load_ground_truth": "kitti_eval.io.loaders",
     "load_detections": "kitti_eval.io.loaders",
-    "get_official_eval_result": "kitti_eval.compat",
+    "get_official_eval_result": "kitti_eval.compat.openpcdet",
 }
 
 __all__ = [

@@ -54,3 +54,14 @@ def test_errors(annos):
         get_official_eval_result(gt, dt[:-1], ["Car"])
     with pytest.raises(ConfigError, match="out of range"):
         get_official_eval_result(gt, dt, [7])
+
+
+def test_import_paths_name_one_function():
+    """The drop-in moved into a package; every import path users have written still reaches it."""
+    import kitti_eval
+    from kitti_eval import compat
+    from kitti_eval.compat import openpcdet
+
+    assert kitti_eval.get_official_eval_result is openpcdet.get_official_eval_result
+    assert compat.get_official_eval_result is openpcdet.get_official_eval_result
+    assert compat.ret_dict is openpcdet.ret_dict

@@ -1,7 +1,7 @@
 """A drop-in for OpenPCDet's ``get_official_eval_result``: swap one import, keep the calling code.
 
     # from pcdet.datasets.kitti.kitti_object_eval_python.eval import get_official_eval_result
-    from kitti_eval import get_official_eval_result
+    from kitti_eval import get_official_eval_result    # or from kitti_eval.compat.openpcdet import ...
 
 Same arguments (lists of per-frame annos dicts, paired by position as OpenPCDet does), same printed text
 and ``ret_dict`` keys, computed with the ``openpcdet`` protocol on exact IoU and without a GPU.
@@ -14,12 +14,12 @@ from typing import Any
 
 import numpy as np
 
-from .core.evaluation import evaluate
-from .core.frames import Annotations
-from .core.protocol import OPENPCDET, EvalConfig
-from .core.result import EvalResult
-from .errors import ConfigError, InputError
-from .report.render import render_table
+from ..core.evaluation import evaluate
+from ..core.frames import Annotations
+from ..core.protocol import OPENPCDET, EvalConfig
+from ..core.result import EvalResult
+from ..errors import ConfigError, InputError
+from ..report.render import render_table
 
 __all__ = ["get_official_eval_result", "ret_dict"]
 
