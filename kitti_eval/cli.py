@@ -273,7 +273,8 @@ def _demo(args: argparse.Namespace) -> int:
 
     gt_path, pred_path = demo_paths()
     if args.where:
-        print(gt_path, pred_path)
+        print(gt_path)
+        print(pred_path)
         return EXIT_OK
     return _run(gt_path, pred_path, args)
 
@@ -288,7 +289,7 @@ def _demo_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--where",
         action="store_true",
-        help="print the demo's ground-truth and prediction paths (one line, space-separated) and exit",
+        help="print the demo's ground-truth and prediction paths (one a line) and exit",
     )
     p.set_defaults(run=_demo)
     return p

@@ -243,3 +243,27 @@ def test_a_mistyped_class_gets_a_suggestion(capsys):
     assert "class 'Cars' has neither ground truth nor detections, so every AP of it is n/a; did you mean 'Car'?" in err
     code, _, err = run(capsys, "demo", "--classes", "Bus", "--iou", "Bus=0.5,0.5,0.5")
     assert code == 0 and "class 'Bus' has neither ground truth nor detections, so every AP of it is n/a\n" in err
+
+
+def test_demo_where_prints_one_path_a_line(capsys):
+    code, out, _ = run(capsys, "demo", "--where")
+    lines = out.splitlines()
+    assert code == 0 and len(lines) == 2
+    assert all(Path(p).is_file() for p in lines)
+    assert Path(lines[0]).name.startswith("kitti_infos_val") and Path(lines[1]).name.startswith("result")
+
+
+def test_a_tiny_negative_difference_prints_as_zero_not_minus_zero():
+    from types import SimpleNamespace
+
+    from kitti_eval.analysis.compare import render_comparison
+    from kitti_eval.analysis.gate import ValueKey
+
+    key = ValueKey("Car", "3d", "moderate")
+    cmp = SimpleNamespace(
+        rows=lambda: [(key, 80.00001, 80.0, -0.00001, (-0.00002, 0.00004))], resamples=10, seed=0, notes=()
+    )
+    table = render_comparison(cmp)  # type: ignore[arg-type]
+    assert "-0.0000" not in table
+    assert "+0.0000  [+0.0000, +0.0000]" in table
+    assert "| +0.0000 | [+0.0000, +0.0000] |" in render_comparison(cmp, "markdown")  # type: ignore[arg-type]

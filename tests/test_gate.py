@@ -209,3 +209,20 @@ def test_readme_ci_example_runs_as_written(tmp_path):
     assert "gate: PASSED" in proc.stdout
     assert ET.parse(tmp_path / "gate.xml").getroot().get("failures") == "0"
     assert "passed" in (tmp_path / "summary.md").read_text()
+
+
+def test_an_all_pass_gate_of_many_checks_prints_no_empty_table():
+    from kitti_eval.analysis.gate import render_verdict
+
+    verdict = run_gate(doc({}), GateRules(max_drops=(MaxDrop(0.5),)), doc({}))
+    assert len(verdict.checks) == 96 and verdict.passed  # 2 classes x 4 metrics x 3 x 2 x 2
+    assert (
+        render_verdict(verdict)
+        == "all 96 checks passed (--show-passed lists them)\ngate: PASSED (96 passed, 0 failed)\n"
+    )
+    assert render_verdict_markdown(verdict) == "### KITTI AP gate: ✅ passed\n\n96 passed, 0 failed.\n"
+    failing = run_gate(doc({"Car/3d/moderate": 40.0}), GateRules(max_drops=(MaxDrop(0.5),)), doc({}))
+    text = render_verdict(failing)
+    assert text.splitlines()[0].split() == ["rule", "now", "base", "delta", "note"]
+    assert "... and 95 passing checks not shown" in text
+    assert "| ❌ | `Car/3d/moderate/R40/strict drop <= 0.5` |" in render_verdict_markdown(failing)

@@ -97,10 +97,13 @@ def render_comparison(cmp: Comparison, fmt: str = "table", *, every_value: bool 
     rows = [r for r in cmp.rows() if every_value or (r[0].recall == "R40" and r[0].oset == "strict")]
 
     def num(v: float | None, sign: bool = False) -> str:
-        return "-" if v is None else (f"{v:+.4f}" if sign else f"{v:.4f}")
+        if v is None:
+            return "-"
+        v = round(v, 4) + 0.0  # -0.00001 prints as +0.0000, not -0.0000
+        return f"{v:+.4f}" if sign else f"{v:.4f}"
 
     def interval(iv: tuple[float, float] | None) -> str:
-        return "" if iv is None else f"[{iv[0]:+.4f}, {iv[1]:+.4f}]"
+        return "" if iv is None else f"[{num(iv[0], True)}, {num(iv[1], True)}]"
 
     def significant(iv: tuple[float, float] | None) -> str:
         return "*" if iv is not None and (iv[0] > 0 or iv[1] < 0) else ""

@@ -382,7 +382,7 @@ def render_verdict(verdict: Verdict, *, show_passed: bool = False) -> str:
     """A readable table: failures always, passing checks when asked (or when there are few)."""
     rows = [c for c in verdict.checks if show_passed or not c.passed or len(verdict.checks) <= 20]
     head = f"{'':4} {'rule':<48} {'now':>9} {'base':>9} {'delta':>9}  note"
-    lines = [head]
+    lines = [head] if rows else []  # no header over an empty table
     for c in rows:
         lines.append(
             f"{'ok' if c.passed else 'FAIL':<4} {c.rule:<48} {_f(c.current):>9} {_f(c.baseline):>9} "
@@ -390,7 +390,8 @@ def render_verdict(verdict: Verdict, *, show_passed: bool = False) -> str:
         )
     hidden = len(verdict.checks) - len(rows)
     if hidden:
-        lines.append(f"     ... and {hidden} passing checks not shown")
+        more = f"     ... and {hidden} passing checks not shown" if rows else f"all {hidden} checks passed"
+        lines.append(f"{more} (--show-passed lists them)")
     n_fail = len(verdict.failures)
     lines.append(
         f"gate: {'PASSED' if verdict.passed else 'FAILED'} ({len(verdict.checks) - n_fail} passed, {n_fail} failed)"
@@ -400,21 +401,19 @@ def render_verdict(verdict: Verdict, *, show_passed: bool = False) -> str:
 
 def render_verdict_markdown(verdict: Verdict) -> str:
     status = "✅ passed" if verdict.passed else "❌ failed"
-    out = [
-        f"### KITTI AP gate: {status}",
-        "",
-        "| | rule | now | baseline | delta | note |",
-        "|---|---|---:|---:|---:|---|",
-    ]
-    for c in sorted(verdict.checks, key=lambda c: c.passed):
-        if c.passed and len(verdict.checks) > 40:
-            continue
+    shown = [c for c in sorted(verdict.checks, key=lambda c: c.passed) if not c.passed or len(verdict.checks) <= 40]
+    out = [f"### KITTI AP gate: {status}", ""]
+    if shown:  # no table of nothing when every one of many checks passed
+        out += ["| | rule | now | baseline | delta | note |", "|---|---|---:|---:|---:|---|"]
+    for c in shown:
         out.append(
             f"| {'✅' if c.passed else '❌'} | `{c.rule}` | {_f(c.current)} | {_f(c.baseline)} | "
             f"{_f(c.delta, sign=True)} | {c.message} |"
         )
     n_fail = len(verdict.failures)
-    out += ["", f"{len(verdict.checks) - n_fail} passed, {n_fail} failed."]
+    if shown:
+        out.append("")
+    out.append(f"{len(verdict.checks) - n_fail} passed, {n_fail} failed.")
     return "\n".join(out) + "\n"
 
 
