@@ -15,6 +15,7 @@ from typing import Any
 import anyio.to_thread
 from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 from pydantic import ValidationError
 
 from kitti_eval import __version__
@@ -65,7 +66,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             service.stop()
 
-    app = FastAPI(title="kitti-eval", version=__version__, description=_DESCRIPTION, lifespan=lifespan, debug=False)
+    # /docs (Swagger UI) with its script, stylesheet and icon served from the fastapi-offline package (under
+    # /static-offline-docs), not from a CDN, so the docs work without internet. No ReDoc: its bundle still
+    # fetches a logo from cdn.redoc.ly.
+    app = FastAPIOffline(
+        title="kitti-eval",
+        version=__version__,
+        description=_DESCRIPTION,
+        lifespan=lifespan,
+        debug=False,
+        redoc_url=None,
+    )
     app.state.service = service
     install_error_handlers(app)
     app.include_router(health.router)

@@ -2,7 +2,9 @@
 
 Needs Debian's ``chromium`` and ``chromedriver`` at /usr/bin; without them the module is skipped, unless
 ``KITTI_EVAL_BROWSER_TESTS=require``. ``KITTI_EVAL_SCREENSHOTS=1`` saves screenshots to /tmp/kitti-eval-shots.
-The tests run in order and share the server and the browser: upload, curves, drag and drop, compare, frames.
+The tests run in order and share the server and the browser: upload, curves, drag and drop, compare, frames,
+the API docs. The browser's only way out is a proxy that refuses every connection, so nothing but the local
+server (loopback goes direct) is reachable: a page that needs the internet fails here as it would offline.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from server_helpers import LiveServer
+from server_helpers import LiveServer, free_port
 
 from kitti_eval.io.safe_pickle import load_pickle
 from kitti_eval.io.synth import demo_paths
@@ -77,6 +79,7 @@ def browser(tmp_path_factory):
         "--no-first-run",
         "--disable-quic",
         "--window-size=1280,1600",
+        f"--proxy-server=http://127.0.0.1:{free_port()}",  # nothing listens there: the internet is out of reach
         f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}",
     ):
         options.add_argument(arg)
@@ -254,3 +257,24 @@ def test_frame_input_on_the_history_opens_the_frame_view(live, browser, state) -
     wait(browser).until(ec.url_contains("/frames/000015"))
     assert browser.current_url.endswith(f"/frames/000015?e={older}")
     assert len(browser.find_elements(By.CSS_SELECTOR, "svg.bev")) == 1
+
+
+# fetches a URL the way a page's script or stylesheet would (no-cors), saying whether anything answered
+_REACH_JS = """
+const [url, done] = arguments;
+fetch(url, {mode: "no-cors", cache: "no-store"}).then(() => done("reached"), () => done("unreachable"));
+"""
+
+
+def test_the_api_docs_render_without_the_internet(live, browser) -> None:
+    browser.get(live.url + "/docs")
+    operation = ".opblock .opblock-summary-path[data-path]"
+    wait(browser).until(lambda d: d.find_elements(By.CSS_SELECTOR, operation), "Swagger UI shows no operation")
+    with live.client() as c:
+        documented = set(c.get("/openapi.json").json()["paths"])
+    assert {e.get_attribute("data-path") for e in browser.find_elements(By.CSS_SELECTOR, operation)} == documented
+    fetched = browser.execute_script("return performance.getEntriesByType('resource').map((e) => e.name)")
+    assert fetched and all(url.startswith(live.url + "/") for url in fetched), fetched
+    # and the CDN the docs used to load from really is out of reach
+    assert browser.execute_async_script(_REACH_JS, "https://cdn.jsdelivr.net/npm/swagger-ui-dist@5/") == "unreachable"
+    shoot(browser, "docs")

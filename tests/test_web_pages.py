@@ -491,6 +491,24 @@ def test_no_page_or_static_file_fetches_from_the_internet(client, two) -> None:
         assert "http://" not in r.text and "https://" not in r.text, file.name
 
 
+def test_the_api_docs_are_served_by_the_service_itself(client) -> None:
+    r = client.get("/docs")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+    assert "http://" not in r.text and "https://" not in r.text and "//cdn" not in r.text
+    page = Page(r.text)
+    urls = page.urls + re.findall(r"""\burl:\s*['"]([^'"]+)""", r.text)  # and the document Swagger UI loads
+    scripts = [a["src"] for t, a in page.tags if t == "script" and "src" in a]
+    styles = [a["href"] for t, a in page.tags if t == "link" and a.get("rel") == "stylesheet"]
+    assert scripts and styles and "/openapi.json" in urls
+    for url in urls:
+        assert url.startswith("/") and not url.startswith("//"), url
+        asset = client.get(url)
+        assert asset.status_code == 200 and asset.content, url
+    assert all("javascript" in client.get(src).headers["content-type"] for src in scripts)
+    assert all(client.get(href).headers["content-type"].startswith("text/css") for href in styles)
+    assert client.get("/redoc").status_code == 404  # ReDoc's bundle fetches its logo from cdn.redoc.ly
+
+
 def test_pages_are_not_in_the_openapi_document(client) -> None:
     paths = client.get("/openapi.json").json()["paths"]
     assert not {"/", "/ui/evaluations", "/evaluations/{evaluation_id}", "/compare", "/frames/{frame_id}"} & set(paths)
