@@ -24,7 +24,7 @@ from .errors import install_error_handlers
 from .middleware import AdmissionMiddleware, BodyMiddleware
 from .routes import evaluations, frames, gates, ground_truths, health
 from .service import Service
-from .settings import Settings
+from .settings import Settings, default_data_dir
 from .web import STATIC_DIR
 from .web import router as web_router
 
@@ -124,7 +124,10 @@ def serve(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="kitti-eval serve", description="Run the kitti-eval HTTP service.")
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=8000, help="port (default 8000)")
-    parser.add_argument("--data-dir", help="KITTI_EVAL_DATA_DIR: database, ground truths, scratch space")
+    parser.add_argument(
+        "--data-dir",
+        help=f"KITTI_EVAL_DATA_DIR: database, ground truths, admin token, scratch space (default {default_data_dir()})",
+    )
     parser.add_argument("--database-url", help="KITTI_EVAL_DATABASE_URL, e.g. postgresql://user:pw@host/db")
     parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     try:

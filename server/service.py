@@ -105,6 +105,7 @@ class Service:
         """Create folders and tables, register the demo, start the warm-up (called from the lifespan)."""
         self._limiter = anyio.CapacityLimiter(self.settings.max_concurrent_evals)
         self.scratch_space.open()  # and removes what processes killed meanwhile left
+        log.info("data folder %s", self.data_dir)
         self.store.create_schema()
         self.admin_token = self._admin_token()
         if self.settings.register_demo:

@@ -5,13 +5,21 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
+import platformdirs
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-__all__ = ["Settings", "ENV_PREFIX"]
+__all__ = ["Settings", "ENV_PREFIX", "default_data_dir"]
 
 ENV_PREFIX = "KITTI_EVAL_"
 _MB = 1 << 20
+
+
+def default_data_dir() -> Path:
+    """The user's data folder for kitti-eval (``~/.local/share/kitti-eval`` or ``$XDG_DATA_HOME/kitti-eval``
+    on Linux, ``~/Library/Application Support/kitti-eval`` on macOS, ``%LOCALAPPDATA%\\kitti-eval`` on
+    Windows): never the working directory, where a ``git add .`` would pick up the admin token."""
+    return Path(platformdirs.user_data_dir("kitti-eval", appauthor=False))
 
 
 class Settings(BaseSettings):
@@ -21,7 +29,7 @@ class Settings(BaseSettings):
         env_prefix=ENV_PREFIX, extra="ignore", env_ignore_empty=True, validate_default=True
     )
 
-    data_dir: Path = Path("kitti-eval-data")
+    data_dir: Path = Field(default_factory=default_data_dir)
     """Holds the SQLite database (when ``database_url`` is unset), registered ground truths, the generated
     admin token, the scratch space of uploads being processed (``tmp/``) and the locks that tell whose
     scratch folders they are (``run/``: what a killed process left is removed at the next start)."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import gzip
 import hashlib
 import json
+import sys
 import threading
 import time
 from pathlib import Path
@@ -449,6 +450,56 @@ def test_settings_come_from_the_environment(tmp_path, monkeypatch) -> None:
     assert s.admin_token is not None and s.admin_token.get_secret_value() == "tok"
     monkeypatch.delenv("KITTI_EVAL_DATABASE_URL")
     assert Settings().resolved_database_url.startswith("sqlite:///") and "env-data" in Settings().resolved_database_url
+
+
+@pytest.fixture
+def no_settings(monkeypatch) -> None:
+    """No KITTI_EVAL_* variable from the environment the tests run in."""
+    import os
+
+    for name in [n for n in os.environ if n.startswith("KITTI_EVAL_")]:
+        monkeypatch.delenv(name)
+
+
+def test_the_data_dir_defaults_to_the_users_data_folder(tmp_path, monkeypatch, no_settings) -> None:
+    import platformdirs
+
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "xdg"))  # where Linux keeps per-user data
+    expected = Path(platformdirs.user_data_dir("kitti-eval", appauthor=False))
+    assert Settings().data_dir == expected and expected.is_absolute()
+    if sys.platform.startswith("linux"):
+        assert expected == tmp_path / "xdg" / "kitti-eval"
+    monkeypatch.setenv("KITTI_EVAL_DATA_DIR", str(tmp_path / "chosen"))
+    assert Settings().data_dir == tmp_path / "chosen"
+
+
+def test_serve_from_a_repository_leaves_nothing_in_it(tmp_path, monkeypatch, no_settings) -> None:
+    """``kitti-eval serve`` in a checkout: the database and the generated admin token go to the user's data
+    folder, where a ``git add .`` cannot pick them up."""
+    import platformdirs
+    import uvicorn
+    from fastapi.testclient import TestClient
+
+    from server.main import serve
+
+    served = []
+    monkeypatch.setattr(uvicorn, "run", lambda app, **kw: served.append(app))
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    monkeypatch.chdir(repo)
+    monkeypatch.setattr(platformdirs, "user_data_dir", lambda name, **kw: str(tmp_path / "user" / name))
+    monkeypatch.setenv("KITTI_EVAL_WARMUP", "false")
+    monkeypatch.setenv("KITTI_EVAL_REGISTER_DEMO", "false")
+    assert serve([]) == 0
+    with TestClient(served[-1]) as c:
+        assert c.get("/readyz").status_code == 200
+    assert list(repo.iterdir()) == []
+    data = tmp_path / "user" / "kitti-eval"
+    assert {"admin-token", "kitti-eval.db"} <= {p.name for p in data.iterdir()}
+    assert serve(["--data-dir", str(tmp_path / "flag")]) == 0  # the flag and the variable still choose
+    monkeypatch.setenv("KITTI_EVAL_DATA_DIR", str(tmp_path / "env"))
+    assert serve([]) == 0
+    assert [app.state.service.data_dir for app in served[1:]] == [tmp_path / "flag", tmp_path / "env"]
 
 
 def test_module_app_is_built_lazily_from_the_environment(tmp_path, monkeypatch) -> None:
