@@ -18,7 +18,15 @@ import numpy.typing as npt
 from ..errors import InputError
 from .frames import Annotations, dimension_order_warnings
 from .geometry import FrameOverlaps, frame_overlaps
-from .matching import FrameEvents, MatchJob, PRCounts, frame_events_many, pr_counts_many
+from .matching import (
+    FrameEvents,
+    MatchJob,
+    PRCounts,
+    first_passes,
+    frame_events_many,
+    pr_counts_many,
+    second_passes,
+)
 from .metrics import Curve, average_precision, curve_from_counts
 from .protocol import (
     ALL_METRICS,
@@ -39,7 +47,18 @@ from .protocol import (
 )
 from .result import EvalResult
 
-__all__ = ["evaluate", "plan_evaluation", "Plan", "ap_tables", "ignore_codes", "aos_enabled", "scored_metrics"]
+__all__ = [
+    "evaluate",
+    "plan_evaluation",
+    "Plan",
+    "Facts",
+    "Totals",
+    "result_from_counts",
+    "ap_tables",
+    "ignore_codes",
+    "aos_enabled",
+    "scored_metrics",
+]
 
 
 def ignore_codes(
@@ -140,6 +159,21 @@ def _dontcare_rows(gt: Annotations, protocol: Protocol) -> npt.NDArray[np.bool_]
     return gt.name == DONTCARE
 
 
+@dataclass(frozen=True)
+class Facts:
+    """What the whole set decides for each part of it (see :mod:`kitti_eval.analysis.sharded`): per class, the
+    metrics in which some detection can be scored (:func:`scored_metrics`), and whether AOS is computed
+    (:func:`aos_enabled`)."""
+
+    scored: Mapping[str, Mapping[Metric, bool]]
+    compute_aos: bool
+
+    @classmethod
+    def every_job(cls, config: EvalConfig) -> Facts:
+        """Every metric of every class scored, no AOS: the superset of the jobs any set can have."""
+        return cls({c: dict.fromkeys(OVERLAP_METRICS, True) for c in config.classes}, False)
+
+
 class Slot(NamedTuple):
     """One (class, difficulty, metric, threshold set) of the result: the matching behind it (an index into
     ``Plan.jobs``; None where the protocol does not evaluate it) and whether AOS rides on it."""
@@ -205,14 +239,29 @@ class Plan:
         jobs = self.jobs if jobs is None else jobs
         return pr_counts_many(*self._matching_inputs(), jobs, workers=workers) if jobs else []
 
+    def first_passes(self, *, workers: int | None = None) -> list[tuple[np.ndarray, int]]:
+        """Per job: pass 1's true-positive scores and the valid ground truth (phase 1 over a part of a set)."""
+        return first_passes(self._matching_inputs(), self.jobs, workers=workers) if self.jobs else []
+
+    def second_passes(self, thresholds: Sequence[np.ndarray], *, workers: int | None = None) -> list[PRCounts]:
+        """Per job: the counts at the whole set's ``thresholds`` (phase 2 over a part of a set)."""
+        if not self.jobs:
+            return []
+        return second_passes(self._matching_inputs(), self.jobs, thresholds, workers=workers)
+
     def events(self, jobs: Sequence[MatchJob] | None = None, *, workers: int | None = None) -> list[FrameEvents]:
         """Each frame's share of ``jobs``' counts as step functions of the score threshold (default: every job)."""
         jobs = self.jobs if jobs is None else jobs
         return frame_events_many(*self._matching_inputs(), jobs, workers=workers) if jobs else []
 
 
-def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None = None) -> Plan:
-    """Align detections to the ground truth's frames, compute overlaps, and list the matchings needed."""
+def plan_evaluation(
+    gt: Annotations, dt: Annotations, config: EvalConfig | None = None, *, facts: Facts | None = None
+) -> Plan:
+    """Align detections to the ground truth's frames, compute overlaps, and list the matchings needed.
+
+    ``facts``: the whole set's (when ``gt`` and ``dt`` are a part of it), instead of this part's own.
+    """
     config = config or EvalConfig()
     protocol = config.protocol
     if gt.kind != "ground_truth" or dt.kind != "detections":
@@ -238,7 +287,7 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
     t0 = time.perf_counter()
     fo = frame_overlaps(dt.bbox, dt.boxes_camera, dt.offsets, gt.bbox, gt.boxes_camera, gt.offsets, dontcare)
     overlap_seconds = time.perf_counter() - t0
-    compute_aos = aos_enabled(dt, protocol)
+    compute_aos = aos_enabled(dt, protocol) if facts is None else facts.compute_aos
     ig_rows: list[npt.NDArray[np.int8]] = []
     idet_rows: list[npt.NDArray[np.int8]] = []
     jobs: list[MatchJob] = []
@@ -286,7 +335,7 @@ def plan_evaluation(gt: Annotations, dt: Annotations, config: EvalConfig | None 
         return row
 
     for cls in config.classes:
-        scored = scored_metrics(dt, cls)
+        scored = scored_metrics(dt, cls) if facts is None else facts.scored[cls]
         evaluated = {m: (scored[m] or not protocol.skip_undetected) for m in OVERLAP_METRICS}
         if config.lidar_only:
             evaluated[Metric.BBOX] = False  # no image: BEV and 3D only
@@ -359,25 +408,72 @@ def evaluate(
     t1 = clock()
     counts = plan.counts(workers=workers)
     t2 = clock()
+    timings = {"align": t1 - t0 - plan.timings["overlaps"], "overlaps": plan.timings["overlaps"], "matching": t2 - t1}
+    return result_from_counts(plan, counts, Totals.of(plan), keep_curves=keep_curves, timings=timings)
+
+
+@dataclass(frozen=True)
+class Totals:
+    """What a result reports besides AP, for the whole set: counts of boxes and frames, the frames without
+    predictions, warnings, whether AOS was computed, and the valid ground truth of each distance range."""
+
+    num_gt: dict[str, dict[str, int]]
+    num_det: dict[str, int]
+    frames: int
+    missing: tuple[str, ...]
+    warnings: tuple[str, ...]
+    compute_aos: bool
+    range_num_gt: tuple[dict[str, dict[str, int]], ...]
+
+    @classmethod
+    def of(cls, plan: Plan) -> Totals:
+        return cls(
+            plan.num_gt,
+            plan.num_det,
+            plan.gt.num_frames,
+            plan.missing,
+            plan.warnings,
+            plan.compute_aos,
+            tuple(range_num_gt(plan)),
+        )
+
+
+def range_num_gt(plan: Plan) -> list[dict[str, dict[str, int]]]:
+    """Per distance range of the config: the valid ground truth of each class and difficulty inside it."""
+    out = []
+    for rng in plan.config.ranges:
+        inside = rng.contains(plan.gt.ground_distance)
+        out.append(
+            {
+                cls: {
+                    d.label: int(np.sum((plan.ignored_gt[plan.code_rows[(cls, d)]] == 0) & inside)) for d in Difficulty
+                }
+                for cls in plan.config.classes
+            }
+        )
+    return out
+
+
+def result_from_counts(
+    plan: Plan,
+    counts: Sequence[PRCounts],
+    totals: Totals,
+    *,
+    keep_curves: bool = False,
+    timings: Mapping[str, float] | None = None,
+) -> EvalResult:
+    """The result from the counts of every job of ``plan`` (whose jobs and slots are the whole set's; its
+    data may be any part of the set, or none) and the set's ``totals``."""
+    t2 = time.perf_counter()
     job_curves = [curve_from_counts(c) for c in counts]
     ap, curves = ap_tables(plan, job_curves)
     config = plan.config
     by_range = []
-    for rng, slots in zip(config.ranges, plan.range_slots):
+    for rng, slots, range_gt in zip(config.ranges, plan.range_slots, totals.range_num_gt):
         range_ap, _ = ap_tables(plan, job_curves, slots)
-        inside = rng.contains(plan.gt.ground_distance)
-        range_gt = {
-            cls: {d.label: int(np.sum((plan.ignored_gt[plan.code_rows[(cls, d)]] == 0) & inside)) for d in Difficulty}
-            for cls in config.classes
-        }
         by_range.append({"label": rng.label, "min": rng.lo, "max": rng.hi, "ap": range_ap, "num_gt": range_gt})
     coco = _coco_table(plan, job_curves) if config.coco else None
-    timings = {
-        "align": t1 - t0 - plan.timings["overlaps"],
-        "overlaps": plan.timings["overlaps"],
-        "matching": t2 - t1,
-        "ap": clock() - t2,
-    }
+    timings = {**(timings or {}), "ap": time.perf_counter() - t2}
     return EvalResult(
         protocol=config.protocol.name,
         classes=tuple(config.classes),
@@ -389,12 +485,12 @@ def evaluate(
             for cls in config.classes
         },
         ap=ap,
-        num_gt=plan.num_gt,
-        num_det=plan.num_det,
-        frames=plan.gt.num_frames,
-        frames_without_predictions=plan.missing,
-        aos_evaluated=plan.compute_aos,
-        warnings=plan.warnings,
+        num_gt=totals.num_gt,
+        num_det=totals.num_det,
+        frames=totals.frames,
+        frames_without_predictions=totals.missing,
+        aos_evaluated=totals.compute_aos,
+        warnings=totals.warnings,
         curves=curves if keep_curves else None,
         timings=timings,
         ranges=tuple(by_range),

@@ -44,6 +44,8 @@ __all__ = [
     "FrameLabels",
     "pr_counts",
     "pr_counts_many",
+    "first_passes",
+    "second_passes",
     "frame_events_many",
     "label_frame",
     "score_thresholds",
@@ -875,14 +877,55 @@ def pr_counts_many(
         workers,
     )
 
-    return p.map_jobs(lambda k: _count(p.candidates(jobs[k], k), jobs[k], n_sample_pts))
+    def count(k: int) -> PRCounts:
+        c = p.candidates(jobs[k], k)
+        tp_scores, n_valid = _first_pass(c, jobs[k])
+        return _second_pass(c, jobs[k], score_thresholds(tp_scores, n_valid, n_sample_pts), n_valid, n_sample_pts)
+
+    return p.map_jobs(count)
 
 
-def _count(c: Candidates, job: MatchJob, n_sample_pts: int) -> PRCounts:
-    """One matching: pass 1, the score thresholds from its true positives, pass 2 at each of them."""
+#: the arguments of :func:`pr_counts_many` before ``jobs``, as a tuple
+MatchingInputs = tuple[Any, Any, Any, Any, Any, Any, Any, Any, Any, Any]
+
+
+def first_passes(
+    inputs: MatchingInputs, jobs: Sequence[MatchJob], *, workers: int | None = None
+) -> list[tuple[np.ndarray, int]]:
+    """Phase 1 of :func:`pr_counts_many` alone (``inputs``: its arguments before ``jobs``): per job, the
+    scores of pass 1's true positives and the number of valid ground-truth boxes. Over parts of a set,
+    these are what the whole set's score thresholds come from (:func:`score_thresholds` of the concatenated
+    scores and the summed counts)."""
+    p = _prepare(*inputs, jobs, workers)
+    return p.map_jobs(lambda k: _first_pass(p.candidates(jobs[k], k), jobs[k]))
+
+
+def second_passes(
+    inputs: MatchingInputs,
+    jobs: Sequence[MatchJob],
+    thresholds: Sequence[np.ndarray],
+    *,
+    n_sample_pts: int = 41,
+    workers: int | None = None,
+) -> list[PRCounts]:
+    """Phase 2 of :func:`pr_counts_many` alone: per job, the counts at the given score thresholds (those of
+    the whole set); over parts of a set they add up to the whole set's counts."""
+    p = _prepare(*inputs, jobs, workers)
+
+    def count(k: int) -> PRCounts:
+        c = p.candidates(jobs[k], k)
+        return _second_pass(c, jobs[k], np.asarray(thresholds[k], np.float64), int(c.valid.sum()), n_sample_pts)
+
+    return p.map_jobs(count)
+
+
+def _first_pass(c: Candidates, job: MatchJob) -> tuple[np.ndarray, int]:
     tp_scores, _ = _pass1(c, float(job.min_overlap))
-    n_valid = int(c.valid.sum())
-    thresholds = score_thresholds(tp_scores, n_valid, n_sample_pts)
+    return tp_scores, int(c.valid.sum())
+
+
+def _second_pass(c: Candidates, job: MatchJob, thresholds: np.ndarray, n_valid: int, n_sample_pts: int) -> PRCounts:
+    """Pass 2 at each score threshold (from pass 1's true positives, of this set or a larger one)."""
     if len(thresholds) > n_sample_pts:
         raise RuntimeError(f"{len(thresholds)} score thresholds for {n_sample_pts} recall samples")
     pr = _pass2(c, thresholds, float(job.min_overlap), bool(job.compute_aos)) if len(thresholds) else np.zeros((0, 4))
