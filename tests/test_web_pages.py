@@ -150,6 +150,24 @@ def test_history_lists_evaluations_newest_first_with_the_summary(client, two) ->
     assert history["action"] == "/compare" and history["method"] == "get"  # Compare works without JavaScript too
 
 
+def history_row(html: str, evaluation: str) -> str:
+    """The HTML of the history's row for one evaluation."""
+    return html.split(f'<tr data-id="{evaluation}"', 1)[1].split("</tr>", 1)[0]
+
+
+def test_history_shows_every_label_even_a_lone_one(client) -> None:
+    main, feature = (
+        upload(client, DEMO_PRED, "result.pkl.gz", fields={"label": f"branch={b}"}).json()["id"]
+        for b in ("main", "feature")
+    )
+    tagged = upload(client, DEMO_PRED, "result.pkl.gz", fields={"model": "pp", "label": ["branch=main", "seed=3"]})
+    html = client.get("/").text
+    tags = {eid: re.findall(r'<span class="tag">([^<]*)</span>', history_row(html, eid)) for eid in (main, feature)}
+    assert tags == {main: ["branch=main"], feature: ["branch=feature"]}
+    row = history_row(html, tagged.json()["id"])
+    assert sorted(re.findall(r'<span class="tag">([^<]*)</span>', row)) == ["branch=main", "model=pp", "seed=3"]
+
+
 # ------------------------------------------------------------------------------------------- evaluation
 
 
