@@ -443,18 +443,43 @@ _MEDIAN_SAMPLE = 5000
 _ORDERS = {"lhw": (0, 1, 2), "hwl": (1, 2, 0), "lwh": (0, 2, 1), "hlw": (1, 0, 2), "whl": (2, 1, 0), "wlh": (2, 0, 1)}
 
 
-def dimension_order_warnings(annos: Annotations, min_boxes: int = 5) -> list[str]:
+def dimension_samples(annos: Annotations) -> dict[str, tuple[int, np.ndarray]]:
+    """Per class of :data:`_TYPICAL_LHW`: how many boxes, and the dimensions of the first 5000 (what
+    :func:`dimension_order_warnings` looks at; samples of consecutive parts of a set combine with
+    :func:`merge_dimension_samples`)."""
+    out = {}
+    for cls in _TYPICAL_LHW:
+        rows = np.flatnonzero(annos.is_class(cls))
+        out[cls] = (len(rows), annos.dimensions[rows[:_MEDIAN_SAMPLE]])
+    return out
+
+
+def merge_dimension_samples(parts: Iterable[dict[str, tuple[int, np.ndarray]]]) -> dict[str, tuple[int, np.ndarray]]:
+    """The samples of consecutive parts of a set, in order, as those of the whole set."""
+    out: dict[str, tuple[int, np.ndarray]] = {cls: (0, np.zeros((0, 3))) for cls in _TYPICAL_LHW}
+    for part in parts:
+        for cls, (n, rows) in part.items():
+            total, kept = out[cls]
+            out[cls] = (total + n, np.concatenate([kept, rows])[:_MEDIAN_SAMPLE])
+    return out
+
+
+def dimension_order_warnings(
+    annos: Annotations, min_boxes: int = 5, *, samples: dict[str, tuple[int, np.ndarray]] | None = None
+) -> list[str]:
     """Warn when a class's median dimensions fit another order than (l, h, w) much better.
 
     The column whose median is compared is the order as stored; a result written with (h, w, l)
-    (the txt order) into a pickle shows Cars about 1.5 m long and 3.9 m wide.
+    (the txt order) into a pickle shows Cars about 1.5 m long and 3.9 m wide. ``samples``: the whole set's
+    (:func:`dimension_samples`) when ``annos`` names a set given in parts (its kind and source are used).
     """
     out: list[str] = []
+    samples = dimension_samples(annos) if samples is None else samples
     for cls, typical in _TYPICAL_LHW.items():
-        sel = annos.is_class(cls)
-        if int(sel.sum()) < min_boxes:
+        count, rows = samples[cls]
+        if count < min_boxes:
             continue
-        med = np.median(annos.dimensions[np.flatnonzero(sel)[:_MEDIAN_SAMPLE]], axis=0)
+        med = np.median(rows, axis=0)
         if not np.all(med > 0):
             continue
         errs = {}

@@ -1,0 +1,148 @@
+"""A set given in shards, evaluated part by part, equals the set evaluated in one piece."""
+
+from __future__ import annotations
+
+import math
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kitti_eval.analysis.sharded import evaluate_sharded, parts_of
+from kitti_eval.core.evaluation import evaluate
+from kitti_eval.core.protocol import EvalConfig, config_from_options
+from kitti_eval.core.result import EvalResult
+from kitti_eval.errors import InputError
+from kitti_eval.io.loaders import load_detections, load_ground_truth
+from kitti_eval.io.safe_pickle import load_pickle
+from kitti_eval.io.synth import generate, write_label_dir, write_result_dir
+
+GOLDEN = Path(__file__).parent / "data" / "golden"
+
+
+def assert_same(a: EvalResult, b: EvalResult) -> None:
+    """Every AP value (and COCO and range values) within 1e-9, the curves too, and every count equal."""
+
+    def walk(x: object, y: object, where: str) -> None:
+        if isinstance(x, dict):
+            assert isinstance(y, dict) and x.keys() == y.keys(), where
+            for k in x:
+                walk(x[k], y[k], f"{where}/{k}")
+        elif isinstance(x, (list, tuple)):
+            assert isinstance(y, (list, tuple)) and len(x) == len(y), where
+            for k, (u, v) in enumerate(zip(x, y)):
+                walk(u, v, f"{where}[{k}]")
+        elif x is None or y is None:
+            assert x is None and y is None, where
+        elif isinstance(x, float):
+            assert math.isclose(x, y, rel_tol=0, abs_tol=1e-9), (where, x, y)  # type: ignore[arg-type]
+        else:
+            assert x == y, where
+
+    da, db = a.to_dict(), b.to_dict()
+    for key in ("ap", "num_gt", "num_det", "frames", "frames_without_predictions", "aos_evaluated", "coco", "ranges"):
+        walk(da.get(key), db.get(key), key)
+    assert (a.curves is None) == (b.curves is None)
+    if a.curves is not None and b.curves is not None:
+        for oset, by_cls in a.curves.items():
+            for cls, by_metric in by_cls.items():
+                for metric, by_diff in by_metric.items():
+                    for diff, ca in by_diff.items():
+                        cb = b.curves[oset][cls][metric][diff]
+                        for field in ("precision", "recall", "orientation", "thresholds"):
+                            np.testing.assert_allclose(getattr(ca, field), getattr(cb, field), rtol=0, atol=1e-12)
+
+
+def split(items: list, cuts: list[int]) -> list[list]:
+    edges = [0, *cuts, len(items)]
+    return [items[a:b] for a, b in zip(edges[:-1], edges[1:])]
+
+
+def dump_all(folder: Path, stem: str, pieces: list[list]) -> list[Path]:
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for k, piece in enumerate(pieces):
+        paths.append(folder / f"{stem}-{k}.pkl")
+        paths[-1].write_bytes(pickle.dumps(piece, protocol=4))
+    return paths
+
+
+@pytest.mark.parametrize("case", ["small", "quirks", "edge"])
+@pytest.mark.parametrize("protocol", ["official", "openpcdet"])
+def test_golden_cases_in_shards_equal_the_whole(tmp_path: Path, case: str, protocol: str) -> None:
+    infos = load_pickle(GOLDEN / case / "kitti_infos_val.pkl", source="infos")
+    results = load_pickle(GOLDEN / case / "result.pkl", source="result")
+    assert isinstance(infos, list) and isinstance(results, list)
+    config = config_from_options(protocol=protocol)
+    whole = evaluate(
+        load_ground_truth(GOLDEN / case / "kitti_infos_val.pkl"),
+        load_detections(GOLDEN / case / "result.pkl"),
+        config,
+        keep_curves=True,
+    )
+    n = len(infos)
+    # paired by position: three ground-truth files and the three prediction files of the same frames
+    gts = dump_all(tmp_path / "paired", "gt", split(infos, [n // 3, 2 * n // 3]))
+    preds = dump_all(tmp_path / "paired", "pred", split(results, [n // 3, 2 * n // 3]))
+    assert_same(evaluate_sharded(gts, preds, config, keep_curves=True), whole)
+    # not paired: four prediction files cutting across the ground-truth files, in another order
+    pieces = split(results, [n // 5, n // 2, 3 * n // 4])
+    preds = dump_all(tmp_path / "crossed", "pred", pieces[::-1])
+    assert_same(evaluate_sharded(gts, preds, config, keep_curves=True), whole)
+
+
+def test_txt_folders_as_shards_and_the_options_that_add_jobs(tmp_path: Path) -> None:
+    infos, results = generate(300, seed=3)
+    for k, (a, b) in enumerate(((0, 120), (120, 200), (200, 300))):
+        write_label_dir(tmp_path / f"label_{k}", infos[a:b])
+        write_result_dir(tmp_path / f"pred_{k}", results[a:b])
+    gts = [tmp_path / f"label_{k}" for k in range(3)]
+    preds = [tmp_path / f"pred_{k}" for k in range(3)]
+    whole_gt = tmp_path / "label_all"
+    whole_pred = tmp_path / "pred_all"
+    write_label_dir(whole_gt, infos)
+    write_result_dir(whole_pred, results)
+    config = config_from_options(ranges="0,30,50,inf", coco=True)
+    whole = evaluate(load_ground_truth(whole_gt), load_detections(whole_pred), config, keep_curves=True)
+    sharded = evaluate_sharded(gts, preds, config, keep_curves=True)
+    assert_same(sharded, whole)
+    assert sharded.frames == 300 and sharded.ranges and sharded.coco
+
+
+def test_a_frame_in_two_files_or_in_no_ground_truth_is_named(tmp_path: Path) -> None:
+    infos, results = generate(30, seed=1)
+    gts = dump_all(tmp_path, "gt", [infos[:20], infos[15:]])  # frames 15..19 twice
+    preds = dump_all(tmp_path, "pred", [results[:20], results[20:]])
+    with pytest.raises(InputError, match=r"frame 000015 is in two ground-truth files: .*gt-0.pkl and .*gt-1.pkl"):
+        evaluate_sharded(gts, preds)
+    gts = dump_all(tmp_path, "gt", [infos[:15], infos[15:]])
+    preds = dump_all(tmp_path, "pred", [results[:20], results[18:]])
+    with pytest.raises(InputError, match=r"frame 000018 is in two prediction files: .*pred-0.pkl and .*pred-1.pkl"):
+        evaluate_sharded(gts, preds)
+    gts = dump_all(tmp_path, "gt", [infos[:15], infos[15:25]])  # frames 25.. have no ground truth
+    preds = dump_all(tmp_path, "pred", [results[:15], results[15:]])
+    with pytest.raises(InputError, match="not in the ground truth") as err:
+        evaluate_sharded(gts, preds)
+    assert err.value.frame == "000025"
+
+
+def test_parts_take_the_prediction_files_that_hold_their_frames(tmp_path: Path) -> None:
+    infos, results = generate(30, seed=2)
+    gts = dump_all(tmp_path, "gt", [infos[:10], infos[10:20], infos[20:]])
+    preds = dump_all(tmp_path, "pred", [results[25:], results[:12], results[12:25]])
+    parts = parts_of(gts, preds)
+    assert [p.gt for p in parts] == [str(g) for g in gts]
+    assert [[Path(x).name for x in p.preds] for p in parts] == [
+        ["pred-1.pkl"],
+        ["pred-1.pkl", "pred-2.pkl"],
+        ["pred-0.pkl", "pred-2.pkl"],
+    ]
+
+
+def test_one_file_of_each_is_the_plain_evaluation(tmp_path: Path) -> None:
+    infos, results = generate(50, seed=4)
+    (gt,) = dump_all(tmp_path, "gt", [infos])
+    (pred,) = dump_all(tmp_path, "pred", [results])
+    config = EvalConfig()
+    assert_same(evaluate_sharded([gt], [pred], config), evaluate(load_ground_truth(gt), load_detections(pred), config))
