@@ -114,6 +114,13 @@ def perturbed(tmp_path_factory) -> Path:
     return path
 
 
+def printed(value: float | None, metric: str, sign: bool = False) -> str:
+    """An AP as the CLI's table prints it: AOS with 2 decimals, the others with 4."""
+    if value is None:
+        return "-"
+    return f"{value:{'+' if sign else ''}.{2 if metric == 'aos' else 4}f}"
+
+
 def wait(driver: Any) -> WebDriverWait:
     return WebDriverWait(driver, WAIT_S)
 
@@ -146,7 +153,7 @@ def check_scores(driver: Any, live: LiveServer, evaluation_id: str) -> None:
         oset, recall, cls, metric, difficulty = cell.get_attribute("data-key").split("/")
         value = doc["ap"][oset][recall][cls][metric][difficulty]
         # textContent: cells inside closed <details> have no rendered text
-        assert cell.get_attribute("textContent").strip() == ("-" if value is None else f"{value:.4f}")
+        assert cell.get_attribute("textContent").strip() == printed(value, metric)
 
 
 def test_upload_lands_on_the_evaluation_page_with_the_json_values(live, browser, state) -> None:
@@ -217,7 +224,7 @@ def test_compare_two_from_the_history(live, browser, state) -> None:
             assert cell.get_attribute("textContent").strip() == "-"
             continue
         assert float(cell.get_attribute("data-value")) == vb - va
-        assert cell.get_attribute("textContent").strip() == f"{vb - va:+.4f}"
+        assert cell.get_attribute("textContent").strip() == printed(vb - va, metric, sign=True)
     shoot(browser, "compare")
 
 

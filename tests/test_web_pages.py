@@ -87,6 +87,41 @@ def ap_values(doc: dict[str, Any]) -> dict[str, float | None]:
     }
 
 
+def printed(value: float | None, metric: str, sign: bool = False) -> str:
+    """An AP with the decimals of the CLI's table (``kitti-eval --format table``): 2 for AOS, 4 otherwise."""
+    if value is None:
+        return "-"
+    return f"{value:{'+' if sign else ''}.{2 if metric == 'aos' else 4}f}"
+
+
+def cli_table(text: str, doc: dict[str, Any]) -> dict[str, str]:
+    """``"<set>/<recall>/<class>/<metric>/<difficulty>" -> value`` as ``kitti-eval --format table`` prints it
+    (``-`` where it prints ``n/a``); its blocks come per class, threshold set, then R11 and R40."""
+    blocks = iter((c, s, r) for c in doc["classes"] for s in doc["threshold_sets"] for r in ("R11", "R40"))
+    out = {}
+    for line in text.splitlines():
+        if line.endswith(":"):
+            cls, oset, recall = next(blocks)
+            assert line.startswith(f"{cls} {'AP' if recall == 'R11' else 'AP_R40'}@"), line
+            continue
+        metric, values = line.split("AP:")
+        for d, v in zip(DIFFS, values.split(", "), strict=True):
+            out[f"{oset}/{recall}/{cls}/{metric.strip()}/{d}"] = "-" if v == "n/a" else v
+    return out
+
+
+def legends(html: str) -> dict[str, str]:
+    """``"<set>/R40/<class>/<metric>/<difficulty>" -> the AP`` in the legends of the precision-recall charts."""
+    out = {}
+    for block in html.split('<details class="curves"')[1:]:
+        oset = re.search(r"<summary>(\S+) IoU thresholds", block).group(1)
+        for figure in block.split('<figure class="chart">')[1:]:
+            cls, metric = re.search(r"<figcaption>(\S+) (\S+)</figcaption>", figure).groups()
+            for d, text in re.findall(r'<span class="legend (\w+)">\w+ ([^<]*)</span>', figure):
+                out[f"{oset}/R40/{cls}/{metric}/{d}"] = text
+    return out
+
+
 def submit(client: Any, data: bytes = DEMO_PRED, filename: str = "result.pkl.gz", **fields: str) -> Any:
     form = {"gt": "demo", "protocol": "official", **fields}
     return client.post("/ui/evaluations", data=form, files={"predictions": (filename, data)}, follow_redirects=False)
@@ -144,7 +179,7 @@ def test_history_lists_evaluations_newest_first_with_the_summary(client, two) ->
     summary = client.get(f"/v1/evaluations/{first}").json()["ap"]["strict"]["R40"]
     text = page.all_text()
     for cls in ("Car", "Pedestrian", "Cyclist"):
-        assert f"{summary[cls]['3d']['moderate']:.2f}" in text
+        assert printed(summary[cls]["3d"]["moderate"], "3d") in text  # four decimals, as the CLI's 3d row
     assert "pointpillars" in text and "second" in text
     history = next(a for t, a in page.tags if t == "form" and a.get("id") == "history")
     assert history["action"] == "/compare" and history["method"] == "get"  # Compare works without JavaScript too
@@ -186,7 +221,7 @@ def test_evaluation_page_values_equal_the_json(client, two) -> None:
             assert cell["value"] == "" and cell["text"] == "-", key
         else:
             assert float(cell["value"]) == value, key
-            assert cell["text"] == f"{value:.4f}", key
+            assert cell["text"] == printed(value, key.split("/")[3]), key
     text = page.all_text()
     assert "result.pkl.gz" in text and "model=pointpillars" in text and "official" in text
     assert f"/v1/evaluations/{first}" in page.urls
@@ -197,11 +232,16 @@ def test_the_demo_uploaded_on_the_page_reads_as_the_cli_prints_it(client, two, t
     out = tmp_path / "demo.json"
     assert cli_main(["demo", "--format", "json", "--output", str(out), "--quiet"]) == 0
     cli_doc = json.loads(out.read_text())
+    assert cli_main(["demo", "--format", "table", "--output", str(tmp_path / "demo.txt"), "--quiet"]) == 0
+    table = cli_table((tmp_path / "demo.txt").read_text(), cli_doc)
     page = Page(client.get(f"/evaluations/{first}").text)
     expected = ap_values(cli_doc)
-    assert set(page.cells) == set(expected)
+    assert set(page.cells) == set(expected) == set(table)
+    assert {key: cell["text"] for key, cell in page.cells.items()} == table  # AOS with 2 decimals, the rest 4
+    in_legends = legends(client.get(f"/evaluations/{first}").text)
+    assert len(in_legends) == 2 * 3 * 4 * 3 and in_legends == {k: table[k] for k in in_legends}
     for key, value in expected.items():
-        assert page.cells[key]["text"] == ("-" if value is None else f"{value:.4f}"), key
+        assert table[key] == printed(value, key.split("/")[3]), key
         assert page.cells[key]["value"] == ("" if value is None else repr(value)), key
 
 
@@ -251,11 +291,16 @@ def test_compare_shows_b_minus_a_with_colours_and_notes(client, two) -> None:
             continue
         delta = vb[key] - va[key]
         assert float(cell["value"]) == delta, key
-        assert cell["text"] == f"{delta:+.4f}", key
+        assert cell["text"] == printed(delta, key.split("/")[3], sign=True), key
         kind = "pos" if delta > 0 else "neg" if delta < 0 else "zero"
         assert cell["class"].split() == ["num", "delta", kind], key
         coloured.add(kind)
     assert {"pos", "neg"} & coloured
+    side = r'<td class="num side">([^<]*)</td>'
+    sides = re.findall(side + side + r'\s*<td class="num [^"]*" data-key="([^"]+)"', r.text)
+    assert len(sides) == len(page.cells)
+    for a_text, b_text, key in sides:  # A and B as the CLI's table prints them
+        assert (a_text, b_text) == (printed(va[key], key.split("/")[3]), printed(vb[key], key.split("/")[3])), key
     text = page.all_text()
     assert "different protocols: official and openpcdet" in text
     assert "the evaluations used different ground truth" not in text

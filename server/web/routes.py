@@ -48,9 +48,15 @@ _WORST = 20
 router = APIRouter(include_in_schema=False)
 
 
-def fmt(value: float | None) -> str:
-    """An AP as the CLI prints it: four decimals, ``-`` where there is none."""
-    return "-" if value is None else f"{value:.4f}"
+def ap_digits(metric: str) -> int:
+    """Decimals of an AP as the CLI's table prints it (``kitti_eval.report.render``): 2 for AOS, 4 for the
+    others."""
+    return 2 if metric == "aos" else 4
+
+
+def fmt(value: float | None, metric: str) -> str:
+    """An AP of ``metric`` as the CLI prints it, ``-`` where there is none."""
+    return "-" if value is None else f"{value:.{ap_digits(metric)}f}"
 
 
 def full(value: float | None) -> str:
@@ -58,8 +64,9 @@ def full(value: float | None) -> str:
     return "" if value is None else repr(float(value))
 
 
-def signed(value: float | None) -> str:
-    return "-" if value is None else f"{value:+.4f}"
+def signed(value: float | None, metric: str) -> str:
+    """A difference of two APs of ``metric``, with its sign and the AP's decimals."""
+    return "-" if value is None else f"{value:+.{ap_digits(metric)}f}"
 
 
 def delta_class(value: float | None) -> str:
