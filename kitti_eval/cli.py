@@ -198,6 +198,19 @@ def _parser() -> argparse.ArgumentParser:
         help="evaluate only the frames listed in this file (ImageSets/val.txt: one id a line); "
         "predictions for other frames are dropped with a warning",
     )
+    shards = p.add_argument_group("a set in many files")
+    shards.add_argument(
+        "--sharded",
+        action="store_true",
+        help="the --gt files (a quoted glob) and the --pred files (globs or repeated) are shards of ONE set, "
+        "evaluated part by part in bounded memory; frames are matched by id across files",
+    )
+    shards.add_argument(
+        "--cluster",
+        metavar="ADDRESS",
+        help="with --sharded: run the parts on Dask, 'local:N' (N worker processes on this machine) or a "
+        "scheduler's 'tcp://HOST:8786' (needs the cluster extra)",
+    )
     many = p.add_argument_group("many checkpoints")
     many.add_argument(
         "--value",
@@ -365,6 +378,39 @@ def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
         for w in [*load_warnings, *result.warnings]:
             _say(f"warning: {w}")
     _emit(text, args.output)
+    return EXIT_OK
+
+
+def _run_sharded(args: argparse.Namespace) -> int:
+    from .analysis.batch import expand_predictions
+    from .analysis.cluster import cluster_mapper, progress_mapper
+    from .analysis.sharded import evaluate_sharded
+    from .report.render import render
+
+    if not args.sharded:
+        raise ConfigError("--cluster evaluates a set given in shards: add --sharded")
+    if args.split or args.plot or args.plot_dir:
+        raise ConfigError("--split, --plot and --plot-dir do not work with --sharded")
+    config = _config(args)
+    gts = expand_predictions([args.gt])
+    preds = expand_predictions(args.pred)
+    show = sys.stderr.isatty() and not args.quiet
+    context = cluster_mapper(args.cluster, progress=show) if args.cluster else contextlib.nullcontext(None)
+    with context as mapper:
+        result = evaluate_sharded(
+            gts,
+            preds,
+            config,
+            gt_format=args.gt_format,
+            pred_format=args.pred_format,
+            keep_curves=args.curves,
+            mapper=mapper or progress_mapper(show),
+            source=(str(args.gt), ", ".join(str(p) for p in args.pred)),
+        )
+    if not args.quiet:
+        for w in result.warnings:
+            _say(f"warning: {w}")
+    _emit(render(result, args.format, include_curves=args.curves), args.output)
     return EXIT_OK
 
 
@@ -718,6 +764,8 @@ def _command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         parser.error("the following arguments are required: --gt, --pred (or a command)")
     from .analysis.batch import expand_predictions
 
+    if args.sharded or args.cluster:
+        return _run_sharded(args)
     preds = expand_predictions(args.pred)
     if len(preds) == 1 and not args.plot and not (args.plot_dir and len(args.pred) > 1):
         return _run(args.gt, preds[0], args)

@@ -146,3 +146,40 @@ def test_one_file_of_each_is_the_plain_evaluation(tmp_path: Path) -> None:
     (pred,) = dump_all(tmp_path, "pred", [results])
     config = EvalConfig()
     assert_same(evaluate_sharded([gt], [pred], config), evaluate(load_ground_truth(gt), load_detections(pred), config))
+
+
+def test_the_cli_evaluates_shards_in_this_process_and_on_a_local_dask_cluster(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import json
+
+    from kitti_eval.cli import main
+
+    infos, results = generate(150, seed=5)
+    (gt,) = dump_all(tmp_path / "whole", "gt", [infos])
+    (pred,) = dump_all(tmp_path / "whole", "pred", [results])
+    whole = evaluate(load_ground_truth(gt), load_detections(pred), EvalConfig()).to_dict()["ap"]
+    dump_all(tmp_path / "shards", "gt", split(infos, [50, 100]))
+    dump_all(tmp_path / "shards", "pred", split(results, [30, 70, 120]))
+    argv = ["--gt", str(tmp_path / "shards" / "gt-*.pkl"), "--pred", str(tmp_path / "shards" / "pred-*.pkl")]
+    argv += ["--sharded", "--format", "json"]
+
+    def values(doc: dict) -> list[float | None]:
+        flat: list[float | None] = []
+        for oset in doc.values():
+            for rec in oset.values():
+                for cls in rec.values():
+                    for metric in cls.values():
+                        flat.extend(metric.values())
+        return flat
+
+    assert main(argv) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert got["frames"] == 150
+    np.testing.assert_allclose(values(got["ap"]), values(whole), rtol=0, atol=1e-9)
+    assert main([a for a in argv if a != "--sharded"] + ["--cluster", "local:2"]) == 2
+    assert "--cluster evaluates a set given in shards: add --sharded" in capsys.readouterr().err
+    pytest.importorskip("distributed")
+    assert main([*argv, "--cluster", "local:2"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    np.testing.assert_allclose(values(got["ap"]), values(whole), rtol=0, atol=1e-9)
