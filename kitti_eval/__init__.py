@@ -24,6 +24,7 @@ _LAZY = {
     "load_ground_truth": "kitti_eval.io.loaders",
     "load_detections": "kitti_eval.io.loaders",
     "get_official_eval_result": "kitti_eval.compat.openpcdet",
+    "KittiMetric": "kitti_eval.metric",
 }
 
 __all__ = [
@@ -38,6 +39,7 @@ __all__ = [
     "load_ground_truth",
     "load_detections",
     "get_official_eval_result",
+    "KittiMetric",
     "KittiEvalError",
     "InputError",
     "UnsafePickleError",
