@@ -56,7 +56,7 @@ from ..core.protocol import INVALID_ALPHA, OPENPCDET, EvalConfig, coco_threshold
 from ..core.result import EvalResult
 from ..errors import ConfigError, InputError
 
-__all__ = ["kitti_eval", "kitti_eval_coco_style", "ap_dict", "CLASS_BY_INDEX", "EVAL_TYPES"]
+__all__ = ["kitti_eval", "kitti_eval_coco_style", "ap_dict", "result_text", "CLASS_BY_INDEX", "EVAL_TYPES"]
 
 #: mmdetection3d's class indices (its ``class_to_name``).
 CLASS_BY_INDEX = ("Car", "Pedestrian", "Cyclist", "Van", "Person_sitting")
@@ -199,7 +199,15 @@ def ap_dict(result: EvalResult, eval_types: Sequence[str] = ("bbox", "bev", "3d"
     return out
 
 
-def _text(result: EvalResult, types: frozenset[str], show_aos: bool) -> str:
+def result_text(
+    result: EvalResult, eval_types: Sequence[str] = ("bbox", "bev", "3d"), *, aos: bool | None = None
+) -> str:
+    """mmdetection3d's printed text of a result: an AP11 and an AP40 section, each with a block per class and
+    threshold set (the rows of ``eval_types``, and AOS when ``aos``, by default when the result has AOS and
+    ``'bbox'`` is evaluated) and an ``Overall`` block (the mean over the classes, strict thresholds) when
+    there are several classes."""
+    types = _eval_types(eval_types)
+    show_aos = (result.aos_evaluated if aos is None else aos) and "bbox" in types
     lines: list[str] = []
     for recall, tag in (("R11", "AP11"), ("R40", "AP40")):
         lines += ["", f"----------- {tag} Results ------------", ""]
@@ -243,7 +251,7 @@ def kitti_eval(
     gt, dt, want_aos = _with_aos(gt, dt, _mmdet3d_aos(gt, dt))
     result = evaluate(gt, dt, config)
     show_aos = want_aos and result.aos_evaluated and "bbox" in types
-    return _text(result, types, show_aos), ap_dict(result, sorted(types - {"aos"}))
+    return result_text(result, sorted(types), aos=show_aos), ap_dict(result, sorted(types - {"aos"}))
 
 
 def kitti_eval_coco_style(
