@@ -365,8 +365,13 @@ class KittiMetric:
         if len(self._blocks) > 1 or list(self._blocks[0][0].frame_ids) != sorted(self._blocks[0][0].frame_ids):
             gt = _joined([b[0] for b in self._blocks])
             dt = _joined([b[1] for b in self._blocks])
-            gt = gt.subset(sorted(gt.frame_ids))
-            dt = dt.subset(sorted(dt.frame_ids))
+            for order, annos in ((sorted(gt.frame_ids), gt), (sorted(dt.frame_ids), dt)):
+                if list(annos.frame_ids) != order:  # frames that came in order are not copied again
+                    annos = annos.subset(order)
+                if annos.kind == "ground_truth":
+                    gt = annos
+                else:
+                    dt = annos
             self._blocks = [(gt, dt)]
         return self._blocks[0]
 
