@@ -242,6 +242,15 @@ def test_worst_frames_open_the_frame_view(live, browser, state) -> None:
     assert labels and labels <= {"tp", "fp", "ignored", "dontcare", "below threshold", "other class"}
     assert browser.find_elements(By.CSS_SELECTOR, "svg.bev .box.gt, svg.bev .box.gt.missed")
 
+    def colours(selector: str, prop: str) -> set[str]:
+        script = "return getComputedStyle(arguments[0])[arguments[1]]"
+        return {browser.execute_script(script, e, prop) for e in browser.find_elements(By.CSS_SELECTOR, selector)}
+
+    missed, fp = colours("svg.bev .box.gt.missed polygon", "stroke"), colours("svg.bev .box.fp polygon", "stroke")
+    assert len(missed) == len(fp) == 1  # the worst frame has both, each in one colour
+    assert missed != fp and missed != colours("svg.bev .box.gt:not(.missed) polygon", "stroke")
+    assert missed == colours(".key.missed", "borderTopColor") and fp == colours(".key.fp", "borderTopColor")
+
     Select(browser.find_element(By.ID, "add-evaluation")).select_by_value(newer)
     browser.find_element(By.CSS_SELECTOR, "form.inline button[type=submit]").click()
     wait(browser).until(lambda d: len(d.find_elements(By.CSS_SELECTOR, "svg.bev")) == 2)

@@ -513,6 +513,77 @@ def test_frame_view_errors_are_html(client, two, query, status, needle) -> None:
     assert any(t == "form" for t, _ in page.tags)  # the choices stay on the page
 
 
+def css_rules() -> dict[str, dict[str, str]]:
+    """``selector -> {property: value}`` of app.css (each selector of a list on its own), ``var()`` resolved."""
+    text = re.sub(r"/\*.*?\*/", "", (STATIC_DIR / "app.css").read_text(), flags=re.S)
+    rules: dict[str, dict[str, str]] = {}
+    for selectors, body in re.findall(r"([^{}]+)\{([^}]*)\}", text):
+        declarations = {k.strip(): v.strip() for k, v in (d.split(":", 1) for d in body.split(";") if ":" in d)}
+        for selector in selectors.split(","):
+            rules.setdefault(" ".join(selector.split()), {}).update(declarations)
+    root = rules[":root"]
+
+    def resolve(value: str) -> str:
+        return re.sub(r"var\((--[\w-]+)\)", lambda m: root[m[1]], value)
+
+    return {s: {k: resolve(v) for k, v in d.items()} for s, d in rules.items()}
+
+
+# Machado, Oliveira & Fernandes (2009), severity 1: linear RGB as people with each dichromacy see it
+_DICHROMACY = {
+    "protanopia": ((0.152286, 1.052583, -0.204868), (0.114503, 0.786281, 0.099216), (-0.003882, -0.048116, 1.051998)),
+    "deuteranopia": ((0.367322, 0.860646, -0.227968), (0.280085, 0.672501, 0.047413), (-0.01182, 0.04294, 0.968881)),
+    "tritanopia": ((1.255528, -0.076749, -0.178779), (-0.078411, 0.930809, 0.147602), (0.004733, 0.691367, 0.3039)),
+}
+
+
+def lab(colour: str, vision: str | None = None) -> tuple[float, float, float]:
+    """CIELAB (D65) of a ``#rrggbb`` colour, as seen with normal vision or with a dichromacy."""
+    srgb = [int(colour[i : i + 2], 16) / 255 for i in (1, 3, 5)]
+    rgb = [c / 12.92 if c <= 0.04045 else ((c + 0.055) / 1.055) ** 2.4 for c in srgb]
+    if vision is not None:
+        rgb = [min(max(sum(m * c for m, c in zip(row, rgb)), 0.0), 1.0) for row in _DICHROMACY[vision]]
+    xyz = [
+        sum(m * c for m, c in zip(row, rgb)) / white
+        for row, white in zip(
+            ((0.4124, 0.3576, 0.1805), (0.2126, 0.7152, 0.0722), (0.0193, 0.1192, 0.9505)), (0.95047, 1.0, 1.08883)
+        )
+    ]
+    fx, fy, fz = (t ** (1 / 3) if t > 216 / 24389 else (24389 / 27 * t + 16) / 116 for t in xyz)
+    return 116 * fy - 16, 500 * (fx - fy), 200 * (fy - fz)
+
+
+def test_frame_view_tells_missed_from_false_positives_in_any_vision() -> None:
+    rules = css_rules()
+    stroke = {
+        "missed": rules["svg.bev .box.gt.missed polygon"]["stroke"],
+        "fp": rules["svg.bev .box.fp > *"]["stroke"],
+        "tp": rules["svg.bev .box.tp > *"]["stroke"],
+    }
+    # the legend's keys and the badges (FN counts, fp labels) use the boxes' colours
+    assert rules[".key.missed"]["border-color"] == stroke["missed"] and rules[".key.fp"]["border-color"] == stroke["fp"]
+    assert rules[".key.tp"]["border-color"] == stroke["tp"]
+    badge = {kind: rules[f".badge.{kind}"]["background"] for kind in ("missed", "fn", "fp", "tp")}
+    assert badge["missed"] == badge["fn"] and len({badge["fn"], badge["fp"], badge["tp"]}) == 3
+    # missed is also told by its shape: an outline, dashed, no fill (detections are filled)
+    assert rules["svg.bev .box.gt polygon"]["fill"] == "none" and "stroke-dasharray" in rules["svg.bev .box.gt polygon"]
+    for vision in (None, *_DICHROMACY):
+        seen = {kind: lab(colour, vision) for kind, colour in stroke.items()}
+        for a, b in (("missed", "fp"), ("tp", "fp"), ("tp", "missed")):
+            assert math.dist(seen[a], seen[b]) > 20, (a, b, vision or "normal vision")
+
+
+def test_frame_view_has_a_legend_of_every_kind_of_box(client, two) -> None:
+    first, _ = two
+    html = client.get("/frames/000000", params={"e": first}).text
+    legend = html.split('<p class="legend-bev">', 1)[1].split("</p>", 1)[0]
+    pairs = re.findall(r'<span class="key (\w+)"></span>([^<]*)', legend)
+    keys = {kind: " ".join(label.split()) for kind, label in pairs}
+    assert list(keys) == ["gt", "missed", "tp", "fp", "ignored", "below_threshold"]
+    assert keys["missed"] == "missed ground truth (FN)" and keys["fp"] == "false positive (fp)"
+    assert keys["tp"] == "true positive (tp)"
+
+
 # ------------------------------------------------------------------------------------------ no internet
 
 _URL_IN_CSS = re.compile(r"url\(\s*['\"]?([^'\")\s]+)")
