@@ -61,6 +61,8 @@ _CONFIG_FIELDS = frozenset(f.name for f in dataclasses.fields(EvalConfig))
 _SOURCES: Mapping[Kind, str] = {"ground_truth": "gt_frames", "detections": "dt_frames"}
 #: a metric keeps at most this many blocks of frames before joining them into one
 _MAX_BLOCKS = 32
+#: warnings kept (one update can warn about its batch; a run of batches need not grow the list without end)
+_MAX_WARNINGS = 20
 
 
 # ------------------------------------------------------------------------------------- configuration
@@ -334,7 +336,7 @@ class KittiMetric:
 
             found: list[str] = []
             annos = annotations_from_object(_with_sample_ids(obj), kind, source=source, calibs=calibs, warnings=found)
-            self.warnings += [w for w in found if w not in self.warnings]
+            self._warn(found)
         if annos.missing_fields and not self._config.lidar_only:
             field = "bbox" if "bbox" in annos.missing_fields else next(iter(annos.missing_fields))
             raise InputError(
@@ -345,6 +347,11 @@ class KittiMetric:
                 field=field,
             )
         return annos
+
+    def _warn(self, found: Iterable[str]) -> None:
+        for w in found:
+            if w not in self.warnings and len(self.warnings) < _MAX_WARNINGS:
+                self.warnings.append(w)
 
     def _push(self, blocks: Iterable[tuple[Annotations, Annotations]]) -> None:
         """Add blocks of frames, joining the last two while the earlier is not larger (each frame is copied
@@ -456,7 +463,7 @@ class KittiMetric:
         if both:
             raise InputError("frame in both metrics", source="merge", frame=min(both))
         self._frames |= other._frames
-        self.warnings += [w for w in other.warnings if w not in self.warnings]
+        self._warn(other.warnings)
         self._push(list(other._blocks))
         return self
 

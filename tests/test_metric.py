@@ -324,3 +324,16 @@ def test_new_entry_points_compile_nothing(golden):
     with event.install_listener("numba:compile", compiles):
         assert twice(21) == 42
     assert compiles.names == [twice.py_func.__qualname__]
+
+
+def test_reading_warnings_are_kept_once_and_bounded(golden):
+    """Warnings about the inputs (here: ids taken from point_cloud.lidar_idx) are collected once each, and at
+    most twenty of them."""
+    infos, results = golden
+    m = KittiMetric()
+    for i in range(30):
+        info = {k: v for k, v in infos[i].items() if k != "image"}
+        m.update([info], results[i : i + 1])
+    assert len(m.warnings) == 20
+    assert all("point_cloud.lidar_idx is used as the frame id" in w for w in m.warnings)
+    assert len(set(m.warnings)) == 20
