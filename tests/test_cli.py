@@ -267,3 +267,10 @@ def test_a_tiny_negative_difference_prints_as_zero_not_minus_zero():
     assert "-0.0000" not in table
     assert "+0.0000  [+0.0000, +0.0000]" in table
     assert "| +0.0000 | [+0.0000, +0.0000] |" in render_comparison(cmp, "markdown")  # type: ignore[arg-type]
+
+
+def test_the_main_help_lists_every_exit_code(capsys):
+    code, out, _ = run(capsys, "--help")
+    assert code == 0
+    text = " ".join(out.split())
+    assert "Exit codes: 0 ok, 1 bad input, 2 usage error, 3 a gate rule failed" in text
