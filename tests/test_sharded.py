@@ -183,3 +183,42 @@ def test_the_cli_evaluates_shards_in_this_process_and_on_a_local_dask_cluster(
     assert main([*argv, "--cluster", "local:2"]) == 0
     got = json.loads(capsys.readouterr().out)
     np.testing.assert_allclose(values(got["ap"]), values(whole), rtol=0, atol=1e-9)
+
+
+class _DiesOnce:
+    """Runs ``fn``, except that the first call anywhere ends its worker process (a lost worker)."""
+
+    def __init__(self, fn: object, marker: Path) -> None:
+        self.fn, self.marker = fn, marker
+
+    def __call__(self, part: object) -> object:
+        import os
+
+        try:
+            fd = os.open(self.marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            return self.fn(part)  # type: ignore[operator]
+        os.close(fd)
+        os._exit(1)
+
+
+@pytest.mark.slow
+def test_a_worker_lost_mid_run_changes_nothing(tmp_path: Path) -> None:
+    pytest.importorskip("distributed")
+    import sys
+
+    import cloudpickle
+
+    from kitti_eval.analysis.cluster import cluster_mapper
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this test module
+    infos, results = generate(90, seed=6)
+    gts = dump_all(tmp_path, "gt", split(infos, [30, 60]))
+    preds = dump_all(tmp_path, "pred", split(results, [30, 60]))
+    whole = evaluate_sharded(gts, preds, keep_curves=True)
+    with cluster_mapper("local:2") as run:
+        lost = evaluate_sharded(
+            gts, preds, keep_curves=True, mapper=lambda fn, items: run(_DiesOnce(fn, tmp_path / "died"), items)
+        )
+    assert (tmp_path / "died").exists()  # a worker did die
+    assert_same(lost, whole)
