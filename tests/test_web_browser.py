@@ -294,3 +294,15 @@ def test_the_api_docs_render_without_the_internet(live, browser) -> None:
     # and the CDN the docs used to load from really is out of reach
     assert browser.execute_async_script(_REACH_JS, "https://cdn.jsdelivr.net/npm/swagger-ui-dist@5/") == "unreachable"
     shoot(browser, "docs")
+
+
+def test_history_dates_stay_on_one_line_in_a_narrow_window(live, browser, state) -> None:
+    browser.get(live.url + "/")
+    browser.set_window_size(720, 1200)
+    try:
+        dates = browser.find_elements(By.CSS_SELECTOR, "table.history td.created a")
+        assert len(dates) >= len(state["ids"])
+        lines = [browser.execute_script("return arguments[0].getClientRects().length", a) for a in dates]
+        assert lines == [1] * len(dates), [a.text for a in dates]
+    finally:
+        browser.set_window_size(1280, 1600)

@@ -190,6 +190,16 @@ def history_row(html: str, evaluation: str) -> str:
     return html.split(f'<tr data-id="{evaluation}"', 1)[1].split("</tr>", 1)[0]
 
 
+def test_history_dates_do_not_wrap(client, two) -> None:
+    html = client.get("/").text
+    for evaluation in two:
+        assert re.match(
+            r'[^>]*>\s*<td><input[^>]*></td>\s*<td class="created"><a [^>]*>[0-9-]+ [0-9:]+</a>',
+            history_row(html, evaluation),
+        )
+    assert css_rules()["table.history td.created"]["white-space"] == "nowrap"
+
+
 def test_history_shows_every_label_even_a_lone_one(client) -> None:
     main, feature = (
         upload(client, DEMO_PRED, "result.pkl.gz", fields={"label": f"branch={b}"}).json()["id"]
