@@ -147,6 +147,10 @@ class EvaluationRecord:
     options: Mapping[str, Any] | None = None
 
 
+#: the PostgreSQL advisory lock held while the schema is created or upgraded (any fixed 64-bit number)
+_SCHEMA_LOCK = 0x6B69747469657661  # "kittieva"
+
+
 def _utc(value: datetime) -> datetime:
     return value if value.tzinfo else value.replace(tzinfo=timezone.utc)  # SQLite keeps no zone
 
@@ -176,12 +180,19 @@ class Store:
         self.dialect = self.engine.dialect.name
 
     def create_schema(self) -> None:
-        """Create missing tables, and add the columns a database made by an earlier version lacks."""
-        metadata.create_all(self.engine)
-        present = {c["name"] for c in inspect(self.engine).get_columns("evaluations")}
-        if "options" not in present:
-            kind = "JSONB" if self.dialect == "postgresql" else "JSON"
-            with self.engine.begin() as conn:
+        """Create missing tables, and add the columns a database made by an earlier version lacks.
+
+        On PostgreSQL this runs in one transaction under an advisory lock: servers started together on one
+        empty database (replicas rolled out at once) would otherwise all issue the same CREATE TABLE, and
+        all but one fail at start-up (a unique violation in PostgreSQL's catalog). The others wait for the
+        lock, then find the tables there."""
+        with self.engine.begin() as conn:
+            if self.dialect == "postgresql":
+                conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _SCHEMA_LOCK})
+            metadata.create_all(conn)
+            present = {c["name"] for c in inspect(conn).get_columns("evaluations")}
+            if "options" not in present:
+                kind = "JSONB" if self.dialect == "postgresql" else "JSON"
                 conn.execute(text(f"ALTER TABLE evaluations ADD COLUMN options {kind}"))
 
     def ping(self) -> None:
