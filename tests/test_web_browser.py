@@ -304,5 +304,7 @@ def test_history_dates_stay_on_one_line_in_a_narrow_window(live, browser, state)
         assert len(dates) >= len(state["ids"])
         lines = [browser.execute_script("return arguments[0].getClientRects().length", a) for a in dates]
         assert lines == [1] * len(dates), [a.text for a in dates]
+        assert "Moderate 3D AP (R40, strict IoU)" in browser.find_element(By.CSS_SELECTOR, "table.history thead").text
     finally:
         browser.set_window_size(1280, 1600)
+    shoot(browser, "history")

@@ -190,6 +190,14 @@ def history_row(html: str, evaluation: str) -> str:
     return html.split(f'<tr data-id="{evaluation}"', 1)[1].split("</tr>", 1)[0]
 
 
+def test_history_header_says_which_ap_it_shows(client, two) -> None:
+    html = client.get("/").text
+    head = html.split('<table class="history">', 1)[1].split("</thead>", 1)[0]
+    text = " ".join(re.sub(r"<[^>]+>", " ", head).split())  # what is shown, not the tooltips
+    assert "Moderate 3D AP (R40, strict IoU)" in text
+    assert text.endswith("Car Pedestrian Cyclist")  # the classes under it
+
+
 def test_history_dates_do_not_wrap(client, two) -> None:
     html = client.get("/").text
     for evaluation in two:
