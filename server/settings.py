@@ -30,9 +30,10 @@ class Settings(BaseSettings):
     )
 
     data_dir: Path = Field(default_factory=default_data_dir)
-    """Holds the SQLite database (when ``database_url`` is unset), registered ground truths, the generated
-    admin token, the scratch space of uploads being processed (``tmp/``) and the locks that tell whose
-    scratch folders they are (``run/``: what a killed process left is removed at the next start)."""
+    """Holds the SQLite database (when ``database_url`` is unset), unpacked copies of registered ground truths
+    (the files themselves are in the database), the generated admin token, the scratch space of uploads being
+    processed (``tmp/``) and the locks that tell whose scratch folders they are (``run/``: what a killed
+    process left is removed at the next start)."""
 
     database_url: str | None = None
     """SQLAlchemy URL. Unset: ``sqlite:///<data_dir>/kitti-eval.db`` (WAL). ``postgresql://user:pw@host/db``
@@ -69,7 +70,8 @@ class Settings(BaseSettings):
 
     admin_token: SecretStr | None = None
     """Bearer token for registering and deleting ground truths. Unset: one is generated on first start and
-    kept in ``<data_dir>/admin-token`` (readable by the server's user only)."""
+    kept in ``<data_dir>/admin-token`` (readable by the server's user only); replicas sharing a database must
+    all be given the same one."""
 
     gt_cache_entries: Annotated[int, Field(ge=1)] = 4
     """Ground-truth sets kept loaded in memory (least recently used ones are dropped first)."""
