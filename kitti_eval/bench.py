@@ -246,9 +246,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--scales", default="1,10", help="generated sets, in multiples of KITTI val's 3769 frames")
     p.add_argument("--repeat", type=int, default=5, help="repetitions of each warm measurement (best/median)")
     p.add_argument("--no-cold", action="store_true", help="skip the empty-cache (first run) measurement")
+    p.add_argument(
+        "--sharded",
+        action="store_true",
+        help="instead: kitti-eval --sharded on sets of K val-sized shards (python -m kitti_eval.bench_sharded)",
+    )
+    p.add_argument("--cluster", help="with --sharded: also on this Dask cluster, e.g. local:2")
     p.add_argument("--child", nargs=2, metavar=("GT", "PRED"), help=argparse.SUPPRESS)
     p.add_argument("--cli-child", nargs=2, metavar=("GT", "PRED"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.sharded:
+        from .bench_sharded import main as sharded_main
+
+        return sharded_main(["--scales", args.scales] + (["--cluster", args.cluster] if args.cluster else []))
     if args.cli_child:
         return _cli_child(*args.cli_child)
     if args.child:

@@ -104,7 +104,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             ok &= good
             print(f"  {'met' if good else 'NOT MET':<8} {k}x {mode or 'in process'}: time / linear = {ratio:.2f}")
     top = max(scales)
-    for mode, limit in ((None, TARGETS["rss_in_process_mib"]), (args.cluster, TARGETS["rss_cluster_mib"])):
+    limits: list[tuple[str | None, float]] = [(None, TARGETS["rss_in_process_mib"])]
+    if args.cluster:
+        limits.append((args.cluster, TARGETS["rss_cluster_mib"]))
+    for mode, limit in limits:
         if (top, mode) in rows:
             good = rows[(top, mode)][1] <= limit
             ok &= good
