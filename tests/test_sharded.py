@@ -222,3 +222,23 @@ def test_a_worker_lost_mid_run_changes_nothing(tmp_path: Path) -> None:
         )
     assert (tmp_path / "died").exists()  # a worker did die
     assert_same(lost, whole)
+
+
+@pytest.mark.parametrize("slot", [("Car", "3d", "moderate", "strict"), ("Pedestrian", "aos", "hard", "loose")])
+def test_the_frames_of_a_set_in_shards_equal_the_whole(tmp_path: Path, slot: tuple[str, str, str, str]) -> None:
+    from kitti_eval.analysis.diagnostics import frame_stats
+    from kitti_eval.analysis.sharded import frame_stats_sharded
+
+    infos, results = generate(120, seed=7)
+    gts = dump_all(tmp_path, "gt", split(infos, [40, 90]))
+    preds = dump_all(tmp_path, "pred", split(results, [20, 100]))  # crossing the ground-truth files
+    (gt,) = dump_all(tmp_path / "whole", "gt", [infos])
+    (pred,) = dump_all(tmp_path / "whole", "pred", [results])
+    cls, metric, difficulty, oset = slot
+    kw = dict(cls=cls, metric=metric, difficulty=difficulty, oset=oset, score_threshold=0.3)
+    whole = frame_stats(load_ground_truth(gt), load_detections(pred), EvalConfig(), **kw)  # type: ignore[arg-type]
+    parts = frame_stats_sharded(gts, preds, EvalConfig(), **kw)  # type: ignore[arg-type]
+    assert parts.frame_ids == whole.frame_ids and len(whole.frame_ids) == 120
+    for field in ("tp", "fp", "fn"):
+        np.testing.assert_array_equal(getattr(parts, field), getattr(whole, field))
+    assert parts.worst(10) == whole.worst(10) and sum(whole.tp) > 0

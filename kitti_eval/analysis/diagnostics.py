@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ..core.evaluation import Plan, plan_evaluation
+from ..core.evaluation import Facts, Plan, plan_evaluation
 from ..core.frames import Annotations
 from ..core.matching import MatchJob
 from ..core.protocol import THRESHOLD_SETS, Difficulty, EvalConfig, Metric
@@ -103,11 +103,13 @@ def frame_stats(
     difficulty: str = "moderate",
     oset: str = "strict",
     score_threshold: float = 0.0,
+    facts: Facts | None = None,
 ) -> FrameStats:
-    """TP, FP and FN of every frame for one (class, metric, difficulty, threshold set) at a score threshold."""
+    """TP, FP and FN of every frame for one (class, metric, difficulty, threshold set) at a score threshold
+    (``facts``: the whole set's, when ``gt`` and ``dt`` are a part of it)."""
     config = with_class(config, cls)
     m, d = parse_slot(config, metric, difficulty, oset)
-    plan = plan_evaluation(gt, dt, config)
+    plan = plan_evaluation(gt, dt, config, facts=facts)
     job = slot_job(plan, cls, m, d, oset)
     n = gt.num_frames
     (events,) = plan.events([job])

@@ -36,9 +36,9 @@ from ..core.frames import Annotations, dimension_order_warnings, dimension_sampl
 from ..core.matching import PRCounts, score_thresholds
 from ..core.protocol import INVALID_ALPHA, OVERLAP_METRICS, EvalConfig, Metric, did_you_mean
 from ..core.result import EvalResult
-from ..errors import InputError
+from ..errors import ConfigError, InputError
 
-__all__ = ["Part", "evaluate_sharded", "parts_of"]
+__all__ = ["Part", "evaluate_sharded", "frame_stats_sharded", "parts_of"]
 
 #: a map over parts: ``mapper(fn, items)`` returns ``[fn(x) for x in items]`` in order (Dask's client.map,
 #: a process pool, or the built-in map)
@@ -262,16 +262,7 @@ def evaluate_sharded(
         raise InputError("no prediction files")
     clock = time.perf_counter
     t0 = clock()
-    paired = len(gt_paths) == len(pred_paths)
-    if paired:
-        parts = [Part(str(g), (str(p),), True, gt_format, pred_format) for g, p in zip(gt_paths, pred_paths)]
-        try:
-            first = run(_Phase1(config), parts)
-        except _NotPaired:
-            paired = False
-    if not paired:
-        parts = parts_of(gt_paths, pred_paths, gt_format=gt_format, pred_format=pred_format, mapper=run)
-        first = run(_Phase1(config), parts)
+    parts, first = _run_parts(run, _Phase1(config), gt_paths, pred_paths, gt_format, pred_format)
     t1 = clock()
     gt_name, pred_name = source or (str(gt_paths[0]), str(pred_paths[0]))
     facts, totals = _reduce_facts(first, config, gt_name, pred_name, gt_paths, pred_paths)
@@ -299,6 +290,100 @@ def evaluate_sharded(
     t3 = clock()
     timings = {"phase1": t1 - t0, "reduce": t2 - t1, "phase2": t3 - t2}
     return result_from_counts(template, counts_, totals, keep_curves=keep_curves, timings=timings)
+
+
+def _run_parts(
+    run: Mapper,
+    phase: Callable[[Part], Any],
+    gt_paths: Sequence[str | Path],
+    pred_paths: Sequence[str | Path],
+    gt_format: str | None,
+    pred_format: str | None,
+) -> tuple[list[Part], list[Any]]:
+    """``phase`` over the parts: the files paired by position when that holds, else as :func:`parts_of` says."""
+    if len(gt_paths) == len(pred_paths):
+        parts = [Part(str(g), (str(p),), True, gt_format, pred_format) for g, p in zip(gt_paths, pred_paths)]
+        try:
+            return parts, run(phase, parts)
+        except _NotPaired:
+            pass
+    parts = parts_of(gt_paths, pred_paths, gt_format=gt_format, pred_format=pred_format, mapper=run)
+    return parts, run(phase, parts)
+
+
+@dataclass(frozen=True)
+class _FramesPhase:
+    config: EvalConfig
+    slot: tuple[str, str, str, str]  # class, metric, difficulty, threshold set
+    score_threshold: float
+
+    def __call__(self, part: Part) -> tuple[Any, bool]:
+        from .diagnostics import frame_stats
+
+        gt, dt = _load_part(part)
+        cls, metric, difficulty, oset = self.slot
+        stats = frame_stats(
+            gt,
+            dt,
+            self.config,
+            cls=cls,
+            metric=metric,
+            difficulty=difficulty,
+            oset=oset,
+            score_threshold=self.score_threshold,
+            facts=Facts.every_job(self.config),
+        )
+        overlap = Metric.BBOX if metric == Metric.AOS.value else Metric(metric)
+        return stats, scored_metrics(dt, cls)[overlap]
+
+
+def frame_stats_sharded(
+    gt_paths: Sequence[str | Path],
+    pred_paths: Sequence[str | Path],
+    config: EvalConfig | None = None,
+    *,
+    cls: str = "Car",
+    metric: str = "3d",
+    difficulty: str = "moderate",
+    oset: str = "strict",
+    score_threshold: float = 0.0,
+    gt_format: str | None = None,
+    pred_format: str | None = None,
+    mapper: Mapper | None = None,
+) -> Any:
+    """:func:`kitti_eval.analysis.diagnostics.frame_stats` of a set given in shards: each part's frames (a
+    frame's counts depend on its own boxes only), in ground-truth file order; only three counts a frame are
+    kept."""
+    from .diagnostics import FrameStats, parse_slot, with_class
+
+    config = with_class(config, cls)
+    parse_slot(config, metric, difficulty, oset)  # bad names fail before any file is read
+    _, out = _run_parts(
+        mapper or _serial,
+        _FramesPhase(config, (cls, metric, difficulty, oset), float(score_threshold)),
+        gt_paths,
+        pred_paths,
+        gt_format,
+        pred_format,
+    )
+    _check_unique([stats.frame_ids for stats, _ in out], [str(p) for p in gt_paths], "ground-truth")
+    if config.protocol.skip_undetected and not any(scored for _, scored in out):
+        raise ConfigError(
+            f"{cls} is not evaluated in {metric} under the {config.protocol.name} protocol (no detection of it "
+            "can be scored there)"
+        )
+    first = out[0][0]
+    return FrameStats(
+        tuple(fid for stats, _ in out for fid in stats.frame_ids),
+        np.concatenate([stats.tp for stats, _ in out]),
+        np.concatenate([stats.fp for stats, _ in out]),
+        np.concatenate([stats.fn for stats, _ in out]),
+        first.cls,
+        first.metric,
+        first.difficulty,
+        first.oset,
+        first.score_threshold,
+    )
 
 
 def _reduce_facts(
