@@ -308,21 +308,22 @@ def _frame_rows(c: Candidates, f: int) -> tuple[int, int, int, int, int, int]:
 def _frame_pass1(c: Candidates, f: int, min_overlap: float, tp_scores: np.ndarray, assigned: np.ndarray) -> int:
     """Pass 1 on frame ``f``: each ground-truth box in file order takes the unassigned detection of highest
     score with overlap > ``min_overlap``. Writes the scores of the valid matches (true positives) to
-    ``tp_scores`` and returns how many. ``assigned``: scratch space for the frame's detections.
+    ``tp_scores`` and returns how many. ``assigned`` (out, int64, one per detection of the frame): the
+    ground-truth row (frame-local, compacted) a detection was taken by, else -1.
     """
     ga, n_g, d0, nd, o0, width = _frame_rows(c, f)
     for a in range(nd):
-        assigned[a] = False
+        assigned[a] = -1
     n_tp = 0
     for i in range(n_g):
         det_a = -1
         best = _NO_DETECTION
         for a in range(nd):
-            if not assigned[a] and c.sub[o0 + a * width + i] > min_overlap and c.d_score[d0 + a] > best:
+            if assigned[a] < 0 and c.sub[o0 + a * width + i] > min_overlap and c.d_score[d0 + a] > best:
                 det_a = a
                 best = c.d_score[d0 + a]
         if det_a >= 0:
-            assigned[det_a] = True
+            assigned[det_a] = i
             if c.g_code[ga + i] == VALID and c.d_code[d0 + det_a] == VALID:
                 tp_scores[n_tp] = best
                 n_tp += 1
@@ -399,7 +400,7 @@ def _widest(ptr: np.ndarray) -> int:
 @njit(cache=True, nogil=True)
 def _pass1(c: Candidates, min_overlap: float) -> tuple[np.ndarray, np.ndarray]:
     """The scores of pass 1's true positives over every frame, in frame order, and the frame of each."""
-    assigned = np.empty(_widest(c.d_ptr), dtype=np.bool_)
+    assigned = np.empty(_widest(c.d_ptr), dtype=np.int64)
     tp_scores = np.empty(c.d_ptr[c.d_ptr.shape[0] - 1], dtype=np.float64)
     tp_frames = np.empty(tp_scores.shape[0], dtype=np.int64)
     n_tp = 0
