@@ -92,6 +92,7 @@ def warm_up(everything: bool = True) -> None:
     if not everything:
         return
     from .analysis.bootstrap import paired_bootstrap
+    from .analysis.decomposition import decompose
     from .analysis.diagnostics import frame_stats
     from .analysis.inspection import inspect_frame
     from .core.geometry import iou_2d, iou_3d, iou_bev
@@ -100,6 +101,7 @@ def warm_up(everything: bool = True) -> None:
     load_pickle(io.BytesIO(pickle.dumps(results, protocol=4)), source="warm-up")
     paired_bootstrap(gt, dt, dt, resamples=2)
     frame_stats(gt, dt)
+    decompose(gt, dt)
     inspect_frame(gt, [("warm-up", dt)], gt.frame_ids[0])
     boxes = gt.boxes_camera[:2]
     iou_2d(gt.bbox[:2], gt.bbox[:2])

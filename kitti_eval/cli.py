@@ -162,6 +162,12 @@ def _add_eval_options(p: argparse.ArgumentParser) -> None:
         "(default: table, or $KITTI_EVAL_FORMAT)",
     )
     p.add_argument("--curves", action="store_true", help="include the 41-point curves in the JSON output")
+    p.add_argument(
+        "--errors",
+        action="store_true",
+        help="also the error decomposition and true-positive errors ('kitti-eval errors --help'): 'errors', "
+        "'errors_r11' and 'tp_errors' in the JSON, a table after the AP otherwise",
+    )
     p.add_argument("--output", "-o", type=Path, help="write the result here instead of stdout")
     p.add_argument("--quiet", "-q", action="store_true", help="do not print warnings")
 
@@ -236,6 +242,7 @@ def _parser() -> argparse.ArgumentParser:
         _compare_parser,
         _frames_parser,
         _inspect_parser,
+        _errors_parser,
         _describe_parser,
         _serve_parser,
     ):
@@ -368,12 +375,25 @@ def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
     )
     _wait(warmer)
     plot_dir = getattr(args, "plot_dir", None)
-    result = evaluate(gt, dt, config, keep_curves=args.curves or bool(plot_dir))
+    keep_curves = args.curves or bool(plot_dir)
+    extra: dict[str, Any] | None = None
+    if args.errors:
+        from .analysis.decomposition import decompose_plan, errors_document, render_errors
+        from .core.evaluation import Totals, plan_evaluation, result_from_counts
+
+        plan = plan_evaluation(gt, dt, config)
+        result = result_from_counts(plan, plan.counts(), Totals.of(plan), keep_curves=keep_curves)
+        decomposition = decompose_plan(plan)
+        extra = errors_document(decomposition, full=False)
+    else:
+        result = evaluate(gt, dt, config, keep_curves=keep_curves)
     if plot_dir:
         from .report.plots import plot_pr_curves
 
         plot_pr_curves(result, plot_dir)
-    text = render(result, args.format, include_curves=args.curves)
+    text = render(result, args.format, include_curves=args.curves, extra=extra)
+    if args.errors and args.format is not OutputFormat.JSON:
+        text += "\n" + render_errors(decomposition, args.format.value)
     if not args.quiet:
         for w in [*load_warnings, *result.warnings]:
             _say(f"warning: {w}")
@@ -389,6 +409,8 @@ def _run_sharded(args: argparse.Namespace) -> int:
 
     if not args.sharded:
         raise ConfigError("--cluster evaluates a set given in shards: add --sharded")
+    if args.errors:
+        raise ConfigError("--errors works with one --gt and one --pred, not with --sharded")
     if args.split or args.plot or args.plot_dir:
         raise ConfigError("--split, --plot and --plot-dir do not work with --sharded")
     config = _config(args)
@@ -590,6 +612,46 @@ def _frames(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _errors_parser(sub: Any) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "errors",
+        help="why AP is lost: the AP each error type costs, and how far the matched boxes are off",
+        description="Error decomposition (TIDE's types on KITTI's matching: classification, localization, both, "
+        "duplicate, background, missed; orientation for AOS): the AP points gained by fixing each type alone, "
+        "per class, metric and difficulty. True-positive errors (nuScenes): translation, scale and orientation "
+        "of the boxes the 3D matching pairs. The rules are in kitti_eval/analysis/decomposition.py.",
+    )
+    p.add_argument("--gt", required=True, type=Path, help="ground truth")
+    p.add_argument("--pred", required=True, type=Path, help="predictions")
+    p.add_argument("--set", dest="oset", default="strict", choices=list(THRESHOLD_SETS), help="IoU threshold set")
+    p.add_argument("--recall", default="R40", choices=["R40", "R11"], help="AP scale of the table (JSON holds both)")
+    p.add_argument("--format", choices=["table", "json", "markdown"], default="table")
+    p.add_argument("--output", "-o", type=Path, help="write the result here instead of stdout")
+    p.add_argument("--quiet", "-q", action="store_true", help="do not print warnings")
+    _add_config_options(p)
+    p.set_defaults(run=_errors)
+    return p
+
+
+def _errors(args: argparse.Namespace) -> int:
+    from .analysis.decomposition import decompose_plan, render_errors
+    from .core.evaluation import plan_evaluation
+    from .io.loaders import load_pair
+
+    config = _config(args)
+    warmer = _start_warm_up()
+    load_warnings: list[str] = []
+    gt, dt = load_pair(args.gt, args.pred, warnings=load_warnings)
+    _wait(warmer)
+    plan = plan_evaluation(gt, dt, config)
+    text = render_errors(decompose_plan(plan, oset=args.oset), args.format, recall=args.recall)
+    if not args.quiet:
+        for w in [*load_warnings, *plan.warnings]:
+            _say(f"warning: {w}")
+    _emit(text, args.output)
+    return EXIT_OK
+
+
 def _inspect_parser(sub: Any) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "inspect",
@@ -769,8 +831,8 @@ def _command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     preds = expand_predictions(args.pred)
     if len(preds) == 1 and not args.plot and not (args.plot_dir and len(args.pred) > 1):
         return _run(args.gt, preds[0], args)
-    if args.gt_format or args.pred_format or args.split:
-        raise ConfigError("--gt-format, --pred-format and --split work with one --pred only")
+    if args.gt_format or args.pred_format or args.split or args.errors:
+        raise ConfigError("--gt-format, --pred-format, --split and --errors work with one --pred only")
     return _run_many(args.gt, preds, args)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import enum
 import json
 import math
+from collections.abc import Mapping
 from typing import Any
 
 from ..core.protocol import Difficulty
@@ -91,9 +92,11 @@ def _finite_or_none(obj: object) -> object:
     return obj
 
 
-def render_json(result: EvalResult, *, include_curves: bool = False) -> str:
-    """The versioned JSON document (see :meth:`EvalResult.to_dict`)."""
-    return json.dumps(_finite_or_none(result.to_dict(include_curves=include_curves)), indent=2, allow_nan=False) + "\n"
+def render_json(result: EvalResult, *, include_curves: bool = False, extra: Mapping[str, Any] | None = None) -> str:
+    """The versioned JSON document (see :meth:`EvalResult.to_dict`), with the keys of ``extra`` added (e.g.
+    the error decomposition's)."""
+    doc = {**result.to_dict(include_curves=include_curves), **(extra or {})}
+    return json.dumps(_finite_or_none(doc), indent=2, allow_nan=False) + "\n"
 
 
 def render_markdown(result: EvalResult) -> str:
@@ -142,10 +145,13 @@ def render_markdown(result: EvalResult) -> str:
     return "\n".join(out) + "\n"
 
 
-def render(result: EvalResult, fmt: OutputFormat | str, *, include_curves: bool = False) -> str:
+def render(
+    result: EvalResult, fmt: OutputFormat | str, *, include_curves: bool = False, extra: Mapping[str, Any] | None = None
+) -> str:
+    """``result`` in ``fmt``; ``extra``: keys added to the JSON document (the other formats ignore it)."""
     fmt = OutputFormat(fmt)
     if fmt is OutputFormat.JSON:
-        return render_json(result, include_curves=include_curves)
+        return render_json(result, include_curves=include_curves, extra=extra)
     if fmt is OutputFormat.MARKDOWN:
         return render_markdown(result)
     return render_table(result)
