@@ -575,8 +575,11 @@ def _frames_parser(sub: Any) -> argparse.ArgumentParser:
         description="True positives, false positives and misses of every frame for one class, metric and "
         "difficulty, from the same matching as the AP; --worst N lists the frames with most errors.",
     )
-    p.add_argument("--gt", required=True, type=Path, help="ground truth")
-    p.add_argument("--pred", required=True, type=Path, help="predictions")
+    p.add_argument("--gt", required=True, type=Path, help="ground truth (a quoted glob with --sharded)")
+    p.add_argument(
+        "--pred", required=True, action="append", help="predictions (with --sharded: globs or repeated, the shards)"
+    )
+    p.add_argument("--sharded", action="store_true", help="--gt and --pred are shards of one set, read part by part")
     _add_slot_options(p, ["bbox", "bev", "3d"])
     p.add_argument(
         "--score-threshold",
@@ -598,15 +601,22 @@ def _frames(args: argparse.Namespace) -> int:
 
     if args.worst is not None and args.worst < 1:
         raise ConfigError("--worst must be >= 1")
-    stats = frame_stats(
-        *load_pair(args.gt, args.pred),
-        _config(args),
+    slot = dict(
         cls=args.cls,
         metric=args.metric,
         difficulty=args.difficulty,
         oset=args.oset,
         score_threshold=args.score_threshold,
     )
+    if args.sharded:
+        from .analysis.batch import expand_predictions
+        from .analysis.sharded import frame_stats_sharded
+
+        stats = frame_stats_sharded(expand_predictions([args.gt]), expand_predictions(args.pred), _config(args), **slot)
+    else:
+        if len(args.pred) > 1:
+            raise ConfigError("one --pred, or --sharded for a set in many files")
+        stats = frame_stats(*load_pair(args.gt, Path(args.pred[0])), _config(args), **slot)
     text = render_frames(stats, args.format, worst=args.worst)
     _emit(text, args.output)
     return EXIT_OK

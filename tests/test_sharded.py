@@ -242,3 +242,24 @@ def test_the_frames_of_a_set_in_shards_equal_the_whole(tmp_path: Path, slot: tup
     for field in ("tp", "fp", "fn"):
         np.testing.assert_array_equal(getattr(parts, field), getattr(whole, field))
     assert parts.worst(10) == whole.worst(10) and sum(whole.tp) > 0
+
+
+def test_kitti_eval_frames_sharded_lists_the_same_worst_frames(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import json
+
+    from kitti_eval.cli import main
+
+    infos, results = generate(90, seed=8)
+    dump_all(tmp_path / "shards", "gt", split(infos, [30, 60]))
+    dump_all(tmp_path / "shards", "pred", split(results, [45]))
+    (gt,) = dump_all(tmp_path / "whole", "gt", [infos])
+    (pred,) = dump_all(tmp_path / "whole", "pred", [results])
+    assert main(["frames", "--gt", str(gt), "--pred", str(pred), "--worst", "5", "--format", "json"]) == 0
+    whole = json.loads(capsys.readouterr().out)
+    argv = ["frames", "--gt", str(tmp_path / "shards" / "gt-*.pkl"), "--pred", str(tmp_path / "shards" / "pred-*.pkl")]
+    assert main([*argv, "--sharded", "--worst", "5", "--format", "json"]) == 0
+    assert json.loads(capsys.readouterr().out) == whole and len(whole["frames"]) == 5
+    assert main([*argv[:3], "--pred", str(pred), "--pred", str(pred)]) == 2
+    assert "one --pred, or --sharded" in capsys.readouterr().err
