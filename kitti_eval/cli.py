@@ -453,11 +453,13 @@ def _gate_parser(sub: Any) -> argparse.ArgumentParser:
     rules = p.add_argument_group("rules")
     rules.add_argument(
         "--min",
+        "--rule",
         dest="floors",
         action="append",
         default=[],
         metavar="RULE",
-        help="a floor such as 'Car/3d/moderate/R40 >= 78.5' (any of >=, >, <=, <); repeatable",
+        help="a bound such as 'Car/3d/moderate/R40 >= 78.5' (any of >=, >, <=, <), or on an error type of the "
+        "decomposition, 'Car/3d/moderate/localization <= 5' (then --gt/--pred are evaluated with it); repeatable",
     )
     rules.add_argument(
         "--max-drop",
@@ -551,13 +553,21 @@ def _compare(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _evaluate_doc(args: argparse.Namespace, pred: Path) -> dict:
-    from .core.evaluation import evaluate
+def _evaluate_doc(args: argparse.Namespace, pred: Path, *, errors: bool = False) -> dict:
+    """The result document of ``pred`` against ``--gt`` (with ``errors``: and its error decomposition)."""
+    from .core.evaluation import Totals, evaluate, plan_evaluation, result_from_counts
     from .io.loaders import load_pair
 
     if args.gt is None:
         raise ConfigError(f"{pred} is not a JSON result; evaluating it needs --gt")
-    return evaluate(*load_pair(args.gt, pred), _config(args)).to_dict()
+    gt, dt = load_pair(args.gt, pred)
+    if not errors:
+        return evaluate(gt, dt, _config(args)).to_dict()
+    from .analysis.decomposition import decompose_plan, errors_document
+
+    plan = plan_evaluation(gt, dt, _config(args))
+    doc = result_from_counts(plan, plan.counts(), Totals.of(plan)).to_dict()
+    return {**doc, **errors_document(decompose_plan(plan), full=False)}
 
 
 def _add_slot_options(p: argparse.ArgumentParser, metrics: list[str]) -> None:
@@ -774,7 +784,9 @@ def _gate(args: argparse.Namespace) -> int:
         )
         current, baseline = res_now.to_dict(), res_base.to_dict()
     else:
-        current = _read_result_json(args.result) if args.result else _evaluate_doc(args, args.pred)
+        current = (
+            _read_result_json(args.result) if args.result else _evaluate_doc(args, args.pred, errors=rules.needs_errors)
+        )
         baseline = None
         if args.baseline:
             baseline = (

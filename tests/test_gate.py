@@ -226,3 +226,27 @@ def test_an_all_pass_gate_of_many_checks_prints_no_empty_table():
     assert text.splitlines()[0].split() == ["rule", "now", "base", "delta", "note"]
     assert "... and 95 passing checks not shown" in text
     assert "| ❌ | `Car/3d/moderate/R40/strict drop <= 0.5` |" in render_verdict_markdown(failing)
+
+
+def test_rules_on_error_types_read_the_decomposition(capsys, tmp_path):
+    key = ValueKey.parse("Car/3d/moderate/localization")
+    assert (key.error, key.recall, str(key)) == ("localization", "R40", "Car/3d/moderate/localization/R40")
+    assert ValueKey.parse("Car/aos/hard/orientation/R11").recall == "R11"
+    with pytest.raises(ConfigError, match="orientation errors are an AOS type"):
+        ValueKey.parse("Car/3d/hard/orientation")
+    with pytest.raises(ConfigError, match="a maximum drop is for AP values"):
+        parse_max_drop("Car/3d/moderate/missed=1")
+    document = doc({})
+    document["errors"] = {"Car": {"3d": {"moderate": {"localization": 4.5, "missed": None}}}}
+    verdict = run_gate(document, GateRules(floors=(parse_floor("Car/3d/moderate/localization <= 5"),)))
+    assert verdict.passed and verdict.checks[0].current == 4.5
+    verdict = run_gate(document, GateRules(floors=(parse_floor("Car/3d/moderate/missed <= 5"),)))
+    assert not verdict.passed and "null" in verdict.checks[0].message
+    with pytest.raises(InputError, match="no error decomposition"):
+        run_gate(doc({}), GateRules(floors=(parse_floor("Car/3d/moderate/localization <= 5"),)))
+    # through the CLI: --gt/--pred are evaluated with the decomposition when a rule needs it
+    code = main(["gate", "--gt", str(GT), "--pred", str(PRED), "--rule", "Car/3d/moderate/localization <= 100"])
+    out = capsys.readouterr().out
+    assert code == 0 and "Car/3d/moderate/localization/R40 <= 100" in out
+    code = main(["gate", "--gt", str(GT), "--pred", str(PRED), "--rule", "Car/3d/moderate/localization < 0"])
+    assert code == 3

@@ -1,8 +1,10 @@
 """Regression gates on AP: floors, maximum drops against a baseline, required classes.
 
 Rules address values of the JSON document by ``Class/metric/difficulty[/recall[/set]]`` (recall R40 and
-the strict threshold set by default), e.g. ``Car/3d/moderate/R40 >= 78.5``. A value that is ``null`` (not
-evaluated) fails any rule that reads it: a gate must never pass on a number that is not there.
+the strict threshold set by default), e.g. ``Car/3d/moderate/R40 >= 78.5``, or an error type of the error
+decomposition (:mod:`kitti_eval.analysis.decomposition`: the AP points that type costs, at the strict set) by
+``Class/metric/difficulty/type[/recall]``, e.g. ``Car/3d/moderate/localization <= 5``. A value that is
+``null`` (not evaluated) fails any rule that reads it: a gate must never pass on a number that is not there.
 
 Rules come from flags or from a TOML file::
 
@@ -31,6 +33,7 @@ from typing import Any
 
 from ..core.protocol import ALL_METRICS, RECALL_MODES, THRESHOLD_SETS, Difficulty
 from ..errors import ConfigError, InputError
+from .decomposition import AOS_TYPES
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -55,6 +58,7 @@ __all__ = [
 ]
 
 _METRICS = tuple(m.value for m in ALL_METRICS)
+_ERROR_TYPES = frozenset(AOS_TYPES)
 _DIFFS = tuple(d.label for d in Difficulty)
 _OPS = {">=": operator.ge, ">": operator.gt, "<=": operator.le, "<": operator.lt}
 
@@ -68,13 +72,25 @@ class ValueKey:
     difficulty: str
     recall: str = "R40"
     oset: str = "strict"
+    #: an error type of the decomposition ("" for the AP itself)
+    error: str = ""
 
     @classmethod
     def parse(cls, text: str) -> ValueKey:
         parts = [p.strip() for p in text.strip().split("/")]
         if not 3 <= len(parts) <= 5 or not all(parts):
-            raise ConfigError(f"expected Class/metric/difficulty[/R40|R11[/strict|loose]], got {text!r}")
-        key = cls(*parts)
+            raise ConfigError(
+                f"expected Class/metric/difficulty[/R40|R11[/strict|loose]] or Class/metric/difficulty/"
+                f"<error type>[/R40|R11], got {text!r}"
+            )
+        if len(parts) >= 4 and parts[3] in _ERROR_TYPES:
+            if len(parts) == 5 and parts[4] not in RECALL_MODES:
+                raise ConfigError(f"unknown recall mode {parts[4]!r} in {text!r}; expected R40 or R11")
+            if parts[3] == "orientation" and parts[1] != "aos":
+                raise ConfigError(f"orientation errors are an AOS type: write {parts[0]}/aos/{parts[2]}/orientation")
+            key = cls(parts[0], parts[1], parts[2], parts[4] if len(parts) == 5 else "R40", "strict", parts[3])
+        else:
+            key = cls(*parts)
         if key.metric not in _METRICS:
             raise ConfigError(f"unknown metric {key.metric!r} in {text!r}; expected one of {', '.join(_METRICS)}")
         if key.difficulty not in _DIFFS:
@@ -86,10 +102,14 @@ class ValueKey:
         return key
 
     def __str__(self) -> str:
+        if self.error:
+            return f"{self.cls}/{self.metric}/{self.difficulty}/{self.error}/{self.recall}"
         return f"{self.cls}/{self.metric}/{self.difficulty}/{self.recall}/{self.oset}"
 
     def read(self, doc: Mapping[str, Any]) -> float | None:
         """The value in a result document; a class or key the document lacks is an error."""
+        if self.error:
+            return self._read_error(doc)
         try:
             by_cls = doc["ap"][self.oset][self.recall]
         except (KeyError, TypeError):
@@ -97,6 +117,18 @@ class ValueKey:
         if self.cls not in by_cls:
             raise InputError(f"the result has no class {self.cls!r} (it has {', '.join(by_cls) or 'none'})")
         value = by_cls[self.cls][self.metric][self.difficulty]
+        return None if value is None else float(value)
+
+    def _read_error(self, doc: Mapping[str, Any]) -> float | None:
+        table = doc.get("errors" if self.recall == "R40" else "errors_r11")
+        if not isinstance(table, Mapping):
+            raise InputError(
+                f"the result has no error decomposition for {self}: evaluate with --errors (or gate --gt/--pred)"
+            )
+        if self.cls not in table:
+            raise InputError(f"the error decomposition has no class {self.cls!r} (it has {', '.join(table)})")
+        types = table[self.cls][self.metric][self.difficulty]
+        value = None if types is None else types.get(self.error)
         return None if value is None else float(value)
 
 
@@ -137,6 +169,11 @@ class GateRules:
     def empty(self) -> bool:
         return not (self.floors or self.max_drops or self.require_classes)
 
+    @property
+    def needs_errors(self) -> bool:
+        """Whether a rule reads the error decomposition (the result must be evaluated with it)."""
+        return any(f.key.error for f in self.floors)
+
 
 _FLOOR_RE = re.compile(r"^\s*(?P<key>[^<>=\s]+)\s*(?P<op>>=|<=|>|<)\s*(?P<bound>[-+0-9.eE]+)\s*$")
 
@@ -164,7 +201,12 @@ def parse_max_drop(text: str) -> MaxDrop:
         raise ConfigError(f"expected --max-drop N or --max-drop Class/metric/difficulty=N, got {text!r}") from None
     if not math.isfinite(limit) or limit < 0:
         raise ConfigError(f"a maximum drop must be a finite number >= 0, got {text!r}")
-    return MaxDrop(limit, ValueKey.parse(key_text) if key_text else None)
+    key = ValueKey.parse(key_text) if key_text else None
+    if key is not None and key.error:
+        raise ConfigError(
+            f"a maximum drop is for AP values; bound an error type with a rule such as '{key} <= 5' ({text!r})"
+        )
+    return MaxDrop(limit, key)
 
 
 def rules_from_options(
