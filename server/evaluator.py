@@ -13,19 +13,22 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from kitti_eval.core.evaluation import evaluate
+from kitti_eval.analysis.decomposition import decompose_plan, errors_document
+from kitti_eval.core.evaluation import Totals, evaluate, plan_evaluation, result_from_counts
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
 from kitti_eval.report.render import render_json
 
 from .errors import BadRequest, echo
 
-__all__ = ["EvalOptions", "evaluate_document", "summarize", "parse_labels", "LABEL_KEY_PATTERN"]
+__all__ = ["EvalOptions", "evaluate_document", "summarize", "parse_labels", "LABEL_KEY_PATTERN", "ERRORS_SET"]
 
 LABEL_KEY_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
 _LABEL_KEY = re.compile(LABEL_KEY_PATTERN)
 _MAX_LABELS = 32
 _MAX_LABEL_VALUE = 256
+#: the threshold set the error decomposition reads (the CLI's ``--errors`` decomposes the strict one)
+ERRORS_SET = "strict"
 
 
 @dataclass(frozen=True)
@@ -37,6 +40,7 @@ class EvalOptions:
     threshold_sets: str = ",".join(THRESHOLD_SETS)
     iou: Sequence[str] = ()
     curves: bool = False
+    errors: bool = False
     ranges: str | None = None
     coco: bool = False
     lidar_only: bool = False
@@ -57,7 +61,7 @@ class EvalOptions:
 
     def config(self) -> EvalConfig:
         """The evaluation these options ask for: the library's reading of them, as for the CLI's flags."""
-        return config_from_options(
+        config = config_from_options(
             classes=self.classes,
             protocol=self.protocol,
             threshold_sets=self.threshold_sets,
@@ -66,12 +70,27 @@ class EvalOptions:
             coco=self.coco,
             lidar_only=self.lidar_only,
         )
+        if self.errors and ERRORS_SET not in config.threshold_sets:
+            raise BadRequest(
+                f"errors=true decomposes the {ERRORS_SET} IoU thresholds: add {ERRORS_SET} to threshold_sets"
+            )
+        return config
 
 
-def evaluate_document(gt: Annotations, dt: Annotations, config: EvalConfig, *, curves: bool = False) -> dict[str, Any]:
-    """The JSON document ``kitti-eval --format json`` prints for the same inputs, as a dict."""
-    result = evaluate(gt, dt, config, keep_curves=curves)
-    doc: dict[str, Any] = json.loads(render_json(result, include_curves=curves))
+def evaluate_document(
+    gt: Annotations, dt: Annotations, config: EvalConfig, *, curves: bool = False, errors: bool = False
+) -> dict[str, Any]:
+    """The JSON document ``kitti-eval --format json`` prints for the same inputs, as a dict; with ``errors``,
+    what ``--errors`` adds (``errors``, ``errors_r11``, ``tp_errors``), computed as the CLI does: the AP and
+    the decomposition from one planned evaluation."""
+    extra: dict[str, Any] | None = None
+    if errors:
+        plan = plan_evaluation(gt, dt, config)
+        result = result_from_counts(plan, plan.counts(), Totals.of(plan), keep_curves=curves)
+        extra = errors_document(decompose_plan(plan, oset=ERRORS_SET), full=False)
+    else:
+        result = evaluate(gt, dt, config, keep_curves=curves)
+    doc: dict[str, Any] = json.loads(render_json(result, include_curves=curves, extra=extra))
     return doc
 
 

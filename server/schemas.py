@@ -27,6 +27,7 @@ __all__ = [
 ]
 
 APValues = dict[str, dict[str, dict[str, dict[str, dict[str, float | None]]]]]
+ErrorValues = dict[str, dict[str, dict[str, dict[str, float | None] | None]]]
 
 
 class ErrorBody(BaseModel):
@@ -83,6 +84,18 @@ class EvaluationResponse(BaseModel):
     frames_without_predictions: list[str]
     aos_evaluated: bool
     warnings: list[str]
+    errors: ErrorValues | None = Field(
+        None,
+        description="with errors=true: errors[class][bbox|bev|3d|aos][easy|moderate|hard][type], the AP points "
+        "(R40, strict IoU thresholds) fixing each error type alone adds: classification, localization, both, "
+        "duplicate, background, missed; orientation for aos. As kitti-eval --errors",
+    )
+    errors_r11: ErrorValues | None = Field(None, description="with errors=true: the same in R11 AP points")
+    tp_errors: dict[str, dict[str, dict[str, float | None] | None]] | None = Field(
+        None,
+        description="with errors=true: tp_errors[class][easy|moderate|hard][translation|scale|orientation], "
+        "the mean errors of the 3D matching's true positives (metres, 1 - IoU, radians) over recall >= 0.1",
+    )
     evaluation: EvaluationMeta
 
 

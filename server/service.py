@@ -221,7 +221,7 @@ class Service:
             loaded = load_upload(
                 pred, "detections", scratch / "pred", self.limits, keep_lidar=keep, known_frames=gt.frame_index()
             )
-            doc = evaluate_document(gt, loaded.annotations, config, curves=options.curves)
+            doc = evaluate_document(gt, loaded.annotations, config, curves=options.curves, errors=options.errors)
             if keep:
                 pred.file.seek(0)
                 self.store.add_prediction_file(pred.sha256, pred.file.read())

@@ -87,6 +87,13 @@ async def create_evaluation(
         list[str] | None, Form(description="IoU thresholds as the CLI's --iou: CLASS[:SET]=BBOX,BEV,3D; repeatable")
     ] = None,
     curves: Annotated[bool, Form(description="include the 41-point curves in the JSON")] = False,
+    errors: Annotated[
+        bool,
+        Form(
+            description="also why AP is lost, as --errors: 'errors', 'errors_r11' and 'tp_errors' in the JSON "
+            "(the strict IoU thresholds; see 'kitti-eval errors --help')"
+        ),
+    ] = False,
     ranges: Annotated[str | None, Form(description="also by distance, e.g. 0,30,50,inf (as --ranges)")] = None,
     coco: Annotated[bool, Form(description="also COCO-style AP over ten IoU thresholds (as --coco)")] = False,
     lidar_only: Annotated[bool, Form(description="BEV and 3D only, for sets without images (as --lidar-only)")] = False,
@@ -104,6 +111,7 @@ async def create_evaluation(
         threshold_sets=threshold_sets,
         iou=tuple(iou or ()),
         curves=curves,
+        errors=errors,
         ranges=ranges,
         coco=coco,
         lidar_only=lidar_only,

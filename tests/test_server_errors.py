@@ -1,0 +1,75 @@
+"""The error decomposition through the service: ``errors=true`` adds what ``kitti-eval --errors`` adds."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from server_helpers import assert_error, upload
+
+from kitti_eval.cli import main as cli_main
+from kitti_eval.io.synth import demo_paths
+
+DEMO_PRED = demo_paths()[1].read_bytes()
+ERROR_KEYS = ("errors", "errors_r11", "tp_errors")
+META = ("id", "evaluation")
+
+
+def cli_json(tmp_path: Path, *flags: str) -> dict:
+    gt, pred = demo_paths()
+    out = tmp_path / "cli.json"
+    argv = ["--gt", str(gt), "--pred", str(pred), "--format", "json", "--output", str(out), "--quiet", *flags]
+    assert cli_main(argv) == 0
+    doc: dict = json.loads(out.read_text())
+    return doc
+
+
+def doc_of(body: dict) -> dict:
+    return {k: v for k, v in body.items() if k not in META}
+
+
+def test_errors_equal_the_clis_and_are_kept(client, tmp_path) -> None:
+    r = upload(client, DEMO_PRED, "result.pkl.gz", fields={"errors": "true"})
+    assert r.status_code == 201, r.text
+    expected = cli_json(tmp_path, "--errors")
+    body = r.json()
+    for key in ERROR_KEYS:
+        assert body[key] == expected[key], key  # the nested dicts, number for number
+    assert doc_of(body) == expected  # and nothing else changes
+    assert client.get(f"/v1/evaluations/{body['id']}").json() == body  # the stored record keeps them
+
+
+def test_errors_follow_the_options_as_the_cli_does(client, tmp_path) -> None:
+    fields = {"errors": "true", "classes": "Car,Van", "protocol": "openpcdet", "iou": "Car=0.6,0.5,0.5"}
+    r = upload(client, DEMO_PRED, "result.pkl.gz", fields=fields)
+    assert r.status_code == 201, r.text
+    flags = ("--errors", "--classes", "Car,Van", "--protocol", "openpcdet", "--iou", "Car=0.6,0.5,0.5")
+    expected = cli_json(tmp_path, *flags)
+    assert set(r.json()["errors"]) == {"Car", "Van"}
+    assert doc_of(r.json()) == expected
+
+
+def test_without_errors_the_keys_are_absent(client) -> None:
+    for fields in ({}, {"errors": "false"}):
+        body = upload(client, DEMO_PRED, "result.pkl.gz", fields=fields).json()
+        assert not set(ERROR_KEYS) & set(body)
+        assert not set(ERROR_KEYS) & set(client.get(f"/v1/evaluations/{body['id']}").json())
+
+
+def test_errors_need_the_strict_set(client) -> None:
+    """The decomposition is of the strict IoU thresholds: without them the request is refused up front."""
+    r = upload(client, DEMO_PRED, "result.pkl.gz", fields={"errors": "true", "threshold_sets": "loose"})
+    assert_error(r, 422, "errors=true", "strict")
+
+
+def test_openapi_documents_the_field_and_the_keys(client) -> None:
+    spec = client.get("/openapi.json").json()
+    schemas = spec["components"]["schemas"]
+    body = next(v for k, v in schemas.items() if k.startswith("Body_create_evaluation"))
+    field = body["properties"]["errors"]
+    assert field["type"] == "boolean" and field["default"] is False
+    assert "--errors" in field["description"]
+    response = schemas["EvaluationResponse"]["properties"]
+    for key in ERROR_KEYS:
+        assert key in response and response[key]["description"], key
+        assert key not in schemas["EvaluationResponse"].get("required", [])
