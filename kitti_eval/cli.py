@@ -510,6 +510,11 @@ def _compare_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--bootstrap", type=int, default=0, metavar="N", help="paired bootstrap resamples (e.g. 1000)")
     p.add_argument("--seed", type=int, default=0, help="seed of the resampling (default 0)")
     p.add_argument("--all", action="store_true", help="every value, not only R40 with the strict thresholds")
+    p.add_argument(
+        "--errors",
+        action="store_true",
+        help="which error types changed: the error decomposition of A and B (kitti-eval errors) side by side",
+    )
     p.add_argument("--format", choices=["table", "json", "markdown"], default="table")
     p.add_argument("--output", "-o", type=Path, help="write the comparison here instead of stdout")
     _add_config_options(p)
@@ -542,10 +547,19 @@ def _compare(args: argparse.Namespace) -> int:
         doc_a, doc_b = res_a.to_dict(), res_b.to_dict()
     else:
         doc_a, doc_b = (
-            _read_result_json(p) if j else _evaluate_doc(args, p) for p, j in zip((args.a, args.b), is_json)
+            _read_result_json(p) if j else _evaluate_doc(args, p, errors=args.errors)
+            for p, j in zip((args.a, args.b), is_json)
         )
+    if args.errors:
+        if args.bootstrap:
+            raise ConfigError("--errors and --bootstrap are not given together")
+        lacking = [str(p) for p, d in zip((args.a, args.b), (doc_a, doc_b)) if "errors" not in d]
+        if lacking:
+            raise InputError(f"no error decomposition in {', '.join(lacking)}: save it with --errors")
     text = render_comparison(
-        compare_documents(doc_a, doc_b, intervals, args.bootstrap, args.seed if args.bootstrap else None),
+        compare_documents(
+            doc_a, doc_b, intervals, args.bootstrap, args.seed if args.bootstrap else None, errors_only=args.errors
+        ),
         args.format,
         every_value=args.all,
     )

@@ -274,3 +274,28 @@ def test_the_main_help_lists_every_exit_code(capsys):
     assert code == 0
     text = " ".join(out.split())
     assert "Exit codes: 0 ok, 1 bad input, 2 usage error, 3 a gate rule failed" in text
+
+
+def test_compare_errors_shows_which_error_types_changed(capsys, tmp_path):
+    import copy
+
+    from kitti_eval.io.safe_pickle import load_pickle
+
+    results = load_pickle(PRED, source="r")
+    worse = copy.deepcopy(results)
+    for frame in worse:  # every box 0.4 m further away: localization errors grow
+        frame["location"] = frame["location"] + np.float32([0.0, 0.0, 0.4])
+    (tmp_path / "worse.pkl").write_bytes(pickle.dumps(worse, protocol=4))
+    code, out, err = run(capsys, "compare", PRED, tmp_path / "worse.pkl", "--gt", GT, "--errors", "--format", "json")
+    assert code == 0, err
+    values = {v["key"]: v for v in json.loads(out)["values"]}
+    loc = values["Car/3d/moderate/localization/R40"]
+    assert loc["b"] > loc["a"] and loc["delta"] == pytest.approx(loc["b"] - loc["a"])
+    assert "Car/3d/moderate/R40/strict" in values  # the AP values stay in the JSON
+    code, out, _ = run(capsys, "compare", PRED, tmp_path / "worse.pkl", "--gt", GT, "--errors")
+    lines = out.splitlines()
+    assert code == 0 and all("/R40" in line and line.split()[0].count("/") == 4 for line in lines[1:])
+    assert any(line.startswith("Car/3d/moderate/localization/R40 ") for line in lines)
+    run(capsys, "--gt", GT, "--pred", PRED, "--format", "json", "-o", tmp_path / "plain.json")
+    code, _, err = run(capsys, "compare", tmp_path / "plain.json", PRED, "--gt", GT, "--errors")
+    assert code == 1 and "no error decomposition in" in err and "plain.json" in err

@@ -22,13 +22,19 @@ class Comparison:
     intervals: Mapping[ValueKey, tuple[float, float]]
     resamples: int
     seed: int | None
+    #: the table shows the error types only (the JSON keeps every value)
+    errors_only: bool = False
 
     def rows(self) -> list[tuple[ValueKey, float | None, float | None, float | None, tuple[float, float] | None]]:
-        from .gate import keys_of
+        """Every AP value, then (when both results hold an error decomposition) every error type's."""
+        from .gate import error_keys_of, keys_of
 
         out = []
         shared = set(self.b.get("classes", ()))
-        for key in keys_of(self.a):
+        keys = list(keys_of(self.a))
+        if "errors" in self.a and "errors" in self.b:
+            keys += error_keys_of(self.a)
+        for key in keys:
             if key.cls not in shared:  # said in the notes
                 continue
             va = key.read(self.a)
@@ -84,8 +90,10 @@ def compare_documents(
     intervals: Mapping[ValueKey, tuple[float, float]] | None = None,
     resamples: int = 0,
     seed: int | None = None,
+    *,
+    errors_only: bool = False,
 ) -> Comparison:
-    return Comparison(a, b, dict(intervals or {}), resamples, seed)
+    return Comparison(a, b, dict(intervals or {}), resamples, seed, errors_only)
 
 
 def render_comparison(cmp: Comparison, fmt: str = "table", *, every_value: bool = False) -> str:
@@ -95,6 +103,8 @@ def render_comparison(cmp: Comparison, fmt: str = "table", *, every_value: bool 
     if fmt == "json":
         return json.dumps(cmp.to_dict(), indent=2, allow_nan=False) + "\n"
     rows = [r for r in cmp.rows() if every_value or (r[0].recall == "R40" and r[0].oset == "strict")]
+    if cmp.errors_only:
+        rows = [r for r in rows if r[0].error]
 
     def num(v: float | None, sign: bool = False) -> str:
         if v is None:
@@ -121,9 +131,10 @@ def render_comparison(cmp: Comparison, fmt: str = "table", *, every_value: bool 
             else "\n"
         )
         return "\n".join(out) + "\n" + note + "".join(f"> note: {n}\n" for n in cmp.notes)
-    out = [f"{'value':<34} {'A':>9} {'B':>9} {'B - A':>10}  {'95% interval' if cmp.resamples else ''}"]
+    width = max([34, *(len(str(r[0])) for r in rows)])
+    out = [f"{'value':<{width}} {'A':>9} {'B':>9} {'B - A':>10}  {'95% interval' if cmp.resamples else ''}"]
     out += [
-        f"{str(k):<34} {num(a):>9} {num(b):>9} {num(d, True) + significant(iv):>10}  {interval(iv)}"
+        f"{str(k):<{width}} {num(a):>9} {num(b):>9} {num(d, True) + significant(iv):>10}  {interval(iv)}"
         for k, a, b, d, iv in rows
     ]
     if cmp.resamples:

@@ -486,3 +486,19 @@ def _f(value: float | None, sign: bool = False) -> str:
 def keys_of(doc: Mapping[str, Any]) -> Sequence[ValueKey]:
     """Every value key of a result document."""
     return list(_all_keys(doc))
+
+
+def error_keys_of(doc: Mapping[str, Any]) -> list[ValueKey]:
+    """Every error-type key of a result document's error decomposition (none without one), R40 then R11."""
+    out = []
+    for recall, name in (("R40", "errors"), ("R11", "errors_r11")):
+        table = doc.get(name)
+        if not isinstance(table, Mapping):
+            continue
+        for cls, by_metric in table.items():
+            for metric, by_diff in by_metric.items():
+                for d, types in by_diff.items():
+                    for kind in AOS_TYPES if types else ():
+                        if kind in types:
+                            out.append(ValueKey(cls, metric, d, recall, "strict", kind))
+    return out
