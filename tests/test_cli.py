@@ -261,7 +261,11 @@ def test_a_tiny_negative_difference_prints_as_zero_not_minus_zero():
 
     key = ValueKey("Car", "3d", "moderate")
     cmp = SimpleNamespace(
-        rows=lambda: [(key, 80.00001, 80.0, -0.00001, (-0.00002, 0.00004))], resamples=10, seed=0, notes=()
+        rows=lambda: [(key, 80.00001, 80.0, -0.00001, (-0.00002, 0.00004))],
+        resamples=10,
+        seed=0,
+        notes=(),
+        errors_only=False,
     )
     table = render_comparison(cmp)  # type: ignore[arg-type]
     assert "-0.0000" not in table
