@@ -308,3 +308,47 @@ def test_history_dates_stay_on_one_line_in_a_narrow_window(live, browser, state)
     finally:
         browser.set_window_size(1280, 1600)
     shoot(browser, "history")
+
+
+def test_the_error_decomposition_is_drawn(live, browser) -> None:
+    """Ticking "error decomposition" on the upload form gives a bar chart per class, drawn with the JSON's values."""
+    browser.get(live.url + "/")
+    browser.find_element(By.ID, "predictions").send_keys(str(demo_paths()[1]))
+    browser.find_element(By.CSS_SELECTOR, "input[type=checkbox][name=errors]").click()
+    evaluation_id = submit_upload(browser, model="with errors")
+    with live.client() as c:
+        doc = c.get(f"/v1/evaluations/{evaluation_id}").json()
+    svgs = browser.find_elements(By.CSS_SELECTOR, "svg.errors")
+    assert len(svgs) == 3
+    script = "const b = arguments[0].getBBox(); return [b.x, b.y, b.width, b.height]"
+    fills: dict[str, set[str]] = {}
+    for svg in svgs:
+        assert svg.is_displayed() and svg.size["width"] > 200 and svg.size["height"] > 200
+        width = float(svg.get_attribute("width"))
+        bars = svg.find_elements(By.CSS_SELECTOR, "g.bar")
+        assert len(bars) == 3 * 6 + 7
+        for bar in bars:
+            cls, metric, kind = bar.get_attribute("data-error").split("/")
+            value = doc["errors"][cls][metric]["moderate"][kind]
+            text = bar.find_element(By.CSS_SELECTOR, "text.value")
+            assert text.text == f"{value:.2f}"
+            x, _, w, h = browser.execute_script(script, text)
+            assert w > 0 and h > 0 and x + w <= width  # the value is drawn, inside the chart
+            rect = bar.find_element(By.CSS_SELECTOR, "rect")
+            if value > 0:
+                assert browser.execute_script(script, rect)[2] > 0
+            fill = browser.execute_script("return getComputedStyle(arguments[0]).fill", rect)
+            fills.setdefault(kind, set()).add(fill)
+        for label in svg.find_elements(By.CSS_SELECTOR, "text.label"):
+            x, _, w, _ = browser.execute_script(script, label)
+            assert x >= 0 and x + w <= float(bars[0].find_element(By.CSS_SELECTOR, "rect").get_attribute("x"))
+    assert all(len(f) == 1 for f in fills.values())  # one colour a type, a different one for each
+    assert len({next(iter(f)) for f in fills.values()}) == len(fills) == 7
+    tp = browser.find_elements(By.CSS_SELECTOR, "table.tp-errors td[data-tp]")
+    assert len(tp) == 3 * 3 * 3
+    for cell in tp:
+        cls, difficulty, name = cell.get_attribute("data-tp").split("/")
+        assert cell.text == f"{doc['tp_errors'][cls][difficulty][name]:.3f}"
+    fetched = browser.execute_script("return performance.getEntriesByType('resource').map((e) => e.name)")
+    assert all(url.startswith(live.url + "/") for url in fetched), fetched
+    shoot(browser, "errors")

@@ -21,18 +21,19 @@ from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
 from starlette.templating import Jinja2Templates
 
+from kitti_eval.analysis.decomposition import AOS_TYPES, ERROR_TYPES, TP_ERRORS
 from kitti_eval.core.protocol import ALL_METRICS, KNOWN_CLASSES, PROTOCOLS
 from kitti_eval.errors import KittiEvalError
 
 from ..compare import compare
 from ..deps import ServiceDep
 from ..errors import MAX_ECHO_CHARS, ApiError, BadRequest, clip, echo, library_error_status
-from ..evaluator import EvalOptions, parse_labels
+from ..evaluator import ERRORS_SET, EvalOptions, parse_labels
 from ..routes.frames import MAX_SCORE
 from ..schemas import iso
 from ..service import FileIn, Service
 from ..store import EvaluationRecord
-from .svg import bev_view, pr_chart
+from .svg import bar_chart, bev_view, points_text, pr_chart
 
 __all__ = ["router", "templates", "STATIC_DIR"]
 
@@ -83,7 +84,7 @@ def _env() -> jinja2.Environment:
         trim_blocks=True,
         lstrip_blocks=True,
     )
-    env.filters.update(fmt=fmt, full=full, signed=signed, delta_class=delta_class, iso=iso)
+    env.filters.update(fmt=fmt, full=full, signed=signed, delta_class=delta_class, iso=iso, points=points_text)
     return env
 
 
@@ -156,7 +157,8 @@ def home(request: Request, service: ServiceDep) -> Response:
 
 @router.post("/ui/evaluations")
 async def upload(request: Request, service: ServiceDep) -> Response:
-    """The upload form: evaluate (with curves) and redirect to the new evaluation's page."""
+    """The upload form: evaluate (with curves; with the error decomposition when its box is ticked) and
+    redirect to the new evaluation's page."""
     values: dict[str, str] = {}
     try:
         async with request.form(max_files=1, max_fields=16) as form:
@@ -165,7 +167,9 @@ async def upload(request: Request, service: ServiceDep) -> Response:
             if not isinstance(predictions, UploadFile) or not predictions.filename:
                 raise BadRequest("choose a predictions file (a result.pkl, .pkl.gz, or a zip/tar of KITTI txt results)")
             labels = parse_labels({"model": values.get("model", "").strip()}, [])
-            options = EvalOptions(protocol=values.get("protocol", "official"), curves=True)
+            options = EvalOptions(
+                protocol=values.get("protocol", "official"), curves=True, errors=values.get("errors") == "true"
+            )
             record = await service.run(
                 service.evaluate,
                 FileIn(predictions.file, predictions.filename),
@@ -227,6 +231,37 @@ def curve_charts(result: Mapping[str, Any]) -> list[dict[str, Any]]:
     return out
 
 
+def error_charts(result: Mapping[str, Any], difficulty: str, recall: str) -> dict[str, Any] | None:
+    """The error decomposition of one difficulty and recall mode (the strict thresholds): per class a bar
+    chart (groups per metric, a bar per error type, all classes on one scale) and the true-positive errors of
+    every difficulty. None when the evaluation has no decomposition; ``error`` says why a choice is not shown."""
+    if "errors" not in result:
+        return None
+    section: dict[str, Any] = {"set": ERRORS_SET, "recall": recall, "difficulty": difficulty, "classes": []}
+    if recall not in _RECALLS or difficulty not in result["difficulties"]:
+        section["error"] = (
+            f"no error decomposition for {echo(recall)}, {echo(difficulty)}: "
+            f"choose a difficulty of {', '.join(result['difficulties'])} and R40 or R11"
+        )
+        return section
+    table = result["errors" if recall == "R40" else "errors_r11"]
+    groups = {  # a difficulty not evaluated shows every type without a value
+        cls: {
+            metric: dict(by_diff.get(difficulty) or dict.fromkeys(AOS_TYPES if metric == "aos" else ERROR_TYPES))
+            for metric, by_diff in by_metric.items()
+        }
+        for cls, by_metric in table.items()
+    }
+    values = [v for g in groups.values() for kinds in g.values() for v in kinds.values() if v is not None]
+    lo, hi = min(values, default=0.0), max(values, default=0.0)
+    for cls, by_metric in groups.items():
+        tp = result["tp_errors"].get(cls) or {}
+        rows = [{"difficulty": d, "values": {k: (tp.get(d) or {}).get(k) for k in TP_ERRORS}} for d in tp]
+        section["classes"].append({"cls": cls, "chart": bar_chart(by_metric, lo=lo, hi=hi), "tp": rows})
+    section["error"] = None
+    return section
+
+
 async def _worst_frames(service: Service, record: EvaluationRecord, choice: Mapping[str, str]) -> dict[str, Any]:
     section: dict[str, Any] = {"rows": [], "error": None}
     try:
@@ -260,6 +295,8 @@ async def evaluation_page(
     metric: str = "3d",
     difficulty: str = "moderate",
     oset: Annotated[str | None, Query(alias="set")] = None,
+    err_difficulty: str = "moderate",
+    err_recall: str = "R40",
 ) -> Response:
     try:
         record = await anyio.to_thread.run_sync(service.evaluation, evaluation_id)
@@ -282,7 +319,9 @@ async def evaluation_page(
         name=model_name(record),
         tables=score_tables(result),
         curves=curve_charts(result),
+        errors=error_charts(result, err_difficulty, err_recall),
         choice=choice,
+        error_choice={"err_difficulty": err_difficulty, "err_recall": err_recall},
         choices={
             "cls": result["classes"],
             "metric": result["metrics"],

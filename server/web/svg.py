@@ -1,4 +1,5 @@
-"""Geometry for the inline SVG charts of the web pages: precision-recall curves and bird's-eye views.
+"""Geometry for the inline SVG charts of the web pages: precision-recall curves, bird's-eye views and the bar
+charts of the error decomposition.
 
 Pure functions from numbers to screen coordinates; the templates draw the shapes. Screen coordinates
 have their origin at the top left corner and grow to the right and down, as SVG's do.
@@ -11,7 +12,21 @@ from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["Plot", "PRChart", "pr_chart", "bev_corners", "BevBox", "BevView", "bev_view", "points_attr"]
+__all__ = [
+    "Plot",
+    "PRChart",
+    "pr_chart",
+    "bev_corners",
+    "BevBox",
+    "BevView",
+    "bev_view",
+    "points_attr",
+    "Bar",
+    "BarGroup",
+    "BarChart",
+    "bar_chart",
+    "points_text",
+]
 
 Point = tuple[float, float]
 
@@ -261,3 +276,124 @@ def bev_view(
         (sx0, sy), (sx1, _) = frame((left, v * step)), frame((right, v * step))
         grid.append((f"z {v * step:g}", sx0, sy, sx1, sy))
     return BevView(width, height, boxes, grid, step, frame((0.0, 0.0)))
+
+
+# ------------------------------------------------------------------------------------------------- bars
+
+
+def points_text(value: float | None, digits: int = 2) -> str:
+    """A number as the CLI's error table prints it (``kitti-eval errors``): ``digits`` decimals, ``-`` for
+    none, and never ``-0.00``."""
+    if value is None:
+        return "-"
+    text = f"{value:.{digits}f}"
+    return text[1:] if text == f"-{0:.{digits}f}" else text
+
+
+@dataclass(frozen=True)
+class Bar:
+    kind: str
+    value: float | None
+    x: float  # the rectangle: left edge, width (0 without a value), top, height
+    width: float
+    y: float
+    height: float
+    text: str  # the value as printed, at ``text_x`` on the bar's ``baseline``
+    text_x: float
+    baseline: float
+
+
+@dataclass(frozen=True)
+class BarGroup:
+    name: str
+    y: float  # the heading's baseline
+    bars: list[Bar]
+
+
+@dataclass(frozen=True)
+class BarChart:
+    width: int
+    height: int
+    left: float  # the bars' area: screen x of the axis' ends, top and bottom
+    right: float
+    top: float
+    bottom: float
+    x0: float  # screen x of the value 0
+    groups: list[BarGroup]
+    ticks: list[tuple[str, float]]  # (label, screen x)
+
+
+_LABEL_W = 86  # the column of the bars' labels
+_VALUE_W = 38  # room for the value right of the longest bar
+_ROW = 13  # one bar's row
+_BAR = 9
+_HEAD = 15  # a group's heading
+_TOP = 4
+_AXIS = 28  # below the bars: the ticks' labels and the axis' name
+
+
+def _nice_step(span: float) -> float:
+    """A step of 1, 2, 2.5 or 5 times a power of ten giving at most five intervals over ``span`` (> 0)."""
+    power = 10.0 ** math.floor(math.log10(span / 5))
+    return next(m * power for m in (1.0, 2.0, 2.5, 5.0, 10.0) if span / (m * power) <= 5 + 1e-9)
+
+
+def bar_chart(
+    groups: Mapping[str, Mapping[str, float | None]],
+    *,
+    lo: float = 0.0,
+    hi: float | None = None,
+    width: int = 340,
+) -> BarChart:
+    """Horizontal bars, in groups, on one axis from 0.
+
+    Parameters
+    ----------
+    groups : ``{group: {kind: value}}`` in the order they are drawn (None: no bar, the value shows ``-``)
+    lo, hi : the range the axis must cover besides 0 and the values (several charts on one scale pass the
+        extremes of them all); the axis ends at multiples of its tick step
+    width : the chart's width; its height follows from the number of bars
+    """
+    values = [v for kinds in groups.values() for v in kinds.values() if v is not None]
+    low = min(0.0, lo, *values)
+    high = max(0.0, hi or 0.0, *values)
+    if high - low <= 0:
+        high = low + 1.0
+    step = _nice_step(high - low)
+    low, high = math.floor(low / step + 1e-9) * step, math.ceil(high / step - 1e-9) * step
+    left, right = float(_LABEL_W), float(width - _VALUE_W)
+
+    def x(value: float) -> float:
+        return left + (value - low) / (high - low) * (right - left)
+
+    x0 = x(0.0)
+    out, y = [], float(_TOP)
+    for name, kinds in groups.items():
+        head = y + _HEAD - 4
+        y += _HEAD
+        bars = []
+        for kind, value in kinds.items():
+            top = y + (_ROW - _BAR) / 2
+            if value is None:
+                start, length = x0, 0.0
+            else:
+                start, end = sorted((x0, x(value)))
+                length = end - start
+            bars.append(
+                Bar(
+                    kind,
+                    value,
+                    start,
+                    length,
+                    top,
+                    float(_BAR),
+                    points_text(value),
+                    max(x0, start + length) + 3,
+                    top + _BAR - 1,
+                )
+            )
+            y += _ROW
+        out.append(BarGroup(name, head, bars))
+    n_ticks = round((high - low) / step)
+    ticks = [(f"{low + i * step:g}", x(low + i * step)) for i in range(n_ticks + 1)]
+    return BarChart(width, math.ceil(y + _AXIS), left, right, float(_TOP), y, x0, out, ticks)
