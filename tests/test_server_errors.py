@@ -73,3 +73,14 @@ def test_openapi_documents_the_field_and_the_keys(client) -> None:
     for key in ERROR_KEYS:
         assert key in response and response[key]["description"], key
         assert key not in schemas["EvaluationResponse"].get("required", [])
+
+
+def test_two_evaluations_with_errors_compare_through_the_api_and_the_page(client) -> None:
+    data = Path(demo_paths()[1]).read_bytes()
+    a = upload(client, data, "result.pkl.gz", fields={"errors": "true"}).json()["id"]
+    b = upload(client, data, "result.pkl.gz", fields={"errors": "true", "protocol": "openpcdet"}).json()["id"]
+    values = {v["key"]: v for v in client.get(f"/v1/evaluations/{a}/compare/{b}").json()["values"]}
+    loc = values["Car/3d/moderate/localization/R40"]
+    assert loc["delta"] == loc["b"] - loc["a"] and "Car/3d/moderate/R40/strict" in values
+    page = client.get(f"/compare?a={a}&b={b}")
+    assert page.status_code == 200 and "Car" in page.text

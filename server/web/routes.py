@@ -336,10 +336,10 @@ async def evaluation_page(
 
 
 def compare_tables(comparison: Mapping[str, Any]) -> list[dict[str, Any]]:
-    """The comparison's values per threshold set and recall mode (R40 first): rows class × metric, cells
-    (a, b, b - a) per difficulty."""
+    """The comparison's AP values per threshold set and recall mode (R40 first): rows class × metric, cells
+    (a, b, b - a) per difficulty (error-type values, Class/metric/difficulty/type/recall, are not AP)."""
     tables: dict[tuple[str, str], dict[tuple[str, str], dict[str, dict[str, Any]]]] = {}
-    for v in comparison["values"]:
+    for v in _ap_values(comparison):
         cls, metric, d, recall, oset = v["key"].split("/")
         cell = {"key": f"{oset}/{recall}/{cls}/{metric}/{d}", "a": v["a"], "b": v["b"], "delta": v["delta"]}
         tables.setdefault((oset, recall), {}).setdefault((cls, metric), {})[d] = cell
@@ -358,8 +358,12 @@ def compare_tables(comparison: Mapping[str, Any]) -> list[dict[str, Any]]:
 
 
 def comparison_sets(comparison: Mapping[str, Any]) -> list[str]:
-    """The threshold sets of a comparison's values, in their order."""
-    return list(dict.fromkeys(v["key"].rsplit("/", 1)[1] for v in comparison["values"]))
+    """The threshold sets of a comparison's AP values, in their order."""
+    return list(dict.fromkeys(v["key"].rsplit("/", 1)[1] for v in _ap_values(comparison)))
+
+
+def _ap_values(comparison: Mapping[str, Any]) -> list[Mapping[str, Any]]:
+    return [v for v in comparison["values"] if v["key"].rsplit("/", 1)[1] not in _RECALLS]
 
 
 @router.get("/compare")
