@@ -263,3 +263,26 @@ def test_kitti_eval_frames_sharded_lists_the_same_worst_frames(
     assert json.loads(capsys.readouterr().out) == whole and len(whole["frames"]) == 5
     assert main([*argv[:3], "--pred", str(pred), "--pred", str(pred)]) == 2
     assert "one --pred, or --sharded" in capsys.readouterr().err
+
+
+def test_the_paired_bootstrap_of_a_set_in_shards_equals_the_whole(tmp_path: Path) -> None:
+    from kitti_eval.analysis.bootstrap import paired_bootstrap
+    from kitti_eval.analysis.sharded import paired_bootstrap_sharded
+
+    infos, results_a = generate(120, seed=9)
+    _, results_b = generate(120, seed=10)  # other detections of the same frames: the second model
+    (gt,) = dump_all(tmp_path / "whole", "gt", [infos])
+    (pa,) = dump_all(tmp_path / "whole", "a", [results_a])
+    (pb,) = dump_all(tmp_path / "whole", "b", [results_b])
+    res_a, res_b, whole = paired_bootstrap(
+        load_ground_truth(gt), load_detections(pa), load_detections(pb), resamples=60, seed=3
+    )
+    gts = dump_all(tmp_path, "gt", split(infos, [40, 80]))
+    preds_a = dump_all(tmp_path, "a", split(results_a, [40, 80]))  # paired
+    preds_b = dump_all(tmp_path, "b", split(results_b, [10, 70]))  # crossing
+    sh_a, sh_b, parts = paired_bootstrap_sharded(gts, preds_a, preds_b, resamples=60, seed=3)
+    assert_same(sh_a, res_a)
+    assert_same(sh_b, res_b)
+    assert parts.keys() == whole.keys() and len(whole) > 50
+    for key, (lo, hi) in whole.items():
+        assert parts[key] == pytest.approx((lo, hi), abs=1e-9), key

@@ -9,12 +9,14 @@ reproduces :func:`kitti_eval.evaluate`.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
+
 import numpy as np
 import numpy.typing as npt
 from numba import njit
 
 from .._jit import kernel_input
-from ..core.evaluation import Plan, evaluate, plan_evaluation
+from ..core.evaluation import Plan, Slot, evaluate, plan_evaluation
 from ..core.frames import Annotations
 from ..core.matching import FrameEvents, default_workers, threshold_step
 from ..core.metrics import average_precisions, envelope
@@ -22,7 +24,7 @@ from ..core.protocol import N_SAMPLE_PTS, EvalConfig, Metric
 from ..core.result import EvalResult
 from .gate import ValueKey
 
-__all__ = ["resampled_ap", "frame_weights", "paired_bootstrap"]
+__all__ = ["resampled_ap", "resampled_values", "paired_intervals", "frame_weights", "paired_bootstrap"]
 
 
 @njit(cache=True, nogil=True)
@@ -120,7 +122,14 @@ def frame_weights(n_frames: int, n_resamples: int, seed: int) -> npt.NDArray[np.
 
 def _resampled_values(plan: Plan, weights: np.ndarray, workers: int | None) -> dict[ValueKey, np.ndarray]:
     """Every value of the result under each resample: {key: (B,)} (keys the protocol evaluates)."""
-    events = plan.events(workers=workers)
+    return resampled_values(plan.slots, plan.events(workers=workers), weights, workers)
+
+
+def resampled_values(
+    slots: Sequence[Slot], events: Sequence[FrameEvents], weights: np.ndarray, workers: int | None = None
+) -> dict[ValueKey, np.ndarray]:
+    """Every value of a result under each resample, {key: (B,)}, from its slots and its jobs' events (of the
+    whole set, or joined from its parts)."""
     n_workers = default_workers() if workers is None else max(1, workers)
     if n_workers > 1 and len(events) > 1:
         from concurrent.futures import ThreadPoolExecutor
@@ -130,7 +139,7 @@ def _resampled_values(plan: Plan, weights: np.ndarray, workers: int | None) -> d
     else:
         per_job = [resampled_ap(ev, weights) for ev in events]
     out: dict[ValueKey, np.ndarray] = {}
-    for cls, difficulty, metric, oset, job, with_aos in plan.slots:
+    for cls, difficulty, metric, oset, job, with_aos in slots:
         if job is None:
             continue
         for r, col in (("R11", 0), ("R40", 1)):
@@ -155,8 +164,16 @@ def paired_bootstrap(
         raise ValueError("resamples must be >= 1")
     plan_a, plan_b = plan_evaluation(gt, dt_a, config), plan_evaluation(gt, dt_b, config)
     weights = frame_weights(gt.num_frames, resamples, seed)
-    values_a = _resampled_values(plan_a, weights, workers)
-    values_b = _resampled_values(plan_b, weights, workers)
+    intervals = paired_intervals(
+        _resampled_values(plan_a, weights, workers), _resampled_values(plan_b, weights, workers)
+    )
+    return evaluate(gt, dt_a, config, workers=workers), evaluate(gt, dt_b, config, workers=workers), intervals
+
+
+def paired_intervals(
+    values_a: Mapping[ValueKey, np.ndarray], values_b: Mapping[ValueKey, np.ndarray]
+) -> dict[ValueKey, tuple[float, float]]:
+    """95% intervals of B - A per value from the paired resamples (values either lacks are left out)."""
     intervals: dict[ValueKey, tuple[float, float]] = {}
     for key, va in values_a.items():
         vb = values_b.get(key)
@@ -167,4 +184,4 @@ def paired_bootstrap(
             continue
         lo, hi = np.percentile(delta, [2.5, 97.5])
         intervals[key] = (float(lo), float(hi))
-    return evaluate(gt, dt_a, config, workers=workers), evaluate(gt, dt_b, config, workers=workers), intervals
+    return intervals

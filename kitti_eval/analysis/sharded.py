@@ -38,7 +38,7 @@ from ..core.protocol import INVALID_ALPHA, OVERLAP_METRICS, EvalConfig, Metric, 
 from ..core.result import EvalResult
 from ..errors import ConfigError, InputError
 
-__all__ = ["Part", "evaluate_sharded", "frame_stats_sharded", "parts_of"]
+__all__ = ["Part", "evaluate_sharded", "frame_stats_sharded", "paired_bootstrap_sharded", "parts_of"]
 
 #: a map over parts: ``mapper(fn, items)`` returns ``[fn(x) for x in items]`` in order (Dask's client.map,
 #: a process pool, or the built-in map)
@@ -254,6 +254,20 @@ def evaluate_sharded(
     :mod:`kitti_eval.analysis.cluster` for Dask). ``source``: names of the two inputs for messages
     (default: the first file of each).
     """
+    return _evaluate(gt_paths, pred_paths, config, gt_format, pred_format, keep_curves, mapper, source)[0]
+
+
+def _evaluate(
+    gt_paths: Sequence[str | Path],
+    pred_paths: Sequence[str | Path],
+    config: EvalConfig | None,
+    gt_format: str | None,
+    pred_format: str | None,
+    keep_curves: bool,
+    mapper: Mapper | None,
+    source: tuple[str, str] | None,
+) -> tuple[EvalResult, Facts, Any, list[Part]]:
+    """:func:`evaluate_sharded`, and the set's facts, the plan of its jobs and slots, and its parts."""
     config = config or EvalConfig()
     run = mapper or _serial
     if not gt_paths:
@@ -289,7 +303,83 @@ def evaluate_sharded(
     ]
     t3 = clock()
     timings = {"phase1": t1 - t0, "reduce": t2 - t1, "phase2": t3 - t2}
-    return result_from_counts(template, counts_, totals, keep_curves=keep_curves, timings=timings)
+    result = result_from_counts(template, counts_, totals, keep_curves=keep_curves, timings=timings)
+    return result, facts, template, parts
+
+
+# ------------------------------------------------------------------------------------------- bootstrap
+
+
+@dataclass(frozen=True)
+class _EventsPhase:
+    config: EvalConfig
+    facts: Facts
+
+    def __call__(self, part: Part) -> list[Any]:
+        gt, dt = _load_part(part)
+        return plan_evaluation(gt, dt, self.config, facts=self.facts).events()
+
+
+def _join_events(parts: Sequence[Sequence[Any]], n_jobs: int) -> list[Any]:
+    """Each job's per-frame steps over the whole set, from its parts' (in ground-truth file order)."""
+    from ..core.matching import FrameEvents
+
+    out = []
+    for k in range(n_jobs):
+        pieces = [p[k] for p in parts]
+        offsets = np.cumsum([0, *(len(e.valid) for e in pieces[:-1])])
+        tp_score = np.concatenate([e.tp_score for e in pieces])
+        tp_frame = np.concatenate([e.tp_frame + o for e, o in zip(pieces, offsets)])
+        ev_score = np.concatenate([e.ev_score for e in pieces])
+        ev_frame = np.concatenate([e.ev_frame + o for e, o in zip(pieces, offsets)])
+        ev_delta = np.concatenate([e.ev_delta for e in pieces])
+        tp_order = np.argsort(-tp_score, kind="stable")
+        ev_order = np.argsort(-ev_score, kind="stable")
+        out.append(
+            FrameEvents(
+                valid=np.concatenate([e.valid for e in pieces]),
+                tp_score=tp_score[tp_order],
+                tp_frame=tp_frame[tp_order],
+                ev_score=ev_score[ev_order],
+                ev_frame=ev_frame[ev_order],
+                ev_delta=np.ascontiguousarray(ev_delta[ev_order]),
+                compute_aos=pieces[0].compute_aos if pieces else False,
+            )
+        )
+    return out
+
+
+def paired_bootstrap_sharded(
+    gt_paths: Sequence[str | Path],
+    preds_a: Sequence[str | Path],
+    preds_b: Sequence[str | Path],
+    config: EvalConfig | None = None,
+    *,
+    resamples: int = 1000,
+    seed: int = 0,
+    gt_format: str | None = None,
+    pred_format: str | None = None,
+    mapper: Mapper | None = None,
+) -> tuple[EvalResult, EvalResult, dict[Any, tuple[float, float]]]:
+    """:func:`kitti_eval.analysis.bootstrap.paired_bootstrap` of two prediction sets over a ground truth given
+    in shards: both evaluated part by part, then each job's per-frame steps joined from the parts (a few numbers
+    per detection, not its box) and resampled as for the set in one piece (same frames, same draws)."""
+    from .bootstrap import frame_weights, paired_intervals, resampled_values
+
+    if resamples < 1:
+        raise ValueError("resamples must be >= 1")
+    run = mapper or _serial
+    values = []
+    results = []
+    weights = None
+    for preds in (preds_a, preds_b):
+        result, facts, template, parts = _evaluate(gt_paths, preds, config, gt_format, pred_format, False, run, None)
+        if weights is None:
+            weights = frame_weights(result.frames, resamples, seed)
+        events = _join_events(run(_EventsPhase(template.config, facts), parts), len(template.jobs))
+        values.append(resampled_values(template.slots, events, weights))
+        results.append(result)
+    return results[0], results[1], paired_intervals(values[0], values[1])
 
 
 def _run_parts(
