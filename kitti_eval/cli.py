@@ -515,6 +515,11 @@ def _compare_parser(sub: Any) -> argparse.ArgumentParser:
         action="store_true",
         help="which error types changed: the error decomposition of A and B (kitti-eval errors) side by side",
     )
+    p.add_argument(
+        "--sharded",
+        action="store_true",
+        help="A, B and --gt are quoted globs of shards of one set each, evaluated (and bootstrapped) part by part",
+    )
     p.add_argument("--format", choices=["table", "json", "markdown"], default="table")
     p.add_argument("--output", "-o", type=Path, help="write the comparison here instead of stdout")
     _add_config_options(p)
@@ -530,7 +535,21 @@ def _compare(args: argparse.Namespace) -> int:
         raise ConfigError("--bootstrap must be >= 0")
     is_json = [p.suffix.lower() == ".json" for p in (args.a, args.b)]
     intervals = None
-    if args.bootstrap:
+    if args.sharded:
+        if args.gt is None or any(is_json) or args.errors:
+            raise ConfigError("--sharded compares predictions given in shards: A, B and --gt as globs, no --errors")
+        from .analysis.batch import expand_predictions
+        from .analysis.sharded import evaluate_sharded, paired_bootstrap_sharded
+
+        gts, preds_a, preds_b = (expand_predictions([x]) for x in (args.gt, args.a, args.b))
+        if args.bootstrap:
+            res_a, res_b, intervals = paired_bootstrap_sharded(
+                gts, preds_a, preds_b, _config(args), resamples=args.bootstrap, seed=args.seed
+            )
+        else:
+            res_a, res_b = (evaluate_sharded(gts, p, _config(args)) for p in (preds_a, preds_b))
+        doc_a, doc_b = res_a.to_dict(), res_b.to_dict()
+    elif args.bootstrap:
         if any(is_json) or args.gt is None:
             raise ConfigError("--bootstrap needs predictions for both A and B, and --gt")
         from .io.loaders import load_detections, load_ground_truth

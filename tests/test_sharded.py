@@ -286,3 +286,29 @@ def test_the_paired_bootstrap_of_a_set_in_shards_equals_the_whole(tmp_path: Path
     assert parts.keys() == whole.keys() and len(whole) > 50
     for key, (lo, hi) in whole.items():
         assert parts[key] == pytest.approx((lo, hi), abs=1e-9), key
+
+
+def test_kitti_eval_compare_sharded_with_a_bootstrap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    from kitti_eval.cli import main
+
+    infos, results_a = generate(90, seed=11)
+    _, results_b = generate(90, seed=12)
+    for name, items in (("gt", infos), ("a", results_a), ("b", results_b)):
+        dump_all(tmp_path / "whole", name, [items])
+        dump_all(tmp_path / "shards", name, split(items, [30, 60]))
+    w, sh = tmp_path / "whole", tmp_path / "shards"
+    tail = ["--bootstrap", "40", "--format", "json"]
+    assert main(["compare", str(w / "a-0.pkl"), str(w / "b-0.pkl"), "--gt", str(w / "gt-0.pkl"), *tail]) == 0
+    whole = json.loads(capsys.readouterr().out)
+    argv = ["compare", str(sh / "a-*.pkl"), str(sh / "b-*.pkl"), "--gt", str(sh / "gt-*.pkl"), "--sharded", *tail]
+    assert main(argv) == 0
+    parts = json.loads(capsys.readouterr().out)
+    assert [v["key"] for v in parts["values"]] == [v["key"] for v in whole["values"]]
+    for p, q in zip(parts["values"], whole["values"]):
+        for field in ("a", "b", "delta"):
+            assert (p[field] is None) == (q[field] is None) and (p[field] is None or abs(p[field] - q[field]) < 1e-9)
+        assert (p["interval95"] is None) == (q["interval95"] is None)
+        if p["interval95"] is not None:
+            np.testing.assert_allclose(p["interval95"], q["interval95"], rtol=0, atol=1e-9)
