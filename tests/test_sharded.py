@@ -338,3 +338,15 @@ def test_ten_times_kitti_val_in_shards_on_a_local_cluster_equals_the_whole(tmp_p
     preds = sorted(tmp_path.glob("pred-*.pkl"))
     with cluster_mapper("local:2") as run:
         assert_same(evaluate_sharded(gts, preds, config, keep_curves=True, mapper=run), whole)
+
+
+def test_a_ground_truth_file_without_any_predictions_counts_its_frames_as_empty(tmp_path: Path) -> None:
+    infos, results = generate(60, seed=13)
+    gts = dump_all(tmp_path, "gt", split(infos, [20, 40]))
+    preds = dump_all(tmp_path, "pred", [results[:20], results[40:]][::-1])  # nothing for frames 20..39
+    (gt,) = dump_all(tmp_path / "whole", "gt", [infos])
+    (pred,) = dump_all(tmp_path / "whole", "pred", [results[:20] + results[40:]])
+    whole = evaluate(load_ground_truth(gt), load_detections(pred), EvalConfig())
+    sharded = evaluate_sharded(gts, preds)
+    assert_same(sharded, whole)
+    assert len(sharded.frames_without_predictions) == 20

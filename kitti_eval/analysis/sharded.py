@@ -90,9 +90,10 @@ def _concat(kind: str, pieces: Sequence[Annotations], wanted: Mapping[str, int] 
                 if wanted is None or fid in wanted:
                     yield fid, piece.frame(fid)
 
-    source = pieces[0].source if len(pieces) == 1 else f"{pieces[0].source} (+{len(pieces) - 1} more)"
-    if not pieces:
+    if not pieces:  # a ground-truth file none of whose frames has predictions
         source = "predictions"
+    else:
+        source = pieces[0].source if len(pieces) == 1 else f"{pieces[0].source} (+{len(pieces) - 1} more)"
     return Annotations.from_frames(kind, source, frames(), max_frames=None)  # type: ignore[arg-type]
 
 
