@@ -350,3 +350,14 @@ def test_a_ground_truth_file_without_any_predictions_counts_its_frames_as_empty(
     sharded = evaluate_sharded(gts, preds)
     assert_same(sharded, whole)
     assert len(sharded.frames_without_predictions) == 20
+
+
+def test_the_loaders_warnings_reach_the_result_once_each(tmp_path: Path) -> None:
+    infos, results = generate(40, seed=14)
+    for info in infos[20:]:
+        del info["image"]["image_idx"]  # frame ids from point_cloud.lidar_idx: a warning per file
+    gts = dump_all(tmp_path, "gt", split(infos, [20]))
+    preds = dump_all(tmp_path, "pred", split(results, [20]))
+    warnings = evaluate_sharded(gts, preds).warnings
+    fallback = [w for w in warnings if "image_idx" in w]
+    assert len(fallback) == 1 and fallback[0].startswith(str(gts[1])) and "20 entries" in fallback[0]

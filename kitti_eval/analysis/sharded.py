@@ -66,11 +66,12 @@ class _NotPaired(Exception):
 # ----------------------------------------------------------------------------------------------- loading
 
 
-def _load_part(part: Part) -> tuple[Annotations, Annotations]:
+def _load_part(part: Part, warnings: list[str] | None = None) -> tuple[Annotations, Annotations]:
+    """The part's ground truth and its predictions (the loaders' warnings go to ``warnings``)."""
     from ..io.loaders import load_detections, load_ground_truth_and_calibs
 
-    gt, calibs = load_ground_truth_and_calibs(part.gt, fmt=part.gt_format)
-    pieces = [load_detections(p, fmt=part.pred_format, calibs=calibs) for p in part.preds]
+    gt, calibs = load_ground_truth_and_calibs(part.gt, fmt=part.gt_format, warnings=warnings)
+    pieces = [load_detections(p, fmt=part.pred_format, calibs=calibs, warnings=warnings) for p in part.preds]
     wanted = gt.frame_index()
     for piece in pieces:
         stray = [fid for fid in piece.frame_ids if fid not in wanted]
@@ -178,6 +179,7 @@ class _Summary1:
     names: set[str]
     gt_dims: dict[str, tuple[int, np.ndarray]]
     dt_dims: dict[str, tuple[int, np.ndarray]]
+    load_warnings: list[str]
     seconds: float = 0.0
 
 
@@ -189,7 +191,8 @@ class _Phase1:
         from ..core.evaluation import range_num_gt
 
         t0 = time.perf_counter()
-        gt, dt = _load_part(part)
+        warnings: list[str] = []
+        gt, dt = _load_part(part, warnings)
         plan = plan_evaluation(gt, dt, self.config, facts=Facts.every_job(self.config))
         passes = plan.first_passes()
         aligned = plan.dt
@@ -210,6 +213,7 @@ class _Phase1:
             names=set(np.unique(gt.name).tolist()) | set(np.unique(dt.name).tolist()),
             gt_dims=dimension_samples(gt),
             dt_dims=dimension_samples(aligned),
+            load_warnings=warnings,
             seconds=time.perf_counter() - t0,
         )
 
@@ -503,7 +507,8 @@ def _reduce_facts(
     )
     missing = tuple(fid for s in first for fid in s.missing)
     frames = sum(len(s.gt_ids) for s in first)
-    warnings = dimension_order_warnings(
+    warnings = list(dict.fromkeys(w for s in first for w in s.load_warnings))  # each file's, once
+    warnings += dimension_order_warnings(
         _empty("ground_truth", gt_name), samples=merge_dimension_samples(s.gt_dims for s in first)
     )
     warnings += dimension_order_warnings(
