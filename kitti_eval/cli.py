@@ -449,6 +449,11 @@ def _gate_parser(sub: Any) -> argparse.ArgumentParser:
     src.add_argument("--result", type=Path, help="a JSON result written by 'kitti-eval --format json'")
     src.add_argument("--gt", type=Path, help="ground truth (evaluated with --pred)")
     src.add_argument("--pred", type=Path, help="predictions to evaluate")
+    src.add_argument(
+        "--sharded",
+        action="store_true",
+        help="--gt, --pred and a --baseline given as predictions are quoted globs of shards of one set each",
+    )
     _add_config_options(p)
     rules = p.add_argument_group("rules")
     rules.add_argument(
@@ -801,7 +806,9 @@ def _gate(args: argparse.Namespace) -> int:
         raise ConfigError("give the result to gate: --result R.json, or --gt and --pred")
 
     intervals = None
-    if args.significant:
+    if args.sharded:
+        current, baseline, intervals = _gate_sharded(args, rules.needs_errors)
+    elif args.significant:
         if not (args.gt and args.pred and args.baseline) or args.baseline.suffix.lower() == ".json":
             raise ConfigError("--significant needs --gt, --pred and a --baseline given as predictions")
         from .analysis.bootstrap import paired_bootstrap
@@ -834,6 +841,32 @@ def _gate(args: argparse.Namespace) -> int:
     if args.junit:
         args.junit.write_text(render_junit(verdict), encoding="utf-8")
     return EXIT_OK if verdict.passed else EXIT_GATE
+
+
+def _gate_sharded(args: argparse.Namespace, needs_errors: bool) -> tuple[dict, dict | None, dict | None]:
+    """The documents (and with --significant the intervals) a gate reads, for sets given in shards."""
+    from .analysis.batch import expand_predictions
+    from .analysis.sharded import evaluate_sharded, paired_bootstrap_sharded
+
+    if not (args.gt and args.pred) or args.result:
+        raise ConfigError("--sharded gates predictions given in shards: --gt and --pred as globs")
+    if needs_errors:
+        raise ConfigError("rules on error types need the set in one piece (the decomposition is not sharded)")
+    baseline_is_json = args.baseline is not None and args.baseline.suffix.lower() == ".json"
+    if args.significant and (args.baseline is None or baseline_is_json):
+        raise ConfigError("--significant needs a --baseline given as predictions")
+    gts, preds = expand_predictions([args.gt]), expand_predictions([args.pred])
+    if args.significant:
+        base, now, intervals = paired_bootstrap_sharded(
+            gts, expand_predictions([args.baseline]), preds, _config(args), resamples=args.bootstrap, seed=args.seed
+        )
+        return now.to_dict(), base.to_dict(), intervals
+    current = evaluate_sharded(gts, preds, _config(args)).to_dict()
+    if args.baseline is None:
+        return current, None, None
+    if baseline_is_json:
+        return current, _read_result_json(args.baseline), None
+    return current, evaluate_sharded(gts, expand_predictions([args.baseline]), _config(args)).to_dict(), None
 
 
 def _run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int:

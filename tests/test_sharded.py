@@ -361,3 +361,28 @@ def test_the_loaders_warnings_reach_the_result_once_each(tmp_path: Path) -> None
     warnings = evaluate_sharded(gts, preds).warnings
     fallback = [w for w in warnings if "image_idx" in w]
     assert len(fallback) == 1 and fallback[0].startswith(str(gts[1])) and "20 entries" in fallback[0]
+
+
+def test_kitti_eval_gate_sharded_with_and_without_significance(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from kitti_eval.cli import main
+
+    infos, results_a = generate(90, seed=15)
+    _, results_b = generate(90, seed=16)
+    for name, items in (("gt", infos), ("base", results_a), ("now", results_b)):
+        dump_all(tmp_path / "whole", name, [items])
+        dump_all(tmp_path / "shards", name, split(items, [30, 60]))
+    w, sh = tmp_path / "whole", tmp_path / "shards"
+    rules = ["--max-drop", "0.5", "--min", "Car/3d/moderate >= 1"]
+    for extra in ([], ["--significant", "--bootstrap", "30"]):
+        whole = main(["gate", "--gt", str(w / "gt-0.pkl"), "--pred", str(w / "now-0.pkl"), "--baseline",
+                      str(w / "base-0.pkl"), *rules, *extra])  # fmt: skip
+        out_whole = capsys.readouterr().out
+        sharded = main(["gate", "--gt", str(sh / "gt-*.pkl"), "--pred", str(sh / "now-*.pkl"), "--baseline",
+                        str(sh / "base-*.pkl"), "--sharded", *rules, *extra])  # fmt: skip
+        out_sharded = capsys.readouterr().out
+        assert sharded == whole and out_sharded == out_whole, extra
+    code = main(["gate", "--gt", str(sh / "gt-*.pkl"), "--pred", str(sh / "now-*.pkl"), "--sharded",
+                 "--rule", "Car/3d/moderate/localization <= 5"])  # fmt: skip
+    assert code == 2 and "need the set in one piece" in capsys.readouterr().err
