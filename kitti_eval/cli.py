@@ -378,12 +378,9 @@ def _run(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
     keep_curves = args.curves or bool(plot_dir)
     extra: dict[str, Any] | None = None
     if args.errors:
-        from .analysis.decomposition import decompose_plan, errors_document, render_errors
-        from .core.evaluation import Totals, plan_evaluation, result_from_counts
+        from .analysis.decomposition import errors_document, evaluate_with_errors, render_errors
 
-        plan = plan_evaluation(gt, dt, config)
-        result = result_from_counts(plan, plan.counts(), Totals.of(plan), keep_curves=keep_curves)
-        decomposition = decompose_plan(plan)
+        result, decomposition = evaluate_with_errors(gt, dt, config, keep_curves=keep_curves)
         extra = errors_document(decomposition, full=False)
     else:
         result = evaluate(gt, dt, config, keep_curves=keep_curves)
@@ -593,7 +590,7 @@ def _compare(args: argparse.Namespace) -> int:
 
 def _evaluate_doc(args: argparse.Namespace, pred: Path, *, errors: bool = False) -> dict:
     """The result document of ``pred`` against ``--gt`` (with ``errors``: and its error decomposition)."""
-    from .core.evaluation import Totals, evaluate, plan_evaluation, result_from_counts
+    from .core.evaluation import evaluate
     from .io.loaders import load_pair
 
     if args.gt is None:
@@ -601,11 +598,10 @@ def _evaluate_doc(args: argparse.Namespace, pred: Path, *, errors: bool = False)
     gt, dt = load_pair(args.gt, pred)
     if not errors:
         return evaluate(gt, dt, _config(args)).to_dict()
-    from .analysis.decomposition import decompose_plan, errors_document
+    from .analysis.decomposition import errors_document, evaluate_with_errors
 
-    plan = plan_evaluation(gt, dt, _config(args))
-    doc = result_from_counts(plan, plan.counts(), Totals.of(plan)).to_dict()
-    return {**doc, **errors_document(decompose_plan(plan), full=False)}
+    result, decomposition = evaluate_with_errors(gt, dt, _config(args))
+    return {**result.to_dict(), **errors_document(decomposition, full=False)}
 
 
 def _add_slot_options(p: argparse.ArgumentParser, metrics: list[str]) -> None:

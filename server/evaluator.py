@@ -13,8 +13,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from kitti_eval.analysis.decomposition import decompose_plan, errors_document
-from kitti_eval.core.evaluation import Totals, evaluate, plan_evaluation, result_from_counts
+from kitti_eval.analysis.decomposition import errors_document, evaluate_with_errors
+from kitti_eval.core.evaluation import evaluate
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
 from kitti_eval.report.render import render_json
@@ -85,9 +85,8 @@ def evaluate_document(
     the decomposition from one planned evaluation."""
     extra: dict[str, Any] | None = None
     if errors:
-        plan = plan_evaluation(gt, dt, config)
-        result = result_from_counts(plan, plan.counts(), Totals.of(plan), keep_curves=curves)
-        extra = errors_document(decompose_plan(plan, oset=ERRORS_SET), full=False)
+        result, decomposition = evaluate_with_errors(gt, dt, config, keep_curves=curves, oset=ERRORS_SET)
+        extra = errors_document(decomposition, full=False)
     else:
         result = evaluate(gt, dt, config, keep_curves=curves)
     doc: dict[str, Any] = json.loads(render_json(result, include_curves=curves, extra=extra))

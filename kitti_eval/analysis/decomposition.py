@@ -77,7 +77,7 @@ import numpy.typing as npt
 from numba import njit
 
 from .._jit import kernel_input
-from ..core.evaluation import Plan, plan_evaluation
+from ..core.evaluation import Plan, Totals, plan_evaluation, result_from_counts
 from ..core.frames import Annotations
 from ..core.matching import (
     VALID,
@@ -97,6 +97,7 @@ from ..core.matching import (
 )
 from ..core.metrics import average_precision, curve_from_counts
 from ..core.protocol import N_SAMPLE_PTS, RECALL_MODES, Difficulty, EvalConfig, Metric
+from ..core.result import EvalResult
 from ..errors import ConfigError
 
 __all__ = [
@@ -110,6 +111,7 @@ __all__ = [
     "TPErrors",
     "decompose",
     "decompose_plan",
+    "evaluate_with_errors",
     "group_maxima",
     "pass1_taken",
     "tp_error_sums",
@@ -730,6 +732,21 @@ def decompose(
 ) -> Decomposition:
     """The error decomposition and true-positive errors of ``dt`` against ``gt`` (see the module docstring)."""
     return decompose_plan(plan_evaluation(gt, dt, config), oset=oset, workers=workers)
+
+
+def evaluate_with_errors(
+    gt: Annotations,
+    dt: Annotations,
+    config: EvalConfig | None = None,
+    *,
+    keep_curves: bool = False,
+    oset: str = "strict",
+) -> tuple[EvalResult, Decomposition]:
+    """:func:`~kitti_eval.core.evaluation.evaluate` and the decomposition, from one plan (the overlaps and
+    ignore codes are computed once for both)."""
+    plan = plan_evaluation(gt, dt, config)
+    result = result_from_counts(plan, plan.counts(), Totals.of(plan), keep_curves=keep_curves)
+    return result, decompose_plan(plan, oset=oset)
 
 
 def decompose_plan(plan: Plan, *, oset: str = "strict", workers: int | None = None) -> Decomposition:
