@@ -73,12 +73,12 @@ def _load_part(part: Part, warnings: list[str] | None = None) -> tuple[Annotatio
     gt, calibs = load_ground_truth_and_calibs(part.gt, fmt=part.gt_format, warnings=warnings)
     pieces = [load_detections(p, fmt=part.pred_format, calibs=calibs, warnings=warnings) for p in part.preds]
     wanted = gt.frame_index()
-    for piece in pieces:
-        stray = [fid for fid in piece.frame_ids if fid not in wanted]
-        if stray and part.paired:
-            raise _NotPaired(piece.source)
-    if len(pieces) == 1 and part.paired:
-        return gt, pieces[0]
+    if part.paired:
+        for piece in pieces:
+            if any(fid not in wanted for fid in piece.frame_ids):
+                raise _NotPaired(piece.source)
+        if len(pieces) == 1:
+            return gt, pieces[0]
     return gt, _concat("detections", pieces, wanted)
 
 
@@ -226,12 +226,14 @@ class _Phase2:
     config: EvalConfig
     facts: Facts
     thresholds: tuple[np.ndarray, ...]  # per job of the plan made with ``facts``
+    #: also each job's per-frame steps (for the bootstrap), from the same loaded part
+    events: bool = False
 
-    def __call__(self, part: Part) -> list[np.ndarray]:
+    def __call__(self, part: Part) -> tuple[list[np.ndarray], list[Any] | None]:
         gt, dt = _load_part(part)
         plan = plan_evaluation(gt, dt, self.config, facts=self.facts)
         counts = plan.second_passes(self.thresholds)
-        return [np.stack([c.tp, c.fp, c.fn, c.similarity]) for c in counts]
+        return [np.stack([c.tp, c.fp, c.fn, c.similarity]) for c in counts], plan.events() if self.events else None
 
 
 # ------------------------------------------------------------------------------------------------ driver
@@ -271,8 +273,10 @@ def _evaluate(
     keep_curves: bool,
     mapper: Mapper | None,
     source: tuple[str, str] | None,
-) -> tuple[EvalResult, Facts, Any, list[Part]]:
-    """:func:`evaluate_sharded`, and the set's facts, the plan of its jobs and slots, and its parts."""
+    events: bool = False,
+) -> tuple[EvalResult, Any, list[Any] | None]:
+    """:func:`evaluate_sharded`, the plan of its jobs and slots, and (with ``events``) each job's per-frame
+    steps over the whole set."""
     config = config or EvalConfig()
     run = mapper or _serial
     if not gt_paths:
@@ -284,7 +288,7 @@ def _evaluate(
     parts, first = _run_parts(run, _Phase1(config), gt_paths, pred_paths, gt_format, pred_format)
     t1 = clock()
     gt_name, pred_name = source or (str(gt_paths[0]), str(pred_paths[0]))
-    facts, totals = _reduce_facts(first, config, gt_name, pred_name, gt_paths, pred_paths)
+    facts, totals = _reduce_facts(first, config, gt_name, pred_name, gt_paths)
     template = plan_evaluation(_empty("ground_truth"), _empty("detections"), config, facts=facts)
     superset = plan_evaluation(_empty("ground_truth"), _empty("detections"), config, facts=Facts.every_job(config))
     index = {(j.codes, j.overlap, j.min_overlap): k for k, j in enumerate(superset.jobs)}
@@ -297,9 +301,9 @@ def _evaluate(
         n_valid.append(n)
     del first
     t2 = clock()
-    second = run(_Phase2(config, facts, tuple(thresholds)), parts)
+    second = run(_Phase2(config, facts, tuple(thresholds), events), parts)
     sums = [np.zeros((4, len(t))) for t in thresholds]
-    for counts in second:
+    for counts, _ in second:
         for k, c in enumerate(counts):
             sums[k] += c
     counts_ = [
@@ -309,20 +313,11 @@ def _evaluate(
     t3 = clock()
     timings = {"phase1": t1 - t0, "reduce": t2 - t1, "phase2": t3 - t2}
     result = result_from_counts(template, counts_, totals, keep_curves=keep_curves, timings=timings)
-    return result, facts, template, parts
+    joined = _join_events([steps for _, steps in second], len(template.jobs)) if events else None
+    return result, template, joined
 
 
 # ------------------------------------------------------------------------------------------- bootstrap
-
-
-@dataclass(frozen=True)
-class _EventsPhase:
-    config: EvalConfig
-    facts: Facts
-
-    def __call__(self, part: Part) -> list[Any]:
-        gt, dt = _load_part(part)
-        return plan_evaluation(gt, dt, self.config, facts=self.facts).events()
 
 
 def _join_events(parts: Sequence[Sequence[Any]], n_jobs: int) -> list[Any]:
@@ -373,15 +368,16 @@ def paired_bootstrap_sharded(
 
     if resamples < 1:
         raise ValueError("resamples must be >= 1")
-    run = mapper or _serial
     values = []
     results = []
     weights = None
     for preds in (preds_a, preds_b):
-        result, facts, template, parts = _evaluate(gt_paths, preds, config, gt_format, pred_format, False, run, None)
+        result, template, events = _evaluate(
+            gt_paths, preds, config, gt_format, pred_format, False, mapper, None, events=True
+        )
+        assert events is not None
         if weights is None:
             weights = frame_weights(result.frames, resamples, seed)
-        events = _join_events(run(_EventsPhase(template.config, facts), parts), len(template.jobs))
         values.append(resampled_values(template.slots, events, weights))
         results.append(result)
     return results[0], results[1], paired_intervals(values[0], values[1])
@@ -487,7 +483,6 @@ def _reduce_facts(
     gt_name: str,
     pred_name: str,
     gt_paths: Sequence[str | Path],
-    pred_paths: Sequence[str | Path],
 ) -> tuple[Facts, Totals]:
     """The set's facts and totals from the parts' summaries (in ground-truth file order)."""
     _check_unique([s.gt_ids for s in first], [str(p) for p in gt_paths], "ground-truth")
