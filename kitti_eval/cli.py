@@ -178,13 +178,22 @@ def _parser() -> argparse.ArgumentParser:
         description="Exact KITTI 3D object detection evaluation (2D, BEV, 3D, AOS; R11 and R40) on a CPU.",
         epilog="Exit codes: 0 ok, 1 bad input, 2 usage error, 3 a gate rule failed ('kitti-eval gate').",
     )
-    p.add_argument("--gt", type=Path, help="ground truth: a KITTI label_2 folder or an OpenPCDet infos .pkl[.gz]")
+    p.add_argument(
+        "--gt",
+        nargs="+",
+        action="extend",
+        type=Path,
+        metavar="GT",
+        help="ground truth: a KITTI label_2 folder or an OpenPCDet infos .pkl[.gz]; several files (or a glob) "
+        "only with --sharded",
+    )
     p.add_argument(
         "--pred",
-        action="append",
+        nargs="+",
+        action="extend",
         metavar="PRED",
         help="predictions: a KITTI result folder (16-field txt) or an OpenPCDet result .pkl[.gz]; "
-        "repeat it or give a quoted glob ('output/*/epoch_*/val/result.pkl') to evaluate many "
+        "several files, repeated or a glob ('output/*/epoch_*/val/result.pkl'), evaluate many "
         "checkpoints in one process",
     )
     _add_eval_options(p)
@@ -411,7 +420,7 @@ def _run_sharded(args: argparse.Namespace) -> int:
     if args.split or args.plot or args.plot_dir:
         raise ConfigError("--split, --plot and --plot-dir do not work with --sharded")
     config = _config(args)
-    gts = expand_predictions([args.gt])
+    gts = expand_predictions(args.gt)
     preds = expand_predictions(args.pred)
     show = sys.stderr.isatty() and not args.quiet
     context = cluster_mapper(args.cluster, progress=show) if args.cluster else contextlib.nullcontext(None)
@@ -424,7 +433,7 @@ def _run_sharded(args: argparse.Namespace) -> int:
             pred_format=args.pred_format,
             keep_curves=args.curves,
             mapper=mapper or progress_mapper(show),
-            source=(str(args.gt), ", ".join(str(p) for p in args.pred)),
+            source=(", ".join(str(g) for g in args.gt), ", ".join(str(p) for p in args.pred)),
         )
     if not args.quiet:
         for w in result.warnings:
@@ -619,10 +628,10 @@ def _frames_parser(sub: Any) -> argparse.ArgumentParser:
         description="True positives, false positives and misses of every frame for one class, metric and "
         "difficulty, from the same matching as the AP; --worst N lists the frames with most errors.",
     )
-    p.add_argument("--gt", required=True, type=Path, help="ground truth (a quoted glob with --sharded)")
     p.add_argument(
-        "--pred", required=True, action="append", help="predictions (with --sharded: globs or repeated, the shards)"
+        "--gt", required=True, nargs="+", action="extend", type=Path, help="ground truth (with --sharded: the shards)"
     )
+    p.add_argument("--pred", required=True, nargs="+", action="extend", help="predictions (with --sharded: the shards)")
     p.add_argument("--sharded", action="store_true", help="--gt and --pred are shards of one set, read part by part")
     _add_slot_options(p, ["bbox", "bev", "3d"])
     p.add_argument(
@@ -656,11 +665,13 @@ def _frames(args: argparse.Namespace) -> int:
         from .analysis.batch import expand_predictions
         from .analysis.sharded import frame_stats_sharded
 
-        stats = frame_stats_sharded(expand_predictions([args.gt]), expand_predictions(args.pred), _config(args), **slot)
+        stats = frame_stats_sharded(expand_predictions(args.gt), expand_predictions(args.pred), _config(args), **slot)
     else:
+        if len(args.gt) > 1:
+            raise _several_gt(args.gt)
         if len(args.pred) > 1:
             raise ConfigError("one --pred, or --sharded for a set in many files")
-        stats = frame_stats(*load_pair(args.gt, Path(args.pred[0])), _config(args), **slot)
+        stats = frame_stats(*load_pair(args.gt[0], Path(args.pred[0])), _config(args), **slot)
     text = render_frames(stats, args.format, worst=args.worst)
     _emit(text, args.output)
     return EXIT_OK
@@ -903,6 +914,14 @@ def _run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int
     return EXIT_OK if len(checkpoints) == len(preds) else EXIT_INPUT
 
 
+def _several_gt(gts: Sequence[Path]) -> ConfigError:
+    shown = ", ".join(str(g) for g in gts[:3]) + (", ..." if len(gts) > 3 else "")
+    return ConfigError(
+        f"{len(gts)} --gt files given ({shown}): several ground-truth files are the shards of one set, add "
+        "--sharded; to evaluate many checkpoints give one --gt and several --pred"
+    )
+
+
 def _command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.command is not None:
         return int(args.run(args))
@@ -912,12 +931,15 @@ def _command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
     if args.sharded or args.cluster:
         return _run_sharded(args)
+    if len(args.gt) > 1:
+        raise _several_gt(args.gt)
+    gt = args.gt[0]
     preds = expand_predictions(args.pred)
     if len(preds) == 1 and not args.plot and not (args.plot_dir and len(args.pred) > 1):
-        return _run(args.gt, preds[0], args)
+        return _run(gt, preds[0], args)
     if args.gt_format or args.pred_format or args.split or args.errors:
         raise ConfigError("--gt-format, --pred-format, --split and --errors work with one --pred only")
-    return _run_many(args.gt, preds, args)
+    return _run_many(gt, preds, args)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

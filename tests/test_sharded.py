@@ -386,3 +386,27 @@ def test_kitti_eval_gate_sharded_with_and_without_significance(
     code = main(["gate", "--gt", str(sh / "gt-*.pkl"), "--pred", str(sh / "now-*.pkl"), "--sharded",
                  "--rule", "Car/3d/moderate/localization <= 5"])  # fmt: skip
     assert code == 2 and "need the set in one piece" in capsys.readouterr().err
+
+
+def test_shards_given_as_a_shell_expands_a_glob(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An unquoted glob reaches the CLI as several files after one --gt (or --pred): the same as the quoted glob."""
+    import json
+
+    from kitti_eval.cli import main
+
+    infos, results = generate(60, seed=11)
+    gts = dump_all(tmp_path, "gt", split(infos, [20, 40]))
+    preds = dump_all(tmp_path, "pred", split(results, [30]))
+    quoted = ["--gt", str(tmp_path / "gt-*.pkl"), "--pred", str(tmp_path / "pred-*.pkl"), "--sharded"]
+    assert main([*quoted, "--format", "json"]) == 0
+    want = json.loads(capsys.readouterr().out)["ap"]
+    expanded = ["--gt", *map(str, gts), "--pred", *map(str, preds)]
+    assert main([*expanded, "--sharded", "--format", "json"]) == 0
+    assert json.loads(capsys.readouterr().out)["ap"] == want
+    assert main(["frames", *expanded, "--sharded", "--format", "json"]) == 0
+    assert len(json.loads(capsys.readouterr().out)["frames"]) == 60
+    for argv in (expanded, ["frames", *expanded]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"error: 3 --gt files given ({gts[0]}, {gts[1]}, {gts[2]}): several ground-truth files" in err
+        assert "add --sharded; to evaluate many checkpoints give one --gt and several --pred" in err
