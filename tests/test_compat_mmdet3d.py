@@ -2,10 +2,9 @@
 
 The scenario below is the one frame of mmdetection3d 1.x's ``tests/test_evaluation/test_functional/
 test_kitti_eval.py`` (``test_do_eval``, ``test_kitti_eval``, ``test_eval_class``): the same boxes, the same
-expected numbers. One change: its ground truth has two Car boxes with dimensions (-1, -1, -1) at
-(-1000, -1000, -1000), which kitti-eval refuses (a box without volume; see test_volume_less_car_is_refused);
-they get a real size here. They are far from every detection, so they overlap nothing in BEV or 3D either way,
-and their 2D boxes, which are what matches, are unchanged.
+expected numbers. Its ground truth has two Car boxes written with dimensions (-1, -1, -1) at (-1000, -1000,
+-1000), as every reference reads them (:func:`kitti_eval.core.frames.unsized_boxes`): 1 x 1 m squares in BEV
+far from every detection, and their 2D boxes are what matches.
 """
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ DIFFS = ("easy", "moderate", "hard")
 CLASSES = ("Pedestrian", "Cyclist", "Car")  # mmdetection3d's current_classes = [1, 2, 0]
 
 
-def scenario_gt(car_size: tuple[float, float, float] = (3.9, 1.5, 1.6)) -> dict:
+def scenario_gt() -> dict:
     return dict(
         name=np.array(["Pedestrian", "Cyclist", "Car", "Car", "Car", "DontCare", "DontCare"]),
         truncated=np.array([0.0, 0.0, 0.0, -1.0, -1.0, -1.0, -1.0]),
@@ -46,7 +45,7 @@ def scenario_gt(car_size: tuple[float, float, float] = (3.9, 1.5, 1.6)) -> dict:
             ]
         ),
         dimensions=np.array(
-            [[12.34, 2.85, 2.63], [3.69, 1.67, 1.87], [2.02, 1.86, 0.6], car_size, car_size, [-1.0] * 3, [-1.0] * 3]
+            [[12.34, 2.85, 2.63], [3.69, 1.67, 1.87], [2.02, 1.86, 0.6], [-1.0] * 3, [-1.0] * 3, [-1.0] * 3, [-1.0] * 3]
         ),
         location=np.array(
             [[0.47, 1.49, 69.44], [-16.53, 2.39, 58.49], [4.59, 1.32, 45.84]] + [[-1000.0, -1000.0, -1000.0]] * 4
@@ -149,7 +148,8 @@ def test_eval_class_scenario():
 
 def test_kitti_eval_scenario():
     """mmdetection3d's test_kitti_eval: the Overall 2D keys (the mean over the three classes, strict set)."""
-    text, ap = kitti_eval([scenario_gt()], [scenario_dt()], [1, 2, 0])
+    with pytest.warns(UserWarning, match="2 ground-truth boxes .* not positive"):
+        text, ap = kitti_eval([scenario_gt()], [scenario_dt()], [1, 2, 0])
     assert ap["KITTI/Overall_2D_AP11_moderate"] == pytest.approx(9.090909090909092, abs=1e-12)
     assert ap["KITTI/Overall_2D_AP11_hard"] == pytest.approx(9.090909090909092, abs=1e-12)
     assert ap["KITTI/Overall_2D_AP40_moderate"] == pytest.approx(0.8333333333333334, abs=1e-12)
@@ -202,11 +202,16 @@ def test_kitti_eval_scenario():
                          "3d   AP40:0.0000, 0.0000, 0.0000\naos  AP40:0.00, 0.53, 0.53\n")  # fmt: skip
 
 
-def test_volume_less_car_is_refused():
-    """mmdetection3d's scenario as written: Car ground truth with dimensions -1 is an error naming the box."""
-    with pytest.raises(InputError, match=r"box 3 \(Car\) has dimensions") as e:
-        kitti_eval([scenario_gt(car_size=(-1.0, -1.0, -1.0))], [scenario_dt()], [1, 2, 0])
-    assert (e.value.source, e.value.frame, e.value.field) == ("gt_annos", "000000", "dimensions")
+def test_the_cars_of_size_minus_one_are_reported_once():
+    """mmdetection3d's -1 Cars are evaluated, and said: one warning for the ground truth, naming the first."""
+    with pytest.warns(UserWarning) as record:
+        kitti_eval([scenario_gt()], [scenario_dt()], [1, 2, 0])
+    sizes = [str(w.message) for w in record if "not positive" in str(w.message)]
+    assert len(sizes) == 1
+    assert sizes[0].startswith(
+        "gt_annos: 2 ground-truth boxes (DontCare aside) have a size that is not positive (the first: frame "
+        "000000, box 3 (Car), (l, h, w) = (-1.0, -1.0, -1.0))"
+    )
 
 
 @pytest.fixture(scope="module")
@@ -329,9 +334,13 @@ def test_aos_left_out_when_no_frame_starts_with_an_alpha():
 
 def test_coco_style():
     """Ten IoU thresholds per class, R11, two decimals: the exact matches of the scenario pass all ten."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
+    with warnings.catch_warnings(record=True) as record:
+        warnings.filterwarnings("error", message="AOS")  # AOS is shown
+        warnings.simplefilter("always")
         text = kitti_eval_coco_style([scenario_gt()], [scenario_dt()], [1, 2, 0])
+    assert [str(w.message).split(" (the first")[0] for w in record] == [
+        "gt_annos: 2 ground-truth boxes (DontCare aside) have a size that is not positive"
+    ]
     assert text.split("\n")[:5] == [
         "Pedestrian coco AP@0.25:0.05:0.70:",
         "bbox AP:0.00, 9.09, 9.09",

@@ -83,8 +83,11 @@ def test_official_protocol_equals_the_devkit(case, route, tmp_path):
 def test_openpcdet_protocol_equals_openpcdet(case, route, tmp_path):
     name, routes, expected = case
     doc = run_json(*routes[route], "openpcdet", tmp_path)
-    reference = expected["python_pcdet"][route]["ap"]
     official = expected["official_cpp"]
+    if expected["python_pcdet"] is None:
+        _openpcdet_differs_from_the_devkit_only_in_bev_and_3d(doc, run_json(*routes[route], "official", tmp_path))
+        return
+    reference = expected["python_pcdet"][route]["ap"]
     for oset, by_recall in reference.items():
         for recall, by_cls in by_recall.items():
             for cls, by_metric in by_cls.items():
@@ -100,6 +103,29 @@ def test_openpcdet_protocol_equals_openpcdet(case, route, tmp_path):
                                 assert close(got, official[key][cls][metric][d], TOL[route])
                             continue
                         assert close(got, want, TOL[route]), (oset, recall, cls, metric, d, got, want)
+
+
+def _openpcdet_differs_from_the_devkit_only_in_bev_and_3d(pcdet: dict, official: dict) -> None:
+    """A case without OpenPCDet numbers (sizes): every class is detected and no alpha is -10, so the two
+    protocols differ only where OpenPCDet leaves DontCare regions out, and on this case that is BEV alone: a
+    2D-only detection lies at -1000 with l = w = -1 like every DontCare line, so in BEV the devkit finds it
+    inside a DontCare region and does not count it while OpenPCDet counts a false positive; in 3D its height
+    interval is empty, it overlaps no DontCare region, and both count it."""
+    differs = set()
+    for oset in ("strict", "loose"):
+        for recall in ("R40", "R11"):
+            for cls in ("Car", "Pedestrian", "Cyclist"):
+                for metric in ("bbox", "aos", "bev", "3d"):
+                    for d in DIFFS:
+                        got = pcdet["ap"][oset][recall][cls][metric][d]
+                        want = official["ap"][oset][recall][cls][metric][d]
+                        if metric in ("bbox", "aos"):
+                            assert got == want, (oset, recall, cls, metric, d)
+                        else:
+                            assert got <= want + 1e-9, (oset, recall, cls, metric, d)  # more false positives, if any
+                            if got < want - 1e-9:
+                                differs.add(metric)
+    assert differs == {"bev"}
 
 
 def test_official_curves_equal_the_devkit_curves(tmp_path):

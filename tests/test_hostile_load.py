@@ -1,5 +1,6 @@
-"""Bad input refused early, naming the frame and field: shapes before arithmetic, boxes without volume,
-frame-count claims, byte limits of the CLI, archive members charged before they are written."""
+"""Bad input refused early, naming the frame and field: shapes before arithmetic, frame-count claims, byte
+limits of the CLI, archive members charged before they are written; and what is not refused because every
+reference reads it: boxes whose size is not positive, read as written and reported once per input."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 from test_loaders import DET, GT, dump, infos, results, write_txt
 
+from kitti_eval.core.frames import UnsizedBoxes, size_warnings, unsized_boxes
 from kitti_eval.errors import InputError
 from kitti_eval.io.loaders import (
     annotations_from_object,
@@ -36,7 +38,7 @@ def test_a_location_of_the_wrong_shape_is_named_before_the_lidar_check() -> None
     assert (err.value.frame, err.value.field) == ("000000", "rotation_y")
 
 
-# ------------------------------------------------------------------------------- boxes without volume
+# --------------------------------------------------------------------- boxes whose size is not positive
 
 
 def _with_dims(frames: dict, fid: str, k: int, dims: tuple[float, float, float]) -> dict:
@@ -47,40 +49,76 @@ def _with_dims(frames: dict, fid: str, k: int, dims: tuple[float, float, float])
     return out
 
 
-@pytest.mark.parametrize("dims", [(0.0, 1.5, 1.6), (3.9, -0.5, 1.6), (3.9, 1.5, -2.0), (-1.0, -1.0, -1.0)])
-def test_ground_truth_boxes_need_a_volume(tmp_path: Path, dims: tuple[float, float, float]) -> None:
+SIZES = [(0.0, 1.5, 1.6), (3.9, -0.5, 1.6), (3.9, 1.5, 0.0), (-1.0, -1.0, -1.0), (0.0, 0.0, 0.0), (-2.0, -1.0, -1.0)]
+
+
+@pytest.mark.parametrize("dims", SIZES)
+def test_ground_truth_of_any_size_is_read_as_written(tmp_path: Path, dims: tuple[float, float, float]) -> None:
+    """The devkit, OpenPCDet and mmdetection3d read every box (mmdetection3d's own test data has Cars of size
+    -1 -1 -1): both routes keep the size as written, and the evaluation says how many there are."""
     frames = _with_dims(GT, "000000", 1, dims)
-    for load in (
-        lambda: load_ground_truth(write_txt(tmp_path / "label_2", frames, with_score=False)),
-        lambda: annotations_from_object(infos(frames), "ground_truth", source="infos"),
+    for gt in (
+        load_ground_truth(write_txt(tmp_path / "label_2", frames, with_score=False)),
+        annotations_from_object(infos(frames), "ground_truth", source="infos"),
     ):
-        with pytest.raises(InputError, match=r"box 1 \(Car\) has dimensions .* l, h and w must be > 0") as err:
-            load()
-        assert (err.value.frame, err.value.field) == ("000000", "dimensions")
+        np.testing.assert_allclose(gt.dimensions[1], dims, rtol=1e-6)  # the pickle holds float32
+        (warning,) = size_warnings(gt)
+        assert warning.startswith(
+            f"{gt.source}: 1 ground-truth box (DontCare aside) has a size that is not positive (the first: frame "
+            f"000000, box 1 (Car), (l, h, w) = {tuple(float(v) for v in gt.dimensions[1])}); evaluated as the "
+            "KITTI devkit reads them"
+        )
 
 
-def test_dontcare_regions_keep_their_minus_one_dimensions() -> None:
+@pytest.mark.parametrize("dims", SIZES)
+def test_detections_of_any_size_are_read_as_written(tmp_path: Path, dims: tuple[float, float, float]) -> None:
+    frames = _with_dims(DET, "000000", 1, dims)
+    for dt in (
+        load_detections(write_txt(tmp_path / "pred", frames, with_score=True)),
+        load_detections(dump(tmp_path / "result.pkl", results(frames))),
+    ):
+        np.testing.assert_allclose(dt.dimensions[1], dims, rtol=1e-6)
+        (warning,) = size_warnings(dt)
+        assert "1 predicted box (DontCare aside) has a size that is not positive (the first: frame 000000, box 1 " in (
+            warning
+        )
+
+
+def test_dontcare_regions_keep_their_minus_one_dimensions_and_are_not_counted() -> None:
     gt = annotations_from_object(infos(), "ground_truth", source="infos")  # DontCare: -1 -1 -1
     assert (gt.dimensions[gt.name == "DontCare"] == -1).all()
+    assert unsized_boxes(gt) == UnsizedBoxes() and size_warnings(gt) == []
 
 
-@pytest.mark.parametrize("dims", [(0.0, 1.5, 1.6), (3.9, -0.5, 1.6), (3.9, 1.5, 0.0), (-2.0, -1.0, -1.0)])
-def test_detections_need_a_volume_or_the_not_given_marker(tmp_path: Path, dims: tuple[float, float, float]) -> None:
-    frames = _with_dims(DET, "000000", 1, dims)
-    for load in (
-        lambda: load_detections(write_txt(tmp_path / "pred", frames, with_score=True)),
-        lambda: load_detections(dump(tmp_path / "result.pkl", results(frames))),
-    ):
-        with pytest.raises(InputError, match=r"box 1 \(Pedestrian\) has dimensions .* > 0, or -1") as err:
-            load()
-        assert (err.value.frame, err.value.field) == ("000000", "dimensions")
+def test_the_size_warning_counts_every_box_and_names_the_first(tmp_path: Path) -> None:
+    frames = _with_dims(_with_dims(GT, "000002", 0, (0.0, 0.0, 0.0)), "000000", 2, (1.2, -1.0, 0.5))
+    gt = load_ground_truth(write_txt(tmp_path / "label_2", frames, with_score=False))
+    assert unsized_boxes(gt) == UnsizedBoxes(2, ("000000", 2, "Pedestrian", (1.2, -1.0, 0.5)))
+    (warning,) = size_warnings(gt)
+    assert ": 2 ground-truth boxes (DontCare aside) have a size that is not positive (the first: frame 000000, " in (
+        warning
+    )
+    # the parts of a set in shards add up to the whole, the first part's first box first
+    parts = [unsized_boxes(gt.subset([f])) for f in gt.frame_ids]
+    assert parts[0].merged(parts[1]).merged(parts[2]) == unsized_boxes(gt)
+    assert UnsizedBoxes().merged(parts[1]) == parts[1]
 
 
-@pytest.mark.parametrize("dims", [(3.9, -1.0, 1.6), (-1.0, -1.0, -1.0)])
-def test_detections_may_mark_sizes_as_not_given(tmp_path: Path, dims: tuple[float, float, float]) -> None:
-    """KITTI's -1 means 'not given': BEV-only (h) or 2D-only (all three) results, as the devkit reads them."""
-    dt = load_detections(write_txt(tmp_path / "pred", _with_dims(DET, "000000", 1, dims), with_score=True))
-    np.testing.assert_array_equal(dt.dimensions[1], dims)
+def test_the_warning_reaches_stderr_and_the_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    from kitti_eval.cli import main
+
+    gt = write_txt(tmp_path / "label_2", _with_dims(GT, "000000", 0, (-1.0, -1.0, -1.0)), with_score=False)
+    pred = write_txt(tmp_path / "pred", _with_dims(DET, "000001", 0, (0.0, 0.0, 0.0)), with_score=True)
+    assert main(["--gt", str(gt), "--pred", str(pred), "--format", "json"]) == 0
+    out, err = capsys.readouterr()
+    warnings = [w for w in json.loads(out)["warnings"] if "not positive" in w]
+    assert [w.split(": ", 1)[0] for w in warnings] == [str(gt), str(pred)]
+    assert "frame 000000, box 0 (Car), (l, h, w) = (-1.0, -1.0, -1.0)" in warnings[0]
+    assert "frame 000001, box 0 (Car), (l, h, w) = (0.0, 0.0, 0.0)" in warnings[1]
+    shown = [line for line in err.splitlines() if "not positive" in line]
+    assert shown == [f"kitti-eval: warning: {w}" for w in warnings]
 
 
 # -------------------------------------------------------------------------------------- frame ids

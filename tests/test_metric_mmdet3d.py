@@ -303,3 +303,24 @@ def test_adapter_compiles_nothing(golden):
         m.process({}, samples)
         m.evaluate_gathered(m.results)
     assert compiles.names == []
+
+
+def test_adapter_reads_ground_truth_of_size_minus_one_and_logs_it(golden, tmp_path):
+    """mmdetection3d's info files may hold Cars written with sizes -1 (its own test data does): evaluated, and
+    the warning logged at WARNING level before the table."""
+    infos, _, ann_file, samples = golden
+    doc = pickle.loads(Path(ann_file).read_bytes())  # written by the fixture
+    car = next(inst for inst in doc["data_list"][0]["instances"] if inst["bbox_label"] == CATEGORIES["Car"])
+    car["bbox_3d"][3:6] = [-1.0, -1.0, -1.0]
+    changed = tmp_path / "infos.pkl"
+    changed.write_bytes(pickle.dumps(doc))
+    logs: list[tuple[str, int]] = []
+    cls = adapter_class(StandInBaseMetric, lambda msg, logger=None, level=20: logs.append((msg, level)))
+    metric = cls(ann_file=str(changed))
+    metric.dataset_meta = {"classes": CLASSES}
+    metric.process({}, samples)
+    out = metric.evaluate_gathered(metric.results)
+    assert len(out) == 126
+    warnings = [msg for msg, level in logs if level == 30]
+    assert len(warnings) == 1 and "1 ground-truth box (DontCare aside) has a size that is not positive" in warnings[0]
+    assert logs[-1][0].startswith("Results of pred_instances_3d:")

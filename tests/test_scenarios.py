@@ -377,3 +377,32 @@ def test_bad_protocol_files(tmp_path):
         f.write_text(text)
         with pytest.raises(ConfigError, match=needle):
             load_protocol_file(f)
+
+
+@pytest.mark.parametrize(
+    "dims, found_in",
+    [
+        ((0.0, 1.5, 1.6), ("bbox",)),  # no length: no BEV area, overlaps nothing in BEV and 3D
+        ((3.9, 1.5, 0.0), ("bbox",)),  # no width: the same
+        ((3.9, 0.0, 1.6), ("bbox", "bev")),  # no height: a rectangle in BEV, nothing in 3D
+        ((-1.0, -1.0, -1.0), ("bbox",)),  # mmdetection3d's -1 Cars: a 1 x 1 m square, IoU 1 / 6.24 with the Car
+    ],
+)
+@pytest.mark.parametrize("side", ["ground_truth", "detections"])
+def test_a_box_whose_size_is_not_positive_is_evaluated_as_written(dims, found_in, side):
+    """41 Cars found by 41 detections, scores descending; the last frame's box (ground truth or detection) has the
+    size given. Where it overlaps nothing, that Car is missed and its detection, scoring lowest, is a false
+    positive below every threshold: 40 of 41 found, precision 1 at 40 thresholds, one per sample 0..39 (the
+    reading guide), so R40 = 39/40 and R11 = 10/11. Elsewhere all 41 are found: 100.
+
+    On ground truth with exactly one zero dimension the devkit crashes; kitti-eval reads it as what it is, a box
+    without BEV area (l or w) or without height (h), which overlaps nothing there."""
+    gts, dets = one_car_per_frame(41), hits(41)
+    (gts if side == "ground_truth" else dets)[40][0]["dimensions"] = list(dims)
+    r = run(gts, dets, EvalConfig(classes=("Car",), protocol=OFFICIAL))
+    for metric in ("bbox", "bev", "3d"):
+        want = (100.0, 100.0) if metric in found_in else (39 / 40 * 100, 10 / 11 * 100)
+        got = (r.get("Car", metric, "moderate", "R40"), r.get("Car", metric, "moderate", "R11"))
+        assert got == pytest.approx(want), (metric, side)
+    assert r.num_gt["Car"]["moderate"] == 41  # never refused, never ignored
+    assert any("box (DontCare aside) has a size that is not positive" in w for w in r.warnings)

@@ -89,3 +89,27 @@ def test_upload_equals_the_cli(client, txt_dirs, tmp_path, kind, protocol) -> No
     assert body["evaluation"]["predictions"]["format"] == fmt
     stored = client.get(f"/v1/evaluations/{body['id']}").json()
     assert stored == body
+
+
+@pytest.mark.parametrize("route", ["pkl", "txt"])
+def test_sizes_that_are_not_positive_get_the_devkits_numbers(client, route) -> None:
+    """The golden case of boxes whose sizes are not positive, registered and uploaded: accepted, the devkit's
+    numbers (1e-6 on txt, 1e-4 on float32 pickles), and the two size warnings in the stored result."""
+    sizes = GOLDEN.parent / "sizes"
+    gt_file, pred_file = ("kitti_infos_val.pkl", "result.pkl") if route == "pkl" else ("label_2.tar.gz", "pred.tar.gz")
+    r = register(client, f"sizes-{route}", (sizes / gt_file).read_bytes(), gt_file)
+    assert r.status_code == 201, r.text
+    r = upload(client, (sizes / pred_file).read_bytes(), pred_file, gt=f"sizes-{route}")
+    assert r.status_code == 201, r.text
+    body = r.json()
+    official = json.loads((sizes / "expected.json").read_text())["official_cpp"]
+    tol = 1e-4 if route == "pkl" else 1e-6
+    for cls, metrics in official["classes_evaluated"].items():
+        for ref_metric in metrics:
+            metric = "bbox" if ref_metric == "2d" else ref_metric
+            for d in ("easy", "moderate", "hard"):
+                got = body["ap"]["strict"]["R40"][cls][metric][d]
+                assert got == pytest.approx(official["ap_r40"][cls][ref_metric][d], abs=tol), (cls, metric, d)
+    sizes_said = [w for w in body["warnings"] if "not positive" in w]
+    assert len(sizes_said) == 2
+    assert "76 ground-truth boxes" in sizes_said[0] and "404 predicted boxes" in sizes_said[1]

@@ -68,7 +68,7 @@ def dump_all(folder: Path, stem: str, pieces: list[list]) -> list[Path]:
     return paths
 
 
-@pytest.mark.parametrize("case", ["small", "quirks", "edge"])
+@pytest.mark.parametrize("case", ["small", "quirks", "edge", "sizes"])
 @pytest.mark.parametrize("protocol", ["official", "openpcdet"])
 def test_golden_cases_in_shards_equal_the_whole(tmp_path: Path, case: str, protocol: str) -> None:
     infos = load_pickle(GOLDEN / case / "kitti_infos_val.pkl", source="infos")
@@ -85,7 +85,12 @@ def test_golden_cases_in_shards_equal_the_whole(tmp_path: Path, case: str, proto
     # paired by position: three ground-truth files and the three prediction files of the same frames
     gts = dump_all(tmp_path / "paired", "gt", split(infos, [n // 3, 2 * n // 3]))
     preds = dump_all(tmp_path / "paired", "pred", split(results, [n // 3, 2 * n // 3]))
-    assert_same(evaluate_sharded(gts, preds, config, keep_curves=True), whole)
+    sharded = evaluate_sharded(gts, preds, config, keep_curves=True)
+    assert_same(sharded, whole)
+    # the size warnings count the whole set, name its first box, and name the inputs as the sharded run does
+    sizes = [w.split(": ", 1)[1] for w in whole.warnings if "not positive" in w]
+    assert [w.split(": ", 1)[1] for w in sharded.warnings if "not positive" in w] == sizes
+    assert len(sizes) == (2 if case == "sizes" else 0)
     # not paired: four prediction files cutting across the ground-truth files, in another order
     pieces = split(results, [n // 5, n // 2, 3 * n // 4])
     preds = dump_all(tmp_path / "crossed", "pred", pieces[::-1])

@@ -32,7 +32,15 @@ from typing import Any
 import numpy as np
 
 from ..core.evaluation import Facts, Totals, plan_evaluation, result_from_counts, scored_metrics
-from ..core.frames import Annotations, dimension_order_warnings, dimension_samples, merge_dimension_samples
+from ..core.frames import (
+    Annotations,
+    UnsizedBoxes,
+    dimension_order_warnings,
+    dimension_samples,
+    merge_dimension_samples,
+    size_warnings,
+    unsized_boxes,
+)
 from ..core.matching import PRCounts, score_thresholds
 from ..core.protocol import INVALID_ALPHA, OVERLAP_METRICS, EvalConfig, Metric, did_you_mean
 from ..core.result import EvalResult
@@ -179,6 +187,8 @@ class _Summary1:
     names: set[str]
     gt_dims: dict[str, tuple[int, np.ndarray]]
     dt_dims: dict[str, tuple[int, np.ndarray]]
+    gt_unsized: UnsizedBoxes
+    dt_unsized: UnsizedBoxes
     load_warnings: list[str]
     seconds: float = 0.0
 
@@ -213,6 +223,8 @@ class _Phase1:
             names=set(np.unique(gt.name).tolist()) | set(np.unique(dt.name).tolist()),
             gt_dims=dimension_samples(gt),
             dt_dims=dimension_samples(aligned),
+            gt_unsized=unsized_boxes(gt),
+            dt_unsized=unsized_boxes(aligned),
             load_warnings=warnings,
             seconds=time.perf_counter() - t0,
         )
@@ -503,6 +515,11 @@ def _reduce_facts(
     missing = tuple(fid for s in first for fid in s.missing)
     frames = sum(len(s.gt_ids) for s in first)
     warnings = list(dict.fromkeys(w for s in first for w in s.load_warnings))  # each file's, once
+    unsized = [UnsizedBoxes(), UnsizedBoxes()]
+    for s in first:
+        unsized = [unsized[0].merged(s.gt_unsized), unsized[1].merged(s.dt_unsized)]
+    warnings += size_warnings(_empty("ground_truth", gt_name), unsized=unsized[0])
+    warnings += size_warnings(_empty("detections", pred_name), unsized=unsized[1])
     warnings += dimension_order_warnings(
         _empty("ground_truth", gt_name), samples=merge_dimension_samples(s.gt_dims for s in first)
     )

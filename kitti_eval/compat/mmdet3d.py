@@ -37,9 +37,9 @@ Where mmdetection3d 1.x (``mmdet3d/evaluation/functional/kitti_utils/eval.py``) 
   fails with ``TypeError`` in mmdetection3d 1.x; here it returns the text it was written to print: per class,
   R11 AP averaged over ten IoU thresholds (Car and Van 0.50:0.05:0.95, the others 0.25:0.05:0.70), two
   decimals, AOS when the first detection of the first frame with detections has an alpha other than -10.
-* Frames: both lists must have the same length (an ``InputError``; mmdetection3d asserts). A ground-truth box
-  other than DontCare without volume is refused naming the frame and the box (mmdetection3d's unit tests use
-  Car boxes with dimensions -1; they overlap nothing there).
+* Frames: both lists must have the same length (an ``InputError``; mmdetection3d asserts). Boxes of any size
+  are read as mmdetection3d reads them (its unit tests have ground-truth Cars with dimensions -1); what the
+  evaluation has to say about the input (such sizes among it) comes as ``UserWarning``.
 """
 
 from __future__ import annotations
@@ -55,6 +55,7 @@ from ..core.frames import Annotations
 from ..core.protocol import INVALID_ALPHA, OPENPCDET, EvalConfig, coco_thresholds
 from ..core.result import EvalResult
 from ..errors import ConfigError, InputError
+from ._common import warn_about
 
 __all__ = ["kitti_eval", "kitti_eval_coco_style", "ap_dict", "result_text", "CLASS_BY_INDEX", "EVAL_TYPES"]
 
@@ -250,6 +251,7 @@ def kitti_eval(
     gt, dt = _paired(gt_annos, dt_annos)
     gt, dt, want_aos = _with_aos(gt, dt, _mmdet3d_aos(gt, dt))
     result = evaluate(gt, dt, config)
+    warn_about(result)
     show_aos = want_aos and result.aos_evaluated and "bbox" in types
     return result_text(result, sorted(types), aos=show_aos), ap_dict(result, sorted(types - {"aos"}))
 
@@ -261,6 +263,7 @@ def kitti_eval_coco_style(
     R11 AP averaged over ten IoU thresholds for bbox, BEV and 3D (and AOS), two decimals."""
     config = EvalConfig(classes=_class_names(current_classes), protocol=OPENPCDET, coco=True)
     result = evaluate(*_paired(gt_annos, dt_annos), config)
+    warn_about(result)
     assert result.coco is not None
     show_aos = result.aos_evaluated
     lines: list[str] = []

@@ -21,6 +21,7 @@ exists when mmengine (with torch) can be imported; this module imports without t
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -269,6 +270,8 @@ def adapter_class(base: type, print_log: Callable[..., Any]) -> type:
             metric = Incremental(self._class_names(), self._protocol, **self._options)
             metric.update(gt.subset(dt.frame_ids), dt)
             result = metric.compute()
+            for message in result.warnings:
+                print_log(message, logger="current", level=logging.WARNING)
             print_log("Results of pred_instances_3d:\n" + result_text(result), logger="current")
             return {f"pred_instances_3d/{k}": float(f"{v:.4f}") for k, v in ap_dict(result).items()}
 

@@ -20,6 +20,7 @@ from ..core.protocol import OPENPCDET, EvalConfig
 from ..core.result import EvalResult
 from ..errors import ConfigError, InputError
 from ..report.render import render_table
+from ._common import warn_about
 
 __all__ = ["get_official_eval_result", "ret_dict"]
 
@@ -84,6 +85,7 @@ def get_official_eval_result(
     dt = Annotations.from_frames("detections", "dt_annos", zip(ids, dt_annos))
     config = EvalConfig(classes=_class_names(current_classes), protocol=OPENPCDET)
     result = evaluate(gt, dt, config, keep_curves=PR_detail_dict is not None)
+    warn_about(result)
     if PR_detail_dict is not None and result.curves is not None:
         for metric in ("bbox", "bev", "3d", "aos"):
             arr = np.zeros((len(config.classes), 3, len(config.threshold_sets), 41))

@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import InputError
-from .frames import Annotations, dimension_order_warnings
+from .frames import Annotations, dimension_order_warnings, size_warnings
 from .geometry import FrameOverlaps, frame_overlaps
 from .matching import (
     FrameEvents,
@@ -279,7 +279,8 @@ def plan_evaluation(
                     field=fname,
                 )
     dt, missing = dt.aligned_to(gt.frame_ids)
-    warnings = dimension_order_warnings(gt) + dimension_order_warnings(dt) + _absent_class_warnings(gt, dt, config)
+    warnings = size_warnings(gt) + size_warnings(dt) + dimension_order_warnings(gt) + dimension_order_warnings(dt)
+    warnings += _absent_class_warnings(gt, dt, config)
     if missing:
         shown = ", ".join(missing[:10]) + (f" and {len(missing) - 10} more" if len(missing) > 10 else "")
         warnings.append(f"{len(missing)} of {gt.num_frames} frames have no predictions and count as empty: {shown}")

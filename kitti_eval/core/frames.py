@@ -21,9 +21,17 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import InputError
-from .protocol import DONTCARE, SIZE_NOT_GIVEN
+from .protocol import DONTCARE
 
-__all__ = ["Annotations", "normalize_frame_id", "shown_frame_id", "dimension_order_warnings", "check_sizes"]
+__all__ = [
+    "Annotations",
+    "normalize_frame_id",
+    "shown_frame_id",
+    "dimension_order_warnings",
+    "UnsizedBoxes",
+    "unsized_boxes",
+    "size_warnings",
+]
 
 Kind = Literal["ground_truth", "detections"]
 
@@ -50,46 +58,62 @@ IMAGE_FIELDS: Mapping[Kind, Mapping[str, float]] = {
 }
 
 
-def check_sizes(
-    kind: Kind,
-    names: npt.NDArray[np.str_],
-    dimensions: npt.NDArray[np.float64],
-    offsets: np.ndarray,
-    ids: Sequence[str],
-    source: str,
-) -> None:
-    """The size rule: a box has a volume, or says that its size is not given.
+@dataclass(frozen=True)
+class UnsizedBoxes:
+    """The boxes of a set whose size is not positive (:func:`unsized_boxes`): how many, and the first one."""
 
-    Every box but a DontCare region (any case) needs l, h and w > 0: a box without volume overlaps nothing, so it
-    would silently count as missed (ground truth) or as a false positive (detections). Detections may instead
-    write :data:`~kitti_eval.core.protocol.SIZE_NOT_GIVEN` (-1), as KITTI result files do for BEV-only (h) and
-    2D-only (l, h and w) submissions; the devkit then does not score them in 3D (BEV) (see
-    :func:`kitti_eval.core.evaluation.scored_metrics`). Zero or any other negative size is refused, naming the
-    frame, the box and its class.
+    count: int = 0
+    #: (frame id, box index in the frame, class, (l, h, w)) of the first such box
+    first: tuple[str, int, str, tuple[float, float, float]] | None = None
+
+    def merged(self, later: UnsizedBoxes) -> UnsizedBoxes:
+        """This part's count and the count of a part that comes after it, as one set's."""
+        return UnsizedBoxes(self.count + later.count, self.first or later.first)
+
+
+def unsized_boxes(annos: Annotations) -> UnsizedBoxes:
+    """The size rule: every box is read as written, as the KITTI devkit, OpenPCDet and mmdetection3d read it.
+
+    None of the references refuses a box whose l, h or w is zero or negative, and real data has them: KITTI
+    result files write -1 for "not given" (a BEV-only result has h = -1, a 2D-only one l = h = w = -1 at
+    -1000), mmdetection3d's own test data has ground-truth Cars of size -1 -1 -1, and its monocular results
+    write 2D-only detections with sizes of 0. So they are evaluated, from the box as written
+    (:mod:`kitti_eval.core.geometry`): in BEV a box is the rectangle of sides ``|l|`` and ``|w|`` (-1 -1 -1 is
+    a 1 x 1 m square), in 3D it spans ``[y - h, y]`` (empty when ``h <= 0``), and a box with ``l = 0`` or
+    ``w = 0`` overlaps nothing in BEV and 3D (the devkit crashes on such ground truth). Whether a class is
+    scored in BEV or 3D at all depends on its detections' sizes
+    (:func:`kitti_eval.core.evaluation.scored_metrics`).
+
+    A size that is not positive is still worth saying (a converter that wrote zeros by mistake loses every
+    BEV and 3D match silently otherwise): this counts such boxes, DontCare regions aside (they always carry
+    -1), for one warning per input (:func:`size_warnings`).
     """
-    ok = dimensions > 0
-    if kind == "detections":
-        ok |= dimensions == SIZE_NOT_GIVEN
-    rows = np.flatnonzero(~ok.all(axis=1))
+    rows = np.flatnonzero((annos.dimensions <= 0).any(axis=1))
+    if len(rows):
+        rows = rows[np.char.lower(annos.name[rows]) != DONTCARE.lower()]
     if not len(rows):
-        return
-    rows = rows[np.char.lower(names[rows]) != DONTCARE.lower()]
-    if not len(rows):
-        return
+        return UnsizedBoxes()
     row = int(rows[0])
-    frame = int(np.searchsorted(offsets, row, side="right")) - 1
-    rule = (
-        "l, h and w must be > 0 for every ground-truth box but DontCare"
-        if kind == "ground_truth"
-        else "each of l, h and w must be > 0, or -1 for 'not given' (BEV-only or 2D-only results)"
-    )
-    raise InputError(
-        f"box {row - int(offsets[frame])} ({names[row]}) has dimensions (l, h, w) = "
-        f"{tuple(float(v) for v in dimensions[row])}; {rule}",
-        source=source,
-        frame=ids[frame],
-        field="dimensions",
-    )
+    frame = int(np.searchsorted(annos.offsets, row, side="right")) - 1
+    ell, h, w = (float(v) for v in annos.dimensions[row])
+    first = (annos.frame_ids[frame], row - int(annos.offsets[frame]), str(annos.name[row]), (ell, h, w))
+    return UnsizedBoxes(len(rows), first)
+
+
+def size_warnings(annos: Annotations, *, unsized: UnsizedBoxes | None = None) -> list[str]:
+    """One warning for an input with boxes whose size is not positive (:func:`unsized_boxes`); ``unsized``: the
+    whole set's count when ``annos`` names a set given in parts (its kind and source are used)."""
+    found = unsized_boxes(annos) if unsized is None else unsized
+    if not found.count or found.first is None:
+        return []
+    frame, box, cls, dims = found.first
+    kind = "predicted" if annos.kind == "detections" else "ground-truth"
+    return [
+        f"{annos.source}: {found.count} {kind} box{'es' if found.count > 1 else ''} (DontCare aside) "
+        f"{'have' if found.count > 1 else 'has'} a size that is not positive (the first: frame {frame}, box {box} "
+        f"({cls}), (l, h, w) = {dims}); evaluated as the KITTI devkit reads them: -1 is 'not given', and a box "
+        "without length or width overlaps nothing in BEV and 3D"
+    ]
 
 
 _MAX_CODE_POINT = 0x10FFFF
@@ -355,7 +379,6 @@ class Annotations:
                     field=f,
                 )
             joined[f] = arr
-        check_sizes(kind, joined["name"], joined["dimensions"], offsets, ids, source)
         kept = None
         if keep_lidar:
             kept = np.concatenate(lidar, dtype=np.float64) if lidar else np.zeros((0, 7), dtype=np.float64)

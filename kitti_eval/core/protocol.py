@@ -183,9 +183,6 @@ def coco_thresholds(cls: str) -> tuple[float, ...]:
 INVALID_ALPHA = -10.0
 #: Coordinate meaning "not given" in a KITTI result line (BEV-only or 2D-only submissions).
 MISSING_COORD = -1000.0
-#: Size (l, h or w) meaning "not given": DontCare regions, and detections of BEV-only (h) or 2D-only (all three)
-#: submissions. Any other size must be > 0 (the rule is checked in :func:`kitti_eval.core.frames.check_sizes`).
-SIZE_NOT_GIVEN = -1.0
 
 
 @dataclass(frozen=True)
