@@ -621,20 +621,38 @@ def test_a_file_loads_the_same_way_through_the_cli_and_the_service(tmp_path: Pat
         assert outcomes[0][0] == "loaded" and outcomes[0][1] == ("000000", "000001", "000002")
 
 
-def test_class_names_that_are_not_text_are_refused_naming_the_frame(tmp_path: Path, capsys) -> None:
-    """A name array of bytes with a non-ASCII byte was a UnicodeDecodeError (a traceback from the CLI, a 500
-    from the service); it is bad input, named by frame and field."""
-    results = generate(3, seed=1)[1]
-    results[1]["name"] = np.array([b"Car\xff"] * len(results[1]["score"]))
+def test_class_names_of_bytes_that_are_not_utf8_are_names_no_class_has(tmp_path: Path, capsys) -> None:
+    """The references read any name: a name array of bytes with a byte that is not UTF-8 (once a traceback,
+    then a refusal) is evaluated like any unknown name, the byte shown as U+FFFD; ASCII bytes are the names
+    they spell."""
+    import json
+
+    infos, results = generate(3, seed=1)
+    gt = tmp_path / "infos.pkl"
+    gt.write_bytes(pickle.dumps(infos, protocol=4))
+    n = len(results[1]["score"])
+
+    def run(names: np.ndarray) -> dict:
+        results[1]["name"] = names
+        path = tmp_path / "result.pkl"
+        path.write_bytes(pickle.dumps(results, protocol=4))
+        assert main(["--gt", str(gt), "--pred", str(path), "--format", "json", "--quiet"]) == 0
+        return json.loads(capsys.readouterr().out)["ap"]
+
+    assert run(np.array([b"Car\xff"] * n)) == run(np.array(["Unknown"] * n))
+    assert run(np.array([b"Car"] * n)) == run(np.array(["Car"] * n))
+    results[1]["name"] = np.array([b"Car\xff"] * n)
     path = tmp_path / "result.pkl"
     path.write_bytes(pickle.dumps(results, protocol=4))
-    with pytest.raises(InputError, match="not ASCII") as err:
-        load_detections(path)
-    assert err.value.frame == "000001" and err.value.field == "name"
-    infos = tmp_path / "infos.pkl"
-    infos.write_bytes(pickle.dumps(generate(3, seed=1)[0], protocol=4))
-    assert main(["--gt", str(infos), "--pred", str(path)]) == 1
-    assert "not ASCII" in capsys.readouterr().err
-    results[1]["name"] = np.array([b"Car"] * len(results[1]["score"]))  # ASCII bytes are names
-    path.write_bytes(pickle.dumps(results, protocol=4))
-    assert load_detections(path).num_frames == 3
+    dt = load_detections(path)
+    assert dt.name[dt.offsets[1] : dt.offsets[2]].tolist() == ["Car\ufffd"] * n
+
+
+def test_a_label_file_that_is_not_utf8_is_read(tmp_path: Path) -> None:
+    """A latin-1 class name in a label file: the devkit reads its bytes, an unknown class; so does kitti-eval."""
+    folder = tmp_path / "label_2"
+    folder.mkdir()
+    line = " 0.00 0 -1.58 587.01 173.33 614.12 200.12 1.65 1.67 3.64 -0.65 1.71 46.70 -1.59\n"
+    (folder / "000000.txt").write_bytes(b"Caf\xe9" + line.encode() + b"Car" + line.encode())
+    gt = load_ground_truth(folder)
+    assert gt.name.tolist() == ["Caf\ufffd", "Car"]

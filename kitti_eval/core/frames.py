@@ -168,11 +168,9 @@ def _names(value: Any, n_hint: int | None, where: dict[str, str]) -> npt.NDArray
             raise InputError("class names must be text; a name holds a code point above U+10FFFF", **where)
         return arr
     if arr.dtype.kind == "S":
-        try:
-            return np.char.decode(arr, "ascii")
-        except UnicodeDecodeError as e:
-            bad = next(bytes(v) for v in arr.ravel() if not bytes(v).isascii())
-            raise InputError(f"class names must be text; {bad[:40]!r} is not ASCII ({e.reason})", **where) from None
+        # bytes are names as the references read them: a byte that is not UTF-8 makes a name no class has
+        # (U+FFFD in its place), as any unknown name is; the devkit reads names as raw bytes too
+        return np.char.decode(arr, "utf-8", "replace")
     if arr.dtype.kind == "O" and all(isinstance(v, (str, np.str_)) for v in arr):
         return arr.astype("U")
     raise InputError(f"expected class names as strings, got dtype {arr.dtype}", **where)

@@ -367,10 +367,9 @@ def _read_text(path: Path) -> str:
                 raise too_large_txt(path.name, str(path))
     except OSError as e:
         raise InputError(f"cannot read: {e.strerror or e}", source=str(path), frame=path.stem) from None
-    try:
-        return raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise InputError(f"not a text file (byte {e.start} is not UTF-8)", source=str(path), frame=path.stem) from None
+    # the devkit reads the fields as bytes: a byte that is not UTF-8 (U+FFFD here) can only be part of a class
+    # name, which then is no class's, as with any unknown name; in a number it fails to parse, naming the line
+    return raw.decode("utf-8-sig", "replace")
 
 
 def parse_kitti_txt(text: str, kind: Kind, *, frame: str, source: str) -> tuple[list[str], list[float]]:
