@@ -65,3 +65,28 @@ def test_import_paths_name_one_function():
     assert kitti_eval.get_official_eval_result is openpcdet.get_official_eval_result
     assert compat.get_official_eval_result is openpcdet.get_official_eval_result
     assert compat.ret_dict is openpcdet.ret_dict
+
+
+def test_the_sizes_case_through_the_drop_in_equals_the_cli():
+    """OpenPCDet reads boxes whose sizes are not positive; so does the drop-in: the golden 'sizes' case gives the
+    numbers of the openpcdet protocol, and the two inputs' size warnings come as UserWarning."""
+    from kitti_eval import EvalConfig, evaluate, load_detections, load_ground_truth
+    from kitti_eval.core.protocol import OPENPCDET
+
+    sizes = GOLDEN.parent / "sizes"
+    infos = pickle.loads((sizes / "kitti_infos_val.pkl").read_bytes())  # trusted committed fixtures
+    results = pickle.loads((sizes / "result.pkl").read_bytes())
+    with pytest.warns(UserWarning) as record:
+        _, ret = get_official_eval_result([i["annos"] for i in infos], results, ["Car", "Pedestrian", "Cyclist"])
+    said = [str(w.message) for w in record if "not positive" in str(w.message)]
+    assert [m.split(": ", 1)[1].split(" (the first")[0] for m in said] == [
+        "76 ground-truth boxes (DontCare aside) have a size that is not positive",
+        "404 predicted boxes (DontCare aside) have a size that is not positive",
+    ]
+    whole = evaluate(
+        load_ground_truth(sizes / "kitti_infos_val.pkl"),
+        load_detections(sizes / "result.pkl"),
+        EvalConfig(protocol=OPENPCDET),
+    )
+    assert ret["Car_3d/moderate_R40"] == pytest.approx(whole.get("Car", "3d", "moderate", "R40"), abs=1e-9)
+    assert ret["Cyclist_bev/hard_R40"] == pytest.approx(whole.get("Cyclist", "bev", "hard", "R40"), abs=1e-9)
