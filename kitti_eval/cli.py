@@ -15,6 +15,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from .cli_validate import add_parser as _validate_parser
 from .core.protocol import DEFAULT_CLASSES, KNOWN_CLASSES, PROTOCOLS, THRESHOLD_SETS
 from .errors import ConfigError, InputError, KittiEvalError
 from .report.render import OutputFormat
@@ -253,6 +254,7 @@ def _parser() -> argparse.ArgumentParser:
         _inspect_parser,
         _errors_parser,
         _describe_parser,
+        _validate_parser,
         _serve_parser,
     ):
         add(sub)
