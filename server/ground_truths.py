@@ -68,6 +68,8 @@ class GroundTruthCache:
         self._entries: OrderedDict[str, tuple[Annotations, int]] = OrderedDict()
         self._lock = threading.Lock()
         self._loading: dict[str, threading.Lock] = {}
+        #: told of every :meth:`get_or_load`: True when the set was in memory (the metrics count them)
+        self.on_lookup: Callable[[bool], None] | None = None
 
     def get(self, key: str) -> Annotations | None:
         with self._lock:
@@ -93,11 +95,15 @@ class GroundTruthCache:
     def get_or_load(self, key: str, load: Callable[[], Annotations]) -> Annotations:
         found = self.get(key)
         if found is not None:
+            if self.on_lookup is not None:
+                self.on_lookup(True)
             return found
         with self._lock:
             key_lock = self._loading.setdefault(key, threading.Lock())
         with key_lock:  # one loader per set; the others wait for it and then hit the cache
             found = self.get(key)
+            if self.on_lookup is not None:
+                self.on_lookup(found is not None)
             if found is None:
                 found = load()
                 self.put(key, found)

@@ -22,7 +22,8 @@ from kitti_eval import __version__
 
 from .errors import install_error_handlers
 from .middleware import AdmissionMiddleware, BodyMiddleware
-from .routes import evaluations, frames, gates, ground_truths, health
+from .observability import Metrics, RequestMiddleware, configure_logging
+from .routes import evaluations, frames, gates, ground_truths, health, metrics
 from .service import Service
 from .settings import Settings, default_data_dir
 from .web import STATIC_DIR
@@ -40,23 +41,14 @@ prints, stored with the inputs' sha256 and your labels. Errors are always `{"err
 """
 
 
-def _log_to_stderr() -> None:
-    """The service's own messages (evaluations, warm-up, generated token) next to uvicorn's, unless the
-    embedding application configured logging itself."""
-    if log.handlers or logging.getLogger().handlers:
-        return
-    handler = logging.StreamHandler()
-    handler.setFormatter(logging.Formatter("%(levelname)s:     kitti-eval: %(message)s"))
-    log.addHandler(handler)
-    log.setLevel(logging.INFO)
-    log.propagate = False
-
-
 def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the application. Nothing touches the disk or the database until the lifespan starts."""
     settings = settings or Settings()
-    _log_to_stderr()
+    log_json = configure_logging(settings.log_format)
     service = Service(settings)
+    app_metrics = Metrics(service) if settings.metrics == "on" else None
+    if app_metrics is not None:
+        service.ground_truths.cache.on_lookup = app_metrics.cache_hit
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -78,12 +70,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         redoc_url=None,
     )
     app.state.service = service
+    app.state.metrics = app_metrics
     install_error_handlers(app)
     app.include_router(health.router)
     app.include_router(evaluations.router)
     app.include_router(ground_truths.router)
     app.include_router(gates.router)
     app.include_router(frames.router)
+    app.include_router(metrics.router)
     app.include_router(web_router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     # outermost last: a request is admitted to the evaluations once its body has arrived in full
@@ -92,6 +86,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         paths=frozenset({"/v1/evaluations", "/ui/evaluations"}),
         capacity=lambda: settings.evaluation_places,
         retry_after_s=lambda: settings.retry_after_s,
+        state=service.admission,
     )
     app.add_middleware(
         BodyMiddleware,
@@ -100,7 +95,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         max_receiving=settings.receiving_bodies,
         retry_after_s=lambda: settings.retry_after_s,
         spool_dir=service.data_dir / "tmp",
+        state=service.admission,
     )
+    # outermost: every request gets its id, its log line and its metrics, whoever answers it
+    app.add_middleware(RequestMiddleware, metrics=app_metrics, log_json=lambda: log_json)
     return app
 
 
@@ -142,7 +140,15 @@ def serve(argv: Sequence[str] | None = None) -> int:
         return 2
     app = create_app(settings)
     log.setLevel(args.log_level.upper())
-    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, timeout_graceful_shutdown=10)
+    # the service writes its own access log (one line a request, with its id): uvicorn's would repeat it
+    uvicorn.run(
+        app,
+        host=args.host,
+        port=args.port,
+        log_level=args.log_level,
+        access_log=False,
+        timeout_graceful_shutdown=10,
+    )
     return 0
 
 

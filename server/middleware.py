@@ -35,6 +35,7 @@ from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from .errors import error_body
+from .observability import AdmissionState
 
 __all__ = ["BodyMiddleware", "AdmissionMiddleware", "BodyTooLarge"]
 
@@ -147,6 +148,7 @@ class BodyMiddleware:
         max_receiving: int,
         retry_after_s: Callable[[], int],
         spool_dir: Path | None = None,
+        state: AdmissionState | None = None,
     ) -> None:
         self.app = app
         self.limit = limit
@@ -154,7 +156,16 @@ class BodyMiddleware:
         self.max_receiving = max_receiving
         self.retry_after_s = retry_after_s
         self.spool_dir = spool_dir
-        self.receiving = 0
+        self.state = state or AdmissionState()
+
+    @property
+    def receiving(self) -> int:
+        """Bodies being received now."""
+        return self.state.receiving
+
+    @receiving.setter
+    def receiving(self, value: int) -> None:
+        self.state.receiving = value
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -225,13 +236,28 @@ class AdmissionMiddleware:
     """
 
     def __init__(
-        self, app: ASGIApp, *, paths: frozenset[str], capacity: Callable[[], int], retry_after_s: Callable[[], int]
+        self,
+        app: ASGIApp,
+        *,
+        paths: frozenset[str],
+        capacity: Callable[[], int],
+        retry_after_s: Callable[[], int],
+        state: AdmissionState | None = None,
     ) -> None:
         self.app = app
         self.paths = paths
         self.capacity = capacity
         self.retry_after_s = retry_after_s
-        self.in_flight = 0
+        self.state = state or AdmissionState()
+
+    @property
+    def in_flight(self) -> int:
+        """Evaluation requests admitted now (waiting for a thread or running)."""
+        return self.state.in_flight
+
+    @in_flight.setter
+    def in_flight(self, value: int) -> None:
+        self.state.in_flight = value
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope["method"] != "POST" or scope["path"].rstrip("/") not in self.paths:

@@ -36,6 +36,7 @@ from kitti_eval.io.synth import demo_paths
 from .errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, clip, echo
 from .evaluator import EvalOptions, evaluate_document, summarize
 from .ground_truths import GroundTruthCache, GroundTruths
+from .observability import AdmissionState
 from .scratch import ScratchSpace
 from .settings import Settings
 from .store import EvaluationRecord, GroundTruthRecord, Store, new_id
@@ -99,6 +100,9 @@ class Service:
         self.warm = threading.Event()
         self.warmup_error: str | None = None
         self._limiter: anyio.CapacityLimiter | None = None
+        #: admission counts, shared with the middlewares (and read by the metrics)
+        self.admission = AdmissionState()
+        self._running_lock = threading.Lock()
 
     # -- lifecycle ---------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -178,9 +182,13 @@ class Service:
         memory it freed goes back to the system (:func:`release_memory`)."""
 
         def job() -> T:
+            with self._running_lock:
+                self.admission.running += 1
             try:
                 return func(*args)
             finally:
+                with self._running_lock:
+                    self.admission.running -= 1
                 release_memory()
 
         return await anyio.to_thread.run_sync(job, limiter=self._limiter)

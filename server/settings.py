@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import platformdirs
 from pydantic import Field, SecretStr, field_validator
@@ -93,6 +93,16 @@ class Settings(BaseSettings):
     warmup: bool = True
     """Evaluate the demo once at startup, in the background, so the first request does not compile the
     kernels; ``/readyz`` answers 200 once it is done."""
+
+    metrics: Literal["on", "off"] = "on"
+    """``GET /metrics`` in Prometheus' text format (see README "Operations"); ``off`` answers 404 there."""
+
+    metrics_token: SecretStr | None = None
+    """When set, ``/metrics`` needs ``Authorization: Bearer <this>`` (a scraper's own token, not the admin's)."""
+
+    log_format: Literal["auto", "json", "text"] = "auto"
+    """The service's log lines (one a request, and its own messages): ``json`` lines, human-readable ``text``,
+    or ``auto``: text on a terminal, JSON otherwise (a container, a file, a log shipper)."""
 
     @field_validator("database_url")
     @classmethod

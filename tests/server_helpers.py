@@ -71,6 +71,7 @@ def upload(
     fields: dict[str, Any] | None = None,
     params: dict[str, str] | None = None,
     gt_file: tuple[str, bytes] | None = None,
+    headers: dict[str, str] | None = None,
 ) -> httpx.Response:
     form = dict(fields or {})
     if gt is not None:
@@ -78,7 +79,7 @@ def upload(
     files: dict[str, Any] = {"predictions": (filename, data, "application/octet-stream")}
     if gt_file is not None:
         files["gt_file"] = (gt_file[0], gt_file[1], "application/octet-stream")
-    return client.post("/v1/evaluations", data=form, files=files, params=params or {})
+    return client.post("/v1/evaluations", data=form, files=files, params=params or {}, headers=headers)
 
 
 def register(

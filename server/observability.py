@@ -1,0 +1,345 @@
+"""What an operator sees: Prometheus metrics (``GET /metrics``) and one log line per request.
+
+:class:`RequestMiddleware` (the outermost layer) gives every request an id (the client's ``X-Request-ID`` when
+it is a sane one, else a new one), returns it in the ``X-Request-ID`` response header and in every JSON error
+body (``error.request_id``), times the request, counts the bytes it brought, and when the response is done
+writes one access-log line and updates the metrics. The log line names the method, the route (its template,
+e.g. ``/v1/evaluations/{evaluation_id}``), the status, the duration, the bytes and the evaluation's id where
+there is one; never a header value (so never a token), a query string or any file content.
+
+Metrics (prometheus-client): requests by route, method and status; request latency; bytes received;
+evaluations by outcome (``ok``; ``refused``: the client's input or a full service, 4xx and 503; ``failed``:
+any other 5xx) and their duration; admission (evaluations in progress, bodies being received, 503s given);
+ground-truth cache hits, misses, entries and bytes; whether the kernels are warm. With several worker
+processes (``PROMETHEUS_MULTIPROC_DIR`` set, as prometheus-client's multiprocess mode requires) the counters
+and histograms are summed over the processes; the gauges of the process state (cache, admission, warm) are
+those of the process that answers the scrape, labelled with its ``pid``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import sys
+import time
+import uuid
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
+from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.multiprocess import MultiProcessCollector
+from prometheus_client.registry import Collector
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+if TYPE_CHECKING:
+    from .service import Service
+
+__all__ = ["Metrics", "RequestMiddleware", "REQUEST_ID_HEADER", "configure_logging", "CONTENT_TYPE"]
+
+CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+REQUEST_ID_HEADER = "x-request-id"
+#: a client's request id is taken when it is this (anything else is replaced: it is written to the log)
+_SANE_ID = re.compile(r"[A-Za-z0-9._:-]{1,128}")
+#: the paths whose POST runs an evaluation
+EVALUATION_PATHS = frozenset({"/v1/evaluations", "/ui/evaluations"})
+_LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0)
+
+access_log = logging.getLogger("kitti_eval.server.access")
+
+
+class Metrics:
+    """The service's metrics, on a registry of its own (one per application, so that tests can build many)."""
+
+    def __init__(self, service: Service | None = None) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        self.multiprocess_dir = os.environ.get("PROMETHEUS_MULTIPROC_DIR") or os.environ.get("prometheus_multiproc_dir")
+        r = self.registry
+        self.requests = Counter(
+            "kitti_eval_http_requests", "HTTP requests answered", ["route", "method", "status"], registry=r
+        )
+        self.latency = Histogram(
+            "kitti_eval_http_request_duration_seconds",
+            "Time from a request's arrival to the end of its response",
+            ["route", "method"],
+            buckets=_LATENCY_BUCKETS,
+            registry=r,
+        )
+        self.received = Counter("kitti_eval_http_received_bytes", "Request body bytes received", registry=r)
+        self.evaluations = Counter("kitti_eval_evaluations", "Evaluation requests by outcome", ["outcome"], registry=r)
+        self.evaluation_seconds = Histogram(
+            "kitti_eval_evaluation_duration_seconds",
+            "Time an evaluation request took, by outcome",
+            ["outcome"],
+            buckets=_LATENCY_BUCKETS,
+            registry=r,
+        )
+        self.rejected = Counter(
+            "kitti_eval_admission_rejected", "Requests answered 503 as the service was full", ["reason"], registry=r
+        )
+        self.cache_lookups = Counter(
+            "kitti_eval_ground_truth_cache_lookups", "Ground-truth cache lookups", ["result"], registry=r
+        )
+        if service is not None:
+            r.register(_StateCollector(service, with_pid=self.multiprocess_dir is not None))
+
+    def render(self) -> bytes:
+        """The text exposition: this process's registry, or every process's in multiprocess mode."""
+        if self.multiprocess_dir is None:
+            return generate_latest(self.registry)
+        merged = CollectorRegistry()
+        MultiProcessCollector(merged, path=self.multiprocess_dir)
+        for collector in self._state_collectors():
+            merged.register(collector)
+        return generate_latest(merged)
+
+    def _state_collectors(self) -> Iterable[Collector]:
+        return [c for c in self.registry._collector_to_names if isinstance(c, _StateCollector)]  # noqa: SLF001
+
+    def cache_hit(self, hit: bool) -> None:
+        self.cache_lookups.labels("hit" if hit else "miss").inc()
+
+
+class _StateCollector(Collector):
+    """Gauges read from the service when scraped: admission, the ground-truth cache, the kernels."""
+
+    def __init__(self, service: Service, *, with_pid: bool) -> None:
+        self.service = service
+        self.labels = {"pid": str(os.getpid())} if with_pid else {}
+
+    def _gauge(self, name: str, doc: str, value: float) -> GaugeMetricFamily:
+        g = GaugeMetricFamily(name, doc, labels=list(self.labels))
+        g.add_metric(list(self.labels.values()), value)
+        return g
+
+    def collect(self) -> Iterable[GaugeMetricFamily]:
+        s = self.service
+        cache = s.ground_truths.cache
+        gauges = (
+            ("evaluations_in_progress", "Evaluation requests admitted (running or waiting)", s.admission.in_flight),
+            ("evaluations_running", "Evaluations running on worker threads", s.admission.running),
+            ("bodies_receiving", "Request bodies being received", s.admission.receiving),
+            ("ground_truth_cache_entries", "Ground-truth sets held in memory", len(cache)),
+            ("ground_truth_cache_bytes", "Bytes of the ground-truth sets held in memory", cache.nbytes),
+            ("kernels_warm", "1 once every kernel is compiled or loaded", float(s.warm.is_set())),
+        )
+        for name, doc, value in gauges:
+            yield self._gauge(f"kitti_eval_{name}", doc, value)
+
+
+@dataclass
+class AdmissionState:
+    """What the middlewares and the worker threads count, for the metrics (the event loop writes most of it)."""
+
+    in_flight: int = 0
+    running: int = 0
+    receiving: int = 0
+
+
+# ------------------------------------------------------------------------------------------- requests
+
+
+def request_id_of(scope: Scope) -> str:
+    """The id of the request being served (set by :class:`RequestMiddleware`), or ``""`` outside one."""
+    return str(scope.get("state", {}).get("request_id", ""))
+
+
+def _client_request_id(scope: Scope) -> str | None:
+    for key, value in scope.get("headers", ()):
+        if key == b"x-request-id":
+            text = bytes(value).decode("latin-1")
+            return text if _SANE_ID.fullmatch(text) else None
+    return None
+
+
+def _route_of(scope: Scope) -> str:
+    route = scope.get("route")
+    path = getattr(route, "path_format", None) or getattr(route, "path", None)
+    if isinstance(path, str):
+        return path
+    if str(scope.get("path", "")).startswith("/static/"):
+        return "/static"
+    return "unmatched"
+
+
+class RequestMiddleware:
+    """Request ids, the access log and the request metrics (see the module's docstring)."""
+
+    def __init__(self, app: ASGIApp, *, metrics: Metrics | None, log_json: Callable[[], bool]) -> None:
+        self.app = app
+        self.metrics = metrics
+        self.log_json = log_json
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = time.perf_counter()
+        rid = _client_request_id(scope) or uuid.uuid4().hex
+        state = scope.setdefault("state", {})
+        state["request_id"] = rid
+        seen = {"status": 0, "received": 0, "sent": 0}
+        error_parts: list[bytes] | None = None
+        error_start: Message | None = None
+
+        async def counting_receive() -> Message:
+            message = await receive()
+            if message["type"] == "http.request":
+                seen["received"] += len(message.get("body", b""))
+            return message
+
+        async def tagging_send(message: Message) -> None:
+            nonlocal error_parts, error_start
+            if message["type"] == "http.response.start":
+                seen["status"] = int(message["status"])
+                headers = [(k, v) for k, v in message.get("headers", ()) if k.lower() != b"x-request-id"]
+                headers.append((b"x-request-id", rid.encode()))
+                seen_evaluation = _evaluation_of(headers)
+                if seen_evaluation:
+                    state["evaluation_id"] = seen_evaluation
+                message = {**message, "headers": headers}
+                if seen["status"] >= 400 and _is_json(headers):
+                    error_start, error_parts = message, []  # held until the body is complete
+                    return
+            elif message["type"] == "http.response.body":
+                seen["sent"] += len(message.get("body", b""))
+                if error_parts is not None and error_start is not None:
+                    error_parts.append(message.get("body", b""))
+                    if message.get("more_body", False):
+                        return
+                    body = _with_request_id(b"".join(error_parts), rid)
+                    headers = [(k, v) for k, v in error_start["headers"] if k.lower() != b"content-length"]
+                    headers.append((b"content-length", str(len(body)).encode()))
+                    await send({**error_start, "headers": headers})
+                    error_parts = error_start = None
+                    await send({"type": "http.response.body", "body": body})
+                    return
+            await send(message)
+
+        try:
+            await self.app(scope, counting_receive, tagging_send)
+        finally:
+            self._done(scope, rid, seen, time.perf_counter() - started)
+
+    def _done(self, scope: Scope, rid: str, seen: dict[str, int], seconds: float) -> None:
+        route, method, status = _route_of(scope), str(scope.get("method", "")), seen["status"]
+        evaluation = scope.get("state", {}).get("evaluation_id")
+        if self.metrics is not None:
+            m = self.metrics
+            m.requests.labels(route, method, str(status)).inc()
+            m.latency.labels(route, method).observe(seconds)
+            m.received.inc(seen["received"])
+            if method == "POST" and str(scope.get("path", "")).rstrip("/") in EVALUATION_PATHS and status:
+                outcome = "ok" if status < 400 else "refused" if status < 500 or status == 503 else "failed"
+                m.evaluations.labels(outcome).inc()
+                m.evaluation_seconds.labels(outcome).observe(seconds)
+                if status == 503:
+                    m.rejected.labels("evaluations").inc()
+            elif status == 503 and route == "unmatched":
+                m.rejected.labels("bodies").inc()
+        record = {
+            "request_id": rid,
+            "method": method,
+            "route": route,
+            "status": status,
+            "duration_ms": round(seconds * 1000, 3),
+            "bytes_in": seen["received"],
+            "bytes_out": seen["sent"],
+        }
+        if evaluation:
+            record["evaluation_id"] = str(evaluation)
+        if self.log_json():
+            access_log.info(json.dumps(record), extra={"access": record})
+        else:
+            extra = f" evaluation={evaluation}" if evaluation else ""
+            access_log.info(
+                f"{method} {route} {status} {record['duration_ms']:.0f} ms in={seen['received']} B "
+                f"out={seen['sent']} B id={rid}{extra}",
+                extra={"access": record},
+            )
+
+
+_EVALUATION_LOCATION = re.compile(rb"/(?:v1|ui)/evaluations/([A-Za-z0-9_-]{1,64})")
+
+
+def _evaluation_of(headers: list[tuple[bytes, bytes]]) -> str | None:
+    """The evaluation a response made or names: its ``X-Evaluation-Id``, or the one its Location points to."""
+    for k, v in headers:
+        if k.lower() == b"x-evaluation-id":
+            return v.decode("latin-1")[:64]
+    for k, v in headers:
+        if k.lower() == b"location":
+            found = _EVALUATION_LOCATION.search(v)
+            if found:
+                return found.group(1).decode()
+    return None
+
+
+def _is_json(headers: list[tuple[bytes, bytes]]) -> bool:
+    return any(k.lower() == b"content-type" and v.startswith(b"application/json") for k, v in headers)
+
+
+def _with_request_id(body: bytes, rid: str) -> bytes:
+    """An error body with ``error.request_id`` added (any other body as it was)."""
+    try:
+        doc = json.loads(body)
+    except ValueError:
+        return body
+    if isinstance(doc, dict) and isinstance(doc.get("error"), dict):
+        doc["error"]["request_id"] = rid
+        return json.dumps(doc).encode()
+    return body
+
+
+# -------------------------------------------------------------------------------------------- logging
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object a line: time, level, logger, message, and the access record's fields when it is one."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        doc: dict[str, Any] = {
+            "time": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)) + f".{int(record.msecs):03d}Z",
+            "level": record.levelname.lower(),
+            "logger": record.name,
+        }
+        access = getattr(record, "access", None)
+        if isinstance(access, dict):
+            doc.update(access)
+        else:
+            doc["message"] = record.getMessage()
+        if record.exc_info:
+            doc["exception"] = self.formatException(record.exc_info)
+        return json.dumps(doc)
+
+
+def wants_json(log_format: str, stream: Any = None) -> bool:
+    """``json``, ``text``, or ``auto``: JSON unless the log goes to a terminal."""
+    if log_format == "auto":
+        stream = sys.stderr if stream is None else stream
+        return not (hasattr(stream, "isatty") and stream.isatty())
+    return log_format == "json"
+
+
+def configure_logging(log_format: str) -> bool:
+    """The service's loggers (``kitti_eval.server`` and its access log) to stderr, as JSON lines or as text,
+    unless the embedding application configured logging itself. Returns whether the lines are JSON."""
+    as_json = wants_json(log_format)
+    logger = logging.getLogger("kitti_eval.server")
+    if logging.getLogger().handlers or any(not getattr(h, "_kitti_eval", False) for h in logger.handlers):
+        return as_json
+    for h in list(logger.handlers):
+        logger.removeHandler(h)
+    handler = logging.StreamHandler()
+    handler._kitti_eval = True  # type: ignore[attr-defined]
+    handler.setFormatter(
+        JsonFormatter() if as_json else logging.Formatter("%(levelname)s:     kitti-eval: %(message)s")
+    )
+    logger.addHandler(handler)
+    if logger.level == logging.NOTSET:
+        logger.setLevel(logging.INFO)
+    logger.propagate = False
+    return as_json

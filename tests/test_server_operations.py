@@ -1,0 +1,178 @@
+"""What an operator sees: /metrics scraped and matched against the requests made, request ids, access logs."""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+from server_helpers import ADMIN, ADMIN_TOKEN, golden_bytes, register, upload
+
+from kitti_eval.io.synth import demo_paths
+from server.observability import JsonFormatter, wants_json
+
+
+def scrape(client: Any, **headers: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    r = client.get("/metrics", headers=headers)
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"].startswith("text/plain; version=0.0.4")
+    out = {}
+    for family in text_string_to_metric_families(r.text):
+        for s in family.samples:
+            out[(s.name, tuple(sorted(s.labels.items())))] = s.value
+    return out
+
+
+def value(samples: dict, name: str, **labels: str) -> float:
+    return samples.get((name, tuple(sorted(labels.items()))), 0.0)
+
+
+class Lines(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+@pytest.fixture
+def access() -> Iterator[Lines]:
+    handler = Lines()
+    logger = logging.getLogger("kitti_eval.server.access")
+    logger.addHandler(handler)
+    level = logger.level
+    logger.setLevel(logging.INFO)  # under pytest the root logger is configured: the service leaves it alone
+    try:
+        yield handler
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
+def test_the_counters_match_the_requests_made(service_client: Any) -> None:
+    with service_client() as client:
+        before = scrape(client)
+        for _ in range(3):
+            assert client.get("/healthz").status_code == 200
+        pred = demo_paths()[1].read_bytes()
+        assert upload(client, pred, "result.pkl.gz").status_code == 201
+        assert upload(client, pred, "result.pkl.gz").status_code == 201
+        assert upload(client, b"not a pickle at all", "result.pkl").status_code == 422
+        assert client.get("/v1/evaluations/nope").status_code == 404
+        after = scrape(client)
+
+    def delta(name: str, **labels: str) -> float:
+        return value(after, name, **labels) - value(before, name, **labels)
+
+    requests = "kitti_eval_http_requests_total"
+    assert delta(requests, route="/healthz", method="GET", status="200") == 3
+    assert delta(requests, route="/v1/evaluations", method="POST", status="201") == 2
+    assert delta(requests, route="/v1/evaluations", method="POST", status="422") == 1
+    assert delta(requests, route="/v1/evaluations/{evaluation_id}", method="GET", status="404") == 1
+    assert delta("kitti_eval_evaluations_total", outcome="ok") == 2
+    assert delta("kitti_eval_evaluations_total", outcome="refused") == 1
+    assert delta("kitti_eval_evaluations_total", outcome="failed") == 0
+    assert delta("kitti_eval_evaluation_duration_seconds_count", outcome="ok") == 2
+    assert delta("kitti_eval_http_request_duration_seconds_count", route="/healthz", method="GET") == 3
+    # every byte of the three uploads arrived (and a little multipart framing around each)
+    sent = 2 * len(pred) + len(b"not a pickle at all")
+    assert sent < delta("kitti_eval_http_received_bytes_total") < sent + 3 * 1000
+    # the demo ground truth: loaded once, then found in memory
+    assert delta("kitti_eval_ground_truth_cache_lookups_total", result="hit") >= 1
+    assert value(after, "kitti_eval_ground_truth_cache_entries") >= 1
+    assert value(after, "kitti_eval_ground_truth_cache_bytes") > 1000
+    assert value(after, "kitti_eval_kernels_warm") == 1.0
+    assert value(after, "kitti_eval_evaluations_in_progress") == 0
+    assert value(after, "kitti_eval_bodies_receiving") == 0
+
+
+def test_metrics_can_be_off_or_need_their_token(service_client: Any) -> None:
+    with service_client(metrics="off") as client:
+        r = client.get("/metrics")
+        assert r.status_code == 404 and r.json()["error"]["code"] == "not_found"
+    with service_client(metrics_token="scrape-me") as client:
+        assert client.get("/metrics").status_code == 401
+        assert client.get("/metrics", headers=ADMIN).status_code == 403  # the admin token is not the scraper's
+        assert scrape(client, authorization="Bearer scrape-me")
+
+
+def test_request_ids_are_returned_and_in_every_error(client: Any) -> None:
+    r = client.get("/healthz", headers={"X-Request-ID": "ci-run-42.step_3"})
+    assert r.headers["x-request-id"] == "ci-run-42.step_3"
+    r = client.get("/healthz")
+    assert re.fullmatch(r"[0-9a-f]{32}", r.headers["x-request-id"])
+    r = client.get("/healthz", headers={"X-Request-ID": "bad id\twith spaces"})  # not sane: replaced
+    assert re.fullmatch(r"[0-9a-f]{32}", r.headers["x-request-id"])
+    r = client.get("/v1/evaluations/nope", headers={"X-Request-ID": "abc"})
+    assert r.status_code == 404 and r.headers["x-request-id"] == "abc"
+    assert r.json()["error"]["request_id"] == "abc"
+    assert int(r.headers["content-length"]) == len(r.content)
+    r = upload(client, b"junk", "result.pkl", headers={"X-Request-ID": "u1"})
+    assert r.status_code == 422 and r.json()["error"]["request_id"] == "u1"
+
+
+def test_one_access_line_a_request_never_a_token(service_client: Any, access: Lines) -> None:
+    with service_client(log_format="json") as client:
+        access.records.clear()
+        assert register(client, "small", golden_bytes("kitti_infos_val.pkl"), "kitti_infos_val.pkl").status_code == 201
+        r = upload(client, golden_bytes("result.pkl"), gt="small", headers={"X-Request-ID": "eval-1"})
+        assert r.status_code == 201
+        client.get("/v1/evaluations?limit=5&token=secret-in-query")
+    lines = [json.loads(JsonFormatter().format(rec)) for rec in access.records]
+    assert [(x["method"], x["route"], x["status"]) for x in lines] == [
+        ("POST", "/v1/ground-truths", 201),
+        ("POST", "/v1/evaluations", 201),
+        ("GET", "/v1/evaluations", 200),
+    ]
+    evaluation = lines[1]
+    assert evaluation["request_id"] == "eval-1" and evaluation["evaluation_id"] == r.json()["id"]
+    assert evaluation["bytes_in"] > len(golden_bytes("result.pkl")) and evaluation["duration_ms"] > 0
+    assert set(evaluation) == {
+        "time", "level", "logger", "request_id", "method", "route", "status", "duration_ms", "bytes_in", "bytes_out",
+        "evaluation_id",
+    }  # fmt: skip
+    text = "\n".join(JsonFormatter().format(rec) for rec in access.records)
+    assert ADMIN_TOKEN not in text and "secret-in-query" not in text
+
+
+def test_text_lines_on_a_terminal_json_elsewhere() -> None:
+    class Tty:
+        def isatty(self) -> bool:
+            return True
+
+    assert wants_json("auto", Tty()) is False
+    assert wants_json("auto", object()) is True
+    assert wants_json("text", object()) is False and wants_json("json", Tty()) is True
+
+
+def test_several_worker_processes_are_summed(tmp_path: Any) -> None:
+    """With PROMETHEUS_MULTIPROC_DIR (prometheus-client's multiprocess mode), what two worker processes counted
+    is summed in the scrape whichever process answers it."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PROMETHEUS_MULTIPROC_DIR": str(tmp_path)}
+    count = (
+        "import sys; from server.observability import Metrics; m = Metrics(); "
+        "[m.requests.labels('/healthz', 'GET', '200').inc() for _ in range(int(sys.argv[1]))]; "
+        "m.evaluations.labels('ok').inc()"
+    )
+    for n in ("2", "5"):
+        subprocess.run([sys.executable, "-c", count, n], env=env, check=True, timeout=60)
+    render = "import sys; from server.observability import Metrics; sys.stdout.write(Metrics().render().decode())"
+    out = subprocess.run(
+        [sys.executable, "-c", render], env=env, check=True, timeout=60, capture_output=True, text=True
+    )
+    samples = {
+        (s.name, tuple(sorted(s.labels.items()))): s.value
+        for family in text_string_to_metric_families(out.stdout)
+        for s in family.samples
+    }
+    assert value(samples, "kitti_eval_http_requests_total", route="/healthz", method="GET", status="200") == 7
+    assert value(samples, "kitti_eval_evaluations_total", outcome="ok") == 2
