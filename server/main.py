@@ -26,6 +26,7 @@ from .observability import Metrics, RequestMiddleware, configure_logging
 from .routes import evaluations, frames, gates, ground_truths, health, metrics
 from .service import Service
 from .settings import Settings, default_data_dir
+from .shutdown import Drainer
 from .web import STATIC_DIR
 from .web import router as web_router
 
@@ -53,9 +54,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await anyio.to_thread.run_sync(service.start)
+        drainer = Drainer(service)
+        drainer.install()  # SIGTERM drains the admitted evaluations before the server stops
         try:
             yield
         finally:
+            drainer.uninstall()
             service.stop()
 
     # /docs (Swagger UI) with its script, stylesheet and icon served from the fastapi-offline package (under
@@ -87,6 +91,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         capacity=lambda: settings.evaluation_places,
         retry_after_s=lambda: settings.retry_after_s,
         state=service.admission,
+        draining=service.draining.is_set,
     )
     app.add_middleware(
         BodyMiddleware,

@@ -243,12 +243,14 @@ class AdmissionMiddleware:
         capacity: Callable[[], int],
         retry_after_s: Callable[[], int],
         state: AdmissionState | None = None,
+        draining: Callable[[], bool] = lambda: False,
     ) -> None:
         self.app = app
         self.paths = paths
         self.capacity = capacity
         self.retry_after_s = retry_after_s
         self.state = state or AdmissionState()
+        self.draining = draining
 
     @property
     def in_flight(self) -> int:
@@ -262,6 +264,17 @@ class AdmissionMiddleware:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope["method"] != "POST" or scope["path"].rstrip("/") not in self.paths:
             await self.app(scope, receive, send)
+            return
+        if self.draining():
+            retry = self.retry_after_s()
+            await _send_json(
+                send,
+                503,
+                error_body(
+                    "shutting_down", f"this server is shutting down; retry in {retry} s (another replica may answer)"
+                ),
+                {"retry-after": str(retry), "connection": "close"},
+            )
             return
         if self.in_flight >= self.capacity():
             retry = self.retry_after_s()

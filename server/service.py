@@ -103,6 +103,8 @@ class Service:
         #: admission counts, shared with the middlewares (and read by the metrics)
         self.admission = AdmissionState()
         self._running_lock = threading.Lock()
+        #: set on SIGTERM: not ready, no new evaluations, the admitted ones finish (see server.shutdown)
+        self.draining = threading.Event()
 
     # -- lifecycle ---------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -165,6 +167,8 @@ class Service:
 
     def readiness(self) -> str | None:
         """None when ready, else why not."""
+        if self.draining.is_set():
+            return "shutting down"
         if self.warmup_error:
             return f"warm-up failed: {self.warmup_error}"
         if not self.warm.is_set():

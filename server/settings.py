@@ -94,6 +94,11 @@ class Settings(BaseSettings):
     """Evaluate the demo once at startup, in the background, so the first request does not compile the
     kernels; ``/readyz`` answers 200 once it is done."""
 
+    shutdown_grace_s: Annotated[float, Field(gt=0)] = 30.0
+    """On SIGTERM (``kitti-eval serve``): ``/readyz`` answers 503 at once, new evaluation requests 503 with
+    Retry-After, and the evaluations already admitted finish and are committed; the process exits when they
+    have, or after this long at most."""
+
     metrics: Literal["on", "off"] = "on"
     """``GET /metrics`` in Prometheus' text format (see README "Operations"); ``off`` answers 404 there."""
 

@@ -150,8 +150,9 @@ def free_port() -> int:
 class LiveServer:
     """``uvicorn server.main:app`` in a subprocess on 127.0.0.1 and a free port, configured by environment."""
 
-    def __init__(self, data_dir: Path, **settings: Any) -> None:
+    def __init__(self, data_dir: Path, *, via_serve: bool = False, **settings: Any) -> None:
         self.data_dir = data_dir
+        self.via_serve = via_serve  # ``kitti-eval serve`` (its graceful shutdown) instead of plain uvicorn
         self.settings = {"admin_token": ADMIN_TOKEN, **settings}
         self.port = 0
         self.proc: subprocess.Popen[bytes] | None = None
@@ -168,19 +169,14 @@ class LiveServer:
         env.update({f"KITTI_EVAL_{k.upper()}": str(v) for k, v in self.settings.items()})
         log = open(self.log_path, "ab")  # noqa: SIM115 - closed in stop()
         self._log = log
+        if self.via_serve:
+            args = ["--port", str(self.port), "--log-level", "info"]
+            command = ["-c", f"import sys; from server.main import serve; sys.exit(serve({args!r}))"]
+        else:
+            command = ["-m", "uvicorn", "server.main:app", "--host", "127.0.0.1", "--port", str(self.port)]
+            command += ["--log-level", "warning"]
         self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "uvicorn",
-                "server.main:app",
-                "--host",
-                "127.0.0.1",
-                "--port",
-                str(self.port),
-                "--log-level",
-                "warning",
-            ],
+            [sys.executable, *command],
             cwd=ROOT,
             env=env,
             stdout=log,

@@ -176,3 +176,87 @@ def test_several_worker_processes_are_summed(tmp_path: Any) -> None:
     }
     assert value(samples, "kitti_eval_http_requests_total", route="/healthz", method="GET", status="200") == 7
     assert value(samples, "kitti_eval_evaluations_total", outcome="ok") == 2
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("via_serve", [True, False], ids=["kitti-eval serve", "uvicorn"])
+def test_sigterm_during_uploads_drains_then_stops(tmp_path: Any, via_serve: bool) -> None:
+    """SIGTERM while 20 uploads are on their way: /readyz is 503 at once, each upload is answered 201 (and
+    stored) or 503 shutting_down, or finds the connection closed; nothing half-written; the next start is
+    clean. Under ``kitti-eval serve`` and under plain uvicorn (the Docker image's command) alike."""
+    import signal
+    import threading
+    import time
+
+    import httpx
+    from server_helpers import LiveServer
+
+    from kitti_eval.io.synth import generate
+
+    infos, results = generate(1500, seed=9)  # about half a second an evaluation
+    data_dir = tmp_path / "data"
+    server = LiveServer(data_dir, via_serve=via_serve, max_concurrent_evals=2, max_queued_evals=30).start()
+    outcomes: list[tuple[str, Any]] = []
+    lock = threading.Lock()
+    payload = pickle_bytes(results)
+    try:
+        with server.client() as c:
+            assert register(c, "big", pickle_bytes(infos), "infos.pkl").status_code == 201
+
+        def send(k: int) -> None:
+            try:
+                with server.client(timeout=120) as c:
+                    r = upload(c, payload, gt="big", fields={"model": f"m{k}"})
+                with lock:
+                    outcomes.append((str(r.status_code), r.json()))
+            except httpx.TransportError as e:
+                with lock:
+                    outcomes.append(("closed", type(e).__name__))
+
+        threads = [threading.Thread(target=send, args=(k,)) for k in range(20)]
+        for t in threads:
+            t.start()
+        # the signal lands when at least 10 uploads have arrived and are admitted (running or waiting)
+        deadline = time.monotonic() + 120
+        with server.client() as c:
+            while scrape(c).get(("kitti_eval_evaluations_in_progress", ()), 0) < 10:
+                assert time.monotonic() < deadline
+                time.sleep(0.02)
+        assert server.proc is not None
+        server.proc.send_signal(signal.SIGTERM)
+        t0 = time.monotonic()
+        with httpx.Client(base_url=server.url, timeout=30) as c:
+            readyz = c.get("/readyz")
+            late = upload(c, payload[:1000], gt="big")  # while the admitted ones finish: refused
+        for t in threads:
+            t.join(120)
+        server.proc.wait(60)
+        stopped_in = time.monotonic() - t0
+    finally:
+        server.stop()
+    assert readyz.status_code == 503 and "shutting down" in readyz.json()["error"]["message"], server.log()
+    assert late.status_code == 503 and late.json()["error"]["code"] == "shutting_down"
+    assert late.headers["retry-after"] == "2" and late.headers["connection"] == "close"
+    assert server.proc.returncode in (0, -15), server.log()
+    kinds = {k for k, _ in outcomes}
+    assert len(outcomes) == 20 and kinds <= {"201", "503", "closed"}, outcomes
+    assert all(body["error"]["code"] == "shutting_down" for k, body in outcomes if k == "503")
+    acked = {body["id"]: body for k, body in outcomes if k == "201"}
+    assert len(acked) >= 10 and stopped_in < 60  # every admitted one finished
+    assert not any((data_dir / "tmp").glob("*/"))  # no scratch folder left behind
+    restarted = LiveServer(data_dir).start()
+    try:
+        with restarted.client() as c:
+            stored = c.get("/v1/evaluations", params={"limit": 100}).json()["items"]
+            assert {e["id"] for e in stored} == set(acked)  # every 201 stored, nothing else
+            for eid, body in acked.items():
+                assert c.get(f"/v1/evaluations/{eid}").json() == body
+    finally:
+        restarted.stop()
+    assert "removed" not in restarted.log()  # no scratch folders of a dead process to clean up
+
+
+def pickle_bytes(obj: Any) -> bytes:
+    import pickle
+
+    return pickle.dumps(obj, protocol=4)
