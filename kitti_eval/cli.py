@@ -291,7 +291,7 @@ def _serve_parser(sub: Any) -> argparse.ArgumentParser:
 
 def _serve(argv: Sequence[str]) -> int:
     try:
-        from server.main import serve
+        from kitti_eval_server.main import serve
     except ImportError as e:
         raise ConfigError(f"the service needs the server extra: pip install 'kitti-eval[server]' ({e})") from None
     return serve(list(argv))

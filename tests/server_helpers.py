@@ -23,7 +23,7 @@ with warnings.catch_warnings():  # newer starlette prefers httpx2 and says so on
     warnings.simplefilter("ignore")
     from fastapi.testclient import TestClient
 
-from server import Settings, create_app
+from kitti_eval_server import Settings, create_app
 
 ROOT = Path(__file__).resolve().parent.parent
 GOLDEN = Path(__file__).resolve().parent / "data" / "golden" / "small"
@@ -147,7 +147,8 @@ def free_port() -> int:
 
 
 class LiveServer:
-    """``uvicorn server.main:app`` in a subprocess on 127.0.0.1 and a free port, configured by environment."""
+    """``uvicorn kitti_eval_server.main:app`` in a subprocess on 127.0.0.1 and a free port, configured by
+    environment."""
 
     def __init__(self, data_dir: Path, **settings: Any) -> None:
         self.data_dir = data_dir
@@ -172,7 +173,7 @@ class LiveServer:
                 sys.executable,
                 "-m",
                 "uvicorn",
-                "server.main:app",
+                "kitti_eval_server.main:app",
                 "--host",
                 "127.0.0.1",
                 "--port",
