@@ -159,7 +159,8 @@ def _write(folder: Path, files: Mapping[str, str]) -> None:
 
 
 def test_a_circle_is_found_and_named(tmp_path: Path) -> None:
-    """The check can fail: a circle closed by a lazy relative import, and a self-import, are reported."""
+    """The check can fail: a circle closed by a lazy relative import is found and named (a module that
+    names itself is no edge, and a package's ``__init__`` importing a module of the circle is not in it)."""
     _write(
         tmp_path / "pkg",
         {
