@@ -2,8 +2,12 @@
 
 Every entry point (the CLI, ``evaluate``, the OpenPCDet drop-in, batch, compare/bootstrap, frames,
 inspect, the service) calls the same kernels with the same argument types: the wrappers cast every input
-to one dtype and layout before a kernel sees it, so each kernel is compiled once and cached once.
-:func:`warm_up` compiles (or loads) all of them.
+to one dtype and layout before a kernel sees it (:func:`kitti_eval.core.arrays.kernel_input`), so each
+kernel is compiled once and cached once. :func:`warm_up` compiles (or loads) all of them.
+
+This module sits above everything it warms: it imports the layers (``core``, ``io``, ``analysis``) and
+none of them imports it; the CLI and the service call it. ``python -m kitti_eval._jit [--all]`` warms from
+the command line.
 
 A first run compiles two groups: the restricted unpickler's scan (needed to load the inputs) and the
 evaluation kernels. On two or more cores :func:`warm_in_background` compiles the second group in another
@@ -19,19 +23,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-import numpy.typing as npt
-
 _PACKAGE = Path(__file__).resolve().parent
 #: kernels every evaluation calls; if their cache index is there, the others of their group are too
 _EVAL_MARKERS = ("matching._pass2-*.nbi", "geometry._frame_overlaps_kernel-*.nbi")
 _LOAD_MARKERS = ("_pickle_scan.scan-*.nbi",)
-
-
-def kernel_input(value: npt.ArrayLike, dtype: npt.DTypeLike) -> np.ndarray:
-    """``value`` as every kernel takes its arrays: C-contiguous, of ``dtype``, writeable (numba compiles a
-    separate version for read-only arrays). Copies only when it must."""
-    return np.require(value, dtype, ("C", "W"))
 
 
 def _cache_places() -> list[tuple[Path, bool]]:

@@ -1,4 +1,4 @@
-"""The application factory, the ASGI ``app`` for ``uvicorn server.main:app``, and ``serve()`` for the CLI.
+"""The application factory, the ASGI ``app`` for ``uvicorn kitti_eval_server.main:app``, and ``serve()`` for the CLI.
 
 ``app`` is built on first access (from the environment), so importing this module does nothing else.
 """
@@ -111,7 +111,7 @@ _app: FastAPI | None = None
 
 
 def __getattr__(name: str) -> Any:
-    """``server.main.app``: the application configured from the environment, built once on first use."""
+    """``kitti_eval_server.main.app``: the application configured from the environment, built once on first use."""
     global _app
     if name == "app":
         if _app is None:

@@ -27,16 +27,13 @@ import time
 import uuid
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.multiprocess import MultiProcessCollector
 from prometheus_client.registry import Collector
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
-
-if TYPE_CHECKING:
-    from .service import Service
 
 __all__ = ["Metrics", "RequestMiddleware", "REQUEST_ID_HEADER", "configure_logging", "CONTENT_TYPE"]
 
@@ -51,10 +48,39 @@ _LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.
 access_log = logging.getLogger("kitti_eval.server.access")
 
 
+class _Cache(Protocol):
+    @property
+    def nbytes(self) -> int: ...
+
+    def __len__(self) -> int: ...
+
+
+class _GroundTruths(Protocol):
+    @property
+    def cache(self) -> _Cache: ...
+
+
+class _Warm(Protocol):
+    def is_set(self) -> bool: ...
+
+
+class ServiceState(Protocol):
+    """What the metrics read of the service (:class:`kitti_eval_server.service.Service` has it)."""
+
+    @property
+    def admission(self) -> AdmissionState: ...
+
+    @property
+    def ground_truths(self) -> _GroundTruths: ...
+
+    @property
+    def warm(self) -> _Warm: ...
+
+
 class Metrics:
     """The service's metrics, on a registry of its own (one per application, so that tests can build many)."""
 
-    def __init__(self, service: Service | None = None) -> None:
+    def __init__(self, service: ServiceState | None = None) -> None:
         self.registry = CollectorRegistry(auto_describe=True)
         self.multiprocess_dir = os.environ.get("PROMETHEUS_MULTIPROC_DIR") or os.environ.get("prometheus_multiproc_dir")
         r = self.registry
@@ -106,7 +132,7 @@ class Metrics:
 class _StateCollector(Collector):
     """Gauges read from the service when scraped: admission, the ground-truth cache, the kernels."""
 
-    def __init__(self, service: Service, *, with_pid: bool) -> None:
+    def __init__(self, service: ServiceState, *, with_pid: bool) -> None:
         self.service = service
         self.labels = {"pid": str(os.getpid())} if with_pid else {}
 

@@ -198,7 +198,8 @@ class Service:
         return await anyio.to_thread.run_sync(job, limiter=self._limiter)
 
     def scratch(self) -> AbstractContextManager[Path]:
-        """A new scratch folder of this process's (:class:`~server.scratch.ScratchSpace`), removed on the way out."""
+        """A new scratch folder of this process's (:class:`~kitti_eval_server.scratch.ScratchSpace`), removed on
+        the way out."""
         return self.scratch_space.folder()
 
     # -- evaluations ------------------------------------------------------------------------------------

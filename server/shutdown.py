@@ -2,8 +2,8 @@
 
 The application's lifespan installs :class:`Drainer` on SIGTERM, in front of the server's own handler
 (uvicorn's, under ``kitti-eval serve``, ``uvicorn ...main:app`` and the Docker image alike). On the first
-SIGTERM the service starts draining (:attr:`server.service.Service.draining`): ``/readyz`` answers 503 at once,
-so a load balancer stops sending; a new evaluation request is answered 503 with Retry-After and
+SIGTERM the service starts draining (``Service.draining``): ``/readyz`` answers 503 at once, so a load
+balancer stops sending; a new evaluation request is answered 503 with Retry-After and
 ``Connection: close``; the evaluations already admitted run to the end and are committed, their responses sent.
 When none is left, or ``KITTI_EVAL_SHUTDOWN_GRACE_S`` after the signal at the latest, the signal is handed to
 the server's handler, and uvicorn's own shutdown runs: it stops listening, lets the requests still open finish

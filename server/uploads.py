@@ -9,7 +9,7 @@ An upload is one of
   ``..``, no links, devices, fifos or sparse files, at most ``max_members`` members and
   ``max_unpacked_bytes`` unpacked, only the ``.txt`` files of one folder written, flat, into a scratch
   folder the service owns; nothing is ever extracted with ``extractall``). Its refusals are reported as
-  :class:`~server.errors.ArchiveError`.
+  :class:`~kitti_eval_server.errors.ArchiveError`.
 """
 
 from __future__ import annotations

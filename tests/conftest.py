@@ -37,4 +37,6 @@ def client(service_client: Callable[..., AbstractContextManager[Any]]) -> Iterat
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    config.addinivalue_line("markers", "slow: kills or starts server processes (seconds each); -m 'not slow' skips")
+    config.addinivalue_line(
+        "markers", "slow: kills or starts server processes, or builds the wheel (seconds each); -m 'not slow' skips"
+    )

@@ -23,7 +23,7 @@ with warnings.catch_warnings():  # newer starlette prefers httpx2 and says so on
     warnings.simplefilter("ignore")
     from fastapi.testclient import TestClient
 
-from server import Settings, create_app
+from kitti_eval_server import Settings, create_app
 
 ROOT = Path(__file__).resolve().parent.parent
 GOLDEN = Path(__file__).resolve().parent / "data" / "golden" / "small"
@@ -148,7 +148,8 @@ def free_port() -> int:
 
 
 class LiveServer:
-    """``uvicorn server.main:app`` in a subprocess on 127.0.0.1 and a free port, configured by environment."""
+    """``uvicorn kitti_eval_server.main:app`` in a subprocess on 127.0.0.1 and a free port, configured by
+    environment."""
 
     def __init__(self, data_dir: Path, *, via_serve: bool = False, **settings: Any) -> None:
         self.data_dir = data_dir
@@ -171,9 +172,9 @@ class LiveServer:
         self._log = log
         if self.via_serve:
             args = ["--port", str(self.port), "--log-level", "info"]
-            command = ["-c", f"import sys; from server.main import serve; sys.exit(serve({args!r}))"]
+            command = ["-c", f"import sys; from kitti_eval_server.main import serve; sys.exit(serve({args!r}))"]
         else:
-            command = ["-m", "uvicorn", "server.main:app", "--host", "127.0.0.1", "--port", str(self.port)]
+            command = ["-m", "uvicorn", "kitti_eval_server.main:app", "--host", "127.0.0.1", "--port", str(self.port)]
             command += ["--log-level", "warning"]
         self.proc = subprocess.Popen(
             [sys.executable, *command],

@@ -3,8 +3,8 @@
     python tests/server_roundtrip.py --gt /work/shared/golden/cases/kitti_val_scale/kitti_infos_val.pkl.gz \\
         --pred /tmp/vs/result.pkl [--runs 5]
 
-Starts ``uvicorn server.main:app`` on 127.0.0.1 (a free port, a temp data folder), registers the ground truth,
-uploads once to warm the ground-truth cache, then times ``--runs`` uploads (client clock, request sent to
+Starts ``uvicorn kitti_eval_server.main:app`` on 127.0.0.1 (a free port, a temp data folder), registers the ground
+truth, uploads once to warm the ground-truth cache, then times ``--runs`` uploads (client clock, request sent to
 response parsed) and prints them with the server's own ``duration_ms``. Not a test: run it by hand.
 """
 

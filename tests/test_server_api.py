@@ -26,9 +26,9 @@ from server_helpers import (
 
 from kitti_eval.cli import main as cli_main
 from kitti_eval.io.synth import demo_paths
-from server import Settings, create_app
-from server.ground_truths import GroundTruthCache, annotations_nbytes
-from server.service import Service
+from kitti_eval_server import Settings, create_app
+from kitti_eval_server.ground_truths import GroundTruthCache, annotations_nbytes
+from kitti_eval_server.service import Service
 
 DEMO_PRED = demo_paths()[1].read_bytes()
 META = ("id", "evaluation")
@@ -480,7 +480,7 @@ def test_serve_from_a_repository_leaves_nothing_in_it(tmp_path, monkeypatch, no_
     import uvicorn
     from fastapi.testclient import TestClient
 
-    from server.main import serve
+    from kitti_eval_server.main import serve
 
     served = []
     monkeypatch.setattr(uvicorn, "run", lambda app, **kw: served.append(app))
@@ -503,7 +503,7 @@ def test_serve_from_a_repository_leaves_nothing_in_it(tmp_path, monkeypatch, no_
 
 
 def test_module_app_is_built_lazily_from_the_environment(tmp_path, monkeypatch) -> None:
-    import server.main as main
+    import kitti_eval_server.main as main
 
     monkeypatch.setenv("KITTI_EVAL_DATA_DIR", str(tmp_path / "lazy"))
     monkeypatch.setattr(main, "_app", None)
@@ -513,7 +513,7 @@ def test_module_app_is_built_lazily_from_the_environment(tmp_path, monkeypatch) 
 
 
 def test_serve_reports_usage_errors(capsys) -> None:
-    from server.main import serve
+    from kitti_eval_server.main import serve
 
     assert serve(["--help"]) == 0
     assert serve(["--port", "not-a-number"]) == 2

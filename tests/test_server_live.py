@@ -1,4 +1,4 @@
-"""Against a real uvicorn (``uvicorn server.main:app``) started on 127.0.0.1 and a free port.
+"""Against a real uvicorn (``uvicorn kitti_eval_server.main:app``) started on 127.0.0.1 and a free port.
 
 Concurrency: the server is sized so that all 32 simultaneous uploads are admitted (2 evaluating, 32 more
 allowed to wait), and the client counts every non-201 as an error, a 503 included: no retries.
@@ -177,7 +177,7 @@ def test_sigkill_right_after_acknowledged_uploads_loses_none(tmp_path) -> None:
 def test_serve_entry_point_runs_the_service(tmp_path) -> None:
     port = free_port()
     args = ["--port", str(port), "--data-dir", str(tmp_path / "d"), "--log-level", "warning"]
-    env_code = f"import sys; from server.main import serve; sys.exit(serve({args!r}))"
+    env_code = f"import sys; from kitti_eval_server.main import serve; sys.exit(serve({args!r}))"
     proc = subprocess.Popen(
         [sys.executable, "-c", env_code], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )

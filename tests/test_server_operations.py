@@ -13,7 +13,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from server_helpers import ADMIN, ADMIN_TOKEN, golden_bytes, register, upload
 
 from kitti_eval.io.synth import demo_paths
-from server.observability import JsonFormatter, wants_json
+from kitti_eval_server.observability import JsonFormatter, wants_json
 
 
 def scrape(client: Any, **headers: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
@@ -159,13 +159,15 @@ def test_several_worker_processes_are_summed(tmp_path: Any) -> None:
 
     env = {**os.environ, "PROMETHEUS_MULTIPROC_DIR": str(tmp_path)}
     count = (
-        "import sys; from server.observability import Metrics; m = Metrics(); "
+        "import sys; from kitti_eval_server.observability import Metrics; m = Metrics(); "
         "[m.requests.labels('/healthz', 'GET', '200').inc() for _ in range(int(sys.argv[1]))]; "
         "m.evaluations.labels('ok').inc()"
     )
     for n in ("2", "5"):
         subprocess.run([sys.executable, "-c", count, n], env=env, check=True, timeout=60)
-    render = "import sys; from server.observability import Metrics; sys.stdout.write(Metrics().render().decode())"
+    render = (
+        "import sys; from kitti_eval_server.observability import Metrics; sys.stdout.write(Metrics().render().decode())"
+    )
     out = subprocess.run(
         [sys.executable, "-c", render], env=env, check=True, timeout=60, capture_output=True, text=True
     )

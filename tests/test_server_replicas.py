@@ -22,7 +22,7 @@ from server_helpers import ADMIN, golden_bytes, golden_txt, tar_of, zip_of
 from server_postgres import PostgresCluster, why_no_postgres
 from server_replicas import Ack, Replicas, spread_uploads
 
-from server.store import Store
+from kitti_eval_server.store import Store
 
 pytestmark = pytest.mark.skipif(why_no_postgres() is not None, reason=why_no_postgres() or "")
 

@@ -11,8 +11,8 @@ from pathlib import Path
 
 from server_helpers import ADMIN_TOKEN, ROOT, app_client
 
-from server import Settings
-from server.service import Service
+from kitti_eval_server import Settings
+from kitti_eval_server.service import Service
 
 HOURS_AGO = time.time() - 2 * 3600
 
@@ -20,8 +20,8 @@ HOURS_AGO = time.time() - 2 * 3600
 _HOLD_SCRATCH = """
 import sys, time
 from pathlib import Path
-from server import Settings
-from server.service import Service
+from kitti_eval_server import Settings
+from kitti_eval_server.service import Service
 
 service = Service(Settings(data_dir=Path(sys.argv[1]), admin_token="t", register_demo=False, warmup=False))
 service.start()

@@ -21,7 +21,7 @@ import anyio
 import pytest
 from server_helpers import ROOT, LiveServer
 
-from server.middleware import SPOOL_BYTES, BodyMiddleware, BodyTooLarge
+from kitti_eval_server.middleware import SPOOL_BYTES, BodyMiddleware, BodyTooLarge
 
 SLOW_CLIENTS = 10
 RECEIVING = 12  # bodies received at once: the slow clients and the normal upload fit

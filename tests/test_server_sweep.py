@@ -27,8 +27,8 @@ from hypothesis import strategies as st
 from server_helpers import ADMIN, ADMIN_TOKEN, assert_error, golden_bytes, register, upload
 from starlette.routing import Mount
 
-from server import Settings, create_app
-from server.deps import require_admin
+from kitti_eval_server import Settings, create_app
+from kitti_eval_server.deps import require_admin
 
 EXAMPLES = int(os.environ.get("KITTI_EVAL_SWEEP_EXAMPLES", "25"))
 SWEEP = settings(

@@ -13,7 +13,7 @@ from test_web_pages import _DICHROMACY, Page, _external, css_rules, evaluation_i
 
 from kitti_eval.analysis.decomposition import AOS_TYPES, ERROR_TYPES, TP_ERRORS
 from kitti_eval.io.synth import demo_paths
-from server.web.svg import bar_chart
+from kitti_eval_server.web.svg import bar_chart
 
 DEMO_PRED = demo_paths()[1].read_bytes()
 METRICS = ("bbox", "bev", "3d", "aos")

@@ -13,8 +13,8 @@ from server_helpers import app_client, golden_bytes, upload
 
 from kitti_eval.cli import main as cli_main
 from kitti_eval.io.synth import demo_paths
-from server.web import STATIC_DIR
-from server.web.svg import Plot, bev_corners, bev_view, pr_chart
+from kitti_eval_server.web import STATIC_DIR
+from kitti_eval_server.web.svg import Plot, bev_corners, bev_view, pr_chart
 
 DEMO_PRED = demo_paths()[1].read_bytes()
 DIFFS = ("easy", "moderate", "hard")

@@ -15,7 +15,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from .._jit import kernel_input
+from ..core.arrays import kernel_input
 from ..core.evaluation import Plan, Slot, evaluate, plan_evaluation
 from ..core.frames import Annotations
 from ..core.matching import FrameEvents, default_workers, threshold_step

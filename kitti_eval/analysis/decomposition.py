@@ -76,7 +76,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from .._jit import kernel_input
+from ..core.arrays import kernel_input
 from ..core.evaluation import Plan, Totals, plan_evaluation, result_from_counts
 from ..core.frames import Annotations
 from ..core.matching import (

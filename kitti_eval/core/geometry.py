@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from .._jit import kernel_input
+from .arrays import kernel_input
 
 __all__ = ["FrameOverlaps", "iou_2d", "iou_bev", "iou_3d", "frame_overlaps"]
 

@@ -33,7 +33,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from .._jit import kernel_input
+from .arrays import kernel_input
 
 _T = TypeVar("_T")
 

@@ -1,1 +1,1 @@
-"""One router per resource; :func:`server.main.create_app` includes them."""
+"""One router per resource; :func:`kitti_eval_server.main.create_app` includes them."""

@@ -1,4 +1,4 @@
-"""``GET /metrics``: the service's metrics in Prometheus' text format (:mod:`server.observability`)."""
+"""``GET /metrics``: the service's metrics in Prometheus' text format (:mod:`kitti_eval_server.observability`)."""
 
 from __future__ import annotations
 

@@ -92,7 +92,7 @@ templates = Jinja2Templates(env=_env())
 
 
 def _status(exc: ApiError | KittiEvalError | HTTPException) -> int:
-    """The status the JSON API answers the same failure with (the mapping lives in ``server.errors``)."""
+    """The status the JSON API answers the same failure with (the mapping lives in ``kitti_eval_server.errors``)."""
     if isinstance(exc, (ApiError, HTTPException)):
         return exc.status_code
     return library_error_status(exc)[0]

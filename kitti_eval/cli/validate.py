@@ -11,7 +11,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-__all__ = ["add_parser"]
+from .common import EXIT_INPUT, EXIT_OK
+
+__all__ = ["add_parser", "run"]
 
 
 def add_parser(sub: Any) -> argparse.ArgumentParser:
@@ -37,14 +39,14 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         metavar="N",
         help="boxes a frame may hold (default: the service's default, 1000)",
     )
-    p.set_defaults(run=_validate)
+    p.set_defaults(run=run)
     return p
 
 
-def _validate(args: argparse.Namespace) -> int:
-    from .errors import ConfigError
-    from .io.loaders import read_split
-    from .io.submission import SubmissionRules, validate_submission
+def run(args: argparse.Namespace) -> int:
+    from ..errors import ConfigError
+    from ..io.loaders import read_split
+    from ..io.submission import SubmissionRules, validate_submission
 
     if args.max_boxes is not None and args.max_boxes < 1:
         raise ConfigError("--max-boxes must be >= 1")
@@ -54,6 +56,6 @@ def _validate(args: argparse.Namespace) -> int:
     if not outcome.ok:
         for line in outcome.lines():
             print(line, file=sys.stderr)
-        return 1
+        return EXIT_INPUT
     print(f"{args.file}: valid: {outcome.frames} frames, {outcome.boxes} boxes")
-    return 0
+    return EXIT_OK

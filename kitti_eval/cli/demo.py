@@ -1,0 +1,36 @@
+"""``kitti-eval demo``: the main job on the bundled synthetic set (nothing is downloaded)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from .common import EXIT_OK, add_eval_options
+from .evaluate import run_pair
+
+
+def add_parser(sub: Any) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "demo",
+        help="evaluate the bundled demo set",
+        description="Evaluate the bundled synthetic demo set (nothing is downloaded).",
+    )
+    add_eval_options(p)
+    p.add_argument(
+        "--where",
+        action="store_true",
+        help="print the demo's ground-truth and prediction paths (one a line) and exit",
+    )
+    p.set_defaults(run=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..io.synth import demo_paths
+
+    gt_path, pred_path = demo_paths()
+    if args.where:
+        print(gt_path)
+        print(pred_path)
+        return EXIT_OK
+    return run_pair(gt_path, pred_path, args)
