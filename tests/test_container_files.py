@@ -69,6 +69,7 @@ def test_compose_runs_the_service_on_a_healthy_postgresql() -> None:
     assert service["depends_on"] == {"db": {"condition": "service_healthy"}}
     assert "http://127.0.0.1:8000/readyz" in service["healthcheck"]["test"][-1]
     assert service["build"] == "."
+    assert service["ports"] == ["127.0.0.1:${KITTI_EVAL_PORT:-8000}:8000"]  # published on the loopback only
     env = dict(item.split("=", 1) if "=" in item else (item, None) for item in service["environment"])
     user, db_name = db["environment"]["POSTGRES_USER"], db["environment"]["POSTGRES_DB"]
     assert env["KITTI_EVAL_DATABASE_URL"].startswith(f"postgresql://{user}:${{POSTGRES_PASSWORD")
