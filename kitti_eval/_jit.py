@@ -9,6 +9,12 @@ This module sits above everything it warms: it imports the layers (``core``, ``i
 none of them imports it; the CLI and the service call it. ``python -m kitti_eval._jit [--all]`` warms from
 the command line.
 
+numba keeps a compiled kernel for one source file (by its absolute path, and from numba 0.68 on by its
+content; older versions stamp it with the file's modification time, which every fresh install changes), one
+numba and Python version and one CPU (model and features). :func:`cache_key` names exactly that, so a CI
+job can keep ``NUMBA_CACHE_DIR`` between runs and restore it only where every kernel in it is valid
+(``python -m kitti_eval._jit --cache-key``).
+
 A first run compiles two groups: the restricted unpickler's scan (needed to load the inputs) and the
 evaluation kernels. On two or more cores :func:`warm_in_background` compiles the second group in another
 process while this one compiles the first, so a fresh install pays roughly the larger of the two.
@@ -16,9 +22,11 @@ process while this one compiles the first, so a fresh install pays roughly the l
 
 from __future__ import annotations
 
+import hashlib
 import io
 import os
 import pickle
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -55,6 +63,24 @@ def kernels_cached() -> bool:
 def loader_cached() -> bool:
     """True when the restricted unpickler's scan is in numba's cache."""
     return _cached(_LOAD_MARKERS)
+
+
+def cache_key() -> str:
+    """A name for numba's cache of this installation's kernels that changes whenever a cached kernel would
+    not be used: ``kitti-eval-<version>-numba-<version>-py<version>-<digest>``, the digest over the package's
+    sources (their content and where they are installed: numba's cache folders are named after the source
+    folder's path) and the CPU numba compiles for (target, model, features; ``NUMBA_CPU_NAME`` counts)."""
+    import numba
+    from numba.core.registry import cpu_target
+
+    from . import __version__
+
+    digest = hashlib.sha256()
+    digest.update(repr(cpu_target.target_context.codegen().magic_tuple()).encode())
+    digest.update(str(_PACKAGE).encode())
+    for source in sorted(_PACKAGE.rglob("*.py")):
+        digest.update(b"\0" + source.relative_to(_PACKAGE).as_posix().encode() + b"\0" + source.read_bytes())
+    return f"kitti-eval-{__version__}-numba-{numba.__version__}-py{platform.python_version()}-{digest.hexdigest()[:16]}"
 
 
 def warm_in_background() -> subprocess.Popen[bytes] | None:
@@ -105,4 +131,7 @@ def warm_up(everything: bool = True) -> None:
 
 
 if __name__ == "__main__":
-    warm_up(everything="--all" in sys.argv[1:])
+    if "--cache-key" in sys.argv[1:]:
+        print(cache_key())  # noqa: T201
+    else:
+        warm_up(everything="--all" in sys.argv[1:])

@@ -1,0 +1,286 @@
+#!/usr/bin/env python3
+"""Build the service's Docker image and check that a container of it works as a service must.
+
+    python scripts/container_smoke.py                     # build, start, check, clean up
+    python scripts/container_smoke.py --no-build --image kitti-eval:latest
+    python scripts/container_smoke.py --build-network host --network host   # Docker without a bridge
+    python scripts/container_smoke.py --database-url postgresql://user:pw@host:5432/empty_db
+
+It starts a container on a fresh volume, waits for ``/readyz``, uploads the bundled demo predictions
+against the ``demo`` ground truth and checks the numbers against ``kitti-eval demo --format json`` (run in
+the container, and on this machine too when kitti-eval is installed here), restarts the container and
+reads the evaluation back by its id, checks that the service does not run as root, runs ``kitti-eval
+demo`` in the container, and waits for Docker to report the image's HEALTHCHECK healthy (the first probe
+runs 30 s after the start). Every check is printed; the exit status is 0 only if all passed.
+
+On ``--network host`` there is no port mapping, so the image's command (port 8000) is replaced by
+``kitti-eval serve`` on the chosen port and its HEALTHCHECK (which probes port 8000) is not run.
+It talks to the service on 127.0.0.1 only, and removes the container and volume it made (``--keep`` not).
+
+Only the standard library and the ``docker`` command are needed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+import uuid
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO_PREDICTIONS = ROOT / "kitti_eval" / "data" / "demo" / "result.pkl.gz"
+#: the parts of the JSON document that are the evaluation's numbers and what they were computed on
+COMPARED = ("protocol", "classes", "threshold_sets", "overlaps", "ap", "num_gt", "num_det", "frames", "coco")
+
+
+class SmokeFailure(Exception):
+    """A check that did not hold."""
+
+
+def say(text: str) -> None:
+    print(text, flush=True)
+
+
+def check(condition: bool, what: str, detail: str = "") -> None:
+    if not condition:
+        raise SmokeFailure(what + (f": {detail}" if detail else ""))
+    say(f"ok    {what}")
+
+
+def docker(*args: str, timeout: float = 600, check_rc: bool = True) -> subprocess.CompletedProcess[str]:
+    proc = subprocess.run(["docker", *args], capture_output=True, text=True, timeout=timeout)
+    if check_rc and proc.returncode != 0:
+        raise SmokeFailure(f"docker {' '.join(args)} exited {proc.returncode}: {proc.stderr.strip()[-2000:]}")
+    return proc
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def http(
+    method: str, url: str, body: bytes | None = None, headers: dict[str, str] | None = None, timeout: float = 120
+) -> tuple[int, bytes]:
+    request = urllib.request.Request(url, data=body, method=method, headers=headers or {})
+    try:
+        with urllib.request.urlopen(request, timeout=timeout) as response:
+            return response.status, response.read()
+    except urllib.error.HTTPError as err:
+        return err.code, err.read()
+
+
+def multipart(fields: dict[str, str], files: dict[str, Path]) -> tuple[bytes, str]:
+    """A multipart/form-data body (the standard library has no encoder) and its content type."""
+    boundary = uuid.uuid4().hex
+    parts = []
+    for name, value in fields.items():
+        parts.append(f'--{boundary}\r\nContent-Disposition: form-data; name="{name}"\r\n\r\n{value}\r\n'.encode())
+    for name, path in files.items():
+        head = (
+            f'--{boundary}\r\nContent-Disposition: form-data; name="{name}"; filename="{path.name}"\r\n'
+            "Content-Type: application/octet-stream\r\n\r\n"
+        )
+        parts.append(head.encode() + path.read_bytes() + b"\r\n")
+    parts.append(f"--{boundary}--\r\n".encode())
+    return b"".join(parts), f"multipart/form-data; boundary={boundary}"
+
+
+def wait_ready(base: str, container: str, timeout: float) -> float:
+    """Seconds until ``/readyz`` answers 200; fails if the container stops or time runs out."""
+    start = time.monotonic()
+    while time.monotonic() - start < timeout:
+        try:
+            status, _ = http("GET", f"{base}/readyz", timeout=2)
+            if status == 200:
+                return time.monotonic() - start
+        except (OSError, urllib.error.URLError):
+            pass
+        running = docker("inspect", "--format", "{{.State.Running}}", container).stdout.strip()
+        if running != "true":
+            raise SmokeFailure(f"the container stopped before it was ready (State.Running={running})")
+        time.sleep(0.25)
+    raise SmokeFailure(f"/readyz did not answer 200 within {timeout:.0f} s")
+
+
+def wait_healthy(container: str, timeout: float) -> str:
+    """Docker's health status once it is no longer "starting" (or when time runs out)."""
+    start = time.monotonic()
+    while True:
+        status = docker("inspect", "--format", "{{.State.Health.Status}}", container).stdout.strip()
+        if status != "starting" or time.monotonic() - start > timeout:
+            return status
+        time.sleep(1)
+
+
+def same_numbers(got: dict[str, object], expected: dict[str, object], what: str) -> None:
+    differing = [key for key in COMPARED if got.get(key) != expected.get(key)]
+    check(not differing, what, f"these differ: {', '.join(differing)}")
+
+
+def host_demo() -> dict[str, object] | None:
+    """``kitti-eval demo --format json`` on this machine, if kitti-eval is installed here."""
+    beside = Path(sys.executable).with_name("kitti-eval")
+    cli = str(beside) if beside.exists() else shutil.which("kitti-eval")
+    if cli is None:
+        return None
+    proc = subprocess.run([cli, "demo", "--format", "json", "--quiet"], capture_output=True, text=True, timeout=600)
+    if proc.returncode != 0:
+        raise SmokeFailure(f"kitti-eval demo on this machine exited {proc.returncode}: {proc.stderr[-2000:]}")
+    return dict(json.loads(proc.stdout))
+
+
+def smoke(args: argparse.Namespace) -> dict[str, str]:
+    figures: dict[str, str] = {}
+    if args.build:
+        say(f"...   docker build -t {args.image} {ROOT}")
+        start = time.monotonic()
+        network = ["--network", args.build_network] if args.build_network else []
+        build = ["build", "-t", args.image, *network, str(ROOT)]
+        docker(*build, timeout=3600)
+        figures["image build"] = f"{time.monotonic() - start:.1f} s"
+        check(True, f"the image builds ({figures['image build']})")
+    size = int(docker("image", "inspect", "--format", "{{.Size}}", args.image).stdout.strip())
+    figures["image size"] = f"{size / 1e6:.0f} MB"
+
+    port = args.port or free_port()
+    base = f"http://127.0.0.1:{port}"
+    name = f"kitti-eval-smoke-{uuid.uuid4().hex[:8]}"
+    volume = name
+    run = ["run", "-d", "--name", name, "-v", f"{volume}:/data"]
+    if args.database_url:
+        run += ["-e", f"KITTI_EVAL_DATABASE_URL={args.database_url}"]
+    if args.network == "host":
+        # no port mapping on the host's network: the service itself listens on 127.0.0.1 and the chosen port
+        run += ["--network", "host", "--no-healthcheck", args.image]
+        run += ["kitti-eval", "serve", "--host", "127.0.0.1", "--port", str(port)]
+    else:
+        run += ["-p", f"127.0.0.1:{port}:8000"] + (["--network", args.network] if args.network else []) + [args.image]
+    docker("volume", "create", volume)
+    try:
+        start = time.monotonic()
+        docker(*run)
+        wait_ready(base, name, args.ready_timeout)
+        figures["docker run to /readyz 200"] = f"{time.monotonic() - start:.1f} s"
+        check(True, f"/readyz answers 200 {figures['docker run to /readyz 200']} after docker run")
+
+        body, content_type = multipart({"gt": "demo", "model": "container-smoke"}, {"predictions": DEMO_PREDICTIONS})
+        start = time.monotonic()
+        status, raw = http("POST", f"{base}/v1/evaluations", body, {"Content-Type": content_type})
+        figures["first upload"] = f"{time.monotonic() - start:.2f} s"
+        check(
+            status == 201,
+            f"uploading the demo predictions answers 201 ({figures['first upload']})",
+            raw[:500].decode(errors="replace"),
+        )
+        uploaded = json.loads(raw)
+        evaluation_id = str(uploaded["id"])
+
+        inside = docker("exec", name, "kitti-eval", "demo", "--format", "json", "--quiet")
+        in_container = json.loads(inside.stdout)
+        same_numbers(
+            uploaded, in_container, "the upload's numbers equal kitti-eval demo --format json's in the container"
+        )
+        car = in_container["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"]
+        check(isinstance(car, float) and 0 < car < 100, f"Car 3D moderate R40 AP is a percentage ({car})")
+        here = host_demo()
+        if here is None:
+            say("skip  kitti-eval is not installed on this machine: the numbers were compared in the container only")
+        else:
+            same_numbers(uploaded, here, "the upload's numbers equal kitti-eval demo --format json on this machine")
+
+        store = " (in PostgreSQL)" if args.database_url else " (in SQLite on the volume)"
+        start = time.monotonic()
+        docker("restart", name, timeout=120)
+        wait_ready(base, name, args.ready_timeout)
+        figures["restart to /readyz 200"] = f"{time.monotonic() - start:.1f} s"
+        check(True, f"after docker restart /readyz answers 200 again ({figures['restart to /readyz 200']})")
+        status, raw = http("GET", f"{base}/v1/evaluations/{evaluation_id}")
+        check(
+            status == 200,
+            f"the evaluation {evaluation_id} is still there after the restart{store}",
+            raw[:500].decode(errors="replace"),
+        )
+        kept = json.loads(raw)
+        check(kept["id"] == evaluation_id, "GET by id answers that evaluation")
+        same_numbers(kept, uploaded, "its numbers are the ones the upload answered")
+
+        uid = docker("exec", name, "id", "-u").stdout.strip()
+        check(uid.isdigit() and int(uid) != 0, f"commands in the container run as a user other than root (uid {uid})")
+        status_lines = docker("exec", name, "cat", "/proc/1/status").stdout.splitlines()
+        uids = next((line.split()[1:] for line in status_lines if line.startswith("Uid:")), [])
+        check(
+            bool(uids) and "0" not in uids,
+            f"the service's process (pid 1) is not root (real, effective, saved, fs uids {' '.join(uids)})",
+        )
+        if args.network != "host":
+            start = time.monotonic()
+            health = wait_healthy(name, timeout=args.ready_timeout)
+            check(
+                health == "healthy",
+                f"Docker reports the image's HEALTHCHECK {health} ({time.monotonic() - start:.0f} s)",
+            )
+        else:
+            say("skip  the image's HEALTHCHECK: it probes port 8000, which --network host does not map")
+        table = docker("exec", name, "kitti-eval", "demo", check_rc=False)
+        check(
+            table.returncode == 0 and "Car AP_R40@0.70, 0.70, 0.70:" in table.stdout,
+            "kitti-eval demo runs in the container and prints the table",
+            f"exit {table.returncode}: {table.stdout[-500:]}{table.stderr[-1500:]}",
+        )
+    except Exception:
+        logs = docker("logs", "--tail", "40", name, check_rc=False)
+        say("----- the container's last log lines -----\n" + logs.stdout + logs.stderr)
+        raise
+    finally:
+        if not args.keep:
+            docker("rm", "-f", name, check_rc=False)
+            docker("volume", "rm", "-f", volume, check_rc=False)
+        else:
+            say(f"kept  container {name} and volume {volume} ({base})")
+    return figures
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--image", default="kitti-eval:smoke", help="the image's tag (default kitti-eval:smoke)")
+    parser.add_argument("--no-build", dest="build", action="store_false", help="use --image as it is")
+    parser.add_argument("--port", type=int, default=0, help="the port on 127.0.0.1 (default: a free one)")
+    parser.add_argument(
+        "--network",
+        default=os.environ.get("KITTI_EVAL_SMOKE_NETWORK", ""),
+        help="docker run's --network (default $KITTI_EVAL_SMOKE_NETWORK, else Docker's default bridge)",
+    )
+    parser.add_argument("--build-network", default="", help="docker build's --network, e.g. host")
+    parser.add_argument(
+        "--database-url",
+        default="",
+        help="KITTI_EVAL_DATABASE_URL for the container (default: its SQLite database in the volume); "
+        "an empty PostgreSQL database, as the container reaches it",
+    )
+    parser.add_argument("--ready-timeout", type=float, default=180, help="seconds to wait for /readyz")
+    parser.add_argument("--keep", action="store_true", help="leave the container and its volume")
+    args = parser.parse_args(argv)
+    if shutil.which("docker") is None:
+        say("FAIL  no docker command")
+        return 2
+    try:
+        figures = smoke(args)
+    except (SmokeFailure, subprocess.TimeoutExpired, OSError, ValueError, KeyError) as err:
+        say(f"FAIL  {err}")
+        return 1
+    say("all checks passed; " + ", ".join(f"{k}: {v}" for k, v in figures.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
