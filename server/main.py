@@ -20,13 +20,15 @@ from pydantic import ValidationError
 
 from kitti_eval import __version__
 
+from .auth import AuthMiddleware
 from .errors import install_error_handlers
 from .middleware import AdmissionMiddleware, BodyMiddleware
-from .routes import evaluations, frames, gates, ground_truths, health
+from .routes import admin, evaluations, frames, gates, ground_truths, health
 from .service import Service
 from .settings import Settings, default_data_dir
 from .web import STATIC_DIR
 from .web import router as web_router
+from .web.routes import sign_in_page
 
 __all__ = ["create_app", "serve"]  # and `app`, built on first access
 
@@ -84,6 +86,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(ground_truths.router)
     app.include_router(gates.router)
     app.include_router(frames.router)
+    app.include_router(admin.router)
     app.include_router(web_router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     # outermost last: a request is admitted to the evaluations once its body has arrived in full
@@ -101,6 +104,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         retry_after_s=lambda: settings.retry_after_s,
         spool_dir=service.data_dir / "tmp",
     )
+    if settings.auth == "accounts":  # outermost: a request without a valid token sends no body anyone reads
+        app.add_middleware(
+            AuthMiddleware, accounts=service.accounts, limiter=service.limiter, sign_in_page=sign_in_page
+        )
     return app
 
 
