@@ -15,6 +15,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from .cli_admin import add_parser as _admin_parser
 from .core.protocol import DEFAULT_CLASSES, KNOWN_CLASSES, PROTOCOLS, THRESHOLD_SETS
 from .errors import ConfigError, InputError, KittiEvalError
 from .report.render import OutputFormat
@@ -245,6 +246,7 @@ def _parser() -> argparse.ArgumentParser:
         _errors_parser,
         _describe_parser,
         _serve_parser,
+        _admin_parser,
     ):
         add(sub)
     return p

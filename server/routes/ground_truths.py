@@ -4,10 +4,12 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, File, Form, Response, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Request, Response, UploadFile
 from fastapi.responses import JSONResponse
 
-from ..deps import AdminDep, CallerDep, ServiceDep
+from ..accounts import Caller
+from ..auth import client_of
+from ..deps import CallerDep, ServiceDep, require_admin
 from ..ground_truths import NAME_PATTERN
 from ..schemas import ErrorResponse, GroundTruthList, GroundTruthOut, ground_truth_out
 from ..service import FileIn
@@ -18,6 +20,7 @@ router = APIRouter(
     responses={404: {"model": ErrorResponse, "description": "no ground truth of that name"}},
 )
 
+AdminCaller = Annotated[Caller, Depends(require_admin)]
 _admin_errors: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorResponse, "description": "no admin token given"},
     403: {"model": ErrorResponse, "description": "wrong admin token"},
@@ -28,7 +31,6 @@ _admin_errors: dict[int | str, dict[str, Any]] = {
     "",
     status_code=201,
     response_model=GroundTruthOut,
-    dependencies=[AdminDep],
     summary="Register a named ground truth (admin)",
     responses={
         **_admin_errors,
@@ -38,6 +40,8 @@ _admin_errors: dict[int | str, dict[str, Any]] = {
 )
 async def register_ground_truth(
     service: ServiceDep,
+    admin: AdminCaller,
+    request: Request,
     name: Annotated[str, Form(pattern=NAME_PATTERN, description="e.g. kitti-val")],
     file: Annotated[UploadFile, File(description="an OpenPCDet infos .pkl[.gz], or a zip/tar of a label_2 folder")],
     project: Annotated[
@@ -52,6 +56,15 @@ async def register_ground_truth(
     record = await service.run(
         lambda: service.register_ground_truth(
             name, FileIn(file.file, file.filename), project=project or None, sealed=sealed
+        )
+    )
+    await service.run(
+        lambda: service.accounts.audit(
+            actor=admin.actor,
+            action="ground_truth.add",
+            target=record.name,
+            client=client_of(request.scope),
+            detail=f"project {record.project or '-'}{', sealed' if record.sealed else ''}",
         )
     )
     return JSONResponse(
@@ -72,10 +85,15 @@ def get_ground_truth(service: ServiceDep, caller: CallerDep, name: str) -> dict[
 @router.delete(
     "/{name}",
     status_code=204,
-    dependencies=[AdminDep],
     responses=_admin_errors,
     summary="Delete a registered ground truth (admin); evaluations made with it stay",
 )
-def delete_ground_truth(service: ServiceDep, name: str) -> Response:
+def delete_ground_truth(service: ServiceDep, admin: AdminCaller, request: Request, name: str) -> Response:
     service.ground_truths.delete(name)
+    service.accounts.audit(
+        actor=admin.actor,
+        action="ground_truth.delete",
+        target=name,
+        client=client_of(request.scope),
+    )
     return Response(status_code=204)
