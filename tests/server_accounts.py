@@ -1,7 +1,8 @@
 """Shared by the accounts-mode tests: a service with two teams' projects, their tokens and their work.
 
 Project ``team-a`` (alice, and a read-only token of hers) has the ground truth ``gt-a`` and a sealed copy of the
-same file ``sealed-a``, each with one evaluation; project ``team-b`` (bob) has ``gt-b`` and one evaluation.
+same file ``sealed-a``, each with one evaluation; project ``team-b`` (bob) has ``gt-b`` (the same labels as a
+txt archive, so another file) and one evaluation.
 """
 
 from __future__ import annotations
@@ -56,12 +57,14 @@ def make_teams(client: Any) -> Teams:
         ("root", "root", {}),
     ):
         teams.token_ids[who], teams.tokens[who] = add_token(client, user, **options)
-    gt = golden_bytes("kitti_infos_val.pkl")
-    for name, project, sealed in (("gt-a", "team-a", False), ("sealed-a", "team-a", True), ("gt-b", "team-b", False)):
+    for name, project, sealed, filename in (
+        ("gt-a", "team-a", False, "kitti_infos_val.pkl"),
+        ("sealed-a", "team-a", True, "kitti_infos_val.pkl"),
+        ("gt-b", "team-b", False, "label_2.tar.gz"),  # the same labels as txt: another file
+    ):
         form = {"name": name, "project": project, "sealed": "true" if sealed else "false"}
-        body = _ok(
-            client.post("/v1/ground-truths", data=form, files={"file": ("kitti_infos_val.pkl", gt)}, headers=ADMIN)
-        )
+        files = {"file": (filename, golden_bytes(filename))}
+        body = _ok(client.post("/v1/ground-truths", data=form, files=files, headers=ADMIN))
         assert body["project"] == project and body["sealed"] is sealed
         teams.sha256[name] = body["sha256"]
     predictions = golden_bytes("result.pkl")
