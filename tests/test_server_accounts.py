@@ -243,3 +243,59 @@ def test_teams_fixture_is_what_the_other_tests_assume(service) -> None:
     assert isinstance(teams, Teams)
     assert set(teams.tokens) == {"alice", "alice-ro", "bob", "carol", "root"}
     assert all(split_token(t) == teams.token_ids[w] for w, t in teams.tokens.items())
+
+
+def test_every_token_check_compares_digests_in_constant_time(service, monkeypatch) -> None:
+    """Unknown id, wrong secret, right token: each check is one hmac.compare_digest of two sha256 digests (a
+    miss is compared against a dummy digest, so it takes as long as a wrong secret)."""
+    import server.accounts as accounts_module
+
+    c, _, teams = service
+    calls: list[tuple[str, str]] = []
+    real = accounts_module.hmac.compare_digest
+
+    def spy(a, b):  # type: ignore[no-untyped-def]
+        calls.append((a, b))
+        return real(a, b)
+
+    monkeypatch.setattr(accounts_module.hmac, "compare_digest", spy)
+    good = teams.tokens["bob"]
+    wrong = good[:-2] + ("xy" if not good.endswith("xy") else "zz")
+    unknown = "kte_" + "a" * 16 + "_" + "b" * 43
+    for token, status in ((good, 200), (wrong, 401), (unknown, 401)):
+        calls.clear()
+        assert c.get("/v1/evaluations", headers=bearer(token)).status_code == status
+        # the admin token's check, then the token's: both digests of 64 hex digits, never the token itself
+        assert len(calls) == 2, calls
+        assert all(len(a) == len(b) == 64 for a, b in calls)
+        assert calls[1][0] == digest(token)
+
+
+def test_a_database_from_before_accounts_is_upgraded(tmp_path) -> None:
+    """Its ground truths become shared, its evaluations (of no project) are the admins' only."""
+    data = tmp_path / "data"
+    with app_client(data) as c:  # open mode
+        old = upload(c, golden_bytes("result.pkl"), gt="demo").json()["id"]
+    db = sqlite3.connect(data / "kitti-eval.db")
+    for statement in (
+        "ALTER TABLE evaluations DROP COLUMN project",
+        "ALTER TABLE ground_truths DROP COLUMN project",
+        "ALTER TABLE ground_truths DROP COLUMN sealed",
+        "DROP TABLE audit",
+        "DROP TABLE tokens",
+        "DROP TABLE memberships",
+        "DROP TABLE users",
+        "DROP TABLE projects",
+    ):
+        db.execute(statement)
+    db.commit()
+    db.close()
+    with app_client(data, auth="accounts") as c:
+        assert c.post("/v1/admin/projects", json={"name": "p"}, headers=ADMIN).status_code == 201
+        assert c.post("/v1/admin/users", json={"name": "u"}, headers=ADMIN).status_code == 201
+        assert c.post("/v1/admin/members", json={"user": "u", "project": "p"}, headers=ADMIN).status_code == 201
+        _, token = add_token(c, "u")
+        assert c.get(f"/v1/evaluations/{old}", headers=ADMIN).status_code == 200
+        assert c.get(f"/v1/evaluations/{old}", headers=bearer(token)).status_code == 404
+        demo = c.get("/v1/ground-truths/demo", headers=bearer(token)).json()
+        assert demo["project"] is None and demo["sealed"] is False
