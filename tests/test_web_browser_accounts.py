@@ -59,6 +59,5 @@ def test_sign_in_see_only_your_projects_history_and_sign_out(live, browser) -> N
     browser.get(server.url + "/")
     assert browser.find_element(By.TAG_NAME, "h1").text == "Sign in"
     assert "model-of-bob" not in browser.page_source
-    with server.client() as c:  # the session was ended on the server too, not only forgotten by the browser
-        browser_cookie = {SESSION_COOKIE: session["value"]}
-        assert c.get("/", cookies=browser_cookie).status_code == 401
+    with server.client(cookies={SESSION_COOKIE: session["value"]}) as c:  # ended on the server too, not only
+        assert c.get("/").status_code == 401  # forgotten by the browser
