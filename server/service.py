@@ -296,7 +296,12 @@ class Service:
         raise BadRequest(f"name the project of the evaluation (form field 'project'): {mine or 'you have none'}")
 
     def evaluation(self, evaluation_id: str, caller: Caller = OPEN) -> EvaluationRecord:
-        """The evaluation, if the caller may see it; another project's is as absent as a missing one."""
+        """The evaluation, if the caller may see it; another project's is as absent as a missing one, and takes
+        as long to refuse (one small read of its project, before anything else is loaded)."""
+        if caller.projects is not None:
+            exists, project = self.store.evaluation_project(evaluation_id)
+            if not exists or not caller.sees_project(project):
+                raise NotFound(f"no evaluation with id {echo(evaluation_id)}")
         record = self.store.get_evaluation(evaluation_id)
         if record is None or not caller.sees_evaluation(record):
             raise NotFound(f"no evaluation with id {echo(evaluation_id)}")

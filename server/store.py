@@ -408,6 +408,12 @@ class Store:
             labels = self._labels(conn, [evaluation_id])
         return self._evaluation(row, labels.get(evaluation_id, {}))
 
+    def evaluation_project(self, evaluation_id: str) -> tuple[bool, str | None]:
+        """(whether the evaluation exists, its project): one small read, before any result is loaded."""
+        with self.engine.connect() as conn:
+            row = conn.execute(select(evaluations.c.project).where(evaluations.c.id == evaluation_id)).first()
+        return (False, None) if row is None else (True, row[0])
+
     def list_evaluations(
         self,
         *,
