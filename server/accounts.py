@@ -290,7 +290,7 @@ class Accounts:
             raise NotFound(f"no token with id {echo(token_id)}")
         self.audit(actor=actor, action="token.revoke", target=f"{record.user_name} ({token_id})", client=client)
 
-    def open_session(self, caller: Caller, hours: float) -> str:
+    def open_session(self, caller: Caller, hours: float, *, client: str = "local") -> str:
         """A web session for a caller signed in with a token: the session's own token, for the cookie."""
         assert caller.token_id is not None
         parent = self.store.get_token(caller.token_id)
@@ -298,12 +298,14 @@ class Accounts:
         lifetime = timedelta(hours=hours)
         if parent.expires_at is not None:
             lifetime = min(lifetime, parent.expires_at - datetime.now(timezone.utc))
-        _, token = self._new(caller.name, "session", parent.id, caller.scopes, lifetime)
+        record, token = self._new(caller.name, "session", parent.id, caller.scopes, lifetime)
+        self.audit(actor=caller.actor, action="session.open", target=f"session {record.id}", client=client)
         return token
 
-    def close_session(self, caller: Caller) -> None:
+    def close_session(self, caller: Caller, *, client: str = "local") -> None:
         if caller.session and caller.token_id is not None:
             self.store.revoke_token(caller.token_id)
+            self.audit(actor=caller.actor, action="session.close", target=f"session {caller.token_id}", client=client)
 
     # -- audit -------------------------------------------------------------------------------------------
     def audit(

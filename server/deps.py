@@ -25,6 +25,7 @@ __all__ = [
     "BearerDep",
     "require_write",
     "WriteDep",
+    "forbid",
     "negotiate_format",
     "FormatDep",
 ]
@@ -53,7 +54,7 @@ def get_caller(request: Request) -> Caller:
 CallerDep = Annotated[Caller, Depends(get_caller)]
 
 
-def _forbid(service: Service, request: Request, caller: Caller, what: str) -> Forbidden:
+def forbid(service: Service, request: Request, caller: Caller, what: str) -> Forbidden:
     """A refused use of a valid token, in the audit log."""
     service.accounts.audit(
         actor=caller.actor,
@@ -76,9 +77,9 @@ def require_admin(
     caller = get_caller(request)
     if service.settings.auth == "accounts":
         if not caller.is_admin:
-            raise _forbid(service, request, caller, "this action is for admins")
+            raise forbid(service, request, caller, "this action is for admins")
         if not caller.can_write:
-            raise _forbid(service, request, caller, "this token is read-only")
+            raise forbid(service, request, caller, "this token is read-only")
         return caller
     if credentials is None:
         raise Unauthorized("this action needs the admin token: send 'Authorization: Bearer <token>'")
@@ -96,7 +97,7 @@ def require_write(service: ServiceDep, request: Request) -> Caller:
     """403 for a read-only token."""
     caller = get_caller(request)
     if not caller.can_write:
-        raise _forbid(service, request, caller, "this token is read-only")
+        raise forbid(service, request, caller, "this token is read-only")
     return caller
 
 

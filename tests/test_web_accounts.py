@@ -115,3 +115,22 @@ def test_a_session_cookie_is_not_a_bearer_token_and_the_admin_token_cannot_sign_
     r = sign_in(c, ADMIN_TOKEN)
     assert r.status_code == 422 and SESSION_COOKIE not in c.cookies
     c.cookies.clear()
+
+
+def test_sign_in_sign_out_and_refused_forms_are_in_the_audit_log(service) -> None:
+    c, teams = service
+    assert sign_in(c, teams.tokens["alice-ro"]).status_code == 303
+    session_id = split_token(c.cookies[SESSION_COOKIE])
+    csrf = _hidden(c.get("/").text)
+    files = {"predictions": ("result.pkl", golden_bytes("result.pkl"))}
+    r = c.post("/ui/evaluations", data={"gt": "gt-a", "csrf": csrf}, files=files, follow_redirects=False)
+    assert r.status_code == 403 and "read-only" in r.text
+    assert c.post("/signout", data={"csrf": csrf}, follow_redirects=False).status_code == 303
+    c.cookies.clear()
+    audit = c.get("/v1/admin/audit", params={"limit": 50}, headers=ADMIN).json()["items"]
+    actor = f"alice ({teams.token_ids['alice-ro']})"
+    rows = [(r["actor"], r["action"], r["target"], r["outcome"]) for r in audit]
+    assert (actor, "session.open", f"session {session_id}", "ok") in rows
+    session_actor = f"alice ({session_id})"
+    assert (session_actor, "token.forbidden", "POST /ui/evaluations", "refused") in rows
+    assert (session_actor, "session.close", f"session {session_id}", "ok") in rows

@@ -31,7 +31,7 @@ from kitti_eval.errors import KittiEvalError
 from ..accounts import OPEN, Caller, TokenRefused
 from ..auth import CALLER_KEY, CSRF_COOKIE, SESSION_COOKIE, client_of
 from ..compare import compare
-from ..deps import CallerDep, ServiceDep
+from ..deps import CallerDep, ServiceDep, forbid
 from ..errors import MAX_ECHO_CHARS, ApiError, BadRequest, Forbidden, clip, echo, library_error_status
 from ..evaluator import ERRORS_SET, EvalOptions, parse_labels
 from ..routes.frames import MAX_SCORE
@@ -168,7 +168,7 @@ async def sign_in(request: Request, service: ServiceDep) -> Response:
         if caller.token_id is None:
             raise BadRequest("the admin token cannot sign in to the pages; sign in with a user's token")
         session = await anyio.to_thread.run_sync(
-            lambda: service.accounts.open_session(caller, service.settings.session_hours)
+            lambda: service.accounts.open_session(caller, service.settings.session_hours, client=client)
         )
     except (ApiError, HTTPException) as e:
         status = e.status_code
@@ -202,7 +202,8 @@ async def sign_out(request: Request, service: ServiceDep, caller: CallerDep) -> 
         _check_csrf(caller, sent if isinstance(sent, str) else None)
     except (ApiError, HTTPException) as e:
         return _error_page(request, e)
-    await anyio.to_thread.run_sync(lambda: service.accounts.close_session(caller))
+    client = client_of(request.scope)
+    await anyio.to_thread.run_sync(lambda: service.accounts.close_session(caller, client=client))
     response = RedirectResponse("/signin", status_code=303)
     response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
     return response
@@ -274,7 +275,9 @@ async def upload(request: Request, service: ServiceDep, caller: CallerDep) -> Re
             values = {k: v for k, v in form.items() if isinstance(v, str)}
             _check_csrf(caller, values.get("csrf"))
             if not caller.can_write:
-                raise Forbidden("this token is read-only")
+                raise await anyio.to_thread.run_sync(
+                    partial(forbid, service, request, caller, "this token is read-only")
+                )
             predictions = form.get("predictions")
             if not isinstance(predictions, UploadFile) or not predictions.filename:
                 raise BadRequest("choose a predictions file (a result.pkl, .pkl.gz, or a zip/tar of KITTI txt results)")
