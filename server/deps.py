@@ -40,7 +40,8 @@ ServiceDep = Annotated[Service, Depends(get_service)]
 
 _bearer = HTTPBearer(
     auto_error=False,
-    description="the admin token (KITTI_EVAL_ADMIN_TOKEN, or the one generated in <data_dir>/admin-token)",
+    description="the admin token (KITTI_EVAL_ADMIN_TOKEN, or the one generated in <data_dir>/admin-token); "
+    "with KITTI_EVAL_AUTH=accounts also a user's token (kitti-eval admin token add USER)",
 )
 
 

@@ -134,3 +134,17 @@ def test_sign_in_sign_out_and_refused_forms_are_in_the_audit_log(service) -> Non
     session_actor = f"alice ({session_id})"
     assert (session_actor, "token.forbidden", "POST /ui/evaluations", "refused") in rows
     assert (session_actor, "session.close", f"session {session_id}", "ok") in rows
+
+
+def test_the_upload_form_offers_a_choice_of_project_only_where_there_is_one(service) -> None:
+    c, teams = service
+    assert sign_in(c, teams.tokens["root"]).status_code == 303  # an admin: every project
+    home = c.get("/").text
+    assert re.findall(r'<select name="project">(.*?)</select>', home, re.S)
+    assert re.findall(r'<option value="([^"]+)"', home.split('name="project"')[1].split("</select>")[0]) == [
+        "team-a",
+        "team-b",
+    ]
+    assert sign_in(c, teams.tokens["bob"]).status_code == 303  # one project: nothing to choose
+    assert 'name="project"' not in c.get("/").text
+    c.cookies.clear()

@@ -252,12 +252,19 @@ def _home(
         error=error,
         form=dict(form or {}),
         ground_truths=[g.name for g in service.list_ground_truths(caller)],
-        projects=sorted(caller.projects or ()) if service.settings.auth == "accounts" else [],
+        projects=_projects(service, caller),
         protocols=sorted(PROTOCOLS),
         history=_history(service, caller),
         summary_classes=_SUMMARY_CLASSES,
         max_upload_bytes=service.settings.max_upload_bytes,
     )
+
+
+def _projects(service: Service, caller: Caller) -> list[str]:
+    """The projects an upload from the form may go to (accounts mode): the caller's, every one for admins."""
+    if service.settings.auth != "accounts":
+        return []
+    return service.store.list_projects() if caller.projects is None else sorted(caller.projects)
 
 
 @router.get("/")
