@@ -14,14 +14,21 @@ from server_helpers import ADMIN, golden_bytes
 from server_postgres import PostgresCluster, why_no_postgres
 from server_replicas import Replicas
 
+from kitti_eval.cli import main
+
 pytestmark = [pytest.mark.skipif(why_no_postgres() is not None, reason=why_no_postgres() or ""), pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
-def replicas(tmp_path_factory):
-    with PostgresCluster() as cluster:
-        with Replicas(tmp_path_factory.mktemp("replicas-accounts"), cluster.url, 3, auth="accounts") as started:
-            yield started
+def cluster():
+    with PostgresCluster() as started:
+        yield started
+
+
+@pytest.fixture(scope="module")
+def replicas(cluster, tmp_path_factory):
+    with Replicas(tmp_path_factory.mktemp("replicas-accounts"), cluster.url, 3, auth="accounts") as started:
+        yield started
 
 
 def _ok(response, status: int = 201):
@@ -70,4 +77,25 @@ def test_tokens_made_or_revoked_through_one_replica_hold_on_all_at_once(replicas
         assert len(refused) == 3 and all(r["detail"] == "revoked" for r in refused)
     finally:
         for c in (c0, c1, c2):
+            c.close()
+
+
+def test_the_admin_command_on_postgresql_is_seen_by_every_replica(replicas, cluster, capsys) -> None:
+    def admin(*argv: str) -> str:
+        assert main(["admin", "--database-url", cluster.url, *argv]) == 0
+        return capsys.readouterr().out
+
+    admin("project", "add", "team-c")
+    admin("user", "add", "carol")
+    admin("member", "add", "carol", "team-c")
+    token = admin("token", "add", "carol").splitlines()[-1]
+    clients = [s.client() for s in replicas.servers]
+    try:
+        for c in clients:
+            assert c.get("/v1/evaluations", headers=bearer(token)).status_code == 200
+        admin("token", "revoke", token.split("_")[1])
+        for c in clients:
+            assert c.get("/v1/evaluations", headers=bearer(token)).status_code == 401
+    finally:
+        for c in clients:
             c.close()
