@@ -299,6 +299,8 @@ class Accounts:
         if parent.expires_at is not None:
             lifetime = min(lifetime, parent.expires_at - datetime.now(timezone.utc))
         record, token = self._new(caller.name, "session", parent.id, caller.scopes, lifetime)
+        # ended sessions are of no use after a day (their audit rows stay): they do not pile up
+        self.store.purge_sessions(datetime.now(timezone.utc) - timedelta(days=1))
         self.audit(actor=caller.actor, action="session.open", target=f"session {record.id}", client=client)
         return token
 

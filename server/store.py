@@ -549,6 +549,16 @@ class Store:
             )
         return True
 
+    def purge_sessions(self, before: datetime) -> int:
+        """Delete the web sessions that expired or were revoked before ``before``; how many."""
+        with self.engine.begin() as conn:
+            done = conn.execute(
+                delete(tokens).where(
+                    tokens.c.kind == "session", (tokens.c.expires_at < before) | (tokens.c.revoked_at < before)
+                )
+            )
+        return int(done.rowcount or 0)
+
     @staticmethod
     def _token(row: RowMapping) -> TokenRecord:
         values = dict(row)

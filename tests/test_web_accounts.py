@@ -4,13 +4,16 @@ the token), CSRF tokens on the forms that change state, sign out."""
 from __future__ import annotations
 
 import re
+from datetime import datetime, timedelta, timezone
 
 import pytest
 from server_accounts import add_token, make_teams
 from server_helpers import ADMIN, ADMIN_TOKEN, app_client, golden_bytes
+from sqlalchemy import update
 
 from server.accounts import csrf_token, split_token
 from server.auth import CSRF_COOKIE, SESSION_COOKIE
+from server.store import tokens
 
 
 @pytest.fixture(scope="module")
@@ -147,4 +150,20 @@ def test_the_upload_form_offers_a_choice_of_project_only_where_there_is_one(serv
     ]
     assert sign_in(c, teams.tokens["bob"]).status_code == 303  # one project: nothing to choose
     assert 'name="project"' not in c.get("/").text
+    c.cookies.clear()
+
+
+def test_ended_sessions_do_not_pile_up(service) -> None:
+    c, teams = service
+    store = c.app.state.service.store
+    assert sign_in(c, teams.tokens["bob"]).status_code == 303
+    old = split_token(c.cookies[SESSION_COOKIE])
+    two_days_ago = datetime.now(timezone.utc) - timedelta(days=2)
+    with store.engine.begin() as conn:  # it ended two days ago
+        conn.execute(update(tokens).where(tokens.c.id == old).values(expires_at=two_days_ago))
+    assert c.get("/").status_code == 401
+    assert store.get_token(old) is not None
+    assert sign_in(c, teams.tokens["bob"]).status_code == 303  # the next sign-in clears it away
+    assert store.get_token(old) is None
+    assert store.get_token(teams.token_ids["bob"]) is not None  # tokens are never purged
     c.cookies.clear()
