@@ -22,6 +22,7 @@ __all__ = [
     "CallerDep",
     "require_admin",
     "AdminDep",
+    "AdminCallerDep",
     "BearerDep",
     "require_write",
     "WriteDep",
@@ -90,6 +91,8 @@ def require_admin(
 
 
 AdminDep = Depends(require_admin)
+#: the admin acting (for the audit log), as a route parameter
+AdminCallerDep = Annotated[Caller, Depends(require_admin)]
 #: the bearer credentials alone, for a route that checks them itself (after its parameters are validated)
 BearerDep = Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)]
 

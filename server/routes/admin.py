@@ -5,13 +5,13 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Query, Request, Response
+from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
-from ..accounts import READ, WRITE, Caller
+from ..accounts import READ, WRITE
 from ..auth import client_of
-from ..deps import BearerDep, ServiceDep, require_admin
+from ..deps import AdminCallerDep, BearerDep, ServiceDep, require_admin
 from ..schemas import ErrorResponse, iso
 from ..store import TokenRecord, UserRecord
 
@@ -25,7 +25,6 @@ router = APIRouter(
         409: {"model": ErrorResponse, "description": "the name is taken"},
     },
 )
-AdminCaller = Annotated[Caller, Depends(require_admin)]
 
 
 class UserIn(BaseModel):
@@ -65,12 +64,12 @@ def _token(record: TokenRecord) -> dict[str, Any]:
 
 
 @router.get("/users", summary="Users and their projects")
-def list_users(service: ServiceDep, caller: AdminCaller) -> dict[str, Any]:
+def list_users(service: ServiceDep, caller: AdminCallerDep) -> dict[str, Any]:
     return {"items": [_user(u) for u in service.store.list_users()]}
 
 
 @router.post("/users", status_code=201, summary="Add a user")
-def add_user(body: UserIn, service: ServiceDep, caller: AdminCaller, request: Request) -> dict[str, Any]:
+def add_user(body: UserIn, service: ServiceDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
     user = service.accounts.add_user(
         body.name, is_admin=body.admin, actor=caller.actor, client=client_of(request.scope)
     )
@@ -78,29 +77,29 @@ def add_user(body: UserIn, service: ServiceDep, caller: AdminCaller, request: Re
 
 
 @router.get("/projects", summary="Projects")
-def list_projects(service: ServiceDep, caller: AdminCaller) -> dict[str, Any]:
+def list_projects(service: ServiceDep, caller: AdminCallerDep) -> dict[str, Any]:
     return {"items": [{"name": p} for p in service.store.list_projects()]}
 
 
 @router.post("/projects", status_code=201, summary="Add a project")
-def add_project(body: ProjectIn, service: ServiceDep, caller: AdminCaller, request: Request) -> dict[str, Any]:
+def add_project(body: ProjectIn, service: ServiceDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
     return {"name": service.accounts.add_project(body.name, actor=caller.actor, client=client_of(request.scope))}
 
 
 @router.post("/members", status_code=201, summary="Make a user a member of a project")
-def add_member(body: MemberIn, service: ServiceDep, caller: AdminCaller, request: Request) -> dict[str, Any]:
+def add_member(body: MemberIn, service: ServiceDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
     service.accounts.add_member(body.user, body.project, actor=caller.actor, client=client_of(request.scope))
     return _user(service.accounts.user(body.user))
 
 
 @router.delete("/members/{user}/{project}", status_code=204, summary="End a membership")
-def remove_member(user: str, project: str, service: ServiceDep, caller: AdminCaller, request: Request) -> Response:
+def remove_member(user: str, project: str, service: ServiceDep, caller: AdminCallerDep, request: Request) -> Response:
     service.accounts.remove_member(user, project, actor=caller.actor, client=client_of(request.scope))
     return Response(status_code=204)
 
 
 @router.post("/tokens", status_code=201, summary="A new token for a user (shown once)")
-def add_token(body: TokenIn, service: ServiceDep, caller: AdminCaller, request: Request) -> JSONResponse:
+def add_token(body: TokenIn, service: ServiceDep, caller: AdminCallerDep, request: Request) -> JSONResponse:
     record, token = service.accounts.add_token(
         body.user,
         scopes=(READ,) if body.read_only else (READ, WRITE),
@@ -113,13 +112,13 @@ def add_token(body: TokenIn, service: ServiceDep, caller: AdminCaller, request: 
 
 @router.get("/tokens", summary="Tokens (never their secrets)")
 def list_tokens(
-    service: ServiceDep, caller: AdminCaller, user: Annotated[str | None, Query(max_length=1000)] = None
+    service: ServiceDep, caller: AdminCallerDep, user: Annotated[str | None, Query(max_length=1000)] = None
 ) -> dict[str, Any]:
     return {"items": [_token(t) for t in service.store.list_tokens(user)]}
 
 
 @router.delete("/tokens/{token_id}", status_code=204, summary="Revoke a token (and its web sessions)")
-def revoke_token(token_id: str, service: ServiceDep, caller: AdminCaller, request: Request) -> Response:
+def revoke_token(token_id: str, service: ServiceDep, caller: AdminCallerDep, request: Request) -> Response:
     service.accounts.revoke_token(token_id, actor=caller.actor, client=client_of(request.scope))
     return Response(status_code=204)
 

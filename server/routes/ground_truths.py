@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, File, Form, Request, Response, UploadFile
+from fastapi import APIRouter, File, Form, Request, Response, UploadFile
 from fastapi.responses import JSONResponse
 
-from ..accounts import Caller
 from ..auth import client_of
-from ..deps import CallerDep, ServiceDep, require_admin
+from ..deps import AdminCallerDep, CallerDep, ServiceDep
 from ..ground_truths import NAME_PATTERN
 from ..schemas import ErrorResponse, GroundTruthList, GroundTruthOut, ground_truth_out
 from ..service import FileIn
@@ -20,7 +19,6 @@ router = APIRouter(
     responses={404: {"model": ErrorResponse, "description": "no ground truth of that name"}},
 )
 
-AdminCaller = Annotated[Caller, Depends(require_admin)]
 _admin_errors: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorResponse, "description": "no admin token given"},
     403: {"model": ErrorResponse, "description": "wrong admin token"},
@@ -40,7 +38,7 @@ _admin_errors: dict[int | str, dict[str, Any]] = {
 )
 async def register_ground_truth(
     service: ServiceDep,
-    admin: AdminCaller,
+    admin: AdminCallerDep,
     request: Request,
     name: Annotated[str, Form(pattern=NAME_PATTERN, description="e.g. kitti-val")],
     file: Annotated[UploadFile, File(description="an OpenPCDet infos .pkl[.gz], or a zip/tar of a label_2 folder")],
@@ -88,7 +86,7 @@ def get_ground_truth(service: ServiceDep, caller: CallerDep, name: str) -> dict[
     responses=_admin_errors,
     summary="Delete a registered ground truth (admin); evaluations made with it stay",
 )
-def delete_ground_truth(service: ServiceDep, admin: AdminCaller, request: Request, name: str) -> Response:
+def delete_ground_truth(service: ServiceDep, admin: AdminCallerDep, request: Request, name: str) -> Response:
     service.ground_truths.delete(name)
     service.accounts.audit(
         actor=admin.actor,
