@@ -25,6 +25,8 @@ __all__ = [
     "Conflict",
     "Unauthorized",
     "Forbidden",
+    "Sealed",
+    "TooManyRequests",
     "Busy",
     "NotReady",
     "PayloadTooLarge",
@@ -83,6 +85,22 @@ class Unauthorized(ApiError):
 class Forbidden(ApiError):
     status_code = 403
     code = "forbidden"
+
+
+class Sealed(Forbidden):
+    """A per-frame view of a sealed ground truth: only aggregate results leave the service."""
+
+    code = "sealed"
+
+
+class TooManyRequests(ApiError):
+    """Too many refused tokens from one client in a short time."""
+
+    status_code = 429
+    code = "too_many_requests"
+
+    def __init__(self, message: str, retry_after_s: int) -> None:
+        super().__init__(message, headers={"Retry-After": str(retry_after_s)})
 
 
 class Busy(ApiError):

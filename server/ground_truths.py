@@ -149,7 +149,9 @@ class GroundTruths:
             )
         return name
 
-    def register(self, name: str, upload: Upload, scratch: Path) -> GroundTruthRecord:
+    def register(
+        self, name: str, upload: Upload, scratch: Path, *, project: str | None = None, sealed: bool = False
+    ) -> GroundTruthRecord:
         """Validate ``upload`` as ground truth (by loading it), keep it, and record it under ``name``."""
         self.check_name(name)
         if self.store.get_ground_truth(name) is not None:
@@ -167,6 +169,8 @@ class GroundTruths:
             frames=loaded.annotations.num_frames,
             boxes=loaded.annotations.num_boxes,
             created_at=datetime.now(timezone.utc),
+            project=project,
+            sealed=sealed,
         )
         if not self.store.add_ground_truth(record, content):
             raise Conflict(f"a ground truth named {name!r} exists; delete it first or pick another name")

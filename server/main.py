@@ -20,15 +20,17 @@ from pydantic import ValidationError
 
 from kitti_eval import __version__
 
+from .auth import AuthMiddleware
 from .errors import install_error_handlers
 from .middleware import AdmissionMiddleware, BodyMiddleware
 from .observability import Metrics, RequestMiddleware, configure_logging
-from .routes import evaluations, frames, gates, ground_truths, health, metrics
+from .routes import admin, evaluations, frames, gates, ground_truths, health, metrics
 from .service import Service
 from .settings import Settings, default_data_dir
 from .shutdown import Drainer
 from .web import STATIC_DIR
 from .web import router as web_router
+from .web.routes import sign_in_page
 
 __all__ = ["create_app", "serve"]  # and `app`, built on first access
 
@@ -82,6 +84,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(gates.router)
     app.include_router(frames.router)
     app.include_router(metrics.router)
+    app.include_router(admin.router)
     app.include_router(web_router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     # outermost last: a request is admitted to the evaluations once its body has arrived in full
@@ -102,6 +105,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         spool_dir=service.data_dir / "tmp",
         state=service.admission,
     )
+    if settings.auth == "accounts":  # a request without a valid token sends no body anyone reads
+        app.add_middleware(
+            AuthMiddleware,
+            accounts=service.accounts,
+            limiter=service.limiter,
+            sign_in_page=sign_in_page,
+            own_token_paths=frozenset({"/metrics"}) if settings.metrics_token is not None else frozenset(),
+        )
     # outermost: every request gets its id, its log line and its metrics, whoever answers it
     app.add_middleware(RequestMiddleware, metrics=app_metrics, log_json=lambda: log_json)
     return app

@@ -62,6 +62,7 @@ class EvaluationMeta(BaseModel):
     predictions: PredictionsRef
     labels: dict[str, str]
     duration_ms: float
+    project: str | None = Field(None, description="accounts mode: the project it belongs to")
 
 
 class EvaluationResponse(BaseModel):
@@ -124,6 +125,8 @@ class GroundTruthOut(BaseModel):
     frames: int
     boxes: int = Field(description="boxes including DontCare rows")
     created_at: datetime
+    project: str | None = Field(None, description="the project whose members use it; null: everyone")
+    sealed: bool = Field(False, description="a sealed test set: aggregate results only, no per-frame view")
 
 
 class GroundTruthList(BaseModel):
@@ -157,7 +160,7 @@ def iso(value: datetime) -> str:
 
 
 def evaluation_meta(record: EvaluationRecord) -> dict[str, Any]:
-    return {
+    meta = {
         "created_at": iso(record.created_at),
         "ground_truth": {"name": record.gt_name, "sha256": record.gt_sha256},
         "predictions": {
@@ -169,6 +172,9 @@ def evaluation_meta(record: EvaluationRecord) -> dict[str, Any]:
         "labels": dict(record.labels),
         "duration_ms": record.duration_ms,
     }
+    if record.project is not None:
+        meta["project"] = record.project
+    return meta
 
 
 def evaluation_response(record: EvaluationRecord) -> dict[str, Any]:
@@ -195,4 +201,6 @@ def ground_truth_out(record: GroundTruthRecord) -> dict[str, Any]:
         "frames": record.frames,
         "boxes": record.boxes,
         "created_at": iso(record.created_at),
+        "project": record.project,
+        "sealed": record.sealed,
     }

@@ -33,7 +33,9 @@ from kitti_eval.core.frames import Annotations, normalize_frame_id
 from kitti_eval.core.protocol import EvalConfig
 from kitti_eval.io.synth import demo_paths
 
-from .errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, clip, echo
+from .accounts import OPEN, Accounts, Caller
+from .auth import FailureLimiter
+from .errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, Sealed, clip, echo
 from .evaluator import EvalOptions, evaluate_document, summarize
 from .ground_truths import GroundTruthCache, GroundTruths
 from .observability import AdmissionState
@@ -42,7 +44,7 @@ from .settings import Settings
 from .store import EvaluationRecord, GroundTruthRecord, Store, new_id
 from .uploads import Limits, load_upload, receive_upload
 
-__all__ = ["Service", "FileIn", "DEMO_NAME"]
+__all__ = ["Service", "FileIn", "DEMO_NAME", "sealed_document"]
 
 log = logging.getLogger("kitti_eval.server")
 T = TypeVar("T")
@@ -71,6 +73,18 @@ DEMO_NAME = "demo"
 MAX_INSPECTED = 8
 
 
+def sealed_document(doc: dict[str, Any]) -> dict[str, Any]:
+    """An evaluation document against a sealed ground truth: the aggregates only. The frames without
+    predictions (ids of the sealed set) and the warnings (which may name its frames) are withheld."""
+    out = dict(doc)
+    withheld = len(doc.get("frames_without_predictions") or ())
+    out["frames_without_predictions"] = []
+    notes = [f"the ground truth is sealed: per-frame details are withheld ({len(doc.get('warnings') or ())} warnings"]
+    notes[0] += f", {withheld} frames without predictions)" if withheld else ")"
+    out["warnings"] = notes
+    return out
+
+
 @dataclass(frozen=True)
 class FileIn:
     """An uploaded file as the routes hand it over: its spooled bytes and the client's name."""
@@ -97,6 +111,8 @@ class Service:
             settings.pred_cache_entries, settings.gt_cache_bytes, what="predictions", setting="KITTI_EVAL_GT_CACHE_MB"
         )
         self.admin_token = ""
+        self.accounts = Accounts(self.store, lambda: self.admin_token)
+        self.limiter = FailureLimiter(settings.auth_max_failures, settings.auth_failure_window_s)
         self.warm = threading.Event()
         self.warmup_error: str | None = None
         self._limiter: anyio.CapacityLimiter | None = None
@@ -210,8 +226,11 @@ class Service:
         gt_file: FileIn | None,
         options: EvalOptions,
         labels: Mapping[str, str],
+        caller: Caller = OPEN,
+        project: str | None = None,
     ) -> EvaluationRecord:
-        """Load, evaluate, store (committed) and return the record."""
+        """Load, evaluate, store (committed) and return the record. In accounts mode the evaluation belongs to
+        ``project`` (default: the ground truth's, else the caller's only one), which must be the caller's."""
         started = time.perf_counter()
         if (gt_name is None) == (gt_file is None):
             raise BadRequest(
@@ -219,7 +238,8 @@ class Service:
                 "/v1/ground-truths lists them) or as a file (form field 'gt_file'), not both"
             )
         config = options.config()  # bad options fail before any upload is read
-        gt_record = self.ground_truths.record(gt_name) if gt_name is not None else None
+        gt_record = self.ground_truth(gt_name, caller) if gt_name is not None else None
+        project = self._project_for(caller, project, gt_record)
         with self.scratch() as scratch:
             if gt_record is not None:
                 gt = self.ground_truths.load(gt_record)
@@ -235,6 +255,8 @@ class Service:
                 pred, "detections", scratch / "pred", self.limits, keep_lidar=keep, known_frames=gt.frame_index()
             )
             doc = evaluate_document(gt, loaded.annotations, config, curves=options.curves, errors=options.errors)
+            if gt_record is not None and gt_record.sealed:
+                doc = sealed_document(doc)
             if keep:
                 pred.file.seek(0)
                 self.store.add_prediction_file(pred.sha256, pred.file.read())
@@ -254,6 +276,7 @@ class Service:
             result=doc,
             labels=dict(labels),
             options=options.to_dict(),
+            project=project,
         )
         self.store.add_evaluation(record)
         log.info(
@@ -265,11 +288,61 @@ class Service:
         )
         return record
 
-    def evaluation(self, evaluation_id: str) -> EvaluationRecord:
+    def _project_for(self, caller: Caller, wanted: str | None, gt_record: GroundTruthRecord | None) -> str | None:
+        """The project a new evaluation belongs to (None in open mode)."""
+        if self.settings.auth != "accounts":
+            return None
+        if gt_record is not None and gt_record.project is not None:
+            if wanted and wanted != gt_record.project:
+                raise BadRequest(
+                    f"the ground truth {gt_record.name!r} belongs to project {gt_record.project!r}, "
+                    f"not {echo(wanted)}; evaluations against it belong to its project"
+                )
+            return gt_record.project
+        if wanted:
+            if not caller.sees_project(wanted) or not self.store.project_exists(wanted):
+                raise NotFound(f"no project of yours named {echo(wanted)}")
+            return wanted
+        if caller.projects is not None and len(caller.projects) == 1:
+            return next(iter(caller.projects))
+        mine = ", ".join(sorted(caller.projects)) if caller.projects is not None else "any project"
+        raise BadRequest(f"name the project of the evaluation (form field 'project'): {mine or 'you have none'}")
+
+    def evaluation(self, evaluation_id: str, caller: Caller = OPEN) -> EvaluationRecord:
+        """The evaluation, if the caller may see it; another project's is as absent as a missing one, and takes
+        as long to refuse (one small read of its project, before anything else is loaded)."""
+        if caller.projects is not None:
+            exists, project = self.store.evaluation_project(evaluation_id)
+            if not exists or not caller.sees_project(project):
+                raise NotFound(f"no evaluation with id {echo(evaluation_id)}")
         record = self.store.get_evaluation(evaluation_id)
-        if record is None:
+        if record is None or not caller.sees_evaluation(record):
             raise NotFound(f"no evaluation with id {echo(evaluation_id)}")
         return record
+
+    def ground_truth(self, name: str, caller: Caller = OPEN) -> GroundTruthRecord:
+        """The registered ground truth, if the caller may use it; another project's is as absent as a missing
+        one."""
+        record = self.ground_truths.record(name)
+        if not caller.sees_ground_truth(record):
+            raise NotFound(f"no ground truth named {echo(name)}; GET /v1/ground-truths lists them")
+        return record
+
+    def list_evaluations(
+        self,
+        caller: Caller = OPEN,
+        *,
+        gt_name: str | None = None,
+        labels: Mapping[str, str] | None = None,
+        limit: int = 50,
+        offset: int = 0,
+    ) -> list[EvaluationRecord]:
+        return self.store.list_evaluations(
+            gt_name=gt_name, labels=labels, limit=limit, offset=offset, projects=caller.projects
+        )
+
+    def list_ground_truths(self, caller: Caller = OPEN) -> list[GroundTruthRecord]:
+        return self.store.list_ground_truths(projects=caller.projects)
 
     # -- frames ------------------------------------------------------------------------------------------
     def _kept_inputs(self, record: EvaluationRecord) -> tuple[Annotations, Annotations, EvalConfig]:
@@ -285,6 +358,11 @@ class Service:
                 "to look at its frames"
             )
         gt_record = self.store.get_ground_truth(record.gt_name)
+        if gt_record is not None and gt_record.sealed:
+            raise Sealed(
+                f"the ground truth {record.gt_name!r} of evaluation {record.id} is sealed: only aggregate "
+                "results (AP, curves, error totals) are available, no per-frame view"
+            )
         if gt_record is None or gt_record.sha256 != record.gt_sha256:
             raise Conflict(
                 f"the ground truth {record.gt_name!r} of evaluation {record.id} has been deleted or "
@@ -316,12 +394,13 @@ class Service:
         oset: str = "strict",
         worst: int | None = 20,
         score_threshold: float = 0.0,
+        caller: Caller = OPEN,
     ) -> dict[str, Any]:
         """TP/FP/FN per frame of a stored evaluation (the ``worst`` n first, or all), as
         :func:`kitti_eval.analysis.diagnostics.frames_document`."""
         if worst is not None and worst < 1:
             raise BadRequest("worst must be at least 1")
-        record = self.evaluation(evaluation_id)
+        record = self.evaluation(evaluation_id, caller)
         gt, dt, config = self._kept_inputs(record)
         stats = frame_stats(
             gt, dt, config, cls=cls, metric=metric, difficulty=difficulty, oset=oset, score_threshold=score_threshold
@@ -340,6 +419,7 @@ class Service:
         difficulty: str = "moderate",
         oset: str = "strict",
         score_threshold: float | None = None,
+        caller: Caller = OPEN,
     ) -> dict[str, Any]:
         """One frame's boxes for several stored evaluations against the same ground truth, labelled by the
         matching (:func:`kitti_eval.analysis.inspection.inspect_frame`, under the first evaluation's options)."""
@@ -348,7 +428,7 @@ class Service:
             raise BadRequest("name at least one evaluation")
         if len(ids) > MAX_INSPECTED:
             raise BadRequest(f"at most {MAX_INSPECTED} evaluations in one frame view")
-        records = [self.evaluation(i) for i in ids]
+        records = [self.evaluation(i, caller) for i in ids]
         if len({r.gt_sha256 for r in records}) > 1:
             raise Conflict(
                 "these evaluations used different ground truths; a frame view compares evaluations against the same one"
@@ -381,7 +461,13 @@ class Service:
         return report
 
     # -- ground truths ----------------------------------------------------------------------------------
-    def register_ground_truth(self, name: str, file: FileIn) -> GroundTruthRecord:
+    def register_ground_truth(
+        self, name: str, file: FileIn, *, project: str | None = None, sealed: bool = False
+    ) -> GroundTruthRecord:
+        """Register a named ground truth; ``project``: only its members see and use it (None: everyone);
+        ``sealed``: no per-frame view of it ever leaves the service."""
+        if project is not None:
+            self.accounts.check_project(project)
         with self.scratch() as scratch:
             upload = receive_upload(file.file, file.filename, "file")
-            return self.ground_truths.register(name, upload, scratch)
+            return self.ground_truths.register(name, upload, scratch, project=project, sealed=sealed)

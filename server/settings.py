@@ -73,6 +73,21 @@ class Settings(BaseSettings):
     kept in ``<data_dir>/admin-token`` (readable by the server's user only); replicas sharing a database must
     all be given the same one."""
 
+    auth: Literal["open", "accounts"] = "open"
+    """``open``: everyone who reaches the service sees and changes everything but the ground truths (which
+    need the admin token). ``accounts``: every request but ``/healthz``, ``/readyz``, the static files and the
+    sign-in page needs a token (``kitti-eval admin token add``), and sees only its projects' work."""
+
+    auth_max_failures: Annotated[int, Field(ge=1)] = 10
+    """Accounts mode: refused tokens one client address may send within ``auth_failure_window_s`` before it
+    gets 429 for the rest of the window (counted by each process on its own)."""
+
+    auth_failure_window_s: Annotated[float, Field(gt=0)] = 60.0
+    """The window of ``auth_max_failures``."""
+
+    session_hours: Annotated[float, Field(gt=0, le=24 * 365)] = 12.0
+    """How long a web sign-in lasts (never beyond the token it was made with)."""
+
     gt_cache_entries: Annotated[int, Field(ge=1)] = 4
     """Ground-truth sets kept loaded in memory (least recently used ones are dropped first)."""
 

@@ -16,6 +16,7 @@ from typing import Any
 from sqlalchemy import (
     JSON,
     BigInteger,
+    Boolean,
     Column,
     DateTime,
     Float,
@@ -35,6 +36,7 @@ from sqlalchemy import (
     inspect,
     select,
     text,
+    update,
 )
 from sqlalchemy.dialects.postgresql import JSONB
 from sqlalchemy.engine import Engine, RowMapping
@@ -50,6 +52,14 @@ __all__ = [
     "evaluations",
     "evaluation_labels",
     "prediction_files",
+    "users",
+    "projects",
+    "memberships",
+    "tokens",
+    "audit",
+    "UserRecord",
+    "TokenRecord",
+    "AuditRecord",
 ]
 
 metadata = MetaData()
@@ -67,6 +77,8 @@ ground_truths = Table(
     Column("frames", Integer, nullable=False),
     Column("boxes", Integer, nullable=False),
     Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("project", String(64), nullable=True),  # None: shared by every project (and open mode's)
+    Column("sealed", Boolean, nullable=False, default=False),  # no per-frame view ever leaves the service
 )
 
 #: the registered files themselves, by content, so that any server on the same database can load them
@@ -93,6 +105,7 @@ evaluations = Table(
     Column("summary", _JSON, nullable=False),  # strict R40 moderate AP per class and metric
     Column("result", _JSON, nullable=False),  # the document `kitti-eval --format json` prints
     Column("options", _JSON, nullable=True),  # the request's options (None: stored before they were)
+    Column("project", String(64), nullable=True),  # None: made in open mode (admins only see it in accounts mode)
     Index("ix_evaluations_created", "created_at", "id"),
     Index("ix_evaluations_gt", "gt_name", "created_at"),
 )
@@ -115,6 +128,93 @@ evaluation_labels = Table(
 )
 
 
+users = Table(
+    "users",
+    metadata,
+    Column("name", String(64), primary_key=True),
+    Column("is_admin", Boolean, nullable=False),
+    Column("created_at", DateTime(timezone=True), nullable=False),
+)
+
+projects = Table(
+    "projects",
+    metadata,
+    Column("name", String(64), primary_key=True),
+    Column("created_at", DateTime(timezone=True), nullable=False),
+)
+
+memberships = Table(
+    "memberships",
+    metadata,
+    Column("user_name", String(64), ForeignKey("users.name", ondelete="CASCADE"), primary_key=True),
+    Column("project", String(64), ForeignKey("projects.name", ondelete="CASCADE"), primary_key=True),
+)
+
+#: bearer tokens and web sessions: only the sha256 of the secret is kept, looked up by the public id
+tokens = Table(
+    "tokens",
+    metadata,
+    Column("id", String(32), primary_key=True),
+    Column("user_name", String(64), ForeignKey("users.name", ondelete="CASCADE"), nullable=False),
+    Column("kind", String(16), nullable=False),  # token | session
+    Column("parent", String(32), nullable=True),  # a session: the token it was opened with
+    Column("secret_sha256", String(64), nullable=False),
+    Column("scopes", String(64), nullable=False),  # comma-separated: read, write
+    Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("expires_at", DateTime(timezone=True), nullable=True),
+    Column("revoked_at", DateTime(timezone=True), nullable=True),
+    Index("ix_tokens_parent", "parent"),
+)
+
+#: admin actions and refused token uses (never a token itself)
+audit = Table(
+    "audit",
+    metadata,
+    Column("id", Integer, primary_key=True, autoincrement=True),
+    Column("at", DateTime(timezone=True), nullable=False),
+    Column("actor", String(128), nullable=False),  # user name and token id, "admin-token", "cli:<os user>"
+    Column("action", String(64), nullable=False),
+    Column("target", String(256), nullable=False),
+    Column("outcome", String(32), nullable=False),  # ok | refused | ...
+    Column("client", String(64), nullable=False),
+    Column("detail", String(512), nullable=False),
+    Index("ix_audit_at", "at"),
+)
+
+
+@dataclass(frozen=True)
+class UserRecord:
+    name: str
+    is_admin: bool
+    created_at: datetime
+    projects: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class TokenRecord:
+    id: str
+    user_name: str
+    kind: str
+    parent: str | None
+    secret_sha256: str
+    scopes: str
+    created_at: datetime
+    expires_at: datetime | None
+    revoked_at: datetime | None
+
+
+@dataclass(frozen=True)
+class AuditRecord:
+    id: int
+    at: datetime
+    actor: str
+    action: str
+    target: str
+    outcome: str
+    client: str
+    detail: str
+
+
 @dataclass(frozen=True)
 class GroundTruthRecord:
     name: str
@@ -126,6 +226,8 @@ class GroundTruthRecord:
     frames: int
     boxes: int
     created_at: datetime
+    project: str | None = None
+    sealed: bool = False
 
 
 @dataclass(frozen=True)
@@ -145,6 +247,7 @@ class EvaluationRecord:
     labels: Mapping[str, str] = field(default_factory=dict)
     #: the request's options (:class:`kitti_eval_server.evaluator.EvalOptions` as a dict); None for older rows
     options: Mapping[str, Any] | None = None
+    project: str | None = None
 
 
 #: the PostgreSQL advisory lock held while the schema is created or upgraded (any fixed 64-bit number)
@@ -190,10 +293,16 @@ class Store:
             if self.dialect == "postgresql":
                 conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _SCHEMA_LOCK})
             metadata.create_all(conn)
-            present = {c["name"] for c in inspect(conn).get_columns("evaluations")}
-            if "options" not in present:
-                kind = "JSONB" if self.dialect == "postgresql" else "JSON"
-                conn.execute(text(f"ALTER TABLE evaluations ADD COLUMN options {kind}"))
+            json_kind = "JSONB" if self.dialect == "postgresql" else "JSON"
+            added = {
+                "evaluations": {"options": json_kind, "project": "VARCHAR(64)"},
+                "ground_truths": {"project": "VARCHAR(64)", "sealed": "BOOLEAN NOT NULL DEFAULT FALSE"},
+            }
+            for table, columns in added.items():
+                present = {c["name"] for c in inspect(conn).get_columns(table)}
+                for column, kind in columns.items():
+                    if column not in present:
+                        conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {column} {kind}"))
 
     def ping(self) -> None:
         with self.engine.connect() as conn:
@@ -232,9 +341,13 @@ class Store:
             row = conn.execute(select(ground_truths).where(ground_truths.c.name == name)).mappings().first()
         return None if row is None else self._gt(row)
 
-    def list_ground_truths(self) -> list[GroundTruthRecord]:
+    def list_ground_truths(self, *, projects: frozenset[str] | None = None) -> list[GroundTruthRecord]:
+        """By name; ``projects``: only those of these projects and the shared ones (None: all)."""
+        query = select(ground_truths).order_by(ground_truths.c.name)
+        if projects is not None:
+            query = query.where(ground_truths.c.project.is_(None) | ground_truths.c.project.in_(sorted(projects)))
         with self.engine.connect() as conn:
-            rows = conn.execute(select(ground_truths).order_by(ground_truths.c.name)).mappings().all()
+            rows = conn.execute(query).mappings().all()
         return [self._gt(r) for r in rows]
 
     def delete_ground_truth(self, name: str) -> tuple[GroundTruthRecord | None, bool]:
@@ -255,6 +368,7 @@ class Store:
     def _gt(row: RowMapping) -> GroundTruthRecord:
         values = dict(row)
         values["created_at"] = _utc(values["created_at"])
+        values["sealed"] = bool(values.get("sealed"))
         return GroundTruthRecord(**values)
 
     # -- predictions -----------------------------------------------------------------------------------
@@ -294,12 +408,27 @@ class Store:
             labels = self._labels(conn, [evaluation_id])
         return self._evaluation(row, labels.get(evaluation_id, {}))
 
+    def evaluation_project(self, evaluation_id: str) -> tuple[bool, str | None]:
+        """(whether the evaluation exists, its project): one small read, before any result is loaded."""
+        with self.engine.connect() as conn:
+            row = conn.execute(select(evaluations.c.project).where(evaluations.c.id == evaluation_id)).first()
+        return (False, None) if row is None else (True, row[0])
+
     def list_evaluations(
-        self, *, gt_name: str | None = None, labels: Mapping[str, str] | None = None, limit: int = 50, offset: int = 0
+        self,
+        *,
+        gt_name: str | None = None,
+        labels: Mapping[str, str] | None = None,
+        limit: int = 50,
+        offset: int = 0,
+        projects: frozenset[str] | None = None,
     ) -> list[EvaluationRecord]:
-        """Newest first, without the full results (the summary is there)."""
+        """Newest first, without the full results (the summary is there); ``projects``: only those of these
+        projects (None: all)."""
         columns = [c for c in evaluations.c if c.name != "result"]
         query = select(*columns)
+        if projects is not None:
+            query = query.where(evaluations.c.project.in_(sorted(projects)))
         if gt_name is not None:
             query = query.where(evaluations.c.gt_name == gt_name)
         for key, value in (labels or {}).items():
@@ -336,3 +465,133 @@ class Store:
         values["created_at"] = _utc(values["created_at"])
         values.setdefault("result", None)
         return EvaluationRecord(**values, labels=labels)
+
+    # -- accounts ----------------------------------------------------------------------------------------
+    def add_user(self, name: str, is_admin: bool) -> bool:
+        """False if the name is taken."""
+        return self._insert(users, name=name, is_admin=is_admin, created_at=datetime.now(timezone.utc))
+
+    def get_user(self, name: str) -> UserRecord | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(users).where(users.c.name == name)).mappings().first()
+            if row is None:
+                return None
+            member_of = self._projects_of(conn, name)
+        return UserRecord(row["name"], bool(row["is_admin"]), _utc(row["created_at"]), member_of)
+
+    def list_users(self) -> list[UserRecord]:
+        with self.engine.connect() as conn:
+            rows = conn.execute(select(users).order_by(users.c.name)).mappings().all()
+            pairs = conn.execute(select(memberships).order_by(memberships.c.project)).all()
+        member_of: dict[str, list[str]] = {}
+        for user_name, project in pairs:
+            member_of.setdefault(user_name, []).append(project)
+        return [
+            UserRecord(r["name"], bool(r["is_admin"]), _utc(r["created_at"]), tuple(member_of.get(r["name"], ())))
+            for r in rows
+        ]
+
+    @staticmethod
+    def _projects_of(conn: Any, user_name: str) -> tuple[str, ...]:
+        rows = conn.execute(
+            select(memberships.c.project).where(memberships.c.user_name == user_name).order_by(memberships.c.project)
+        )
+        return tuple(r[0] for r in rows)
+
+    def add_project(self, name: str) -> bool:
+        return self._insert(projects, name=name, created_at=datetime.now(timezone.utc))
+
+    def project_exists(self, name: str) -> bool:
+        with self.engine.connect() as conn:
+            return conn.execute(select(projects.c.name).where(projects.c.name == name)).first() is not None
+
+    def list_projects(self) -> list[str]:
+        with self.engine.connect() as conn:
+            return [r[0] for r in conn.execute(select(projects.c.name).order_by(projects.c.name))]
+
+    def add_membership(self, user_name: str, project: str) -> bool:
+        return self._insert(memberships, user_name=user_name, project=project)
+
+    def remove_membership(self, user_name: str, project: str) -> bool:
+        with self.engine.begin() as conn:
+            done = conn.execute(
+                delete(memberships).where(memberships.c.user_name == user_name, memberships.c.project == project)
+            )
+        return bool(done.rowcount)
+
+    def add_token(self, record: TokenRecord) -> None:
+        with self.engine.begin() as conn:
+            conn.execute(insert(tokens).values(**record.__dict__))
+
+    def get_token(self, token_id: str) -> TokenRecord | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(tokens).where(tokens.c.id == token_id)).mappings().first()
+        return None if row is None else self._token(row)
+
+    def list_tokens(self, user_name: str | None = None) -> list[TokenRecord]:
+        query = select(tokens).where(tokens.c.kind == "token").order_by(tokens.c.created_at)
+        if user_name is not None:
+            query = query.where(tokens.c.user_name == user_name)
+        with self.engine.connect() as conn:
+            return [self._token(r) for r in conn.execute(query).mappings().all()]
+
+    def revoke_token(self, token_id: str) -> bool:
+        """Revoke a token and the sessions opened with it; False if there is no such token."""
+        now = datetime.now(timezone.utc)
+        with self.engine.begin() as conn:
+            found = conn.execute(select(tokens.c.id).where(tokens.c.id == token_id)).first()
+            if found is None:
+                return False
+            conn.execute(
+                update(tokens)
+                .where((tokens.c.id == token_id) | (tokens.c.parent == token_id), tokens.c.revoked_at.is_(None))
+                .values(revoked_at=now)
+            )
+        return True
+
+    def purge_sessions(self, before: datetime) -> int:
+        """Delete the web sessions that expired or were revoked before ``before``; how many."""
+        with self.engine.begin() as conn:
+            done = conn.execute(
+                delete(tokens).where(
+                    tokens.c.kind == "session", (tokens.c.expires_at < before) | (tokens.c.revoked_at < before)
+                )
+            )
+        return int(done.rowcount or 0)
+
+    @staticmethod
+    def _token(row: RowMapping) -> TokenRecord:
+        values = dict(row)
+        for key in ("created_at", "expires_at", "revoked_at"):
+            if values[key] is not None:
+                values[key] = _utc(values[key])
+        return TokenRecord(**values)
+
+    def add_audit(self, *, actor: str, action: str, target: str, outcome: str, client: str, detail: str) -> None:
+        with self.engine.begin() as conn:
+            conn.execute(
+                insert(audit).values(
+                    at=datetime.now(timezone.utc),
+                    actor=actor[:128],
+                    action=action[:64],
+                    target=target[:256],
+                    outcome=outcome[:32],
+                    client=client[:64],
+                    detail=detail[:512],
+                )
+            )
+
+    def list_audit(self, *, limit: int = 100, offset: int = 0) -> list[AuditRecord]:
+        """Newest first."""
+        query = select(audit).order_by(audit.c.id.desc()).limit(limit).offset(offset)
+        with self.engine.connect() as conn:
+            rows = conn.execute(query).mappings().all()
+        return [AuditRecord(**{**dict(r), "at": _utc(r["at"])}) for r in rows]
+
+    def _insert(self, table: Table, **values: Any) -> bool:
+        try:
+            with self.engine.begin() as conn:
+                conn.execute(insert(table).values(**values))
+        except IntegrityError:
+            return False
+        return True

@@ -14,7 +14,7 @@ import pytest
 import kitti_eval.cli as cli
 
 CLI = Path(cli.__file__).resolve().parent
-COMMAND_NAMES = ["demo", "gate", "compare", "frames", "inspect", "errors", "describe", "validate", "serve"]
+COMMAND_NAMES = ["demo", "gate", "compare", "frames", "inspect", "errors", "describe", "validate", "serve", "admin"]
 
 
 def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
@@ -48,22 +48,22 @@ def test_the_entry_module_only_builds_and_dispatches() -> None:
 
 
 def test_a_command_registers_with_one_entry_in_the_list(monkeypatch: pytest.MonkeyPatch, capsys) -> None:
-    """A module outside the package (as ``kitti_eval/cli_admin.py`` would be) with an ``add_parser(sub)``
-    joins the help, the parser and the dispatch by being added to ``COMMANDS``."""
+    """A module outside the package with an ``add_parser(sub)`` joins the help, the parser and the dispatch by
+    being added to ``COMMANDS``."""
     seen: list[Any] = []
 
     def add_parser(sub: Any) -> argparse.ArgumentParser:
-        p = sub.add_parser("admin", help="administer things")
+        p = sub.add_parser("tally", help="count things")
         p.add_argument("--token")
         p.set_defaults(run=lambda args: seen.append(args.token) or 7)
         return p
 
     monkeypatch.setattr(cli, "COMMANDS", (*cli.COMMANDS, add_parser))
-    assert cli.main(["admin", "--token", "t0"]) == 7
+    assert cli.main(["tally", "--token", "t0"]) == 7
     assert seen == ["t0"]
     assert cli.main(["--help"]) == 0
-    assert "admin               administer things" in capsys.readouterr().out
-    assert list(_subparsers(cli.build_parser())) == [*COMMAND_NAMES, "admin"]
+    assert "tally               count things" in capsys.readouterr().out
+    assert list(_subparsers(cli.build_parser())) == [*COMMAND_NAMES, "tally"]
 
 
 def test_the_old_names_still_build_the_parser_and_the_config() -> None:

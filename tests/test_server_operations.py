@@ -262,3 +262,20 @@ def pickle_bytes(obj: Any) -> bytes:
     import pickle
 
     return pickle.dumps(obj, protocol=4)
+
+
+def test_metrics_in_accounts_mode(service_client: Any) -> None:
+    """Accounts mode: /metrics needs a token like every other route (401 as JSON for a scraper without one),
+    unless the operator gave it a token of its own, which then is the only key to it."""
+    from server_accounts import add_token, bearer
+
+    with service_client(auth="accounts") as client:
+        r = client.get("/metrics")
+        assert r.status_code == 401 and r.json()["error"]["code"] == "unauthorized"
+        client.post("/v1/admin/users", json={"name": "ops", "admin": False}, headers=ADMIN)
+        _, token = add_token(client, "ops", read_only=True)
+        assert scrape(client, **bearer(token))
+    with service_client(auth="accounts", metrics_token="scrape-me") as client:
+        assert scrape(client, authorization="Bearer scrape-me")
+        assert client.get("/metrics").status_code == 401
+        assert client.get("/metrics", headers={"Authorization": "Bearer kte_0_wrong"}).status_code == 403

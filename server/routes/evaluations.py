@@ -11,7 +11,7 @@ from kitti_eval.core.result import EvalResult
 from kitti_eval.report.render import OutputFormat, render
 
 from ..compare import compare, render_comparison_markdown
-from ..deps import FormatDep, ServiceDep
+from ..deps import CallerDep, FormatDep, ServiceDep, WriteDep
 from ..errors import BadRequest
 from ..evaluator import EvalOptions, parse_labels
 from ..schemas import (
@@ -64,6 +64,7 @@ def _respond(record: EvaluationRecord, fmt: OutputFormat, status: int = 200) -> 
 )
 async def create_evaluation(
     service: ServiceDep,
+    caller: WriteDep,
     fmt: FormatDep,
     predictions: Annotated[
         UploadFile,
@@ -101,6 +102,13 @@ async def create_evaluation(
     commit: Annotated[str | None, Form(description="label: the code commit")] = None,
     epoch: Annotated[str | None, Form(description="label: the training epoch")] = None,
     label: Annotated[list[str] | None, Form(description="more labels as key=value; repeatable")] = None,
+    project: Annotated[
+        str | None,
+        Form(
+            description="accounts mode: the project the evaluation belongs to (default: the ground truth's, "
+            "else your only one); ignored in open mode"
+        ),
+    ] = None,
 ) -> Response:
     """Evaluate `predictions` against a ground truth and store the result with the inputs' sha256 and the
     labels. The JSON is the document `kitti-eval --format json` prints, plus `id` and `evaluation`."""
@@ -118,7 +126,14 @@ async def create_evaluation(
     )
     gt_in = FileIn(gt_file.file, gt_file.filename) if gt_file is not None else None
     record = await service.run(
-        service.evaluate, FileIn(predictions.file, predictions.filename), gt or None, gt_in, options, labels
+        service.evaluate,
+        FileIn(predictions.file, predictions.filename),
+        gt or None,
+        gt_in,
+        options,
+        labels,
+        caller,
+        project or None,
     )
     return _respond(record, fmt, status=201)
 
@@ -126,6 +141,7 @@ async def create_evaluation(
 @router.get("", response_model=EvaluationList, summary="History, newest first")
 def list_evaluations(
     service: ServiceDep,
+    caller: CallerDep,
     gt: Annotated[str | None, Query(description="only evaluations against this registered ground truth")] = None,
     model: str | None = None,
     commit: str | None = None,
@@ -135,7 +151,7 @@ def list_evaluations(
     offset: Annotated[int, Query(ge=0, le=1_000_000_000, description="skip this many (at most 10^9)")] = 0,
 ) -> dict[str, Any]:
     labels = parse_labels({"model": model, "commit": commit, "epoch": epoch}, label or [])
-    records = service.store.list_evaluations(gt_name=gt, labels=labels, limit=limit + 1, offset=offset)
+    records = service.list_evaluations(caller, gt_name=gt, labels=labels, limit=limit + 1, offset=offset)
     more = len(records) > limit
     return {
         "items": [evaluation_summary(r) for r in records[:limit]],
@@ -151,8 +167,8 @@ def list_evaluations(
     summary="One evaluation",
     responses={200: {"content": _TEXT_RESPONSES}},
 )
-def get_evaluation(service: ServiceDep, fmt: FormatDep, evaluation_id: str) -> Response:
-    return _respond(service.evaluation(evaluation_id), fmt)
+def get_evaluation(service: ServiceDep, caller: CallerDep, fmt: FormatDep, evaluation_id: str) -> Response:
+    return _respond(service.evaluation(evaluation_id, caller), fmt)
 
 
 @router.get(
@@ -161,8 +177,10 @@ def get_evaluation(service: ServiceDep, fmt: FormatDep, evaluation_id: str) -> R
     summary="Per-value differences: other minus base",
     responses={200: {"content": {"text/markdown": {"schema": {"type": "string"}}}}},
 )
-def compare_evaluations(service: ServiceDep, fmt: FormatDep, evaluation_id: str, other_id: str) -> Response:
-    base, other = service.evaluation(evaluation_id), service.evaluation(other_id)
+def compare_evaluations(
+    service: ServiceDep, caller: CallerDep, fmt: FormatDep, evaluation_id: str, other_id: str
+) -> Response:
+    base, other = service.evaluation(evaluation_id, caller), service.evaluation(other_id, caller)
     comparison = compare(base, other)
     if fmt is OutputFormat.JSON:
         return JSONResponse(comparison)

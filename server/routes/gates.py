@@ -18,7 +18,7 @@ from kitti_eval.analysis.gate import (
 )
 from kitti_eval.errors import ConfigError
 
-from ..deps import ServiceDep
+from ..deps import CallerDep, ServiceDep
 from ..errors import BadRequest, NotFound
 from ..evaluator import parse_labels
 from ..schemas import ErrorResponse
@@ -84,25 +84,26 @@ def _rules(req: GateRequest) -> GateRules:
 def run_gate_request(
     req: GateRequest,
     service: ServiceDep,
+    caller: CallerDep,
     format: Literal["json", "markdown", "junit"] = Query("json"),  # noqa: A002
 ) -> Response:
     """200 when every rule passes, 412 when one fails (so `curl --fail-with-body` gates a CI job), with the
     verdict as JSON, Markdown or JUnit XML."""
     rules = _rules(req)
-    current = service.evaluation(req.evaluation)
+    current = service.evaluation(req.evaluation, caller)
     baseline = None
     if req.baseline:
-        baseline = service.evaluation(req.baseline)
+        baseline = service.evaluation(req.baseline, caller)
     elif req.baseline_label:
         wanted = parse_labels({}, [req.baseline_label])
         found = [
             r
-            for r in service.store.list_evaluations(gt_name=current.gt_name, labels=wanted, limit=2)
+            for r in service.list_evaluations(caller, gt_name=current.gt_name, labels=wanted, limit=2)
             if r.id != current.id
         ]
         if not found:
             raise NotFound(f"no evaluation labelled {req.baseline_label} against the same ground truth")
-        baseline = service.evaluation(found[0].id)
+        baseline = service.evaluation(found[0].id, caller)
     assert current.result is not None
     try:
         verdict: Verdict = run_gate(current.result, rules, baseline.result if baseline else None)

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, File, Form, Response, UploadFile
+from fastapi import APIRouter, File, Form, Request, Response, UploadFile
 from fastapi.responses import JSONResponse
 
-from ..deps import AdminDep, ServiceDep
+from ..auth import client_of
+from ..deps import AdminCallerDep, CallerDep, ServiceDep
 from ..ground_truths import NAME_PATTERN
 from ..schemas import ErrorResponse, GroundTruthList, GroundTruthOut, ground_truth_out
 from ..service import FileIn
@@ -28,7 +29,6 @@ _admin_errors: dict[int | str, dict[str, Any]] = {
     "",
     status_code=201,
     response_model=GroundTruthOut,
-    dependencies=[AdminDep],
     summary="Register a named ground truth (admin)",
     responses={
         **_admin_errors,
@@ -38,33 +38,60 @@ _admin_errors: dict[int | str, dict[str, Any]] = {
 )
 async def register_ground_truth(
     service: ServiceDep,
+    admin: AdminCallerDep,
+    request: Request,
     name: Annotated[str, Form(pattern=NAME_PATTERN, description="e.g. kitti-val")],
     file: Annotated[UploadFile, File(description="an OpenPCDet infos .pkl[.gz], or a zip/tar of a label_2 folder")],
+    project: Annotated[
+        str | None, Form(description="only this project's members see and use it (default: everyone)")
+    ] = None,
+    sealed: Annotated[
+        bool,
+        Form(description="a test set: only aggregate results ever leave the service, no per-frame view"),
+    ] = False,
 ) -> JSONResponse:
     """Validate the file by loading it, keep it, and make it available as `gt=<name>`."""
-    record = await service.run(service.register_ground_truth, name, FileIn(file.file, file.filename))
+    record = await service.run(
+        lambda: service.register_ground_truth(
+            name, FileIn(file.file, file.filename), project=project or None, sealed=sealed
+        )
+    )
+    await service.run(
+        lambda: service.accounts.audit(
+            actor=admin.actor,
+            action="ground_truth.add",
+            target=record.name,
+            client=client_of(request.scope),
+            detail=f"project {record.project or '-'}{', sealed' if record.sealed else ''}",
+        )
+    )
     return JSONResponse(
         ground_truth_out(record), status_code=201, headers={"Location": f"/v1/ground-truths/{record.name}"}
     )
 
 
 @router.get("", response_model=GroundTruthList, summary="Registered ground truths")
-def list_ground_truths(service: ServiceDep) -> dict[str, Any]:
-    return {"items": [ground_truth_out(r) for r in service.store.list_ground_truths()]}
+def list_ground_truths(service: ServiceDep, caller: CallerDep) -> dict[str, Any]:
+    return {"items": [ground_truth_out(r) for r in service.list_ground_truths(caller)]}
 
 
 @router.get("/{name}", response_model=GroundTruthOut, summary="One registered ground truth")
-def get_ground_truth(service: ServiceDep, name: str) -> dict[str, Any]:
-    return ground_truth_out(service.ground_truths.record(name))
+def get_ground_truth(service: ServiceDep, caller: CallerDep, name: str) -> dict[str, Any]:
+    return ground_truth_out(service.ground_truth(name, caller))
 
 
 @router.delete(
     "/{name}",
     status_code=204,
-    dependencies=[AdminDep],
     responses=_admin_errors,
     summary="Delete a registered ground truth (admin); evaluations made with it stay",
 )
-def delete_ground_truth(service: ServiceDep, name: str) -> Response:
+def delete_ground_truth(service: ServiceDep, admin: AdminCallerDep, request: Request, name: str) -> Response:
     service.ground_truths.delete(name)
+    service.accounts.audit(
+        actor=admin.actor,
+        action="ground_truth.delete",
+        target=name,
+        client=client_of(request.scope),
+    )
     return Response(status_code=204)

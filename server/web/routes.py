@@ -6,7 +6,9 @@ The pages read the same records the JSON API serves and render them with Jinja2;
 
 from __future__ import annotations
 
+import hmac
 import math
+import secrets
 from collections.abc import Callable, Mapping, Sequence
 from functools import partial
 from pathlib import Path
@@ -20,14 +22,17 @@ from fastapi.responses import RedirectResponse, Response
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
 from starlette.templating import Jinja2Templates
+from starlette.types import Scope
 
 from kitti_eval.analysis.decomposition import AOS_TYPES, ERROR_TYPES, TP_ERRORS
 from kitti_eval.core.protocol import ALL_METRICS, KNOWN_CLASSES, PROTOCOLS
 from kitti_eval.errors import KittiEvalError
 
+from ..accounts import OPEN, Caller, TokenRefused
+from ..auth import CALLER_KEY, CSRF_COOKIE, SESSION_COOKIE, client_of
 from ..compare import compare
-from ..deps import ServiceDep
-from ..errors import MAX_ECHO_CHARS, ApiError, BadRequest, clip, echo, library_error_status
+from ..deps import CallerDep, ServiceDep, forbid
+from ..errors import MAX_ECHO_CHARS, ApiError, BadRequest, Forbidden, clip, echo, library_error_status
 from ..evaluator import ERRORS_SET, EvalOptions, parse_labels
 from ..routes.frames import MAX_SCORE
 from ..schemas import iso
@@ -35,7 +40,7 @@ from ..service import FileIn, Service
 from ..store import EvaluationRecord
 from .svg import bar_chart, bev_view, points_text, pr_chart
 
-__all__ = ["router", "templates", "STATIC_DIR"]
+__all__ = ["router", "templates", "STATIC_DIR", "sign_in_page"]
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 _TEMPLATES_DIR = Path(__file__).resolve().parent / "templates"
@@ -99,11 +104,114 @@ def _status(exc: ApiError | KittiEvalError | HTTPException) -> int:
 
 
 def _render(request: Request, template: str, status_code: int = 200, /, **context: Any) -> Response:
+    caller: Caller | None = request.scope.get(CALLER_KEY)
+    context.setdefault("caller", caller)  # None in open mode: no sign-in, no sign-out
     return templates.TemplateResponse(request, template, context, status_code=status_code)
 
 
-def _error_page(request: Request, exc: ApiError | KittiEvalError) -> Response:
-    return _render(request, "error.html", _status(exc), status=_status(exc), message=clip(str(exc)))
+def _check_csrf(caller: Caller, sent: str | None) -> None:
+    """A form that changes state, sent with a session cookie, must carry the session's CSRF token (a token
+    sent as a bearer header cannot be sent by another site's page, so needs none)."""
+    if caller.session and not (sent and caller.csrf and hmac.compare_digest(sent, caller.csrf)):
+        raise Forbidden("the form is stale or came from another site (no valid CSRF token); reload the page")
+
+
+# ----------------------------------------------------------------------------------------------- sign in
+
+
+def _secure(scope: Scope) -> bool:
+    return scope.get("scheme") == "https"
+
+
+async def sign_in_page(scope: Scope, status: int = 200, error: str | None = None) -> Response:
+    """The sign-in form (also the answer to a page requested without a valid session): a fresh CSRF token
+    in the form and in a cookie, which the form's POST must send back alike."""
+    request = Request(scope)
+    csrf = secrets.token_urlsafe(24)
+    response = _render(request, "signin.html", status, status=status, error=error, csrf=csrf, caller=None)
+    response.set_cookie(
+        CSRF_COOKIE, csrf, max_age=3600, path="/signin", httponly=True, samesite="strict", secure=_secure(scope)
+    )
+    return response
+
+
+@router.get("/signin")
+async def sign_in_form(request: Request, service: ServiceDep) -> Response:
+    if service.settings.auth != "accounts":
+        return RedirectResponse("/", status_code=303)
+    return await sign_in_page(request.scope)
+
+
+@router.post("/signin")
+async def sign_in(request: Request, service: ServiceDep) -> Response:
+    """Check the token once, open a session (its own token, in an HttpOnly SameSite=Strict cookie) and go
+    to the evaluations."""
+    if service.settings.auth != "accounts":
+        return RedirectResponse("/", status_code=303)
+    client = client_of(request.scope)
+    try:
+        service.limiter.check(client)
+        async with request.form(max_files=0, max_fields=4) as form:
+            token = form.get("token")
+            sent_csrf = form.get("csrf")
+        expected = request.cookies.get(CSRF_COOKIE)
+        if not (isinstance(sent_csrf, str) and expected and hmac.compare_digest(sent_csrf, expected)):
+            raise Forbidden("the sign-in form is stale or came from another site; try again")
+        if not isinstance(token, str) or not token.strip():
+            raise BadRequest("paste your token (kitti-eval admin token add prints one)")
+        try:
+            caller = await anyio.to_thread.run_sync(lambda: service.accounts.resolve(token.strip()))
+        except TokenRefused as e:
+            service.limiter.fail(client)
+            await anyio.to_thread.run_sync(partial(service.accounts.refused, e, client=client, target="/signin"))
+            raise
+        if caller.token_id is None:
+            raise BadRequest("the admin token cannot sign in to the pages; sign in with a user's token")
+        session = await anyio.to_thread.run_sync(
+            lambda: service.accounts.open_session(caller, service.settings.session_hours, client=client)
+        )
+    except (ApiError, HTTPException) as e:
+        status = e.status_code
+        message = e.detail if isinstance(e, HTTPException) else e.message
+        response = await sign_in_page(request.scope, status, clip(str(message)))
+        if isinstance(e, ApiError):
+            response.headers.update(e.headers)
+        return response
+    response = RedirectResponse("/", status_code=303)
+    response.set_cookie(
+        SESSION_COOKIE,
+        session,
+        max_age=int(service.settings.session_hours * 3600),
+        path="/",
+        httponly=True,
+        samesite="strict",
+        secure=_secure(request.scope),
+    )
+    response.delete_cookie(CSRF_COOKIE, path="/signin")
+    return response
+
+
+@router.post("/signout")
+async def sign_out(request: Request, service: ServiceDep, caller: CallerDep) -> Response:
+    """End the session (its token is revoked) and clear the cookie."""
+    if service.settings.auth != "accounts":
+        return RedirectResponse("/", status_code=303)
+    try:
+        async with request.form(max_files=0, max_fields=4) as form:
+            sent = form.get("csrf")
+        _check_csrf(caller, sent if isinstance(sent, str) else None)
+    except (ApiError, HTTPException) as e:
+        return _error_page(request, e)
+    client = client_of(request.scope)
+    await anyio.to_thread.run_sync(lambda: service.accounts.close_session(caller, client=client))
+    response = RedirectResponse("/signin", status_code=303)
+    response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
+    return response
+
+
+def _error_page(request: Request, exc: ApiError | KittiEvalError | HTTPException) -> Response:
+    message = exc.detail if isinstance(exc, HTTPException) else str(exc)
+    return _render(request, "error.html", _status(exc), status=_status(exc), message=clip(str(message)))
 
 
 def _url(path: str, **params: Any) -> str:
@@ -120,9 +228,9 @@ def model_name(record: EvaluationRecord) -> str:
 # -------------------------------------------------------------------------------------------------- home
 
 
-def _history(service: Service) -> list[dict[str, Any]]:
+def _history(service: Service, caller: Caller) -> list[dict[str, Any]]:
     rows = []
-    for record in service.store.list_evaluations(limit=_HISTORY):
+    for record in service.list_evaluations(caller, limit=_HISTORY):
         summary = {cls: (record.summary.get(cls) or {}).get("3d") for cls in _SUMMARY_CLASSES}
         rows.append({"record": record, "name": model_name(record), "summary": summary})
     return rows
@@ -131,6 +239,7 @@ def _history(service: Service) -> list[dict[str, Any]]:
 def _home(
     request: Request,
     service: Service,
+    caller: Caller,
     *,
     status: int = 200,
     error: str | None = None,
@@ -142,27 +251,40 @@ def _home(
         status,
         error=error,
         form=dict(form or {}),
-        ground_truths=[g.name for g in service.store.list_ground_truths()],
+        ground_truths=[g.name for g in service.list_ground_truths(caller)],
+        projects=_projects(service, caller),
         protocols=sorted(PROTOCOLS),
-        history=_history(service),
+        history=_history(service, caller),
         summary_classes=_SUMMARY_CLASSES,
         max_upload_bytes=service.settings.max_upload_bytes,
     )
 
 
+def _projects(service: Service, caller: Caller) -> list[str]:
+    """The projects an upload from the form may go to (accounts mode): the caller's, every one for admins."""
+    if service.settings.auth != "accounts":
+        return []
+    return service.store.list_projects() if caller.projects is None else sorted(caller.projects)
+
+
 @router.get("/")
-def home(request: Request, service: ServiceDep) -> Response:
-    return _home(request, service)
+def home(request: Request, service: ServiceDep, caller: CallerDep) -> Response:
+    return _home(request, service, caller)
 
 
 @router.post("/ui/evaluations")
-async def upload(request: Request, service: ServiceDep) -> Response:
+async def upload(request: Request, service: ServiceDep, caller: CallerDep) -> Response:
     """The upload form: evaluate (with curves; with the error decomposition when its box is ticked) and
     redirect to the new evaluation's page."""
     values: dict[str, str] = {}
     try:
         async with request.form(max_files=1, max_fields=16) as form:
             values = {k: v for k, v in form.items() if isinstance(v, str)}
+            _check_csrf(caller, values.get("csrf"))
+            if not caller.can_write:
+                raise await anyio.to_thread.run_sync(
+                    partial(forbid, service, request, caller, "this token is read-only")
+                )
             predictions = form.get("predictions")
             if not isinstance(predictions, UploadFile) or not predictions.filename:
                 raise BadRequest("choose a predictions file (a result.pkl, .pkl.gz, or a zip/tar of KITTI txt results)")
@@ -177,12 +299,14 @@ async def upload(request: Request, service: ServiceDep) -> Response:
                 None,
                 options,
                 labels,
+                caller,
+                values.get("project") or None,
             )
     except (ApiError, KittiEvalError, HTTPException) as e:
         message = e.detail if isinstance(e, HTTPException) else str(e)
         refill = {k: clip(v) for k, v in values.items()}  # the form as sent, within bounds
         return await anyio.to_thread.run_sync(
-            partial(_home, request, service, status=_status(e), error=clip(str(message)), form=refill)
+            partial(_home, request, service, caller, status=_status(e), error=clip(str(message)), form=refill)
         )
     return RedirectResponse(f"/evaluations/{quote(record.id)}", status_code=303)
 
@@ -262,7 +386,9 @@ def error_charts(result: Mapping[str, Any], difficulty: str, recall: str) -> dic
     return section
 
 
-async def _worst_frames(service: Service, record: EvaluationRecord, choice: Mapping[str, str]) -> dict[str, Any]:
+async def _worst_frames(
+    service: Service, record: EvaluationRecord, choice: Mapping[str, str], caller: Caller = OPEN
+) -> dict[str, Any]:
     section: dict[str, Any] = {"rows": [], "error": None}
     try:
         found = await service.run(
@@ -274,6 +400,7 @@ async def _worst_frames(service: Service, record: EvaluationRecord, choice: Mapp
                 difficulty=choice["difficulty"],
                 oset=choice["set"],
                 worst=_WORST,
+                caller=caller,
             )
         )
     except (ApiError, KittiEvalError) as e:
@@ -290,6 +417,7 @@ async def _worst_frames(service: Service, record: EvaluationRecord, choice: Mapp
 async def evaluation_page(
     request: Request,
     service: ServiceDep,
+    caller: CallerDep,
     evaluation_id: str,
     cls: str | None = None,
     metric: str = "3d",
@@ -299,7 +427,7 @@ async def evaluation_page(
     err_recall: str = "R40",
 ) -> Response:
     try:
-        record = await anyio.to_thread.run_sync(service.evaluation, evaluation_id)
+        record = await anyio.to_thread.run_sync(service.evaluation, evaluation_id, caller)
     except ApiError as e:
         return _error_page(request, e)
     result = record.result
@@ -328,7 +456,7 @@ async def evaluation_page(
             "difficulty": result["difficulties"],
             "set": sets,
         },
-        worst=await _worst_frames(service, record, choice),
+        worst=await _worst_frames(service, record, choice, caller),
     )
 
 
@@ -370,6 +498,7 @@ def _ap_values(comparison: Mapping[str, Any]) -> list[Mapping[str, Any]]:
 def compare_page(
     request: Request,
     service: ServiceDep,
+    caller: CallerDep,
     a: str | None = None,
     b: str | None = None,
     e: Annotated[list[str] | None, Query()] = None,
@@ -377,10 +506,10 @@ def compare_page(
     """``?a=<base>&b=<other>``; or ``?e=<id>&e=<id>`` (the history form without JavaScript), older first."""
     try:
         if a is None and b is None and e is not None and len(e) == 2:
-            a, b = sorted(e, key=lambda i: service.evaluation(i).created_at)
+            a, b = sorted(e, key=lambda i: service.evaluation(i, caller).created_at)
         if not a or not b:
             raise BadRequest("compare needs two evaluations: /compare?a=<base id>&b=<other id>")
-        base, other = service.evaluation(a), service.evaluation(b)
+        base, other = service.evaluation(a, caller), service.evaluation(b, caller)
     except ApiError as exc:
         return _error_page(request, exc)
     assert base.result is not None and other.result is not None
@@ -437,6 +566,7 @@ def frame_models(
 async def frame_page(
     request: Request,
     service: ServiceDep,
+    caller: CallerDep,
     frame_id: str,
     e: Annotated[list[str] | None, Query()] = None,
     cls: str = "Car",
@@ -462,7 +592,7 @@ async def frame_page(
             score=score or None,
         )
 
-    listed = await anyio.to_thread.run_sync(partial(service.store.list_evaluations, limit=_HISTORY))
+    listed = await anyio.to_thread.run_sync(partial(service.list_evaluations, caller, limit=_HISTORY))
     history = [{"id": r.id, "name": model_name(r), "created_at": r.created_at} for r in listed if r.id not in ids]
     context: dict[str, Any] = {
         "frame": clip(frame_id, MAX_ECHO_CHARS),
@@ -489,6 +619,7 @@ async def frame_page(
                 difficulty=difficulty,
                 oset=oset,
                 score_threshold=_parse_score(score),
+                caller=caller,
             )
         )
     except (ApiError, KittiEvalError) as exc:

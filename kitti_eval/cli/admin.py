@@ -1,0 +1,198 @@
+"""``kitti-eval admin``: users, projects, memberships, tokens, ground truths and the audit log of the service,
+run on the server's machine against its database (the service's settings: ``KITTI_EVAL_DATA_DIR``,
+``KITTI_EVAL_DATABASE_URL``, or ``--data-dir``/``--database-url``).
+
+Every change is recorded in the audit log as done by ``cli:<login name>``. ``token add`` prints the new
+token as the last line of stdout; it is shown this once and stored only as its sha256.
+
+Exit codes: 0 ok, 1 bad input (unknown user, taken name, unreadable file, no server extra), 2 usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import getpass
+import sys
+from pathlib import Path
+from typing import Any
+
+__all__ = ["add_parser", "run"]
+
+EXIT_OK, EXIT_INPUT, EXIT_USAGE = 0, 1, 2
+
+
+def add_parser(sub: Any) -> argparse.ArgumentParser:
+    """Add ``admin`` and its subcommands to the CLI's subparsers."""
+    p = sub.add_parser(
+        "admin",
+        help="accounts, projects, tokens and ground truths of the service (on the server's machine)",
+        description="Manage the service's accounts and ground truths directly in its database. Reads the "
+        "service's settings (KITTI_EVAL_DATA_DIR, KITTI_EVAL_DATABASE_URL); needs the server extra.",
+    )
+    p.add_argument("--data-dir", type=Path, help="KITTI_EVAL_DATA_DIR of the service")
+    p.add_argument("--database-url", help="KITTI_EVAL_DATABASE_URL of the service")
+    what = p.add_subparsers(dest="admin_what", metavar="WHAT", required=True)
+
+    user = what.add_parser("user", help="users").add_subparsers(dest="admin_action", metavar="ACTION", required=True)
+    u = user.add_parser("add", help="add a user")
+    u.add_argument("name")
+    u.add_argument("--admin", action="store_true", help="an admin: sees every project, may run admin actions")
+    user.add_parser("list", help="users and their projects")
+
+    project = what.add_parser("project", help="projects").add_subparsers(
+        dest="admin_action", metavar="ACTION", required=True
+    )
+    project.add_parser("add", help="add a project").add_argument("name")
+    project.add_parser("list", help="projects")
+
+    member = what.add_parser("member", help="memberships").add_subparsers(
+        dest="admin_action", metavar="ACTION", required=True
+    )
+    for action, helptext in (("add", "make USER a member of PROJECT"), ("remove", "end a membership")):
+        m = member.add_parser(action, help=helptext)
+        m.add_argument("user")
+        m.add_argument("project")
+
+    token = what.add_parser("token", help="tokens").add_subparsers(dest="admin_action", metavar="ACTION", required=True)
+    t = token.add_parser("add", help="a new token for USER, printed as the last line (shown once)")
+    t.add_argument("user")
+    t.add_argument("--read-only", action="store_true", help="may read and gate, not upload or change anything")
+    t.add_argument("--expires-days", type=float, metavar="N", help="valid for N days (default: until revoked)")
+    token.add_parser("revoke", help="revoke a token (and its web sessions) at once").add_argument("token_id")
+    token.add_parser("list", help="tokens (never their secrets)").add_argument("user", nargs="?")
+
+    gt = what.add_parser("ground-truth", help="ground truths").add_subparsers(
+        dest="admin_action", metavar="ACTION", required=True
+    )
+    g = gt.add_parser("add", help="register a ground truth")
+    g.add_argument("name")
+    g.add_argument("file", type=Path, help="an OpenPCDet infos .pkl[.gz], or a zip/tar of a label_2 folder")
+    g.add_argument("--project", help="only this project's members see and use it (default: everyone)")
+    g.add_argument("--sealed", action="store_true", help="a test set: aggregate results only, no per-frame view")
+
+    audit = what.add_parser("audit", help="the audit log, newest first")
+    audit.add_argument("--limit", type=int, default=50)
+    p.set_defaults(run=run)
+    return p
+
+
+def _say(msg: str) -> None:
+    print(f"kitti-eval admin: {msg}", file=sys.stderr)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        from pydantic import ValidationError
+        from sqlalchemy.exc import SQLAlchemyError
+
+        from kitti_eval_server.accounts import Accounts
+        from kitti_eval_server.errors import ApiError
+        from kitti_eval_server.settings import Settings
+        from kitti_eval_server.store import Store
+    except ImportError as e:
+        _say(f"error: needs the server extra: pip install 'kitti-eval[server]' ({e})")
+        return EXIT_INPUT
+    from ..errors import KittiEvalError
+
+    overrides = {k: v for k, v in (("data_dir", args.data_dir), ("database_url", args.database_url)) if v}
+    try:
+        settings = Settings(**overrides)
+    except ValidationError as e:
+        _say(f"error: invalid settings:\n{e}")
+        return EXIT_USAGE
+    actor = f"cli:{_login()}"
+    try:
+        if settings.database_url is None:  # SQLite in the data folder, which a first command creates
+            settings.data_dir.mkdir(parents=True, exist_ok=True)
+        if args.admin_what == "ground-truth":
+            return _ground_truth(args, settings, actor)
+        store = Store(settings.resolved_database_url)
+        try:
+            store.create_schema()
+            return _account_command(args, store, Accounts(store, lambda: ""), actor)
+        finally:
+            store.dispose()
+    except (ApiError, KittiEvalError) as e:
+        _say(f"error: {getattr(e, 'message', e)}")
+        return EXIT_INPUT
+    except SQLAlchemyError as e:
+        where = settings.resolved_database_url.split("@")[-1]  # not the password
+        _say(f"error: the database at {where} is not usable: {getattr(e, 'orig', None) or e}")
+        return EXIT_INPUT
+    except OSError as e:
+        _say(f"error: {e.strerror or e}: {e.filename or ''}".rstrip(": "))
+        return EXIT_INPUT
+
+
+def _login() -> str:
+    try:
+        return getpass.getuser()
+    except Exception:  # noqa: BLE001 - no login name (a container without a passwd entry)
+        return "unknown"
+
+
+def _account_command(args: argparse.Namespace, store: Any, accounts: Any, actor: str) -> int:
+    what, action = args.admin_what, getattr(args, "admin_action", None)
+    if what == "user" and action == "add":
+        user = accounts.add_user(args.name, is_admin=args.admin, actor=actor)
+        print(f"user {user.name}{' (admin)' if user.is_admin else ''}")
+    elif what == "user":
+        for user in store.list_users():
+            print(f"{user.name}\t{'admin' if user.is_admin else 'member'}\t{','.join(user.projects) or '-'}")
+    elif what == "project" and action == "add":
+        print(f"project {accounts.add_project(args.name, actor=actor)}")
+    elif what == "project":
+        for name in store.list_projects():
+            print(name)
+    elif what == "member" and action == "add":
+        accounts.add_member(args.user, args.project, actor=actor)
+        print(f"{args.user} is a member of {args.project}")
+    elif what == "member":
+        accounts.remove_member(args.user, args.project, actor=actor)
+        print(f"{args.user} is no longer a member of {args.project}")
+    elif what == "token" and action == "add":
+        scopes = ("read",) if args.read_only else ("read", "write")
+        record, token = accounts.add_token(args.user, scopes=scopes, expires_days=args.expires_days, actor=actor)
+        expires = record.expires_at.isoformat() if record.expires_at else "never"
+        print(f"token id {record.id} for {record.user_name}: scopes {record.scopes}, expires {expires}")
+        print("the token follows; it is shown this once (only its sha256 is kept):")
+        print(token)
+    elif what == "token" and action == "revoke":
+        accounts.revoke_token(args.token_id, actor=actor)
+        print(f"token {args.token_id} revoked")
+    elif what == "token":
+        for t in store.list_tokens(args.user):
+            state = "revoked" if t.revoked_at else f"expires {t.expires_at.isoformat()}" if t.expires_at else "active"
+            print(f"{t.id}\t{t.user_name}\t{t.scopes}\t{state}")
+    elif what == "audit":
+        for r in accounts.audit_log(limit=max(1, args.limit)):
+            print(f"{r.at.isoformat()}\t{r.actor}\t{r.action}\t{r.target}\t{r.outcome}\t{r.client}\t{r.detail}")
+    else:  # pragma: no cover - argparse requires an action
+        _say(f"error: unknown command {what} {action}")
+        return EXIT_USAGE
+    return EXIT_OK
+
+
+def _ground_truth(args: argparse.Namespace, settings: Any, actor: str) -> int:
+    from kitti_eval_server.service import FileIn, Service
+
+    service = Service(settings)
+    try:
+        service.scratch_space.open()
+        service.store.create_schema()
+        with open(args.file, "rb") as fh:
+            record = service.register_ground_truth(
+                args.name, FileIn(fh, args.file.name), project=args.project, sealed=args.sealed
+            )
+        service.accounts.audit(
+            actor=actor,
+            action="ground_truth.add",
+            target=record.name,
+            client="local",
+            detail=f"project {record.project or '-'}{', sealed' if record.sealed else ''}",
+        )
+    finally:
+        service.stop()
+    sealed = ", sealed" if record.sealed else ""
+    print(f"ground truth {record.name}: {record.frames} frames, {record.boxes} boxes{sealed}, sha256 {record.sha256}")
+    return EXIT_OK

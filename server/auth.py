@@ -1,0 +1,190 @@
+"""Accounts mode at the door: every request but the probes, the static files and the sign-in page carries a
+token (``Authorization: Bearer``, or the web session's cookie), checked before its body is read.
+
+A client (by IP address) whose tokens were refused ``auth_max_failures`` times within ``auth_failure_window_s``
+gets 429 with Retry-After until the window has passed, without its token being looked at. The count lives in
+the process: each replica keeps its own, so behind a load balancer over n replicas a client gets at most n
+times the limit.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict, deque
+from collections.abc import Awaitable, Callable
+from functools import partial
+from http.cookies import SimpleCookie
+
+import anyio.to_thread
+from starlette.responses import Response
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from .accounts import Accounts, Caller, TokenRefused
+from .errors import TooManyRequests, Unauthorized, error_response
+
+__all__ = ["AuthMiddleware", "FailureLimiter", "CALLER_KEY", "SESSION_COOKIE", "CSRF_COOKIE", "is_public", "client_of"]
+
+CALLER_KEY = "kitti_eval.caller"
+SESSION_COOKIE = "kitti_eval_session"
+#: the sign-in form's CSRF token (before there is a session)
+CSRF_COOKIE = "kitti_eval_signin"
+_PUBLIC = frozenset({"/healthz", "/readyz", "/signin", "/favicon.ico"})
+_PUBLIC_PREFIXES = ("/static/", "/static-offline-docs/")
+#: clients whose failures are remembered at once (the oldest are forgotten first)
+_MAX_CLIENTS = 10_000
+
+
+def is_public(path: str) -> bool:
+    return path in _PUBLIC or path.startswith(_PUBLIC_PREFIXES)
+
+
+def is_api(path: str) -> bool:
+    """Paths a program calls (answered with JSON); the others are pages (answered with the sign-in page)."""
+    return path.startswith("/v1/") or path in ("/v1", "/openapi.json", "/metrics")
+
+
+def client_of(scope: Scope) -> str:
+    client = scope.get("client")
+    return str(client[0]) if client else "unknown"
+
+
+class FailureLimiter:
+    """Refused tokens per client within a sliding window; in memory, per process."""
+
+    def __init__(self, max_failures: int, window_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.max_failures = max_failures
+        self.window_s = window_s
+        self.clock = clock
+        self._failures: OrderedDict[str, deque[float]] = OrderedDict()
+
+    def _recent(self, client: str) -> deque[float] | None:
+        times = self._failures.get(client)
+        if times is None:
+            return None
+        cutoff = self.clock() - self.window_s
+        while times and times[0] <= cutoff:
+            times.popleft()
+        if not times:
+            del self._failures[client]
+            return None
+        return times
+
+    def retry_after(self, client: str) -> int | None:
+        """Seconds until the client may try again, or None when it may now."""
+        times = self._recent(client)
+        if times is None or len(times) < self.max_failures:
+            return None
+        return max(1, int(times[0] + self.window_s - self.clock()) + 1)
+
+    def fail(self, client: str) -> None:
+        times = self._recent(client) or deque()
+        times.append(self.clock())
+        while len(times) > self.max_failures:
+            times.popleft()
+        self._failures[client] = times
+        self._failures.move_to_end(client)
+        while len(self._failures) > _MAX_CLIENTS:
+            self._failures.popitem(last=False)
+
+    def check(self, client: str) -> None:
+        retry = self.retry_after(client)
+        if retry is not None:
+            raise TooManyRequests(f"too many refused tokens from this address; retry in {retry} s", retry)
+
+
+def _header(scope: Scope, name: bytes) -> str | None:
+    for key, value in scope.get("headers", ()):
+        if key.lower() == name:
+            return bytes(value).decode("latin-1")
+    return None
+
+
+def bearer(scope: Scope) -> str | None:
+    value = _header(scope, b"authorization")
+    if value is None:
+        return None
+    scheme, _, credentials = value.strip().partition(" ")
+    credentials = credentials.strip()
+    return credentials if scheme.lower() == "bearer" and credentials else None
+
+
+def cookie(scope: Scope, name: str) -> str | None:
+    value = _header(scope, b"cookie")
+    if not value:
+        return None
+    jar: SimpleCookie = SimpleCookie()
+    try:
+        jar.load(value)
+    except Exception:  # noqa: BLE001 - a malformed cookie header is no cookie
+        return None
+    morsel = jar.get(name)
+    return morsel.value if morsel is not None and morsel.value else None
+
+
+class AuthMiddleware:
+    """Resolve the caller of every non-public request (``scope[CALLER_KEY]``) or answer 401/429 itself."""
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        *,
+        accounts: Accounts,
+        limiter: FailureLimiter,
+        sign_in_page: Callable[[Scope, int, str | None], Awaitable[Response]],
+        own_token_paths: frozenset[str] = frozenset(),
+    ) -> None:
+        self.app = app
+        self.accounts = accounts
+        self.limiter = limiter
+        self.sign_in_page = sign_in_page
+        #: paths that check a token of their own (``/metrics`` with KITTI_EVAL_METRICS_TOKEN: a scraper's)
+        self.own_token_paths = own_token_paths
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or is_public(scope["path"]) or scope["path"] in self.own_token_paths:
+            await self.app(scope, receive, send)
+            return
+        path = scope["path"]
+        client = client_of(scope)
+        token = bearer(scope)
+        via_cookie = False
+        if token is None:
+            token = cookie(scope, SESSION_COOKIE)
+            via_cookie = token is not None
+        retry = self.limiter.retry_after(client)
+        if retry is not None:
+            error: Unauthorized | TooManyRequests = TooManyRequests(
+                f"too many refused tokens from this address; retry in {retry} s", retry
+            )
+            await self._refuse(scope, receive, send, error)
+            return
+        if token is None:
+            await self._refuse(scope, receive, send, Unauthorized("sign in: send 'Authorization: Bearer <token>'"))
+            return
+        try:
+            caller: Caller = await anyio.to_thread.run_sync(lambda: self.accounts.resolve(token, session=via_cookie))
+        except TokenRefused as e:
+            self.limiter.fail(client)
+            await anyio.to_thread.run_sync(partial(self.accounts.refused, e, client=client, target=path))
+            await self._refuse(scope, receive, send, e, clear_cookie=via_cookie)
+            return
+        scope[CALLER_KEY] = caller
+        await self.app(scope, receive, send)
+
+    async def _refuse(
+        self,
+        scope: Scope,
+        receive: Receive,
+        send: Send,
+        error: Unauthorized | TooManyRequests,
+        clear_cookie: bool = False,
+    ) -> None:
+        if is_api(scope["path"]):
+            response: Response = error_response(error.status_code, error.code, error.message, error.headers)
+        else:
+            response = await self.sign_in_page(scope, error.status_code, error.message)
+            response.headers.update(error.headers)
+        if clear_cookie:
+            response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
+        response.headers["connection"] = "close"  # the body, if any, is not read
+        await response(scope, receive, send)

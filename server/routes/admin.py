@@ -1,0 +1,154 @@
+"""``/v1/admin``: users, projects, memberships, tokens and the audit log. Admins only (the admin token, or in
+accounts mode an admin's token that may write); every change is in the audit log."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field
+
+from ..accounts import READ, WRITE
+from ..auth import client_of
+from ..deps import AdminCallerDep, BearerDep, ServiceDep, require_admin
+from ..schemas import ErrorResponse, iso
+from ..store import TokenRecord, UserRecord
+
+router = APIRouter(
+    prefix="/v1/admin",
+    tags=["admin"],
+    responses={
+        401: {"model": ErrorResponse, "description": "no token, or not a valid one"},
+        403: {"model": ErrorResponse, "description": "not an admin, or a read-only token"},
+        404: {"model": ErrorResponse, "description": "no such user, project or token"},
+        409: {"model": ErrorResponse, "description": "the name is taken"},
+    },
+)
+
+
+class UserIn(BaseModel):
+    name: str = Field(description="1-64 letters, digits, '.', '_' or '-'", max_length=1000)
+    admin: bool = False
+
+
+class ProjectIn(BaseModel):
+    name: str = Field(max_length=1000)
+
+
+class MemberIn(BaseModel):
+    user: str = Field(max_length=1000)
+    project: str = Field(max_length=1000)
+
+
+class TokenIn(BaseModel):
+    user: str = Field(max_length=1000)
+    read_only: bool = Field(False, description="may read (and gate) but not upload or change anything")
+    expires_days: float | None = Field(None, description="valid this many days (default: until revoked)")
+
+
+def _user(record: UserRecord) -> dict[str, Any]:
+    return {"name": record.name, "admin": record.is_admin, "projects": list(record.projects)}
+
+
+def _token(record: TokenRecord) -> dict[str, Any]:
+    """A token's record; never its secret or digest."""
+    return {
+        "id": record.id,
+        "user": record.user_name,
+        "scopes": record.scopes.split(","),
+        "created_at": iso(record.created_at),
+        "expires_at": iso(record.expires_at) if record.expires_at else None,
+        "revoked": record.revoked_at is not None,
+    }
+
+
+@router.get("/users", summary="Users and their projects")
+def list_users(service: ServiceDep, caller: AdminCallerDep) -> dict[str, Any]:
+    return {"items": [_user(u) for u in service.store.list_users()]}
+
+
+@router.post("/users", status_code=201, summary="Add a user")
+def add_user(body: UserIn, service: ServiceDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
+    user = service.accounts.add_user(
+        body.name, is_admin=body.admin, actor=caller.actor, client=client_of(request.scope)
+    )
+    return _user(user)
+
+
+@router.get("/projects", summary="Projects")
+def list_projects(service: ServiceDep, caller: AdminCallerDep) -> dict[str, Any]:
+    return {"items": [{"name": p} for p in service.store.list_projects()]}
+
+
+@router.post("/projects", status_code=201, summary="Add a project")
+def add_project(body: ProjectIn, service: ServiceDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
+    return {"name": service.accounts.add_project(body.name, actor=caller.actor, client=client_of(request.scope))}
+
+
+@router.post("/members", status_code=201, summary="Make a user a member of a project")
+def add_member(body: MemberIn, service: ServiceDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
+    service.accounts.add_member(body.user, body.project, actor=caller.actor, client=client_of(request.scope))
+    return _user(service.accounts.user(body.user))
+
+
+@router.delete("/members/{user}/{project}", status_code=204, summary="End a membership")
+def remove_member(user: str, project: str, service: ServiceDep, caller: AdminCallerDep, request: Request) -> Response:
+    service.accounts.remove_member(user, project, actor=caller.actor, client=client_of(request.scope))
+    return Response(status_code=204)
+
+
+@router.post("/tokens", status_code=201, summary="A new token for a user (shown once)")
+def add_token(body: TokenIn, service: ServiceDep, caller: AdminCallerDep, request: Request) -> JSONResponse:
+    record, token = service.accounts.add_token(
+        body.user,
+        scopes=(READ,) if body.read_only else (READ, WRITE),
+        expires_days=body.expires_days,
+        actor=caller.actor,
+        client=client_of(request.scope),
+    )
+    return JSONResponse({**_token(record), "token": token}, status_code=201, headers={"Cache-Control": "no-store"})
+
+
+@router.get("/tokens", summary="Tokens (never their secrets)")
+def list_tokens(
+    service: ServiceDep, caller: AdminCallerDep, user: Annotated[str | None, Query(max_length=1000)] = None
+) -> dict[str, Any]:
+    return {"items": [_token(t) for t in service.store.list_tokens(user)]}
+
+
+@router.delete("/tokens/{token_id}", status_code=204, summary="Revoke a token (and its web sessions)")
+def revoke_token(token_id: str, service: ServiceDep, caller: AdminCallerDep, request: Request) -> Response:
+    service.accounts.revoke_token(token_id, actor=caller.actor, client=client_of(request.scope))
+    return Response(status_code=204)
+
+
+@router.get("/audit", summary="The audit log, newest first")
+def list_audit(
+    service: ServiceDep,
+    request: Request,
+    credentials: BearerDep,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0,
+) -> dict[str, Any]:
+    # the admin check here rather than as a dependency: bad paging parameters are 422 whoever asks, like
+    # every numeric parameter of the API
+    require_admin(service, request, credentials)
+    rows = service.accounts.audit_log(limit=limit, offset=offset)
+    return {
+        "items": [
+            {
+                "id": r.id,
+                "at": iso(r.at),
+                "actor": r.actor,
+                "action": r.action,
+                "target": r.target,
+                "outcome": r.outcome,
+                "client": r.client,
+                "detail": r.detail,
+            }
+            for r in rows
+        ],
+        "limit": limit,
+        "offset": offset,
+    }
