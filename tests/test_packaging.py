@@ -21,7 +21,6 @@ else:  # pragma: no cover - Python 3.10
 ROOT = Path(__file__).resolve().parent.parent
 #: import name -> the folder it is installed from
 SOURCES = {"kitti_eval": ROOT / "kitti_eval", "kitti_eval_server": ROOT / "server"}
-TEMPLATES = {"base", "compare", "error", "evaluation", "frame", "home", "macros"}
 
 
 def _setuptools() -> dict:
@@ -105,8 +104,10 @@ def test_the_wheel_installs_kitti_eval_server_and_no_server(tmp_path: Path) -> N
     names = set(zipfile.ZipFile(wheel).namelist())
     assert {n.split("/")[0] for n in names} == {"kitti_eval", "kitti_eval_server", "kitti_eval-0.1.0.dist-info"}
     assert {n for n in names if n.endswith(".py")} == _source_files("*.py")
+    templates = {p.name for p in (ROOT / "server" / "web" / "templates").glob("*.html")}
+    assert {"base.html", "evaluation.html", "signin.html"} <= templates
     assert {n for n in names if n.startswith("kitti_eval_server/web/templates/")} == {
-        f"kitti_eval_server/web/templates/{t}.html" for t in TEMPLATES
+        f"kitti_eval_server/web/templates/{t}" for t in templates
     }
     assert {"kitti_eval_server/web/static/app.css", "kitti_eval_server/web/static/app.js"} < names
     assert {"kitti_eval/data/demo/kitti_infos_val.pkl.gz", "kitti_eval/data/demo/result.pkl.gz"} < names
@@ -129,6 +130,6 @@ def test_the_wheel_installs_kitti_eval_server_and_no_server(tmp_path: Path) -> N
     site = Path(package).parent.parent
     assert Path(package) == site / "kitti_eval_server" / "__init__.py" and site.is_relative_to(venv)
     assert (site / "kitti_eval_server" / "web" / "routes.py").is_file()
-    assert {p.stem for p in (site / "kitti_eval_server" / "web" / "templates").iterdir()} == TEMPLATES
+    assert {p.name for p in (site / "kitti_eval_server" / "web" / "templates").iterdir()} == templates
     assert not (site / "server").exists()
     assert importlib.util.find_spec("kitti_eval_server") is not None  # this environment's too
