@@ -363,3 +363,26 @@ def test_coco_style_golden(golden):
     assert f"\n3d   AP:{want}\n" in text
     # the mean of the ten R11 values lies between the values at 0.50 and at 0.95
     assert 0 < r.coco["R11"]["Car"]["3d"]["moderate"] < r.ap["loose"]["R11"]["Car"]["3d"]["moderate"]
+
+
+def test_monocular_2d_results_of_size_zero_are_evaluated(golden):
+    """mmdetection3d's monocular metric writes 2D-only detections as dimensions 0 at location -1000, rotation 0
+    and alpha 0, and evaluates them in 2D (``eval_types=['bbox']``): their 2D AP is that of the same 2D boxes
+    with their 3D fields (2D matching reads only boxes and scores)."""
+    gt, dt, _ = golden
+    mono = []
+    for d in dt:
+        n = len(d["score"])
+        mono.append(
+            {
+                **d,
+                "dimensions": np.zeros((n, 3), np.float32),
+                "location": np.full((n, 3), -1000.0, np.float32),
+                "rotation_y": np.zeros(n),
+                "alpha": np.zeros(n),
+            }
+        )
+    with pytest.warns(UserWarning, match="predicted boxes .* a size that is not positive"):
+        _, got = kitti_eval(gt, mono, ["Car", "Pedestrian", "Cyclist"], eval_types=["bbox"])
+    _, want = kitti_eval(gt, dt, ["Car", "Pedestrian", "Cyclist"], eval_types=["bbox"])
+    assert got == want and len(got) == 2 * (3 * 2 * 3 + 3)
