@@ -41,7 +41,7 @@ from kitti_eval.errors import InputError, KittiEvalError
 from kitti_eval.io.submission import SubmissionRules, validate_submission
 
 from .accounts import Accounts, Caller
-from .errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, echo
+from .errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
 from .evaluator import EvalOptions, evaluate_document
 from .service import FileIn, Service, sealed_document
 from .store import GroundTruthRecord, QuotaRefused, new_id
@@ -487,8 +487,10 @@ class Benchmarks:
         return {"benchmark": name, "rescored": done, "failed": failed, "ground_truth_sha256": record.sha256}
 
     # -- participants -------------------------------------------------------------------------------------
-    def submit(self, name: str, predictions: FileIn, caller: Caller) -> dict[str, Any]:
+    def submit(self, name: str, predictions: FileIn, caller: Caller, *, client: str = "local") -> dict[str, Any]:
         """Validate, count against the quota and accept (one transaction), evaluate, store."""
+        if self.service.draining.is_set():
+            raise NotReady("the service is shutting down; submit again in a moment")
         if self.service.settings.auth != "accounts":
             raise Forbidden("benchmarks take submissions in accounts mode (KITTI_EVAL_AUTH=accounts)")
         if caller.token_id is None:
@@ -541,7 +543,9 @@ class Benchmarks:
             except BaseException:
                 self.store.update_submission(submission_id, status="failed")
                 raise
-        self.accounts.audit(actor=caller.actor, action="submission.add", target=f"{name} {submission_id}", client="-")
+        self.accounts.audit(
+            actor=caller.actor, action="submission.add", target=f"{name} {submission_id}", client=client
+        )
         return self.submission(name, submission_id, caller)
 
     def _validate(self, file: Any, filename: str, gt: Annotations, scratch: Path) -> None:

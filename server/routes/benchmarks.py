@@ -191,13 +191,15 @@ async def submit(
     benchmarks: BenchmarksDep,
     service: ServiceDep,
     caller: WriteDep,
+    request: Request,
     predictions: Annotated[
         UploadFile, File(description="a zip or tar of KITTI result txt files (one a test frame), or a result.pkl")
     ],
 ) -> JSONResponse:
     file = FileIn(predictions.file, predictions.filename)
     try:
-        body = await service.run(benchmarks.submit, name, file, caller)
+        client = client_of(request.scope)
+        body = await service.run(lambda: benchmarks.submit(name, file, caller, client=client))
     except InvalidSubmission as e:
         out = error_body(e.code, e.message)
         out["error"]["problems"] = e.problems
