@@ -228,3 +228,15 @@ def test_markdown_descriptions_are_escaped() -> None:
     assert "<strong>bold</strong>" in out and '<a href="https://a.b/c" rel="nofollow noopener">x</a>' in out
     assert "<ul><li>one</li><li>two</li></ul>" in out and out.startswith("<h3>Rules</h3>")
     assert "<a" not in render_markdown("[x](javascript:alert(1))")  # only http(s) links become links
+
+
+def test_validate_against_a_benchmark_url_refuses_what_is_not_one() -> None:
+    from server_helpers import free_port
+
+    from kitti_eval.cli.validate import fetch_frames
+    from kitti_eval.errors import ConfigError, InputError
+
+    with pytest.raises(ConfigError, match="HOST/benchmarks/NAME"):
+        fetch_frames("ftp://example.org/benchmarks/x")
+    with pytest.raises(InputError, match="cannot fetch the frame ids"):
+        fetch_frames(f"http://127.0.0.1:{free_port()}/benchmarks/bench")
