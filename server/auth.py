@@ -9,6 +9,7 @@ times the limit.
 
 from __future__ import annotations
 
+import re
 import time
 from collections import OrderedDict, deque
 from collections.abc import Awaitable, Callable
@@ -30,12 +31,23 @@ SESSION_COOKIE = "kitti_eval_session"
 CSRF_COOKIE = "kitti_eval_signin"
 _PUBLIC = frozenset({"/healthz", "/readyz", "/signin", "/favicon.ico"})
 _PUBLIC_PREFIXES = ("/static/", "/static-offline-docs/")
+#: a benchmark's description and board: read without a token when the benchmark is public (the route decides;
+#: a request that carries a token is checked as anywhere else)
+_BOARD_PATHS = re.compile(r"^(/v1/benchmarks(/[^/]+(/leaderboard|/frames)?)?|/benchmarks(/[^/]+)?)$")
 #: clients whose failures are remembered at once (the oldest are forgotten first)
 _MAX_CLIENTS = 10_000
 
 
 def is_public(path: str) -> bool:
-    return path in _PUBLIC or path.startswith(_PUBLIC_PREFIXES)
+    """Paths answered without a token: the probes, the static files, the sign-in page, and the boards of public
+    benchmarks (:func:`is_board`)."""
+    return path in _PUBLIC or path.startswith(_PUBLIC_PREFIXES) or is_board(path)
+
+
+def is_board(path: str) -> bool:
+    """Read (GET) without a token, a benchmark's page, description, frame ids and leaderboard are served when the
+    benchmark is public; the route answers 404 for the others."""
+    return _BOARD_PATHS.fullmatch(path) is not None
 
 
 def is_api(path: str) -> bool:
@@ -141,16 +153,20 @@ class AuthMiddleware:
         self.own_token_paths = own_token_paths
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or is_public(scope["path"]) or scope["path"] in self.own_token_paths:
+        path = scope.get("path", "")
+        board = scope["type"] == "http" and is_board(path)
+        if scope["type"] != "http" or (is_public(path) and not board) or path in self.own_token_paths:
             await self.app(scope, receive, send)
             return
-        path = scope["path"]
         client = client_of(scope)
         token = bearer(scope)
         via_cookie = False
         if token is None:
             token = cookie(scope, SESSION_COOKIE)
             via_cookie = token is not None
+        if token is None and board and scope.get("method") in ("GET", "HEAD"):
+            await self.app(scope, receive, send)  # no caller: the route serves public benchmarks only
+            return
         retry = self.limiter.retry_after(client)
         if retry is not None:
             error: Unauthorized | TooManyRequests = TooManyRequests(

@@ -21,15 +21,17 @@ from pydantic import ValidationError
 from kitti_eval import __version__
 
 from .auth import AuthMiddleware
+from .benchmarks import Benchmarks
 from .errors import install_error_handlers
 from .middleware import AdmissionMiddleware, BodyMiddleware
 from .observability import Metrics, RequestMiddleware, configure_logging
-from .routes import admin, evaluations, frames, gates, ground_truths, health, metrics
+from .routes import admin, benchmarks, evaluations, frames, gates, ground_truths, health, metrics
 from .service import Service
 from .settings import Settings, default_data_dir
 from .shutdown import Drainer
 from .web import STATIC_DIR
 from .web import router as web_router
+from .web.benchmarks import router as benchmark_pages
 from .web.routes import sign_in_page
 
 __all__ = ["create_app", "serve"]  # and `app`, built on first access
@@ -77,6 +79,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.service = service
     app.state.metrics = app_metrics
+    app.state.benchmarks = Benchmarks(service)
     install_error_handlers(app)
     app.include_router(health.router)
     app.include_router(evaluations.router)
@@ -85,7 +88,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(frames.router)
     app.include_router(metrics.router)
     app.include_router(admin.router)
+    app.include_router(benchmarks.router)
     app.include_router(web_router)
+    app.include_router(benchmark_pages)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     # outermost last: a request is admitted to the evaluations once its body has arrived in full
     app.add_middleware(

@@ -60,6 +60,10 @@ __all__ = [
     "UserRecord",
     "TokenRecord",
     "AuditRecord",
+    "benchmarks",
+    "submissions",
+    "quota_locks",
+    "QuotaRefused",
 ]
 
 metadata = MetaData()
@@ -180,6 +184,68 @@ audit = Table(
     Column("detail", String(512), nullable=False),
     Index("ix_audit_at", "at"),
 )
+
+
+#: hosted benchmarks on a sealed ground truth (see kitti_eval_server.benchmarks)
+benchmarks = Table(
+    "benchmarks",
+    metadata,
+    Column("name", String(64), primary_key=True),
+    Column("title", String(200), nullable=False),
+    Column("description", String(20000), nullable=False),
+    Column("gt_name", String(64), nullable=False),
+    Column("project", String(64), nullable=True),  # the ground truth's project (None: shared)
+    Column("config", _JSON, nullable=False),  # options, key, columns, quota, split percent
+    Column("split_seed", String(64), nullable=True),  # secret: draws the public part of the test frames
+    Column("public", Boolean, nullable=False),
+    Column("opens_at", DateTime(timezone=True), nullable=False),
+    Column("closes_at", DateTime(timezone=True), nullable=True),
+    Column("closed", Boolean, nullable=False),  # closed by hand (whatever closes_at says)
+    Column("revealed", Boolean, nullable=False),  # the private ranking is shown
+    Column("created_at", DateTime(timezone=True), nullable=False),
+)
+
+submissions = Table(
+    "submissions",
+    metadata,
+    Column("id", String(32), primary_key=True),
+    Column("benchmark", String(64), ForeignKey("benchmarks.name", ondelete="CASCADE"), nullable=False),
+    Column("participant", String(64), nullable=False),
+    Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("status", String(16), nullable=False),  # accepted | scored | failed
+    Column("pred_filename", String(255), nullable=False),
+    Column("pred_sha256", String(64), nullable=False),
+    Column("pred_size", BigInteger, nullable=False),
+    Column("gt_sha256", String(64), nullable=True),  # the ground truth it was last scored against
+    Column("scored_at", DateTime(timezone=True), nullable=True),
+    Column("result", _JSON, nullable=True),  # the (sealed) evaluation document on every test frame
+    Column("scores", _JSON, nullable=True),  # {"all"|"public"|"private": {column: AP}}
+    Column("published", Boolean, nullable=False),
+    Column("method", String(100), nullable=True),
+    Column("anonymous", Boolean, nullable=False),
+    Column("affiliation", String(200), nullable=True),
+    Column("link", String(500), nullable=True),
+    Column("published_at", DateTime(timezone=True), nullable=True),
+    Column("disqualified", Boolean, nullable=False),
+    Index("ix_submissions_quota", "benchmark", "participant", "created_at"),
+)
+
+#: one row per (benchmark, participant), locked while a submission is counted against the quota
+quota_locks = Table(
+    "quota_locks",
+    metadata,
+    Column("benchmark", String(64), primary_key=True),
+    Column("participant", String(64), primary_key=True),
+)
+
+
+class QuotaRefused(Exception):
+    """No room in the quota: ``retry_at`` is when the oldest accepted submission of the window leaves it."""
+
+    def __init__(self, retry_at: datetime, used: int) -> None:
+        super().__init__(f"quota used ({used})")
+        self.retry_at = retry_at
+        self.used = used
 
 
 @dataclass(frozen=True)
@@ -587,6 +653,101 @@ class Store:
         with self.engine.connect() as conn:
             rows = conn.execute(query).mappings().all()
         return [AuditRecord(**{**dict(r), "at": _utc(r["at"])}) for r in rows]
+
+    # -- benchmarks ----------------------------------------------------------------------------------------
+    def add_benchmark(self, values: Mapping[str, Any]) -> bool:
+        """False if the name is taken."""
+        return self._insert(benchmarks, **values)
+
+    def get_benchmark(self, name: str) -> dict[str, Any] | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(benchmarks).where(benchmarks.c.name == name)).mappings().first()
+        return None if row is None else self._dated(row, "opens_at", "closes_at", "created_at")
+
+    def list_benchmarks(self) -> list[dict[str, Any]]:
+        with self.engine.connect() as conn:
+            rows = conn.execute(select(benchmarks).order_by(benchmarks.c.name)).mappings().all()
+        return [self._dated(r, "opens_at", "closes_at", "created_at") for r in rows]
+
+    def update_benchmark(self, name: str, **values: Any) -> bool:
+        with self.engine.begin() as conn:
+            done = conn.execute(update(benchmarks).where(benchmarks.c.name == name).values(**values))
+        return bool(done.rowcount)
+
+    def accept_submission(self, values: Mapping[str, Any], *, limit: int, window_start: datetime, window: Any) -> None:
+        """Insert the submission if its participant has fewer than ``limit`` submissions in this benchmark
+        since ``window_start``; else raise :class:`QuotaRefused`. Counting and inserting are one transaction
+        that holds a write lock for the (benchmark, participant) pair: on PostgreSQL the pair's row in
+        ``quota_locks`` (``SELECT ... FOR UPDATE``), on SQLite the database's write lock (``BEGIN
+        IMMEDIATE``). Concurrent submissions, from any number of servers on the database, are counted one
+        after another, so none is admitted over the limit."""
+        benchmark, participant = values["benchmark"], values["participant"]
+        count_query = select(func.count(), func.min(submissions.c.created_at)).where(
+            submissions.c.benchmark == benchmark,
+            submissions.c.participant == participant,
+            submissions.c.created_at > window_start,
+            submissions.c.status != "failed",
+        )
+        if self.dialect == "postgresql":
+            from sqlalchemy.dialects.postgresql import insert as pg_insert
+
+            with self.engine.begin() as conn:
+                conn.execute(
+                    pg_insert(quota_locks).values(benchmark=benchmark, participant=participant).on_conflict_do_nothing()
+                )
+                conn.execute(
+                    select(quota_locks.c.benchmark)
+                    .where(quota_locks.c.benchmark == benchmark, quota_locks.c.participant == participant)
+                    .with_for_update()
+                )
+                used, oldest = conn.execute(count_query).one()
+                if used >= limit:
+                    raise QuotaRefused(_utc(oldest) + window, used)
+                conn.execute(insert(submissions).values(**values))
+            return
+        with self.engine.connect() as conn:
+            conn.exec_driver_sql("BEGIN IMMEDIATE")
+            try:
+                used, oldest = conn.execute(count_query).one()
+                if used >= limit:
+                    raise QuotaRefused(_utc(oldest) + window, used)
+                conn.execute(insert(submissions).values(**values))
+                conn.commit()
+            except BaseException:
+                conn.rollback()
+                raise
+
+    def update_submission(self, submission_id: str, **values: Any) -> bool:
+        with self.engine.begin() as conn:
+            done = conn.execute(update(submissions).where(submissions.c.id == submission_id).values(**values))
+        return bool(done.rowcount)
+
+    def get_submission(self, submission_id: str) -> dict[str, Any] | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(submissions).where(submissions.c.id == submission_id)).mappings().first()
+        return None if row is None else self._dated(row, "created_at", "scored_at", "published_at")
+
+    def list_submissions(
+        self, benchmark: str, *, participant: str | None = None, published_only: bool = False
+    ) -> list[dict[str, Any]]:
+        """Oldest first."""
+        query = select(submissions).where(submissions.c.benchmark == benchmark)
+        if participant is not None:
+            query = query.where(submissions.c.participant == participant)
+        if published_only:
+            query = query.where(submissions.c.published.is_(True), submissions.c.disqualified.is_(False))
+        query = query.order_by(submissions.c.created_at, submissions.c.id)
+        with self.engine.connect() as conn:
+            rows = conn.execute(query).mappings().all()
+        return [self._dated(r, "created_at", "scored_at", "published_at") for r in rows]
+
+    @staticmethod
+    def _dated(row: RowMapping, *keys: str) -> dict[str, Any]:
+        values = dict(row)
+        for key in keys:
+            if values.get(key) is not None:
+                values[key] = _utc(values[key])
+        return values
 
     def _insert(self, table: Table, **values: Any) -> bool:
         try:

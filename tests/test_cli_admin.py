@@ -103,3 +103,63 @@ def test_without_the_server_extra_a_clear_error() -> None:
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1, proc.stderr
     assert "server extra" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_benchmarks_from_the_cli(admin, tmp_path) -> None:
+    gt = str(GOLDEN / "kitti_infos_val.pkl")
+    assert admin("ground-truth", "add", "open-set", gt)[0] == 0
+    code, _, err = admin("benchmark", "add", "b0", "--ground-truth", "open-set")
+    assert code == 1 and "not sealed" in err
+    assert admin("ground-truth", "add", "test-set", gt, "--sealed")[0] == 0
+    code, _, err = admin("benchmark", "add", "b1", "--ground-truth", "test-set", "--quota", "3")
+    assert code == 0  # N alone: per day
+    code, _, err = admin("benchmark", "add", "b2", "--ground-truth", "test-set", "--quota", "x/y")
+    assert code == 1 and "N/DAYS" in err
+    code, _, err = admin("benchmark", "add", "b2", "--ground-truth", "test-set", "--key", "Car/4d/moderate")
+    assert code == 1 and "metric" in err
+    code, out, _ = admin(
+        "benchmark",
+        "add",
+        "kitti-3d",
+        "--ground-truth",
+        "test-set",
+        "--quota",
+        "2/7",
+        "--public",
+        "--key",
+        "Car/3d/moderate",
+        "--key",
+        "Car/bev/moderate",
+        "--column",
+        "Car/3d/easy",
+        "--column",
+        "Car/bev/moderate/R11",
+    )
+    assert code == 0 and "key Car/3d/moderate/R40/strict + Car/bev/moderate/R40/strict, quota 2 per 7 days" in out
+    assert admin("user", "add", "alice")[0] == 0
+    token = admin("token", "add", "alice")[1].splitlines()[-1]
+    with app_client(tmp_path / "data", auth="accounts") as c:
+        info = c.get("/v1/benchmarks/kitti-3d").json()  # public: no token
+        assert info["quota"] == {"submissions": 2, "days": 7.0}
+        assert info["columns"] == ["Car/3d/easy/R40/strict", "Car/bev/moderate/R11/strict"]
+        files = {"predictions": ("result.pkl", golden_bytes("result.pkl"))}
+        made = c.post("/v1/benchmarks/kitti-3d/submissions", files=files, headers=bearer(token)).json()
+        published = c.post(
+            f"/v1/benchmarks/kitti-3d/submissions/{made['id']}/publish", json={"method": "=cmd"}, headers=bearer(token)
+        )
+        assert published.status_code == 200
+        scores = made["scores"]
+    code, out, _ = admin("benchmark", "export", "kitti-3d")
+    header, row = out.splitlines()
+    assert header.startswith("rank,method,participant,affiliation,link,date,key (")
+    cells = row.split(",")
+    mean = round((scores["Car/3d/moderate/R40/strict"] + scores["Car/bev/moderate/R40/strict"]) / 2, 4)
+    assert cells[:3] == ["1", "'=cmd", "alice"] and float(cells[6]) == mean  # no formula for a spreadsheet
+    code, out, _ = admin("benchmark", "submissions", "kitti-3d")
+    assert code == 0 and made["id"] in out and "published" in out
+    assert admin("benchmark", "close", "kitti-3d")[1].startswith("benchmark kitti-3d: closed")
+    assert admin("benchmark", "reopen", "kitti-3d")[1].startswith("benchmark kitti-3d: open")
+    assert "1 submissions rescored, 0 failed" in admin("benchmark", "rescore", "kitti-3d")[1]
+    assert admin("benchmark", "disqualify", "kitti-3d", made["id"])[0] == 0
+    assert admin("benchmark", "export", "kitti-3d")[1].splitlines()[1:] == []
+    assert "kitti-3d\ttest-set\topen\tpublic" in admin("benchmark", "list")[1]

@@ -70,6 +70,49 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     g.add_argument("--project", help="only this project's members see and use it (default: everyone)")
     g.add_argument("--sealed", action="store_true", help="a test set: aggregate results only, no per-frame view")
 
+    bench = what.add_parser("benchmark", help="hosted benchmarks on sealed test sets").add_subparsers(
+        dest="admin_action", metavar="ACTION", required=True
+    )
+    b = bench.add_parser("add", help="a benchmark on a sealed ground truth")
+    b.add_argument("name")
+    b.add_argument("--ground-truth", required=True, metavar="GT", help="a ground truth registered with --sealed")
+    b.add_argument("--title", help="shown on the page (default: the name)")
+    b.add_argument("--description", default="", help="Markdown (HTML is escaped); @FILE reads it from a file")
+    b.add_argument("--quota", default="3/1", metavar="N/DAYS", help="accepted submissions per participant (3/1)")
+    b.add_argument("--public", action="store_true", help="the board and page are readable without a token")
+    b.add_argument(
+        "--key",
+        action="append",
+        metavar="COLUMN",
+        help="the ranking key, CLASS/METRIC/DIFFICULTY[/R40|R11[/SET]] (default Car/3d/moderate/R40/strict); "
+        "repeat it to rank by the mean of several",
+    )
+    b.add_argument("--column", action="append", metavar="COLUMN", help="a leaderboard column (default: 3D AP)")
+    b.add_argument("--classes", default="Car,Pedestrian,Cyclist")
+    b.add_argument("--protocol", default="official", choices=["official", "openpcdet"])
+    b.add_argument("--threshold-sets", default="strict,loose")
+    b.add_argument("--opens", metavar="TIME", help="ISO 8601 (default: now)")
+    b.add_argument("--closes", metavar="TIME", help="ISO 8601 (default: never)")
+    b.add_argument(
+        "--split-percent",
+        type=float,
+        metavar="P",
+        help="score the board on a secret P %% of the test frames until the private ranking is revealed",
+    )
+    bench.add_parser("list", help="benchmarks")
+    for action, helptext in (
+        ("close", "close to submissions"),
+        ("reopen", "open again"),
+        ("reveal", "show the private ranking (once closed)"),
+        ("rescore", "evaluate every submission again on the ground truth as registered now"),
+        ("submissions", "every submission, published or not"),
+        ("export", "the leaderboard as CSV on stdout"),
+    ):
+        bench.add_parser(action, help=helptext).add_argument("name")
+    dq = bench.add_parser("disqualify", help="hide an entry (it is kept)")
+    dq.add_argument("name")
+    dq.add_argument("submission")
+
     audit = what.add_parser("audit", help="the audit log, newest first")
     audit.add_argument("--limit", type=int, default=50)
     p.set_defaults(run=run)
@@ -106,6 +149,8 @@ def run(args: argparse.Namespace) -> int:
             settings.data_dir.mkdir(parents=True, exist_ok=True)
         if args.admin_what == "ground-truth":
             return _ground_truth(args, settings, actor)
+        if args.admin_what == "benchmark":
+            return _benchmark(args, settings, actor)
         store = Store(settings.resolved_database_url)
         try:
             store.create_schema()
@@ -196,3 +241,71 @@ def _ground_truth(args: argparse.Namespace, settings: Any, actor: str) -> int:
     sealed = ", sealed" if record.sealed else ""
     print(f"ground truth {record.name}: {record.frames} frames, {record.boxes} boxes{sealed}, sha256 {record.sha256}")
     return EXIT_OK
+
+
+def _benchmark(args: argparse.Namespace, settings: Any, actor: str) -> int:
+    from kitti_eval_server.benchmarks import DEFAULT_KEY, Benchmarks
+    from kitti_eval_server.service import Service
+
+    service = Service(settings)
+    try:
+        service.scratch_space.open()
+        service.store.create_schema()
+        benchmarks = Benchmarks(service)
+        action = args.admin_action
+        if action == "add":
+            description = args.description
+            if description.startswith("@"):
+                description = Path(description[1:]).read_text(encoding="utf-8")
+            bench = benchmarks.create(
+                args.name,
+                ground_truth=args.ground_truth,
+                title=args.title,
+                description=description,
+                protocol=args.protocol,
+                classes=args.classes,
+                threshold_sets=args.threshold_sets,
+                key=args.key or [DEFAULT_KEY],
+                columns=args.column or [],
+                quota=args.quota,
+                public=args.public,
+                opens_at=args.opens,
+                closes_at=args.closes,
+                split_percent=args.split_percent,
+                actor=actor,
+            )
+            n, days = bench.quota
+            print(
+                f"benchmark {bench.name} on {bench.gt_name}: key {' + '.join(bench.key)}, quota {n} per {days:g} "
+                f"days, {'public' if bench.public else 'not public'}"
+            )
+        elif action == "list":
+            for b in benchmarks.visible(_everyone()):
+                state = "open" if b.is_open() else "closed"
+                print(f"{b.name}\t{b.gt_name}\t{state}\t{'public' if b.public else '-'}\t{b.title}")
+        elif action in ("close", "reopen", "reveal"):
+            values = {"close": {"closed": True}, "reopen": {"closed": False}, "reveal": {"revealed": True}}[action]
+            bench = benchmarks.set_state(args.name, actor=actor, **values)
+            print(f"benchmark {bench.name}: {'open' if bench.is_open() else 'closed'}, board {bench.phase}")
+        elif action == "rescore":
+            done = benchmarks.rescore(args.name, actor=actor)
+            print(f"benchmark {args.name}: {done['rescored']} submissions rescored, {done['failed']} failed")
+        elif action == "submissions":
+            for s in benchmarks.all_submissions(args.name):
+                flags = ",".join(k for k in ("published", "disqualified") if s[k]) or "-"
+                print(f"{s['id']}\t{s['participant']}\t{s['created_at']}\t{s['status']}\t{flags}\t{s['method'] or '-'}")
+        elif action == "disqualify":
+            benchmarks.disqualify(args.name, args.submission, actor=actor)
+            print(f"submission {args.submission} disqualified")
+        elif action == "export":
+            board = benchmarks.leaderboard(args.name, _everyone())
+            sys.stdout.write(benchmarks.leaderboard_csv(board))
+    finally:
+        service.stop()
+    return EXIT_OK
+
+
+def _everyone() -> Any:
+    from kitti_eval_server.accounts import Caller
+
+    return Caller("cli", is_admin=True)

@@ -1,0 +1,249 @@
+"""``/v1/benchmarks``: hosted benchmarks on sealed test sets: submissions under a quota, publishing, the
+leaderboard (readable without a token when the benchmark is public), and the admins' actions."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
+from pydantic import BaseModel, Field
+
+from ..accounts import Caller
+from ..auth import CALLER_KEY, client_of
+from ..benchmarks import DEFAULT_KEY, Benchmarks, InvalidSubmission, QuotaExceeded
+from ..deps import AdminCallerDep, ServiceDep, WriteDep
+from ..errors import error_body
+from ..schemas import ErrorResponse
+from ..service import FileIn, Service
+
+router = APIRouter(
+    prefix="/v1/benchmarks",
+    tags=["benchmarks"],
+    responses={
+        401: {"model": ErrorResponse, "description": "no token, or not a valid one"},
+        403: {"model": ErrorResponse, "description": "not allowed (admins only, or a read-only token)"},
+        404: {"model": ErrorResponse, "description": "no such benchmark or submission (or not yours)"},
+    },
+)
+
+
+def get_benchmarks(request: Request) -> Benchmarks:
+    benchmarks: Benchmarks = request.app.state.benchmarks
+    return benchmarks
+
+
+BenchmarksDep = Annotated[Benchmarks, Depends(get_benchmarks)]
+
+
+def viewer(request: Request) -> Caller | None:
+    """The caller, or None for a request without a token in accounts mode (a public board's reader)."""
+    service: Service = request.app.state.service
+    caller: Caller | None = request.scope.get(CALLER_KEY)
+    if caller is None and service.settings.auth != "accounts":
+        from ..accounts import OPEN
+
+        return OPEN
+    return caller
+
+
+ViewerDep = Annotated[Caller | None, Depends(viewer)]
+
+
+class BenchmarkIn(BaseModel):
+    name: str = Field(max_length=1000)
+    ground_truth: str = Field(max_length=1000, description="a ground truth registered with sealed=true")
+    title: str | None = Field(None, max_length=1000)
+    description: str = Field("", max_length=100_000, description="Markdown (HTML is escaped)")
+    protocol: Literal["official", "openpcdet"] = "official"
+    classes: str = Field("Car,Pedestrian,Cyclist", max_length=1000)
+    threshold_sets: str = Field("strict,loose", max_length=1000)
+    key: list[str] = Field(
+        default_factory=lambda: [DEFAULT_KEY],
+        max_length=60,
+        description="the ranking key: a column, or several whose mean is the key",
+    )
+    columns: list[str] = Field(
+        default_factory=list, max_length=100, description="CLASS/METRIC/DIFFICULTY[/R40|R11[/SET]] (default: 3D AP)"
+    )
+    quota: str = Field("3/1", max_length=100, description="N/DAYS: accepted submissions per participant")
+    public: bool = False
+    opens_at: str | None = Field(None, max_length=100)
+    closes_at: str | None = Field(None, max_length=100)
+    split_percent: float | None = Field(None, description="the public part of the test frames, in percent")
+
+
+class PublishIn(BaseModel):
+    method: str = Field(max_length=1000)
+    anonymous: bool = False
+    affiliation: str | None = Field(None, max_length=1000)
+    link: str | None = Field(None, max_length=1000)
+
+
+@router.post("", status_code=201, summary="Create a benchmark on a sealed ground truth (admins)")
+def create(body: BenchmarkIn, benchmarks: BenchmarksDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
+    bench = benchmarks.create(
+        body.name,
+        ground_truth=body.ground_truth,
+        title=body.title,
+        description=body.description,
+        protocol=body.protocol,
+        classes=body.classes,
+        threshold_sets=body.threshold_sets,
+        key=body.key,
+        columns=body.columns,
+        quota=body.quota,
+        public=body.public,
+        opens_at=body.opens_at,
+        closes_at=body.closes_at,
+        split_percent=body.split_percent,
+        actor=caller.actor,
+        client=client_of(request.scope),
+    )
+    return bench.describe()
+
+
+@router.get("", summary="Benchmarks you can see")
+def list_benchmarks(benchmarks: BenchmarksDep, caller: ViewerDep) -> dict[str, Any]:
+    return {"items": [b.describe() for b in benchmarks.visible(caller)]}
+
+
+@router.get("/{name}", summary="One benchmark")
+def get_benchmark(name: str, benchmarks: BenchmarksDep, caller: ViewerDep) -> dict[str, Any]:
+    return benchmarks.get(name, caller).describe()
+
+
+@router.get("/{name}/frames", summary="The test frame ids (for kitti-eval validate --benchmark)")
+async def frame_ids(name: str, benchmarks: BenchmarksDep, service: ServiceDep, caller: ViewerDep) -> dict[str, Any]:
+    frames = await service.run(benchmarks.frame_ids, name, caller)
+    return {"benchmark": name, "frames": frames}
+
+
+@router.get("/{name}/leaderboard", summary="The leaderboard (JSON, or CSV with format=csv)")
+def leaderboard(
+    name: str,
+    benchmarks: BenchmarksDep,
+    caller: ViewerDep,
+    sort: Annotated[str | None, Query(max_length=200, description="rank, key, method, date or a column")] = None,
+    order: Annotated[Literal["asc", "desc"] | None, Query()] = None,
+    format: Annotated[Literal["json", "csv"], Query()] = "json",
+) -> Response:
+    board = benchmarks.leaderboard(name, caller, sort=sort, order=order)
+    if format == "csv":
+        return PlainTextResponse(
+            benchmarks.leaderboard_csv(board),
+            media_type="text/csv; charset=utf-8",
+            headers={"Content-Disposition": f'attachment; filename="{board["benchmark"]}-leaderboard.csv"'},
+        )
+    return JSONResponse(board)
+
+
+def _admin_state(name: str, benchmarks: Benchmarks, caller: Caller, request: Request, **values: bool) -> dict[str, Any]:
+    return benchmarks.set_state(name, actor=caller.actor, client=client_of(request.scope), **values).describe()
+
+
+@router.post("/{name}/close", summary="Close a benchmark to submissions (admins)")
+def close(name: str, benchmarks: BenchmarksDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
+    return _admin_state(name, benchmarks, caller, request, closed=True)
+
+
+@router.post("/{name}/reopen", summary="Reopen a closed benchmark (admins)")
+def reopen(name: str, benchmarks: BenchmarksDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
+    return _admin_state(name, benchmarks, caller, request, closed=False)
+
+
+@router.post("/{name}/reveal", summary="Show the private ranking of a closed benchmark (admins)")
+def reveal(name: str, benchmarks: BenchmarksDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
+    return _admin_state(name, benchmarks, caller, request, revealed=True)
+
+
+@router.post("/{name}/rescore", summary="Evaluate every submission again on the current ground truth (admins)")
+async def rescore(
+    name: str, benchmarks: BenchmarksDep, service: ServiceDep, caller: AdminCallerDep, request: Request
+) -> dict[str, Any]:
+    client = client_of(request.scope)
+    return await service.run(lambda: benchmarks.rescore(name, actor=caller.actor, client=client))
+
+
+@router.get("/{name}/submissions/all", summary="Every submission, published or not (admins)")
+def all_submissions(name: str, benchmarks: BenchmarksDep, caller: AdminCallerDep) -> dict[str, Any]:
+    return {"items": benchmarks.all_submissions(name)}
+
+
+@router.post("/{name}/submissions/{submission_id}/disqualify", summary="Hide an entry, keeping it (admins)")
+def disqualify(
+    name: str, submission_id: str, benchmarks: BenchmarksDep, caller: AdminCallerDep, request: Request
+) -> dict[str, Any]:
+    return benchmarks.disqualify(name, submission_id, actor=caller.actor, client=client_of(request.scope))
+
+
+@router.post(
+    "/{name}/submissions",
+    status_code=201,
+    summary="Submit predictions on the test set",
+    responses={
+        422: {"model": ErrorResponse, "description": "the submission breaks the rules (not counted)"},
+        429: {"model": ErrorResponse, "description": "the quota is used; see Retry-After"},
+    },
+)
+async def submit(
+    name: str,
+    benchmarks: BenchmarksDep,
+    service: ServiceDep,
+    caller: WriteDep,
+    request: Request,
+    predictions: Annotated[
+        UploadFile, File(description="a zip or tar of KITTI result txt files (one a test frame), or a result.pkl")
+    ],
+) -> JSONResponse:
+    file = FileIn(predictions.file, predictions.filename)
+    try:
+        client = client_of(request.scope)
+        body = await service.run(lambda: benchmarks.submit(name, file, caller, client=client))
+    except InvalidSubmission as e:
+        out = error_body(e.code, e.message)
+        out["error"]["problems"] = e.problems
+        return JSONResponse(out, status_code=422)
+    except QuotaExceeded as e:
+        out = error_body(e.code, e.message)
+        out["error"]["retry_at"] = e.retry_at.isoformat()
+        return JSONResponse(out, status_code=429, headers=e.headers)
+    return JSONResponse(body, status_code=201, headers={"Location": f"/v1/benchmarks/{name}/submissions/{body['id']}"})
+
+
+@router.get("/{name}/submissions", summary="Your submissions and your quota")
+def my_submissions(name: str, benchmarks: BenchmarksDep, caller: ViewerDep) -> dict[str, Any]:
+    return benchmarks.mine(name, _signed_in(caller))
+
+
+@router.get("/{name}/submissions/{submission_id}", summary="One of your submissions, with its full result")
+def my_submission(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: ViewerDep) -> dict[str, Any]:
+    return benchmarks.submission(name, submission_id, _signed_in(caller))
+
+
+@router.post("/{name}/submissions/{submission_id}/publish", summary="Show one of your submissions on the board")
+def publish(
+    name: str, submission_id: str, body: PublishIn, benchmarks: BenchmarksDep, caller: WriteDep
+) -> dict[str, Any]:
+    return benchmarks.publish(
+        name,
+        submission_id,
+        caller,
+        method=body.method,
+        anonymous=body.anonymous,
+        affiliation=body.affiliation,
+        link=body.link,
+    )
+
+
+@router.post("/{name}/submissions/{submission_id}/withdraw", summary="Take one of your entries off the board")
+def withdraw(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: WriteDep) -> dict[str, Any]:
+    return benchmarks.withdraw(name, submission_id, caller)
+
+
+def _signed_in(caller: Caller | None) -> Caller:
+    from ..errors import Unauthorized
+
+    if caller is None:
+        raise Unauthorized("sign in: send 'Authorization: Bearer <token>'")
+    return caller

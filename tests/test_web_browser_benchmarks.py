@@ -1,0 +1,67 @@
+"""A public benchmark's page in a real headless Chromium with JavaScript switched off, against a real uvicorn in
+accounts mode, without signing in: the published entry is on the board, the unpublished one is not, and the
+column links sort it. Skipped as ``test_web_browser`` is; only run with the slow tests."""
+
+from __future__ import annotations
+
+import pytest
+from server_benchmarks import host, ok, submit
+from server_helpers import LiveServer, free_port, golden_bytes
+from test_web_browser import CHROMEDRIVER, CHROMIUM, By, DriverService, webdriver
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def no_script_browser(tmp_path_factory):
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for arg in (
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-dev-shm-usage",
+        "--no-first-run",
+        "--window-size=1280,1600",
+        f"--proxy-server=http://127.0.0.1:{free_port()}",  # nothing listens there: the internet is out of reach
+        f"--user-data-dir={tmp_path_factory.mktemp('chromium-no-script')}",
+    ):
+        options.add_argument(arg)
+    options.add_experimental_option("prefs", {"profile.managed_default_content_settings.javascript": 2})
+    driver = webdriver.Chrome(options=options, service=DriverService(executable_path=str(CHROMEDRIVER)))
+    driver.set_page_load_timeout(60)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def test_the_leaderboard_page_shows_the_published_entry_without_scripts(tmp_path, no_script_browser) -> None:
+    with LiveServer(tmp_path / "data", auth="accounts") as server:
+        with server.client() as c:
+            hosted = host(c, benchmark={"title": "Demo 3D", "description": "Read the **rules**. <b>not bold</b>"})
+            published = ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 201)
+            ok(submit(c, hosted.headers("bob"), golden_bytes("result.pkl")), 201)
+            body = {"method": "Shown-Method", "affiliation": "Lab A", "link": "https://example.org/m"}
+            ok(
+                c.post(
+                    f"/v1/benchmarks/bench/submissions/{published['id']}/publish",
+                    headers=hosted.headers("alice"),
+                    json=body,
+                )
+            )
+        browser = no_script_browser
+        browser.delete_all_cookies()
+        browser.get(server.url + "/benchmarks/bench")
+        assert browser.find_element(By.ID, "benchmark-title").text == "Demo 3D"
+        assert browser.find_element(By.TAG_NAME, "strong").text == "rules"
+        assert "<b>not bold</b>" in browser.find_element(By.CLASS_NAME, "description").text  # shown, not obeyed
+        rows = browser.find_elements(By.CSS_SELECTOR, "#leaderboard tbody tr")
+        assert len(rows) == 1  # bob's submission is not published
+        cells = [td.text for td in rows[0].find_elements(By.TAG_NAME, "td")]
+        key = round(published["scores"]["Car/3d/moderate/R40/strict"], 4)
+        assert cells[:3] == ["1", "Shown-Method", "alice (Lab A)"] and cells[4] == f"{key:.4f}"
+        assert rows[0].find_element(By.CSS_SELECTOR, "td.method a").get_attribute("href") == "https://example.org/m"
+        browser.find_element(By.LINK_TEXT, "Method").click()  # a plain link: sorting needs no script
+        assert "sort=method" in browser.current_url
+        assert len(browser.find_elements(By.CSS_SELECTOR, "#leaderboard tbody tr")) == 1
