@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
             settings.data_dir.mkdir(parents=True, exist_ok=True)
         if args.admin_what == "ground-truth":
             return _ground_truth(args, settings, actor)
-        store = Store(settings.resolved_database_url)
+        store = Store(settings.resolved_database_url, busy_s=settings.database_busy_s)
         try:
             store.create_schema()
             return _account_command(args, store, Accounts(store, lambda: ""), actor)
