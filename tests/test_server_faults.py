@@ -119,6 +119,7 @@ def test_a_lock_held_past_the_budget_is_503_then_work_resumes(tmp_path: Path) ->
             assert err["code"] == "database_unavailable"
             assert r.headers["retry-after"] == "2"
             assert 0.9 <= waited < 5, waited  # the budget was spent trying, and no more
+            print(f"\nlocked past a 1 s budget: 503 after {waited:.2f} s")  # noqa: T201 - quoted in the README
             assert c.app.state.service.store.lock_retries >= 2
             assert c.get("/v1/evaluations").status_code == 200  # WAL: reading goes on under a writer's lock
         assert _evaluation_count(c) == before  # nothing of the refused request was kept
@@ -139,6 +140,7 @@ def test_a_lock_released_within_the_budget_is_waited_for(tmp_path: Path) -> None
         assert r.status_code == 201, r.text
         assert store.lock_retries > retries  # an attempt failed on the lock and was run again
         assert 0.9 <= waited < 3, waited
+        print(f"\nlocked for 1 s, 3 s budget: 201 after {waited:.2f} s")  # noqa: T201 - quoted in the README
         assert c.get(f"/v1/evaluations/{r.json()['id']}").status_code == 200
         assert _evaluation_count(c) == before + 1
 
