@@ -132,8 +132,10 @@ class AuthMiddleware:
         limiter: FailureLimiter,
         sign_in_page: Callable[[Scope, int, str | None], Awaitable[Response]],
         own_token_paths: frozenset[str] = frozenset(),
+        retry_after_s: Callable[[], int] = lambda: 2,
     ) -> None:
         self.app = app
+        self.retry_after_s = retry_after_s  # of a 503 when the token cannot be looked up
         self.accounts = accounts
         self.limiter = limiter
         self.sign_in_page = sign_in_page
@@ -172,7 +174,7 @@ class AuthMiddleware:
                 await self._refuse(scope, receive, send, e, clear_cookie=via_cookie)
                 return
         except Exception as e:  # the token could not be looked up: the database is down or locked
-            fault = fault_of(e)
+            fault = fault_of(e, self.retry_after_s())
             if fault is None:
                 raise
             response = error_response(fault.status_code, fault.code, fault.message, fault.headers)

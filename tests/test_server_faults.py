@@ -22,7 +22,9 @@ from typing import Any
 
 import httpx
 import pytest
+from server_accounts import bearer
 from server_helpers import (
+    ADMIN,
     LiveServer,
     app_client,
     assert_error,
@@ -80,6 +82,31 @@ def test_faults_are_told_from_bugs(tmp_path: Path) -> None:
         holder.close()
     assert locked is not None and (locked.status_code, locked.code) == (503, "database_unavailable")
     assert locked.headers == {"Retry-After": "7"}
+
+
+def _connection_refused(*args: Any, **kwargs: Any) -> None:
+    raise OperationalError("SELECT", {}, ConnectionRefusedError("connection refused"))
+
+
+def test_an_unreachable_database_is_503_wherever_it_is_met(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    with app_client(tmp_path / "open") as c:
+        store = c.app.state.service.store
+        monkeypatch.setattr(store, "list_evaluations", _connection_refused)
+        r = c.get("/v1/evaluations")
+        err = assert_error(r, 503, "unavailable")
+        assert err["code"] == "database_unavailable" and err["request_id"] == r.headers["x-request-id"]
+        assert r.headers["retry-after"] == "2"
+        monkeypatch.setattr(store, "list_evaluations", lambda **kw: [][1])  # a bug stays a 500
+        assert assert_error(c.get("/v1/evaluations"), 500)["code"] == "internal_error"
+    with app_client(tmp_path / "accounts", auth="accounts", retry_after_s=5) as c:
+        assert c.post("/v1/admin/users", json={"name": "ann", "admin": False}, headers=ADMIN).status_code == 201
+        token = c.post("/v1/admin/tokens", json={"user": "ann"}, headers=ADMIN).json()["token"]
+        assert c.get("/v1/evaluations", headers=bearer(token)).status_code == 200
+        monkeypatch.setattr(c.app.state.service.store, "get_token", _connection_refused)
+        r = c.get("/v1/evaluations", headers=bearer(token))  # the token is looked up before any route runs
+        err = assert_error(r, 503)
+        assert err["code"] == "database_unavailable" and err["request_id"] == r.headers["x-request-id"]
+        assert r.headers["retry-after"] == "5"
 
 
 # ------------------------------------------------------------------------------------------ SQLite locked
@@ -196,7 +223,8 @@ def test_full_scratch_space_is_507_and_nothing_is_left(tmp_path: Path) -> None:
         before = _evaluation_count(c)
         filler = _fill(scratch)
         r = upload(c, big_pred, "result.pkl", gt="big")  # fails spooling the body
-        assert assert_error(r, 507)["code"] == "insufficient_storage"
+        err = assert_error(r, 507, "out of space")
+        assert err["code"] == "insufficient_storage" and err["request_id"] == r.headers["x-request-id"]
         r = upload(c, archive, "pred.zip", gt="small")  # fails unpacking the archive
         assert assert_error(r, 507)["code"] == "insufficient_storage"
         page = c.post(

@@ -303,7 +303,11 @@ async def upload(request: Request, service: ServiceDep, caller: CallerDep) -> Re
                 values.get("project") or None,
             )
     except Exception as e:  # the refusals the JSON API answers 4xx, and a full disk (507)
-        failure = e if isinstance(e, (ApiError, KittiEvalError, HTTPException)) else fault_of(e)
+        failure: ApiError | KittiEvalError | HTTPException | None = (
+            e
+            if isinstance(e, (ApiError, KittiEvalError, HTTPException))
+            else fault_of(e, service.settings.retry_after_s)
+        )
         if failure is None:
             raise
         message = failure.detail if isinstance(failure, HTTPException) else str(failure)
