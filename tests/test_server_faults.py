@@ -264,6 +264,26 @@ def test_a_full_disk_under_the_sqlite_database_is_507(tmp_path: Path) -> None:
         assert _evaluation_count(c) == before + 1
 
 
+def test_no_room_for_a_ground_truths_local_copy_is_no_failure(tmp_path: Path) -> None:
+    """The file is committed in the database with its record; the local copy is a cache, written when needed."""
+    data_dir = tmp_path / "data"
+    with _small_filesystem(data_dir / "ground-truths", "1m") as copies, app_client(data_dir) as c:
+        demo = {p.name for p in copies.iterdir()}
+        assert len(demo) == 1
+        filler = _fill(copies)
+        r = register(c, "small", golden_bytes("kitti_infos_val.pkl"), "kitti_infos_val.pkl")
+        assert r.status_code == 201, r.text
+        assert {p.name for p in copies.iterdir()} == demo | {"filler"}  # no partial copy
+        assert "small" in {g["name"] for g in c.get("/v1/ground-truths").json()["items"]}
+        assert upload(c, golden_bytes("result.pkl"), gt="small").status_code == 201
+        filler.unlink()
+        sha256 = c.get("/v1/ground-truths/small").json()["sha256"]
+        c.app.state.service.ground_truths.cache.evict(sha256)
+        r = upload(c, golden_bytes("result.pkl"), gt="small")  # loads it again: the copy is written now
+        assert r.status_code == 201, r.text
+        assert {p.name for p in copies.iterdir()} == demo | {f"{sha256}.pkl"}
+
+
 # ------------------------------------------------------------------------------------------ PostgreSQL outage
 
 
