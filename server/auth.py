@@ -21,7 +21,7 @@ from starlette.responses import Response
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from .accounts import Accounts, Caller, TokenRefused
-from .errors import TooManyRequests, Unauthorized, error_response
+from .errors import TooManyRequests, Unauthorized, error_response, fault_of
 
 __all__ = ["AuthMiddleware", "FailureLimiter", "CALLER_KEY", "SESSION_COOKIE", "CSRF_COOKIE", "is_public", "client_of"]
 
@@ -144,8 +144,10 @@ class AuthMiddleware:
         limiter: FailureLimiter,
         sign_in_page: Callable[[Scope, int, str | None], Awaitable[Response]],
         own_token_paths: frozenset[str] = frozenset(),
+        retry_after_s: Callable[[], int] = lambda: 2,
     ) -> None:
         self.app = app
+        self.retry_after_s = retry_after_s  # of a 503 when the token cannot be looked up
         self.accounts = accounts
         self.limiter = limiter
         self.sign_in_page = sign_in_page
@@ -178,11 +180,22 @@ class AuthMiddleware:
             await self._refuse(scope, receive, send, Unauthorized("sign in: send 'Authorization: Bearer <token>'"))
             return
         try:
-            caller: Caller = await anyio.to_thread.run_sync(lambda: self.accounts.resolve(token, session=via_cookie))
-        except TokenRefused as e:
-            self.limiter.fail(client)
-            await anyio.to_thread.run_sync(partial(self.accounts.refused, e, client=client, target=path))
-            await self._refuse(scope, receive, send, e, clear_cookie=via_cookie)
+            try:
+                caller: Caller = await anyio.to_thread.run_sync(
+                    lambda: self.accounts.resolve(token, session=via_cookie)
+                )
+            except TokenRefused as e:
+                self.limiter.fail(client)
+                await anyio.to_thread.run_sync(partial(self.accounts.refused, e, client=client, target=path))
+                await self._refuse(scope, receive, send, e, clear_cookie=via_cookie)
+                return
+        except Exception as e:  # the token could not be looked up: the database is down or locked
+            fault = fault_of(e, self.retry_after_s())
+            if fault is None:
+                raise
+            response = error_response(fault.status_code, fault.code, fault.message, fault.headers)
+            response.headers["connection"] = "close"  # the body, if any, is not read
+            await response(scope, receive, send)
             return
         scope[CALLER_KEY] = caller
         await self.app(scope, receive, send)

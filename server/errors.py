@@ -7,7 +7,9 @@ nowhere else; an unexpected exception becomes a 500 whose body says nothing abou
 
 from __future__ import annotations
 
+import errno
 import logging
+import sqlite3
 from collections.abc import Mapping
 from http import HTTPStatus
 from typing import Any
@@ -15,6 +17,8 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import DBAPIError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from kitti_eval.errors import ConfigError, InputError, KittiEvalError, UnknownFormatError, UnsafePickleError
@@ -30,6 +34,9 @@ __all__ = [
     "Busy",
     "NotReady",
     "PayloadTooLarge",
+    "DatabaseUnavailable",
+    "InsufficientStorage",
+    "fault_of",
     "ArchiveError",
     "BadRequest",
     "library_error_status",
@@ -124,6 +131,62 @@ class NotReady(ApiError):
 class PayloadTooLarge(ApiError):
     status_code = 413
     code = "payload_too_large"
+
+
+class DatabaseUnavailable(ApiError):
+    """The database cannot be reached, or stays locked by another writer past the retry budget."""
+
+    status_code = 503
+    code = "database_unavailable"
+
+    def __init__(self, message: str, retry_after_s: int = 2) -> None:
+        super().__init__(message, headers={"Retry-After": str(retry_after_s)})
+
+
+class InsufficientStorage(ApiError):
+    """The data folder (scratch space, database) has no room left: nothing of the request is kept."""
+
+    status_code = 507
+    code = "insufficient_storage"
+
+
+#: errno values of a full disk and of an exhausted quota
+_NO_SPACE = frozenset({errno.ENOSPC, errno.EDQUOT})
+#: SQLite's primary result codes (the low byte of an extended one)
+_SQLITE_BUSY, _SQLITE_LOCKED, _SQLITE_IOERR, _SQLITE_FULL, _SQLITE_CANTOPEN = 5, 6, 10, 13, 14
+
+
+def fault_of(exc: BaseException, retry_after_s: int = 2) -> ApiError | None:
+    """The service's error for a failure of the machine rather than of the request: a full disk (507
+    ``insufficient_storage``) or a database that is down, restarting, or locked (503
+    ``database_unavailable``); None for anything else (a bug: 500).
+
+    The store retries a locked SQLite database (``KITTI_EVAL_DATABASE_BUSY_S``) before its error gets here."""
+    if isinstance(exc, OSError):
+        if exc.errno in _NO_SPACE:
+            return InsufficientStorage("the server's data folder is out of space; nothing of this request was kept")
+        return None
+    if isinstance(exc, PoolTimeout):
+        return DatabaseUnavailable("no database connection became free in time; retry later", retry_after_s)
+    if not isinstance(exc, DBAPIError):
+        return None
+    cause = exc.orig
+    if isinstance(cause, sqlite3.Error):
+        primary = getattr(cause, "sqlite_errorcode", -1) & 0xFF
+        if primary == _SQLITE_FULL:
+            return InsufficientStorage("the server's database is out of disk space; nothing of this request was kept")
+        if primary in (_SQLITE_BUSY, _SQLITE_LOCKED):
+            return DatabaseUnavailable(
+                "the database stayed locked by another writer past the retry budget (KITTI_EVAL_DATABASE_BUSY_S); "
+                "retry later",
+                retry_after_s,
+            )
+        if primary in (_SQLITE_IOERR, _SQLITE_CANTOPEN):
+            return DatabaseUnavailable("the database file cannot be read or written; retry later", retry_after_s)
+        return None
+    if exc.connection_invalidated or isinstance(exc, OperationalError):
+        return DatabaseUnavailable("the database is unavailable; retry later", retry_after_s)
+    return None
 
 
 class ArchiveError(ApiError):
@@ -232,6 +295,20 @@ async def _validation_error(request: Request, exc: Exception) -> JSONResponse:
     return error_response(422, "invalid_request", "; ".join(problems) or "invalid request")
 
 
+async def _fault(request: Request, exc: Exception) -> JSONResponse:
+    """A database or disk failure: 503/507 when it is one the service knows (:func:`fault_of`), else a 500."""
+    fault = fault_of(exc, _retry_after(request))
+    if fault is None:
+        return await _unexpected(request, exc)
+    log.warning("%s on %s %s: %s", fault.code, request.method, request.url.path, exc)
+    return error_response(fault.status_code, fault.code, fault.message, fault.headers)
+
+
+def _retry_after(request: Request) -> int:
+    service = getattr(request.app.state, "service", None)
+    return int(getattr(getattr(service, "settings", None), "retry_after_s", 2))
+
+
 async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
     log.error("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
     return error_response(500, "internal_error", "internal error; the server log has the details")
@@ -243,4 +320,6 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(KittiEvalError, _library_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
+    for fault in (OSError, DBAPIError, PoolTimeout):
+        app.add_exception_handler(fault, _fault)
     app.add_exception_handler(Exception, _unexpected)

@@ -9,6 +9,7 @@ into memory on first use. Deleting a name deletes the file when no other name us
 from __future__ import annotations
 
 import dataclasses
+import errno
 import io
 import logging
 import os
@@ -174,7 +175,12 @@ class GroundTruths:
         )
         if not self.store.add_ground_truth(record, content):
             raise Conflict(f"a ground truth named {name!r} exists; delete it first or pick another name")
-        self._keep_local(record, content, loaded.folder)
+        try:
+            self._keep_local(record, content, loaded.folder)
+        except OSError as e:  # the registration is committed (file and all) and stands: the copy is made later
+            if e.errno not in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            log.warning("no room for the local copy of ground truth %r (%s); it is written when next needed", name, e)
         self.cache.put(upload.sha256, loaded.annotations)
         return record
 
@@ -188,9 +194,13 @@ class GroundTruths:
         target = self.root.parent / record.storage
         if record.format == str(InputFormat.PICKLE):
             tmp = target.with_name(f".{target.name}.{os.getpid()}.{threading.get_ident()}")
-            with open(tmp, "wb") as out:
-                out.write(content)
-            os.replace(tmp, target)
+            try:
+                with open(tmp, "wb") as out:
+                    out.write(content)
+                os.replace(tmp, target)
+            except BaseException:
+                tmp.unlink(missing_ok=True)  # no partial copy left behind
+                raise
         elif not target.is_dir():
             assert folder is not None
             try:

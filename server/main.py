@@ -117,6 +117,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             limiter=service.limiter,
             sign_in_page=sign_in_page,
             own_token_paths=frozenset({"/metrics"}) if settings.metrics_token is not None else frozenset(),
+            retry_after_s=lambda: settings.retry_after_s,
         )
     # outermost: every request gets its id, its log line and its metrics, whoever answers it
     app.add_middleware(RequestMiddleware, metrics=app_metrics, log_json=lambda: log_json)

@@ -34,7 +34,7 @@ import anyio.to_thread
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from .errors import error_body
+from .errors import error_body, fault_of
 from .observability import AdmissionState
 
 __all__ = ["BodyMiddleware", "AdmissionMiddleware", "BodyTooLarge"]
@@ -190,10 +190,23 @@ class BodyMiddleware:
             self.receiving += 1
             try:
                 outcome = await self._receive(receive, body)
+                if outcome == "complete":
+                    await body.finish()
+            except OSError as e:  # the spool's disk is full: 507, and the partial file goes with body.close()
+                fault = fault_of(e, self.retry_after_s())
+                if fault is None:
+                    raise
+                body.close()
+                await _send_json(
+                    send,
+                    fault.status_code,
+                    error_body(fault.code, fault.message),
+                    {**fault.headers, "connection": "close"},
+                )
+                return
             finally:
                 self.receiving -= 1
             if outcome == "complete":
-                await body.finish()
                 await self.app(scope, body.replay(receive), send)
             elif outcome == "too_large":
                 body.close()

@@ -97,7 +97,7 @@ class Service:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.data_dir = settings.data_dir.resolve()
-        self.store = Store(settings.resolved_database_url)
+        self.store = Store(settings.resolved_database_url, busy_s=settings.database_busy_s)
         self.limits = Limits(max_unpacked_bytes=settings.max_unpacked_bytes, max_members=settings.max_archive_members)
         self.scratch_space = ScratchSpace(self.data_dir)
         self.ground_truths = GroundTruths(

@@ -39,6 +39,11 @@ class Settings(BaseSettings):
     """SQLAlchemy URL. Unset: ``sqlite:///<data_dir>/kitti-eval.db`` (WAL). ``postgresql://user:pw@host/db``
     uses PostgreSQL through psycopg 3."""
 
+    database_busy_s: Annotated[float, Field(gt=0)] = 10.0
+    """SQLite: how long a request keeps trying while another process holds the database's write lock (a CLI
+    command, another worker, a backup), in attempts of at most 1 s with short pauses between; past that it
+    gets 503 ``database_unavailable`` with Retry-After. Not used with PostgreSQL."""
+
     max_upload_mb: Annotated[float, Field(gt=0)] = 200.0
     """Largest request body accepted (all uploaded files together); larger ones get 413."""
 

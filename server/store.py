@@ -7,11 +7,15 @@ caller that answers 2xx after it has a durable row.
 
 from __future__ import annotations
 
+import functools
+import sqlite3
+import threading
+import time
 import uuid
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
-from typing import Any
+from typing import Any, TypeVar
 
 from sqlalchemy import (
     JSON,
@@ -40,7 +44,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.dialects.postgresql import JSONB
 from sqlalchemy.engine import Engine, RowMapping
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import IntegrityError, OperationalError
 
 __all__ = [
     "Store",
@@ -324,13 +328,65 @@ def _utc(value: datetime) -> datetime:
     return value if value.tzinfo else value.replace(tzinfo=timezone.utc)  # SQLite keeps no zone
 
 
-def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
-    cursor = dbapi_connection.cursor()
-    cursor.execute("PRAGMA journal_mode=WAL")
-    cursor.execute("PRAGMA synchronous=FULL")  # WAL + FULL: a committed row survives a crash and power loss
-    cursor.execute("PRAGMA foreign_keys=ON")
-    cursor.execute("PRAGMA busy_timeout=10000")
-    cursor.close()
+def _sqlite_pragmas(busy_ms: int) -> Callable[[Any, Any], None]:
+    def on_connect(dbapi_connection: Any, _record: Any) -> None:
+        cursor = dbapi_connection.cursor()
+        cursor.execute("PRAGMA journal_mode=WAL")
+        cursor.execute("PRAGMA synchronous=FULL")  # WAL + FULL: a committed row survives a crash and power loss
+        cursor.execute("PRAGMA foreign_keys=ON")
+        cursor.execute(f"PRAGMA busy_timeout={busy_ms}")
+        cursor.close()
+
+    return on_connect
+
+
+#: SQLite's primary result codes for "another connection holds the lock"
+_SQLITE_BUSY, _SQLITE_LOCKED = 5, 6
+#: the longest one attempt waits for a SQLite lock (SQLite's own busy handler), and the pauses between attempts
+_ATTEMPT_S = 1.0
+_FIRST_PAUSE_S, _LONGEST_PAUSE_S = 0.02, 0.5
+
+F = TypeVar("F", bound=Callable[..., Any])
+_retrying = threading.local()
+
+
+def _locked(exc: OperationalError) -> bool:
+    """SQLite's "database is locked" (or "database table is locked")."""
+    orig = exc.orig
+    return isinstance(orig, sqlite3.Error) and getattr(orig, "sqlite_errorcode", -1) & 0xFF in (
+        _SQLITE_BUSY,
+        _SQLITE_LOCKED,
+    )
+
+
+def _retry_when_locked(method: F) -> F:
+    """Run a store method again, after a short pause growing from 20 ms to 0.5 s, while SQLite says the
+    database is locked (another process writing: a CLI command, a second worker, a backup holding a lock),
+    until :attr:`Store.busy_s` has passed; then the last error is raised. Each attempt is one transaction,
+    rolled back when it fails, so running it again is safe. Calls from inside a retried method are not
+    retried on their own (one budget a call)."""
+
+    @functools.wraps(method)
+    def wrapper(self: Store, *args: Any, **kwargs: Any) -> Any:
+        if self.busy_s is None or getattr(_retrying, "active", False):
+            return method(self, *args, **kwargs)
+        deadline = time.monotonic() + self.busy_s
+        pause = _FIRST_PAUSE_S
+        _retrying.active = True
+        try:
+            while True:
+                try:
+                    return method(self, *args, **kwargs)
+                except OperationalError as e:
+                    if not _locked(e) or time.monotonic() + pause >= deadline:
+                        raise
+                    self.lock_retries += 1
+                time.sleep(pause)
+                pause = min(2 * pause, _LONGEST_PAUSE_S)
+        finally:
+            _retrying.active = False
+
+    return wrapper  # type: ignore[return-value]
 
 
 def new_id() -> str:
@@ -340,14 +396,25 @@ def new_id() -> str:
 class Store:
     """Ground-truth registrations and evaluations, in SQLite or PostgreSQL."""
 
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, *, busy_s: float = 10.0) -> None:
+        """``busy_s``: how long a SQLite call keeps trying while another connection holds the write lock
+        (:func:`_retry_when_locked`). PostgreSQL connections are checked before each use
+        (``pool_pre_ping``), so the pool drops the ones a restarted server closed instead of failing a
+        request with them."""
+        #: SQLite only: the retry budget of a locked database (None: PostgreSQL, whose locks wait themselves)
+        self.busy_s: float | None = None
+        #: attempts run again because the database was locked (for the tests and the curious)
+        self.lock_retries = 0
         if url.startswith("sqlite"):
-            self.engine: Engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 10})
-            event.listen(self.engine, "connect", _sqlite_pragmas)
+            self.busy_s = busy_s
+            attempt = min(_ATTEMPT_S, busy_s / 4)
+            self.engine: Engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": attempt})
+            event.listen(self.engine, "connect", _sqlite_pragmas(max(1, round(attempt * 1000))))
         else:
             self.engine = create_engine(url, pool_pre_ping=True, pool_size=5, max_overflow=10)
         self.dialect = self.engine.dialect.name
 
+    @_retry_when_locked
     def create_schema(self) -> None:
         """Create missing tables, and add the columns a database made by an earlier version lacks.
 
@@ -370,6 +437,7 @@ class Store:
                     if column not in present:
                         conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {column} {kind}"))
 
+    @_retry_when_locked
     def ping(self) -> None:
         with self.engine.connect() as conn:
             conn.execute(text("SELECT 1"))
@@ -378,6 +446,7 @@ class Store:
         self.engine.dispose()
 
     # -- ground truths ---------------------------------------------------------------------------------
+    @_retry_when_locked
     def add_ground_truth(self, record: GroundTruthRecord, content: bytes) -> bool:
         """Insert the record and (once per sha256) its file; False if the name is taken (nothing changed)."""
         for _ in range(2):  # a concurrent registration of the same file may insert its content first
@@ -395,6 +464,7 @@ class Store:
                     return False
         return False
 
+    @_retry_when_locked
     def ground_truth_content(self, sha256: str) -> bytes | None:
         with self.engine.connect() as conn:
             row = conn.execute(
@@ -402,11 +472,13 @@ class Store:
             ).first()
         return None if row is None else bytes(row[0])
 
+    @_retry_when_locked
     def get_ground_truth(self, name: str) -> GroundTruthRecord | None:
         with self.engine.connect() as conn:
             row = conn.execute(select(ground_truths).where(ground_truths.c.name == name)).mappings().first()
         return None if row is None else self._gt(row)
 
+    @_retry_when_locked
     def list_ground_truths(self, *, projects: frozenset[str] | None = None) -> list[GroundTruthRecord]:
         """By name; ``projects``: only those of these projects and the shared ones (None: all)."""
         query = select(ground_truths).order_by(ground_truths.c.name)
@@ -416,6 +488,7 @@ class Store:
             rows = conn.execute(query).mappings().all()
         return [self._gt(r) for r in rows]
 
+    @_retry_when_locked
     def delete_ground_truth(self, name: str) -> tuple[GroundTruthRecord | None, bool]:
         """Delete by name: (the deleted record or None, whether another name still uses the same file)."""
         with self.engine.begin() as conn:
@@ -438,6 +511,7 @@ class Store:
         return GroundTruthRecord(**values)
 
     # -- predictions -----------------------------------------------------------------------------------
+    @_retry_when_locked
     def add_prediction_file(self, sha256: str, content: bytes) -> None:
         """Keep an uploaded predictions file (once per content)."""
         try:
@@ -450,12 +524,14 @@ class Store:
         except IntegrityError:  # the same file, kept concurrently by another request
             pass
 
+    @_retry_when_locked
     def prediction_content(self, sha256: str) -> bytes | None:
         with self.engine.connect() as conn:
             row = conn.execute(select(prediction_files.c.content).where(prediction_files.c.sha256 == sha256)).first()
         return None if row is None else bytes(row[0])
 
     # -- evaluations -----------------------------------------------------------------------------------
+    @_retry_when_locked
     def add_evaluation(self, record: EvaluationRecord) -> None:
         values = {k: v for k, v in record.__dict__.items() if k != "labels"}
         with self.engine.begin() as conn:
@@ -466,6 +542,7 @@ class Store:
                     [{"evaluation_id": record.id, "key": k, "value": v} for k, v in record.labels.items()],
                 )
 
+    @_retry_when_locked
     def get_evaluation(self, evaluation_id: str) -> EvaluationRecord | None:
         with self.engine.connect() as conn:
             row = conn.execute(select(evaluations).where(evaluations.c.id == evaluation_id)).mappings().first()
@@ -474,6 +551,7 @@ class Store:
             labels = self._labels(conn, [evaluation_id])
         return self._evaluation(row, labels.get(evaluation_id, {}))
 
+    @_retry_when_locked
     def evaluation_project(self, evaluation_id: str) -> tuple[bool, str | None]:
         """(whether the evaluation exists, its project): one small read, before any result is loaded."""
         with self.engine.connect() as conn:
@@ -533,10 +611,12 @@ class Store:
         return EvaluationRecord(**values, labels=labels)
 
     # -- accounts ----------------------------------------------------------------------------------------
+    @_retry_when_locked
     def add_user(self, name: str, is_admin: bool) -> bool:
         """False if the name is taken."""
         return self._insert(users, name=name, is_admin=is_admin, created_at=datetime.now(timezone.utc))
 
+    @_retry_when_locked
     def get_user(self, name: str) -> UserRecord | None:
         with self.engine.connect() as conn:
             row = conn.execute(select(users).where(users.c.name == name)).mappings().first()
@@ -545,6 +625,7 @@ class Store:
             member_of = self._projects_of(conn, name)
         return UserRecord(row["name"], bool(row["is_admin"]), _utc(row["created_at"]), member_of)
 
+    @_retry_when_locked
     def list_users(self) -> list[UserRecord]:
         with self.engine.connect() as conn:
             rows = conn.execute(select(users).order_by(users.c.name)).mappings().all()
@@ -564,20 +645,25 @@ class Store:
         )
         return tuple(r[0] for r in rows)
 
+    @_retry_when_locked
     def add_project(self, name: str) -> bool:
         return self._insert(projects, name=name, created_at=datetime.now(timezone.utc))
 
+    @_retry_when_locked
     def project_exists(self, name: str) -> bool:
         with self.engine.connect() as conn:
             return conn.execute(select(projects.c.name).where(projects.c.name == name)).first() is not None
 
+    @_retry_when_locked
     def list_projects(self) -> list[str]:
         with self.engine.connect() as conn:
             return [r[0] for r in conn.execute(select(projects.c.name).order_by(projects.c.name))]
 
+    @_retry_when_locked
     def add_membership(self, user_name: str, project: str) -> bool:
         return self._insert(memberships, user_name=user_name, project=project)
 
+    @_retry_when_locked
     def remove_membership(self, user_name: str, project: str) -> bool:
         with self.engine.begin() as conn:
             done = conn.execute(
@@ -585,15 +671,18 @@ class Store:
             )
         return bool(done.rowcount)
 
+    @_retry_when_locked
     def add_token(self, record: TokenRecord) -> None:
         with self.engine.begin() as conn:
             conn.execute(insert(tokens).values(**record.__dict__))
 
+    @_retry_when_locked
     def get_token(self, token_id: str) -> TokenRecord | None:
         with self.engine.connect() as conn:
             row = conn.execute(select(tokens).where(tokens.c.id == token_id)).mappings().first()
         return None if row is None else self._token(row)
 
+    @_retry_when_locked
     def list_tokens(self, user_name: str | None = None) -> list[TokenRecord]:
         query = select(tokens).where(tokens.c.kind == "token").order_by(tokens.c.created_at)
         if user_name is not None:
@@ -601,6 +690,7 @@ class Store:
         with self.engine.connect() as conn:
             return [self._token(r) for r in conn.execute(query).mappings().all()]
 
+    @_retry_when_locked
     def revoke_token(self, token_id: str) -> bool:
         """Revoke a token and the sessions opened with it; False if there is no such token."""
         now = datetime.now(timezone.utc)
@@ -615,6 +705,7 @@ class Store:
             )
         return True
 
+    @_retry_when_locked
     def purge_sessions(self, before: datetime) -> int:
         """Delete the web sessions that expired or were revoked before ``before``; how many."""
         with self.engine.begin() as conn:
@@ -633,6 +724,7 @@ class Store:
                 values[key] = _utc(values[key])
         return TokenRecord(**values)
 
+    @_retry_when_locked
     def add_audit(self, *, actor: str, action: str, target: str, outcome: str, client: str, detail: str) -> None:
         with self.engine.begin() as conn:
             conn.execute(
@@ -647,6 +739,7 @@ class Store:
                 )
             )
 
+    @_retry_when_locked
     def list_audit(self, *, limit: int = 100, offset: int = 0) -> list[AuditRecord]:
         """Newest first."""
         query = select(audit).order_by(audit.c.id.desc()).limit(limit).offset(offset)
@@ -655,25 +748,30 @@ class Store:
         return [AuditRecord(**{**dict(r), "at": _utc(r["at"])}) for r in rows]
 
     # -- benchmarks ----------------------------------------------------------------------------------------
+    @_retry_when_locked
     def add_benchmark(self, values: Mapping[str, Any]) -> bool:
         """False if the name is taken."""
         return self._insert(benchmarks, **values)
 
+    @_retry_when_locked
     def get_benchmark(self, name: str) -> dict[str, Any] | None:
         with self.engine.connect() as conn:
             row = conn.execute(select(benchmarks).where(benchmarks.c.name == name)).mappings().first()
         return None if row is None else self._dated(row, "opens_at", "closes_at", "created_at")
 
+    @_retry_when_locked
     def list_benchmarks(self) -> list[dict[str, Any]]:
         with self.engine.connect() as conn:
             rows = conn.execute(select(benchmarks).order_by(benchmarks.c.name)).mappings().all()
         return [self._dated(r, "opens_at", "closes_at", "created_at") for r in rows]
 
+    @_retry_when_locked
     def update_benchmark(self, name: str, **values: Any) -> bool:
         with self.engine.begin() as conn:
             done = conn.execute(update(benchmarks).where(benchmarks.c.name == name).values(**values))
         return bool(done.rowcount)
 
+    @_retry_when_locked
     def accept_submission(self, values: Mapping[str, Any], *, limit: int, window_start: datetime, window: Any) -> None:
         """Insert the submission if its participant has fewer than ``limit`` submissions in this benchmark
         since ``window_start``; else raise :class:`QuotaRefused`. Counting and inserting are one transaction
@@ -717,16 +815,19 @@ class Store:
                 conn.rollback()
                 raise
 
+    @_retry_when_locked
     def update_submission(self, submission_id: str, **values: Any) -> bool:
         with self.engine.begin() as conn:
             done = conn.execute(update(submissions).where(submissions.c.id == submission_id).values(**values))
         return bool(done.rowcount)
 
+    @_retry_when_locked
     def get_submission(self, submission_id: str) -> dict[str, Any] | None:
         with self.engine.connect() as conn:
             row = conn.execute(select(submissions).where(submissions.c.id == submission_id)).mappings().first()
         return None if row is None else self._dated(row, "created_at", "scored_at", "published_at")
 
+    @_retry_when_locked
     def list_submissions(
         self, benchmark: str, *, participant: str | None = None, published_only: bool = False
     ) -> list[dict[str, Any]]:
@@ -749,6 +850,7 @@ class Store:
                 values[key] = _utc(values[key])
         return values
 
+    @_retry_when_locked
     def _insert(self, table: Table, **values: Any) -> bool:
         try:
             with self.engine.begin() as conn:

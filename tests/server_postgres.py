@@ -85,6 +85,15 @@ class PostgresCluster:
         self._run(
             "initdb", "-D", str(self.data), "-U", "postgres", "--auth=trust", "-E", "UTF8", "--locale=C", "--no-sync"
         )
+        return self.resume()
+
+    def halt(self) -> None:
+        """Stop the server (``pg_ctl stop -m fast``: sessions are ended, the data is kept), as an outage."""
+        self._run("pg_ctl", "-D", str(self.data), "-m", "fast", "-w", "-t", "30", "stop", timeout=60)
+        self.started = False
+
+    def resume(self) -> PostgresCluster:
+        """Start the server on its data folder and port (the first start, or again after :meth:`halt`)."""
         options = f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1 -c max_connections=60"
         self._run(
             "pg_ctl",

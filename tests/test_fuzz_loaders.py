@@ -146,3 +146,43 @@ def test_fuzzed_txt_files_load_or_raise_the_projects_errors(kind: str) -> None:
                 pass
 
     run()
+
+
+@pytest.mark.parametrize("kind", ["zip", "tar"])
+@pytest.mark.parametrize(
+    ("code", "passes_through"), [(28, True), (122, True), (13, False)], ids=["ENOSPC", "EDQUOT", "EACCES"]
+)
+def test_a_full_disk_while_unpacking_is_not_the_archives_fault(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, kind: str, code: int, passes_through: bool
+) -> None:
+    """Out of space (or quota) while writing the txt files is raised as the OSError it is, for the caller to
+    report as the machine's failure; any other write failure stays a refusal of the archive."""
+    import errno
+
+    from kitti_eval.io import archives
+
+    assert (errno.ENOSPC, errno.EDQUOT, errno.EACCES) == (28, 122, 13)
+    files = {"pred/000001.txt": b"Car -1 -1 0 0 0 10 10 1 1 1 1 1 1 0 0.9\n"}
+    buf = io.BytesIO()
+    if kind == "zip":
+        with zipfile.ZipFile(buf, "w") as zf:
+            for name, data in files.items():
+                zf.writestr(name, data)
+    else:
+        with tarfile.open(fileobj=buf, mode="w") as tf:
+            for name, data in files.items():
+                info = tarfile.TarInfo(name)
+                info.size = len(data)
+                tf.addfile(info, io.BytesIO(data))
+
+    class Full(io.BytesIO):
+        def write(self, data: object) -> int:
+            raise OSError(code, os.strerror(code))
+
+    monkeypatch.setattr(archives, "open", lambda *a, **k: Full(), raising=False)
+    with pytest.raises((OSError, KittiEvalError)) as caught:
+        extract_txt_folder(buf, kind, tmp_path, LIMITS, "pred.archive")  # type: ignore[arg-type]
+    if passes_through:
+        assert isinstance(caught.value, OSError) and caught.value.errno == code
+    else:
+        assert isinstance(caught.value, KittiEvalError) and "pred.archive" in str(caught.value)

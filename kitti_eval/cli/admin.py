@@ -151,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
             return _ground_truth(args, settings, actor)
         if args.admin_what == "benchmark":
             return _benchmark(args, settings, actor)
-        store = Store(settings.resolved_database_url)
+        store = Store(settings.resolved_database_url, busy_s=settings.database_busy_s)
         try:
             store.create_schema()
             return _account_command(args, store, Accounts(store, lambda: ""), actor)

@@ -14,6 +14,7 @@ archive; messages name archive members, never the paths written to.
 from __future__ import annotations
 
 import bz2
+import errno
 import gzip
 import lzma
 import re
@@ -209,6 +210,15 @@ def _wanted(name: str) -> bool:
     return base.lower().endswith(".txt") and not base.startswith(".") and "__MACOSX" not in parts
 
 
+#: errno values of a full disk or an exhausted quota: the machine's fault, not the archive's, so they pass through
+#: unchanged instead of becoming an InputError
+_NO_SPACE = frozenset({errno.ENOSPC, errno.EDQUOT})
+
+
+def _out_of_space(e: BaseException) -> bool:
+    return isinstance(e, OSError) and e.errno in _NO_SPACE
+
+
 class _Writer:
     """Writes wanted members flat into one numbered subfolder per archive folder."""
 
@@ -344,6 +354,8 @@ def _zip_members(file: IO[bytes], writer: _Writer, budget: _Budget, source: str)
                 RuntimeError,
                 ValueError,
             ) as e:
+                if _out_of_space(e):
+                    raise
                 raise InputError(f"member {info.filename!r} cannot be unpacked ({e})", source=source) from None
 
 
@@ -413,6 +425,8 @@ def _tar_members(file: IO[bytes], writer: _Writer, budget: _Budget, source: str,
     except InputError:
         raise
     except (tarfile.TarError, OSError, EOFError, zlib.error, lzma.LZMAError, ValueError) as e:
+        if _out_of_space(e):
+            raise
         raise InputError(
             f"not a readable tar archive, or a truncated one ({e or type(e).__name__})", source=source
         ) from None

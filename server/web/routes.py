@@ -32,7 +32,7 @@ from ..accounts import OPEN, Caller, TokenRefused
 from ..auth import CALLER_KEY, CSRF_COOKIE, SESSION_COOKIE, client_of
 from ..compare import compare
 from ..deps import CallerDep, ServiceDep, forbid
-from ..errors import MAX_ECHO_CHARS, ApiError, BadRequest, Forbidden, clip, echo, library_error_status
+from ..errors import MAX_ECHO_CHARS, ApiError, BadRequest, Forbidden, clip, echo, fault_of, library_error_status
 from ..evaluator import ERRORS_SET, EvalOptions, parse_labels
 from ..routes.frames import MAX_SCORE
 from ..schemas import iso
@@ -302,11 +302,18 @@ async def upload(request: Request, service: ServiceDep, caller: CallerDep) -> Re
                 caller,
                 values.get("project") or None,
             )
-    except (ApiError, KittiEvalError, HTTPException) as e:
-        message = e.detail if isinstance(e, HTTPException) else str(e)
+    except Exception as e:  # the refusals the JSON API answers 4xx, and a full disk (507)
+        failure: ApiError | KittiEvalError | HTTPException | None = (
+            e
+            if isinstance(e, (ApiError, KittiEvalError, HTTPException))
+            else fault_of(e, service.settings.retry_after_s)
+        )
+        if failure is None:
+            raise
+        message = failure.detail if isinstance(failure, HTTPException) else str(failure)
         refill = {k: clip(v) for k, v in values.items()}  # the form as sent, within bounds
         return await anyio.to_thread.run_sync(
-            partial(_home, request, service, caller, status=_status(e), error=clip(str(message)), form=refill)
+            partial(_home, request, service, caller, status=_status(failure), error=clip(str(message)), form=refill)
         )
     return RedirectResponse(f"/evaluations/{quote(record.id)}", status_code=303)
 
