@@ -309,9 +309,13 @@ def _retry_after(request: Request) -> int:
     return int(getattr(getattr(service, "settings", None), "retry_after_s", 2))
 
 
+#: what a 500 says: nothing of the failure itself (the log has it)
+INTERNAL_ERROR_MESSAGE = "internal error; the server log has the details"
+
+
 async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
     log.error("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
-    return error_response(500, "internal_error", "internal error; the server log has the details")
+    return error_response(500, "internal_error", INTERNAL_ERROR_MESSAGE)
 
 
 def install_error_handlers(app: FastAPI) -> None:

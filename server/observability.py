@@ -35,6 +35,8 @@ from prometheus_client.multiprocess import MultiProcessCollector
 from prometheus_client.registry import Collector
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from .errors import INTERNAL_ERROR_MESSAGE, error_body
+
 __all__ = ["Metrics", "RequestMiddleware", "REQUEST_ID_HEADER", "configure_logging", "CONTENT_TYPE"]
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
@@ -46,6 +48,7 @@ EVALUATION_PATHS = frozenset({"/v1/evaluations", "/ui/evaluations"})
 _LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0)
 
 access_log = logging.getLogger("kitti_eval.server.access")
+errors_log = logging.getLogger("kitti_eval.server")
 
 
 class _Cache(Protocol):
@@ -96,6 +99,9 @@ class Metrics:
         )
         self.received = Counter("kitti_eval_http_received_bytes", "Request body bytes received", registry=r)
         self.evaluations = Counter("kitti_eval_evaluations", "Evaluation requests by outcome", ["outcome"], registry=r)
+        self.errors = Counter(
+            "kitti_eval_http_errors", "Error responses by their code (database_unavailable, ...)", ["code"], registry=r
+        )
         self.evaluation_seconds = Histogram(
             "kitti_eval_evaluation_duration_seconds",
             "Time an evaluation request took, by outcome",
@@ -236,7 +242,9 @@ class RequestMiddleware:
                     error_parts.append(message.get("body", b""))
                     if message.get("more_body", False):
                         return
-                    body = _with_request_id(b"".join(error_parts), rid)
+                    body, code = _with_request_id(b"".join(error_parts), rid)
+                    if code is not None:
+                        state["error_code"] = code[:64]
                     headers = [(k, v) for k, v in error_start["headers"] if k.lower() != b"content-length"]
                     headers.append((b"content-length", str(len(body)).encode()))
                     await send({**error_start, "headers": headers})
@@ -247,6 +255,16 @@ class RequestMiddleware:
 
         try:
             await self.app(scope, counting_receive, tagging_send)
+        except Exception:
+            # an unexpected failure: answered here, inside this layer, so the 500 carries the request id and is
+            # counted and logged like any other answer (the server's own last-resort handler sits outside)
+            if seen["status"]:  # the response had begun: nothing more can be said on this connection
+                raise
+            errors_log.error("unhandled error on %s %s", scope.get("method"), scope.get("path"), exc_info=True)
+            raw = json.dumps(error_body("internal_error", INTERNAL_ERROR_MESSAGE)).encode()
+            headers = [(b"content-type", b"application/json"), (b"content-length", str(len(raw)).encode())]
+            await tagging_send({"type": "http.response.start", "status": 500, "headers": headers})
+            await tagging_send({"type": "http.response.body", "body": raw})
         finally:
             self._done(scope, rid, seen, time.perf_counter() - started)
 
@@ -258,6 +276,9 @@ class RequestMiddleware:
             m.requests.labels(route, method, str(status)).inc()
             m.latency.labels(route, method).observe(seconds)
             m.received.inc(seen["received"])
+            code = scope.get("state", {}).get("error_code")
+            if code is not None:
+                m.errors.labels(str(code)).inc()
             if method == "POST" and str(scope.get("path", "")).rstrip("/") in EVALUATION_PATHS and status:
                 outcome = "ok" if status < 400 else "refused" if status < 500 or status == 503 else "failed"
                 m.evaluations.labels(outcome).inc()
@@ -308,16 +329,17 @@ def _is_json(headers: list[tuple[bytes, bytes]]) -> bool:
     return any(k.lower() == b"content-type" and v.startswith(b"application/json") for k, v in headers)
 
 
-def _with_request_id(body: bytes, rid: str) -> bytes:
-    """An error body with ``error.request_id`` added (any other body as it was)."""
+def _with_request_id(body: bytes, rid: str) -> tuple[bytes, str | None]:
+    """An error body with ``error.request_id`` added (any other body as it was), and the error's code."""
     try:
         doc = json.loads(body)
     except ValueError:
-        return body
+        return body, None
     if isinstance(doc, dict) and isinstance(doc.get("error"), dict):
         doc["error"]["request_id"] = rid
-        return json.dumps(doc).encode()
-    return body
+        code = doc["error"].get("code")
+        return json.dumps(doc).encode(), code if isinstance(code, str) else None
+    return body, None
 
 
 # -------------------------------------------------------------------------------------------- logging

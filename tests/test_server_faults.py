@@ -98,6 +98,10 @@ def test_an_unreachable_database_is_503_wherever_it_is_met(tmp_path: Path, monke
         assert r.headers["retry-after"] == "2"
         monkeypatch.setattr(store, "list_evaluations", lambda **kw: [][1])  # a bug stays a 500
         assert assert_error(c.get("/v1/evaluations"), 500)["code"] == "internal_error"
+        # each counted by its code on /metrics, what an alert on the outage reads
+        metrics = c.get("/metrics").text
+        assert 'kitti_eval_http_errors_total{code="database_unavailable"} 1.0' in metrics
+        assert 'kitti_eval_http_errors_total{code="internal_error"} 1.0' in metrics
     with app_client(tmp_path / "accounts", auth="accounts", retry_after_s=5) as c:
         assert c.post("/v1/admin/users", json={"name": "ann", "admin": False}, headers=ADMIN).status_code == 201
         token = c.post("/v1/admin/tokens", json={"user": "ann"}, headers=ADMIN).json()["token"]

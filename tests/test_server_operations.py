@@ -77,6 +77,9 @@ def test_the_counters_match_the_requests_made(service_client: Any) -> None:
     assert delta("kitti_eval_evaluations_total", outcome="ok") == 2
     assert delta("kitti_eval_evaluations_total", outcome="refused") == 1
     assert delta("kitti_eval_evaluations_total", outcome="failed") == 0
+    # errors by their code: what a dashboard alerts on (database_unavailable, insufficient_storage, ...)
+    assert delta("kitti_eval_http_errors_total", code="unknown_format") == 1
+    assert delta("kitti_eval_http_errors_total", code="not_found") == 1
     assert delta("kitti_eval_evaluation_duration_seconds_count", outcome="ok") == 2
     assert delta("kitti_eval_http_request_duration_seconds_count", route="/healthz", method="GET") == 3
     # every byte of the three uploads arrived (and a little multipart framing around each)
@@ -99,6 +102,25 @@ def test_metrics_can_be_off_or_need_their_token(service_client: Any) -> None:
         assert client.get("/metrics").status_code == 401
         assert client.get("/metrics", headers=ADMIN).status_code == 403  # the admin token is not the scraper's
         assert scrape(client, authorization="Bearer scrape-me")
+
+
+def test_an_unexpected_failure_is_answered_inside_the_request_layer(service_client: Any, monkeypatch: Any) -> None:
+    """A bug's 500 carries the request id and is counted and logged like every answer (the server's own
+    last-resort handler sits outside the request layer and would do none of that)."""
+    with service_client() as client:
+        monkeypatch.setattr(client.app.state.service.store, "list_evaluations", lambda **kw: [][1])
+        r = client.get("/v1/evaluations", headers={"X-Request-ID": "bug-1"})
+        assert r.status_code == 500 and r.headers["x-request-id"] == "bug-1"
+        assert r.json() == {
+            "error": {
+                "code": "internal_error",
+                "message": "internal error; the server log has the details",
+                "request_id": "bug-1",
+            }
+        }
+        samples = scrape(client)
+    assert value(samples, "kitti_eval_http_requests_total", route="/v1/evaluations", method="GET", status="500") == 1
+    assert value(samples, "kitti_eval_http_errors_total", code="internal_error") == 1
 
 
 def test_request_ids_are_returned_and_in_every_error(client: Any) -> None:
