@@ -115,8 +115,9 @@ class Metrics:
         self.cache_lookups = Counter(
             "kitti_eval_ground_truth_cache_lookups", "Ground-truth cache lookups", ["result"], registry=r
         )
-        if service is not None:
-            r.register(_StateCollector(service, with_pid=self.multiprocess_dir is not None))
+        self.state = None if service is None else _StateCollector(service, with_pid=self.multiprocess_dir is not None)
+        if self.state is not None:
+            r.register(self.state)
 
     def render(self) -> bytes:
         """The text exposition: this process's registry, or every process's in multiprocess mode."""
@@ -124,12 +125,9 @@ class Metrics:
             return generate_latest(self.registry)
         merged = CollectorRegistry()
         MultiProcessCollector(merged, path=self.multiprocess_dir)
-        for collector in self._state_collectors():
-            merged.register(collector)
+        if self.state is not None:
+            merged.register(self.state)
         return generate_latest(merged)
-
-    def _state_collectors(self) -> Iterable[Collector]:
-        return [c for c in self.registry._collector_to_names if isinstance(c, _StateCollector)]  # noqa: SLF001
 
     def cache_hit(self, hit: bool) -> None:
         self.cache_lookups.labels("hit" if hit else "miss").inc()
