@@ -11,8 +11,10 @@ Exit codes: 0 ok, 1 bad input (unknown user, taken name, unreadable file, no ser
 from __future__ import annotations
 
 import argparse
+import contextlib
 import getpass
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -218,13 +220,24 @@ def _account_command(args: argparse.Namespace, store: Any, accounts: Any, actor:
     return EXIT_OK
 
 
-def _ground_truth(args: argparse.Namespace, settings: Any, actor: str) -> int:
-    from kitti_eval_server.service import FileIn, Service
+@contextlib.contextmanager
+def _offline_service(settings: Any) -> Iterator[Any]:
+    """The service's state on this machine, without its HTTP side: scratch space and tables ready, closed after."""
+    from kitti_eval_server.service import Service
 
     service = Service(settings)
     try:
         service.scratch_space.open()
         service.store.create_schema()
+        yield service
+    finally:
+        service.stop()
+
+
+def _ground_truth(args: argparse.Namespace, settings: Any, actor: str) -> int:
+    from kitti_eval_server.service import FileIn
+
+    with _offline_service(settings) as service:
         with open(args.file, "rb") as fh:
             record = service.register_ground_truth(
                 args.name, FileIn(fh, args.file.name), project=args.project, sealed=args.sealed
@@ -236,8 +249,6 @@ def _ground_truth(args: argparse.Namespace, settings: Any, actor: str) -> int:
             client="local",
             detail=f"project {record.project or '-'}{', sealed' if record.sealed else ''}",
         )
-    finally:
-        service.stop()
     sealed = ", sealed" if record.sealed else ""
     print(f"ground truth {record.name}: {record.frames} frames, {record.boxes} boxes{sealed}, sha256 {record.sha256}")
     return EXIT_OK
@@ -245,12 +256,8 @@ def _ground_truth(args: argparse.Namespace, settings: Any, actor: str) -> int:
 
 def _benchmark(args: argparse.Namespace, settings: Any, actor: str) -> int:
     from kitti_eval_server.benchmarks import DEFAULT_KEY, Benchmarks
-    from kitti_eval_server.service import Service
 
-    service = Service(settings)
-    try:
-        service.scratch_space.open()
-        service.store.create_schema()
+    with _offline_service(settings) as service:
         benchmarks = Benchmarks(service)
         action = args.admin_action
         if action == "add":
@@ -300,8 +307,6 @@ def _benchmark(args: argparse.Namespace, settings: Any, actor: str) -> int:
         elif action == "export":
             board = benchmarks.leaderboard(args.name, _everyone())
             sys.stdout.write(benchmarks.leaderboard_csv(board))
-    finally:
-        service.stop()
     return EXIT_OK
 
 
