@@ -575,9 +575,10 @@ class Benchmarks:
         scores: dict[str, dict[str, float | None]] = {"all": _scores(doc, columns)}
         percent = bench.split_percent
         if percent is not None and bench.split_seed:
-            public = [f for f in gt.frame_ids if in_public_part(bench.split_seed, f, percent)]
-            private = [f for f in gt.frame_ids if not in_public_part(bench.split_seed, f, percent)]
-            for part, frames in (("public", public), ("private", private)):
+            parts: dict[str, list[str]] = {"public": [], "private": []}
+            for f in gt.frame_ids:
+                parts["public" if in_public_part(bench.split_seed, f, percent) else "private"].append(f)
+            for part, frames in parts.items():
                 if frames:
                     part_doc = evaluate_document(gt.subset(frames), dt.subset(frames), config)
                     scores[part] = _scores(part_doc, columns)
