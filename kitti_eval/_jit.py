@@ -9,9 +9,9 @@ This module sits above everything it warms: it imports the layers (``core``, ``i
 none of them imports it; the CLI and the service call it. ``python -m kitti_eval._jit [--all]`` warms from
 the command line.
 
-numba keeps a compiled kernel for one source file (by its absolute path, and from numba 0.68 on by its
-content; older versions stamp it with the file's modification time, which every fresh install changes), one
-numba and Python version and one CPU (model and features). :func:`cache_key` names exactly that, so a CI
+numba keeps a compiled kernel for one source file's folder (by its absolute path), one numba and Python
+version and one CPU (model and features), and stamps it with the content of the kernel's module and of every
+module it imports (:mod:`kitti_eval.core.kernel_cache`). :func:`cache_key` names exactly that, so a CI
 job can keep ``NUMBA_CACHE_DIR`` between runs and restore it only where every kernel in it is valid
 (``python -m kitti_eval._jit --cache-key``).
 

@@ -13,11 +13,11 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
 from ..core.arrays import kernel_input
 from ..core.evaluation import Plan, Slot, evaluate, plan_evaluation
 from ..core.frames import Annotations
+from ..core.kernel_cache import njit
 from ..core.matching import FrameEvents, default_workers, threshold_step
 from ..core.metrics import average_precisions, envelope
 from ..core.protocol import N_SAMPLE_PTS, EvalConfig, Metric

@@ -74,11 +74,11 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
 from ..core.arrays import kernel_input
 from ..core.evaluation import Plan, Totals, plan_evaluation, result_from_counts
 from ..core.frames import Annotations
+from ..core.kernel_cache import njit
 from ..core.matching import (
     VALID,
     Candidates,

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
 from .arrays import kernel_input
+from .kernel_cache import njit
 
 __all__ = ["FrameOverlaps", "iou_2d", "iou_bev", "iou_3d", "frame_overlaps"]
 

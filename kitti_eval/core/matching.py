@@ -31,9 +31,9 @@ from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
 from .arrays import kernel_input
+from .kernel_cache import njit
 
 _T = TypeVar("_T")
 

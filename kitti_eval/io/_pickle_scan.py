@@ -36,7 +36,8 @@ differently. It needs no GIL and runs as plain Python too (``NUMBA_DISABLE_JIT=1
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from ..core.kernel_cache import njit
 
 # ------------------------------------------------------------------------------------------ error codes
 OK = 0
