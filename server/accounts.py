@@ -14,20 +14,19 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-import logging
 import re
 import secrets
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 
+from .audit import Audit
 from .errors import BadRequest, Conflict, NotFound, Unauthorized, echo
-from .store import AuditRecord, EvaluationRecord, GroundTruthRecord, Store, TokenRecord, UserRecord
+from .policy import ALL_SCOPES, READ, WRITE, Caller
+from .store import Store, TokenRecord, UserRecord
 
 __all__ = [
     "Accounts",
     "Caller",
-    "OPEN",
     "READ",
     "WRITE",
     "TOKEN_PREFIX",
@@ -37,57 +36,14 @@ __all__ = [
     "csrf_token",
 ]
 
-log = logging.getLogger("kitti_eval.server")
-
 TOKEN_PREFIX = "kte_"
 _ID_HEX = 16
-READ = "read"
-WRITE = "write"
-ALL_SCOPES = frozenset({READ, WRITE})
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 _TOKEN_ID = re.compile(rf"^[0-9a-f]{{{_ID_HEX}}}$")
 #: compared against when a token's id is unknown, so that a miss takes as long as a wrong secret
 _DUMMY_DIGEST = hashlib.sha256(b"no such token").hexdigest()
 #: most days a token may be valid for
 MAX_EXPIRY_DAYS = 3650
-
-
-@dataclass(frozen=True)
-class Caller:
-    """Who sends a request and what they may do."""
-
-    name: str
-    is_admin: bool = False
-    #: the projects whose evaluations and ground truths the caller sees; None: every project
-    projects: frozenset[str] | None = None
-    scopes: frozenset[str] = field(default=ALL_SCOPES)
-    token_id: str | None = None
-    #: signed in through the web page (a session cookie): forms that change state need ``csrf``
-    session: bool = False
-    csrf: str | None = None
-
-    @property
-    def actor(self) -> str:
-        """How the audit log names the caller (the token's id, never the token)."""
-        return f"{self.name} ({self.token_id})" if self.token_id else self.name
-
-    @property
-    def can_write(self) -> bool:
-        return WRITE in self.scopes
-
-    def sees_project(self, project: str | None) -> bool:
-        return self.projects is None or (project is not None and project in self.projects)
-
-    def sees_ground_truth(self, record: GroundTruthRecord) -> bool:
-        """Shared ground truths (no project: the demo, those registered in open mode) are everyone's."""
-        return record.project is None or self.sees_project(record.project)
-
-    def sees_evaluation(self, record: EvaluationRecord) -> bool:
-        return self.sees_project(record.project)
-
-
-#: open mode: everyone sees and changes everything except the admin actions (which need the admin token)
-OPEN = Caller("anyone")
 
 
 class TokenRefused(Unauthorized):
@@ -133,11 +89,11 @@ def _scopes(text: str) -> frozenset[str]:
 class Accounts:
     """Users, projects, memberships, tokens, sessions and the audit log, on the service's store.
 
-    Every method that changes something records it in the audit log as done by ``actor``; a refused token
-    is recorded by whoever refuses it (:meth:`refused`)."""
+    Every method that changes something takes the caller who acts and records it in the audit log."""
 
-    def __init__(self, store: Store, admin_token: Callable[[], str]) -> None:
+    def __init__(self, store: Store, audit: Audit, admin_token: Callable[[], str]) -> None:
         self.store = store
+        self.audit = audit
         self._admin_token = admin_token
 
     # -- checking tokens ---------------------------------------------------------------------------------
@@ -149,7 +105,7 @@ class Accounts:
         if not session:
             admin = self._admin_token()
             if admin and hmac.compare_digest(presented_digest, digest(admin)):
-                return Caller("admin-token", is_admin=True)
+                return Caller("admin-token", is_admin=True)  # the admin token stands for an admin
         token_id = split_token(presented)
         record = self.store.get_token(token_id) if token_id is not None else None
         matches = hmac.compare_digest(presented_digest, record.secret_sha256 if record else _DUMMY_DIGEST)
@@ -185,14 +141,7 @@ class Accounts:
         return None
 
     def refused(self, error: TokenRefused, *, client: str, target: str) -> None:
-        self.audit(
-            actor=f"token {error.token_id}" if error.token_id else "unknown token",
-            action="token.refused",
-            target=target,
-            outcome="refused",
-            client=client,
-            detail=error.reason,
-        )
+        self.audit.refused_token(error.token_id, client=client, target=target, reason=error.reason)
 
     # -- managing ----------------------------------------------------------------------------------------
     @staticmethod
@@ -204,11 +153,11 @@ class Accounts:
             )
         return name
 
-    def add_user(self, name: str, *, is_admin: bool, actor: str, client: str = "local") -> UserRecord:
+    def add_user(self, name: str, *, is_admin: bool, caller: Caller) -> UserRecord:
         self.check_name(name, "user")
         if not self.store.add_user(name, is_admin):
             raise Conflict(f"a user named {name!r} exists")
-        self.audit(actor=actor, action="user.add", target=name, client=client, detail="admin" if is_admin else "")
+        self.audit.record(caller, "user.add", name, detail="admin" if is_admin else "")
         user = self.store.get_user(name)
         assert user is not None
         return user
@@ -219,11 +168,11 @@ class Accounts:
             raise NotFound(f"no user named {echo(name)}")
         return user
 
-    def add_project(self, name: str, *, actor: str, client: str = "local") -> str:
+    def add_project(self, name: str, *, caller: Caller) -> str:
         self.check_name(name, "project")
         if not self.store.add_project(name):
             raise Conflict(f"a project named {name!r} exists")
-        self.audit(actor=actor, action="project.add", target=name, client=client)
+        self.audit.record(caller, "project.add", name)
         return name
 
     def check_project(self, name: str) -> str:
@@ -231,17 +180,17 @@ class Accounts:
             raise NotFound(f"no project named {echo(name)}")
         return name
 
-    def add_member(self, user: str, project: str, *, actor: str, client: str = "local") -> None:
+    def add_member(self, user: str, project: str, *, caller: Caller) -> None:
         self.user(user)
         self.check_project(project)
         if not self.store.add_membership(user, project):
             raise Conflict(f"{user!r} is a member of {project!r} already")
-        self.audit(actor=actor, action="member.add", target=f"{user} -> {project}", client=client)
+        self.audit.record(caller, "member.add", f"{user} -> {project}")
 
-    def remove_member(self, user: str, project: str, *, actor: str, client: str = "local") -> None:
+    def remove_member(self, user: str, project: str, *, caller: Caller) -> None:
         if not self.store.remove_membership(user, project):
             raise NotFound(f"{echo(user)} is not a member of {echo(project)}")
-        self.audit(actor=actor, action="member.remove", target=f"{user} -> {project}", client=client)
+        self.audit.record(caller, "member.remove", f"{user} -> {project}")
 
     def add_token(
         self,
@@ -249,8 +198,7 @@ class Accounts:
         *,
         scopes: Iterable[str] = ALL_SCOPES,
         expires_days: float | None = None,
-        actor: str,
-        client: str = "local",
+        caller: Caller,
     ) -> tuple[TokenRecord, str]:
         """A new token for ``user``: (its record, the token itself, which is shown once and kept nowhere)."""
         self.user(user)
@@ -262,7 +210,7 @@ class Accounts:
         lifetime = timedelta(days=expires_days) if expires_days is not None else None
         record, token = self._new(user, "token", None, wanted, lifetime)
         detail = f"scopes {record.scopes}" + (f", expires {record.expires_at.isoformat()}" if record.expires_at else "")
-        self.audit(actor=actor, action="token.add", target=f"{user} ({record.id})", client=client, detail=detail)
+        self.audit.record(caller, "token.add", f"{user} ({record.id})", detail=detail)
         return record, token
 
     def _new(
@@ -284,13 +232,13 @@ class Accounts:
         self.store.add_token(record)
         return record, token
 
-    def revoke_token(self, token_id: str, *, actor: str, client: str = "local") -> None:
+    def revoke_token(self, token_id: str, *, caller: Caller) -> None:
         record = self.store.get_token(token_id)
         if record is None or record.kind != "token" or not self.store.revoke_token(token_id):
             raise NotFound(f"no token with id {echo(token_id)}")
-        self.audit(actor=actor, action="token.revoke", target=f"{record.user_name} ({token_id})", client=client)
+        self.audit.record(caller, "token.revoke", f"{record.user_name} ({token_id})")
 
-    def open_session(self, caller: Caller, hours: float, *, client: str = "local") -> str:
+    def open_session(self, caller: Caller, hours: float) -> str:
         """A web session for a caller signed in with a token: the session's own token, for the cookie."""
         assert caller.token_id is not None
         parent = self.store.get_token(caller.token_id)
@@ -301,21 +249,20 @@ class Accounts:
         record, token = self._new(caller.name, "session", parent.id, caller.scopes, lifetime)
         # ended sessions are of no use after a day (their audit rows stay): they do not pile up
         self.store.purge_sessions(datetime.now(timezone.utc) - timedelta(days=1))
-        self.audit(actor=caller.actor, action="session.open", target=f"session {record.id}", client=client)
+        self.audit.record(caller, "session.open", f"session {record.id}")
         return token
 
-    def close_session(self, caller: Caller, *, client: str = "local") -> None:
+    def close_session(self, caller: Caller) -> None:
         if caller.session and caller.token_id is not None:
             self.store.revoke_token(caller.token_id)
-            self.audit(actor=caller.actor, action="session.close", target=f"session {caller.token_id}", client=client)
+            self.audit.record(caller, "session.close", f"session {caller.token_id}")
 
-    # -- audit -------------------------------------------------------------------------------------------
-    def audit(
-        self, *, actor: str, action: str, target: str, client: str, outcome: str = "ok", detail: str = ""
-    ) -> None:
-        """A row in the audit table and a line in the log; neither ever holds a token."""
-        log.info("audit: %s %s %s (%s) from %s %s", actor, action, target, outcome, client, detail)
-        self.store.add_audit(actor=actor, action=action, target=target, outcome=outcome, client=client, detail=detail)
+    # -- listing (admins) --------------------------------------------------------------------------------
+    def users(self) -> list[UserRecord]:
+        return self.store.list_users()
 
-    def audit_log(self, *, limit: int = 100, offset: int = 0) -> list[AuditRecord]:
-        return self.store.list_audit(limit=limit, offset=offset)
+    def projects(self) -> list[str]:
+        return self.store.list_projects()
+
+    def tokens(self, user: str | None = None) -> list[TokenRecord]:
+        return self.store.list_tokens(user)

@@ -1,58 +1,116 @@
-"""Accounts mode at the door: every request but the probes, the static files and the sign-in page carries a
-token (``Authorization: Bearer``, or the web session's cookie), checked before its body is read.
+"""The door: every request meets the access its route declared before anything else reads it.
 
-A client (by IP address) whose tokens were refused ``auth_max_failures`` times within ``auth_failure_window_s``
-gets 429 with Retry-After until the window has passed, without its token being looked at. The count lives in
-the process: each replica keeps its own, so behind a load balancer over n replicas a client gets at most n
-times the limit.
+Each route declares its :class:`~kitti_eval_server.policy.Access` where it is declared (its access dependency
+in :mod:`kitti_eval_server.deps`); the door finds the route a request is for and, in accounts mode, checks the
+token (``Authorization: Bearer``, or the web session's cookie) before the body is read. A route that declares
+no access is refused, in both modes (fail closed); a path no route serves asks for a token before it is told
+404. Only then does the route's dependency ask :class:`~kitti_eval_server.policy.Policy` whether the caller
+may do what the route does.
+
+A client (by IP address, :func:`client_of`) whose tokens were refused ``auth_max_failures`` times within
+``auth_failure_window_s`` gets 429 with Retry-After until the window has passed, without its token being
+looked at. The count lives in the process: each replica keeps its own, so behind a load balancer over n
+replicas a client gets at most n times the limit.
 """
 
 from __future__ import annotations
 
-import re
 import time
 from collections import OrderedDict, deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from functools import partial
 from http.cookies import SimpleCookie
+from typing import Any
 
 import anyio.to_thread
+from fastapi.routing import APIRoute
 from starlette.responses import Response
+from starlette.routing import BaseRoute, Match, Mount
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from .accounts import Accounts, Caller, TokenRefused
-from .errors import TooManyRequests, Unauthorized, error_response, fault_of
+from .accounts import Accounts, TokenRefused
+from .errors import ApiError, Forbidden, TooManyRequests, Unauthorized, error_response, fault_of, is_api
+from .policy import CSRF_HEADER, SAFE_METHODS, Access, Caller, Policy
 
-__all__ = ["AuthMiddleware", "FailureLimiter", "CALLER_KEY", "SESSION_COOKIE", "CSRF_COOKIE", "is_public", "client_of"]
+__all__ = [
+    "AuthMiddleware",
+    "Door",
+    "FailureLimiter",
+    "CALLER_KEY",
+    "DECIDED_KEY",
+    "SESSION_COOKIE",
+    "CSRF_COOKIE",
+    "access_of",
+    "client_of",
+    "flat_routes",
+]
 
+#: the caller the door resolved from a token (accounts mode)
 CALLER_KEY = "kitti_eval.caller"
+#: the caller the route's access dependency admitted (what the services are handed)
+DECIDED_KEY = "kitti_eval.decided"
 SESSION_COOKIE = "kitti_eval_session"
 #: the sign-in form's CSRF token (before there is a session)
 CSRF_COOKIE = "kitti_eval_signin"
-_PUBLIC = frozenset({"/healthz", "/readyz", "/signin", "/favicon.ico"})
-_PUBLIC_PREFIXES = ("/static/", "/static-offline-docs/")
-#: a benchmark's description and board: read without a token when the benchmark is public (the route decides;
-#: a request that carries a token is checked as anywhere else)
-_BOARD_PATHS = re.compile(r"^(/v1/benchmarks(/[^/]+(/leaderboard|/frames)?)?|/benchmarks(/[^/]+)?)$")
 #: clients whose failures are remembered at once (the oldest are forgotten first)
 _MAX_CLIENTS = 10_000
 
 
-def is_public(path: str) -> bool:
-    """Paths answered without a token: the probes, the static files, the sign-in page, and the boards of public
-    benchmarks (:func:`is_board`)."""
-    return path in _PUBLIC or path.startswith(_PUBLIC_PREFIXES) or is_board(path)
+def access_of(dependant: Any) -> set[Access]:
+    """The accesses a route's dependencies declare (exactly one for a route that declares its access)."""
+    found: set[Access] = set()
+    for sub in getattr(dependant, "dependencies", ()):
+        access = getattr(sub.call, "access", None)
+        if isinstance(access, Access):
+            found.add(access)
+        found |= access_of(sub)
+    return found
 
 
-def is_board(path: str) -> bool:
-    """Read (GET) without a token, a benchmark's page, description, frame ids and leaderboard are served when the
-    benchmark is public; the route answers 404 for the others."""
-    return _BOARD_PATHS.fullmatch(path) is not None
+def flat_routes(routes: Sequence[BaseRoute]) -> list[BaseRoute]:
+    """The app's routes with those of included routers (newer FastAPI keeps an included router whole)."""
+    out: list[BaseRoute] = []
+    for route in routes:
+        inner = getattr(route, "original_router", None)
+        out += flat_routes(inner.routes) if inner is not None else [route]
+    return out
 
 
-def is_api(path: str) -> bool:
-    """Paths a program calls (answered with JSON); the others are pages (answered with the sign-in page)."""
-    return path.startswith("/v1/") or path in ("/v1", "/openapi.json", "/metrics")
+class Door:
+    """Which access the route a request is for declared: an :class:`APIRoute`'s access dependency, or, for
+    what FastAPI and Starlette add themselves (the OpenAPI document, the docs page, mounted static files),
+    the access given where the app adds them (``declared``: path -> access)."""
+
+    def __init__(self, routes: Callable[[], Sequence[BaseRoute]], declared: Mapping[str, Access]) -> None:
+        self._routes = routes
+        self._declared = dict(declared)
+        self._table: list[tuple[BaseRoute, Access | None]] | None = None
+
+    def table(self) -> list[tuple[BaseRoute, Access | None]]:
+        """(route, its access or None when it declares none), built once."""
+        if self._table is None:
+            table: list[tuple[BaseRoute, Access | None]] = []
+            for route in flat_routes(self._routes()):
+                if isinstance(route, APIRoute):
+                    found = access_of(route.dependant)
+                    if len(found) > 1:
+                        raise RuntimeError(f"route {route.path} declares several accesses: {sorted(found)}")
+                    table.append((route, found.pop() if found else self._declared.get(route.path)))
+                else:
+                    table.append((route, self._declared.get(getattr(route, "path", ""))))
+            self._table = table
+        return self._table
+
+    def access(self, scope: Scope) -> tuple[bool, Access | None]:
+        """(whether a route serves the path, its access); a method the route does not take still finds it."""
+        partial_match: tuple[bool, Access | None] | None = None
+        for route, access in self.table():
+            match, _ = route.matches(scope)
+            if match is Match.FULL:
+                return True, access
+            if match is Match.PARTIAL and partial_match is None and not isinstance(route, Mount):
+                partial_match = (True, access)
+        return partial_match or (False, None)
 
 
 def client_of(scope: Scope) -> str:
@@ -134,31 +192,45 @@ def cookie(scope: Scope, name: str) -> str | None:
 
 
 class AuthMiddleware:
-    """Resolve the caller of every non-public request (``scope[CALLER_KEY]``) or answer 401/429 itself."""
+    """Refuse what the route's declared access refuses before the body is read: a route that declares none
+    (both modes), and in accounts mode a request without a valid token (401/429) where one is needed, or a
+    web session's change to the JSON API without its CSRF header. Sets the caller a token stands for
+    (``scope[CALLER_KEY]``); the route's access dependency then asks the policy."""
 
     def __init__(
         self,
         app: ASGIApp,
         *,
+        policy: Policy,
+        door: Door,
         accounts: Accounts,
         limiter: FailureLimiter,
         sign_in_page: Callable[[Scope, int, str | None], Awaitable[Response]],
-        own_token_paths: frozenset[str] = frozenset(),
         retry_after_s: Callable[[], int] = lambda: 2,
     ) -> None:
         self.app = app
+        self.policy = policy
+        self.door = door
         self.retry_after_s = retry_after_s  # of a 503 when the token cannot be looked up
         self.accounts = accounts
         self.limiter = limiter
         self.sign_in_page = sign_in_page
-        #: paths that check a token of their own (``/metrics`` with KITTI_EVAL_METRICS_TOKEN: a scraper's)
-        self.own_token_paths = own_token_paths
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        path = scope.get("path", "")
-        board = scope["type"] == "http" and is_board(path)
-        if scope["type"] != "http" or (is_public(path) and not board) or path in self.own_token_paths:
+        if scope["type"] != "http":
             await self.app(scope, receive, send)
+            return
+        path = scope.get("path", "")
+        method = str(scope.get("method", "GET")).upper()
+        served, access = self.door.access(scope)
+        if served and access is None:
+            await self._refuse(scope, receive, send, Forbidden("this route declares no access rule: refused"))
+            return
+        if access is Access.PUBLIC or not self.policy.accounts:
+            await self.app(scope, receive, send)  # open mode: the route's dependency decides
+            return
+        if access is Access.SCRAPER and self.policy.own_metrics_token():
+            await self.app(scope, receive, send)  # its own token, compared by the route's dependency
             return
         client = client_of(scope)
         token = bearer(scope)
@@ -166,18 +238,23 @@ class AuthMiddleware:
         if token is None:
             token = cookie(scope, SESSION_COOKIE)
             via_cookie = token is not None
-        if token is None and board and scope.get("method") in ("GET", "HEAD"):
-            await self.app(scope, receive, send)  # no caller: the route serves public benchmarks only
+        if token is None and access is Access.ANYONE and method in ("GET", "HEAD"):
+            await self.app(scope, receive, send)  # an anonymous reader: the route shows public things only
             return
         retry = self.limiter.retry_after(client)
         if retry is not None:
-            error: Unauthorized | TooManyRequests = TooManyRequests(
-                f"too many refused tokens from this address; retry in {retry} s", retry
-            )
+            error: ApiError = TooManyRequests(f"too many refused tokens from this address; retry in {retry} s", retry)
             await self._refuse(scope, receive, send, error)
             return
         if token is None:
             await self._refuse(scope, receive, send, Unauthorized("sign in: send 'Authorization: Bearer <token>'"))
+            return
+        if via_cookie and is_api(path) and method not in SAFE_METHODS and _header(scope, CSRF_HEADER.encode()) is None:
+            error = Forbidden(
+                "a change through the API with the web session's cookie needs the session's CSRF token in the "
+                "X-CSRF-Token header (or use a token: 'Authorization: Bearer <token>')"
+            )
+            await self._refuse(scope, receive, send, error)
             return
         try:
             try:
@@ -197,7 +274,7 @@ class AuthMiddleware:
             response.headers["connection"] = "close"  # the body, if any, is not read
             await response(scope, receive, send)
             return
-        scope[CALLER_KEY] = caller
+        scope[CALLER_KEY] = caller.at(client)
         await self.app(scope, receive, send)
 
     async def _refuse(
@@ -205,10 +282,10 @@ class AuthMiddleware:
         scope: Scope,
         receive: Receive,
         send: Send,
-        error: Unauthorized | TooManyRequests,
+        error: ApiError,
         clear_cookie: bool = False,
     ) -> None:
-        if is_api(scope["path"]):
+        if is_api(scope["path"]) or isinstance(error, Forbidden):
             response: Response = error_response(error.status_code, error.code, error.message, error.headers)
         else:
             response = await self.sign_in_page(scope, error.status_code, error.message)

@@ -433,7 +433,7 @@ class Benchmarks:
         }
         if not self.store.add_benchmark(values):
             raise Conflict(f"a benchmark named {name!r} exists")
-        self.accounts.audit(actor=actor, action="benchmark.add", target=name, client=client, detail=record.name)
+        self.accounts.audit.write(actor=actor, action="benchmark.add", target=name, client=client, detail=record.name)
         return self._get(name)
 
     def set_state(self, name: str, *, actor: str, client: str = "local", **values: bool) -> Benchmark:
@@ -443,7 +443,7 @@ class Benchmarks:
             raise Conflict("the private ranking is revealed once the benchmark is closed")
         self.store.update_benchmark(name, **values)
         action = ",".join(f"{k}={v}" for k, v in sorted(values.items()))
-        self.accounts.audit(actor=actor, action="benchmark.state", target=name, client=client, detail=action)
+        self.accounts.audit.write(actor=actor, action="benchmark.state", target=name, client=client, detail=action)
         return self._get(name)
 
     def all_submissions(self, name: str) -> list[dict[str, Any]]:
@@ -455,7 +455,7 @@ class Benchmarks:
         if row is None or row["benchmark"] != name:
             raise NotFound(f"no submission {echo(submission_id)} in benchmark {echo(name)}")
         self.store.update_submission(submission_id, disqualified=True)
-        self.accounts.audit(actor=actor, action="submission.disqualify", target=submission_id, client=client)
+        self.accounts.audit.write(actor=actor, action="submission.disqualify", target=submission_id, client=client)
         again = self.store.get_submission(submission_id)
         assert again is not None
         return _submission_view(again, full=False)
@@ -481,7 +481,7 @@ class Benchmarks:
             except KittiEvalError:
                 self.store.update_submission(row["id"], status="failed")
                 failed += 1
-        self.accounts.audit(
+        self.accounts.audit.write(
             actor=actor, action="benchmark.rescore", target=name, client=client, detail=f"{done} rescored"
         )
         return {"benchmark": name, "rescored": done, "failed": failed, "ground_truth_sha256": record.sha256}
@@ -543,7 +543,7 @@ class Benchmarks:
             except BaseException:
                 self.store.update_submission(submission_id, status="failed")
                 raise
-        self.accounts.audit(
+        self.accounts.audit.write(
             actor=caller.actor, action="submission.add", target=f"{name} {submission_id}", client=client
         )
         return self.submission(name, submission_id, caller)

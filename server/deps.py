@@ -1,32 +1,40 @@
-"""Dependencies shared by the routes: the service, the admin check, the response format."""
+"""Dependencies shared by the routes: the service, the access each route declares (and the caller it is
+admitted as, decided by :class:`~kitti_eval_server.policy.Policy`), the response format."""
 
 from __future__ import annotations
 
-import hmac
+from collections.abc import Awaitable, Callable
+from functools import partial
 from typing import Annotated
 
+import anyio.to_thread
 from fastapi import Depends, Query, Request, Security
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from kitti_eval.report.render import OutputFormat
 
-from .accounts import OPEN, Caller
-from .auth import CALLER_KEY, client_of
-from .errors import BadRequest, Forbidden, Unauthorized, echo
+from .auth import CALLER_KEY, DECIDED_KEY, access_of, client_of
+from .errors import BadRequest, Forbidden, echo
+from .policy import CSRF_HEADER, SAFE_METHODS, Access, Caller, Policy
 from .service import Service
 
 __all__ = [
     "get_service",
     "ServiceDep",
-    "get_caller",
-    "CallerDep",
+    "get_policy",
+    "require_public",
+    "require_anyone",
+    "require_reader",
+    "require_writer",
     "require_admin",
-    "AdminDep",
-    "AdminCallerDep",
-    "BearerDep",
-    "require_write",
-    "WriteDep",
-    "forbid",
+    "require_scraper",
+    "PublicCaller",
+    "AnyoneCaller",
+    "ReaderCaller",
+    "WriterCaller",
+    "AdminCaller",
+    "ScraperCaller",
+    "access_of",
     "negotiate_format",
     "FormatDep",
 ]
@@ -39,73 +47,87 @@ def get_service(request: Request) -> Service:
 
 ServiceDep = Annotated[Service, Depends(get_service)]
 
+
+def get_policy(request: Request) -> Policy:
+    policy: Policy = request.app.state.policy
+    return policy
+
+
 _bearer = HTTPBearer(
     auto_error=False,
     description="the admin token (KITTI_EVAL_ADMIN_TOKEN, or the one generated in <data_dir>/admin-token); "
     "with KITTI_EVAL_AUTH=accounts also a user's token (kitti-eval admin token add USER)",
 )
+_FORMS = ("application/x-www-form-urlencoded", "multipart/form-data")
+#: the most fields and files a page form sends (the upload form: one file and a few fields)
+FORM_MAX_FIELDS = 16
 
 
-def get_caller(request: Request) -> Caller:
-    """Who sends the request: in accounts mode the caller the token stands for (resolved by
-    :class:`~server.auth.AuthMiddleware`), in open mode anyone."""
-    caller: Caller = request.scope.get(CALLER_KEY, OPEN)
-    return caller
+async def _csrf_sent(request: Request, caller: Caller) -> str | None:
+    """The CSRF token a web session's change carries: the X-CSRF-Token header, else a form's ``csrf`` field
+    (read once here; the route's own ``request.form()`` gets the same parsed form)."""
+    if not caller.session or request.method.upper() in SAFE_METHODS:
+        return None
+    sent = request.headers.get(CSRF_HEADER)
+    if sent is None and request.headers.get("content-type", "").split(";")[0].strip().lower() in _FORMS:
+        form = await request.form(max_files=1, max_fields=FORM_MAX_FIELDS)
+        value = form.get("csrf")
+        sent = value if isinstance(value, str) else None
+    return sent
 
 
-CallerDep = Annotated[Caller, Depends(get_caller)]
+def _decider(access: Access) -> Callable[..., Awaitable[Caller]]:
+    """The dependency a route declares its access with: the caller the door resolved (or open mode's
+    everyone, or accounts mode's anonymous reader), admitted by the policy for ``access``, or 401/403. A
+    refused use of a valid token goes to the audit log."""
+
+    async def decide(
+        request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)]
+    ) -> Caller:
+        policy = get_policy(request)
+        client = client_of(request.scope)
+        caller: Caller | None = request.scope.get(CALLER_KEY)
+        if caller is None:
+            caller = policy.anonymous(client) if policy.accounts else policy.everyone(client)
+        try:
+            admitted = policy.admit(
+                access,
+                caller,
+                method=request.method,
+                bearer=credentials.credentials if credentials is not None else None,
+                csrf=await _csrf_sent(request, caller),
+            )
+        except Forbidden as e:
+            if caller.signed_in and policy.accounts:
+                service = get_service(request)
+                await anyio.to_thread.run_sync(
+                    partial(service.audit.refused_use, caller, f"{request.method} {request.url.path}", e.message)
+                )
+            raise
+        request.scope[DECIDED_KEY] = admitted
+        return admitted
+
+    decide.__name__ = f"require_{access.name.lower()}"
+    decide.__qualname__ = decide.__name__
+    decide.access = access  # type: ignore[attr-defined]  # read by the door (access_of)
+    return decide
 
 
-def forbid(service: Service, request: Request, caller: Caller, what: str) -> Forbidden:
-    """A refused use of a valid token, in the audit log."""
-    service.accounts.audit(
-        actor=caller.actor,
-        action="token.forbidden",
-        target=f"{request.method} {request.url.path}",
-        outcome="refused",
-        client=client_of(request.scope),
-        detail=what,
-    )
-    return Forbidden(what)
+require_public = _decider(Access.PUBLIC)
+require_anyone = _decider(Access.ANYONE)
+require_reader = _decider(Access.READER)
+require_writer = _decider(Access.WRITER)
+require_admin = _decider(Access.ADMIN)
+require_scraper = _decider(Access.SCRAPER)
 
+#: route parameters that declare a route's access and hand it the admitted caller
+PublicCaller = Annotated[Caller, Depends(require_public)]
+AnyoneCaller = Annotated[Caller, Depends(require_anyone)]
+ReaderCaller = Annotated[Caller, Depends(require_reader)]
+WriterCaller = Annotated[Caller, Depends(require_writer)]
+AdminCaller = Annotated[Caller, Depends(require_admin)]
+ScraperCaller = Annotated[Caller, Depends(require_scraper)]
 
-def require_admin(
-    service: ServiceDep,
-    request: Request,
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)],
-) -> Caller:
-    """Open mode: 401 without a bearer token, 403 with a wrong one. Accounts mode (the token checked
-    already): 403 unless it is the admin token or an admin's token that may write."""
-    caller = get_caller(request)
-    if service.settings.auth == "accounts":
-        if not caller.is_admin:
-            raise forbid(service, request, caller, "this action is for admins")
-        if not caller.can_write:
-            raise forbid(service, request, caller, "this token is read-only")
-        return caller
-    if credentials is None:
-        raise Unauthorized("this action needs the admin token: send 'Authorization: Bearer <token>'")
-    if not hmac.compare_digest(credentials.credentials.encode(), service.admin_token.encode()):
-        raise Forbidden("the admin token is not valid")
-    return Caller("admin-token", is_admin=True)
-
-
-AdminDep = Depends(require_admin)
-#: the admin acting (for the audit log), as a route parameter
-AdminCallerDep = Annotated[Caller, Depends(require_admin)]
-#: the bearer credentials alone, for a route that checks them itself (after its parameters are validated)
-BearerDep = Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)]
-
-
-def require_write(service: ServiceDep, request: Request) -> Caller:
-    """403 for a read-only token."""
-    caller = get_caller(request)
-    if not caller.can_write:
-        raise forbid(service, request, caller, "this token is read-only")
-    return caller
-
-
-WriteDep = Annotated[Caller, Depends(require_write)]
 
 _MEDIA_TYPES = {
     "application/json": OutputFormat.JSON,

@@ -16,7 +16,7 @@ from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -47,6 +47,7 @@ __all__ = [
     "error_body",
     "error_response",
     "install_error_handlers",
+    "is_api",
 ]
 
 log = logging.getLogger("kitti_eval.server")
@@ -270,8 +271,21 @@ def _location(loc: tuple[Any, ...]) -> str:
     return ".".join(parts)
 
 
-async def _api_error(request: Request, exc: Exception) -> JSONResponse:
+def is_api(path: str) -> bool:
+    """Paths a program calls (answered with JSON); the others are pages (answered with a page)."""
+    return path.startswith("/v1/") or path in ("/v1", "/openapi.json", "/metrics")
+
+
+async def _api_error(request: Request, exc: Exception) -> Response:
+    """The one error shape; on a page (a route outside the API's schema: a refusal before the page's own code
+    ran, such as its form's CSRF token) the app's error page, when it has one (``app.state.error_page``)."""
     assert isinstance(exc, ApiError)
+    page = getattr(request.app.state, "error_page", None)
+    route = request.scope.get("route")
+    if page is not None and route is not None and getattr(route, "include_in_schema", True) is False:
+        response: Response = page(request, exc)
+        response.headers.update(exc.headers)
+        return response
     return error_response(exc.status_code, exc.code, exc.message, exc.headers)
 
 

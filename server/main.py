@@ -20,11 +20,12 @@ from pydantic import ValidationError
 
 from kitti_eval import __version__
 
-from .auth import AuthMiddleware
+from .auth import AuthMiddleware, Door
 from .benchmarks import Benchmarks
 from .errors import install_error_handlers
 from .middleware import AdmissionMiddleware, BodyMiddleware
 from .observability import Metrics, RequestMiddleware, configure_logging
+from .policy import Access
 from .routes import admin, benchmarks, evaluations, frames, gates, ground_truths, health, metrics
 from .service import Service
 from .settings import Settings, default_data_dir
@@ -32,7 +33,7 @@ from .shutdown import Drainer
 from .web import STATIC_DIR
 from .web import router as web_router
 from .web.benchmarks import router as benchmark_pages
-from .web.routes import sign_in_page
+from .web.routes import error_page, sign_in_page
 
 __all__ = ["create_app", "serve"]  # and `app`, built on first access
 
@@ -78,6 +79,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         redoc_url=None,
     )
     app.state.service = service
+    app.state.policy = service.policy
+    app.state.error_page = error_page
     app.state.metrics = app_metrics
     app.state.benchmarks = Benchmarks(service)
     install_error_handlers(app)
@@ -110,15 +113,28 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         spool_dir=service.data_dir / "tmp",
         state=service.admission,
     )
-    if settings.auth == "accounts":  # a request without a valid token sends no body anyone reads
-        app.add_middleware(
-            AuthMiddleware,
-            accounts=service.accounts,
-            limiter=service.limiter,
-            sign_in_page=sign_in_page,
-            own_token_paths=frozenset({"/metrics"}) if settings.metrics_token is not None else frozenset(),
-            retry_after_s=lambda: settings.retry_after_s,
-        )
+    # the door: each route's declared access before its body is read (a request without a valid token sends
+    # no body anyone reads); what FastAPI and Starlette add themselves is declared here, where it is added
+    door = Door(
+        lambda: app.routes,
+        {
+            "/openapi.json": Access.READER,
+            "/docs": Access.READER,
+            "/docs/oauth2-redirect": Access.READER,
+            "/static": Access.PUBLIC,
+            "/static-offline-docs": Access.PUBLIC,
+        },
+    )
+    app.state.door = door
+    app.add_middleware(
+        AuthMiddleware,
+        policy=service.policy,
+        door=door,
+        accounts=service.accounts,
+        limiter=service.limiter,
+        sign_in_page=sign_in_page,
+        retry_after_s=lambda: settings.retry_after_s,
+    )
     # outermost: every request gets its id, its log line and its metrics, whoever answers it
     app.add_middleware(RequestMiddleware, metrics=app_metrics, log_json=lambda: log_json)
     return app

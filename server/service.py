@@ -33,12 +33,14 @@ from kitti_eval.core.frames import Annotations, normalize_frame_id
 from kitti_eval.core.protocol import EvalConfig
 from kitti_eval.io.synth import demo_paths
 
-from .accounts import OPEN, Accounts, Caller
+from .accounts import Accounts
+from .audit import Audit
 from .auth import FailureLimiter
-from .errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, Sealed, clip, echo
+from .errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, clip, echo
 from .evaluator import EvalOptions, evaluate_document, summarize
 from .ground_truths import GroundTruthCache, GroundTruths
 from .observability import AdmissionState
+from .policy import AuthMode, Caller, Policy
 from .scratch import ScratchSpace
 from .settings import Settings
 from .store import EvaluationRecord, GroundTruthRecord, Store, new_id
@@ -111,7 +113,14 @@ class Service:
             settings.pred_cache_entries, settings.gt_cache_bytes, what="predictions", setting="KITTI_EVAL_GT_CACHE_MB"
         )
         self.admin_token = ""
-        self.accounts = Accounts(self.store, lambda: self.admin_token)
+        self.audit = Audit(self.store)
+        self.policy = Policy(
+            AuthMode(settings.auth),
+            admin_token=lambda: self.admin_token,
+            metrics_token=lambda: settings.metrics_token.get_secret_value() if settings.metrics_token else None,
+            test_sets=self._benchmarks_on,
+        )
+        self.accounts = Accounts(self.store, self.audit, lambda: self.admin_token)
         self.limiter = FailureLimiter(settings.auth_max_failures, settings.auth_failure_window_s)
         self.warm = threading.Event()
         self.warmup_error: str | None = None
@@ -226,11 +235,12 @@ class Service:
         gt_file: FileIn | None,
         options: EvalOptions,
         labels: Mapping[str, str],
-        caller: Caller = OPEN,
+        caller: Caller,
         project: str | None = None,
     ) -> EvaluationRecord:
         """Load, evaluate, store (committed) and return the record. In accounts mode the evaluation belongs to
-        ``project`` (default: the ground truth's, else the caller's only one), which must be the caller's."""
+        ``project`` (default: the ground truth's, else the caller's only one), which must be the caller's. A
+        benchmark's test set is refused to all but admins (whose evaluations against it are audited)."""
         started = time.perf_counter()
         if (gt_name is None) == (gt_file is None):
             raise BadRequest(
@@ -239,6 +249,8 @@ class Service:
             )
         config = options.config()  # bad options fail before any upload is read
         gt_record = self.ground_truth(gt_name, caller) if gt_name is not None else None
+        if gt_record is not None:
+            self.policy.may_evaluate_against(caller, gt_record)
         project = self._project_for(caller, project, gt_record)
         with self.scratch() as scratch:
             if gt_record is not None:
@@ -279,6 +291,8 @@ class Service:
             project=project,
         )
         self.store.add_evaluation(record)
+        if gt_record is not None and self.policy.is_test_set(gt_record):
+            self.audit.record(caller, "evaluation.test_set", f"{record.id} on {gt_record.name}")
         log.info(
             "evaluation %s: %s frames against %s in %.0f ms",
             record.id,
@@ -290,7 +304,7 @@ class Service:
 
     def _project_for(self, caller: Caller, wanted: str | None, gt_record: GroundTruthRecord | None) -> str | None:
         """The project a new evaluation belongs to (None in open mode)."""
-        if self.settings.auth != "accounts":
+        if not self.policy.accounts:
             return None
         if gt_record is not None and gt_record.project is not None:
             if wanted and wanted != gt_record.project:
@@ -300,7 +314,7 @@ class Service:
                 )
             return gt_record.project
         if wanted:
-            if not caller.sees_project(wanted) or not self.store.project_exists(wanted):
+            if not self.policy.sees_project(caller, wanted) or not self.store.project_exists(wanted):
                 raise NotFound(f"no project of yours named {echo(wanted)}")
             return wanted
         if caller.projects is not None and len(caller.projects) == 1:
@@ -308,41 +322,57 @@ class Service:
         mine = ", ".join(sorted(caller.projects)) if caller.projects is not None else "any project"
         raise BadRequest(f"name the project of the evaluation (form field 'project'): {mine or 'you have none'}")
 
-    def evaluation(self, evaluation_id: str, caller: Caller = OPEN) -> EvaluationRecord:
+    def evaluation(self, evaluation_id: str, caller: Caller) -> EvaluationRecord:
         """The evaluation, if the caller may see it; another project's is as absent as a missing one, and takes
         as long to refuse (one small read of its project, before anything else is loaded)."""
-        if caller.projects is not None:
+        if self.policy.project_filter(caller) is not None:
             exists, project = self.store.evaluation_project(evaluation_id)
-            if not exists or not caller.sees_project(project):
+            if not exists or not self.policy.sees_project(caller, project):
                 raise NotFound(f"no evaluation with id {echo(evaluation_id)}")
         record = self.store.get_evaluation(evaluation_id)
-        if record is None or not caller.sees_evaluation(record):
-            raise NotFound(f"no evaluation with id {echo(evaluation_id)}")
+        self.policy.require_evaluation(caller, record, evaluation_id)
+        assert record is not None
         return record
 
-    def ground_truth(self, name: str, caller: Caller = OPEN) -> GroundTruthRecord:
+    def ground_truth(self, name: str, caller: Caller) -> GroundTruthRecord:
         """The registered ground truth, if the caller may use it; another project's is as absent as a missing
         one."""
-        record = self.ground_truths.record(name)
-        if not caller.sees_ground_truth(record):
-            raise NotFound(f"no ground truth named {echo(name)}; GET /v1/ground-truths lists them")
+        try:
+            record = self.ground_truths.record(name)
+        except NotFound:
+            record = None
+        self.policy.require_ground_truth(caller, record, name)
+        assert record is not None
         return record
+
+    def _benchmarks_on(self, gt_name: str) -> list[str]:
+        """The names of the benchmarks whose test set is the ground truth ``gt_name`` (for the policy)."""
+        return [b["name"] for b in self.store.list_benchmarks() if b["gt_name"] == gt_name]
 
     def list_evaluations(
         self,
-        caller: Caller = OPEN,
+        caller: Caller,
         *,
         gt_name: str | None = None,
         labels: Mapping[str, str] | None = None,
         limit: int = 50,
         offset: int = 0,
     ) -> list[EvaluationRecord]:
+        if not caller.signed_in:
+            return []
         return self.store.list_evaluations(
-            gt_name=gt_name, labels=labels, limit=limit, offset=offset, projects=caller.projects
+            gt_name=gt_name, labels=labels, limit=limit, offset=offset, projects=self.policy.project_filter(caller)
         )
 
-    def list_ground_truths(self, caller: Caller = OPEN) -> list[GroundTruthRecord]:
-        return self.store.list_ground_truths(projects=caller.projects)
+    def ground_truths_to_evaluate(self, caller: Caller) -> list[GroundTruthRecord]:
+        """The ground truths the caller may evaluate against (what the upload form offers): those they see,
+        less the benchmarks' test sets unless they are an admin."""
+        return [r for r in self.list_ground_truths(caller) if caller.is_admin or not self.policy.is_test_set(r)]
+
+    def list_ground_truths(self, caller: Caller) -> list[GroundTruthRecord]:
+        if not caller.signed_in:
+            return []
+        return self.store.list_ground_truths(projects=self.policy.project_filter(caller))
 
     # -- frames ------------------------------------------------------------------------------------------
     def _kept_inputs(self, record: EvaluationRecord) -> tuple[Annotations, Annotations, EvalConfig]:
@@ -358,11 +388,8 @@ class Service:
                 "to look at its frames"
             )
         gt_record = self.store.get_ground_truth(record.gt_name)
-        if gt_record is not None and gt_record.sealed:
-            raise Sealed(
-                f"the ground truth {record.gt_name!r} of evaluation {record.id} is sealed: only aggregate "
-                "results (AP, curves, error totals) are available, no per-frame view"
-            )
+        if gt_record is not None:
+            self.policy.require_frames(gt_record, record.id)
         if gt_record is None or gt_record.sha256 != record.gt_sha256:
             raise Conflict(
                 f"the ground truth {record.gt_name!r} of evaluation {record.id} has been deleted or "
@@ -394,7 +421,7 @@ class Service:
         oset: str = "strict",
         worst: int | None = 20,
         score_threshold: float = 0.0,
-        caller: Caller = OPEN,
+        caller: Caller,
     ) -> dict[str, Any]:
         """TP/FP/FN per frame of a stored evaluation (the ``worst`` n first, or all), as
         :func:`kitti_eval.analysis.diagnostics.frames_document`."""
@@ -419,7 +446,7 @@ class Service:
         difficulty: str = "moderate",
         oset: str = "strict",
         score_threshold: float | None = None,
-        caller: Caller = OPEN,
+        caller: Caller,
     ) -> dict[str, Any]:
         """One frame's boxes for several stored evaluations against the same ground truth, labelled by the
         matching (:func:`kitti_eval.analysis.inspection.inspect_frame`, under the first evaluation's options)."""
@@ -462,12 +489,23 @@ class Service:
 
     # -- ground truths ----------------------------------------------------------------------------------
     def register_ground_truth(
-        self, name: str, file: FileIn, *, project: str | None = None, sealed: bool = False
+        self, name: str, file: FileIn, *, caller: Caller, project: str | None = None, sealed: bool = False
     ) -> GroundTruthRecord:
-        """Register a named ground truth; ``project``: only its members see and use it (None: everyone);
-        ``sealed``: no per-frame view of it ever leaves the service."""
+        """Register a named ground truth (admins); ``project``: only its members see and use it (None:
+        everyone); ``sealed``: no per-frame view of it ever leaves the service."""
+        self.policy.require_admin(caller)
         if project is not None:
             self.accounts.check_project(project)
         with self.scratch() as scratch:
             upload = receive_upload(file.file, file.filename, "file")
-            return self.ground_truths.register(name, upload, scratch, project=project, sealed=sealed)
+            record = self.ground_truths.register(name, upload, scratch, project=project, sealed=sealed)
+        detail = f"project {record.project or '-'}{', sealed' if record.sealed else ''}"
+        self.audit.record(caller, "ground_truth.add", record.name, detail=detail)
+        return record
+
+    def delete_ground_truth(self, name: str, *, caller: Caller) -> GroundTruthRecord:
+        """Delete a registered ground truth (admins); evaluations made with it stay."""
+        self.policy.require_admin(caller)
+        record = self.ground_truths.delete(name)
+        self.audit.record(caller, "ground_truth.delete", name)
+        return record

@@ -9,6 +9,8 @@ import platformdirs
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from .policy import AuthMode
+
 __all__ = ["Settings", "ENV_PREFIX", "default_data_dir"]
 
 ENV_PREFIX = "KITTI_EVAL_"
@@ -78,10 +80,11 @@ class Settings(BaseSettings):
     kept in ``<data_dir>/admin-token`` (readable by the server's user only); replicas sharing a database must
     all be given the same one."""
 
-    auth: Literal["open", "accounts"] = "open"
+    auth: AuthMode = AuthMode.OPEN
     """``open``: everyone who reaches the service sees and changes everything but the ground truths (which
-    need the admin token). ``accounts``: every request but ``/healthz``, ``/readyz``, the static files and the
-    sign-in page needs a token (``kitti-eval admin token add``), and sees only its projects' work."""
+    need the admin token). ``accounts``: every request but those to the routes declared public (the probes,
+    the static files, the sign-in page, public benchmarks' boards) needs a token (``kitti-eval admin token
+    add``), and sees only its projects' work (:mod:`kitti_eval_server.policy`)."""
 
     auth_max_failures: Annotated[int, Field(ge=1)] = 10
     """Accounts mode: refused tokens one client address may send within ``auth_failure_window_s`` before it

@@ -131,7 +131,9 @@ def run(args: argparse.Namespace) -> int:
         from sqlalchemy.exc import SQLAlchemyError
 
         from kitti_eval_server.accounts import Accounts
+        from kitti_eval_server.audit import Audit
         from kitti_eval_server.errors import ApiError
+        from kitti_eval_server.policy import Caller
         from kitti_eval_server.settings import Settings
         from kitti_eval_server.store import Store
     except ImportError as e:
@@ -145,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     except ValidationError as e:
         _say(f"error: invalid settings:\n{e}")
         return EXIT_USAGE
-    actor = f"cli:{_login()}"
+    actor = Caller(f"cli:{_login()}", is_admin=True, client="cli")  # whoever may open the database
     try:
         if settings.database_url is None:  # SQLite in the data folder, which a first command creates
             settings.data_dir.mkdir(parents=True, exist_ok=True)
@@ -156,7 +158,8 @@ def run(args: argparse.Namespace) -> int:
         store = Store(settings.resolved_database_url, busy_s=settings.database_busy_s)
         try:
             store.create_schema()
-            return _account_command(args, store, Accounts(store, lambda: ""), actor)
+            audit = Audit(store)
+            return _account_command(args, store, Accounts(store, audit, lambda: ""), actor)
         finally:
             store.dispose()
     except (ApiError, KittiEvalError) as e:
@@ -178,41 +181,41 @@ def _login() -> str:
         return "unknown"
 
 
-def _account_command(args: argparse.Namespace, store: Any, accounts: Any, actor: str) -> int:
+def _account_command(args: argparse.Namespace, store: Any, accounts: Any, actor: Any) -> int:
     what, action = args.admin_what, getattr(args, "admin_action", None)
     if what == "user" and action == "add":
-        user = accounts.add_user(args.name, is_admin=args.admin, actor=actor)
+        user = accounts.add_user(args.name, is_admin=args.admin, caller=actor)
         print(f"user {user.name}{' (admin)' if user.is_admin else ''}")
     elif what == "user":
         for user in store.list_users():
             print(f"{user.name}\t{'admin' if user.is_admin else 'member'}\t{','.join(user.projects) or '-'}")
     elif what == "project" and action == "add":
-        print(f"project {accounts.add_project(args.name, actor=actor)}")
+        print(f"project {accounts.add_project(args.name, caller=actor)}")
     elif what == "project":
         for name in store.list_projects():
             print(name)
     elif what == "member" and action == "add":
-        accounts.add_member(args.user, args.project, actor=actor)
+        accounts.add_member(args.user, args.project, caller=actor)
         print(f"{args.user} is a member of {args.project}")
     elif what == "member":
-        accounts.remove_member(args.user, args.project, actor=actor)
+        accounts.remove_member(args.user, args.project, caller=actor)
         print(f"{args.user} is no longer a member of {args.project}")
     elif what == "token" and action == "add":
         scopes = ("read",) if args.read_only else ("read", "write")
-        record, token = accounts.add_token(args.user, scopes=scopes, expires_days=args.expires_days, actor=actor)
+        record, token = accounts.add_token(args.user, scopes=scopes, expires_days=args.expires_days, caller=actor)
         expires = record.expires_at.isoformat() if record.expires_at else "never"
         print(f"token id {record.id} for {record.user_name}: scopes {record.scopes}, expires {expires}")
         print("the token follows; it is shown this once (only its sha256 is kept):")
         print(token)
     elif what == "token" and action == "revoke":
-        accounts.revoke_token(args.token_id, actor=actor)
+        accounts.revoke_token(args.token_id, caller=actor)
         print(f"token {args.token_id} revoked")
     elif what == "token":
         for t in store.list_tokens(args.user):
             state = "revoked" if t.revoked_at else f"expires {t.expires_at.isoformat()}" if t.expires_at else "active"
             print(f"{t.id}\t{t.user_name}\t{t.scopes}\t{state}")
     elif what == "audit":
-        for r in accounts.audit_log(limit=max(1, args.limit)):
+        for r in accounts.audit.entries(limit=max(1, args.limit)):
             print(f"{r.at.isoformat()}\t{r.actor}\t{r.action}\t{r.target}\t{r.outcome}\t{r.client}\t{r.detail}")
     else:  # pragma: no cover - argparse requires an action
         _say(f"error: unknown command {what} {action}")
@@ -234,27 +237,21 @@ def _offline_service(settings: Any) -> Iterator[Any]:
         service.stop()
 
 
-def _ground_truth(args: argparse.Namespace, settings: Any, actor: str) -> int:
+def _ground_truth(args: argparse.Namespace, settings: Any, actor: Any) -> int:
     from kitti_eval_server.service import FileIn
 
     with _offline_service(settings) as service:
         with open(args.file, "rb") as fh:
             record = service.register_ground_truth(
-                args.name, FileIn(fh, args.file.name), project=args.project, sealed=args.sealed
+                args.name, FileIn(fh, args.file.name), caller=actor, project=args.project, sealed=args.sealed
             )
-        service.accounts.audit(
-            actor=actor,
-            action="ground_truth.add",
-            target=record.name,
-            client="local",
-            detail=f"project {record.project or '-'}{', sealed' if record.sealed else ''}",
-        )
     sealed = ", sealed" if record.sealed else ""
     print(f"ground truth {record.name}: {record.frames} frames, {record.boxes} boxes{sealed}, sha256 {record.sha256}")
     return EXIT_OK
 
 
-def _benchmark(args: argparse.Namespace, settings: Any, actor: str) -> int:
+def _benchmark(args: argparse.Namespace, settings: Any, caller: Any) -> int:
+    actor = caller.actor
     from kitti_eval_server.benchmarks import DEFAULT_KEY, Benchmarks
 
     with _offline_service(settings) as service:
@@ -311,6 +308,6 @@ def _benchmark(args: argparse.Namespace, settings: Any, actor: str) -> int:
 
 
 def _everyone() -> Any:
-    from kitti_eval_server.accounts import Caller
+    from kitti_eval_server.policy import Caller
 
-    return Caller("cli", is_admin=True)
+    return Caller("cli", is_admin=True, client="cli")

@@ -5,13 +5,12 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query, Request, Response
+from fastapi import APIRouter, Query, Response
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
 from ..accounts import READ, WRITE
-from ..auth import client_of
-from ..deps import AdminCallerDep, BearerDep, ServiceDep, require_admin
+from ..deps import AdminCaller, ServiceDep
 from ..schemas import ErrorResponse, iso
 from ..store import TokenRecord, UserRecord
 
@@ -64,77 +63,70 @@ def _token(record: TokenRecord) -> dict[str, Any]:
 
 
 @router.get("/users", summary="Users and their projects")
-def list_users(service: ServiceDep, caller: AdminCallerDep) -> dict[str, Any]:
-    return {"items": [_user(u) for u in service.store.list_users()]}
+def list_users(service: ServiceDep, caller: AdminCaller) -> dict[str, Any]:
+    return {"items": [_user(u) for u in service.accounts.users()]}
 
 
 @router.post("/users", status_code=201, summary="Add a user")
-def add_user(body: UserIn, service: ServiceDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
-    user = service.accounts.add_user(
-        body.name, is_admin=body.admin, actor=caller.actor, client=client_of(request.scope)
-    )
+def add_user(body: UserIn, service: ServiceDep, caller: AdminCaller) -> dict[str, Any]:
+    user = service.accounts.add_user(body.name, is_admin=body.admin, caller=caller)
     return _user(user)
 
 
 @router.get("/projects", summary="Projects")
-def list_projects(service: ServiceDep, caller: AdminCallerDep) -> dict[str, Any]:
-    return {"items": [{"name": p} for p in service.store.list_projects()]}
+def list_projects(service: ServiceDep, caller: AdminCaller) -> dict[str, Any]:
+    return {"items": [{"name": p} for p in service.accounts.projects()]}
 
 
 @router.post("/projects", status_code=201, summary="Add a project")
-def add_project(body: ProjectIn, service: ServiceDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
-    return {"name": service.accounts.add_project(body.name, actor=caller.actor, client=client_of(request.scope))}
+def add_project(body: ProjectIn, service: ServiceDep, caller: AdminCaller) -> dict[str, Any]:
+    return {"name": service.accounts.add_project(body.name, caller=caller)}
 
 
 @router.post("/members", status_code=201, summary="Make a user a member of a project")
-def add_member(body: MemberIn, service: ServiceDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
-    service.accounts.add_member(body.user, body.project, actor=caller.actor, client=client_of(request.scope))
+def add_member(body: MemberIn, service: ServiceDep, caller: AdminCaller) -> dict[str, Any]:
+    service.accounts.add_member(body.user, body.project, caller=caller)
     return _user(service.accounts.user(body.user))
 
 
 @router.delete("/members/{user}/{project}", status_code=204, summary="End a membership")
-def remove_member(user: str, project: str, service: ServiceDep, caller: AdminCallerDep, request: Request) -> Response:
-    service.accounts.remove_member(user, project, actor=caller.actor, client=client_of(request.scope))
+def remove_member(user: str, project: str, service: ServiceDep, caller: AdminCaller) -> Response:
+    service.accounts.remove_member(user, project, caller=caller)
     return Response(status_code=204)
 
 
 @router.post("/tokens", status_code=201, summary="A new token for a user (shown once)")
-def add_token(body: TokenIn, service: ServiceDep, caller: AdminCallerDep, request: Request) -> JSONResponse:
+def add_token(body: TokenIn, service: ServiceDep, caller: AdminCaller) -> JSONResponse:
     record, token = service.accounts.add_token(
         body.user,
         scopes=(READ,) if body.read_only else (READ, WRITE),
         expires_days=body.expires_days,
-        actor=caller.actor,
-        client=client_of(request.scope),
+        caller=caller,
     )
     return JSONResponse({**_token(record), "token": token}, status_code=201, headers={"Cache-Control": "no-store"})
 
 
 @router.get("/tokens", summary="Tokens (never their secrets)")
 def list_tokens(
-    service: ServiceDep, caller: AdminCallerDep, user: Annotated[str | None, Query(max_length=1000)] = None
+    service: ServiceDep, caller: AdminCaller, user: Annotated[str | None, Query(max_length=1000)] = None
 ) -> dict[str, Any]:
-    return {"items": [_token(t) for t in service.store.list_tokens(user)]}
+    return {"items": [_token(t) for t in service.accounts.tokens(user)]}
 
 
 @router.delete("/tokens/{token_id}", status_code=204, summary="Revoke a token (and its web sessions)")
-def revoke_token(token_id: str, service: ServiceDep, caller: AdminCallerDep, request: Request) -> Response:
-    service.accounts.revoke_token(token_id, actor=caller.actor, client=client_of(request.scope))
+def revoke_token(token_id: str, service: ServiceDep, caller: AdminCaller) -> Response:
+    service.accounts.revoke_token(token_id, caller=caller)
     return Response(status_code=204)
 
 
 @router.get("/audit", summary="The audit log, newest first")
 def list_audit(
     service: ServiceDep,
-    request: Request,
-    credentials: BearerDep,
+    caller: AdminCaller,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0,
 ) -> dict[str, Any]:
-    # the admin check here rather than as a dependency: bad paging parameters are 422 whoever asks, like
-    # every numeric parameter of the API
-    require_admin(service, request, credentials)
-    rows = service.accounts.audit_log(limit=limit, offset=offset)
+    rows = service.audit.entries(limit=limit, offset=offset)
     return {
         "items": [
             {

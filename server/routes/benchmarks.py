@@ -9,13 +9,12 @@ from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, Field
 
-from ..accounts import Caller
-from ..auth import CALLER_KEY, client_of
 from ..benchmarks import DEFAULT_KEY, Benchmarks, InvalidSubmission, QuotaExceeded
-from ..deps import AdminCallerDep, ServiceDep, WriteDep
+from ..deps import AdminCaller, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..errors import error_body
+from ..policy import Caller
 from ..schemas import ErrorResponse
-from ..service import FileIn, Service
+from ..service import FileIn
 
 router = APIRouter(
     prefix="/v1/benchmarks",
@@ -36,18 +35,9 @@ def get_benchmarks(request: Request) -> Benchmarks:
 BenchmarksDep = Annotated[Benchmarks, Depends(get_benchmarks)]
 
 
-def viewer(request: Request) -> Caller | None:
-    """The caller, or None for a request without a token in accounts mode (a public board's reader)."""
-    service: Service = request.app.state.service
-    caller: Caller | None = request.scope.get(CALLER_KEY)
-    if caller is None and service.settings.auth != "accounts":
-        from ..accounts import OPEN
-
-        return OPEN
-    return caller
-
-
-ViewerDep = Annotated[Caller | None, Depends(viewer)]
+def viewer(caller: Caller) -> Caller | None:
+    """The benchmarks' view of a caller: None for a reader without a token (accounts mode)."""
+    return caller if caller.signed_in else None
 
 
 class BenchmarkIn(BaseModel):
@@ -81,7 +71,7 @@ class PublishIn(BaseModel):
 
 
 @router.post("", status_code=201, summary="Create a benchmark on a sealed ground truth (admins)")
-def create(body: BenchmarkIn, benchmarks: BenchmarksDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
+def create(body: BenchmarkIn, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
     bench = benchmarks.create(
         body.name,
         ground_truth=body.ground_truth,
@@ -98,24 +88,24 @@ def create(body: BenchmarkIn, benchmarks: BenchmarksDep, caller: AdminCallerDep,
         closes_at=body.closes_at,
         split_percent=body.split_percent,
         actor=caller.actor,
-        client=client_of(request.scope),
+        client=caller.client,
     )
     return bench.describe()
 
 
 @router.get("", summary="Benchmarks you can see")
-def list_benchmarks(benchmarks: BenchmarksDep, caller: ViewerDep) -> dict[str, Any]:
-    return {"items": [b.describe() for b in benchmarks.visible(caller)]}
+def list_benchmarks(benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
+    return {"items": [b.describe() for b in benchmarks.visible(viewer(caller))]}
 
 
 @router.get("/{name}", summary="One benchmark")
-def get_benchmark(name: str, benchmarks: BenchmarksDep, caller: ViewerDep) -> dict[str, Any]:
-    return benchmarks.get(name, caller).describe()
+def get_benchmark(name: str, benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
+    return benchmarks.get(name, viewer(caller)).describe()
 
 
 @router.get("/{name}/frames", summary="The test frame ids (for kitti-eval validate --benchmark)")
-async def frame_ids(name: str, benchmarks: BenchmarksDep, service: ServiceDep, caller: ViewerDep) -> dict[str, Any]:
-    frames = await service.run(benchmarks.frame_ids, name, caller)
+async def frame_ids(name: str, benchmarks: BenchmarksDep, service: ServiceDep, caller: AnyoneCaller) -> dict[str, Any]:
+    frames = await service.run(benchmarks.frame_ids, name, viewer(caller))
     return {"benchmark": name, "frames": frames}
 
 
@@ -123,12 +113,12 @@ async def frame_ids(name: str, benchmarks: BenchmarksDep, service: ServiceDep, c
 def leaderboard(
     name: str,
     benchmarks: BenchmarksDep,
-    caller: ViewerDep,
+    caller: AnyoneCaller,
     sort: Annotated[str | None, Query(max_length=200, description="rank, key, method, date or a column")] = None,
     order: Annotated[Literal["asc", "desc"] | None, Query()] = None,
     format: Annotated[Literal["json", "csv"], Query()] = "json",
 ) -> Response:
-    board = benchmarks.leaderboard(name, caller, sort=sort, order=order)
+    board = benchmarks.leaderboard(name, viewer(caller), sort=sort, order=order)
     if format == "csv":
         return PlainTextResponse(
             benchmarks.leaderboard_csv(board),
@@ -138,43 +128,38 @@ def leaderboard(
     return JSONResponse(board)
 
 
-def _admin_state(name: str, benchmarks: Benchmarks, caller: Caller, request: Request, **values: bool) -> dict[str, Any]:
-    return benchmarks.set_state(name, actor=caller.actor, client=client_of(request.scope), **values).describe()
+def _admin_state(name: str, benchmarks: Benchmarks, caller: Caller, **values: bool) -> dict[str, Any]:
+    return benchmarks.set_state(name, actor=caller.actor, client=caller.client, **values).describe()
 
 
 @router.post("/{name}/close", summary="Close a benchmark to submissions (admins)")
-def close(name: str, benchmarks: BenchmarksDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
-    return _admin_state(name, benchmarks, caller, request, closed=True)
+def close(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+    return _admin_state(name, benchmarks, caller, closed=True)
 
 
 @router.post("/{name}/reopen", summary="Reopen a closed benchmark (admins)")
-def reopen(name: str, benchmarks: BenchmarksDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
-    return _admin_state(name, benchmarks, caller, request, closed=False)
+def reopen(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+    return _admin_state(name, benchmarks, caller, closed=False)
 
 
 @router.post("/{name}/reveal", summary="Show the private ranking of a closed benchmark (admins)")
-def reveal(name: str, benchmarks: BenchmarksDep, caller: AdminCallerDep, request: Request) -> dict[str, Any]:
-    return _admin_state(name, benchmarks, caller, request, revealed=True)
+def reveal(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+    return _admin_state(name, benchmarks, caller, revealed=True)
 
 
 @router.post("/{name}/rescore", summary="Evaluate every submission again on the current ground truth (admins)")
-async def rescore(
-    name: str, benchmarks: BenchmarksDep, service: ServiceDep, caller: AdminCallerDep, request: Request
-) -> dict[str, Any]:
-    client = client_of(request.scope)
-    return await service.run(lambda: benchmarks.rescore(name, actor=caller.actor, client=client))
+async def rescore(name: str, benchmarks: BenchmarksDep, service: ServiceDep, caller: AdminCaller) -> dict[str, Any]:
+    return await service.run(lambda: benchmarks.rescore(name, actor=caller.actor, client=caller.client))
 
 
 @router.get("/{name}/submissions/all", summary="Every submission, published or not (admins)")
-def all_submissions(name: str, benchmarks: BenchmarksDep, caller: AdminCallerDep) -> dict[str, Any]:
+def all_submissions(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
     return {"items": benchmarks.all_submissions(name)}
 
 
 @router.post("/{name}/submissions/{submission_id}/disqualify", summary="Hide an entry, keeping it (admins)")
-def disqualify(
-    name: str, submission_id: str, benchmarks: BenchmarksDep, caller: AdminCallerDep, request: Request
-) -> dict[str, Any]:
-    return benchmarks.disqualify(name, submission_id, actor=caller.actor, client=client_of(request.scope))
+def disqualify(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+    return benchmarks.disqualify(name, submission_id, actor=caller.actor, client=caller.client)
 
 
 @router.post(
@@ -190,16 +175,14 @@ async def submit(
     name: str,
     benchmarks: BenchmarksDep,
     service: ServiceDep,
-    caller: WriteDep,
-    request: Request,
+    caller: WriterCaller,
     predictions: Annotated[
         UploadFile, File(description="a zip or tar of KITTI result txt files (one a test frame), or a result.pkl")
     ],
 ) -> JSONResponse:
     file = FileIn(predictions.file, predictions.filename)
     try:
-        client = client_of(request.scope)
-        body = await service.run(lambda: benchmarks.submit(name, file, caller, client=client))
+        body = await service.run(lambda: benchmarks.submit(name, file, caller, client=caller.client))
     except InvalidSubmission as e:
         out = error_body(e.code, e.message)
         out["error"]["problems"] = e.problems
@@ -212,18 +195,18 @@ async def submit(
 
 
 @router.get("/{name}/submissions", summary="Your submissions and your quota")
-def my_submissions(name: str, benchmarks: BenchmarksDep, caller: ViewerDep) -> dict[str, Any]:
-    return benchmarks.mine(name, _signed_in(caller))
+def my_submissions(name: str, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[str, Any]:
+    return benchmarks.mine(name, caller)
 
 
 @router.get("/{name}/submissions/{submission_id}", summary="One of your submissions, with its full result")
-def my_submission(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: ViewerDep) -> dict[str, Any]:
-    return benchmarks.submission(name, submission_id, _signed_in(caller))
+def my_submission(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[str, Any]:
+    return benchmarks.submission(name, submission_id, caller)
 
 
 @router.post("/{name}/submissions/{submission_id}/publish", summary="Show one of your submissions on the board")
 def publish(
-    name: str, submission_id: str, body: PublishIn, benchmarks: BenchmarksDep, caller: WriteDep
+    name: str, submission_id: str, body: PublishIn, benchmarks: BenchmarksDep, caller: WriterCaller
 ) -> dict[str, Any]:
     return benchmarks.publish(
         name,
@@ -237,13 +220,5 @@ def publish(
 
 
 @router.post("/{name}/submissions/{submission_id}/withdraw", summary="Take one of your entries off the board")
-def withdraw(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: WriteDep) -> dict[str, Any]:
+def withdraw(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: WriterCaller) -> dict[str, Any]:
     return benchmarks.withdraw(name, submission_id, caller)
-
-
-def _signed_in(caller: Caller | None) -> Caller:
-    from ..errors import Unauthorized
-
-    if caller is None:
-        raise Unauthorized("sign in: send 'Authorization: Bearer <token>'")
-    return caller

@@ -11,7 +11,7 @@ from kitti_eval.core.result import EvalResult
 from kitti_eval.report.render import OutputFormat, render
 
 from ..compare import compare, render_comparison_markdown
-from ..deps import CallerDep, FormatDep, ServiceDep, WriteDep
+from ..deps import FormatDep, ReaderCaller, ServiceDep, WriterCaller
 from ..errors import BadRequest
 from ..evaluator import EvalOptions, parse_labels
 from ..schemas import (
@@ -64,7 +64,7 @@ def _respond(record: EvaluationRecord, fmt: OutputFormat, status: int = 200) -> 
 )
 async def create_evaluation(
     service: ServiceDep,
-    caller: WriteDep,
+    caller: WriterCaller,
     fmt: FormatDep,
     predictions: Annotated[
         UploadFile,
@@ -141,7 +141,7 @@ async def create_evaluation(
 @router.get("", response_model=EvaluationList, summary="History, newest first")
 def list_evaluations(
     service: ServiceDep,
-    caller: CallerDep,
+    caller: ReaderCaller,
     gt: Annotated[str | None, Query(description="only evaluations against this registered ground truth")] = None,
     model: str | None = None,
     commit: str | None = None,
@@ -167,7 +167,7 @@ def list_evaluations(
     summary="One evaluation",
     responses={200: {"content": _TEXT_RESPONSES}},
 )
-def get_evaluation(service: ServiceDep, caller: CallerDep, fmt: FormatDep, evaluation_id: str) -> Response:
+def get_evaluation(service: ServiceDep, caller: ReaderCaller, fmt: FormatDep, evaluation_id: str) -> Response:
     return _respond(service.evaluation(evaluation_id, caller), fmt)
 
 
@@ -178,7 +178,7 @@ def get_evaluation(service: ServiceDep, caller: CallerDep, fmt: FormatDep, evalu
     responses={200: {"content": {"text/markdown": {"schema": {"type": "string"}}}}},
 )
 def compare_evaluations(
-    service: ServiceDep, caller: CallerDep, fmt: FormatDep, evaluation_id: str, other_id: str
+    service: ServiceDep, caller: ReaderCaller, fmt: FormatDep, evaluation_id: str, other_id: str
 ) -> Response:
     base, other = service.evaluation(evaluation_id, caller), service.evaluation(other_id, caller)
     comparison = compare(base, other)

@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query
 
-from ..deps import CallerDep, ServiceDep
+from ..deps import ReaderCaller, ServiceDep
 from ..schemas import ErrorResponse
 
 router = APIRouter(
@@ -37,7 +37,7 @@ MAX_WORST = 1_000_000
 @router.get("/v1/evaluations/{evaluation_id}/frames", summary="TP, FP and FN per frame, worst first")
 async def evaluation_frames(
     service: ServiceDep,
-    caller: CallerDep,
+    caller: ReaderCaller,
     evaluation_id: str,
     cls: ClassQ = "Car",
     metric: MetricQ = "3d",
@@ -70,7 +70,7 @@ async def evaluation_frames(
 @router.get("/v1/frames/{frame_id}", summary="One frame's boxes, labelled, for several evaluations")
 async def inspect_frame(
     service: ServiceDep,
-    caller: CallerDep,
+    caller: ReaderCaller,
     frame_id: str,
     evaluation: Annotated[list[str], Query(description="evaluation id; repeat for several (same ground truth)")],
     cls: ClassQ = "Car",

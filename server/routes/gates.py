@@ -18,7 +18,7 @@ from kitti_eval.analysis.gate import (
 )
 from kitti_eval.errors import ConfigError
 
-from ..deps import CallerDep, ServiceDep
+from ..deps import ReaderCaller, ServiceDep
 from ..errors import BadRequest, NotFound
 from ..evaluator import parse_labels
 from ..schemas import ErrorResponse
@@ -84,7 +84,7 @@ def _rules(req: GateRequest) -> GateRules:
 def run_gate_request(
     req: GateRequest,
     service: ServiceDep,
-    caller: CallerDep,
+    caller: ReaderCaller,
     format: Literal["json", "markdown", "junit"] = Query("json"),  # noqa: A002
 ) -> Response:
     """200 when every rule passes, 412 when one fails (so `curl --fail-with-body` gates a CI job), with the

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, File, Form, Request, Response, UploadFile
+from fastapi import APIRouter, File, Form, Response, UploadFile
 from fastapi.responses import JSONResponse
 
-from ..auth import client_of
-from ..deps import AdminCallerDep, CallerDep, ServiceDep
+from ..deps import AdminCaller, ReaderCaller, ServiceDep
 from ..ground_truths import NAME_PATTERN
 from ..schemas import ErrorResponse, GroundTruthList, GroundTruthOut, ground_truth_out
 from ..service import FileIn
@@ -38,8 +37,7 @@ _admin_errors: dict[int | str, dict[str, Any]] = {
 )
 async def register_ground_truth(
     service: ServiceDep,
-    admin: AdminCallerDep,
-    request: Request,
+    admin: AdminCaller,
     name: Annotated[str, Form(pattern=NAME_PATTERN, description="e.g. kitti-val")],
     file: Annotated[UploadFile, File(description="an OpenPCDet infos .pkl[.gz], or a zip/tar of a label_2 folder")],
     project: Annotated[
@@ -53,16 +51,7 @@ async def register_ground_truth(
     """Validate the file by loading it, keep it, and make it available as `gt=<name>`."""
     record = await service.run(
         lambda: service.register_ground_truth(
-            name, FileIn(file.file, file.filename), project=project or None, sealed=sealed
-        )
-    )
-    await service.run(
-        lambda: service.accounts.audit(
-            actor=admin.actor,
-            action="ground_truth.add",
-            target=record.name,
-            client=client_of(request.scope),
-            detail=f"project {record.project or '-'}{', sealed' if record.sealed else ''}",
+            name, FileIn(file.file, file.filename), caller=admin, project=project or None, sealed=sealed
         )
     )
     return JSONResponse(
@@ -71,12 +60,12 @@ async def register_ground_truth(
 
 
 @router.get("", response_model=GroundTruthList, summary="Registered ground truths")
-def list_ground_truths(service: ServiceDep, caller: CallerDep) -> dict[str, Any]:
+def list_ground_truths(service: ServiceDep, caller: ReaderCaller) -> dict[str, Any]:
     return {"items": [ground_truth_out(r) for r in service.list_ground_truths(caller)]}
 
 
 @router.get("/{name}", response_model=GroundTruthOut, summary="One registered ground truth")
-def get_ground_truth(service: ServiceDep, caller: CallerDep, name: str) -> dict[str, Any]:
+def get_ground_truth(service: ServiceDep, caller: ReaderCaller, name: str) -> dict[str, Any]:
     return ground_truth_out(service.ground_truth(name, caller))
 
 
@@ -86,12 +75,6 @@ def get_ground_truth(service: ServiceDep, caller: CallerDep, name: str) -> dict[
     responses=_admin_errors,
     summary="Delete a registered ground truth (admin); evaluations made with it stay",
 )
-def delete_ground_truth(service: ServiceDep, admin: AdminCallerDep, request: Request, name: str) -> Response:
-    service.ground_truths.delete(name)
-    service.accounts.audit(
-        actor=admin.actor,
-        action="ground_truth.delete",
-        target=name,
-        client=client_of(request.scope),
-    )
+def delete_ground_truth(service: ServiceDep, admin: AdminCaller, name: str) -> Response:
+    service.delete_ground_truth(name, caller=admin)
     return Response(status_code=204)

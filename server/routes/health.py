@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from ..deps import ServiceDep
+from ..deps import PublicCaller, ServiceDep
 from ..errors import NotReady
 from ..schemas import ErrorResponse, Health
 
@@ -12,7 +12,7 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/healthz", response_model=Health, summary="The process is up")
-async def healthz() -> dict[str, str]:
+async def healthz(caller: PublicCaller) -> dict[str, str]:
     return {"status": "ok"}
 
 
@@ -22,7 +22,7 @@ async def healthz() -> dict[str, str]:
     summary="Ready to evaluate (kernels warm, database reachable)",
     responses={503: {"model": ErrorResponse, "description": "warming up, or the database is unavailable"}},
 )
-def readyz(service: ServiceDep) -> dict[str, str]:
+def readyz(service: ServiceDep, caller: PublicCaller) -> dict[str, str]:
     problem = service.readiness()
     if problem is not None:
         raise NotReady(problem)

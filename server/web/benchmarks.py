@@ -10,6 +10,7 @@ from fastapi.responses import Response
 from markupsafe import Markup
 
 from ..benchmarks import Benchmarks, render_markdown
+from ..deps import AnyoneCaller
 from ..errors import ApiError, clip
 from ..routes.benchmarks import viewer
 from .routes import _render
@@ -22,15 +23,15 @@ router = APIRouter(include_in_schema=False)
 @router.get("/benchmarks/{name}")
 def benchmark_page(
     request: Request,
+    caller: AnyoneCaller,
     name: str,
     sort: Annotated[str | None, Query(max_length=200)] = None,
     order: Annotated[Literal["asc", "desc"] | None, Query()] = None,
 ) -> Response:
     benchmarks: Benchmarks = request.app.state.benchmarks
-    caller = viewer(request)
     try:
-        bench = benchmarks.get(name, caller)
-        board = benchmarks.leaderboard(name, caller, sort=sort, order=order)
+        bench = benchmarks.get(name, viewer(caller))
+        board = benchmarks.leaderboard(name, viewer(caller), sort=sort, order=order)
     except ApiError as e:
         return _render(request, "error.html", e.status_code, status=e.status_code, message=clip(e.message))
     return _render(

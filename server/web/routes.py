@@ -28,19 +28,20 @@ from kitti_eval.analysis.decomposition import AOS_TYPES, ERROR_TYPES, TP_ERRORS
 from kitti_eval.core.protocol import ALL_METRICS, KNOWN_CLASSES, PROTOCOLS
 from kitti_eval.errors import KittiEvalError
 
-from ..accounts import OPEN, Caller, TokenRefused
-from ..auth import CALLER_KEY, CSRF_COOKIE, SESSION_COOKIE, client_of
+from ..accounts import TokenRefused
+from ..auth import CALLER_KEY, CSRF_COOKIE, SESSION_COOKIE
 from ..compare import compare
-from ..deps import CallerDep, ServiceDep, forbid
+from ..deps import FORM_MAX_FIELDS, PublicCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..errors import MAX_ECHO_CHARS, ApiError, BadRequest, Forbidden, clip, echo, fault_of, library_error_status
 from ..evaluator import ERRORS_SET, EvalOptions, parse_labels
+from ..policy import Caller
 from ..routes.frames import MAX_SCORE
 from ..schemas import iso
 from ..service import FileIn, Service
 from ..store import EvaluationRecord
 from .svg import bar_chart, bev_view, points_text, pr_chart
 
-__all__ = ["router", "templates", "STATIC_DIR", "sign_in_page"]
+__all__ = ["router", "templates", "STATIC_DIR", "sign_in_page", "error_page"]
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 _TEMPLATES_DIR = Path(__file__).resolve().parent / "templates"
@@ -109,13 +110,6 @@ def _render(request: Request, template: str, status_code: int = 200, /, **contex
     return templates.TemplateResponse(request, template, context, status_code=status_code)
 
 
-def _check_csrf(caller: Caller, sent: str | None) -> None:
-    """A form that changes state, sent with a session cookie, must carry the session's CSRF token (a token
-    sent as a bearer header cannot be sent by another site's page, so needs none)."""
-    if caller.session and not (sent and caller.csrf and hmac.compare_digest(sent, caller.csrf)):
-        raise Forbidden("the form is stale or came from another site (no valid CSRF token); reload the page")
-
-
 # ----------------------------------------------------------------------------------------------- sign in
 
 
@@ -136,19 +130,19 @@ async def sign_in_page(scope: Scope, status: int = 200, error: str | None = None
 
 
 @router.get("/signin")
-async def sign_in_form(request: Request, service: ServiceDep) -> Response:
-    if service.settings.auth != "accounts":
+async def sign_in_form(request: Request, service: ServiceDep, caller: PublicCaller) -> Response:
+    if not service.policy.accounts:
         return RedirectResponse("/", status_code=303)
     return await sign_in_page(request.scope)
 
 
 @router.post("/signin")
-async def sign_in(request: Request, service: ServiceDep) -> Response:
+async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -> Response:
     """Check the token once, open a session (its own token, in an HttpOnly SameSite=Strict cookie) and go
-    to the evaluations."""
-    if service.settings.auth != "accounts":
+    to the evaluations. The form carries its own CSRF token (a cookie sent alike: there is no session yet)."""
+    if not service.policy.accounts:
         return RedirectResponse("/", status_code=303)
-    client = client_of(request.scope)
+    client = caller.client
     try:
         service.limiter.check(client)
         async with request.form(max_files=0, max_fields=4) as form:
@@ -160,15 +154,15 @@ async def sign_in(request: Request, service: ServiceDep) -> Response:
         if not isinstance(token, str) or not token.strip():
             raise BadRequest("paste your token (kitti-eval admin token add prints one)")
         try:
-            caller = await anyio.to_thread.run_sync(lambda: service.accounts.resolve(token.strip()))
+            signed = await anyio.to_thread.run_sync(lambda: service.accounts.resolve(token.strip()))
         except TokenRefused as e:
             service.limiter.fail(client)
             await anyio.to_thread.run_sync(partial(service.accounts.refused, e, client=client, target="/signin"))
             raise
-        if caller.token_id is None:
+        if signed.token_id is None:
             raise BadRequest("the admin token cannot sign in to the pages; sign in with a user's token")
         session = await anyio.to_thread.run_sync(
-            lambda: service.accounts.open_session(caller, service.settings.session_hours, client=client)
+            lambda: service.accounts.open_session(signed.at(client), service.settings.session_hours)
         )
     except (ApiError, HTTPException) as e:
         status = e.status_code
@@ -192,21 +186,20 @@ async def sign_in(request: Request, service: ServiceDep) -> Response:
 
 
 @router.post("/signout")
-async def sign_out(request: Request, service: ServiceDep, caller: CallerDep) -> Response:
-    """End the session (its token is revoked) and clear the cookie."""
-    if service.settings.auth != "accounts":
+async def sign_out(request: Request, service: ServiceDep, caller: ReaderCaller) -> Response:
+    """End the session (its token is revoked) and clear the cookie (the session's CSRF token checked by the
+    policy, as for every change)."""
+    if not service.policy.accounts:
         return RedirectResponse("/", status_code=303)
-    try:
-        async with request.form(max_files=0, max_fields=4) as form:
-            sent = form.get("csrf")
-        _check_csrf(caller, sent if isinstance(sent, str) else None)
-    except (ApiError, HTTPException) as e:
-        return _error_page(request, e)
-    client = client_of(request.scope)
-    await anyio.to_thread.run_sync(lambda: service.accounts.close_session(caller, client=client))
+    await anyio.to_thread.run_sync(lambda: service.accounts.close_session(caller))
     response = RedirectResponse("/signin", status_code=303)
     response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
     return response
+
+
+def error_page(request: Request, exc: ApiError | KittiEvalError | HTTPException) -> Response:
+    """A refusal or failure as a page (the status the JSON API would answer)."""
+    return _error_page(request, exc)
 
 
 def _error_page(request: Request, exc: ApiError | KittiEvalError | HTTPException) -> Response:
@@ -251,7 +244,7 @@ def _home(
         status,
         error=error,
         form=dict(form or {}),
-        ground_truths=[g.name for g in service.list_ground_truths(caller)],
+        ground_truths=[g.name for g in service.ground_truths_to_evaluate(caller)],
         projects=_projects(service, caller),
         protocols=sorted(PROTOCOLS),
         history=_history(service, caller),
@@ -262,29 +255,24 @@ def _home(
 
 def _projects(service: Service, caller: Caller) -> list[str]:
     """The projects an upload from the form may go to (accounts mode): the caller's, every one for admins."""
-    if service.settings.auth != "accounts":
+    if not service.policy.accounts:
         return []
-    return service.store.list_projects() if caller.projects is None else sorted(caller.projects)
+    return service.accounts.projects() if caller.projects is None else sorted(caller.projects)
 
 
 @router.get("/")
-def home(request: Request, service: ServiceDep, caller: CallerDep) -> Response:
+def home(request: Request, service: ServiceDep, caller: ReaderCaller) -> Response:
     return _home(request, service, caller)
 
 
 @router.post("/ui/evaluations")
-async def upload(request: Request, service: ServiceDep, caller: CallerDep) -> Response:
+async def upload(request: Request, service: ServiceDep, caller: WriterCaller) -> Response:
     """The upload form: evaluate (with curves; with the error decomposition when its box is ticked) and
     redirect to the new evaluation's page."""
     values: dict[str, str] = {}
     try:
-        async with request.form(max_files=1, max_fields=16) as form:
+        async with request.form(max_files=1, max_fields=FORM_MAX_FIELDS) as form:
             values = {k: v for k, v in form.items() if isinstance(v, str)}
-            _check_csrf(caller, values.get("csrf"))
-            if not caller.can_write:
-                raise await anyio.to_thread.run_sync(
-                    partial(forbid, service, request, caller, "this token is read-only")
-                )
             predictions = form.get("predictions")
             if not isinstance(predictions, UploadFile) or not predictions.filename:
                 raise BadRequest("choose a predictions file (a result.pkl, .pkl.gz, or a zip/tar of KITTI txt results)")
@@ -394,7 +382,7 @@ def error_charts(result: Mapping[str, Any], difficulty: str, recall: str) -> dic
 
 
 async def _worst_frames(
-    service: Service, record: EvaluationRecord, choice: Mapping[str, str], caller: Caller = OPEN
+    service: Service, record: EvaluationRecord, choice: Mapping[str, str], caller: Caller
 ) -> dict[str, Any]:
     section: dict[str, Any] = {"rows": [], "error": None}
     try:
@@ -424,7 +412,7 @@ async def _worst_frames(
 async def evaluation_page(
     request: Request,
     service: ServiceDep,
-    caller: CallerDep,
+    caller: ReaderCaller,
     evaluation_id: str,
     cls: str | None = None,
     metric: str = "3d",
@@ -505,7 +493,7 @@ def _ap_values(comparison: Mapping[str, Any]) -> list[Mapping[str, Any]]:
 def compare_page(
     request: Request,
     service: ServiceDep,
-    caller: CallerDep,
+    caller: ReaderCaller,
     a: str | None = None,
     b: str | None = None,
     e: Annotated[list[str] | None, Query()] = None,
@@ -573,7 +561,7 @@ def frame_models(
 async def frame_page(
     request: Request,
     service: ServiceDep,
-    caller: CallerDep,
+    caller: ReaderCaller,
     frame_id: str,
     e: Annotated[list[str] | None, Query()] = None,
     cls: str = "Car",

@@ -1,0 +1,310 @@
+"""Who may see and do what: the one place the service decides it.
+
+Two things live here and nowhere else:
+
+* **What a route asks of its caller** (:class:`Access`). Every route declares it where it is declared, as
+  the dependency it takes (:mod:`kitti_eval_server.deps`: ``PublicCaller``, ``ReaderCaller``, ...); the door
+  (:class:`kitti_eval_server.auth.AuthMiddleware`) reads those declarations when the app starts and refuses a
+  route that declares none. There is no list of public paths anywhere else.
+* **What a caller may see and do** (:class:`Policy`): evaluations, ground truths and their frames,
+  benchmarks, submissions and their scores, admin actions. The services ask it; every service method that
+  shows or changes something takes the caller as a required argument, so no call can forget to ask.
+
+A :class:`Caller` is made by the policy alone (:meth:`Policy.everyone`, :meth:`Policy.anonymous`, or
+:meth:`kitti_eval_server.accounts.Accounts.resolve` for a token), and the routes receive it from their access
+dependency. ``KITTI_EVAL_AUTH`` is an :class:`AuthMode`: in ``open`` mode everyone is :meth:`Policy.everyone`
+(sees and changes everything, admin actions need the admin token); in ``accounts`` mode the rules below
+apply. The README's table "Who may do what" is checked against :data:`RULES` by a test.
+"""
+
+from __future__ import annotations
+
+import hmac
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from enum import Enum
+from typing import Protocol
+
+from .errors import Forbidden, NotFound, Sealed, Unauthorized, echo
+
+__all__ = [
+    "Access",
+    "AuthMode",
+    "Caller",
+    "Policy",
+    "RULES",
+    "READ",
+    "WRITE",
+    "ALL_SCOPES",
+    "SAFE_METHODS",
+    "CSRF_HEADER",
+]
+
+READ = "read"
+WRITE = "write"
+ALL_SCOPES = frozenset({READ, WRITE})
+SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+#: a script using a web session's cookie sends the session's CSRF token in this header (forms: field ``csrf``)
+CSRF_HEADER = "x-csrf-token"
+
+
+class AuthMode(str, Enum):
+    """``KITTI_EVAL_AUTH``: ``open`` (no accounts: everyone is everyone) or ``accounts``."""
+
+    OPEN = "open"
+    ACCOUNTS = "accounts"
+
+
+class Access(str, Enum):
+    """What a route asks of its caller before it runs (declared by the route, enforced by the door and the
+    route's dependency)."""
+
+    #: nobody is asked: the probes, the sign-in page, static files; a token sent along is not looked at
+    PUBLIC = "public"
+    #: read without a token, or with a valid one: public benchmarks' descriptions and boards
+    ANYONE = "anyone"
+    #: a valid token or web session (accounts mode)
+    READER = "reader"
+    #: a valid token or session that may write; a session also sends its CSRF token
+    WRITER = "writer"
+    #: an admin's token or session that may write (or the admin token); a session also sends its CSRF token
+    ADMIN = "admin"
+    #: ``/metrics``: its own token when ``KITTI_EVAL_METRICS_TOKEN`` is set, else as READER
+    SCRAPER = "scraper"
+
+
+@dataclass(frozen=True)
+class Caller:
+    """Who sends a request, what they may do, and where from (for the audit log)."""
+
+    name: str
+    is_admin: bool = False
+    #: the projects whose evaluations and ground truths the caller sees; None: every project
+    projects: frozenset[str] | None = None
+    scopes: frozenset[str] = field(default=ALL_SCOPES)
+    token_id: str | None = None
+    #: signed in through the web page (a session cookie): changes need the session's ``csrf``
+    session: bool = False
+    csrf: str | None = None
+    #: the client's address (or ``cli``, ``local``), as the audit log names it
+    client: str = "local"
+    #: False for a reader without a token (accounts mode)
+    signed_in: bool = True
+
+    @property
+    def actor(self) -> str:
+        """How the audit log names the caller (the token's id, never the token)."""
+        return f"{self.name} ({self.token_id})" if self.token_id else self.name
+
+    @property
+    def can_write(self) -> bool:
+        return WRITE in self.scopes
+
+    def at(self, client: str) -> Caller:
+        """The same caller, seen coming from ``client``."""
+        return replace(self, client=client)
+
+
+class _Projected(Protocol):
+    @property
+    def project(self) -> str | None: ...
+
+
+class _GroundTruth(Protocol):
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def project(self) -> str | None: ...
+
+    @property
+    def sealed(self) -> bool: ...
+
+
+#: the rules as one table: (route group, access, what a member may do there, what an admin may do there).
+#: The README's "Who may do what" table is this one (tests/test_policy.py compares them).
+RULES: Sequence[tuple[str, Access, str, str]] = (
+    ("probes, sign-in page, static files", Access.PUBLIC, "yes", "yes"),
+    ("public benchmarks: description, frame ids, board", Access.ANYONE, "yes (no token needed)", "yes"),
+    ("private benchmarks: description, frame ids, board", Access.READER, "members of its project", "yes"),
+    ("evaluations: list, read, compare, gates", Access.READER, "their projects' and shared", "all"),
+    ("evaluations: upload", Access.WRITER, "into their projects, not against a benchmark's test set", "all"),
+    ("frames of an evaluation", Access.READER, "their projects', never of a sealed ground truth", "never sealed"),
+    ("ground truths: list, read", Access.READER, "their projects' and shared", "all"),
+    ("ground truths: register, delete", Access.ADMIN, "no", "yes"),
+    ("benchmark submissions: submit", Access.WRITER, "within the quota, while open", "no (not a participant)"),
+    ("own submissions: scores", Access.READER, "public part until the reveal, then all", "all (submissions/all)"),
+    ("own submissions: publish, withdraw", Access.WRITER, "until the benchmark closes", "no"),
+    ("benchmarks: create, close, reopen, reveal, rescore, disqualify", Access.ADMIN, "no", "yes"),
+    ("accounts: users, projects, members, tokens, audit log", Access.ADMIN, "no", "yes"),
+    ("metrics", Access.SCRAPER, "with the metrics token, else any token", "yes"),
+)
+
+
+class Policy:
+    """Every "may this caller see / do this" of the service. Stateless but for the mode and the tokens it
+    compares; what it needs to know about a benchmark's test sets it asks ``test_sets`` (the names of the
+    benchmarks that use a ground truth)."""
+
+    def __init__(
+        self,
+        mode: AuthMode,
+        *,
+        admin_token: Callable[[], str],
+        metrics_token: Callable[[], str | None] = lambda: None,
+        test_sets: Callable[[str], Sequence[str]] = lambda name: (),
+    ) -> None:
+        self.mode = mode
+        self._admin_token = admin_token
+        self._metrics_token = metrics_token
+        self._test_sets = test_sets
+
+    @property
+    def accounts(self) -> bool:
+        return self.mode is AuthMode.ACCOUNTS
+
+    # -- callers -----------------------------------------------------------------------------------------
+    def everyone(self, client: str = "local") -> Caller:
+        """Open mode's caller: sees and changes everything but the admin actions."""
+        return Caller("anyone", client=client)
+
+    def anonymous(self, client: str = "local") -> Caller:
+        """Accounts mode, no token: sees public benchmarks only."""
+        return Caller("anonymous", projects=frozenset(), scopes=frozenset(), client=client, signed_in=False)
+
+    def admin_token_caller(self, client: str = "local") -> Caller:
+        return Caller("admin-token", is_admin=True, client=client)
+
+    def command_line(self, login: str) -> Caller:
+        """``kitti-eval admin``: whoever may open the service's database acts as an admin."""
+        return Caller(f"cli:{login}", is_admin=True, client="cli")
+
+    def own_metrics_token(self) -> bool:
+        """Whether ``/metrics`` has a token of its own (a scraper's, not an account's)."""
+        return self._metrics_token() is not None
+
+    def is_admin_token(self, presented: str | None) -> bool:
+        expected = self._admin_token()
+        if not presented or not expected:
+            return False
+        return hmac.compare_digest(presented.encode(), expected.encode())
+
+    # -- routes ------------------------------------------------------------------------------------------
+    def admit(self, access: Access, caller: Caller, *, method: str, bearer: str | None, csrf: str | None) -> Caller:
+        """The caller a route declared with ``access`` runs for, or the refusal (401/403). ``bearer``: the
+        request's bearer token (open mode's admin actions, ``/metrics``' own token); ``csrf``: the CSRF token
+        the request carries (header or form field), checked for a web session's changes."""
+        if access is Access.PUBLIC or access is Access.ANYONE:
+            return caller
+        if access is Access.SCRAPER:
+            own = self._metrics_token()
+            if own is not None:
+                if bearer is None:
+                    raise Unauthorized(
+                        "the metrics need their token: send 'Authorization: Bearer <KITTI_EVAL_METRICS_TOKEN>'"
+                    )
+                if not hmac.compare_digest(bearer.encode(), own.encode()):
+                    raise Forbidden("the metrics token is not valid")
+                return Caller("metrics-scraper", projects=frozenset(), scopes=frozenset({READ}), client=caller.client)
+            access = Access.READER
+        if access is Access.ADMIN and not self.accounts:
+            if caller.is_admin:
+                return caller
+            if bearer is None:
+                raise Unauthorized("this action needs the admin token: send 'Authorization: Bearer <token>'")
+            if not self.is_admin_token(bearer):
+                raise Forbidden("the admin token is not valid")
+            return self.admin_token_caller(caller.client)
+        if not caller.signed_in:
+            raise Unauthorized("sign in: send 'Authorization: Bearer <token>'")
+        if access is Access.ADMIN and not caller.is_admin:
+            raise Forbidden("this action is for admins")
+        if access in (Access.WRITER, Access.ADMIN) and not caller.can_write:
+            raise Forbidden("this token is read-only")
+        if method.upper() not in SAFE_METHODS:
+            self.check_csrf(caller, csrf)  # whatever the route: a web session's change carries its CSRF token
+        return caller
+
+    def check_csrf(self, caller: Caller, sent: str | None) -> None:
+        """A web session's change carries the session's CSRF token (a form's ``csrf`` field, a script's
+        ``X-CSRF-Token`` header); a page on another site cannot know it."""
+        if caller.session and not (sent and caller.csrf and hmac.compare_digest(sent, caller.csrf)):
+            raise Forbidden(
+                "this form has expired or did not come from this site; reload the page and send it again "
+                "(a script using the session cookie sends the page's CSRF token in the X-CSRF-Token header)"
+            )
+
+    # -- projects, evaluations, ground truths ------------------------------------------------------------
+    def project_filter(self, caller: Caller) -> frozenset[str] | None:
+        """The projects whose records the caller may list (None: all)."""
+        return caller.projects
+
+    def sees_project(self, caller: Caller, project: str | None) -> bool:
+        return caller.projects is None or (project is not None and project in caller.projects)
+
+    def sees_ground_truth(self, caller: Caller, record: _GroundTruth) -> bool:
+        """Shared ground truths (no project: the demo, those registered in open mode) are every signed-in
+        caller's."""
+        if not caller.signed_in:
+            return False
+        return record.project is None or self.sees_project(caller, record.project)
+
+    def sees_evaluation(self, caller: Caller, record: _Projected) -> bool:
+        return caller.signed_in and self.sees_project(caller, record.project)
+
+    def require_evaluation(self, caller: Caller, record: _Projected | None, evaluation_id: str) -> None:
+        """404, the same for another project's evaluation as for a missing one."""
+        if record is None or not self.sees_evaluation(caller, record):
+            raise NotFound(f"no evaluation with id {echo(evaluation_id)}")
+
+    def require_ground_truth(self, caller: Caller, record: _GroundTruth | None, name: str) -> None:
+        if record is None or not self.sees_ground_truth(caller, record):
+            raise NotFound(f"no ground truth named {echo(name)}; GET /v1/ground-truths lists them")
+
+    def may_evaluate_against(self, caller: Caller, record: _GroundTruth) -> None:
+        """A benchmark's test set is scored only through the benchmark's submissions (under its quota);
+        admins may evaluate against it (their baselines), audited by the caller."""
+        if caller.is_admin:
+            return
+        benchmarks = list(self._test_sets(record.name))
+        if benchmarks:
+            names = ", ".join(repr(b) for b in benchmarks)
+            raise Forbidden(
+                f"the ground truth {record.name!r} is the test set of benchmark {names}: it is scored only "
+                f"through the benchmark's submissions (POST /v1/benchmarks/{benchmarks[0]}/submissions)"
+            )
+
+    def is_test_set(self, record: _GroundTruth) -> bool:
+        return bool(list(self._test_sets(record.name)))
+
+    def require_frames(self, record: _GroundTruth, evaluation_id: str) -> None:
+        """No per-frame view of a sealed ground truth leaves the service, for anyone."""
+        if record.sealed:
+            raise Sealed(
+                f"the ground truth {record.name!r} of evaluation {evaluation_id} is sealed: only aggregate "
+                "results (AP, curves, error totals) are available, no per-frame view"
+            )
+
+    # -- benchmarks --------------------------------------------------------------------------------------
+    def sees_benchmark(self, caller: Caller, *, public: bool, project: str | None) -> bool:
+        """A public benchmark is everyone's (without a token too); a private one its project's members' (every
+        signed-in caller's when it has no project)."""
+        if public or caller.is_admin:
+            return True
+        if not caller.signed_in:
+            return False
+        return project is None or self.sees_project(caller, project)
+
+    def is_participant(self, caller: Caller) -> bool:
+        """Who may submit: a signed-in user's own token (not the admin token, not open mode's everyone)."""
+        return self.accounts and caller.signed_in and caller.token_id is not None
+
+    def owns(self, caller: Caller, participant: str) -> bool:
+        """A submission is its participant's: only they read its scores, publish or withdraw it."""
+        return caller.signed_in and caller.token_id is not None and caller.name == participant
+
+    def require_admin(self, caller: Caller) -> None:
+        """For what a route already declared ADMIN and a domain method checks again (the command line's
+        caller is an admin)."""
+        if not caller.is_admin:
+            raise Forbidden("this action is for admins")
