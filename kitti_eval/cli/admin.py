@@ -133,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
         from kitti_eval_server.accounts import Accounts
         from kitti_eval_server.audit import Audit
         from kitti_eval_server.errors import ApiError
-        from kitti_eval_server.policy import Caller
+        from kitti_eval_server.policy import AuthMode, Policy
         from kitti_eval_server.settings import Settings
         from kitti_eval_server.store import Store
     except ImportError as e:
@@ -147,7 +147,8 @@ def run(args: argparse.Namespace) -> int:
     except ValidationError as e:
         _say(f"error: invalid settings:\n{e}")
         return EXIT_USAGE
-    actor = Caller(f"cli:{_login()}", is_admin=True, client="cli")  # whoever may open the database
+    # whoever may open the service's database acts as an admin
+    actor = Policy(AuthMode(settings.auth), admin_token=lambda: "").command_line(_login())
     try:
         if settings.database_url is None:  # SQLite in the data folder, which a first command creates
             settings.data_dir.mkdir(parents=True, exist_ok=True)
@@ -308,6 +309,6 @@ def _benchmark(args: argparse.Namespace, settings: Any, caller: Any) -> int:
 
 
 def _everyone() -> Any:
-    from kitti_eval_server.policy import Caller
+    from kitti_eval_server.policy import AuthMode, Policy
 
-    return Caller("cli", is_admin=True, client="cli")
+    return Policy(AuthMode.ACCOUNTS, admin_token=lambda: "").command_line(_login())

@@ -1,0 +1,223 @@
+"""One policy, closed by default: every route declares its access, the door refuses one that does not, no
+service method defaults its caller, callers are made by the policy alone, and the README's table of who may
+do what is the policy's own.
+
+A web session's change carries its CSRF token whatever the door (a page form's field, a script's header):
+the session cookie alone drives nothing.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import inspect
+import pkgutil
+import re
+from pathlib import Path
+
+import pytest
+from server_accounts import make_teams
+from server_benchmarks import host, ok
+from server_helpers import ADMIN, app_client
+
+import kitti_eval_server
+from kitti_eval_server.deps import PublicCaller
+from kitti_eval_server.main import create_app
+from kitti_eval_server.policy import RULES, Access
+from kitti_eval_server.settings import Settings
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _app(tmp_path: Path, auth: str = "accounts"):
+    return create_app(Settings(data_dir=tmp_path / "data", auth=auth, register_demo=False, warmup=False))
+
+
+def _table(app) -> dict[str, Access | None]:
+    out = {}
+    for route, access in app.state.door.table():
+        methods = sorted(m for m in (getattr(route, "methods", None) or {"GET"}) if m != "HEAD")
+        for method in methods:
+            out[f"{method} {getattr(route, 'path', '?')}"] = access
+    return out
+
+
+def test_every_route_of_the_app_declares_its_access(tmp_path) -> None:
+    table = _table(_app(tmp_path))
+    assert len(table) > 50
+    undeclared = sorted(k for k, v in table.items() if v is None)
+    assert undeclared == []
+    # a few, as the README's table has them
+    assert table["GET /healthz"] is Access.PUBLIC and table["POST /signin"] is Access.PUBLIC
+    assert table["GET /v1/benchmarks/{name}/leaderboard"] is Access.ANYONE
+    assert table["GET /v1/evaluations/{evaluation_id}"] is Access.READER
+    assert table["POST /v1/evaluations"] is Access.WRITER
+    assert table["POST /v1/benchmarks/{name}/submissions"] is Access.WRITER
+    assert table["POST /v1/benchmarks/{name}/reveal"] is Access.ADMIN
+    assert table["GET /v1/admin/audit"] is Access.ADMIN
+    assert table["GET /metrics"] is Access.SCRAPER
+    assert table["GET /docs"] is Access.READER and table["GET /static"] is Access.PUBLIC
+
+
+@pytest.mark.parametrize("auth", ["open", "accounts"])
+def test_a_route_that_declares_nothing_is_refused(tmp_path, auth) -> None:
+    """Fail closed: a route added without an access (as a careless new route would be) never runs."""
+    app = _app(tmp_path, auth)
+    ran = []
+
+    @app.get("/v1/forgot-to-ask")
+    def forgot() -> dict[str, str]:
+        ran.append(1)
+        return {"secret": "everything"}
+
+    @app.get("/v1/asked")
+    def asked(caller: PublicCaller) -> dict[str, str]:
+        return {"caller": caller.name}
+
+    from fastapi.testclient import TestClient
+
+    with TestClient(app) as c:
+        r = c.get("/v1/forgot-to-ask", headers=ADMIN)
+        assert r.status_code == 403 and "declares no access" in r.json()["error"]["message"]
+        assert ran == [] and "everything" not in r.text
+        assert c.get("/v1/asked").json() == {"caller": "anonymous" if auth == "accounts" else "anyone"}
+
+
+def _server_modules() -> list:
+    return [
+        importlib.import_module(f"kitti_eval_server.{m.name}")
+        for m in pkgutil.walk_packages(kitti_eval_server.__path__)
+        if not m.name.startswith("web.templates")
+    ]
+
+
+def test_no_method_of_the_service_defaults_its_caller() -> None:
+    """A call that forgets the caller is a TypeError, never a caller that sees everything."""
+    checked, defaulted = 0, []
+    for module in _server_modules():
+        for _, cls in inspect.getmembers(module, inspect.isclass):
+            if cls.__module__ != module.__name__:
+                continue
+            for name, fn in inspect.getmembers(cls, inspect.isfunction):
+                parameter = inspect.signature(fn).parameters.get("caller")
+                if parameter is not None:
+                    checked += 1
+                    if parameter.default is not inspect.Parameter.empty:
+                        defaulted.append(f"{cls.__name__}.{name}")
+    assert checked >= 15 and defaulted == []
+
+
+def test_callers_are_made_by_the_policy_alone() -> None:
+    """No module of the service or the command line builds a Caller itself (the policy's constructors, and the
+    accounts resolving a token, are the only places)."""
+    allowed = {ROOT / "server" / "policy.py", ROOT / "server" / "accounts.py"}
+    found = []
+    for folder in (ROOT / "server", ROOT / "kitti_eval"):
+        for path in folder.rglob("*.py"):
+            if path in allowed:
+                continue
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", "")) == "Caller":
+                    found.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert found == []
+
+
+def test_the_readme_table_is_the_policy() -> None:
+    text = (ROOT / "README.md").read_text()
+    start = text.index("| Route group | Access | A member | An admin |")
+    rows = []
+    for line in text[start:].splitlines()[2:]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        rows.append((cells[0], cells[1].strip("`"), cells[2], cells[3]))
+    assert rows == [(group, access.value, member, admin) for group, access, member, admin in RULES]
+    # and the accesses the table names are the ones the routes declare
+    declared = set(_table(create_app(Settings(data_dir=ROOT / "unused", warmup=False))).values())
+    assert {Access(a) for _, a, _, _ in rows} == declared
+
+
+# -------------------------------------------------------------------------------------- sessions and CSRF
+
+
+def _hidden(html: str, name: str = "csrf") -> str:
+    found = re.search(rf'name="{name}" value="([^"]+)"', html)
+    assert found, html[:2000]
+    return found.group(1)
+
+
+def _sign_in(c, token: str) -> str:
+    """A web session for ``token``; returns the page's CSRF token."""
+    c.cookies.clear()
+    form = c.get("/signin")
+    r = c.post("/signin", data={"token": token, "csrf": _hidden(form.text)}, follow_redirects=False)
+    assert r.status_code == 303, r.text
+    return _hidden(c.get("/").text)
+
+
+@pytest.fixture(scope="module")
+def hosted(tmp_path_factory):
+    data = tmp_path_factory.mktemp("policy") / "data"
+    with app_client(data, auth="accounts", auth_max_failures=1000) as c:
+        yield c, host(c)
+
+
+def test_the_session_cookie_alone_drives_no_admin_action(hosted) -> None:
+    c, h = hosted
+    csrf = _sign_in(c, h.tokens["root"])  # an admin signed in on the pages
+    for action in ("close", "reveal", "reopen", "rescore"):
+        r = c.post(f"/v1/benchmarks/bench/{action}")
+        assert r.status_code == 403 and "X-CSRF-Token" in r.json()["error"]["message"], (action, r.text)
+        r = c.post(f"/v1/benchmarks/bench/{action}", headers={"X-CSRF-Token": "0" * 64})
+        assert r.status_code == 403, action
+    assert ok(c.get("/v1/benchmarks/bench"))["open"] is True  # reading with the cookie is fine; nothing changed
+    assert ok(c.post("/v1/benchmarks/bench/close", headers={"X-CSRF-Token": csrf}))["open"] is False
+    assert ok(c.post("/v1/benchmarks/bench/reopen", headers={"X-CSRF-Token": csrf}))["open"] is True
+    c.cookies.clear()
+
+
+def test_the_session_cookie_alone_uploads_nothing(hosted) -> None:
+    c, h = hosted
+    _sign_in(c, h.tokens["alice"])
+    files = {"predictions": ("result.pkl", b"x" * 2_000_000)}
+    before = ok(c.get("/v1/benchmarks/bench/submissions"))["quota"]
+    r = c.post("/v1/benchmarks/bench/submissions", files=files)
+    assert r.status_code == 403 and r.headers["connection"] == "close"  # refused before the body is read
+    r = c.post("/v1/evaluations", data={"gt": "demo"}, files=files)
+    assert r.status_code == 403
+    assert ok(c.get("/v1/benchmarks/bench/submissions"))["quota"] == before
+    c.cookies.clear()
+    # a bearer token needs no CSRF token: another site's page cannot send it
+    assert c.post("/v1/benchmarks/bench/close", headers=h.headers("root")).status_code == 200
+    assert c.post("/v1/benchmarks/bench/reopen", headers=h.headers("root")).status_code == 200
+
+
+def test_a_member_evaluates_against_no_benchmark_test_set(hosted) -> None:
+    """The quota is not nominal: the test set is scored only through submissions; the upload form does not
+    offer it; admins may evaluate against it (their baselines), and that is audited."""
+    from server_helpers import golden_bytes
+
+    c, h = hosted
+    files = {"predictions": ("result.pkl", golden_bytes("result.pkl"))}
+    r = c.post("/v1/evaluations", data={"gt": "test-set"}, files=files, headers=h.headers("alice"))
+    assert r.status_code == 403 and "'bench'" in r.json()["error"]["message"], r.text
+    assert "AP" not in r.text and "Car" not in r.text
+    page = c.get("/", headers=h.headers("alice")).text
+    assert 'value="test-set"' not in page and 'value="demo"' in page
+    ok(c.post("/v1/admin/projects", json={"name": "hosts"}, headers=ADMIN), 201)
+    r = c.post("/v1/evaluations", data={"gt": "test-set", "project": "hosts"}, files=files, headers=h.headers("root"))
+    assert r.status_code == 201, r.text
+    audit = ok(c.get("/v1/admin/audit", headers=ADMIN))["items"]
+    assert any(a["action"] == "evaluation.test_set" and a["actor"].startswith("root") for a in audit)
+    assert 'value="test-set"' in c.get("/", headers=h.headers("root")).text
+
+
+def test_a_member_of_a_project_sees_and_changes_what_the_policy_says(tmp_path) -> None:
+    """The services ask the policy: another project's evaluation is a 404, a read-only token writes nothing."""
+    with app_client(tmp_path / "data", auth="accounts") as c:
+        teams = make_teams(c)
+        theirs = teams.evaluations["gt-b"]
+        assert c.get(f"/v1/evaluations/{theirs}", headers=teams.headers("alice")).status_code == 404
+        assert c.get(f"/v1/evaluations/{theirs}", headers=teams.headers("bob")).status_code == 200
+        r = c.post("/v1/evaluations", data={"gt": "gt-a"}, headers=teams.headers("alice-ro"))
+        assert r.status_code == 403 and "read-only" in r.text
