@@ -31,6 +31,7 @@ from kitti_eval.io.safe_pickle import load_pickle
 from .errors import ArchiveError
 
 __all__ = [
+    "FileIn",
     "InputFormat",
     "Limits",
     "Upload",
@@ -52,6 +53,14 @@ class InputFormat(str, enum.Enum):
 
     def __str__(self) -> str:
         return self.value
+
+
+@dataclass(frozen=True)
+class FileIn:
+    """An uploaded file as the routes hand it over: its spooled bytes and the client's name."""
+
+    file: IO[bytes]
+    filename: str | None
 
 
 @dataclass(frozen=True)

@@ -243,7 +243,7 @@ def _ground_truth(args: argparse.Namespace, settings: Any, actor: Any) -> int:
 
     with _offline_service(settings) as service:
         with open(args.file, "rb") as fh:
-            record = service.register_ground_truth(
+            record = service.catalog.add(
                 args.name, FileIn(fh, args.file.name), caller=actor, project=args.project, sealed=args.sealed
             )
     sealed = ", sealed" if record.sealed else ""

@@ -126,7 +126,7 @@ async def create_evaluation(
     )
     gt_in = FileIn(gt_file.file, gt_file.filename) if gt_file is not None else None
     record = await service.run(
-        service.evaluate,
+        service.evaluations.evaluate,
         FileIn(predictions.file, predictions.filename),
         gt or None,
         gt_in,
@@ -151,7 +151,7 @@ def list_evaluations(
     offset: Annotated[int, Query(ge=0, le=1_000_000_000, description="skip this many (at most 10^9)")] = 0,
 ) -> dict[str, Any]:
     labels = parse_labels({"model": model, "commit": commit, "epoch": epoch}, label or [])
-    records = service.list_evaluations(caller, gt_name=gt, labels=labels, limit=limit + 1, offset=offset)
+    records = service.evaluations.listed(caller, gt_name=gt, labels=labels, limit=limit + 1, offset=offset)
     more = len(records) > limit
     return {
         "items": [evaluation_summary(r) for r in records[:limit]],
@@ -168,7 +168,7 @@ def list_evaluations(
     responses={200: {"content": _TEXT_RESPONSES}},
 )
 def get_evaluation(service: ServiceDep, caller: ReaderCaller, fmt: FormatDep, evaluation_id: str) -> Response:
-    return _respond(service.evaluation(evaluation_id, caller), fmt)
+    return _respond(service.evaluations.get(evaluation_id, caller), fmt)
 
 
 @router.get(
@@ -180,7 +180,7 @@ def get_evaluation(service: ServiceDep, caller: ReaderCaller, fmt: FormatDep, ev
 def compare_evaluations(
     service: ServiceDep, caller: ReaderCaller, fmt: FormatDep, evaluation_id: str, other_id: str
 ) -> Response:
-    base, other = service.evaluation(evaluation_id, caller), service.evaluation(other_id, caller)
+    base, other = service.evaluations.get(evaluation_id, caller), service.evaluations.get(other_id, caller)
     comparison = compare(base, other)
     if fmt is OutputFormat.JSON:
         return JSONResponse(comparison)

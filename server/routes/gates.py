@@ -90,20 +90,20 @@ def run_gate_request(
     """200 when every rule passes, 412 when one fails (so `curl --fail-with-body` gates a CI job), with the
     verdict as JSON, Markdown or JUnit XML."""
     rules = _rules(req)
-    current = service.evaluation(req.evaluation, caller)
+    current = service.evaluations.get(req.evaluation, caller)
     baseline = None
     if req.baseline:
-        baseline = service.evaluation(req.baseline, caller)
+        baseline = service.evaluations.get(req.baseline, caller)
     elif req.baseline_label:
         wanted = parse_labels({}, [req.baseline_label])
         found = [
             r
-            for r in service.list_evaluations(caller, gt_name=current.gt_name, labels=wanted, limit=2)
+            for r in service.evaluations.listed(caller, gt_name=current.gt_name, labels=wanted, limit=2)
             if r.id != current.id
         ]
         if not found:
             raise NotFound(f"no evaluation labelled {req.baseline_label} against the same ground truth")
-        baseline = service.evaluation(found[0].id, caller)
+        baseline = service.evaluations.get(found[0].id, caller)
     assert current.result is not None
     try:
         verdict: Verdict = run_gate(current.result, rules, baseline.result if baseline else None)

@@ -50,7 +50,7 @@ async def register_ground_truth(
 ) -> JSONResponse:
     """Validate the file by loading it, keep it, and make it available as `gt=<name>`."""
     record = await service.run(
-        lambda: service.register_ground_truth(
+        lambda: service.catalog.add(
             name, FileIn(file.file, file.filename), caller=admin, project=project or None, sealed=sealed
         )
     )
@@ -61,12 +61,12 @@ async def register_ground_truth(
 
 @router.get("", response_model=GroundTruthList, summary="Registered ground truths")
 def list_ground_truths(service: ServiceDep, caller: ReaderCaller) -> dict[str, Any]:
-    return {"items": [ground_truth_out(r) for r in service.list_ground_truths(caller)]}
+    return {"items": [ground_truth_out(r) for r in service.catalog.listed(caller)]}
 
 
 @router.get("/{name}", response_model=GroundTruthOut, summary="One registered ground truth")
 def get_ground_truth(service: ServiceDep, caller: ReaderCaller, name: str) -> dict[str, Any]:
-    return ground_truth_out(service.ground_truth(name, caller))
+    return ground_truth_out(service.catalog.get(name, caller))
 
 
 @router.delete(
@@ -76,5 +76,5 @@ def get_ground_truth(service: ServiceDep, caller: ReaderCaller, name: str) -> di
     summary="Delete a registered ground truth (admin); evaluations made with it stay",
 )
 def delete_ground_truth(service: ServiceDep, admin: AdminCaller, name: str) -> Response:
-    service.delete_ground_truth(name, caller=admin)
+    service.catalog.remove(name, caller=admin)
     return Response(status_code=204)

@@ -223,7 +223,7 @@ def model_name(record: EvaluationRecord) -> str:
 
 def _history(service: Service, caller: Caller) -> list[dict[str, Any]]:
     rows = []
-    for record in service.list_evaluations(caller, limit=_HISTORY):
+    for record in service.evaluations.listed(caller, limit=_HISTORY):
         summary = {cls: (record.summary.get(cls) or {}).get("3d") for cls in _SUMMARY_CLASSES}
         rows.append({"record": record, "name": model_name(record), "summary": summary})
     return rows
@@ -244,7 +244,7 @@ def _home(
         status,
         error=error,
         form=dict(form or {}),
-        ground_truths=[g.name for g in service.ground_truths_to_evaluate(caller)],
+        ground_truths=[g.name for g in service.catalog.to_evaluate(caller)],
         projects=_projects(service, caller),
         protocols=sorted(PROTOCOLS),
         history=_history(service, caller),
@@ -281,7 +281,7 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
                 protocol=values.get("protocol", "official"), curves=True, errors=values.get("errors") == "true"
             )
             record = await service.run(
-                service.evaluate,
+                service.evaluations.evaluate,
                 FileIn(predictions.file, predictions.filename),
                 values.get("gt") or None,
                 None,
@@ -388,7 +388,7 @@ async def _worst_frames(
     try:
         found = await service.run(
             partial(
-                service.frames,
+                service.evaluations.frames,
                 record.id,
                 cls=choice["cls"],
                 metric=choice["metric"],
@@ -422,7 +422,7 @@ async def evaluation_page(
     err_recall: str = "R40",
 ) -> Response:
     try:
-        record = await anyio.to_thread.run_sync(service.evaluation, evaluation_id, caller)
+        record = await anyio.to_thread.run_sync(service.evaluations.get, evaluation_id, caller)
     except ApiError as e:
         return _error_page(request, e)
     result = record.result
@@ -501,10 +501,10 @@ def compare_page(
     """``?a=<base>&b=<other>``; or ``?e=<id>&e=<id>`` (the history form without JavaScript), older first."""
     try:
         if a is None and b is None and e is not None and len(e) == 2:
-            a, b = sorted(e, key=lambda i: service.evaluation(i, caller).created_at)
+            a, b = sorted(e, key=lambda i: service.evaluations.get(i, caller).created_at)
         if not a or not b:
             raise BadRequest("compare needs two evaluations: /compare?a=<base id>&b=<other id>")
-        base, other = service.evaluation(a, caller), service.evaluation(b, caller)
+        base, other = service.evaluations.get(a, caller), service.evaluations.get(b, caller)
     except ApiError as exc:
         return _error_page(request, exc)
     assert base.result is not None and other.result is not None
@@ -587,7 +587,7 @@ async def frame_page(
             score=score or None,
         )
 
-    listed = await anyio.to_thread.run_sync(partial(service.list_evaluations, caller, limit=_HISTORY))
+    listed = await anyio.to_thread.run_sync(partial(service.evaluations.listed, caller, limit=_HISTORY))
     history = [{"id": r.id, "name": model_name(r), "created_at": r.created_at} for r in listed if r.id not in ids]
     context: dict[str, Any] = {
         "frame": clip(frame_id, MAX_ECHO_CHARS),
@@ -606,7 +606,7 @@ async def frame_page(
             raise BadRequest("name at least one evaluation: /frames/<frame>?e=<evaluation id>")
         data = await service.run(
             partial(
-                service.inspect,
+                service.evaluations.inspect,
                 ids,
                 frame_id,
                 cls=cls,
