@@ -78,6 +78,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         redoc_url=None,
     )
     app.state.service = service
+    app.state.trusted_proxies = settings.trusted_networks  # read by auth.client_of
     app.state.metrics = app_metrics
     app.state.benchmarks = Benchmarks(service)
     install_error_handlers(app)

@@ -1,0 +1,115 @@
+"""The service behind a proxy and in front of hostile clients: client addresses, metric labels, messages about
+registered ground truths, log lines, distance bins, and open mode on a database that holds accounts."""
+
+from __future__ import annotations
+
+import contextlib
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+from server_accounts import add_token, bearer
+from server_helpers import ADMIN, ADMIN_TOKEN, wait_ready
+
+from kitti_eval_server import Settings, create_app
+from kitti_eval_server.auth import client_of
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    from fastapi.testclient import TestClient
+
+PROXY = "10.0.0.1"
+WRONG = bearer("kte_0123456789abcdef_not-the-secret")
+
+
+@contextlib.contextmanager
+def peer_client(data_dir: Path, peer: str, **settings: Any) -> Iterator[TestClient]:
+    """A TestClient whose requests come from the socket address ``peer`` (as a proxy's would)."""
+    settings.setdefault("admin_token", ADMIN_TOKEN)
+    app = create_app(Settings(data_dir=data_dir, warmup=False, **settings))
+    with TestClient(app, raise_server_exceptions=False, client=(peer, 40000)) as client:
+        wait_ready(client.get)
+        yield client
+
+
+def _scope(peer: str, trusted: str, *forwarded: str) -> dict[str, Any]:
+    state = SimpleNamespace(trusted_proxies=Settings(trusted_proxies=trusted).trusted_networks)
+    headers = [(b"x-forwarded-for", value.encode()) for value in forwarded]
+    return {"type": "http", "client": (peer, 1234), "headers": headers, "app": SimpleNamespace(state=state)}
+
+
+# ------------------------------------------------------------------------------------------ trusted proxies
+
+
+@pytest.mark.parametrize(
+    ("peer", "trusted", "forwarded", "client"),
+    [
+        (PROXY, "", ["203.0.113.5"], PROXY),  # trust nobody (the default): the header is ignored
+        (PROXY, "10.0.0.1", ["203.0.113.5"], "203.0.113.5"),
+        (PROXY, "10.0.0.0/8", ["203.0.113.5"], "203.0.113.5"),
+        (PROXY, "10.0.0.0/8", [], PROXY),  # a trusted peer sending no header is the client
+        ("198.51.100.7", "10.0.0.0/8", ["203.0.113.5"], "198.51.100.7"),  # spoofed by an untrusted peer
+        # a chain of proxies: the right-most address that is not a trusted proxy; what the client wrote on the
+        # left of it is not believed
+        (PROXY, "10.0.0.0/8", ["192.0.2.66, 203.0.113.5, 10.0.0.2"], "203.0.113.5"),
+        (PROXY, "10.0.0.0/8,172.16.0.0/12", ["203.0.113.5, 172.17.0.3", "10.9.8.7"], "203.0.113.5"),
+        (PROXY, "10.0.0.0/8", ["junk, 203.0.113.5"], "203.0.113.5"),
+        (PROXY, "10.0.0.0/8", ["10.0.0.3, 10.0.0.2"], "10.0.0.3"),  # all of them proxies: the left-most
+        (PROXY, "10.0.0.0/8", ["203.0.113.5, not-an-address"], PROXY),  # invalid: the peer
+        (PROXY, "10.0.0.0/8", ["203.0.113.5:4711"], PROXY),
+        (PROXY, "10.0.0.0/8", [""], PROXY),
+        (PROXY, "10.0.0.0/8", ["2001:db8::7"], "2001:db8::7"),
+        ("::ffff:10.0.0.1", "10.0.0.0/8", ["203.0.113.5"], "203.0.113.5"),  # a dual-stack socket's peer
+        ("fd00::1", "fd00::/64", ["203.0.113.5, fd00::2"], "203.0.113.5"),
+    ],
+)
+def test_client_address_behind_trusted_proxies(peer: str, trusted: str, forwarded: list[str], client: str) -> None:
+    assert client_of(_scope(peer, trusted, *forwarded)) == client
+
+
+def test_trusted_proxies_setting_is_checked() -> None:
+    assert Settings(trusted_proxies=" 10.0.0.5, fd00::/64 ").trusted_proxies == "10.0.0.5/32,fd00::/64"
+    assert Settings().trusted_networks == ()
+    for bad in ("proxy.example", "10.0.0.1/8", "10.0.0.0/33"):
+        with pytest.raises(ValueError, match="is not an IP address or network"):
+            Settings(trusted_proxies=bad)
+
+
+def _refuse(client: TestClient, forwarded: str) -> int:
+    return client.get("/v1/evaluations", headers={**WRONG, "X-Forwarded-For": forwarded}).status_code
+
+
+def _refused_clients(client: TestClient) -> list[str]:
+    """The client of each refused token in the audit log, newest first (read on the service: behind an
+    untrusted proxy the admin's own requests are locked out too)."""
+    rows = client.app.state.service.accounts.audit_log()  # type: ignore[attr-defined]
+    return [r.client for r in rows if r.action == "token.refused"]
+
+
+def test_behind_a_trusted_proxy_each_client_has_its_own_failure_count_and_audit_rows(tmp_path: Path) -> None:
+    limits = {"auth": "accounts", "auth_max_failures": 3}
+    with peer_client(tmp_path / "data", PROXY, trusted_proxies="10.0.0.0/8", **limits) as c:
+        assert c.post("/v1/admin/users", json={"name": "bea"}, headers=ADMIN).status_code == 201
+        _, token = add_token(c, "bea")
+        assert [_refuse(c, "203.0.113.5") for _ in range(4)] == [401, 401, 401, 429]
+        # another client behind the same proxy is not locked out, and may still be refused on its own
+        ok = c.get("/v1/evaluations", headers={**bearer(token), "X-Forwarded-For": "203.0.113.6"})
+        assert ok.status_code == 200
+        assert _refuse(c, "198.51.100.1, 203.0.113.6, 10.0.0.2") == 401
+        assert _refused_clients(c) == ["203.0.113.6", *["203.0.113.5"] * 3]
+    # the same proxy without the setting: every client behind it is the proxy, and one locks out the others
+    with peer_client(tmp_path / "untrusted", PROXY, **limits) as c:
+        assert c.post("/v1/admin/users", json={"name": "bea"}, headers=ADMIN).status_code == 201
+        _, token = add_token(c, "bea")
+        assert [_refuse(c, "203.0.113.5") for _ in range(3)] == [401, 401, 401]
+        assert c.get("/v1/evaluations", headers={**bearer(token), "X-Forwarded-For": "203.0.113.6"}).status_code == 429
+        assert _refused_clients(c) == [PROXY] * 3
+
+
+def test_a_forwarded_header_from_an_untrusted_peer_is_ignored(tmp_path: Path) -> None:
+    with peer_client(tmp_path / "data", "198.51.100.7", auth="accounts", trusted_proxies=PROXY) as c:
+        assert _refuse(c, "203.0.113.9") == 401
+        assert _refused_clients(c) == ["198.51.100.7"]
