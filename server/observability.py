@@ -185,7 +185,17 @@ def _client_request_id(scope: Scope) -> str | None:
     return None
 
 
+#: the methods a metric names; any other token a client sends is ``other`` (it would be a series of its own)
+_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "PATCH", "OPTIONS"})
+
+
+def _method_label(method: str) -> str:
+    return method if method in _METHODS else "other"
+
+
 def _route_of(scope: Scope) -> str:
+    """The matched route's template (``/v1/evaluations/{evaluation_id}``), a mount's prefix, or ``unmatched``:
+    never the path as sent, so that clients cannot make new series."""
     route = scope.get("route")
     path = getattr(route, "path_format", None) or getattr(route, "path", None)
     if isinstance(path, str):
@@ -271,8 +281,8 @@ class RequestMiddleware:
         evaluation = scope.get("state", {}).get("evaluation_id")
         if self.metrics is not None:
             m = self.metrics
-            m.requests.labels(route, method, str(status)).inc()
-            m.latency.labels(route, method).observe(seconds)
+            m.requests.labels(route, _method_label(method), str(status)).inc()
+            m.latency.labels(route, _method_label(method)).observe(seconds)
             m.received.inc(seen["received"])
             code = scope.get("state", {}).get("error_code")
             if code is not None:

@@ -4,6 +4,9 @@ registered ground truths, log lines, distance bins, and open mode on a database 
 from __future__ import annotations
 
 import contextlib
+import random
+import re
+import string
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -113,3 +116,34 @@ def test_a_forwarded_header_from_an_untrusted_peer_is_ignored(tmp_path: Path) ->
     with peer_client(tmp_path / "data", "198.51.100.7", auth="accounts", trusted_proxies=PROXY) as c:
         assert _refuse(c, "203.0.113.9") == 401
         assert _refused_clients(c) == ["198.51.100.7"]
+
+
+# ------------------------------------------------------------------------------------------ metric labels
+
+
+def _series(text: str, metric: str) -> set[str]:
+    return {line.split(" ")[0] for line in text.splitlines() if line.startswith(metric + "{")}
+
+
+def test_random_methods_and_paths_add_a_bounded_number_of_metric_series(tmp_path: Path) -> None:
+    rng = random.Random(7)
+    with peer_client(tmp_path / "data", "127.0.0.1") as c:
+        c.get("/v1/evaluations")
+        before = c.get("/metrics").text
+        tokens = ["".join(rng.choices(string.ascii_uppercase, k=12)) for _ in range(50)]
+        paths = [
+            rng.choice(["/", "/v1/evaluations/", "/v1/ground-truths/", "/static/", "/ui/", "/v1/"])
+            + "".join(rng.choices(string.ascii_lowercase + string.digits, k=16))
+            for _ in range(50)
+        ]
+        for method, path in zip(tokens, paths):
+            assert c.request(method, path).status_code in (404, 405)
+        after = c.get("/metrics").text
+    for metric in ("kitti_eval_http_requests_total", "kitti_eval_http_request_duration_seconds_count"):
+        new = _series(after, metric) - _series(before, metric)
+        assert 1 <= len(new) <= 8, new  # method "other" on a handful of routes, by status
+        labels = " ".join(new)
+        assert not any(t in labels for t in tokens) and not any(p.rsplit("/", 1)[-1] in labels for p in paths)
+        methods = {m for line in _series(after, metric) for m in re.findall(r'method="([^"]*)"', line)}
+        assert methods <= {"GET", "HEAD", "POST", "PUT", "DELETE", "PATCH", "OPTIONS", "other"}, methods
+        assert "other" in methods
