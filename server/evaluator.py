@@ -17,11 +17,20 @@ from kitti_eval.analysis.decomposition import errors_document, evaluate_with_err
 from kitti_eval.core.evaluation import evaluate
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
+from kitti_eval.errors import InputError
 from kitti_eval.report.render import render_json
 
 from .errors import BadRequest, echo
 
-__all__ = ["EvalOptions", "evaluate_document", "summarize", "parse_labels", "LABEL_KEY_PATTERN", "ERRORS_SET"]
+__all__ = [
+    "EvalOptions",
+    "evaluate_document",
+    "check_image_fields",
+    "summarize",
+    "parse_labels",
+    "LABEL_KEY_PATTERN",
+    "ERRORS_SET",
+]
 
 LABEL_KEY_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
 _LABEL_KEY = re.compile(LABEL_KEY_PATTERN)
@@ -78,11 +87,21 @@ class EvalOptions:
 
 
 def evaluate_document(
-    gt: Annotations, dt: Annotations, config: EvalConfig, *, curves: bool = False, errors: bool = False
+    gt: Annotations,
+    dt: Annotations,
+    config: EvalConfig,
+    *,
+    curves: bool = False,
+    errors: bool = False,
+    gt_frames_shown: bool = False,
 ) -> dict[str, Any]:
     """The JSON document ``kitti-eval --format json`` prints for the same inputs, as a dict; with ``errors``,
     what ``--errors`` adds (``errors``, ``errors_r11``, ``tp_errors``), computed as the CLI does: the AP and
-    the decomposition from one planned evaluation."""
+    the decomposition from one planned evaluation.
+
+    ``gt_frames_shown``: whether a refusal may name a frame of the ground truth (not for a sealed one, and not
+    by default)."""
+    check_image_fields(gt, dt, config, gt_frames_shown=gt_frames_shown)
     extra: dict[str, Any] | None = None
     if errors:
         result, decomposition = evaluate_with_errors(gt, dt, config, keep_curves=curves, oset=ERRORS_SET)
@@ -91,6 +110,24 @@ def evaluate_document(
         result = evaluate(gt, dt, config, keep_curves=curves)
     doc: dict[str, Any] = json.loads(render_json(result, include_curves=curves, extra=extra))
     return doc
+
+
+def check_image_fields(gt: Annotations, dt: Annotations, config: EvalConfig, *, gt_frames_shown: bool) -> None:
+    """The library's refusal of boxes without image fields (a LiDAR-only set) unless ``lidar_only``, said in
+    the service's terms (the form field, not the CLI's flag), naming the ground truth's first such frame only
+    when ``gt_frames_shown`` (never a sealed set's); the predictions' own frames are the client's to know."""
+    if config.lidar_only:
+        return
+    for annos, frame_shown in ((gt, gt_frames_shown), (dt, True)):
+        if annos.missing_fields:
+            field = "bbox" if "bbox" in annos.missing_fields else next(iter(annos.missing_fields))
+            raise InputError(
+                f"no '{field}' (an image field) for some boxes; a set without 2D boxes is evaluated with the "
+                "form field lidar_only=true (BEV and 3D only)",
+                source=annos.source,
+                frame=annos.missing_fields[field] if frame_shown else None,
+                field=field,
+            )
 
 
 def summarize(doc: Mapping[str, Any]) -> dict[str, dict[str, float | None]]:

@@ -254,7 +254,14 @@ class Service:
             loaded = load_upload(
                 pred, "detections", scratch / "pred", self.limits, keep_lidar=keep, known_frames=gt.frame_index()
             )
-            doc = evaluate_document(gt, loaded.annotations, config, curves=options.curves, errors=options.errors)
+            doc = evaluate_document(
+                gt,
+                loaded.annotations,
+                config,
+                curves=options.curves,
+                errors=options.errors,
+                gt_frames_shown=gt_record is None or not gt_record.sealed,
+            )
             if gt_record is not None and gt_record.sealed:
                 doc = sealed_document(doc)
             if keep:

@@ -4,6 +4,8 @@ registered ground truths, log lines, distance bins, and open mode on a database 
 from __future__ import annotations
 
 import contextlib
+import json
+import pickle
 import random
 import re
 import string
@@ -15,7 +17,7 @@ from typing import Any
 
 import pytest
 from server_accounts import add_token, bearer
-from server_helpers import ADMIN, ADMIN_TOKEN, wait_ready
+from server_helpers import ADMIN, ADMIN_TOKEN, app_client, assert_error, golden_bytes, upload, wait_ready
 
 from kitti_eval_server import Settings, create_app
 from kitti_eval_server.auth import client_of
@@ -147,3 +149,41 @@ def test_random_methods_and_paths_add_a_bounded_number_of_metric_series(tmp_path
         methods = {m for line in _series(after, metric) for m in re.findall(r'method="([^"]*)"', line)}
         assert methods <= {"GET", "HEAD", "POST", "PUT", "DELETE", "PATCH", "OPTIONS", "other"}, methods
         assert "other" in methods
+
+
+# ------------------------------------------------------------------------------------------ registered ground truths
+
+
+def _lidar_only_infos() -> tuple[bytes, list[str]]:
+    """The golden infos as a LiDAR-only set has them (no 2D box, alpha, truncation, occlusion); its frame ids."""
+    infos = pickle.loads(golden_bytes("kitti_infos_val.pkl"))
+    for info in infos:
+        for key in ("truncated", "occluded", "alpha", "bbox"):
+            del info["annos"][key]
+    return pickle.dumps(infos), [str(info["image"]["image_idx"]) for info in infos]
+
+
+def test_messages_about_a_registered_ground_truth_name_no_server_path_and_a_sealed_ones_no_frame(
+    tmp_path: Path,
+) -> None:
+    data_dir = tmp_path / "data"
+    content, frames = _lidar_only_infos()
+    predictions = golden_bytes("result.pkl")
+    with app_client(data_dir, warmup=False) as c:
+        for name, sealed in (("lidar-sealed", "true"), ("lidar-open", "false")):
+            files = {"file": ("infos.pkl", content)}
+            r = c.post("/v1/ground-truths", data={"name": name, "sealed": sealed}, files=files, headers=ADMIN)
+            assert r.status_code == 201, r.text
+        warm = assert_error(upload(c, predictions, gt="lidar-sealed"), 422, "the ground truth 'lidar-sealed'")
+    with app_client(data_dir, warmup=False) as c:  # a new process: the sets are loaded from the server's copies
+        cold = assert_error(upload(c, predictions, gt="lidar-sealed"), 422, "the ground truth 'lidar-sealed'")
+        unsealed = assert_error(upload(c, predictions, gt="lidar-open"), 422, "the ground truth 'lidar-open'")
+        assert upload(c, predictions, gt="lidar-sealed", fields={"lidar_only": "true"}).status_code == 201
+    for err in (warm, cold, unsealed):
+        text = json.dumps({k: v for k, v in err.items() if k != "request_id"})
+        assert str(data_dir) not in text and str(data_dir.resolve()) not in text and "ground-truths/" not in text
+        assert "lidar_only=true" in err["message"] and err["code"] == "invalid_input" and err["field"] == "bbox"
+    for err in (warm, cold):
+        text = json.dumps({k: v for k, v in err.items() if k != "request_id"})
+        assert "frame" not in err and not [f for f in frames if f in text], err
+    assert unsealed["frame"] == frames[0]  # a set that is not sealed: the first frame without 2D boxes
