@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import pickle
 import random
 import re
@@ -21,6 +22,7 @@ from server_helpers import ADMIN, ADMIN_TOKEN, app_client, assert_error, golden_
 
 from kitti_eval_server import Settings, create_app
 from kitti_eval_server.auth import client_of
+from kitti_eval_server.observability import JsonFormatter, TextFormatter
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
@@ -187,3 +189,49 @@ def test_messages_about_a_registered_ground_truth_name_no_server_path_and_a_seal
         text = json.dumps({k: v for k, v in err.items() if k != "request_id"})
         assert "frame" not in err and not [f for f in frames if f in text], err
     assert unsealed["frame"] == frames[0]  # a set that is not sealed: the first frame without 2D boxes
+
+
+# ------------------------------------------------------------------------------------------ log lines
+
+
+class _Records(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+@pytest.fixture
+def service_log() -> Iterator[_Records]:
+    """The records of the service's loggers (under pytest the root logger is configured, so the service
+    installs no handler of its own: the test formats the records with the service's formatters)."""
+    handler = _Records()
+    logger = logging.getLogger("kitti_eval.server")
+    logger.addHandler(handler)
+    level = logger.level
+    logger.setLevel(logging.INFO)
+    try:
+        yield handler
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
+def test_a_request_path_cannot_forge_a_log_line(tmp_path: Path, service_log: _Records) -> None:
+    forged = "/v1/evaluations/x%0Afake%20line%0D%0AINFO:%20%20%20%20%20kitti-eval:%20audit%5C%E2%80%A8"
+    with peer_client(tmp_path / "data", "127.0.0.1", auth="accounts") as c:
+        service_log.records.clear()
+        assert c.get(forged, headers=WRONG).status_code == 401  # refused: an audit line and an access line
+        assert c.get(forged, headers=ADMIN).status_code == 404
+        records = list(service_log.records)
+    audit = [r for r in records if r.getMessage().startswith("audit:")]
+    access = [r for r in records if r.name == "kitti_eval.server.access"]
+    assert len(audit) == 1 and len(access) == 2 and len(records) == 3, [r.getMessage() for r in records]
+    text = [TextFormatter("%(message)s").format(r) for r in records]
+    for line in text:  # each record is exactly one line, whatever the path held
+        assert "\n" not in line and "\r" not in line and "\u2028" not in line, line
+    assert "/v1/evaluations/x\\nfake line\\r\\nINFO:     kitti-eval: audit\\\\\\u2028" in text[0]
+    for r in records:  # JSON lines were safe already: json.dumps escapes every control character
+        assert "\n" not in JsonFormatter().format(r)
