@@ -30,12 +30,15 @@ __all__ = [
     "parse_labels",
     "LABEL_KEY_PATTERN",
     "ERRORS_SET",
+    "MAX_RANGE_BINS",
 ]
 
 LABEL_KEY_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
 _LABEL_KEY = re.compile(LABEL_KEY_PATTERN)
 _MAX_LABELS = 32
 _MAX_LABEL_VALUE = 256
+#: most distance bins an evaluation may ask for (``ranges``: one more edge): each bin is evaluated in full again
+MAX_RANGE_BINS = 8
 #: the threshold set the error decomposition reads (the CLI's ``--errors`` decomposes the strict one)
 ERRORS_SET = "strict"
 
@@ -69,7 +72,14 @@ class EvalOptions:
         return cls(**kwargs)
 
     def config(self) -> EvalConfig:
-        """The evaluation these options ask for: the library's reading of them, as for the CLI's flags."""
+        """The evaluation these options ask for: the library's reading of them, as for the CLI's flags, within the
+        service's bound on distance bins (:data:`MAX_RANGE_BINS`; the CLI has none)."""
+        edges = [v for v in (self.ranges or "").split(",") if v.strip()]  # as the library counts them
+        if len(edges) > MAX_RANGE_BINS + 1:
+            raise BadRequest(
+                f"ranges: at most {MAX_RANGE_BINS} distance bins ({MAX_RANGE_BINS + 1} edges, e.g. 0,30,50,inf), "
+                f"got {len(edges) - 1}"
+            )
         config = config_from_options(
             classes=self.classes,
             protocol=self.protocol,

@@ -375,7 +375,9 @@ class Service:
                 f"the ground truth {record.gt_name!r} of evaluation {record.id} has been deleted or "
                 "replaced since; its frames cannot be looked at"
             )
-        config = EvalOptions.from_dict(record.options).config()
+        # a frame view reads no distance bins: an evaluation stored with more than the service now allows is
+        # still looked at
+        config = EvalOptions.from_dict({**record.options, "ranges": None}).config()
         gt = self.ground_truths.load(gt_record)
 
         def load_kept() -> Annotations:

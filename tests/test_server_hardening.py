@@ -20,6 +20,7 @@ import pytest
 from server_accounts import add_token, bearer
 from server_helpers import ADMIN, ADMIN_TOKEN, app_client, assert_error, golden_bytes, upload, wait_ready
 
+from kitti_eval.io.synth import demo_paths
 from kitti_eval_server import Settings, create_app
 from kitti_eval_server.auth import client_of
 from kitti_eval_server.observability import JsonFormatter, TextFormatter
@@ -235,3 +236,19 @@ def test_a_request_path_cannot_forge_a_log_line(tmp_path: Path, service_log: _Re
     assert "/v1/evaluations/x\\nfake line\\r\\nINFO:     kitti-eval: audit\\\\\\u2028" in text[0]
     for r in records:  # JSON lines were safe already: json.dumps escapes every control character
         assert "\n" not in JsonFormatter().format(r)
+
+
+# ------------------------------------------------------------------------------------------ distance bins
+
+
+def test_at_most_eight_distance_bins(client: Any) -> None:
+    demo = demo_paths()[1].read_bytes()
+    eight = "0,10,20,30,40,50,60,70,inf"
+    r = upload(client, demo, "result.pkl.gz", fields={"ranges": eight, "classes": "Car"})
+    assert r.status_code == 201, r.text
+    assert [x["label"] for x in r.json()["ranges"]] == [*(f"{lo}-{lo + 10}m" for lo in range(0, 70, 10)), "70m+"]
+    for nine in ("0,10,20,30,40,50,60,70,80,inf", ",".join(str(i) for i in range(100_000))):
+        err = assert_error(upload(client, demo, "result.pkl.gz", fields={"ranges": nine}), 422, "at most 8 distance")
+        assert err["code"] == "invalid_request" and "9 edges" in err["message"]
+    err = assert_error(upload(client, demo, "result.pkl.gz", fields={"ranges": "0,10,20,30,40,50,60,70,80,inf"}), 422)
+    assert err["message"].endswith("got 9")
