@@ -309,6 +309,11 @@ class Accounts:
             self.store.revoke_token(caller.token_id)
             self.audit(actor=caller.actor, action="session.close", target=f"session {caller.token_id}", client=client)
 
+    def holders(self) -> tuple[int, int]:
+        """How many users, and tokens not revoked (web sessions included), the database holds."""
+        tokens = [t for t in self.store.list_tokens() if t.revoked_at is None]
+        return len(self.store.list_users()), len(tokens)
+
     # -- audit -------------------------------------------------------------------------------------------
     def audit(
         self, *, actor: str, action: str, target: str, client: str, outcome: str = "ok", detail: str = ""

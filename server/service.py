@@ -35,7 +35,7 @@ from kitti_eval.io.synth import demo_paths
 
 from .accounts import OPEN, Accounts, Caller
 from .auth import FailureLimiter
-from .errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, Sealed, clip, echo
+from .errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, Sealed, StartupRefused, clip, echo
 from .evaluator import EvalOptions, evaluate_document, summarize
 from .ground_truths import GroundTruthCache, GroundTruths
 from .observability import AdmissionState
@@ -129,6 +129,7 @@ class Service:
         self.scratch_space.open()  # and removes what processes killed meanwhile left
         log.info("data folder %s", self.data_dir)
         self.store.create_schema()
+        self._check_open_mode()
         self.admin_token = self._admin_token()
         if self.settings.register_demo:
             self._register_demo()
@@ -136,6 +137,20 @@ class Service:
             threading.Thread(target=self._warm_up, name="kitti-eval-warmup", daemon=True).start()
         else:
             self.warm.set()
+
+    def _check_open_mode(self) -> None:
+        """Open mode serves every project's work to anyone: not on a database whose accounts say otherwise,
+        unless ``allow_open_with_accounts``."""
+        if self.settings.auth != "open" or self.settings.allow_open_with_accounts:
+            return
+        users, tokens = self.accounts.holders()
+        if users or tokens:
+            raise StartupRefused(
+                f"the database holds accounts ({users} user{'s' * (users != 1)}, {tokens} token"
+                f"{'s' * (tokens != 1)} not revoked) but KITTI_EVAL_AUTH is open, which would serve every project's "
+                "evaluations and ground truths to anyone who reaches the service: start with KITTI_EVAL_AUTH=accounts, "
+                "or set KITTI_EVAL_ALLOW_OPEN_WITH_ACCOUNTS=true to serve it open anyway"
+            )
 
     def stop(self) -> None:
         self.store.dispose()

@@ -84,6 +84,10 @@ class Settings(BaseSettings):
     need the admin token). ``accounts``: every request but ``/healthz``, ``/readyz``, the static files and the
     sign-in page needs a token (``kitti-eval admin token add``), and sees only its projects' work."""
 
+    allow_open_with_accounts: bool = False
+    """Open mode on a database that holds accounts (users, or tokens not revoked: made in accounts mode) serves
+    all of every project to anyone; the service refuses to start so unless this is set."""
+
     auth_max_failures: Annotated[int, Field(ge=1)] = 10
     """Accounts mode: refused tokens one client address may send within ``auth_failure_window_s`` before it
     gets 429 for the rest of the window (counted by each process on its own)."""

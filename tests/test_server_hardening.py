@@ -6,10 +6,13 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
 import pickle
 import random
 import re
 import string
+import subprocess
+import sys
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -23,6 +26,7 @@ from server_helpers import ADMIN, ADMIN_TOKEN, app_client, assert_error, golden_
 from kitti_eval.io.synth import demo_paths
 from kitti_eval_server import Settings, create_app
 from kitti_eval_server.auth import client_of
+from kitti_eval_server.errors import StartupRefused
 from kitti_eval_server.observability import JsonFormatter, TextFormatter
 
 with warnings.catch_warnings():
@@ -252,3 +256,42 @@ def test_at_most_eight_distance_bins(client: Any) -> None:
         assert err["code"] == "invalid_request" and "9 edges" in err["message"]
     err = assert_error(upload(client, demo, "result.pkl.gz", fields={"ranges": "0,10,20,30,40,50,60,70,80,inf"}), 422)
     assert err["message"].endswith("got 9")
+
+
+# ------------------------------------------------------------------------------------------ open mode and accounts
+
+
+def _make_accounts(data_dir: Path) -> None:
+    with app_client(data_dir, auth="accounts", warmup=False) as c:
+        assert c.post("/v1/admin/users", json={"name": "ann"}, headers=ADMIN).status_code == 201
+        add_token(c, "ann")
+
+
+def test_open_mode_refuses_to_start_on_a_database_that_holds_accounts(tmp_path: Path) -> None:
+    data_dir = tmp_path / "data"
+    with app_client(data_dir, warmup=False) as c:  # open mode on a database without accounts: as before
+        assert c.get("/v1/evaluations").status_code == 200
+    _make_accounts(data_dir)
+    with pytest.raises(StartupRefused) as refused, app_client(data_dir, warmup=False):
+        pass
+    assert "1 user, 1 token not revoked" in refused.value.message
+    assert "KITTI_EVAL_AUTH=accounts" in refused.value.message
+    assert "KITTI_EVAL_ALLOW_OPEN_WITH_ACCOUNTS=true" in refused.value.message
+    with app_client(data_dir, warmup=False, allow_open_with_accounts=True) as c:  # told to: it starts
+        assert c.get("/v1/evaluations").status_code == 200
+    with app_client(data_dir, auth="accounts", warmup=False) as c:
+        assert c.get("/v1/evaluations").status_code == 401
+
+
+@pytest.mark.slow
+def test_kitti_eval_serve_says_why_it_refuses_to_start(tmp_path: Path) -> None:
+    data_dir = tmp_path / "data"
+    _make_accounts(data_dir)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("KITTI_EVAL_")}
+    env.update(KITTI_EVAL_ADMIN_TOKEN=ADMIN_TOKEN, KITTI_EVAL_WARMUP="false", KITTI_EVAL_LOG_FORMAT="text")
+    command = [sys.executable, "-m", "kitti_eval.cli", "serve", "--data-dir", str(data_dir), "--port", "0"]
+    done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, (done.returncode, done.stderr)
+    assert "KITTI_EVAL_ALLOW_OPEN_WITH_ACCOUNTS=true" in done.stderr
+    assert "Traceback" not in done.stderr and 'File "' not in done.stderr, done.stderr
+    assert done.stderr.count("KITTI_EVAL_ALLOW_OPEN_WITH_ACCOUNTS") == 1, done.stderr
