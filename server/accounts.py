@@ -257,6 +257,11 @@ class Accounts:
             self.store.revoke_token(caller.token_id)
             self.audit.record(caller, "session.close", f"session {caller.token_id}")
 
+    def holders(self) -> tuple[int, int]:
+        """How many users, and tokens not revoked (web sessions included), the database holds."""
+        tokens = [t for t in self.store.list_tokens() if t.revoked_at is None]
+        return len(self.store.list_users()), len(tokens)
+
     # -- listing (admins) --------------------------------------------------------------------------------
     def users(self) -> list[UserRecord]:
         return self.store.list_users()

@@ -15,6 +15,7 @@ replicas a client gets at most n times the limit.
 
 from __future__ import annotations
 
+import ipaddress
 import time
 from collections import OrderedDict, deque
 from collections.abc import Awaitable, Callable, Mapping, Sequence
@@ -113,9 +114,44 @@ class Door:
         return partial_match or (False, None)
 
 
+Network = ipaddress.IPv4Network | ipaddress.IPv6Network
+
+
 def client_of(scope: Scope) -> str:
+    """The client's address: the socket peer, or, when the peer is a trusted proxy
+    (``KITTI_EVAL_TRUSTED_PROXIES``), the right-most address of ``X-Forwarded-For`` that is not itself a trusted
+    proxy (all of them trusted: the left-most). A header that does not give one (absent, or not an address
+    where the walk stops) leaves the peer. The proxies are ``app.state.trusted_proxies`` (set by ``create_app``).
+    The failure limit, the audit log and the log lines all name this address."""
     client = scope.get("client")
-    return str(client[0]) if client else "unknown"
+    peer = str(client[0]) if client else "unknown"
+    app = scope.get("app")
+    trusted: tuple[Network, ...] = getattr(getattr(app, "state", None), "trusted_proxies", None) or ()
+    if not trusted or not _is_trusted(_address(peer), trusted):
+        return peer
+    hops = [hop.strip() for value in _headers(scope, b"x-forwarded-for") for hop in value.split(",")]
+    for hop in reversed(hops):
+        address = _address(hop)
+        if address is None:
+            return peer
+        if not _is_trusted(address, trusted):
+            return str(address)
+    first = _address(hops[0]) if hops else None
+    return str(first) if first is not None else peer
+
+
+def _address(text: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address | None:
+    try:
+        address = ipaddress.ip_address(text)
+    except ValueError:
+        return None
+    if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
+        return address.ipv4_mapped  # a dual-stack socket's view of an IPv4 peer
+    return address
+
+
+def _is_trusted(address: ipaddress.IPv4Address | ipaddress.IPv6Address | None, trusted: tuple[Network, ...]) -> bool:
+    return address is not None and any(address in network for network in trusted)
 
 
 class FailureLimiter:
@@ -167,6 +203,11 @@ def _header(scope: Scope, name: bytes) -> str | None:
         if key.lower() == name:
             return bytes(value).decode("latin-1")
     return None
+
+
+def _headers(scope: Scope, name: bytes) -> list[str]:
+    """Every value of a header, in order (a header sent several times reads as their comma-joined list)."""
+    return [bytes(value).decode("latin-1") for key, value in scope.get("headers", ()) if key.lower() == name]
 
 
 def bearer(scope: Scope) -> str | None:

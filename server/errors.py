@@ -36,6 +36,7 @@ __all__ = [
     "PayloadTooLarge",
     "DatabaseUnavailable",
     "InsufficientStorage",
+    "StartupRefused",
     "fault_of",
     "ArchiveError",
     "BadRequest",
@@ -188,6 +189,14 @@ def fault_of(exc: BaseException, retry_after_s: int = 2) -> ApiError | None:
     if exc.connection_invalidated or isinstance(exc, OperationalError):
         return DatabaseUnavailable("the database is unavailable; retry later", retry_after_s)
     return None
+
+
+class StartupRefused(ApiError):
+    """The service will not start with these settings on this database; never an HTTP answer, it stops the
+    startup with this message (and no traceback)."""
+
+    status_code = 500
+    code = "startup_refused"
 
 
 class ArchiveError(ApiError):

@@ -112,7 +112,14 @@ class Evaluations:
             loaded = load_upload(
                 pred, "detections", scratch / "pred", self.limits, keep_lidar=keep, known_frames=gt.frame_index()
             )
-            doc = evaluate_document(gt, loaded.annotations, config, curves=options.curves, errors=options.errors)
+            doc = evaluate_document(
+                gt,
+                loaded.annotations,
+                config,
+                curves=options.curves,
+                errors=options.errors,
+                gt_frames_shown=gt_record is None or not gt_record.sealed,
+            )
             if gt_record is not None and gt_record.sealed:
                 doc = sealed_document(doc)
             if keep:
@@ -216,7 +223,9 @@ class Evaluations:
                 f"the ground truth {record.gt_name!r} of evaluation {record.id} has been deleted or "
                 "replaced since; its frames cannot be looked at"
             )
-        config = EvalOptions.from_dict(record.options).config()
+        # a frame view reads no distance bins: an evaluation stored with more than the service now allows is
+        # still looked at
+        config = EvalOptions.from_dict({**record.options, "ranges": None}).config()
         gt = self.ground_truths.files.load(gt_record)
 
         def load_kept() -> Annotations:

@@ -17,16 +17,28 @@ from kitti_eval.analysis.decomposition import errors_document, evaluate_with_err
 from kitti_eval.core.evaluation import evaluate
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
+from kitti_eval.errors import InputError
 from kitti_eval.report.render import render_json
 
 from .errors import BadRequest, echo
 
-__all__ = ["EvalOptions", "evaluate_document", "summarize", "parse_labels", "LABEL_KEY_PATTERN", "ERRORS_SET"]
+__all__ = [
+    "EvalOptions",
+    "evaluate_document",
+    "check_image_fields",
+    "summarize",
+    "parse_labels",
+    "LABEL_KEY_PATTERN",
+    "ERRORS_SET",
+    "MAX_RANGE_BINS",
+]
 
 LABEL_KEY_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
 _LABEL_KEY = re.compile(LABEL_KEY_PATTERN)
 _MAX_LABELS = 32
 _MAX_LABEL_VALUE = 256
+#: most distance bins an evaluation may ask for (``ranges``: one more edge): each bin is evaluated in full again
+MAX_RANGE_BINS = 8
 #: the threshold set the error decomposition reads (the CLI's ``--errors`` decomposes the strict one)
 ERRORS_SET = "strict"
 
@@ -60,7 +72,14 @@ class EvalOptions:
         return cls(**kwargs)
 
     def config(self) -> EvalConfig:
-        """The evaluation these options ask for: the library's reading of them, as for the CLI's flags."""
+        """The evaluation these options ask for: the library's reading of them, as for the CLI's flags, within the
+        service's bound on distance bins (:data:`MAX_RANGE_BINS`; the CLI has none)."""
+        edges = [v for v in (self.ranges or "").split(",") if v.strip()]  # as the library counts them
+        if len(edges) > MAX_RANGE_BINS + 1:
+            raise BadRequest(
+                f"ranges: at most {MAX_RANGE_BINS} distance bins ({MAX_RANGE_BINS + 1} edges, e.g. 0,30,50,inf), "
+                f"got {len(edges) - 1}"
+            )
         config = config_from_options(
             classes=self.classes,
             protocol=self.protocol,
@@ -78,11 +97,21 @@ class EvalOptions:
 
 
 def evaluate_document(
-    gt: Annotations, dt: Annotations, config: EvalConfig, *, curves: bool = False, errors: bool = False
+    gt: Annotations,
+    dt: Annotations,
+    config: EvalConfig,
+    *,
+    curves: bool = False,
+    errors: bool = False,
+    gt_frames_shown: bool = False,
 ) -> dict[str, Any]:
     """The JSON document ``kitti-eval --format json`` prints for the same inputs, as a dict; with ``errors``,
     what ``--errors`` adds (``errors``, ``errors_r11``, ``tp_errors``), computed as the CLI does: the AP and
-    the decomposition from one planned evaluation."""
+    the decomposition from one planned evaluation.
+
+    ``gt_frames_shown``: whether a refusal may name a frame of the ground truth (not for a sealed one, and not
+    by default)."""
+    check_image_fields(gt, dt, config, gt_frames_shown=gt_frames_shown)
     extra: dict[str, Any] | None = None
     if errors:
         result, decomposition = evaluate_with_errors(gt, dt, config, keep_curves=curves, oset=ERRORS_SET)
@@ -91,6 +120,24 @@ def evaluate_document(
         result = evaluate(gt, dt, config, keep_curves=curves)
     doc: dict[str, Any] = json.loads(render_json(result, include_curves=curves, extra=extra))
     return doc
+
+
+def check_image_fields(gt: Annotations, dt: Annotations, config: EvalConfig, *, gt_frames_shown: bool) -> None:
+    """The library's refusal of boxes without image fields (a LiDAR-only set) unless ``lidar_only``, said in
+    the service's terms (the form field, not the CLI's flag), naming the ground truth's first such frame only
+    when ``gt_frames_shown`` (never a sealed set's); the predictions' own frames are the client's to know."""
+    if config.lidar_only:
+        return
+    for annos, frame_shown in ((gt, gt_frames_shown), (dt, True)):
+        if annos.missing_fields:
+            field = "bbox" if "bbox" in annos.missing_fields else next(iter(annos.missing_fields))
+            raise InputError(
+                f"no '{field}' (an image field) for some boxes; a set without 2D boxes is evaluated with the "
+                "form field lidar_only=true (BEV and 3D only)",
+                source=annos.source,
+                frame=annos.missing_fields[field] if frame_shown else None,
+                field=field,
+            )
 
 
 def summarize(doc: Mapping[str, Any]) -> dict[str, dict[str, float | None]]:

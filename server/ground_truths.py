@@ -32,7 +32,7 @@ from .errors import ApiError, BadRequest, Conflict, NotFound, echo
 from .store import GroundTruthRecord, Store
 from .uploads import InputFormat, Limits, Upload, extract_txt_folder, load_upload, receive_upload
 
-__all__ = ["GroundTruths", "GroundTruthCache", "NAME_PATTERN", "annotations_nbytes"]
+__all__ = ["GroundTruths", "GroundTruthCache", "NAME_PATTERN", "annotations_nbytes", "display_name"]
 
 log = logging.getLogger("kitti_eval.server")
 
@@ -43,6 +43,11 @@ _NAME = re.compile(NAME_PATTERN)
 class GroundTruthUnavailable(ApiError):
     status_code = 500
     code = "ground_truth_unavailable"
+
+
+def display_name(name: str) -> str:
+    """How messages name a registered ground truth (its ``source``)."""
+    return f"the ground truth {name!r}"
 
 
 def annotations_nbytes(annotations: Annotations) -> int:
@@ -236,7 +241,9 @@ class GroundTruths:
         return record
 
     def load(self, record: GroundTruthRecord) -> Annotations:
-        """The loaded set (from the cache, or from storage once)."""
+        """The loaded set (from the cache, or from storage once), its ``source`` the ground truth's name: every
+        message and warning made of it says "the ground truth 'NAME'", never the path of the server's copy
+        (nor the file name it was registered from, which is what a set cached at registration would say)."""
 
         def from_storage() -> Annotations:
             path = self._materialise(record)
@@ -249,7 +256,8 @@ class GroundTruths:
                     "storage; an admin should register it again"
                 ) from None
 
-        return self.cache.get_or_load(record.sha256, from_storage)
+        loaded = self.cache.get_or_load(record.sha256, from_storage)
+        return dataclasses.replace(loaded, source=display_name(record.name))
 
     def delete(self, name: str) -> GroundTruthRecord:
         record, shared = self.store.delete_ground_truth(name)

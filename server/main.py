@@ -17,12 +17,13 @@ from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from pydantic import ValidationError
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from kitti_eval import __version__
 
 from .auth import AuthMiddleware, Door
 from .benchmarks import Benchmarks
-from .errors import install_error_handlers
+from .errors import StartupRefused, install_error_handlers
 from .middleware import AdmissionMiddleware, BodyMiddleware
 from .observability import Metrics, RequestMiddleware, configure_logging
 from .policy import Access
@@ -58,7 +59,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        await anyio.to_thread.run_sync(service.start)
+        try:
+            await anyio.to_thread.run_sync(service.start)
+        except StartupRefused as e:  # said once, in the service's log: the server is not given a traceback
+            app.state.startup_refused = e.message
+            log.error("%s", e.message)
+            service.stop()
+            raise
         drainer = Drainer(service)
         drainer.install()  # SIGTERM drains the admitted evaluations before the server stops
         try:
@@ -81,6 +88,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.service = service
     app.state.policy = service.policy
     app.state.error_page = error_page
+    app.state.startup_refused = None  # the reason the service refused to start (StartupRefused), if it did
+    app.state.trusted_proxies = settings.trusted_networks  # read by auth.client_of
     app.state.metrics = app_metrics
     app.state.benchmarks = Benchmarks(service)
     install_error_handlers(app)
@@ -135,9 +144,30 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         sign_in_page=sign_in_page,
         retry_after_s=lambda: settings.retry_after_s,
     )
+    app.add_middleware(_PlainStartupRefusal)
     # outermost: every request gets its id, its log line and its metrics, whoever answers it
     app.add_middleware(RequestMiddleware, metrics=app_metrics, log_json=lambda: log_json)
     return app
+
+
+class _PlainStartupRefusal:
+    """A failed startup's message is the traceback (Starlette's), which uvicorn prints; when the service refused
+    to start (:class:`StartupRefused`, already in its log) the message is dropped, so no traceback is shown."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "lifespan":
+            await self.app(scope, receive, send)
+            return
+
+        async def plain(message: Message) -> None:
+            if message["type"] == "lifespan.startup.failed" and scope["app"].state.startup_refused:
+                message = {"type": "lifespan.startup.failed", "message": ""}
+            await send(message)
+
+        await self.app(scope, receive, plain)
 
 
 _app: FastAPI | None = None
@@ -179,14 +209,19 @@ def serve(argv: Sequence[str] | None = None) -> int:
     app = create_app(settings)
     log.setLevel(args.log_level.upper())
     # the service writes its own access log (one line a request, with its id): uvicorn's would repeat it
-    uvicorn.run(
-        app,
-        host=args.host,
-        port=args.port,
-        log_level=args.log_level,
-        access_log=False,
-        timeout_graceful_shutdown=10,
-    )
+    try:
+        uvicorn.run(
+            app,
+            host=args.host,
+            port=args.port,
+            log_level=args.log_level,
+            access_log=False,
+            timeout_graceful_shutdown=10,
+        )
+    except SystemExit:  # uvicorn's exit when the startup failed
+        if app.state.startup_refused:  # the settings do not fit the database: the log line says which to change
+            return 2
+        raise
     return 0
 
 

@@ -18,6 +18,7 @@ those of the process that answers the scrape, labelled with its ``pid``.
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import os
@@ -25,7 +26,7 @@ import re
 import sys
 import time
 import uuid
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -37,7 +38,16 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from .errors import INTERNAL_ERROR_MESSAGE, error_body
 
-__all__ = ["Metrics", "RequestMiddleware", "REQUEST_ID_HEADER", "configure_logging", "CONTENT_TYPE"]
+__all__ = [
+    "Metrics",
+    "RequestMiddleware",
+    "REQUEST_ID_HEADER",
+    "configure_logging",
+    "CONTENT_TYPE",
+    "JsonFormatter",
+    "TextFormatter",
+    "escape_text",
+]
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 REQUEST_ID_HEADER = "x-request-id"
@@ -185,7 +195,17 @@ def _client_request_id(scope: Scope) -> str | None:
     return None
 
 
+#: the methods a metric names; any other token a client sends is ``other`` (it would be a series of its own)
+_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "PATCH", "OPTIONS"})
+
+
+def _method_label(method: str) -> str:
+    return method if method in _METHODS else "other"
+
+
 def _route_of(scope: Scope) -> str:
+    """The matched route's template (``/v1/evaluations/{evaluation_id}``), a mount's prefix, or ``unmatched``:
+    never the path as sent, so that clients cannot make new series."""
     route = scope.get("route")
     path = getattr(route, "path_format", None) or getattr(route, "path", None)
     if isinstance(path, str):
@@ -271,8 +291,8 @@ class RequestMiddleware:
         evaluation = scope.get("state", {}).get("evaluation_id")
         if self.metrics is not None:
             m = self.metrics
-            m.requests.labels(route, method, str(status)).inc()
-            m.latency.labels(route, method).observe(seconds)
+            m.requests.labels(route, _method_label(method), str(status)).inc()
+            m.latency.labels(route, _method_label(method)).observe(seconds)
             m.received.inc(seen["received"])
             code = scope.get("state", {}).get("error_code")
             if code is not None:
@@ -298,11 +318,17 @@ class RequestMiddleware:
             record["evaluation_id"] = str(evaluation)
         if self.log_json():
             access_log.info(json.dumps(record), extra={"access": record})
-        else:
-            extra = f" evaluation={evaluation}" if evaluation else ""
+        else:  # the values as arguments, so that the text format escapes them (TextFormatter)
             access_log.info(
-                f"{method} {route} {status} {record['duration_ms']:.0f} ms in={seen['received']} B "
-                f"out={seen['sent']} B id={rid}{extra}",
+                "%s %s %s %.0f ms in=%s B out=%s B id=%s%s",
+                method,
+                route,
+                status,
+                record["duration_ms"],
+                seen["received"],
+                seen["sent"],
+                rid,
+                f" evaluation={evaluation}" if evaluation else "",
                 extra={"access": record},
             )
 
@@ -362,6 +388,37 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(doc)
 
 
+#: what would break a text line or fake an escape: control characters (C0, DEL, C1), the Unicode line and
+#: paragraph separators, and the backslash
+_UNSAFE = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029\\]")
+_UNSAFE_IN_TEMPLATE = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+
+
+def _escaped(match: re.Match[str]) -> str:
+    return match.group().encode("unicode_escape").decode("ascii")  # \n, \r, \x85, \u2028, \\
+
+
+def escape_text(value: str) -> str:
+    """``value`` with control characters and backslashes written as Python escapes: one line, unambiguous."""
+    return _UNSAFE.sub(_escaped, value)
+
+
+class TextFormatter(logging.Formatter):
+    """The text format, one line a record: every string value of a message (its ``%s`` arguments, where request
+    paths, methods and client addresses go) is escaped (:func:`escape_text`), so a ``%0A`` in a URL cannot
+    start a line of its own; a control character in the message itself is escaped too. A traceback, when there
+    is one, follows on lines of its own as usual."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        safe = copy.copy(record)
+        if isinstance(record.args, Mapping):
+            safe.args = {k: escape_text(v) if isinstance(v, str) else v for k, v in record.args.items()}
+        elif record.args:
+            safe.args = tuple(escape_text(v) if isinstance(v, str) else v for v in record.args)
+        safe.msg, safe.args = _UNSAFE_IN_TEMPLATE.sub(_escaped, safe.getMessage()), None
+        return super().format(safe)
+
+
 def wants_json(log_format: str, stream: Any = None) -> bool:
     """``json``, ``text``, or ``auto``: JSON unless the log goes to a terminal."""
     if log_format == "auto":
@@ -381,9 +438,7 @@ def configure_logging(log_format: str) -> bool:
         logger.removeHandler(h)
     handler = logging.StreamHandler()
     handler._kitti_eval = True  # type: ignore[attr-defined]
-    handler.setFormatter(
-        JsonFormatter() if as_json else logging.Formatter("%(levelname)s:     kitti-eval: %(message)s")
-    )
+    handler.setFormatter(JsonFormatter() if as_json else TextFormatter("%(levelname)s:     kitti-eval: %(message)s"))
     logger.addHandler(handler)
     if logger.level == logging.NOTSET:
         logger.setLevel(logging.INFO)

@@ -24,6 +24,7 @@ from .accounts import Accounts
 from .audit import Audit
 from .auth import FailureLimiter
 from .catalog import GroundTruthCatalog
+from .errors import StartupRefused
 from .evaluations import Evaluations, sealed_document
 from .ground_truths import GroundTruthCache, GroundTruths
 from .observability import AdmissionState
@@ -98,6 +99,7 @@ class Service:
         self.scratch_space.open()  # and removes what processes killed meanwhile left
         log.info("data folder %s", self.data_dir)
         self.store.create_schema()
+        self._check_open_mode()
         self.admin_token = self._admin_token()
         if self.settings.register_demo:
             self._register_demo()
@@ -105,6 +107,20 @@ class Service:
             threading.Thread(target=self._warm_up, name="kitti-eval-warmup", daemon=True).start()
         else:
             self.warm.set()
+
+    def _check_open_mode(self) -> None:
+        """Open mode serves every project's work to anyone: not on a database whose accounts say otherwise,
+        unless ``allow_open_with_accounts``."""
+        if self.policy.accounts or self.settings.allow_open_with_accounts:
+            return
+        users, tokens = self.accounts.holders()
+        if users or tokens:
+            raise StartupRefused(
+                f"the database holds accounts ({users} user{'s' * (users != 1)}, {tokens} token"
+                f"{'s' * (tokens != 1)} not revoked) but KITTI_EVAL_AUTH is open, which would serve every project's "
+                "evaluations and ground truths to anyone who reaches the service: start with KITTI_EVAL_AUTH=accounts, "
+                "or set KITTI_EVAL_ALLOW_OPEN_WITH_ACCOUNTS=true to serve it open anyway"
+            )
 
     def stop(self) -> None:
         self.store.dispose()

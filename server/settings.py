@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -86,12 +87,22 @@ class Settings(BaseSettings):
     the static files, the sign-in page, public benchmarks' boards) needs a token (``kitti-eval admin token
     add``), and sees only its projects' work (:mod:`kitti_eval_server.policy`)."""
 
+    allow_open_with_accounts: bool = False
+    """Open mode on a database that holds accounts (users, or tokens not revoked: made in accounts mode) serves
+    all of every project to anyone; the service refuses to start so unless this is set."""
+
     auth_max_failures: Annotated[int, Field(ge=1)] = 10
     """Accounts mode: refused tokens one client address may send within ``auth_failure_window_s`` before it
     gets 429 for the rest of the window (counted by each process on its own)."""
 
     auth_failure_window_s: Annotated[float, Field(gt=0)] = 60.0
     """The window of ``auth_max_failures``."""
+
+    trusted_proxies: str = ""
+    """The reverse proxies in front of the service: IP addresses or CIDR networks, comma-separated (e.g.
+    ``10.0.0.5,fd00::/64``). A request whose socket peer is one of them is taken to come from the right-most
+    address of its ``X-Forwarded-For`` that is not itself one of them (the failure limit, the audit log and the
+    log lines name that address). Empty: no one is trusted, and the socket peer is the client."""
 
     session_hours: Annotated[float, Field(gt=0, le=24 * 365)] = 12.0
     """How long a web sign-in lasts (never beyond the token it was made with)."""
@@ -143,6 +154,16 @@ class Settings(BaseSettings):
                 return "postgresql+psycopg://" + url[len(prefix) :]
         return url
 
+    @field_validator("trusted_proxies")
+    @classmethod
+    def _check_proxies(cls, text: str) -> str:
+        """Each entry an address or a network (``10.0.0.0/8``; host bits set are refused), written normalised."""
+        return ",".join(str(network) for network in _networks(text))
+
+    @property
+    def trusted_networks(self) -> tuple[ipaddress.IPv4Network | ipaddress.IPv6Network, ...]:
+        return _networks(self.trusted_proxies)
+
     @property
     def resolved_database_url(self) -> str:
         return self.database_url or f"sqlite:///{self.data_dir.resolve() / 'kitti-eval.db'}"
@@ -167,3 +188,14 @@ class Settings(BaseSettings):
     @property
     def gt_cache_bytes(self) -> int:
         return int(self.gt_cache_mb * _MB)
+
+
+def _networks(text: str) -> tuple[ipaddress.IPv4Network | ipaddress.IPv6Network, ...]:
+    out = []
+    for item in (part.strip() for part in text.split(",")):
+        if item:
+            try:
+                out.append(ipaddress.ip_network(item))
+            except ValueError as e:
+                raise ValueError(f"{item!r} is not an IP address or network: {e}") from None
+    return tuple(out)
