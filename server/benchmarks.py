@@ -30,7 +30,7 @@ import math
 import re
 import secrets
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any
@@ -44,7 +44,7 @@ from .accounts import Accounts, Caller
 from .errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
 from .evaluator import EvalOptions, evaluate_document
 from .service import FileIn, Service, sealed_document
-from .store import GroundTruthRecord, QuotaRefused, new_id
+from .store import BenchmarkRecord, GroundTruthRecord, QuotaRefused, SubmissionRecord, new_id
 from .uploads import clean_filename, load_upload, receive_upload
 
 __all__ = [
@@ -197,24 +197,12 @@ def render_markdown(text: str) -> str:
 
 
 @dataclass(frozen=True)
-class Benchmark:
-    name: str
-    title: str
-    description: str
-    gt_name: str
-    project: str | None
-    config: Mapping[str, Any]
-    public: bool
-    opens_at: datetime
-    closes_at: datetime | None
-    closed: bool
-    revealed: bool
-    created_at: datetime
-    split_seed: str | None = None
+class Benchmark(BenchmarkRecord):
+    """A stored benchmark with its rules read from its row."""
 
     @classmethod
-    def from_row(cls, row: Mapping[str, Any]) -> Benchmark:
-        return cls(**row)
+    def from_record(cls, record: BenchmarkRecord) -> Benchmark:
+        return cls(**{f.name: getattr(record, f.name) for f in fields(record)})
 
     @property
     def key(self) -> list[str]:
@@ -290,28 +278,28 @@ def _scores(doc: Mapping[str, Any], columns: Sequence[str]) -> dict[str, float |
     return out
 
 
-def _submission_view(row: Mapping[str, Any], *, full: bool) -> dict[str, Any]:
+def _submission_view(record: SubmissionRecord, *, full: bool) -> dict[str, Any]:
     """A submission as its participant (``full``) or an admin listing sees it."""
     out = {
-        "id": row["id"],
-        "benchmark": row["benchmark"],
-        "participant": row["participant"],
-        "created_at": row["created_at"].isoformat(),
-        "status": row["status"],
-        "filename": row["pred_filename"],
-        "sha256": row["pred_sha256"],
-        "size": row["pred_size"],
-        "published": bool(row["published"]),
-        "method": row["method"],
-        "anonymous": bool(row["anonymous"]),
-        "affiliation": row["affiliation"],
-        "link": row["link"],
-        "disqualified": bool(row["disqualified"]),
-        "scored_at": row["scored_at"].isoformat() if row["scored_at"] else None,
-        "scores": (row["scores"] or {}).get("all"),
+        "id": record.id,
+        "benchmark": record.benchmark,
+        "participant": record.participant,
+        "created_at": record.created_at.isoformat(),
+        "status": record.status,
+        "filename": record.pred_filename,
+        "sha256": record.pred_sha256,
+        "size": record.pred_size,
+        "published": bool(record.published),
+        "method": record.method,
+        "anonymous": bool(record.anonymous),
+        "affiliation": record.affiliation,
+        "link": record.link,
+        "disqualified": bool(record.disqualified),
+        "scored_at": record.scored_at.isoformat() if record.scored_at else None,
+        "scores": (record.scores or {}).get("all"),
     }
     if full:
-        out["result"] = row["result"]
+        out["result"] = record.result
     return out
 
 
@@ -331,10 +319,10 @@ class Benchmarks:
 
     # -- seeing -------------------------------------------------------------------------------------------
     def _get(self, name: str) -> Benchmark:
-        row = self.store.get_benchmark(name)
-        if row is None:
+        record = self.store.get_benchmark(name)
+        if record is None:
             raise NotFound(f"no benchmark named {echo(name)}")
-        return Benchmark.from_row(row)
+        return Benchmark.from_record(record)
 
     def sees(self, caller: Caller | None, bench: Benchmark) -> bool:
         """``caller`` None: no token (accounts mode)."""
@@ -351,7 +339,7 @@ class Benchmarks:
         return bench
 
     def visible(self, caller: Caller | None) -> list[Benchmark]:
-        found = [Benchmark.from_row(r) for r in self.store.list_benchmarks()]
+        found = [Benchmark.from_record(r) for r in self.store.list_benchmarks()]
         return [b for b in found if self.sees(caller, b)]
 
     def frame_ids(self, name: str, caller: Caller | None) -> list[str]:
@@ -408,13 +396,13 @@ class Benchmarks:
         closes = _parse_time(closes_at, "closes")
         if closes is not None and closes <= opens:
             raise BadRequest("a benchmark closes after it opens")
-        values = {
-            "name": name,
-            "title": title or name,
-            "description": description,
-            "gt_name": record.name,
-            "project": record.project,
-            "config": {
+        bench = BenchmarkRecord(
+            name=name,
+            title=title or name,
+            description=description,
+            gt_name=record.name,
+            project=record.project,
+            config={
                 "protocol": protocol,
                 "classes": ",".join(class_names),
                 "sets": ",".join(sets),
@@ -423,15 +411,15 @@ class Benchmarks:
                 "quota": [count, days],
                 "split_percent": split_percent,
             },
-            "split_seed": secrets.token_hex(16) if split_percent is not None else None,
-            "public": public,
-            "opens_at": opens,
-            "closes_at": closes,
-            "closed": False,
-            "revealed": False,
-            "created_at": datetime.now(timezone.utc),
-        }
-        if not self.store.add_benchmark(values):
+            split_seed=secrets.token_hex(16) if split_percent is not None else None,
+            public=public,
+            opens_at=opens,
+            closes_at=closes,
+            closed=False,
+            revealed=False,
+            created_at=datetime.now(timezone.utc),
+        )
+        if not self.store.add_benchmark(bench):
             raise Conflict(f"a benchmark named {name!r} exists")
         self.accounts.audit(actor=actor, action="benchmark.add", target=name, client=client, detail=record.name)
         return self._get(name)
@@ -451,8 +439,8 @@ class Benchmarks:
         return [_submission_view(r, full=False) for r in self.store.list_submissions(name)]
 
     def disqualify(self, name: str, submission_id: str, *, actor: str, client: str = "local") -> dict[str, Any]:
-        row = self.store.get_submission(submission_id)
-        if row is None or row["benchmark"] != name:
+        record = self.store.get_submission(submission_id)
+        if record is None or record.benchmark != name:
             raise NotFound(f"no submission {echo(submission_id)} in benchmark {echo(name)}")
         self.store.update_submission(submission_id, disqualified=True)
         self.accounts.audit(actor=actor, action="submission.disqualify", target=submission_id, client=client)
@@ -466,20 +454,20 @@ class Benchmarks:
         record, gt = self._ground_truth(bench)
         done = failed = 0
         for row in self.store.list_submissions(name):
-            content = self.store.prediction_content(row["pred_sha256"])
+            content = self.store.prediction_content(row.pred_sha256)
             if content is None:
                 failed += 1
                 continue
             try:
                 with self.service.scratch() as scratch:
-                    upload = receive_upload(io.BytesIO(content), row["pred_filename"], "predictions")
+                    upload = receive_upload(io.BytesIO(content), row.pred_filename, "predictions")
                     dt = load_upload(
                         upload, "detections", scratch, self.service.limits, known_frames=gt.frame_index()
                     ).annotations
-                self._score(bench, record, gt, dt, row["id"])
+                self._score(bench, record, gt, dt, row.id)
                 done += 1
             except KittiEvalError:
-                self.store.update_submission(row["id"], status="failed")
+                self.store.update_submission(row.id, status="failed")
                 failed += 1
         self.accounts.audit(
             actor=actor, action="benchmark.rescore", target=name, client=client, detail=f"{done} rescored"
@@ -506,25 +494,18 @@ class Benchmarks:
             now = datetime.now(timezone.utc)
             window = timedelta(days=days)
             submission_id = new_id()
+            accepted = SubmissionRecord(
+                id=submission_id,
+                benchmark=name,
+                participant=caller.name,
+                created_at=now,
+                status="accepted",
+                pred_filename=upload.filename,
+                pred_sha256=upload.sha256,
+                pred_size=upload.size,
+            )
             try:
-                self.store.accept_submission(
-                    {
-                        "id": submission_id,
-                        "benchmark": name,
-                        "participant": caller.name,
-                        "created_at": now,
-                        "status": "accepted",
-                        "pred_filename": upload.filename,
-                        "pred_sha256": upload.sha256,
-                        "pred_size": upload.size,
-                        "published": False,
-                        "anonymous": False,
-                        "disqualified": False,
-                    },
-                    limit=count,
-                    window_start=now - window,
-                    window=window,
-                )
+                self.store.accept_submission(accepted, limit=count, window_start=now - window, window=window)
             except QuotaRefused as e:
                 retry = max(1, math.ceil((e.retry_at - datetime.now(timezone.utc)).total_seconds()))
                 raise QuotaExceeded(
@@ -593,24 +574,24 @@ class Benchmarks:
             scored_at=datetime.now(timezone.utc),
         )
 
-    def _own(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
+    def _own(self, name: str, submission_id: str, caller: Caller) -> SubmissionRecord:
         self.get(name, caller)
-        row = self.store.get_submission(submission_id)
-        if row is None or row["benchmark"] != name or (row["participant"] != caller.name and not caller.is_admin):
+        record = self.store.get_submission(submission_id)
+        if record is None or record.benchmark != name or (record.participant != caller.name and not caller.is_admin):
             raise NotFound(f"no submission of yours with id {echo(submission_id)}")
-        return row
+        return record
 
     def submission(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
         return _submission_view(self._own(name, submission_id, caller), full=True)
 
     def mine(self, name: str, caller: Caller) -> dict[str, Any]:
         bench = self.get(name, caller)
-        rows = self.store.list_submissions(name, participant=caller.name)
+        records = self.store.list_submissions(name, participant=caller.name)
         count, days = bench.quota
         since = datetime.now(timezone.utc) - timedelta(days=days)
-        used = sum(1 for r in rows if r["created_at"] > since and r["status"] != "failed")
+        used = sum(1 for r in records if r.created_at > since and r.status != "failed")
         return {
-            "items": [_submission_view(r, full=False) for r in reversed(rows)],
+            "items": [_submission_view(r, full=False) for r in reversed(records)],
             "quota": {"submissions": count, "days": days, "used": used, "left": max(0, count - used)},
         }
 
@@ -625,10 +606,10 @@ class Benchmarks:
         affiliation: str | None = None,
         link: str | None = None,
     ) -> dict[str, Any]:
-        row = self._own(name, submission_id, caller)
-        if row["status"] != "scored":
+        record = self._own(name, submission_id, caller)
+        if record.status != "scored":
             raise Conflict("only a scored submission can be published")
-        if row["disqualified"]:
+        if record.disqualified:
             raise Conflict("the submission was disqualified")
         method = method.strip()
         if not 1 <= len(method) <= 100 or not method.isprintable():
@@ -661,18 +642,18 @@ class Benchmarks:
         phase = bench.phase
         entries: list[dict[str, Any]] = []
         for row in self.store.list_submissions(name, published_only=True):
-            if row["status"] != "scored":
+            if row.status != "scored":
                 continue
-            scores = (row["scores"] or {}).get(phase) or {}
+            scores = (row.scores or {}).get(phase) or {}
             entries.append(
                 {
-                    "id": row["id"],
-                    "method": row["method"],
-                    "participant": None if row["anonymous"] else row["participant"],
-                    "affiliation": None if row["anonymous"] else row["affiliation"],
-                    "link": None if row["anonymous"] else row["link"],
-                    "anonymous": bool(row["anonymous"]),
-                    "date": row["created_at"].isoformat(),
+                    "id": row.id,
+                    "method": row.method,
+                    "participant": None if row.anonymous else row.participant,
+                    "affiliation": None if row.anonymous else row.affiliation,
+                    "link": None if row.anonymous else row.link,
+                    "anonymous": bool(row.anonymous),
+                    "date": row.created_at.isoformat(),
                     "key": key_value(scores, bench.key),
                     "columns": {c: scores.get(c) for c in bench.columns},
                 }

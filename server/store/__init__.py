@@ -1,0 +1,91 @@
+"""The database, by area: :mod:`.database` holds what they share (the tables, the engine, the schema, the
+retry of a call that found SQLite locked); :mod:`.ground_truths`, :mod:`.evaluations`, :mod:`.accounts` and
+:mod:`.benchmarks` each define an area's records (frozen dataclasses) and a class of its reads and writes.
+:class:`Store` is all four over one :class:`Database`, as the service and the command line use it.
+"""
+
+from __future__ import annotations
+
+from .accounts import AccountStore, AuditRecord, TokenRecord, UserRecord
+from .benchmarks import BenchmarkRecord, BenchmarkStore, QuotaRefused, SubmissionRecord
+from .database import (
+    Area,
+    Database,
+    audit,
+    benchmarks,
+    evaluation_labels,
+    evaluations,
+    ground_truth_files,
+    ground_truths,
+    memberships,
+    metadata,
+    new_id,
+    prediction_files,
+    projects,
+    quota_locks,
+    submissions,
+    tokens,
+    users,
+)
+from .evaluations import EvaluationRecord, EvaluationStore
+from .ground_truths import GroundTruthRecord, GroundTruthStore
+
+__all__ = [
+    "Store",
+    "Database",
+    "Area",
+    "GroundTruthStore",
+    "EvaluationStore",
+    "AccountStore",
+    "BenchmarkStore",
+    "GroundTruthRecord",
+    "EvaluationRecord",
+    "UserRecord",
+    "TokenRecord",
+    "AuditRecord",
+    "BenchmarkRecord",
+    "SubmissionRecord",
+    "QuotaRefused",
+    "new_id",
+    "metadata",
+    "ground_truths",
+    "ground_truth_files",
+    "evaluations",
+    "evaluation_labels",
+    "prediction_files",
+    "users",
+    "projects",
+    "memberships",
+    "tokens",
+    "audit",
+    "benchmarks",
+    "submissions",
+    "quota_locks",
+]
+
+
+class Store(GroundTruthStore, EvaluationStore, AccountStore, BenchmarkStore):
+    """Every area of the database on one :class:`Database` (SQLite or PostgreSQL)."""
+
+    def __init__(self, url: str, *, busy_s: float = 10.0) -> None:
+        """``busy_s``: how long a SQLite call keeps trying while another connection holds the write lock."""
+        super().__init__(Database(url, busy_s=busy_s))
+
+    @property
+    def busy_s(self) -> float | None:
+        return self.db.busy_s
+
+    @property
+    def lock_retries(self) -> int:
+        """Attempts run again because the database was locked (for the tests and the curious)."""
+        return self.db.lock_retries
+
+    def create_schema(self) -> None:
+        """Create missing tables, and add the columns a database made by an earlier version lacks."""
+        self.db.create_schema()
+
+    def ping(self) -> None:
+        self.db.ping()
+
+    def dispose(self) -> None:
+        self.db.dispose()
