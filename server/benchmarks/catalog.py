@@ -1,0 +1,151 @@
+"""The benchmarks themselves: who sees which, their test sets, and the admins' creating, closing, reopening and
+revealing."""
+
+from __future__ import annotations
+
+import secrets
+from collections.abc import Sequence
+from datetime import datetime, timezone
+
+from kitti_eval.core.frames import Annotations
+from kitti_eval.core.protocol import THRESHOLD_SETS
+
+from ..accounts import Accounts, Caller
+from ..errors import BadRequest, Conflict, NotFound, echo
+from ..evaluator import EvalOptions
+from ..service import Service
+from ..store import BenchmarkRecord, GroundTruthRecord
+from .rules import DEFAULT_KEY, DIFFICULTIES, Benchmark, parse_column, parse_quota, parse_time
+
+__all__ = ["BenchmarkCatalog"]
+
+_MAX_COLUMNS = 60
+
+
+class BenchmarkCatalog:
+    """Benchmarks on the service's store and ground truths: seeing them, and the admins' actions on them."""
+
+    def __init__(self, service: Service) -> None:
+        self.service = service
+        self.store = service.store
+
+    @property
+    def accounts(self) -> Accounts:
+        return self.service.accounts
+
+    # -- seeing -------------------------------------------------------------------------------------------
+    def _get(self, name: str) -> Benchmark:
+        record = self.store.get_benchmark(name)
+        if record is None:
+            raise NotFound(f"no benchmark named {echo(name)}")
+        return Benchmark.from_record(record)
+
+    def sees(self, caller: Caller | None, bench: Benchmark) -> bool:
+        """``caller`` None: no token (accounts mode)."""
+        if bench.public:
+            return True
+        if caller is None:
+            return False
+        return caller.is_admin or caller.projects is None or bench.project is None or bench.project in caller.projects
+
+    def get(self, name: str, caller: Caller | None) -> Benchmark:
+        bench = self._get(name)
+        if not self.sees(caller, bench):
+            raise NotFound(f"no benchmark named {echo(name)}")
+        return bench
+
+    def visible(self, caller: Caller | None) -> list[Benchmark]:
+        found = [Benchmark.from_record(r) for r in self.store.list_benchmarks()]
+        return [b for b in found if self.sees(caller, b)]
+
+    def frame_ids(self, name: str, caller: Caller | None) -> list[str]:
+        """The test frame ids (public, as KITTI's: the labels are what is sealed)."""
+        bench = self.get(name, caller)
+        return list(self._ground_truth(bench)[1].frame_ids)
+
+    def _ground_truth(self, bench: Benchmark) -> tuple[GroundTruthRecord, Annotations]:
+        record = self.service.ground_truths.record(bench.gt_name)
+        return record, self.service.ground_truths.load(record)
+
+    # -- admin ----------------------------------------------------------------------------------------------
+    def create(
+        self,
+        name: str,
+        *,
+        ground_truth: str,
+        title: str | None = None,
+        description: str = "",
+        protocol: str = "official",
+        classes: str = "Car,Pedestrian,Cyclist",
+        threshold_sets: str = ",".join(THRESHOLD_SETS),
+        key: Sequence[str] = (DEFAULT_KEY,),
+        columns: Sequence[str] = (),
+        quota: str = "3/1",
+        public: bool = False,
+        opens_at: str | datetime | None = None,
+        closes_at: str | datetime | None = None,
+        split_percent: float | None = None,
+        actor: str,
+        client: str = "local",
+    ) -> Benchmark:
+        self.accounts.check_name(name, "benchmark")
+        record = self.service.ground_truths.record(ground_truth)
+        if not record.sealed:
+            raise BadRequest(
+                f"the ground truth {ground_truth!r} is not sealed; a benchmark's test set is registered "
+                "with sealed=true"
+            )
+        options = EvalOptions(protocol=protocol, classes=classes, threshold_sets=threshold_sets)
+        config = options.config()  # the library's checks of the options
+        class_names, sets = list(config.classes), list(config.threshold_sets)
+        keys = [parse_column(k, class_names, sets) for k in key if k.strip()] or [DEFAULT_KEY]
+        wanted = list(columns) or [f"{c}/3d/{d}" for c in class_names for d in DIFFICULTIES]
+        cols = list(dict.fromkeys(parse_column(c, class_names, sets) for c in wanted if c.strip()))
+        if len(cols) > _MAX_COLUMNS:
+            raise BadRequest(f"at most {_MAX_COLUMNS} columns")
+        count, days = parse_quota(quota)
+        if split_percent is not None and not 0 < split_percent < 100:
+            raise BadRequest("split_percent is the public part of the test frames: more than 0 and less than 100")
+        if len(description) > 20000 or len(title or "") > 200:
+            raise BadRequest("a title is at most 200 characters, a description at most 20000")
+        opens = parse_time(opens_at, "opens") or datetime.now(timezone.utc)
+        closes = parse_time(closes_at, "closes")
+        if closes is not None and closes <= opens:
+            raise BadRequest("a benchmark closes after it opens")
+        bench = BenchmarkRecord(
+            name=name,
+            title=title or name,
+            description=description,
+            gt_name=record.name,
+            project=record.project,
+            config={
+                "protocol": protocol,
+                "classes": ",".join(class_names),
+                "sets": ",".join(sets),
+                "key": keys,
+                "columns": cols,
+                "quota": [count, days],
+                "split_percent": split_percent,
+            },
+            split_seed=secrets.token_hex(16) if split_percent is not None else None,
+            public=public,
+            opens_at=opens,
+            closes_at=closes,
+            closed=False,
+            revealed=False,
+            created_at=datetime.now(timezone.utc),
+        )
+        if not self.store.add_benchmark(bench):
+            raise Conflict(f"a benchmark named {name!r} exists")
+        self.accounts.audit(actor=actor, action="benchmark.add", target=name, client=client, detail=record.name)
+        return self._get(name)
+
+    def set_state(self, name: str, *, actor: str, client: str = "local", **values: bool) -> Benchmark:
+        """close (closed=True), reopen (closed=False), reveal (revealed=True, only once closed)."""
+        bench = self._get(name)
+        if values.get("revealed") and bench.is_open():
+            raise Conflict("the private ranking is revealed once the benchmark is closed")
+        self.store.update_benchmark(name, **values)
+        action = ",".join(f"{k}={v}" for k, v in sorted(values.items()))
+        self.accounts.audit(actor=actor, action="benchmark.state", target=name, client=client, detail=action)
+        return self._get(name)

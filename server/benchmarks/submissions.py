@@ -1,0 +1,278 @@
+"""Submissions to a benchmark: accepted (checked, then counted against the quota), scored on the sealed test
+set, published and withdrawn by their participants; listed, disqualified and rescored by admins."""
+
+from __future__ import annotations
+
+import io
+import math
+import re
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+from typing import Any
+
+from kitti_eval.core.frames import Annotations
+from kitti_eval.errors import InputError, KittiEvalError
+from kitti_eval.io.submission import SubmissionRules, validate_submission
+
+from ..accounts import Caller
+from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
+from ..evaluator import evaluate_document
+from ..service import FileIn, sealed_document
+from ..store import GroundTruthRecord, QuotaRefused, SubmissionRecord, new_id
+from ..uploads import clean_filename, load_upload, receive_upload
+from .catalog import BenchmarkCatalog
+from .rules import Benchmark, in_public_part, scores_of
+
+__all__ = ["Submissions", "QuotaExceeded", "InvalidSubmission"]
+
+_LINK = re.compile(r"^https?://[^\s<>\"']{1,490}$")
+
+
+class QuotaExceeded(ApiError):
+    status_code = 429
+    code = "quota_exceeded"
+
+    def __init__(self, message: str, retry_after_s: int, retry_at: datetime) -> None:
+        super().__init__(message, headers={"Retry-After": str(retry_after_s)})
+        self.retry_at = retry_at
+
+
+class InvalidSubmission(ApiError):
+    """The submission breaks the rules: ``problems`` are the sentences ``kitti-eval validate`` prints."""
+
+    status_code = 422
+    code = "invalid_submission"
+
+    def __init__(self, problems: list[str]) -> None:
+        super().__init__(f"the submission is not valid ({len(problems)} problems): " + "; ".join(problems[:5]))
+        self.problems = problems
+
+
+def _submission_view(record: SubmissionRecord, *, full: bool) -> dict[str, Any]:
+    """A submission as its participant (``full``) or an admin listing sees it."""
+    out = {
+        "id": record.id,
+        "benchmark": record.benchmark,
+        "participant": record.participant,
+        "created_at": record.created_at.isoformat(),
+        "status": record.status,
+        "filename": record.pred_filename,
+        "sha256": record.pred_sha256,
+        "size": record.pred_size,
+        "published": bool(record.published),
+        "method": record.method,
+        "anonymous": bool(record.anonymous),
+        "affiliation": record.affiliation,
+        "link": record.link,
+        "disqualified": bool(record.disqualified),
+        "scored_at": record.scored_at.isoformat() if record.scored_at else None,
+        "scores": (record.scores or {}).get("all"),
+    }
+    if full:
+        out["result"] = record.result
+    return out
+
+
+class Submissions(BenchmarkCatalog):
+    """A benchmark's submissions: the participants' side and the admins'."""
+
+    # -- admin ----------------------------------------------------------------------------------------------
+    def all_submissions(self, name: str) -> list[dict[str, Any]]:
+        self._get(name)
+        return [_submission_view(r, full=False) for r in self.store.list_submissions(name)]
+
+    def disqualify(self, name: str, submission_id: str, *, actor: str, client: str = "local") -> dict[str, Any]:
+        record = self.store.get_submission(submission_id)
+        if record is None or record.benchmark != name:
+            raise NotFound(f"no submission {echo(submission_id)} in benchmark {echo(name)}")
+        self.store.update_submission(submission_id, disqualified=True)
+        self.accounts.audit(actor=actor, action="submission.disqualify", target=submission_id, client=client)
+        again = self.store.get_submission(submission_id)
+        assert again is not None
+        return _submission_view(again, full=False)
+
+    def rescore(self, name: str, *, actor: str, client: str = "local") -> dict[str, Any]:
+        """Evaluate every stored submission again against the ground truth as registered now."""
+        bench = self._get(name)
+        record, gt = self._ground_truth(bench)
+        done = failed = 0
+        for row in self.store.list_submissions(name):
+            content = self.store.prediction_content(row.pred_sha256)
+            if content is None:
+                failed += 1
+                continue
+            try:
+                with self.service.scratch() as scratch:
+                    upload = receive_upload(io.BytesIO(content), row.pred_filename, "predictions")
+                    dt = load_upload(
+                        upload, "detections", scratch, self.service.limits, known_frames=gt.frame_index()
+                    ).annotations
+                self._score(bench, record, gt, dt, row.id)
+                done += 1
+            except KittiEvalError:
+                self.store.update_submission(row.id, status="failed")
+                failed += 1
+        self.accounts.audit(
+            actor=actor, action="benchmark.rescore", target=name, client=client, detail=f"{done} rescored"
+        )
+        return {"benchmark": name, "rescored": done, "failed": failed, "ground_truth_sha256": record.sha256}
+
+    # -- participants -------------------------------------------------------------------------------------
+    def submit(self, name: str, predictions: FileIn, caller: Caller, *, client: str = "local") -> dict[str, Any]:
+        """Validate, count against the quota and accept (one transaction), evaluate, store."""
+        if self.service.draining.is_set():
+            raise NotReady("the service is shutting down; submit again in a moment")
+        if self.service.settings.auth != "accounts":
+            raise Forbidden("benchmarks take submissions in accounts mode (KITTI_EVAL_AUTH=accounts)")
+        if caller.token_id is None:
+            raise Forbidden("a participant submits with their own token (kitti-eval admin token add USER)")
+        bench = self.get(name, caller)
+        if not bench.is_open():
+            raise Conflict(f"the benchmark {name!r} is not open for submissions")
+        record, gt = self._ground_truth(bench)
+        with self.service.scratch() as scratch:
+            upload = receive_upload(predictions.file, predictions.filename, "predictions")
+            self._validate(upload.file, upload.filename, gt, scratch)
+            count, days = bench.quota
+            now = datetime.now(timezone.utc)
+            window = timedelta(days=days)
+            submission_id = new_id()
+            accepted = SubmissionRecord(
+                id=submission_id,
+                benchmark=name,
+                participant=caller.name,
+                created_at=now,
+                status="accepted",
+                pred_filename=upload.filename,
+                pred_sha256=upload.sha256,
+                pred_size=upload.size,
+            )
+            try:
+                self.store.accept_submission(accepted, limit=count, window_start=now - window, window=window)
+            except QuotaRefused as e:
+                retry = max(1, math.ceil((e.retry_at - datetime.now(timezone.utc)).total_seconds()))
+                raise QuotaExceeded(
+                    f"the quota of {count} accepted submissions per {days:g} days is used; the next one is "
+                    f"accepted from {e.retry_at.isoformat()} (in {retry} s)",
+                    retry,
+                    e.retry_at,
+                ) from None
+            upload.file.seek(0)
+            self.store.add_prediction_file(upload.sha256, upload.file.read())
+            try:
+                dt = load_upload(
+                    upload, "detections", scratch / "pred", self.service.limits, known_frames=gt.frame_index()
+                ).annotations
+                self._score(bench, record, gt, dt, submission_id)
+            except BaseException:
+                self.store.update_submission(submission_id, status="failed")
+                raise
+        self.accounts.audit(
+            actor=caller.actor, action="submission.add", target=f"{name} {submission_id}", client=client
+        )
+        return self.submission(name, submission_id, caller)
+
+    def _validate(self, file: Any, filename: str, gt: Annotations, scratch: Path) -> None:
+        """The CLI's checks (:func:`validate_submission`), their sentences naming the upload, not the scratch path."""
+        shown = clean_filename(filename, "predictions")
+        path = scratch / "submission"
+        path.mkdir()
+        target = path / "upload"
+        file.seek(0)
+        with open(target, "wb") as out:
+            while chunk := file.read(1 << 20):
+                out.write(chunk)
+        file.seek(0)
+        try:
+            outcome = validate_submission(
+                target, SubmissionRules(frames=tuple(gt.frame_ids)), limits=self.service.limits.archive
+            )
+        except InputError as e:
+            raise type(e)(e.message.replace(str(target), shown), source=shown, frame=e.frame, field=e.field) from None
+        if not outcome.ok:
+            raise InvalidSubmission([line.replace(str(target), shown) for line in outcome.lines()])
+
+    def _score(self, bench: Benchmark, record: GroundTruthRecord, gt: Annotations, dt: Annotations, sid: str) -> None:
+        config = bench.options().config()
+        columns = list(dict.fromkeys([*bench.columns, *bench.key]))
+        doc = evaluate_document(gt, dt, config)
+        scores: dict[str, dict[str, float | None]] = {"all": scores_of(doc, columns)}
+        percent = bench.split_percent
+        if percent is not None and bench.split_seed:
+            parts: dict[str, list[str]] = {"public": [], "private": []}
+            for f in gt.frame_ids:
+                parts["public" if in_public_part(bench.split_seed, f, percent) else "private"].append(f)
+            for part, frames in parts.items():
+                if frames:
+                    part_doc = evaluate_document(gt.subset(frames), dt.subset(frames), config)
+                    scores[part] = scores_of(part_doc, columns)
+                else:
+                    scores[part] = dict.fromkeys(columns)
+        self.store.update_submission(
+            sid,
+            status="scored",
+            result=sealed_document(doc),
+            scores=scores,
+            gt_sha256=record.sha256,
+            scored_at=datetime.now(timezone.utc),
+        )
+
+    def _own(self, name: str, submission_id: str, caller: Caller) -> SubmissionRecord:
+        self.get(name, caller)
+        record = self.store.get_submission(submission_id)
+        if record is None or record.benchmark != name or (record.participant != caller.name and not caller.is_admin):
+            raise NotFound(f"no submission of yours with id {echo(submission_id)}")
+        return record
+
+    def submission(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
+        return _submission_view(self._own(name, submission_id, caller), full=True)
+
+    def mine(self, name: str, caller: Caller) -> dict[str, Any]:
+        bench = self.get(name, caller)
+        records = self.store.list_submissions(name, participant=caller.name)
+        count, days = bench.quota
+        since = datetime.now(timezone.utc) - timedelta(days=days)
+        used = sum(1 for r in records if r.created_at > since and r.status != "failed")
+        return {
+            "items": [_submission_view(r, full=False) for r in reversed(records)],
+            "quota": {"submissions": count, "days": days, "used": used, "left": max(0, count - used)},
+        }
+
+    def publish(
+        self,
+        name: str,
+        submission_id: str,
+        caller: Caller,
+        *,
+        method: str,
+        anonymous: bool = False,
+        affiliation: str | None = None,
+        link: str | None = None,
+    ) -> dict[str, Any]:
+        record = self._own(name, submission_id, caller)
+        if record.status != "scored":
+            raise Conflict("only a scored submission can be published")
+        if record.disqualified:
+            raise Conflict("the submission was disqualified")
+        method = method.strip()
+        if not 1 <= len(method) <= 100 or not method.isprintable():
+            raise BadRequest("a method name is 1-100 printable characters")
+        if affiliation is not None and (len(affiliation) > 200 or not affiliation.isprintable()):
+            raise BadRequest("an affiliation is at most 200 printable characters")
+        if link and not _LINK.fullmatch(link):
+            raise BadRequest("a link is an http:// or https:// address of at most 500 characters")
+        self.store.update_submission(
+            submission_id,
+            published=True,
+            method=method,
+            anonymous=anonymous,
+            affiliation=affiliation or None,
+            link=link or None,
+            published_at=datetime.now(timezone.utc),
+        )
+        return self.submission(name, submission_id, caller)
+
+    def withdraw(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
+        self._own(name, submission_id, caller)
+        self.store.update_submission(submission_id, published=False, published_at=None)
+        return self.submission(name, submission_id, caller)
