@@ -141,10 +141,21 @@ class BenchmarkCatalog:
         return self._get(name)
 
     def set_state(self, name: str, *, actor: str, client: str = "local", **values: bool) -> Benchmark:
-        """close (closed=True), reopen (closed=False), reveal (revealed=True, only once closed)."""
+        """close (closed=True), reopen (closed=False), reveal (revealed=True): a benchmark is revealed once it
+        has opened and is closed (by hand or by its ``closes_at``)."""
         bench = self._get(name)
-        if values.get("revealed") and bench.is_open():
-            raise Conflict("the private ranking is revealed once the benchmark is closed")
+        now = datetime.now(timezone.utc)
+        if values.get("revealed"):
+            if not bench.has_opened(now):
+                raise Conflict(
+                    f"the benchmark {name!r} has not opened yet (it opens at {bench.opens_at.isoformat()}): "
+                    "there is no ranking to reveal"
+                )
+            if not bench.is_closed(now):
+                raise Conflict(
+                    "the private ranking is revealed once the benchmark is closed: close it first (or wait for "
+                    "its closes_at)"
+                )
         self.store.update_benchmark(name, **values)
         action = ",".join(f"{k}={v}" for k, v in sorted(values.items()))
         self.accounts.audit(actor=actor, action="benchmark.state", target=name, client=client, detail=action)

@@ -122,9 +122,19 @@ class Benchmark(BenchmarkRecord):
         value = self.config.get("split_percent")
         return None if value is None else float(value)
 
-    def is_open(self, now: datetime | None = None) -> bool:
+    def has_opened(self, now: datetime | None = None) -> bool:
+        """Its period has begun (``opens_at`` has passed), whether or not it was closed since."""
+        return self.opens_at <= (now or datetime.now(timezone.utc))
+
+    def is_closed(self, now: datetime | None = None) -> bool:
+        """Closed by hand, or its ``closes_at`` has passed."""
         now = now or datetime.now(timezone.utc)
-        return not self.closed and self.opens_at <= now and (self.closes_at is None or now < self.closes_at)
+        return self.closed or (self.closes_at is not None and now >= self.closes_at)
+
+    def is_open(self, now: datetime | None = None) -> bool:
+        """Taking submissions: opened and not closed."""
+        now = now or datetime.now(timezone.utc)
+        return self.has_opened(now) and not self.is_closed(now)
 
     @property
     def phase(self) -> str:

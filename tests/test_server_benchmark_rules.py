@@ -1,0 +1,44 @@
+"""A benchmark's rules hold: the reveal only after the benchmark opened and closed, and never undone by a
+reopen; the published selection frozen at the close (and capped per participant); participants see the public
+part until the reveal; the test set stays sealed."""
+
+from __future__ import annotations
+
+from datetime import datetime, timedelta, timezone
+
+import pytest
+from server_benchmarks import host, ok
+from server_helpers import ADMIN, app_client, assert_error
+
+
+def _at(delta: timedelta) -> str:
+    return (datetime.now(timezone.utc) + delta).isoformat()
+
+
+@pytest.fixture()
+def client(tmp_path):
+    with app_client(tmp_path / "data", auth="accounts", auth_max_failures=1_000_000) as c:
+        yield c
+
+
+# ---------------------------------------------------------------------------------------------- reveal
+
+
+def test_reveal_needs_the_benchmark_opened_and_closed(client) -> None:
+    c = client
+    host(c, benchmark={"split_percent": 50, "opens_at": _at(timedelta(days=1))})
+    # not open yet (so not taking submissions), but not closed either: nothing to reveal
+    assert_error(c.post("/v1/benchmarks/bench/reveal", headers=ADMIN), 409, "not opened")
+    ok(c.post("/v1/benchmarks/bench/close", headers=ADMIN))
+    assert_error(c.post("/v1/benchmarks/bench/reveal", headers=ADMIN), 409, "not opened")  # closed before it opened
+    assert ok(c.get("/v1/benchmarks/bench"))["revealed"] is False
+
+
+def test_reveal_while_open_is_refused_and_a_passed_closes_at_is_a_close(client) -> None:
+    c = client
+    host(c, benchmark={"split_percent": 50})
+    assert_error(c.post("/v1/benchmarks/bench/reveal", headers=ADMIN), 409, "closed")
+    body = {"name": "ended", "ground_truth": "test-set", "split_percent": 50}
+    body |= {"opens_at": _at(-timedelta(days=2)), "closes_at": _at(-timedelta(days=1))}
+    ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)
+    assert ok(c.post("/v1/benchmarks/ended/reveal", headers=ADMIN))["board"] == "private"  # no explicit close needed
