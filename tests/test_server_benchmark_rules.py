@@ -7,8 +7,8 @@ from __future__ import annotations
 from datetime import datetime, timedelta, timezone
 
 import pytest
-from server_benchmarks import host, ok
-from server_helpers import ADMIN, app_client, assert_error
+from server_benchmarks import host, ok, submit
+from server_helpers import ADMIN, app_client, assert_error, golden_bytes
 
 
 def _at(delta: timedelta) -> str:
@@ -42,3 +42,15 @@ def test_reveal_while_open_is_refused_and_a_passed_closes_at_is_a_close(client) 
     body |= {"opens_at": _at(-timedelta(days=2)), "closes_at": _at(-timedelta(days=1))}
     ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)
     assert ok(c.post("/v1/benchmarks/ended/reveal", headers=ADMIN))["board"] == "private"  # no explicit close needed
+
+
+def test_a_revealed_benchmark_is_not_reopened(client) -> None:
+    c = client
+    hosted = host(c, benchmark={"split_percent": 50})
+    ok(c.post("/v1/benchmarks/bench/close", headers=ADMIN))
+    ok(c.post("/v1/benchmarks/bench/reveal", headers=ADMIN))
+    err = assert_error(c.post("/v1/benchmarks/bench/reopen", headers=ADMIN), 409)
+    assert err["message"] == "revealed benchmarks stay closed: the private part's scores are out"
+    info = ok(c.get("/v1/benchmarks/bench"))
+    assert info["open"] is False and info["revealed"] is True and info["board"] == "private"
+    assert_error(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 409, "not open")

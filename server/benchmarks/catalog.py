@@ -142,9 +142,11 @@ class BenchmarkCatalog:
 
     def set_state(self, name: str, *, actor: str, client: str = "local", **values: bool) -> Benchmark:
         """close (closed=True), reopen (closed=False), reveal (revealed=True): a benchmark is revealed once it
-        has opened and is closed (by hand or by its ``closes_at``)."""
+        has opened and is closed (by hand or by its ``closes_at``), and is never reopened after."""
         bench = self._get(name)
         now = datetime.now(timezone.utc)
+        if values.get("closed") is False and bench.revealed:
+            raise Conflict("revealed benchmarks stay closed: the private part's scores are out")
         if values.get("revealed"):
             if not bench.has_opened(now):
                 raise Conflict(
