@@ -54,3 +54,42 @@ def test_a_revealed_benchmark_is_not_reopened(client) -> None:
     info = ok(c.get("/v1/benchmarks/bench"))
     assert info["open"] is False and info["revealed"] is True and info["board"] == "private"
     assert_error(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 409, "not open")
+
+
+# ------------------------------------------------------------------------------------- the selection
+
+
+def _publish(c, hosted, who: str, sid: str, method: str = "m"):
+    return c.post(
+        f"/v1/benchmarks/bench/submissions/{sid}/publish", headers=hosted.headers(who), json={"method": method}
+    )
+
+
+def _withdraw(c, hosted, who: str, sid: str):
+    return c.post(f"/v1/benchmarks/bench/submissions/{sid}/withdraw", headers=hosted.headers(who))
+
+
+def test_the_published_selection_freezes_at_the_close(client) -> None:
+    c = client
+    hosted = host(c, benchmark={"split_percent": 50})
+    alice = hosted.headers("alice")
+    chosen = ok(submit(c, alice, golden_bytes("result.pkl")), 201)["id"]
+    other = ok(submit(c, alice, golden_bytes("result.pkl")), 201)["id"]
+    ok(_publish(c, hosted, "alice", chosen, "chosen"))
+    ok(c.post("/v1/benchmarks/bench/close", headers=ADMIN))
+    assert_error(_publish(c, hosted, "alice", other), 409, "closed")
+    assert_error(_withdraw(c, hosted, "alice", chosen), 409, "closed")
+    assert_error(_publish(c, hosted, "root", other), 409, "closed")  # an admin neither
+    ok(c.post("/v1/benchmarks/bench/reveal", headers=ADMIN))
+    board = ok(c.get("/v1/benchmarks/bench/leaderboard"))
+    assert board["board"] == "private" and [e["id"] for e in board["entries"]] == [chosen]
+
+
+def test_a_passed_closes_at_freezes_the_selection_too(client) -> None:
+    c = client
+    hosted = host(c)
+    sid = ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 201)["id"]
+    ok(_publish(c, hosted, "alice", sid))
+    c.app.state.service.store.update_benchmark("bench", closes_at=datetime.now(timezone.utc) - timedelta(seconds=1))
+    assert_error(_withdraw(c, hosted, "alice", sid), 409, "closed")
+    assert [e["id"] for e in ok(c.get("/v1/benchmarks/bench/leaderboard"))["entries"]] == [sid]

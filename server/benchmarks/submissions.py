@@ -250,6 +250,7 @@ class Submissions(BenchmarkCatalog):
         link: str | None = None,
     ) -> dict[str, Any]:
         record = self._own(name, submission_id, caller)
+        self._still_selecting(name)
         if record.status != "scored":
             raise Conflict("only a scored submission can be published")
         if record.disqualified:
@@ -274,5 +275,17 @@ class Submissions(BenchmarkCatalog):
 
     def withdraw(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
         self._own(name, submission_id, caller)
+        self._still_selecting(name)
         self.store.update_submission(submission_id, published=False, published_at=None)
         return self.submission(name, submission_id, caller)
+
+    def _still_selecting(self, name: str) -> Benchmark:
+        """The benchmark, while its participants may still choose what is published: until it closes. The
+        entries published at the close are the ones ranked on the private part after the reveal."""
+        bench = self._get(name)
+        if bench.is_closed():
+            raise Conflict(
+                f"the benchmark {name!r} is closed: the published entries were frozen at the close (they are "
+                "the ones ranked on the private part)"
+            )
+        return bench
