@@ -101,6 +101,12 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         metavar="P",
         help="score the board on a secret P %% of the test frames until the private ranking is revealed",
     )
+    b.add_argument(
+        "--max-published",
+        type=int,
+        metavar="N",
+        help="published entries per participant (default: no cap; Kaggle's is 2)",
+    )
     bench.add_parser("list", help="benchmarks")
     for action, helptext in (
         ("close", "close to submissions"),
@@ -279,12 +285,14 @@ def _benchmark(args: argparse.Namespace, settings: Any, actor: str) -> int:
                 opens_at=args.opens,
                 closes_at=args.closes,
                 split_percent=args.split_percent,
+                max_published=args.max_published,
                 actor=actor,
             )
             n, days = bench.quota
+            cap = f", at most {bench.max_published} published per participant" if bench.max_published else ""
             print(
                 f"benchmark {bench.name} on {bench.gt_name}: key {' + '.join(bench.key)}, quota {n} per {days:g} "
-                f"days, {'public' if bench.public else 'not public'}"
+                f"days{cap}, {'public' if bench.public else 'not public'}"
             )
         elif action == "list":
             for b in benchmarks.visible(_everyone()):

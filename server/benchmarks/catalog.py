@@ -20,6 +20,7 @@ from .rules import DEFAULT_KEY, DIFFICULTIES, Benchmark, parse_column, parse_quo
 __all__ = ["BenchmarkCatalog"]
 
 _MAX_COLUMNS = 60
+_MAX_PUBLISHED = 1000
 
 
 class BenchmarkCatalog:
@@ -85,6 +86,7 @@ class BenchmarkCatalog:
         opens_at: str | datetime | None = None,
         closes_at: str | datetime | None = None,
         split_percent: float | None = None,
+        max_published: int | None = None,
         actor: str,
         client: str = "local",
     ) -> Benchmark:
@@ -106,6 +108,10 @@ class BenchmarkCatalog:
         count, days = parse_quota(quota)
         if split_percent is not None and not 0 < split_percent < 100:
             raise BadRequest("split_percent is the public part of the test frames: more than 0 and less than 100")
+        if max_published is not None and not 1 <= max_published <= _MAX_PUBLISHED:
+            raise BadRequest(
+                f"max_published is the published entries a participant may have: 1 to {_MAX_PUBLISHED} (or none)"
+            )
         if len(description) > 20000 or len(title or "") > 200:
             raise BadRequest("a title is at most 200 characters, a description at most 20000")
         opens = parse_time(opens_at, "opens") or datetime.now(timezone.utc)
@@ -134,6 +140,7 @@ class BenchmarkCatalog:
             closed=False,
             revealed=False,
             created_at=datetime.now(timezone.utc),
+            max_published=max_published,
         )
         if not self.store.add_benchmark(bench):
             raise Conflict(f"a benchmark named {name!r} exists")

@@ -170,4 +170,5 @@ class Benchmark(BenchmarkRecord):
             "split_percent": self.split_percent,
             "revealed": self.revealed,
             "board": self.phase,
+            "max_published": self.max_published,
         }

@@ -18,7 +18,7 @@ from ..accounts import Caller
 from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
 from ..evaluator import evaluate_document
 from ..service import FileIn, sealed_document
-from ..store import GroundTruthRecord, QuotaRefused, SubmissionRecord, new_id
+from ..store import GroundTruthRecord, PublishRefused, QuotaRefused, SubmissionRecord, new_id
 from ..uploads import clean_filename, load_upload, receive_upload
 from .catalog import BenchmarkCatalog
 from .rules import Benchmark, in_public_part, scores_of
@@ -250,7 +250,7 @@ class Submissions(BenchmarkCatalog):
         link: str | None = None,
     ) -> dict[str, Any]:
         record = self._own(name, submission_id, caller)
-        self._still_selecting(name)
+        bench = self._still_selecting(name)
         if record.status != "scored":
             raise Conflict("only a scored submission can be published")
         if record.disqualified:
@@ -262,15 +262,21 @@ class Submissions(BenchmarkCatalog):
             raise BadRequest("an affiliation is at most 200 printable characters")
         if link and not _LINK.fullmatch(link):
             raise BadRequest("a link is an http:// or https:// address of at most 500 characters")
-        self.store.update_submission(
-            submission_id,
-            published=True,
-            method=method,
-            anonymous=anonymous,
-            affiliation=affiliation or None,
-            link=link or None,
-            published_at=datetime.now(timezone.utc),
-        )
+        try:
+            self.store.publish_submission(
+                record,
+                cap=bench.max_published,
+                method=method,
+                anonymous=anonymous,
+                affiliation=affiliation or None,
+                link=link or None,
+                published_at=datetime.now(timezone.utc),
+            )
+        except PublishRefused:
+            raise Conflict(
+                f"at most {bench.max_published} published entries per participant in {name!r}, and "
+                f"{record.participant} has them: withdraw one first"
+            ) from None
         return self.submission(name, submission_id, caller)
 
     def withdraw(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:

@@ -71,6 +71,9 @@ class BenchmarkIn(BaseModel):
     opens_at: str | None = Field(None, max_length=100)
     closes_at: str | None = Field(None, max_length=100)
     split_percent: float | None = Field(None, description="the public part of the test frames, in percent")
+    max_published: int | None = Field(
+        None, ge=1, le=1000, description="published entries per participant (default: no cap); withdraw to swap"
+    )
 
 
 class PublishIn(BaseModel):
@@ -97,6 +100,7 @@ def create(body: BenchmarkIn, benchmarks: BenchmarksDep, caller: AdminCallerDep,
         opens_at=body.opens_at,
         closes_at=body.closes_at,
         split_percent=body.split_percent,
+        max_published=body.max_published,
         actor=caller.actor,
         client=client_of(request.scope),
     )

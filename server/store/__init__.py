@@ -7,7 +7,7 @@ retry of a call that found SQLite locked); :mod:`.ground_truths`, :mod:`.evaluat
 from __future__ import annotations
 
 from .accounts import AccountStore, AuditRecord, TokenRecord, UserRecord
-from .benchmarks import BenchmarkRecord, BenchmarkStore, QuotaRefused, SubmissionRecord
+from .benchmarks import BenchmarkRecord, BenchmarkStore, PublishRefused, QuotaRefused, SubmissionRecord
 from .database import (
     Area,
     Database,
@@ -46,6 +46,7 @@ __all__ = [
     "BenchmarkRecord",
     "SubmissionRecord",
     "QuotaRefused",
+    "PublishRefused",
     "new_id",
     "metadata",
     "ground_truths",

@@ -13,7 +13,7 @@ from sqlalchemy.engine import Connection, RowMapping
 
 from .database import Area, benchmarks, dated, quota_locks, retry_when_locked, submissions, utc
 
-__all__ = ["BenchmarkRecord", "SubmissionRecord", "QuotaRefused", "BenchmarkStore"]
+__all__ = ["BenchmarkRecord", "SubmissionRecord", "QuotaRefused", "PublishRefused", "BenchmarkStore"]
 
 
 class QuotaRefused(Exception):
@@ -22,6 +22,14 @@ class QuotaRefused(Exception):
     def __init__(self, retry_at: datetime, used: int) -> None:
         super().__init__(f"quota used ({used})")
         self.retry_at = retry_at
+        self.used = used
+
+
+class PublishRefused(Exception):
+    """The participant already has ``used`` published entries, the benchmark's cap."""
+
+    def __init__(self, used: int) -> None:
+        super().__init__(f"published entries: {used}")
         self.used = used
 
 
@@ -42,6 +50,7 @@ class BenchmarkRecord:
     revealed: bool  # the private ranking is shown
     created_at: datetime
     split_seed: str | None = None  # secret: draws the public part of the test frames
+    max_published: int | None = None  # published entries per participant (None: no cap)
 
 
 @dataclass(frozen=True)
@@ -143,6 +152,30 @@ class BenchmarkStore(Area):
             if used >= limit:
                 raise QuotaRefused(utc(oldest) + window, used)
             conn.execute(insert(submissions).values(**record.__dict__))
+
+    @retry_when_locked
+    def publish_submission(self, record: SubmissionRecord, *, cap: int | None, **values: Any) -> None:
+        """Publish the submission with ``values`` (method, anonymous, ...) unless its participant already has
+        ``cap`` other entries published (and not disqualified) in the benchmark: then raise
+        :class:`PublishRefused`. Counted and written in one transaction under the (benchmark, participant)
+        lock, so parallel publishes never pass the cap."""
+        publish = update(submissions).where(submissions.c.id == record.id).values(published=True, **values)
+        if cap is None:
+            with self.engine.begin() as conn:
+                conn.execute(publish)
+            return
+        count_query = select(func.count()).where(
+            submissions.c.benchmark == record.benchmark,
+            submissions.c.participant == record.participant,
+            submissions.c.published.is_(True),
+            submissions.c.disqualified.is_(False),
+            submissions.c.id != record.id,
+        )
+        with self._holding(record.benchmark, record.participant) as conn:
+            used = conn.execute(count_query).scalar_one()
+            if used >= cap:
+                raise PublishRefused(used)
+            conn.execute(publish)
 
     @retry_when_locked
     def update_submission(self, submission_id: str, **values: Any) -> bool:

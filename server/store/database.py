@@ -203,6 +203,7 @@ benchmarks = Table(
     Column("closed", Boolean, nullable=False),  # closed by hand (whatever closes_at says)
     Column("revealed", Boolean, nullable=False),  # the private ranking is shown
     Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("max_published", Integer, nullable=True),  # published entries per participant (None: no cap)
 )
 
 submissions = Table(
@@ -244,6 +245,7 @@ quota_locks = Table(
 _ADDED_COLUMNS = {
     "evaluations": {"options": "{json}", "project": "VARCHAR(64)"},
     "ground_truths": {"project": "VARCHAR(64)", "sealed": "BOOLEAN NOT NULL DEFAULT FALSE"},
+    "benchmarks": {"max_published": "INTEGER"},
 }
 
 #: the PostgreSQL advisory lock held while the schema is created or upgraded (any fixed 64-bit number)
