@@ -4,6 +4,7 @@ part until the reveal; the test set stays sealed."""
 
 from __future__ import annotations
 
+import json
 import sqlite3
 from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timedelta, timezone
@@ -13,6 +14,9 @@ from server_benchmarks import host, ok, submit
 from server_helpers import ADMIN, GOLDEN, app_client, assert_error, golden_bytes
 
 from kitti_eval.cli import main
+from kitti_eval.io.loaders import load_detections, load_ground_truth
+from kitti_eval_server.benchmarks import in_public_part
+from kitti_eval_server.evaluator import EvalOptions, evaluate_document
 
 
 def _at(delta: timedelta) -> str:
@@ -151,17 +155,89 @@ def test_max_published_from_the_cli(tmp_path, monkeypatch, capsys) -> None:
         assert ok(c.get("/v1/benchmarks/kitti-3d", headers={"Authorization": f"Bearer {token}"}))["max_published"] == 2
 
 
-def test_a_database_from_before_max_published_is_upgraded(tmp_path) -> None:
+def test_a_database_from_before_max_published_and_public_result_is_upgraded(tmp_path) -> None:
     data = tmp_path / "data"
     with app_client(data, auth="accounts") as c:
         hosted = host(c)
         sid = ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 201)["id"]
     db = sqlite3.connect(data / "kitti-eval.db")
     db.execute("ALTER TABLE benchmarks DROP COLUMN max_published")
+    db.execute("ALTER TABLE submissions DROP COLUMN public_result")
     db.commit()
     db.close()
     with app_client(data, auth="accounts") as c:
         assert ok(c.get("/v1/benchmarks/bench"))["max_published"] is None
+        assert ok(c.get(f"/v1/benchmarks/bench/submissions/{sid}", headers=hosted.headers("alice")))["result"]
         ok(_publish(c, hosted, "alice", sid))
         body = {"name": "capped", "ground_truth": "test-set", "max_published": 1}
         assert ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)["max_published"] == 1
+
+
+# ------------------------------------------------------------------------------- what participants see
+
+KEY = "Car/3d/moderate/R40/strict"
+
+
+def _ap(doc) -> float:
+    return float(doc["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"])
+
+
+def _fresh(seed: str) -> dict[str, float]:
+    """The key's AP of the golden result.pkl on the whole test set and on each part of the split."""
+    gt = load_ground_truth(GOLDEN / "kitti_infos_val.pkl")
+    dt = load_detections(GOLDEN / "result.pkl")
+    public = [f for f in gt.frame_ids if in_public_part(seed, f, 50)]
+    private = [f for f in gt.frame_ids if f not in public]
+    config = EvalOptions().config()
+    parts = {"all": list(gt.frame_ids), "public": public, "private": private}
+    return {p: round(_ap(evaluate_document(gt.subset(fr), dt.subset(fr), config)), 4) for p, fr in parts.items()}
+
+
+def test_participants_see_the_public_part_until_the_reveal(client) -> None:
+    c = client
+    hosted = host(c, benchmark={"split_percent": 50})
+    alice = hosted.headers("alice")
+    made = ok(submit(c, alice, golden_bytes("result.pkl")), 201)
+    want = _fresh(c.app.state.service.store.get_benchmark("bench").split_seed)
+    assert len(set(want.values())) == 3  # the three scores are told apart
+    one = ok(c.get(f"/v1/benchmarks/bench/submissions/{made['id']}", headers=alice))
+    (listed,) = ok(c.get("/v1/benchmarks/bench/submissions", headers=alice))["items"]
+    for seen in (made, one, listed):
+        assert seen["scored_on"] == "public" and seen["scores"][KEY] == want["public"], seen
+        assert seen["parts"] is None
+    for seen in (made, one):  # the aggregate document is the public part's
+        assert _ap(seen["result"]) == pytest.approx(want["public"], abs=1e-4)
+        assert seen["result"]["frames_without_predictions"] == []
+    for text in (str(want["all"]), str(want["private"])):
+        assert text not in json.dumps([made, one, listed])
+    # an admin's list holds everything
+    (full,) = ok(c.get("/v1/benchmarks/bench/submissions/all", headers=ADMIN))["items"]
+    assert full["scored_on"] == "all" and full["scores"][KEY] == want["all"]
+    assert {p: s[KEY] for p, s in full["parts"].items()} == {"public": want["public"], "private": want["private"]}
+    # after the reveal, the whole set and both parts
+    ok(c.post("/v1/benchmarks/bench/close", headers=ADMIN))
+    ok(c.post("/v1/benchmarks/bench/reveal", headers=ADMIN))
+    one = ok(c.get(f"/v1/benchmarks/bench/submissions/{made['id']}", headers=alice))
+    assert one["scored_on"] == "all" and one["scores"][KEY] == want["all"]
+    assert _ap(one["result"]) == pytest.approx(want["all"], abs=1e-4)
+    assert {p: s[KEY] for p, s in one["parts"].items()} == {"public": want["public"], "private": want["private"]}
+    (listed,) = ok(c.get("/v1/benchmarks/bench/submissions", headers=alice))["items"]
+    assert listed["scores"][KEY] == want["all"] and listed["parts"]["private"][KEY] == want["private"]
+
+
+def test_a_submission_scored_before_the_public_document_was_kept_shows_no_result_until_the_reveal(client) -> None:
+    c = client
+    hosted = host(c, benchmark={"split_percent": 50})
+    made = ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 201)
+    c.app.state.service.store.update_submission(made["id"], public_result=None)
+    one = ok(c.get(f"/v1/benchmarks/bench/submissions/{made['id']}", headers=hosted.headers("alice")))
+    assert one["result"] is None and one["scores"] == made["scores"]
+
+
+def test_without_a_split_the_whole_set_is_the_public_part(client) -> None:
+    c = client
+    hosted = host(c)
+    made = ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 201)
+    fresh = _fresh("unused")["all"]
+    assert made["scored_on"] == "all" and made["scores"][KEY] == fresh and made["parts"] is None
+    assert _ap(made["result"]) == pytest.approx(fresh, abs=1e-4)

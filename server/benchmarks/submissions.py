@@ -48,8 +48,18 @@ class InvalidSubmission(ApiError):
         self.problems = problems
 
 
-def _submission_view(record: SubmissionRecord, *, full: bool) -> dict[str, Any]:
-    """A submission as its participant (``full``) or an admin listing sees it."""
+def _submission_view(
+    record: SubmissionRecord, bench: Benchmark, *, full: bool, everything: bool = False
+) -> dict[str, Any]:
+    """A submission as its participant sees it (``full``: with its aggregate document), or as an admin's list
+    does (``everything``). While a benchmark with a public/private split is not revealed, its participant
+    sees the scores on the public part only (what the board shows) and the document on that part (None for
+    a submission scored before that document was kept); after the reveal, and always in an admin's list,
+    the scores on the whole test set and on each part (``parts``). Without a split the whole set is the
+    public part."""
+    scores = record.scores or {}
+    public_only = bench.phase == "public" and not everything
+    shown = "public" if public_only else "all"
     out = {
         "id": record.id,
         "benchmark": record.benchmark,
@@ -66,10 +76,12 @@ def _submission_view(record: SubmissionRecord, *, full: bool) -> dict[str, Any]:
         "link": record.link,
         "disqualified": bool(record.disqualified),
         "scored_at": record.scored_at.isoformat() if record.scored_at else None,
-        "scores": (record.scores or {}).get("all"),
+        "scored_on": shown,
+        "scores": scores.get(shown),
+        "parts": None if public_only or bench.phase == "all" else {p: scores.get(p) for p in ("public", "private")},
     }
     if full:
-        out["result"] = record.result
+        out["result"] = record.public_result if public_only else record.result
     return out
 
 
@@ -78,10 +90,11 @@ class Submissions(BenchmarkCatalog):
 
     # -- admin ----------------------------------------------------------------------------------------------
     def all_submissions(self, name: str) -> list[dict[str, Any]]:
-        self._get(name)
-        return [_submission_view(r, full=False) for r in self.store.list_submissions(name)]
+        bench = self._get(name)
+        return [_submission_view(r, bench, full=False, everything=True) for r in self.store.list_submissions(name)]
 
     def disqualify(self, name: str, submission_id: str, *, actor: str, client: str = "local") -> dict[str, Any]:
+        bench = self._get(name)
         record = self.store.get_submission(submission_id)
         if record is None or record.benchmark != name:
             raise NotFound(f"no submission {echo(submission_id)} in benchmark {echo(name)}")
@@ -89,7 +102,7 @@ class Submissions(BenchmarkCatalog):
         self.accounts.audit(actor=actor, action="submission.disqualify", target=submission_id, client=client)
         again = self.store.get_submission(submission_id)
         assert again is not None
-        return _submission_view(again, full=False)
+        return _submission_view(again, bench, full=False, everything=True)
 
     def rescore(self, name: str, *, actor: str, client: str = "local") -> dict[str, Any]:
         """Evaluate every stored submission again against the ground truth as registered now."""
@@ -197,6 +210,7 @@ class Submissions(BenchmarkCatalog):
         columns = list(dict.fromkeys([*bench.columns, *bench.key]))
         doc = evaluate_document(gt, dt, config)
         scores: dict[str, dict[str, float | None]] = {"all": scores_of(doc, columns)}
+        public_result = None
         percent = bench.split_percent
         if percent is not None and bench.split_seed:
             parts: dict[str, list[str]] = {"public": [], "private": []}
@@ -206,6 +220,8 @@ class Submissions(BenchmarkCatalog):
                 if frames:
                     part_doc = evaluate_document(gt.subset(frames), dt.subset(frames), config)
                     scores[part] = scores_of(part_doc, columns)
+                    if part == "public":
+                        public_result = sealed_document(part_doc)
                 else:
                     scores[part] = dict.fromkeys(columns)
         self.store.update_submission(
@@ -213,6 +229,7 @@ class Submissions(BenchmarkCatalog):
             status="scored",
             result=sealed_document(doc),
             scores=scores,
+            public_result=public_result,
             gt_sha256=record.sha256,
             scored_at=datetime.now(timezone.utc),
         )
@@ -225,7 +242,8 @@ class Submissions(BenchmarkCatalog):
         return record
 
     def submission(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
-        return _submission_view(self._own(name, submission_id, caller), full=True)
+        record = self._own(name, submission_id, caller)
+        return _submission_view(record, self._get(name), full=True)
 
     def mine(self, name: str, caller: Caller) -> dict[str, Any]:
         bench = self.get(name, caller)
@@ -234,7 +252,7 @@ class Submissions(BenchmarkCatalog):
         since = datetime.now(timezone.utc) - timedelta(days=days)
         used = sum(1 for r in records if r.created_at > since and r.status != "failed")
         return {
-            "items": [_submission_view(r, full=False) for r in reversed(records)],
+            "items": [_submission_view(r, bench, full=False) for r in reversed(records)],
             "quota": {"submissions": count, "days": days, "used": used, "left": max(0, count - used)},
         }
 

@@ -69,6 +69,7 @@ class SubmissionRecord:
     scored_at: datetime | None = None
     result: Mapping[str, Any] | None = None  # the (sealed) evaluation document on every test frame
     scores: Mapping[str, Mapping[str, float | None]] | None = None  # {"all"|"public"|"private": {column: AP}}
+    public_result: Mapping[str, Any] | None = None  # a split benchmark's: the (sealed) document on the public part
     published: bool = False
     method: str | None = None
     anonymous: bool = False

@@ -221,6 +221,7 @@ submissions = Table(
     Column("scored_at", DateTime(timezone=True), nullable=True),
     Column("result", _JSON, nullable=True),  # the (sealed) evaluation document on every test frame
     Column("scores", _JSON, nullable=True),  # {"all"|"public"|"private": {column: AP}}
+    Column("public_result", _JSON, nullable=True),  # a split benchmark's: the (sealed) document on the public part
     Column("published", Boolean, nullable=False),
     Column("method", String(100), nullable=True),
     Column("anonymous", Boolean, nullable=False),
@@ -246,6 +247,7 @@ _ADDED_COLUMNS = {
     "evaluations": {"options": "{json}", "project": "VARCHAR(64)"},
     "ground_truths": {"project": "VARCHAR(64)", "sealed": "BOOLEAN NOT NULL DEFAULT FALSE"},
     "benchmarks": {"max_published": "INTEGER"},
+    "submissions": {"public_result": "{json}"},
 }
 
 #: the PostgreSQL advisory lock held while the schema is created or upgraded (any fixed 64-bit number)
