@@ -1,13 +1,15 @@
 """The database, by area: :mod:`.database` holds what they share (the tables, the engine, the schema, the
-retry of a call that found SQLite locked); :mod:`.ground_truths`, :mod:`.evaluations`, :mod:`.accounts` and
-:mod:`.benchmarks` each define an area's records (frozen dataclasses) and a class of its reads and writes.
-:class:`Store` is all four over one :class:`Database`, as the service and the command line use it.
+retry of a call that found SQLite locked); :mod:`.ground_truth_store`, :mod:`.evaluation_store`,
+:mod:`.account_store` and :mod:`.benchmark_store` each define an area's records (frozen dataclasses) and a
+class of its reads and writes. :class:`Store` is all four over one :class:`Database`, as the service and the
+command line use it. (The modules are named after their classes, not their tables: a submodule named
+``ground_truths`` would replace the table of that name among the package's attributes when imported.)
 """
 
 from __future__ import annotations
 
-from .accounts import AccountStore, AuditRecord, TokenRecord, UserRecord
-from .benchmarks import BenchmarkRecord, BenchmarkStore, PublishRefused, QuotaRefused, SubmissionRecord
+from .account_store import AccountStore, AuditRecord, TokenRecord, UserRecord
+from .benchmark_store import BenchmarkRecord, BenchmarkStore, PublishRefused, QuotaRefused, SubmissionRecord
 from .database import (
     Area,
     Database,
@@ -27,8 +29,8 @@ from .database import (
     tokens,
     users,
 )
-from .evaluations import EvaluationRecord, EvaluationStore
-from .ground_truths import GroundTruthRecord, GroundTruthStore
+from .evaluation_store import EvaluationRecord, EvaluationStore
+from .ground_truth_store import GroundTruthRecord, GroundTruthStore
 
 __all__ = [
     "Store",

@@ -1,7 +1,7 @@
 """The shared part of the database: the SQLAlchemy 2 Core tables, the engine, the schema and its upgrades, and
-the retry of a call that found SQLite locked. Each area of the store (:mod:`.ground_truths`,
-:mod:`.evaluations`, :mod:`.accounts`, :mod:`.benchmarks`) reads and writes its tables through one
-:class:`Database`.
+the retry of a call that found SQLite locked. Each area of the store (:mod:`.ground_truth_store`,
+:mod:`.evaluation_store`, :mod:`.account_store`, :mod:`.benchmark_store`) reads and writes its tables
+through one :class:`Database`.
 
 SQLite (the default, one file in the data folder) runs in WAL mode with ``synchronous=FULL``; PostgreSQL is
 reached through psycopg 3. Every write is one transaction committed before the method returns, so a
