@@ -12,11 +12,13 @@ from datetime import datetime, timedelta, timezone
 import pytest
 from server_benchmarks import host, ok, submit
 from server_helpers import ADMIN, GOLDEN, app_client, assert_error, golden_bytes
+from sqlalchemy import update
 
 from kitti_eval.cli import main
 from kitti_eval.io.loaders import load_detections, load_ground_truth
 from kitti_eval_server.benchmarks import in_public_part
 from kitti_eval_server.evaluator import EvalOptions, evaluate_document
+from kitti_eval_server.store import ground_truths
 
 
 def _at(delta: timedelta) -> str:
@@ -241,3 +243,36 @@ def test_without_a_split_the_whole_set_is_the_public_part(client) -> None:
     fresh = _fresh("unused")["all"]
     assert made["scored_on"] == "all" and made["scores"][KEY] == fresh and made["parts"] is None
     assert _ap(made["result"]) == pytest.approx(fresh, abs=1e-4)
+
+
+# ------------------------------------------------------------------------------------- the sealed set
+
+
+def test_a_benchmarks_test_set_is_registered_again_only_sealed(client, tmp_path, monkeypatch, capsys) -> None:
+    c = client
+    host(c)
+    files = {"file": ("kitti_infos_val.pkl", golden_bytes("kitti_infos_val.pkl"))}
+    assert c.delete("/v1/ground-truths/test-set", headers=ADMIN).status_code == 204
+    refused = c.post("/v1/ground-truths", data={"name": "test-set"}, files=files, headers=ADMIN)
+    assert_error(refused, 409, "benchmark", "'bench'", "sealed")
+    assert c.get("/v1/ground-truths/test-set", headers=ADMIN).status_code == 404  # nothing was registered
+    for key in ("KITTI_EVAL_DATABASE_URL", "KITTI_EVAL_AUTH"):  # the CLI on the same data folder
+        monkeypatch.delenv(key, raising=False)
+    monkeypatch.setenv("KITTI_EVAL_DATA_DIR", str(tmp_path / "data"))
+    assert main(["admin", "ground-truth", "add", "test-set", str(GOLDEN / "kitti_infos_val.pkl")]) == 1
+    assert "'bench'" in capsys.readouterr().err
+    ok(c.post("/v1/ground-truths", data={"name": "test-set", "sealed": "true"}, files=files, headers=ADMIN), 201)
+    ok(c.post("/v1/ground-truths", data={"name": "other"}, files=files, headers=ADMIN), 201)  # no benchmark's
+
+
+def test_a_test_set_that_is_not_sealed_is_refused_where_submissions_are_scored(client) -> None:
+    c = client
+    hosted = host(c)
+    alice = hosted.headers("alice")
+    ok(submit(c, alice, golden_bytes("result.pkl")), 201)
+    with c.app.state.service.store.engine.begin() as conn:  # a row changed behind the service's back
+        conn.execute(update(ground_truths).where(ground_truths.c.name == "test-set").values(sealed=False))
+    assert_error(c.get("/v1/benchmarks/bench/frames", headers=alice), 409, "not sealed", "'bench'")
+    assert_error(submit(c, alice, golden_bytes("result.pkl")), 409, "not sealed")
+    assert_error(c.post("/v1/benchmarks/bench/rescore", headers=ADMIN), 409, "not sealed")
+    assert ok(c.get("/v1/benchmarks/bench/submissions", headers=alice))["quota"]["used"] == 1  # nothing counted

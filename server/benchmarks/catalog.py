@@ -65,7 +65,14 @@ class BenchmarkCatalog:
         return list(self._ground_truth(bench)[1].frame_ids)
 
     def _ground_truth(self, bench: Benchmark) -> tuple[GroundTruthRecord, Annotations]:
+        """The benchmark's test set as registered now: refused unless it is sealed (registering a benchmark's
+        ground truth unsealed is refused too, so this holds unless the database was changed by hand)."""
         record = self.service.ground_truths.record(bench.gt_name)
+        if not record.sealed:
+            raise Conflict(
+                f"the test set {bench.gt_name!r} of benchmark {bench.name!r} is not sealed; an admin deletes it "
+                "and registers it again with sealed=true"
+            )
         return record, self.service.ground_truths.load(record)
 
     # -- admin ----------------------------------------------------------------------------------------------

@@ -100,6 +100,14 @@ class BenchmarkStore(Area):
         return [self._benchmark(r) for r in rows]
 
     @retry_when_locked
+    def benchmarks_using(self, gt_name: str) -> list[BenchmarkRecord]:
+        """The benchmarks whose test set is the ground truth named ``gt_name``, by name."""
+        query = select(benchmarks).where(benchmarks.c.gt_name == gt_name).order_by(benchmarks.c.name)
+        with self.engine.connect() as conn:
+            rows = conn.execute(query).mappings().all()
+        return [self._benchmark(r) for r in rows]
+
+    @retry_when_locked
     def update_benchmark(self, name: str, **values: Any) -> bool:
         with self.engine.begin() as conn:
             done = conn.execute(update(benchmarks).where(benchmarks.c.name == name).values(**values))
