@@ -276,3 +276,13 @@ def test_a_test_set_that_is_not_sealed_is_refused_where_submissions_are_scored(c
     assert_error(submit(c, alice, golden_bytes("result.pkl")), 409, "not sealed")
     assert_error(c.post("/v1/benchmarks/bench/rescore", headers=ADMIN), 409, "not sealed")
     assert ok(c.get("/v1/benchmarks/bench/submissions", headers=alice))["quota"]["used"] == 1  # nothing counted
+
+
+def test_the_benchmarks_using_a_ground_truth(client) -> None:
+    c = client
+    host(c)
+    ok(c.post("/v1/benchmarks", json={"name": "again", "ground_truth": "test-set"}, headers=ADMIN), 201)
+    benchmarks = c.app.state.benchmarks
+    assert [b.name for b in benchmarks.using_ground_truth("test-set")] == ["again", "bench"]
+    assert benchmarks.using_ground_truth("demo") == []
+    assert [b.name for b in c.app.state.service.store.benchmarks_using("test-set")] == ["again", "bench"]

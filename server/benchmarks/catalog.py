@@ -64,6 +64,10 @@ class BenchmarkCatalog:
         bench = self.get(name, caller)
         return list(self._ground_truth(bench)[1].frame_ids)
 
+    def using_ground_truth(self, name: str) -> list[Benchmark]:
+        """The benchmarks whose test set is the ground truth ``name`` (whoever may see them), by name."""
+        return [Benchmark.from_record(r) for r in self.store.benchmarks_using(name)]
+
     def _ground_truth(self, bench: Benchmark) -> tuple[GroundTruthRecord, Annotations]:
         """The benchmark's test set as registered now: refused unless it is sealed (registering a benchmark's
         ground truth unsealed is refused too, so this holds unless the database was changed by hand)."""
