@@ -110,7 +110,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     bench.add_parser("list", help="benchmarks")
     for action, helptext in (
         ("close", "close to submissions"),
-        ("reopen", "open again"),
+        ("reopen", "open again (not once revealed)"),
         ("reveal", "show the private ranking (once closed)"),
         ("rescore", "evaluate every submission again on the ground truth as registered now"),
         ("submissions", "every submission, published or not"),

@@ -9,15 +9,18 @@ submission and disqualify entries.
 A submission is checked first with :func:`kitti_eval.io.submission.validate_submission` against the test frame
 ids (the sentences ``kitti-eval validate`` prints; a refused submission costs nothing), then counted against
 the quota and accepted in one transaction (``BenchmarkStore.accept_submission``), then evaluated on the
-sealed set and stored. Its participant sees its full (aggregate) result; nobody else sees it until it is
-published.
+sealed set and stored. Its participant sees its aggregate result (on the public part only while a
+benchmark with a split is not revealed); nobody else sees it until it is published. What is published is
+frozen when the benchmark closes, and a benchmark may cap the entries a participant has published
+(``max_published``).
 
 The public/private split: with ``split_percent`` p, a test frame is in the public part when the first 8 bytes
 of sha256(seed + ":" + frame id), read as an integer, are below p % of 2**64. The seed is 32 random hex digits
 drawn when the benchmark is created, stored in its row and never shown; the parts are therefore fixed for the
 benchmark's life and unknown to participants. While the benchmark runs (or until an admin reveals the
 ranking after the close) the board shows the scores on the public part; after the reveal, those on the
-private part.
+private part. A benchmark is revealed only once it has opened and is closed, and is never reopened after.
+Its test set stays sealed: a ground truth is registered under a benchmark's test set name sealed only.
 
 The modules: :mod:`.rules` (a benchmark's definition and rules), :mod:`.catalog` (seeing benchmarks, the
 admins' actions on them), :mod:`.submissions` (accepting, scoring, publishing), :mod:`.leaderboard` (ranking,
