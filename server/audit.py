@@ -42,12 +42,6 @@ class Audit:
         actor = f"token {token_id}" if token_id else "unknown token"
         self._write(actor, "token.refused", target, "refused", client, reason)
 
-    def write(
-        self, *, actor: str, action: str, target: str, client: str, outcome: str = "ok", detail: str = ""
-    ) -> None:
-        """An action by an actor named by the caller of this method (prefer :meth:`record`)."""
-        self._write(actor, action, target, outcome, client, detail)
-
     def entries(self, *, limit: int = 100, offset: int = 0) -> list[AuditRecord]:
         return self._store.list_audit(limit=limit, offset=offset)
 

@@ -162,6 +162,8 @@ class GroundTruths:
         self.check_name(name)
         if self.store.get_ground_truth(name) is not None:
             raise Conflict(f"a ground truth named {name!r} exists; delete it first or pick another name")
+        if not sealed:
+            self._check_not_a_test_set(name)
         loaded = load_upload(upload, "ground_truth", scratch, self.limits)
         upload.file.seek(0)
         content = upload.file.read()
@@ -188,6 +190,15 @@ class GroundTruths:
             log.warning("no room for the local copy of ground truth %r (%s); it is written when next needed", name, e)
         self.cache.put(upload.sha256, loaded.annotations)
         return record
+
+    def _check_not_a_test_set(self, name: str) -> None:
+        """A benchmark's test set stays sealed: its name is registered again (a corrected set) sealed only."""
+        users = self.store.benchmarks_using(name)
+        if users:
+            named = ", ".join(repr(b.name) for b in users)
+            raise Conflict(
+                f"{name!r} is the test set of benchmark {named}: register it with sealed=true, or pick another name"
+            )
 
     @staticmethod
     def _relative(sha256: str, fmt: InputFormat | str) -> str:

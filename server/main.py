@@ -22,7 +22,6 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from kitti_eval import __version__
 
 from .auth import AuthMiddleware, Door
-from .benchmarks import Benchmarks
 from .errors import StartupRefused, install_error_handlers
 from .middleware import AdmissionMiddleware, BodyMiddleware
 from .observability import Metrics, RequestMiddleware, configure_logging
@@ -91,7 +90,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.startup_refused = None  # the reason the service refused to start (StartupRefused), if it did
     app.state.trusted_proxies = settings.trusted_networks  # read by auth.client_of
     app.state.metrics = app_metrics
-    app.state.benchmarks = Benchmarks(service)
+    app.state.benchmarks = service.benchmarks
     install_error_handlers(app)
     app.include_router(health.router)
     app.include_router(evaluations.router)

@@ -23,6 +23,7 @@ from kitti_eval.io.synth import demo_paths
 from .accounts import Accounts
 from .audit import Audit
 from .auth import FailureLimiter
+from .benchmarks import Benchmarks
 from .catalog import GroundTruthCatalog
 from .errors import StartupRefused
 from .evaluations import Evaluations, sealed_document
@@ -91,6 +92,15 @@ class Service:
         self.warmup_error: str | None = None
         #: set on SIGTERM: not ready, no new evaluations, the admitted ones finish (see server.shutdown)
         self.draining = threading.Event()
+        self.benchmarks = Benchmarks(
+            self.store,
+            self.ground_truths,
+            self.policy,
+            self.audit,
+            self.runner.scratch,
+            self.limits,
+            draining=self.draining.is_set,
+        )
 
     # -- lifecycle ---------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -191,4 +201,4 @@ class Service:
 
     def _benchmarks_on(self, gt_name: str) -> list[str]:
         """The names of the benchmarks whose test set is the ground truth ``gt_name`` (for the policy)."""
-        return [b["name"] for b in self.store.list_benchmarks() if b["gt_name"] == gt_name]
+        return [b.name for b in self.store.benchmarks_using(gt_name)]

@@ -195,7 +195,7 @@ def test_the_public_part_is_drawn_from_a_secret_seed_and_the_private_board_follo
             )
         )
         store = c.app.state.service.store
-        seed = store.get_benchmark("bench")["split_seed"]
+        seed = store.get_benchmark("bench").split_seed
         assert seed and seed not in c.get("/v1/benchmarks/bench/leaderboard").text
         gt = load_ground_truth(GOLDEN / "kitti_infos_val.pkl")
         dt = load_detections(GOLDEN / "result.pkl")

@@ -101,10 +101,16 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         metavar="P",
         help="score the board on a secret P %% of the test frames until the private ranking is revealed",
     )
+    b.add_argument(
+        "--max-published",
+        type=int,
+        metavar="N",
+        help="published entries per participant (default: no cap; Kaggle's is 2)",
+    )
     bench.add_parser("list", help="benchmarks")
     for action, helptext in (
         ("close", "close to submissions"),
-        ("reopen", "open again"),
+        ("reopen", "open again (not once revealed)"),
         ("reveal", "show the private ranking (once closed)"),
         ("rescore", "evaluate every submission again on the ground truth as registered now"),
         ("submissions", "every submission, published or not"),
@@ -148,19 +154,19 @@ def run(args: argparse.Namespace) -> int:
         _say(f"error: invalid settings:\n{e}")
         return EXIT_USAGE
     # whoever may open the service's database acts as an admin
-    actor = Policy(AuthMode(settings.auth), admin_token=lambda: "").command_line(_login())
+    caller = Policy(AuthMode(settings.auth), admin_token=lambda: "").command_line(_login())
     try:
         if settings.database_url is None:  # SQLite in the data folder, which a first command creates
             settings.data_dir.mkdir(parents=True, exist_ok=True)
         if args.admin_what == "ground-truth":
-            return _ground_truth(args, settings, actor)
+            return _ground_truth(args, settings, caller)
         if args.admin_what == "benchmark":
-            return _benchmark(args, settings, actor)
+            return _benchmark(args, settings, caller)
         store = Store(settings.resolved_database_url, busy_s=settings.database_busy_s)
         try:
             store.create_schema()
             audit = Audit(store)
-            return _account_command(args, store, Accounts(store, audit, lambda: ""), actor)
+            return _account_command(args, store, Accounts(store, audit, lambda: ""), caller)
         finally:
             store.dispose()
     except (ApiError, KittiEvalError) as e:
@@ -182,34 +188,34 @@ def _login() -> str:
         return "unknown"
 
 
-def _account_command(args: argparse.Namespace, store: Any, accounts: Any, actor: Any) -> int:
+def _account_command(args: argparse.Namespace, store: Any, accounts: Any, caller: Any) -> int:
     what, action = args.admin_what, getattr(args, "admin_action", None)
     if what == "user" and action == "add":
-        user = accounts.add_user(args.name, is_admin=args.admin, caller=actor)
+        user = accounts.add_user(args.name, is_admin=args.admin, caller=caller)
         print(f"user {user.name}{' (admin)' if user.is_admin else ''}")
     elif what == "user":
         for user in store.list_users():
             print(f"{user.name}\t{'admin' if user.is_admin else 'member'}\t{','.join(user.projects) or '-'}")
     elif what == "project" and action == "add":
-        print(f"project {accounts.add_project(args.name, caller=actor)}")
+        print(f"project {accounts.add_project(args.name, caller=caller)}")
     elif what == "project":
         for name in store.list_projects():
             print(name)
     elif what == "member" and action == "add":
-        accounts.add_member(args.user, args.project, caller=actor)
+        accounts.add_member(args.user, args.project, caller=caller)
         print(f"{args.user} is a member of {args.project}")
     elif what == "member":
-        accounts.remove_member(args.user, args.project, caller=actor)
+        accounts.remove_member(args.user, args.project, caller=caller)
         print(f"{args.user} is no longer a member of {args.project}")
     elif what == "token" and action == "add":
         scopes = ("read",) if args.read_only else ("read", "write")
-        record, token = accounts.add_token(args.user, scopes=scopes, expires_days=args.expires_days, caller=actor)
+        record, token = accounts.add_token(args.user, scopes=scopes, expires_days=args.expires_days, caller=caller)
         expires = record.expires_at.isoformat() if record.expires_at else "never"
         print(f"token id {record.id} for {record.user_name}: scopes {record.scopes}, expires {expires}")
         print("the token follows; it is shown this once (only its sha256 is kept):")
         print(token)
     elif what == "token" and action == "revoke":
-        accounts.revoke_token(args.token_id, caller=actor)
+        accounts.revoke_token(args.token_id, caller=caller)
         print(f"token {args.token_id} revoked")
     elif what == "token":
         for t in store.list_tokens(args.user):
@@ -238,13 +244,13 @@ def _offline_service(settings: Any) -> Iterator[Any]:
         service.stop()
 
 
-def _ground_truth(args: argparse.Namespace, settings: Any, actor: Any) -> int:
+def _ground_truth(args: argparse.Namespace, settings: Any, caller: Any) -> int:
     from kitti_eval_server.service import FileIn
 
     with _offline_service(settings) as service:
         with open(args.file, "rb") as fh:
             record = service.catalog.add(
-                args.name, FileIn(fh, args.file.name), caller=actor, project=args.project, sealed=args.sealed
+                args.name, FileIn(fh, args.file.name), caller=caller, project=args.project, sealed=args.sealed
             )
     sealed = ", sealed" if record.sealed else ""
     print(f"ground truth {record.name}: {record.frames} frames, {record.boxes} boxes{sealed}, sha256 {record.sha256}")
@@ -252,11 +258,10 @@ def _ground_truth(args: argparse.Namespace, settings: Any, actor: Any) -> int:
 
 
 def _benchmark(args: argparse.Namespace, settings: Any, caller: Any) -> int:
-    actor = caller.actor
-    from kitti_eval_server.benchmarks import DEFAULT_KEY, Benchmarks
+    from kitti_eval_server.benchmarks import DEFAULT_KEY
 
     with _offline_service(settings) as service:
-        benchmarks = Benchmarks(service)
+        benchmarks = service.benchmarks
         action = args.admin_action
         if action == "add":
             description = args.description
@@ -277,38 +282,34 @@ def _benchmark(args: argparse.Namespace, settings: Any, caller: Any) -> int:
                 opens_at=args.opens,
                 closes_at=args.closes,
                 split_percent=args.split_percent,
-                actor=actor,
+                max_published=args.max_published,
+                caller=caller,
             )
             n, days = bench.quota
+            cap = f", at most {bench.max_published} published per participant" if bench.max_published else ""
             print(
                 f"benchmark {bench.name} on {bench.gt_name}: key {' + '.join(bench.key)}, quota {n} per {days:g} "
-                f"days, {'public' if bench.public else 'not public'}"
+                f"days{cap}, {'public' if bench.public else 'not public'}"
             )
         elif action == "list":
-            for b in benchmarks.visible(_everyone()):
+            for b in benchmarks.visible(caller):
                 state = "open" if b.is_open() else "closed"
                 print(f"{b.name}\t{b.gt_name}\t{state}\t{'public' if b.public else '-'}\t{b.title}")
         elif action in ("close", "reopen", "reveal"):
             values = {"close": {"closed": True}, "reopen": {"closed": False}, "reveal": {"revealed": True}}[action]
-            bench = benchmarks.set_state(args.name, actor=actor, **values)
+            bench = benchmarks.set_state(args.name, caller=caller, **values)
             print(f"benchmark {bench.name}: {'open' if bench.is_open() else 'closed'}, board {bench.phase}")
         elif action == "rescore":
-            done = benchmarks.rescore(args.name, actor=actor)
+            done = benchmarks.rescore(args.name, caller=caller)
             print(f"benchmark {args.name}: {done['rescored']} submissions rescored, {done['failed']} failed")
         elif action == "submissions":
-            for s in benchmarks.all_submissions(args.name):
+            for s in benchmarks.all_submissions(args.name, caller):
                 flags = ",".join(k for k in ("published", "disqualified") if s[k]) or "-"
                 print(f"{s['id']}\t{s['participant']}\t{s['created_at']}\t{s['status']}\t{flags}\t{s['method'] or '-'}")
         elif action == "disqualify":
-            benchmarks.disqualify(args.name, args.submission, actor=actor)
+            benchmarks.disqualify(args.name, args.submission, caller=caller)
             print(f"submission {args.submission} disqualified")
         elif action == "export":
-            board = benchmarks.leaderboard(args.name, _everyone())
+            board = benchmarks.leaderboard(args.name, caller)
             sys.stdout.write(benchmarks.leaderboard_csv(board))
     return EXIT_OK
-
-
-def _everyone() -> Any:
-    from kitti_eval_server.policy import AuthMode, Policy
-
-    return Policy(AuthMode.ACCOUNTS, admin_token=lambda: "").command_line(_login())

@@ -35,11 +35,6 @@ def get_benchmarks(request: Request) -> Benchmarks:
 BenchmarksDep = Annotated[Benchmarks, Depends(get_benchmarks)]
 
 
-def viewer(caller: Caller) -> Caller | None:
-    """The benchmarks' view of a caller: None for a reader without a token (accounts mode)."""
-    return caller if caller.signed_in else None
-
-
 class BenchmarkIn(BaseModel):
     name: str = Field(max_length=1000)
     ground_truth: str = Field(max_length=1000, description="a ground truth registered with sealed=true")
@@ -61,6 +56,9 @@ class BenchmarkIn(BaseModel):
     opens_at: str | None = Field(None, max_length=100)
     closes_at: str | None = Field(None, max_length=100)
     split_percent: float | None = Field(None, description="the public part of the test frames, in percent")
+    max_published: int | None = Field(
+        None, ge=1, le=1000, description="published entries per participant (default: no cap); withdraw to swap"
+    )
 
 
 class PublishIn(BaseModel):
@@ -87,25 +85,25 @@ def create(body: BenchmarkIn, benchmarks: BenchmarksDep, caller: AdminCaller) ->
         opens_at=body.opens_at,
         closes_at=body.closes_at,
         split_percent=body.split_percent,
-        actor=caller.actor,
-        client=caller.client,
+        max_published=body.max_published,
+        caller=caller,
     )
     return bench.describe()
 
 
 @router.get("", summary="Benchmarks you can see")
 def list_benchmarks(benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
-    return {"items": [b.describe() for b in benchmarks.visible(viewer(caller))]}
+    return {"items": [b.describe() for b in benchmarks.visible(caller)]}
 
 
 @router.get("/{name}", summary="One benchmark")
 def get_benchmark(name: str, benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
-    return benchmarks.get(name, viewer(caller)).describe()
+    return benchmarks.get(name, caller).describe()
 
 
 @router.get("/{name}/frames", summary="The test frame ids (for kitti-eval validate --benchmark)")
 async def frame_ids(name: str, benchmarks: BenchmarksDep, service: ServiceDep, caller: AnyoneCaller) -> dict[str, Any]:
-    frames = await service.run(benchmarks.frame_ids, name, viewer(caller))
+    frames = await service.run(benchmarks.frame_ids, name, caller)
     return {"benchmark": name, "frames": frames}
 
 
@@ -118,7 +116,7 @@ def leaderboard(
     order: Annotated[Literal["asc", "desc"] | None, Query()] = None,
     format: Annotated[Literal["json", "csv"], Query()] = "json",
 ) -> Response:
-    board = benchmarks.leaderboard(name, viewer(caller), sort=sort, order=order)
+    board = benchmarks.leaderboard(name, caller, sort=sort, order=order)
     if format == "csv":
         return PlainTextResponse(
             benchmarks.leaderboard_csv(board),
@@ -129,7 +127,7 @@ def leaderboard(
 
 
 def _admin_state(name: str, benchmarks: Benchmarks, caller: Caller, **values: bool) -> dict[str, Any]:
-    return benchmarks.set_state(name, actor=caller.actor, client=caller.client, **values).describe()
+    return benchmarks.set_state(name, caller=caller, **values).describe()
 
 
 @router.post("/{name}/close", summary="Close a benchmark to submissions (admins)")
@@ -149,17 +147,17 @@ def reveal(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[st
 
 @router.post("/{name}/rescore", summary="Evaluate every submission again on the current ground truth (admins)")
 async def rescore(name: str, benchmarks: BenchmarksDep, service: ServiceDep, caller: AdminCaller) -> dict[str, Any]:
-    return await service.run(lambda: benchmarks.rescore(name, actor=caller.actor, client=caller.client))
+    return await service.run(lambda: benchmarks.rescore(name, caller=caller))
 
 
 @router.get("/{name}/submissions/all", summary="Every submission, published or not (admins)")
 def all_submissions(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
-    return {"items": benchmarks.all_submissions(name)}
+    return {"items": benchmarks.all_submissions(name, caller)}
 
 
 @router.post("/{name}/submissions/{submission_id}/disqualify", summary="Hide an entry, keeping it (admins)")
 def disqualify(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
-    return benchmarks.disqualify(name, submission_id, actor=caller.actor, client=caller.client)
+    return benchmarks.disqualify(name, submission_id, caller=caller)
 
 
 @router.post(
@@ -182,7 +180,7 @@ async def submit(
 ) -> JSONResponse:
     file = FileIn(predictions.file, predictions.filename)
     try:
-        body = await service.run(lambda: benchmarks.submit(name, file, caller, client=caller.client))
+        body = await service.run(lambda: benchmarks.submit(name, file, caller))
     except InvalidSubmission as e:
         out = error_body(e.code, e.message)
         out["error"]["problems"] = e.problems

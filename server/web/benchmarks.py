@@ -12,7 +12,6 @@ from markupsafe import Markup
 from ..benchmarks import Benchmarks, render_markdown
 from ..deps import AnyoneCaller
 from ..errors import ApiError, clip
-from ..routes.benchmarks import viewer
 from .routes import _render
 
 __all__ = ["router"]
@@ -30,8 +29,8 @@ def benchmark_page(
 ) -> Response:
     benchmarks: Benchmarks = request.app.state.benchmarks
     try:
-        bench = benchmarks.get(name, viewer(caller))
-        board = benchmarks.leaderboard(name, viewer(caller), sort=sort, order=order)
+        bench = benchmarks.get(name, caller)
+        board = benchmarks.leaderboard(name, caller, sort=sort, order=order)
     except ApiError as e:
         return _render(request, "error.html", e.status_code, status=e.status_code, message=clip(e.message))
     return _render(

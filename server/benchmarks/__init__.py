@@ -1,0 +1,55 @@
+"""Hosted benchmarks: a sealed ground truth, participants' submissions under a quota, and a leaderboard.
+
+Who takes part: a benchmark is seen by everyone who sees its ground truth (the members of the ground truth's
+project, every signed-in account when the ground truth is shared) and, when it is public, its leaderboard by
+anyone, without a token. Whoever sees a benchmark may submit to it with a token that may write (accounts mode
+only: a participant is an account). Admins create, close, reopen, reveal and rescore benchmarks, list every
+submission and disqualify entries.
+
+A submission is checked first with :func:`kitti_eval.io.submission.validate_submission` against the test frame
+ids (the sentences ``kitti-eval validate`` prints; a refused submission costs nothing), then counted against
+the quota and accepted in one transaction (``BenchmarkStore.accept_submission``), then evaluated on the
+sealed set and stored. Its participant sees its aggregate result (on the public part only while a
+benchmark with a split is not revealed); nobody else sees it until it is published. What is published is
+frozen when the benchmark closes, and a benchmark may cap the entries a participant has published
+(``max_published``).
+
+The public/private split: with ``split_percent`` p, a test frame is in the public part when the first 8 bytes
+of sha256(seed + ":" + frame id), read as an integer, are below p % of 2**64. The seed is 32 random hex digits
+drawn when the benchmark is created, stored in its row and never shown; the parts are therefore fixed for the
+benchmark's life and unknown to participants. While the benchmark runs (or until an admin reveals the
+ranking after the close) the board shows the scores on the public part; after the reveal, those on the
+private part. A benchmark is revealed only once it has opened and is closed, and is never reopened after.
+Its test set stays sealed: a ground truth is registered under a benchmark's test set name sealed only.
+
+The modules: :mod:`.rules` (a benchmark's definition and rules), :mod:`.catalog` (seeing benchmarks, the
+admins' actions on them), :mod:`.submissions` (accepting, scoring, publishing), :mod:`.leaderboard` (ranking,
+CSV) and :mod:`.markdown` (the description as HTML).
+"""
+
+from __future__ import annotations
+
+from .catalog import BenchmarkCatalog
+from .leaderboard import Leaderboard
+from .markdown import render_markdown
+from .rules import DEFAULT_KEY, Benchmark, in_public_part, key_value, parse_column, parse_quota
+from .submissions import InvalidSubmission, QuotaExceeded, Submissions
+
+__all__ = [
+    "Benchmarks",
+    "Benchmark",
+    "BenchmarkCatalog",
+    "QuotaExceeded",
+    "InvalidSubmission",
+    "DEFAULT_KEY",
+    "render_markdown",
+    "parse_quota",
+    "parse_column",
+    "in_public_part",
+    "key_value",
+]
+
+
+class Benchmarks(Submissions, Leaderboard):
+    """Benchmarks on the service's store, ground truths and evaluation machinery: the catalog, the
+    submissions and the leaderboards over one service."""

@@ -1,0 +1,195 @@
+"""The benchmarks themselves: who sees which, their test sets, and the admins' creating, closing, reopening and
+revealing."""
+
+from __future__ import annotations
+
+import secrets
+from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager
+from datetime import datetime, timezone
+from pathlib import Path
+
+from kitti_eval.core.frames import Annotations
+from kitti_eval.core.protocol import THRESHOLD_SETS
+
+from ..accounts import Accounts
+from ..audit import Audit
+from ..errors import BadRequest, Conflict, NotFound, echo
+from ..evaluator import EvalOptions
+from ..ground_truths import GroundTruths
+from ..policy import Caller, Policy
+from ..store import BenchmarkRecord, GroundTruthRecord, Store
+from ..uploads import Limits
+from .rules import DEFAULT_KEY, DIFFICULTIES, Benchmark, parse_column, parse_quota, parse_time
+
+__all__ = ["BenchmarkCatalog"]
+
+_MAX_COLUMNS = 60
+_MAX_PUBLISHED = 1000
+
+
+class BenchmarkCatalog:
+    """Benchmarks on the service's store and ground truths: seeing them (as the policy says), and the admins'
+    actions on them (audited)."""
+
+    def __init__(
+        self,
+        store: Store,
+        ground_truths: GroundTruths,
+        policy: Policy,
+        audit: Audit,
+        scratch: Callable[[], AbstractContextManager[Path]],
+        limits: Limits,
+        *,
+        draining: Callable[[], bool] = lambda: False,
+    ) -> None:
+        self.store = store
+        self.ground_truths = ground_truths
+        self.policy = policy
+        self.audit = audit
+        self.scratch = scratch
+        self.limits = limits
+        self.draining = draining
+
+    # -- seeing -------------------------------------------------------------------------------------------
+    def _get(self, name: str) -> Benchmark:
+        record = self.store.get_benchmark(name)
+        if record is None:
+            raise NotFound(f"no benchmark named {echo(name)}")
+        return Benchmark.from_record(record)
+
+    def sees(self, caller: Caller, bench: Benchmark) -> bool:
+        return self.policy.sees_benchmark(caller, public=bench.public, project=bench.project)
+
+    def get(self, name: str, caller: Caller) -> Benchmark:
+        bench = self._get(name)
+        if not self.sees(caller, bench):
+            raise NotFound(f"no benchmark named {echo(name)}")
+        return bench
+
+    def visible(self, caller: Caller) -> list[Benchmark]:
+        found = [Benchmark.from_record(r) for r in self.store.list_benchmarks()]
+        return [b for b in found if self.sees(caller, b)]
+
+    def frame_ids(self, name: str, caller: Caller) -> list[str]:
+        """The test frame ids (public, as KITTI's: the labels are what is sealed)."""
+        bench = self.get(name, caller)
+        return list(self._ground_truth(bench)[1].frame_ids)
+
+    def using_ground_truth(self, name: str) -> list[Benchmark]:
+        """The benchmarks whose test set is the ground truth ``name`` (whoever may see them), by name."""
+        return [Benchmark.from_record(r) for r in self.store.benchmarks_using(name)]
+
+    def _ground_truth(self, bench: Benchmark) -> tuple[GroundTruthRecord, Annotations]:
+        """The benchmark's test set as registered now: refused unless it is sealed (registering a benchmark's
+        ground truth unsealed is refused too, so this holds unless the database was changed by hand)."""
+        record = self.ground_truths.record(bench.gt_name)
+        if not record.sealed:
+            raise Conflict(
+                f"the test set {bench.gt_name!r} of benchmark {bench.name!r} is not sealed; an admin deletes it "
+                "and registers it again with sealed=true"
+            )
+        return record, self.ground_truths.load(record)
+
+    # -- admin ----------------------------------------------------------------------------------------------
+    def create(
+        self,
+        name: str,
+        *,
+        ground_truth: str,
+        title: str | None = None,
+        description: str = "",
+        protocol: str = "official",
+        classes: str = "Car,Pedestrian,Cyclist",
+        threshold_sets: str = ",".join(THRESHOLD_SETS),
+        key: Sequence[str] = (DEFAULT_KEY,),
+        columns: Sequence[str] = (),
+        quota: str = "3/1",
+        public: bool = False,
+        opens_at: str | datetime | None = None,
+        closes_at: str | datetime | None = None,
+        split_percent: float | None = None,
+        max_published: int | None = None,
+        caller: Caller,
+    ) -> Benchmark:
+        self.policy.require_admin(caller)
+        Accounts.check_name(name, "benchmark")
+        record = self.ground_truths.record(ground_truth)
+        if not record.sealed:
+            raise BadRequest(
+                f"the ground truth {ground_truth!r} is not sealed; a benchmark's test set is registered "
+                "with sealed=true"
+            )
+        options = EvalOptions(protocol=protocol, classes=classes, threshold_sets=threshold_sets)
+        config = options.config()  # the library's checks of the options
+        class_names, sets = list(config.classes), list(config.threshold_sets)
+        keys = [parse_column(k, class_names, sets) for k in key if k.strip()] or [DEFAULT_KEY]
+        wanted = list(columns) or [f"{c}/3d/{d}" for c in class_names for d in DIFFICULTIES]
+        cols = list(dict.fromkeys(parse_column(c, class_names, sets) for c in wanted if c.strip()))
+        if len(cols) > _MAX_COLUMNS:
+            raise BadRequest(f"at most {_MAX_COLUMNS} columns")
+        count, days = parse_quota(quota)
+        if split_percent is not None and not 0 < split_percent < 100:
+            raise BadRequest("split_percent is the public part of the test frames: more than 0 and less than 100")
+        if max_published is not None and not 1 <= max_published <= _MAX_PUBLISHED:
+            raise BadRequest(
+                f"max_published is the published entries a participant may have: 1 to {_MAX_PUBLISHED} (or none)"
+            )
+        if len(description) > 20000 or len(title or "") > 200:
+            raise BadRequest("a title is at most 200 characters, a description at most 20000")
+        opens = parse_time(opens_at, "opens") or datetime.now(timezone.utc)
+        closes = parse_time(closes_at, "closes")
+        if closes is not None and closes <= opens:
+            raise BadRequest("a benchmark closes after it opens")
+        bench = BenchmarkRecord(
+            name=name,
+            title=title or name,
+            description=description,
+            gt_name=record.name,
+            project=record.project,
+            config={
+                "protocol": protocol,
+                "classes": ",".join(class_names),
+                "sets": ",".join(sets),
+                "key": keys,
+                "columns": cols,
+                "quota": [count, days],
+                "split_percent": split_percent,
+            },
+            split_seed=secrets.token_hex(16) if split_percent is not None else None,
+            public=public,
+            opens_at=opens,
+            closes_at=closes,
+            closed=False,
+            revealed=False,
+            created_at=datetime.now(timezone.utc),
+            max_published=max_published,
+        )
+        if not self.store.add_benchmark(bench):
+            raise Conflict(f"a benchmark named {name!r} exists")
+        self.audit.record(caller, "benchmark.add", name, detail=record.name)
+        return self._get(name)
+
+    def set_state(self, name: str, *, caller: Caller, **values: bool) -> Benchmark:
+        """close (closed=True), reopen (closed=False), reveal (revealed=True): a benchmark is revealed once it
+        has opened and is closed (by hand or by its ``closes_at``), and is never reopened after."""
+        self.policy.require_admin(caller)
+        bench = self._get(name)
+        now = datetime.now(timezone.utc)
+        if values.get("closed") is False and bench.revealed:
+            raise Conflict("revealed benchmarks stay closed: the private part's scores are out")
+        if values.get("revealed"):
+            if not bench.has_opened(now):
+                raise Conflict(
+                    f"the benchmark {name!r} has not opened yet (it opens at {bench.opens_at.isoformat()}): "
+                    "there is no ranking to reveal"
+                )
+            if not bench.is_closed(now):
+                raise Conflict(
+                    "the private ranking is revealed once the benchmark is closed: close it first (or wait for "
+                    "its closes_at)"
+                )
+        self.store.update_benchmark(name, **values)
+        action = ",".join(f"{k}={v}" for k, v in sorted(values.items()))
+        self.audit.record(caller, "benchmark.state", name, detail=action)
+        return self._get(name)

@@ -1,0 +1,174 @@
+"""A benchmark's definition and its rules: the period it takes submissions in, which scores its board shows,
+the public/private split of the test frames, and the parsing of its options (quota, columns, times)."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, fields
+from datetime import datetime, timezone
+from typing import Any
+
+from ..errors import BadRequest, echo
+from ..evaluator import EvalOptions
+from ..store import BenchmarkRecord
+
+__all__ = [
+    "Benchmark",
+    "DEFAULT_KEY",
+    "DIFFICULTIES",
+    "parse_quota",
+    "parse_column",
+    "parse_time",
+    "in_public_part",
+    "key_value",
+    "scores_of",
+]
+
+DEFAULT_KEY = "Car/3d/moderate/R40/strict"
+_METRICS = ("bbox", "bev", "3d", "aos")
+DIFFICULTIES = ("easy", "moderate", "hard")
+_RECALLS = ("R40", "R11")
+
+
+def parse_quota(text: str) -> tuple[int, float]:
+    """``N/DAYS`` (e.g. ``3/1``: three accepted submissions a participant per day)."""
+    n, sep, days = text.partition("/")
+    try:
+        count, span = int(n), float(days) if sep else 1.0
+    except ValueError:
+        raise BadRequest(f"a quota is N/DAYS, e.g. 3/1; got {echo(text)}") from None
+    if not 1 <= count <= 100_000 or not 0 < span <= 3650 or not math.isfinite(span):
+        raise BadRequest("a quota is 1 to 100000 submissions per more than 0 and at most 3650 days")
+    return count, span
+
+
+def parse_column(text: str, classes: Sequence[str], sets: Sequence[str]) -> str:
+    """``CLASS/METRIC/DIFFICULTY[/R40|R11[/SET]]`` normalised to its five parts."""
+    parts = text.strip().split("/")
+    if not 3 <= len(parts) <= 5:
+        raise BadRequest(f"a column is CLASS/METRIC/DIFFICULTY[/R40|R11[/SET]], e.g. {DEFAULT_KEY}; got {echo(text)}")
+    parts += ["R40", sets[0] if "strict" not in sets else "strict"][len(parts) - 3 :]
+    cls, metric, difficulty, recall, oset = parts
+    known = {c.lower(): c for c in classes}
+    if cls.lower() not in known:
+        raise BadRequest(f"column {echo(text)}: the class is one of {', '.join(classes)}")
+    if metric not in _METRICS or difficulty not in DIFFICULTIES or recall not in _RECALLS or oset not in sets:
+        raise BadRequest(
+            f"column {echo(text)}: metric {'/'.join(_METRICS)}, difficulty {'/'.join(DIFFICULTIES)}, "
+            f"recall {'/'.join(_RECALLS)}, set {'/'.join(sets)}"
+        )
+    return "/".join((known[cls.lower()], metric, difficulty, recall, oset))
+
+
+def in_public_part(seed: str, frame_id: str, percent: float) -> bool:
+    digest = hashlib.sha256(f"{seed}:{frame_id}".encode()).digest()
+    return int.from_bytes(digest[:8], "big") < percent / 100 * 2**64
+
+
+def parse_time(value: str | datetime | None, what: str) -> datetime | None:
+    if value is None or value == "":
+        return None
+    if isinstance(value, datetime):
+        moment = value
+    else:
+        try:
+            moment = datetime.fromisoformat(value.strip().replace("Z", "+00:00"))
+        except ValueError:
+            raise BadRequest(f"{what}: an ISO 8601 time, e.g. 2026-12-31T23:59:00+00:00; got {echo(value)}") from None
+    return moment if moment.tzinfo else moment.replace(tzinfo=timezone.utc)
+
+
+def key_value(scores: Mapping[str, float | None], key: Sequence[str]) -> float | None:
+    values = [scores.get(c) for c in key]
+    if any(v is None for v in values):
+        return None
+    return round(sum(v for v in values if v is not None) / len(values), 4)
+
+
+def scores_of(doc: Mapping[str, Any], columns: Sequence[str]) -> dict[str, float | None]:
+    """The AP of each column in an evaluation document, rounded to 4 places."""
+    out: dict[str, float | None] = {}
+    for column in columns:
+        cls, metric, difficulty, recall, oset = column.split("/")
+        value: Any = doc.get("ap", {}).get(oset, {}).get(recall, {}).get(cls, {}).get(metric, {}).get(difficulty)
+        out[column] = None if value is None else round(float(value), 4)
+    return out
+
+
+@dataclass(frozen=True)
+class Benchmark(BenchmarkRecord):
+    """A stored benchmark with its rules read from its row."""
+
+    @classmethod
+    def from_record(cls, record: BenchmarkRecord) -> Benchmark:
+        return cls(**{f.name: getattr(record, f.name) for f in fields(record)})
+
+    @property
+    def key(self) -> list[str]:
+        return list(self.config["key"])
+
+    @property
+    def columns(self) -> list[str]:
+        return list(self.config["columns"])
+
+    @property
+    def quota(self) -> tuple[int, float]:
+        return int(self.config["quota"][0]), float(self.config["quota"][1])
+
+    @property
+    def split_percent(self) -> float | None:
+        value = self.config.get("split_percent")
+        return None if value is None else float(value)
+
+    def has_opened(self, now: datetime | None = None) -> bool:
+        """Its period has begun (``opens_at`` has passed), whether or not it was closed since."""
+        return self.opens_at <= (now or datetime.now(timezone.utc))
+
+    def is_closed(self, now: datetime | None = None) -> bool:
+        """Closed by hand, or its ``closes_at`` has passed."""
+        now = now or datetime.now(timezone.utc)
+        return self.closed or (self.closes_at is not None and now >= self.closes_at)
+
+    def is_open(self, now: datetime | None = None) -> bool:
+        """Taking submissions: opened and not closed."""
+        now = now or datetime.now(timezone.utc)
+        return self.has_opened(now) and not self.is_closed(now)
+
+    @property
+    def phase(self) -> str:
+        """Which scores the board shows: ``all`` (no split), ``public`` (the public part) or ``private``."""
+        if self.split_percent is None:
+            return "all"
+        return "private" if self.revealed else "public"
+
+    def options(self) -> EvalOptions:
+        return EvalOptions(
+            protocol=self.config["protocol"], classes=self.config["classes"], threshold_sets=self.config["sets"]
+        )
+
+    def describe(self) -> dict[str, Any]:
+        """What anyone who sees the benchmark may read (never the split's seed)."""
+        n, days = self.quota
+        return {
+            "name": self.name,
+            "title": self.title,
+            "description": self.description,
+            "ground_truth": self.gt_name,
+            "protocol": self.config["protocol"],
+            "classes": self.config["classes"].split(","),
+            "threshold_sets": self.config["sets"].split(","),
+            "key": self.key,
+            "columns": self.columns,
+            "quota": {"submissions": n, "days": days},
+            "public": self.public,
+            "opens_at": self.opens_at.isoformat(),
+            "closes_at": self.closes_at.isoformat() if self.closes_at else None,
+            "open": self.is_open(),
+            "closed": self.closed,
+            "split_percent": self.split_percent,
+            "revealed": self.revealed,
+            "board": self.phase,
+            "max_published": self.max_published,
+        }

@@ -1,0 +1,318 @@
+"""Submissions to a benchmark: accepted (checked, then counted against the quota), scored on the sealed test
+set, published and withdrawn by their participants; listed, disqualified and rescored by admins."""
+
+from __future__ import annotations
+
+import io
+import math
+import re
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+from typing import Any
+
+from kitti_eval.core.frames import Annotations
+from kitti_eval.errors import InputError, KittiEvalError
+from kitti_eval.io.submission import SubmissionRules, validate_submission
+
+from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
+from ..evaluations import sealed_document
+from ..evaluator import evaluate_document
+from ..policy import Caller
+from ..store import GroundTruthRecord, PublishRefused, QuotaRefused, SubmissionRecord, new_id
+from ..uploads import FileIn, clean_filename, load_upload, receive_upload
+from .catalog import BenchmarkCatalog
+from .rules import Benchmark, in_public_part, scores_of
+
+__all__ = ["Submissions", "QuotaExceeded", "InvalidSubmission"]
+
+_LINK = re.compile(r"^https?://[^\s<>\"']{1,490}$")
+
+
+class QuotaExceeded(ApiError):
+    status_code = 429
+    code = "quota_exceeded"
+
+    def __init__(self, message: str, retry_after_s: int, retry_at: datetime) -> None:
+        super().__init__(message, headers={"Retry-After": str(retry_after_s)})
+        self.retry_at = retry_at
+
+
+class InvalidSubmission(ApiError):
+    """The submission breaks the rules: ``problems`` are the sentences ``kitti-eval validate`` prints."""
+
+    status_code = 422
+    code = "invalid_submission"
+
+    def __init__(self, problems: list[str]) -> None:
+        super().__init__(f"the submission is not valid ({len(problems)} problems): " + "; ".join(problems[:5]))
+        self.problems = problems
+
+
+def _submission_view(
+    record: SubmissionRecord, bench: Benchmark, *, full: bool, everything: bool = False
+) -> dict[str, Any]:
+    """A submission as its participant sees it (``full``: with its aggregate document), or as an admin's list
+    does (``everything``). While a benchmark with a public/private split is not revealed, its participant
+    sees the scores on the public part only (what the board shows) and the document on that part (None for
+    a submission scored before that document was kept); after the reveal, and always in an admin's list,
+    the scores on the whole test set and on each part (``parts``). Without a split the whole set is the
+    public part."""
+    scores = record.scores or {}
+    public_only = bench.phase == "public" and not everything
+    shown = "public" if public_only else "all"
+    out = {
+        "id": record.id,
+        "benchmark": record.benchmark,
+        "participant": record.participant,
+        "created_at": record.created_at.isoformat(),
+        "status": record.status,
+        "filename": record.pred_filename,
+        "sha256": record.pred_sha256,
+        "size": record.pred_size,
+        "published": bool(record.published),
+        "method": record.method,
+        "anonymous": bool(record.anonymous),
+        "affiliation": record.affiliation,
+        "link": record.link,
+        "disqualified": bool(record.disqualified),
+        "scored_at": record.scored_at.isoformat() if record.scored_at else None,
+        "scored_on": shown,
+        "scores": scores.get(shown),
+        "parts": None if public_only or bench.phase == "all" else {p: scores.get(p) for p in ("public", "private")},
+    }
+    if full:
+        out["result"] = record.public_result if public_only else record.result
+    return out
+
+
+class Submissions(BenchmarkCatalog):
+    """A benchmark's submissions: the participants' side and the admins'."""
+
+    # -- admin ----------------------------------------------------------------------------------------------
+    def all_submissions(self, name: str, caller: Caller) -> list[dict[str, Any]]:
+        self.policy.require_admin(caller)
+        bench = self._get(name)
+        return [_submission_view(r, bench, full=False, everything=True) for r in self.store.list_submissions(name)]
+
+    def disqualify(self, name: str, submission_id: str, *, caller: Caller) -> dict[str, Any]:
+        self.policy.require_admin(caller)
+        bench = self._get(name)
+        record = self.store.get_submission(submission_id)
+        if record is None or record.benchmark != name:
+            raise NotFound(f"no submission {echo(submission_id)} in benchmark {echo(name)}")
+        self.store.update_submission(submission_id, disqualified=True)
+        self.audit.record(caller, "submission.disqualify", submission_id)
+        again = self.store.get_submission(submission_id)
+        assert again is not None
+        return _submission_view(again, bench, full=False, everything=True)
+
+    def rescore(self, name: str, *, caller: Caller) -> dict[str, Any]:
+        """Evaluate every stored submission again against the ground truth as registered now."""
+        self.policy.require_admin(caller)
+        bench = self._get(name)
+        record, gt = self._ground_truth(bench)
+        done = failed = 0
+        for row in self.store.list_submissions(name):
+            content = self.store.prediction_content(row.pred_sha256)
+            if content is None:
+                failed += 1
+                continue
+            try:
+                with self.scratch() as scratch:
+                    upload = receive_upload(io.BytesIO(content), row.pred_filename, "predictions")
+                    dt = load_upload(
+                        upload, "detections", scratch, self.limits, known_frames=gt.frame_index()
+                    ).annotations
+                self._score(bench, record, gt, dt, row.id)
+                done += 1
+            except KittiEvalError:
+                self.store.update_submission(row.id, status="failed")
+                failed += 1
+        self.audit.record(caller, "benchmark.rescore", name, detail=f"{done} rescored")
+        return {"benchmark": name, "rescored": done, "failed": failed, "ground_truth_sha256": record.sha256}
+
+    # -- participants -------------------------------------------------------------------------------------
+    def submit(self, name: str, predictions: FileIn, caller: Caller) -> dict[str, Any]:
+        """Validate, count against the quota and accept (one transaction), evaluate, store."""
+        if self.draining():
+            raise NotReady("the service is shutting down; submit again in a moment")
+        if not self.policy.accounts:
+            raise Forbidden("benchmarks take submissions in accounts mode (KITTI_EVAL_AUTH=accounts)")
+        if not self.policy.is_participant(caller):
+            raise Forbidden("a participant submits with their own token (kitti-eval admin token add USER)")
+        bench = self.get(name, caller)
+        if not bench.is_open():
+            raise Conflict(f"the benchmark {name!r} is not open for submissions")
+        record, gt = self._ground_truth(bench)
+        with self.scratch() as scratch:
+            upload = receive_upload(predictions.file, predictions.filename, "predictions")
+            self._validate(upload.file, upload.filename, gt, scratch)
+            count, days = bench.quota
+            now = datetime.now(timezone.utc)
+            window = timedelta(days=days)
+            submission_id = new_id()
+            accepted = SubmissionRecord(
+                id=submission_id,
+                benchmark=name,
+                participant=caller.name,
+                created_at=now,
+                status="accepted",
+                pred_filename=upload.filename,
+                pred_sha256=upload.sha256,
+                pred_size=upload.size,
+            )
+            try:
+                self.store.accept_submission(accepted, limit=count, window_start=now - window, window=window)
+            except QuotaRefused as e:
+                retry = max(1, math.ceil((e.retry_at - datetime.now(timezone.utc)).total_seconds()))
+                raise QuotaExceeded(
+                    f"the quota of {count} accepted submissions per {days:g} days is used; the next one is "
+                    f"accepted from {e.retry_at.isoformat()} (in {retry} s)",
+                    retry,
+                    e.retry_at,
+                ) from None
+            upload.file.seek(0)
+            self.store.add_prediction_file(upload.sha256, upload.file.read())
+            try:
+                dt = load_upload(
+                    upload, "detections", scratch / "pred", self.limits, known_frames=gt.frame_index()
+                ).annotations
+                self._score(bench, record, gt, dt, submission_id)
+            except BaseException:
+                self.store.update_submission(submission_id, status="failed")
+                raise
+        self.audit.record(caller, "submission.add", f"{name} {submission_id}")
+        return self.submission(name, submission_id, caller)
+
+    def _validate(self, file: Any, filename: str, gt: Annotations, scratch: Path) -> None:
+        """The CLI's checks (:func:`validate_submission`), their sentences naming the upload, not the scratch path."""
+        shown = clean_filename(filename, "predictions")
+        path = scratch / "submission"
+        path.mkdir()
+        target = path / "upload"
+        file.seek(0)
+        with open(target, "wb") as out:
+            while chunk := file.read(1 << 20):
+                out.write(chunk)
+        file.seek(0)
+        try:
+            outcome = validate_submission(
+                target, SubmissionRules(frames=tuple(gt.frame_ids)), limits=self.limits.archive
+            )
+        except InputError as e:
+            raise type(e)(e.message.replace(str(target), shown), source=shown, frame=e.frame, field=e.field) from None
+        if not outcome.ok:
+            raise InvalidSubmission([line.replace(str(target), shown) for line in outcome.lines()])
+
+    def _score(self, bench: Benchmark, record: GroundTruthRecord, gt: Annotations, dt: Annotations, sid: str) -> None:
+        config = bench.options().config()
+        columns = list(dict.fromkeys([*bench.columns, *bench.key]))
+        doc = evaluate_document(gt, dt, config)
+        scores: dict[str, dict[str, float | None]] = {"all": scores_of(doc, columns)}
+        public_result = None
+        percent = bench.split_percent
+        if percent is not None and bench.split_seed:
+            parts: dict[str, list[str]] = {"public": [], "private": []}
+            for f in gt.frame_ids:
+                parts["public" if in_public_part(bench.split_seed, f, percent) else "private"].append(f)
+            for part, frames in parts.items():
+                if frames:
+                    part_doc = evaluate_document(gt.subset(frames), dt.subset(frames), config)
+                    scores[part] = scores_of(part_doc, columns)
+                    if part == "public":
+                        public_result = sealed_document(part_doc)
+                else:
+                    scores[part] = dict.fromkeys(columns)
+        self.store.update_submission(
+            sid,
+            status="scored",
+            result=sealed_document(doc),
+            scores=scores,
+            public_result=public_result,
+            gt_sha256=record.sha256,
+            scored_at=datetime.now(timezone.utc),
+        )
+
+    def _own(self, name: str, submission_id: str, caller: Caller) -> SubmissionRecord:
+        """One of the caller's own submissions (another's is as absent as a missing one; admins list every
+        submission with ``all_submissions``)."""
+        self.get(name, caller)
+        record = self.store.get_submission(submission_id)
+        if record is None or record.benchmark != name or not self.policy.owns(caller, record.participant):
+            raise NotFound(f"no submission of yours with id {echo(submission_id)}")
+        return record
+
+    def submission(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
+        record = self._own(name, submission_id, caller)
+        return _submission_view(record, self._get(name), full=True)
+
+    def mine(self, name: str, caller: Caller) -> dict[str, Any]:
+        bench = self.get(name, caller)
+        records = self.store.list_submissions(name, participant=caller.name)
+        count, days = bench.quota
+        since = datetime.now(timezone.utc) - timedelta(days=days)
+        used = sum(1 for r in records if r.created_at > since and r.status != "failed")
+        return {
+            "items": [_submission_view(r, bench, full=False) for r in reversed(records)],
+            "quota": {"submissions": count, "days": days, "used": used, "left": max(0, count - used)},
+        }
+
+    def publish(
+        self,
+        name: str,
+        submission_id: str,
+        caller: Caller,
+        *,
+        method: str,
+        anonymous: bool = False,
+        affiliation: str | None = None,
+        link: str | None = None,
+    ) -> dict[str, Any]:
+        record = self._own(name, submission_id, caller)
+        bench = self._still_selecting(name)
+        if record.status != "scored":
+            raise Conflict("only a scored submission can be published")
+        if record.disqualified:
+            raise Conflict("the submission was disqualified")
+        method = method.strip()
+        if not 1 <= len(method) <= 100 or not method.isprintable():
+            raise BadRequest("a method name is 1-100 printable characters")
+        if affiliation is not None and (len(affiliation) > 200 or not affiliation.isprintable()):
+            raise BadRequest("an affiliation is at most 200 printable characters")
+        if link and not _LINK.fullmatch(link):
+            raise BadRequest("a link is an http:// or https:// address of at most 500 characters")
+        try:
+            self.store.publish_submission(
+                record,
+                cap=bench.max_published,
+                method=method,
+                anonymous=anonymous,
+                affiliation=affiliation or None,
+                link=link or None,
+                published_at=datetime.now(timezone.utc),
+            )
+        except PublishRefused:
+            raise Conflict(
+                f"at most {bench.max_published} published entries per participant in {name!r}, and "
+                f"{record.participant} has them: withdraw one first"
+            ) from None
+        self.audit.record(caller, "submission.publish", f"{name} {submission_id}", detail=method)
+        return self.submission(name, submission_id, caller)
+
+    def withdraw(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
+        self._own(name, submission_id, caller)
+        self._still_selecting(name)
+        self.store.update_submission(submission_id, published=False, published_at=None)
+        self.audit.record(caller, "submission.withdraw", f"{name} {submission_id}")
+        return self.submission(name, submission_id, caller)
+
+    def _still_selecting(self, name: str) -> Benchmark:
+        """The benchmark, while its participants may still choose what is published: until it closes. The
+        entries published at the close are the ones ranked on the private part after the reveal."""
+        bench = self._get(name)
+        if bench.is_closed():
+            raise Conflict(
+                f"the benchmark {name!r} is closed: the published entries were frozen at the close (they are "
+                "the ones ranked on the private part)"
+            )
+        return bench

@@ -1,0 +1,94 @@
+"""The database, by area: :mod:`.database` holds what they share (the tables, the engine, the schema, the
+retry of a call that found SQLite locked); :mod:`.ground_truth_store`, :mod:`.evaluation_store`,
+:mod:`.account_store` and :mod:`.benchmark_store` each define an area's records (frozen dataclasses) and a
+class of its reads and writes. :class:`Store` is all four over one :class:`Database`, as the service and the
+command line use it. (The modules are named after their classes, not their tables: a submodule named
+``ground_truths`` would replace the table of that name among the package's attributes when imported.)
+"""
+
+from __future__ import annotations
+
+from .account_store import AccountStore, AuditRecord, TokenRecord, UserRecord
+from .benchmark_store import BenchmarkRecord, BenchmarkStore, PublishRefused, QuotaRefused, SubmissionRecord
+from .database import (
+    Area,
+    Database,
+    audit,
+    benchmarks,
+    evaluation_labels,
+    evaluations,
+    ground_truth_files,
+    ground_truths,
+    memberships,
+    metadata,
+    new_id,
+    prediction_files,
+    projects,
+    quota_locks,
+    submissions,
+    tokens,
+    users,
+)
+from .evaluation_store import EvaluationRecord, EvaluationStore
+from .ground_truth_store import GroundTruthRecord, GroundTruthStore
+
+__all__ = [
+    "Store",
+    "Database",
+    "Area",
+    "GroundTruthStore",
+    "EvaluationStore",
+    "AccountStore",
+    "BenchmarkStore",
+    "GroundTruthRecord",
+    "EvaluationRecord",
+    "UserRecord",
+    "TokenRecord",
+    "AuditRecord",
+    "BenchmarkRecord",
+    "SubmissionRecord",
+    "QuotaRefused",
+    "PublishRefused",
+    "new_id",
+    "metadata",
+    "ground_truths",
+    "ground_truth_files",
+    "evaluations",
+    "evaluation_labels",
+    "prediction_files",
+    "users",
+    "projects",
+    "memberships",
+    "tokens",
+    "audit",
+    "benchmarks",
+    "submissions",
+    "quota_locks",
+]
+
+
+class Store(GroundTruthStore, EvaluationStore, AccountStore, BenchmarkStore):
+    """Every area of the database on one :class:`Database` (SQLite or PostgreSQL)."""
+
+    def __init__(self, url: str, *, busy_s: float = 10.0) -> None:
+        """``busy_s``: how long a SQLite call keeps trying while another connection holds the write lock."""
+        super().__init__(Database(url, busy_s=busy_s))
+
+    @property
+    def busy_s(self) -> float | None:
+        return self.db.busy_s
+
+    @property
+    def lock_retries(self) -> int:
+        """Attempts run again because the database was locked (for the tests and the curious)."""
+        return self.db.lock_retries
+
+    def create_schema(self) -> None:
+        """Create missing tables, and add the columns a database made by an earlier version lacks."""
+        self.db.create_schema()
+
+    def ping(self) -> None:
+        self.db.ping()
+
+    def dispose(self) -> None:
+        self.db.dispose()

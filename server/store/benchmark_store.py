@@ -1,0 +1,222 @@
+"""The store's hosted benchmarks and their submissions (the rules are :mod:`kitti_eval_server.benchmarks`'s)."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+from typing import Any
+
+from sqlalchemy import func, insert, select, update
+from sqlalchemy.engine import Connection, RowMapping
+
+from .database import Area, benchmarks, dated, quota_locks, retry_when_locked, submissions, utc
+
+__all__ = ["BenchmarkRecord", "SubmissionRecord", "QuotaRefused", "PublishRefused", "BenchmarkStore"]
+
+
+class QuotaRefused(Exception):
+    """No room in the quota: ``retry_at`` is when the oldest accepted submission of the window leaves it."""
+
+    def __init__(self, retry_at: datetime, used: int) -> None:
+        super().__init__(f"quota used ({used})")
+        self.retry_at = retry_at
+        self.used = used
+
+
+class PublishRefused(Exception):
+    """The participant already has ``used`` published entries, the benchmark's cap."""
+
+    def __init__(self, used: int) -> None:
+        super().__init__(f"published entries: {used}")
+        self.used = used
+
+
+@dataclass(frozen=True)
+class BenchmarkRecord:
+    """A benchmark's row: its ground truth, its options (``config``), its period and its state."""
+
+    name: str
+    title: str
+    description: str
+    gt_name: str
+    project: str | None  # the ground truth's project when the benchmark was created (None: shared)
+    config: Mapping[str, Any]  # protocol, classes, sets, key, columns, quota, split_percent
+    public: bool
+    opens_at: datetime
+    closes_at: datetime | None
+    closed: bool  # closed by hand (whatever closes_at says)
+    revealed: bool  # the private ranking is shown
+    created_at: datetime
+    split_seed: str | None = None  # secret: draws the public part of the test frames
+    max_published: int | None = None  # published entries per participant (None: no cap)
+
+
+@dataclass(frozen=True)
+class SubmissionRecord:
+    """A participant's submission: the predictions file, its scores and, once published, its board entry."""
+
+    id: str
+    benchmark: str
+    participant: str
+    created_at: datetime
+    status: str  # accepted | scored | failed
+    pred_filename: str
+    pred_sha256: str
+    pred_size: int
+    gt_sha256: str | None = None  # the ground truth it was last scored against
+    scored_at: datetime | None = None
+    result: Mapping[str, Any] | None = None  # the (sealed) evaluation document on every test frame
+    scores: Mapping[str, Mapping[str, float | None]] | None = None  # {"all"|"public"|"private": {column: AP}}
+    public_result: Mapping[str, Any] | None = None  # a split benchmark's: the (sealed) document on the public part
+    published: bool = False
+    method: str | None = None
+    anonymous: bool = False
+    affiliation: str | None = None
+    link: str | None = None
+    published_at: datetime | None = None
+    disqualified: bool = False
+
+
+class BenchmarkStore(Area):
+    """Benchmarks and their submissions, with the quota counted and applied in one transaction."""
+
+    @retry_when_locked
+    def add_benchmark(self, record: BenchmarkRecord) -> bool:
+        """False if the name is taken."""
+        return self._insert(benchmarks, **record.__dict__)
+
+    @retry_when_locked
+    def get_benchmark(self, name: str) -> BenchmarkRecord | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(benchmarks).where(benchmarks.c.name == name)).mappings().first()
+        return None if row is None else self._benchmark(row)
+
+    @retry_when_locked
+    def list_benchmarks(self) -> list[BenchmarkRecord]:
+        with self.engine.connect() as conn:
+            rows = conn.execute(select(benchmarks).order_by(benchmarks.c.name)).mappings().all()
+        return [self._benchmark(r) for r in rows]
+
+    @retry_when_locked
+    def benchmarks_using(self, gt_name: str) -> list[BenchmarkRecord]:
+        """The benchmarks whose test set is the ground truth named ``gt_name``, by name."""
+        query = select(benchmarks).where(benchmarks.c.gt_name == gt_name).order_by(benchmarks.c.name)
+        with self.engine.connect() as conn:
+            rows = conn.execute(query).mappings().all()
+        return [self._benchmark(r) for r in rows]
+
+    @retry_when_locked
+    def update_benchmark(self, name: str, **values: Any) -> bool:
+        with self.engine.begin() as conn:
+            done = conn.execute(update(benchmarks).where(benchmarks.c.name == name).values(**values))
+        return bool(done.rowcount)
+
+    @contextlib.contextmanager
+    def _holding(self, benchmark: str, participant: str) -> Iterator[Connection]:
+        """One transaction that holds a write lock for the (benchmark, participant) pair: on PostgreSQL the
+        pair's row in ``quota_locks`` (``SELECT ... FOR UPDATE``), on SQLite the database's write lock
+        (``BEGIN IMMEDIATE``). What is counted in it, from any number of servers on the database, is counted
+        one transaction after another. Committed when the block ends, rolled back when it raises."""
+        if self.dialect == "postgresql":
+            from sqlalchemy.dialects.postgresql import insert as pg_insert
+
+            with self.engine.begin() as conn:
+                conn.execute(
+                    pg_insert(quota_locks).values(benchmark=benchmark, participant=participant).on_conflict_do_nothing()
+                )
+                conn.execute(
+                    select(quota_locks.c.benchmark)
+                    .where(quota_locks.c.benchmark == benchmark, quota_locks.c.participant == participant)
+                    .with_for_update()
+                )
+                yield conn
+            return
+        with self.engine.connect() as conn:
+            conn.exec_driver_sql("BEGIN IMMEDIATE")
+            try:
+                yield conn
+                conn.commit()
+            except BaseException:
+                conn.rollback()
+                raise
+
+    @retry_when_locked
+    def accept_submission(
+        self, record: SubmissionRecord, *, limit: int, window_start: datetime, window: timedelta
+    ) -> None:
+        """Insert the submission if its participant has fewer than ``limit`` submissions in this benchmark
+        since ``window_start``; else raise :class:`QuotaRefused`. Counting and inserting are one transaction
+        holding the (benchmark, participant) pair's lock, so concurrent submissions, from any number of
+        servers on the database, are counted one after another and none is admitted over the limit."""
+        count_query = select(func.count(), func.min(submissions.c.created_at)).where(
+            submissions.c.benchmark == record.benchmark,
+            submissions.c.participant == record.participant,
+            submissions.c.created_at > window_start,
+            submissions.c.status != "failed",
+        )
+        with self._holding(record.benchmark, record.participant) as conn:
+            used, oldest = conn.execute(count_query).one()
+            if used >= limit:
+                raise QuotaRefused(utc(oldest) + window, used)
+            conn.execute(insert(submissions).values(**record.__dict__))
+
+    @retry_when_locked
+    def publish_submission(self, record: SubmissionRecord, *, cap: int | None, **values: Any) -> None:
+        """Publish the submission with ``values`` (method, anonymous, ...) unless its participant already has
+        ``cap`` other entries published (and not disqualified) in the benchmark: then raise
+        :class:`PublishRefused`. Counted and written in one transaction under the (benchmark, participant)
+        lock, so parallel publishes never pass the cap."""
+        publish = update(submissions).where(submissions.c.id == record.id).values(published=True, **values)
+        if cap is None:
+            with self.engine.begin() as conn:
+                conn.execute(publish)
+            return
+        count_query = select(func.count()).where(
+            submissions.c.benchmark == record.benchmark,
+            submissions.c.participant == record.participant,
+            submissions.c.published.is_(True),
+            submissions.c.disqualified.is_(False),
+            submissions.c.id != record.id,
+        )
+        with self._holding(record.benchmark, record.participant) as conn:
+            used = conn.execute(count_query).scalar_one()
+            if used >= cap:
+                raise PublishRefused(used)
+            conn.execute(publish)
+
+    @retry_when_locked
+    def update_submission(self, submission_id: str, **values: Any) -> bool:
+        with self.engine.begin() as conn:
+            done = conn.execute(update(submissions).where(submissions.c.id == submission_id).values(**values))
+        return bool(done.rowcount)
+
+    @retry_when_locked
+    def get_submission(self, submission_id: str) -> SubmissionRecord | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(submissions).where(submissions.c.id == submission_id)).mappings().first()
+        return None if row is None else self._submission(row)
+
+    @retry_when_locked
+    def list_submissions(
+        self, benchmark: str, *, participant: str | None = None, published_only: bool = False
+    ) -> list[SubmissionRecord]:
+        """Oldest first."""
+        query = select(submissions).where(submissions.c.benchmark == benchmark)
+        if participant is not None:
+            query = query.where(submissions.c.participant == participant)
+        if published_only:
+            query = query.where(submissions.c.published.is_(True), submissions.c.disqualified.is_(False))
+        query = query.order_by(submissions.c.created_at, submissions.c.id)
+        with self.engine.connect() as conn:
+            rows = conn.execute(query).mappings().all()
+        return [self._submission(r) for r in rows]
+
+    @staticmethod
+    def _benchmark(row: RowMapping) -> BenchmarkRecord:
+        return BenchmarkRecord(**dated(row, "opens_at", "closes_at", "created_at"))
+
+    @staticmethod
+    def _submission(row: RowMapping) -> SubmissionRecord:
+        return SubmissionRecord(**dated(row, "created_at", "scored_at", "published_at"))

@@ -1,0 +1,409 @@
+"""The shared part of the database: the SQLAlchemy 2 Core tables, the engine, the schema and its upgrades, and
+the retry of a call that found SQLite locked. Each area of the store (:mod:`.ground_truth_store`,
+:mod:`.evaluation_store`, :mod:`.account_store`, :mod:`.benchmark_store`) reads and writes its tables
+through one :class:`Database`.
+
+SQLite (the default, one file in the data folder) runs in WAL mode with ``synchronous=FULL``; PostgreSQL is
+reached through psycopg 3. Every write is one transaction committed before the method returns, so a
+caller that answers 2xx after it has a durable row.
+"""
+
+from __future__ import annotations
+
+import functools
+import sqlite3
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from datetime import datetime, timezone
+from typing import Any, TypeVar
+
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Boolean,
+    Column,
+    DateTime,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    MetaData,
+    String,
+    Table,
+    create_engine,
+    event,
+    insert,
+    inspect,
+    text,
+)
+from sqlalchemy.dialects.postgresql import JSONB
+from sqlalchemy.engine import Engine, RowMapping
+from sqlalchemy.exc import IntegrityError, OperationalError
+
+__all__ = [
+    "Database",
+    "Area",
+    "retry_when_locked",
+    "new_id",
+    "utc",
+    "dated",
+    "metadata",
+    "ground_truths",
+    "ground_truth_files",
+    "evaluations",
+    "evaluation_labels",
+    "prediction_files",
+    "users",
+    "projects",
+    "memberships",
+    "tokens",
+    "audit",
+    "benchmarks",
+    "submissions",
+    "quota_locks",
+]
+
+metadata = MetaData()
+_JSON = JSON().with_variant(JSONB(), "postgresql")
+
+ground_truths = Table(
+    "ground_truths",
+    metadata,
+    Column("name", String(64), primary_key=True),
+    Column("sha256", String(64), nullable=False),
+    Column("format", String(16), nullable=False),  # pickle | zip | tar
+    Column("filename", String(255), nullable=False),  # the uploader's name for the file
+    Column("storage", String(255), nullable=False),  # path under the data folder
+    Column("size_bytes", BigInteger, nullable=False),
+    Column("frames", Integer, nullable=False),
+    Column("boxes", Integer, nullable=False),
+    Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("project", String(64), nullable=True),  # None: shared by every project (and open mode's)
+    Column("sealed", Boolean, nullable=False, default=False),  # no per-frame view ever leaves the service
+)
+
+#: the registered files themselves, by content, so that any server on the same database can load them
+ground_truth_files = Table(
+    "ground_truth_files",
+    metadata,
+    Column("sha256", String(64), primary_key=True),
+    Column("content", LargeBinary, nullable=False),
+)
+
+evaluations = Table(
+    "evaluations",
+    metadata,
+    Column("id", String(32), primary_key=True),
+    Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("gt_name", String(64), nullable=True),  # None: ground truth uploaded with the request
+    Column("gt_sha256", String(64), nullable=False),
+    Column("pred_filename", String(255), nullable=False),
+    Column("pred_sha256", String(64), nullable=False),
+    Column("pred_format", String(16), nullable=False),
+    Column("pred_size", BigInteger, nullable=False),
+    Column("protocol", String(16), nullable=False),
+    Column("duration_ms", Float, nullable=False),
+    Column("summary", _JSON, nullable=False),  # strict R40 moderate AP per class and metric
+    Column("result", _JSON, nullable=False),  # the document `kitti-eval --format json` prints
+    Column("options", _JSON, nullable=True),  # the request's options (None: stored before they were)
+    Column("project", String(64), nullable=True),  # None: made in open mode (admins only see it in accounts mode)
+    Index("ix_evaluations_created", "created_at", "id"),
+    Index("ix_evaluations_gt", "gt_name", "created_at"),
+)
+
+#: uploaded predictions by content, kept so that frames of an evaluation can be looked at later
+prediction_files = Table(
+    "prediction_files",
+    metadata,
+    Column("sha256", String(64), primary_key=True),
+    Column("content", LargeBinary, nullable=False),
+)
+
+evaluation_labels = Table(
+    "evaluation_labels",
+    metadata,
+    Column("evaluation_id", String(32), ForeignKey("evaluations.id", ondelete="CASCADE"), primary_key=True),
+    Column("key", String(64), primary_key=True),
+    Column("value", String(256), nullable=False),
+    Index("ix_labels_key_value", "key", "value"),
+)
+
+
+users = Table(
+    "users",
+    metadata,
+    Column("name", String(64), primary_key=True),
+    Column("is_admin", Boolean, nullable=False),
+    Column("created_at", DateTime(timezone=True), nullable=False),
+)
+
+projects = Table(
+    "projects",
+    metadata,
+    Column("name", String(64), primary_key=True),
+    Column("created_at", DateTime(timezone=True), nullable=False),
+)
+
+memberships = Table(
+    "memberships",
+    metadata,
+    Column("user_name", String(64), ForeignKey("users.name", ondelete="CASCADE"), primary_key=True),
+    Column("project", String(64), ForeignKey("projects.name", ondelete="CASCADE"), primary_key=True),
+)
+
+#: bearer tokens and web sessions: only the sha256 of the secret is kept, looked up by the public id
+tokens = Table(
+    "tokens",
+    metadata,
+    Column("id", String(32), primary_key=True),
+    Column("user_name", String(64), ForeignKey("users.name", ondelete="CASCADE"), nullable=False),
+    Column("kind", String(16), nullable=False),  # token | session
+    Column("parent", String(32), nullable=True),  # a session: the token it was opened with
+    Column("secret_sha256", String(64), nullable=False),
+    Column("scopes", String(64), nullable=False),  # comma-separated: read, write
+    Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("expires_at", DateTime(timezone=True), nullable=True),
+    Column("revoked_at", DateTime(timezone=True), nullable=True),
+    Index("ix_tokens_parent", "parent"),
+)
+
+#: admin actions and refused token uses (never a token itself)
+audit = Table(
+    "audit",
+    metadata,
+    Column("id", Integer, primary_key=True, autoincrement=True),
+    Column("at", DateTime(timezone=True), nullable=False),
+    Column("actor", String(128), nullable=False),  # user name and token id, "admin-token", "cli:<os user>"
+    Column("action", String(64), nullable=False),
+    Column("target", String(256), nullable=False),
+    Column("outcome", String(32), nullable=False),  # ok | refused | ...
+    Column("client", String(64), nullable=False),
+    Column("detail", String(512), nullable=False),
+    Index("ix_audit_at", "at"),
+)
+
+
+#: hosted benchmarks on a sealed ground truth (see kitti_eval_server.benchmarks)
+benchmarks = Table(
+    "benchmarks",
+    metadata,
+    Column("name", String(64), primary_key=True),
+    Column("title", String(200), nullable=False),
+    Column("description", String(20000), nullable=False),
+    Column("gt_name", String(64), nullable=False),
+    Column("project", String(64), nullable=True),  # the ground truth's project (None: shared)
+    Column("config", _JSON, nullable=False),  # options, key, columns, quota, split percent
+    Column("split_seed", String(64), nullable=True),  # secret: draws the public part of the test frames
+    Column("public", Boolean, nullable=False),
+    Column("opens_at", DateTime(timezone=True), nullable=False),
+    Column("closes_at", DateTime(timezone=True), nullable=True),
+    Column("closed", Boolean, nullable=False),  # closed by hand (whatever closes_at says)
+    Column("revealed", Boolean, nullable=False),  # the private ranking is shown
+    Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("max_published", Integer, nullable=True),  # published entries per participant (None: no cap)
+)
+
+submissions = Table(
+    "submissions",
+    metadata,
+    Column("id", String(32), primary_key=True),
+    Column("benchmark", String(64), ForeignKey("benchmarks.name", ondelete="CASCADE"), nullable=False),
+    Column("participant", String(64), nullable=False),
+    Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("status", String(16), nullable=False),  # accepted | scored | failed
+    Column("pred_filename", String(255), nullable=False),
+    Column("pred_sha256", String(64), nullable=False),
+    Column("pred_size", BigInteger, nullable=False),
+    Column("gt_sha256", String(64), nullable=True),  # the ground truth it was last scored against
+    Column("scored_at", DateTime(timezone=True), nullable=True),
+    Column("result", _JSON, nullable=True),  # the (sealed) evaluation document on every test frame
+    Column("scores", _JSON, nullable=True),  # {"all"|"public"|"private": {column: AP}}
+    Column("public_result", _JSON, nullable=True),  # a split benchmark's: the (sealed) document on the public part
+    Column("published", Boolean, nullable=False),
+    Column("method", String(100), nullable=True),
+    Column("anonymous", Boolean, nullable=False),
+    Column("affiliation", String(200), nullable=True),
+    Column("link", String(500), nullable=True),
+    Column("published_at", DateTime(timezone=True), nullable=True),
+    Column("disqualified", Boolean, nullable=False),
+    Index("ix_submissions_quota", "benchmark", "participant", "created_at"),
+)
+
+#: one row per (benchmark, participant), locked while a submission is counted against the quota
+quota_locks = Table(
+    "quota_locks",
+    metadata,
+    Column("benchmark", String(64), primary_key=True),
+    Column("participant", String(64), primary_key=True),
+)
+
+
+#: columns added since the first release, by table, with their SQL kinds ("{json}": the dialect's JSON): a
+#: database made by an earlier version gets them when the schema is created
+_ADDED_COLUMNS = {
+    "evaluations": {"options": "{json}", "project": "VARCHAR(64)"},
+    "ground_truths": {"project": "VARCHAR(64)", "sealed": "BOOLEAN NOT NULL DEFAULT FALSE"},
+    "benchmarks": {"max_published": "INTEGER"},
+    "submissions": {"public_result": "{json}"},
+}
+
+#: the PostgreSQL advisory lock held while the schema is created or upgraded (any fixed 64-bit number)
+_SCHEMA_LOCK = 0x6B69747469657661  # "kittieva"
+
+
+def utc(value: datetime) -> datetime:
+    return value if value.tzinfo else value.replace(tzinfo=timezone.utc)  # SQLite keeps no zone
+
+
+def dated(row: RowMapping, *keys: str) -> dict[str, Any]:
+    """The row as a dict, its times at ``keys`` given their zone."""
+    values = dict(row)
+    for key in keys:
+        if values.get(key) is not None:
+            values[key] = utc(values[key])
+    return values
+
+
+def new_id() -> str:
+    return uuid.uuid4().hex
+
+
+def _sqlite_pragmas(busy_ms: int) -> Callable[[Any, Any], None]:
+    def on_connect(dbapi_connection: Any, _record: Any) -> None:
+        cursor = dbapi_connection.cursor()
+        cursor.execute("PRAGMA journal_mode=WAL")
+        cursor.execute("PRAGMA synchronous=FULL")  # WAL + FULL: a committed row survives a crash and power loss
+        cursor.execute("PRAGMA foreign_keys=ON")
+        cursor.execute(f"PRAGMA busy_timeout={busy_ms}")
+        cursor.close()
+
+    return on_connect
+
+
+#: SQLite's primary result codes for "another connection holds the lock"
+_SQLITE_BUSY, _SQLITE_LOCKED = 5, 6
+#: the longest one attempt waits for a SQLite lock (SQLite's own busy handler), and the pauses between attempts
+_ATTEMPT_S = 1.0
+_FIRST_PAUSE_S, _LONGEST_PAUSE_S = 0.02, 0.5
+
+F = TypeVar("F", bound=Callable[..., Any])
+_retrying = threading.local()
+
+
+def _locked(exc: OperationalError) -> bool:
+    """SQLite's "database is locked" (or "database table is locked")."""
+    orig = exc.orig
+    return isinstance(orig, sqlite3.Error) and getattr(orig, "sqlite_errorcode", -1) & 0xFF in (
+        _SQLITE_BUSY,
+        _SQLITE_LOCKED,
+    )
+
+
+def retry_when_locked(method: F) -> F:
+    """Run a method of the :class:`Database` or of an :class:`Area` again, after a short pause growing from
+    20 ms to 0.5 s, while SQLite says the database is locked (another process writing: a CLI command, a
+    second worker, a backup holding a lock), until :attr:`Database.busy_s` has passed; then the last error is
+    raised. Each attempt is one transaction, rolled back when it fails, so running it again is safe. Calls
+    from inside a retried method are not retried on their own (one budget a call)."""
+
+    @functools.wraps(method)
+    def wrapper(self: Database | Area, *args: Any, **kwargs: Any) -> Any:
+        db = self if isinstance(self, Database) else self.db
+        if db.busy_s is None or getattr(_retrying, "active", False):
+            return method(self, *args, **kwargs)
+        deadline = time.monotonic() + db.busy_s
+        pause = _FIRST_PAUSE_S
+        _retrying.active = True
+        try:
+            while True:
+                try:
+                    return method(self, *args, **kwargs)
+                except OperationalError as e:
+                    if not _locked(e) or time.monotonic() + pause >= deadline:
+                        raise
+                    db.lock_retries += 1
+                time.sleep(pause)
+                pause = min(2 * pause, _LONGEST_PAUSE_S)
+        finally:
+            _retrying.active = False
+
+    return wrapper  # type: ignore[return-value]
+
+
+class Database:
+    """The engine on SQLite or PostgreSQL, the schema, and what the areas of the store share."""
+
+    def __init__(self, url: str, *, busy_s: float = 10.0) -> None:
+        """``busy_s``: how long a SQLite call keeps trying while another connection holds the write lock
+        (:func:`retry_when_locked`). PostgreSQL connections are checked before each use
+        (``pool_pre_ping``), so the pool drops the ones a restarted server closed instead of failing a
+        request with them."""
+        #: SQLite only: the retry budget of a locked database (None: PostgreSQL, whose locks wait themselves)
+        self.busy_s: float | None = None
+        #: attempts run again because the database was locked (for the tests and the curious)
+        self.lock_retries = 0
+        if url.startswith("sqlite"):
+            self.busy_s = busy_s
+            attempt = min(_ATTEMPT_S, busy_s / 4)
+            self.engine: Engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": attempt})
+            event.listen(self.engine, "connect", _sqlite_pragmas(max(1, round(attempt * 1000))))
+        else:
+            self.engine = create_engine(url, pool_pre_ping=True, pool_size=5, max_overflow=10)
+        self.dialect = self.engine.dialect.name
+
+    @retry_when_locked
+    def create_schema(self) -> None:
+        """Create missing tables, and add the columns a database made by an earlier version lacks
+        (``_ADDED_COLUMNS``).
+
+        On PostgreSQL this runs in one transaction under an advisory lock: servers started together on one
+        empty database (replicas rolled out at once) would otherwise all issue the same CREATE TABLE, and
+        all but one fail at start-up (a unique violation in PostgreSQL's catalog). The others wait for the
+        lock, then find the tables there."""
+        with self.engine.begin() as conn:
+            if self.dialect == "postgresql":
+                conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _SCHEMA_LOCK})
+            metadata.create_all(conn)
+            json_kind = "JSONB" if self.dialect == "postgresql" else "JSON"
+            for table, columns in _ADDED_COLUMNS.items():
+                present = {c["name"] for c in inspect(conn).get_columns(table)}
+                for column, kind in columns.items():
+                    if column not in present:
+                        kind = kind.format(json=json_kind)
+                        conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {column} {kind}"))
+
+    @retry_when_locked
+    def ping(self) -> None:
+        with self.engine.connect() as conn:
+            conn.execute(text("SELECT 1"))
+
+    def dispose(self) -> None:
+        self.engine.dispose()
+
+
+class Area:
+    """One area of the store (its records' reads and writes) on a shared :class:`Database`."""
+
+    def __init__(self, db: Database) -> None:
+        self.db = db
+
+    @property
+    def engine(self) -> Engine:
+        return self.db.engine
+
+    @property
+    def dialect(self) -> str:
+        return self.db.dialect
+
+    @retry_when_locked
+    def _insert(self, table: Table, **values: Any) -> bool:
+        """Insert one row; False if its key is taken."""
+        try:
+            with self.engine.begin() as conn:
+                conn.execute(insert(table).values(**values))
+        except IntegrityError:
+            return False
+        return True

@@ -1,0 +1,117 @@
+"""The store's ground truths (registrations and their files, kept by content) and kept prediction files."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime
+
+from sqlalchemy import delete, func, insert, select
+from sqlalchemy.engine import RowMapping
+from sqlalchemy.exc import IntegrityError
+
+from .database import Area, ground_truth_files, ground_truths, prediction_files, retry_when_locked, utc
+
+__all__ = ["GroundTruthRecord", "GroundTruthStore"]
+
+
+@dataclass(frozen=True)
+class GroundTruthRecord:
+    name: str
+    sha256: str
+    format: str
+    filename: str
+    storage: str
+    size_bytes: int
+    frames: int
+    boxes: int
+    created_at: datetime
+    project: str | None = None
+    sealed: bool = False
+
+
+class GroundTruthStore(Area):
+    """Named ground truths with their files, and the prediction files kept for later looks at frames."""
+
+    @retry_when_locked
+    def add_ground_truth(self, record: GroundTruthRecord, content: bytes) -> bool:
+        """Insert the record and (once per sha256) its file; False if the name is taken (nothing changed)."""
+        for _ in range(2):  # a concurrent registration of the same file may insert its content first
+            try:
+                with self.engine.begin() as conn:
+                    known = conn.execute(
+                        select(ground_truth_files.c.sha256).where(ground_truth_files.c.sha256 == record.sha256)
+                    ).first()
+                    if known is None:
+                        conn.execute(insert(ground_truth_files).values(sha256=record.sha256, content=content))
+                    conn.execute(insert(ground_truths).values(**record.__dict__))
+                return True
+            except IntegrityError:
+                if self.get_ground_truth(record.name) is not None:
+                    return False
+        return False
+
+    @retry_when_locked
+    def ground_truth_content(self, sha256: str) -> bytes | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(
+                select(ground_truth_files.c.content).where(ground_truth_files.c.sha256 == sha256)
+            ).first()
+        return None if row is None else bytes(row[0])
+
+    @retry_when_locked
+    def get_ground_truth(self, name: str) -> GroundTruthRecord | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(ground_truths).where(ground_truths.c.name == name)).mappings().first()
+        return None if row is None else self._gt(row)
+
+    @retry_when_locked
+    def list_ground_truths(self, *, projects: frozenset[str] | None = None) -> list[GroundTruthRecord]:
+        """By name; ``projects``: only those of these projects and the shared ones (None: all)."""
+        query = select(ground_truths).order_by(ground_truths.c.name)
+        if projects is not None:
+            query = query.where(ground_truths.c.project.is_(None) | ground_truths.c.project.in_(sorted(projects)))
+        with self.engine.connect() as conn:
+            rows = conn.execute(query).mappings().all()
+        return [self._gt(r) for r in rows]
+
+    @retry_when_locked
+    def delete_ground_truth(self, name: str) -> tuple[GroundTruthRecord | None, bool]:
+        """Delete by name: (the deleted record or None, whether another name still uses the same file)."""
+        with self.engine.begin() as conn:
+            row = conn.execute(select(ground_truths).where(ground_truths.c.name == name)).mappings().first()
+            if row is None:
+                return None, False
+            conn.execute(delete(ground_truths).where(ground_truths.c.name == name))
+            shared = conn.execute(
+                select(func.count()).select_from(ground_truths).where(ground_truths.c.sha256 == row["sha256"])
+            ).scalar_one()
+            if not shared:
+                conn.execute(delete(ground_truth_files).where(ground_truth_files.c.sha256 == row["sha256"]))
+        return self._gt(row), bool(shared)
+
+    @staticmethod
+    def _gt(row: RowMapping) -> GroundTruthRecord:
+        values = dict(row)
+        values["created_at"] = utc(values["created_at"])
+        values["sealed"] = bool(values.get("sealed"))
+        return GroundTruthRecord(**values)
+
+    # -- predictions -----------------------------------------------------------------------------------
+    @retry_when_locked
+    def add_prediction_file(self, sha256: str, content: bytes) -> None:
+        """Keep an uploaded predictions file (once per content)."""
+        try:
+            with self.engine.begin() as conn:
+                if (
+                    conn.execute(select(prediction_files.c.sha256).where(prediction_files.c.sha256 == sha256)).first()
+                    is None
+                ):
+                    conn.execute(insert(prediction_files).values(sha256=sha256, content=content))
+        except IntegrityError:  # the same file, kept concurrently by another request
+            pass
+
+    @retry_when_locked
+    def prediction_content(self, sha256: str) -> bytes | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(prediction_files.c.content).where(prediction_files.c.sha256 == sha256)).first()
+        return None if row is None else bytes(row[0])
