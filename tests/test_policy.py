@@ -221,3 +221,117 @@ def test_a_member_of_a_project_sees_and_changes_what_the_policy_says(tmp_path) -
         assert c.get(f"/v1/evaluations/{theirs}", headers=teams.headers("bob")).status_code == 200
         r = c.post("/v1/evaluations", data={"gt": "gt-a"}, headers=teams.headers("alice-ro"))
         assert r.status_code == 403 and "read-only" in r.text
+
+
+# ------------------------------------------------------------------------- every route, through the policy
+
+
+def _spied_methods(service) -> list[tuple[object, str]]:
+    """(part, method name) of every method of the service's parts that takes a caller."""
+    found = []
+    for part in (service.evaluations, service.catalog, service.benchmarks, service.accounts):
+        for name, fn in inspect.getmembers(type(part), inspect.isfunction):
+            if not name.startswith("_") and "caller" in inspect.signature(fn).parameters:
+                found.append((part, name))
+    return found
+
+
+def test_every_route_reaches_the_services_with_a_caller_the_policy_decided(tmp_path, monkeypatch) -> None:
+    """Walk every route of the app as an admin, a member, a read-only member and without a token; every
+    call of a service method that takes a caller gets one the policy admitted for the request (or the accounts
+    resolved from a token, for the sign-in form), never one a route made up; nothing answers 5xx."""
+    from server_helpers import golden_bytes
+    from test_server_sweep import ENDPOINTS
+
+    with app_client(tmp_path / "data", auth="accounts", auth_max_failures=1_000_000) as c:
+        teams = make_teams(c)
+        files = {"file": ("kitti_infos_val.pkl", golden_bytes("kitti_infos_val.pkl"))}
+        ok(c.post("/v1/ground-truths", data={"name": "test-set", "sealed": "true"}, files=files, headers=ADMIN), 201)
+        body = {"name": "bench", "ground_truth": "test-set", "quota": "100/1", "public": True}
+        ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)
+        pred = {"predictions": ("result.pkl", golden_bytes("result.pkl"))}
+        submission = ok(c.post("/v1/benchmarks/bench/submissions", files=pred, headers=teams.headers("alice")), 201)
+        service = c.app.state.service
+
+        decided: list[object] = []
+        admit, resolve = service.policy.admit, service.accounts.resolve
+
+        def admitted(*args, **kwargs):
+            caller = admit(*args, **kwargs)
+            decided.append(caller)
+            return caller
+
+        def resolved(*args, **kwargs):
+            caller = resolve(*args, **kwargs)
+            decided.append(caller)
+            return caller
+
+        calls: list[str] = []
+        strays: list[str] = []
+
+        def spy(part, name):
+            method = getattr(part, name)
+            signature = inspect.signature(method)
+
+            def wrapper(*args, **kwargs):
+                caller = signature.bind(*args, **kwargs).arguments["caller"]
+                calls.append(f"{type(part).__name__}.{name}")
+                base = getattr(caller, "token_id", None), getattr(caller, "name", None)
+                # the sign-in form's session is opened for the resolved caller, seen from the client's address
+                if not any(caller is d or (name == "open_session" and base == (d.token_id, d.name)) for d in decided):
+                    strays.append(f"{type(part).__name__}.{name}: {caller!r}")
+                return method(*args, **kwargs)
+
+            return wrapper
+
+        monkeypatch.setattr(service.policy, "admit", admitted)
+        monkeypatch.setattr(service.accounts, "resolve", resolved)
+        for part, name in _spied_methods(service):
+            monkeypatch.setattr(part, name, spy(part, name))
+
+        values = {
+            "evaluation_id": teams.evaluations["gt-a"],
+            "other_id": teams.evaluations["sealed-a"],
+            "name": "bench",
+            "submission_id": submission["id"],
+            "frame_id": "000001",
+            "user": "alice",
+            "project": "team-a",
+            "token_id": teams.token_ids["carol"],
+            "path": "app.css",
+        }
+        roles = {"admin": ADMIN, "alice": teams.headers("alice"), "alice-ro": teams.headers("alice-ro"), "none": {}}
+        statuses = []
+        for endpoint in ENDPOINTS:
+            if endpoint.method == "DELETE" and endpoint.path.startswith(("/v1/admin", "/v1/ground-truths")):
+                continue  # the walk keeps its world
+            path = endpoint.path
+            for p in endpoint.path_params:
+                path = path.replace("{" + p + "}", values.get(p, "x"))
+            if path.endswith("/v1/benchmarks/bench/close"):
+                continue  # keeps the benchmark open for the routes after it
+            query = f"?evaluation={values['evaluation_id']}" if "evaluation" in endpoint.query else ""
+            for role, headers in roles.items():
+                c.cookies.clear()
+                kwargs: dict = {"headers": headers}
+                if endpoint.method == "POST" and endpoint.files:
+                    kwargs["files"] = pred if "predictions" in endpoint.files else files
+                    kwargs["data"] = {"gt": "gt-a", "name": "walked", "project": "team-a"}
+                elif endpoint.method == "POST" and endpoint.json_fields:
+                    kwargs["json"] = {"name": "walked", "user": "alice", "project": "team-a", "method": "m"}
+                r = c.request(endpoint.method, path + query, **kwargs)
+                statuses.append((endpoint.id, role, r.status_code))
+                assert r.status_code < 500, (endpoint.id, role, r.text[:300])
+        assert strays == []
+        reached = set(calls)
+        assert len(reached) >= 20, sorted(reached)  # the walk reached the services, or it proves nothing
+        for expected in (
+            "Evaluations.evaluate",
+            "Evaluations.get",
+            "GroundTruthCatalog.listed",
+            "Benchmarks.leaderboard",
+        ):
+            assert expected in reached
+        assert any(s == 200 for _, role, s in statuses if role == "none")  # public routes answered anonymously
+        anonymous = {(e, s) for e, role, s in statuses if role == "none" and not (s in (401, 404, 405) or s < 300)}
+        assert anonymous == {("POST /signin", 403)}  # the sign-in form without its own CSRF cookie
