@@ -199,7 +199,12 @@ class Evaluations:
         if not caller.signed_in:
             return []
         return self.store.list_evaluations(
-            gt_name=gt_name, labels=labels, limit=limit, offset=offset, projects=self.policy.project_filter(caller)
+            gt_name=gt_name,
+            labels=labels,
+            limit=limit,
+            offset=offset,
+            projects=self.policy.project_filter(caller),
+            hidden_gt_names=self.policy.hidden_ground_truths(caller),
         )
 
     # -- frames ------------------------------------------------------------------------------------------

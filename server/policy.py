@@ -20,7 +20,7 @@ apply. The README's table "Who may do what" is checked against :data:`RULES` by 
 from __future__ import annotations
 
 import hmac
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Protocol
@@ -105,9 +105,12 @@ class Caller:
         return replace(self, client=client)
 
 
-class _Projected(Protocol):
+class _Evaluation(Protocol):
     @property
     def project(self) -> str | None: ...
+
+    @property
+    def gt_name(self) -> str | None: ...
 
 
 class _GroundTruth(Protocol):
@@ -127,7 +130,12 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
     ("probes, sign-in page, static files", Access.PUBLIC, "yes", "yes"),
     ("public benchmarks: description, frame ids, board", Access.ANYONE, "yes (no token needed)", "yes"),
     ("private benchmarks: description, frame ids, board", Access.READER, "members of its project", "yes"),
-    ("evaluations: list, read, compare, gates", Access.READER, "their projects' and shared", "all"),
+    (
+        "evaluations: list, read, compare, gates",
+        Access.READER,
+        "their projects', none on a benchmark's test set",
+        "all",
+    ),
     ("evaluations: upload", Access.WRITER, "into their projects, not against a benchmark's test set", "all"),
     ("frames of an evaluation", Access.READER, "their projects', never of a sealed ground truth", "never sealed"),
     ("ground truths: list, read", Access.READER, "their projects' and shared", "all"),
@@ -143,8 +151,8 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
 
 class Policy:
     """Every "may this caller see / do this" of the service. Stateless but for the mode and the tokens it
-    compares; what it needs to know about a benchmark's test sets it asks ``test_sets`` (the names of the
-    benchmarks that use a ground truth)."""
+    compares; what it needs to know about the benchmarks' test sets it asks ``test_sets`` (ground truth name
+    -> the names of the benchmarks whose test set it is)."""
 
     def __init__(
         self,
@@ -152,7 +160,7 @@ class Policy:
         *,
         admin_token: Callable[[], str],
         metrics_token: Callable[[], str | None] = lambda: None,
-        test_sets: Callable[[str], Sequence[str]] = lambda name: (),
+        test_sets: Callable[[], Mapping[str, Sequence[str]]] = dict,
     ) -> None:
         self.mode = mode
         self._admin_token = admin_token
@@ -249,10 +257,19 @@ class Policy:
             return False
         return record.project is None or self.sees_project(caller, record.project)
 
-    def sees_evaluation(self, caller: Caller, record: _Projected) -> bool:
-        return caller.signed_in and self.sees_project(caller, record.project)
+    def sees_evaluation(self, caller: Caller, record: _Evaluation) -> bool:
+        """Their projects' evaluations; none against a benchmark's test set but an admin's (one made before the
+        benchmark existed would score the test set beyond the quota)."""
+        if not caller.signed_in or not self.sees_project(caller, record.project):
+            return False
+        return caller.is_admin or record.gt_name is None or record.gt_name not in self._test_sets()
 
-    def require_evaluation(self, caller: Caller, record: _Projected | None, evaluation_id: str) -> None:
+    def hidden_ground_truths(self, caller: Caller) -> list[str]:
+        """The ground truths whose evaluations the caller may not list: the benchmarks' test sets, but for
+        admins."""
+        return [] if caller.is_admin else sorted(self._test_sets())
+
+    def require_evaluation(self, caller: Caller, record: _Evaluation | None, evaluation_id: str) -> None:
         """404, the same for another project's evaluation as for a missing one."""
         if record is None or not self.sees_evaluation(caller, record):
             raise NotFound(f"no evaluation with id {echo(evaluation_id)}")
@@ -266,7 +283,7 @@ class Policy:
         admins may evaluate against it (their baselines), audited by the caller."""
         if caller.is_admin:
             return
-        benchmarks = list(self._test_sets(record.name))
+        benchmarks = list(self._test_sets().get(record.name, ()))
         if benchmarks:
             names = ", ".join(repr(b) for b in benchmarks)
             raise Forbidden(
@@ -275,7 +292,7 @@ class Policy:
             )
 
     def is_test_set(self, record: _GroundTruth) -> bool:
-        return bool(list(self._test_sets(record.name)))
+        return record.name in self._test_sets()
 
     def require_frames(self, record: _GroundTruth, evaluation_id: str) -> None:
         """No per-frame view of a sealed ground truth leaves the service, for anyone."""

@@ -57,7 +57,7 @@ class Service:
             AuthMode(settings.auth),
             admin_token=lambda: self.admin_token,
             metrics_token=lambda: settings.metrics_token.get_secret_value() if settings.metrics_token else None,
-            test_sets=self._benchmarks_on,
+            test_sets=self._test_sets,
         )
         self.accounts = Accounts(self.store, self.audit, lambda: self.admin_token)
         self.limiter = FailureLimiter(settings.auth_max_failures, settings.auth_failure_window_s)
@@ -199,6 +199,9 @@ class Service:
     def scratch(self) -> AbstractContextManager[Path]:
         return self.runner.scratch()
 
-    def _benchmarks_on(self, gt_name: str) -> list[str]:
-        """The names of the benchmarks whose test set is the ground truth ``gt_name`` (for the policy)."""
-        return [b.name for b in self.store.benchmarks_using(gt_name)]
+    def _test_sets(self) -> dict[str, list[str]]:
+        """Ground truth name -> the benchmarks whose test set it is (for the policy)."""
+        found: dict[str, list[str]] = {}
+        for bench in self.store.list_benchmarks():
+            found.setdefault(bench.gt_name, []).append(bench.name)
+        return found

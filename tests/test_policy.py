@@ -335,3 +335,27 @@ def test_every_route_reaches_the_services_with_a_caller_the_policy_decided(tmp_p
         assert any(s == 200 for _, role, s in statuses if role == "none")  # public routes answered anonymously
         anonymous = {(e, s) for e, role, s in statuses if role == "none" and not (s in (401, 404, 405) or s < 300)}
         assert anonymous == {("POST /signin", 403)}  # the sign-in form without its own CSRF cookie
+
+
+def test_an_evaluation_against_a_benchmarks_test_set_scores_nothing_for_a_member(tmp_path) -> None:
+    """Made before the benchmark existed, it would score the test set beyond the quota: once the set is a
+    benchmark's, a member can no longer read, list, gate, compare or look into it; an admin still can."""
+    with app_client(tmp_path / "data", auth="accounts") as c:
+        teams = make_teams(c)
+        old, other = teams.evaluations["sealed-a"], teams.evaluations["gt-a"]
+        alice = teams.headers("alice")
+        assert c.get(f"/v1/evaluations/{old}", headers=alice).status_code == 200  # before: a project's evaluation
+        body = {"name": "bench", "ground_truth": "sealed-a", "quota": "1/30"}
+        ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)
+        assert c.get(f"/v1/evaluations/{old}", headers=alice).status_code == 404
+        listed = [e["id"] for e in ok(c.get("/v1/evaluations", headers=alice))["items"]]
+        assert old not in listed and other in listed
+        assert c.get(f"/v1/evaluations/{old}/compare/{other}", headers=alice).status_code == 404
+        assert (
+            c.post("/v1/gates", json={"evaluation": old, "min": ["Car/3d/moderate >= 0"]}, headers=alice).status_code
+            == 404
+        )
+        assert c.get(f"/v1/evaluations/{old}/frames", headers=alice).status_code == 404
+        assert f"/evaluations/{old}" not in c.get("/", headers=alice).text
+        assert c.get(f"/v1/evaluations/{old}", headers=teams.headers("root")).status_code == 200
+        assert old in [e["id"] for e in ok(c.get("/v1/evaluations", headers=teams.headers("root")))["items"]]

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from datetime import datetime, timedelta, timezone
 from typing import Any
 from urllib.parse import unquote
@@ -21,11 +22,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from server_accounts import Teams, add_token, bearer, make_teams
-from server_helpers import ADMIN, GOLDEN, app_client
+from server_helpers import ADMIN, GOLDEN, app_client, golden_bytes
 from sqlalchemy import update
 from test_server_sweep import ENDPOINTS, KNOWN, request_for
 
 from kitti_eval.io.loaders import load_ground_truth
+from kitti_eval_server.auth import SESSION_COOKIE
 from kitti_eval_server.policy import Access
 from kitti_eval_server.store import Store, tokens
 
@@ -44,6 +46,7 @@ WRITES = {
     "DELETE /v1/ground-truths/{name}",
 }
 WRITES |= {e.id for e in ENDPOINTS if e.path.startswith("/v1/admin") and e.method in ("POST", "DELETE")}
+WRITES |= {e.id for e in ENDPOINTS if e.path.startswith("/v1/benchmarks") and e.method == "POST"}
 
 
 @pytest.fixture(scope="module")
@@ -59,6 +62,16 @@ def world(tmp_path_factory):
         with store.engine.begin() as conn:
             past = datetime.now(timezone.utc) - timedelta(days=1)
             conn.execute(update(tokens).where(tokens.c.id == expired_id).values(expires_at=past))
+        # a benchmark of team-a's on a sealed set of its own, with one submission of alice's
+        files = {"file": ("kitti_infos_val.pkl", golden_bytes("kitti_infos_val.pkl"))}
+        form = {"name": "bench-set", "project": "team-a", "sealed": "true"}
+        assert c.post("/v1/ground-truths", data=form, files=files, headers=ADMIN).status_code == 201
+        body = {"name": "bench", "ground_truth": "bench-set", "quota": "1000/1"}
+        assert c.post("/v1/benchmarks", json=body, headers=ADMIN).status_code == 201
+        pred = {"predictions": ("result.pkl", golden_bytes("result.pkl"))}
+        r = c.post("/v1/benchmarks/bench/submissions", files=pred, headers=teams.headers("alice"))
+        assert r.status_code == 201, r.text
+        teams.evaluations["bench-submission"] = r.json()["id"]
         KNOWN.evaluation = teams.evaluations["gt-a"]
         KNOWN.values = [
             *teams.evaluations.values(),
@@ -70,6 +83,8 @@ def world(tmp_path_factory):
             "alice",
             "bob",
             *teams.token_ids.values(),
+            "bench",
+            "bench-set",
             "000001",
             "000002",
             "000007",
@@ -79,7 +94,7 @@ def world(tmp_path_factory):
 
 def snapshot(store: Store, *, skip_project: str | None = None) -> dict[str, Any]:
     """What the callers may not change: evaluations (but those of ``skip_project``), ground truths, users,
-    projects, memberships and tokens."""
+    projects, memberships and tokens, benchmarks and their submissions."""
     return {
         "evaluations": sorted(
             (r.id, r.project, r.gt_name) for r in store.list_evaluations(limit=100_000) if r.project != skip_project
@@ -88,6 +103,12 @@ def snapshot(store: Store, *, skip_project: str | None = None) -> dict[str, Any]
         "users": [(u.name, u.is_admin, u.projects) for u in store.list_users()],
         "projects": store.list_projects(),
         "tokens": [(t.id, t.user_name, t.scopes, t.revoked_at is None, t.expires_at) for t in store.list_tokens()],
+        "benchmarks": [(b.name, b.gt_name, b.closed, b.revealed, b.public) for b in store.list_benchmarks()],
+        "submissions": [
+            (x.id, x.participant, x.status, x.published, x.disqualified, x.method)
+            for b in store.list_benchmarks()
+            for x in store.list_submissions(b.name)
+        ],
     }
 
 
@@ -138,7 +159,7 @@ def test_another_projects_member_learns_and_changes_nothing_of_it(world, endpoin
     store: Store = c.app.state.service.store
     before = snapshot(store, skip_project="team-b")  # bob may add evaluations to his own project
     secrets = [teams.evaluations["gt-a"], teams.evaluations["sealed-a"], teams.sha256["gt-a"], "model-of-alice"]
-    secrets += ["gt-a", "sealed-a", "team-a", "alice"]
+    secrets += ["gt-a", "sealed-a", "team-a", "alice", teams.evaluations["bench-submission"], "bench-set"]
 
     @ROLE_SWEEP
     @given(st.data())
@@ -171,6 +192,79 @@ def test_a_read_only_token_changes_nothing(world, endpoint) -> None:
             assert response.status_code >= 400, (request["method"], request["url"][:200], response.text[:300])
 
     sweep()
+    assert snapshot(store) == before
+
+
+# --------------------------------------------------------------------------------- the session cookie alone
+
+CHANGES = [e for e in SWEPT if e.method in ("POST", "PUT", "PATCH", "DELETE") and e.path != "/signin"]
+
+
+def _admin_session(c: Any, teams: Teams) -> str:
+    """An admin's web session (the most a forged request could borrow): the cookie's value."""
+    c.cookies.clear()
+    form = c.get("/signin")
+    csrf = re.search(r'name="csrf" value="([^"]+)"', form.text)
+    assert csrf is not None
+    r = c.post("/signin", data={"token": teams.tokens["root"], "csrf": csrf.group(1)}, follow_redirects=False)
+    assert r.status_code == 303, r.text
+    session = c.cookies[SESSION_COOKIE]
+    c.cookies.clear()
+    return session
+
+
+@pytest.mark.parametrize("endpoint", CHANGES, ids=lambda e: e.id)
+def test_a_session_cookie_alone_changes_nothing(world, endpoint) -> None:
+    """What a page of another site (or another port of this host) can send with the signed-in admin's cookie:
+    every route that changes something, every drawn request, without the session's CSRF token."""
+    c, teams = world
+    store: Store = c.app.state.service.store
+    session = _admin_session(c, teams)
+    before = snapshot(store)
+
+    @ROLE_SWEEP
+    @given(st.data())
+    def sweep(data: st.DataObject) -> None:
+        request = data.draw(request_for(endpoint), label="request")
+        sent = {k: v for k, v in request["headers"].items() if k.lower() not in ("authorization", "x-csrf-token")}
+        sent["cookie"] = f"{SESSION_COOKIE}={session}"
+        c.cookies.clear()
+        response = c.request(request["method"], request["url"], headers=sent, content=request["content"])
+        assert 400 <= response.status_code < 500, (request["method"], request["url"][:200], response.text[:300])
+
+    sweep()
+    assert snapshot(store) == before
+
+
+def test_a_well_formed_change_with_the_session_cookie_alone_is_refused(world) -> None:
+    """The same, with requests that would succeed with the CSRF token: each is 403, and nothing changes."""
+    c, teams = world
+    store: Store = c.app.state.service.store
+    session = _admin_session(c, teams)
+    values = {
+        "evaluation_id": teams.evaluations["gt-a"],
+        "name": "bench",
+        "submission_id": teams.evaluations["bench-submission"],
+        "user": "alice",
+        "project": "team-a",
+        "token_id": teams.token_ids["carol"],
+    }
+    pred = golden_bytes("result.pkl")
+    before = snapshot(store)
+    for endpoint in CHANGES:
+        path = endpoint.path
+        for p in endpoint.path_params:
+            path = path.replace("{" + p + "}", values.get(p, "gt-a"))
+        kwargs: dict[str, Any] = {"headers": {"cookie": f"{SESSION_COOKIE}={session}"}}
+        if endpoint.files:
+            wanted = "predictions" if "predictions" in endpoint.files else endpoint.files[0]
+            kwargs["files"] = {wanted: ("result.pkl", pred)}
+            kwargs["data"] = {"gt": "gt-a", "name": "forged", "project": "team-a"}
+        elif endpoint.json_fields:
+            kwargs["json"] = {"name": "forged", "user": "carol", "project": "team-a", "method": "forged"}
+        c.cookies.clear()
+        response = c.request(endpoint.method, path, **kwargs)
+        assert response.status_code == 403, (endpoint.id, response.status_code, response.text[:300])
     assert snapshot(store) == before
 
 

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import exists, insert, select
+from sqlalchemy import exists, insert, or_, select
 from sqlalchemy.engine import RowMapping
 
 from .database import Area, evaluation_labels, evaluations, retry_when_locked, utc
@@ -73,13 +73,18 @@ class EvaluationStore(Area):
         limit: int = 50,
         offset: int = 0,
         projects: frozenset[str] | None = None,
+        hidden_gt_names: Sequence[str] = (),
     ) -> list[EvaluationRecord]:
         """Newest first, without the full results (the summary is there); ``projects``: only those of these
-        projects (None: all)."""
+        projects (None: all); none against the ground truths ``hidden_gt_names``."""
         columns = [c for c in evaluations.c if c.name != "result"]
         query = select(*columns)
         if projects is not None:
             query = query.where(evaluations.c.project.in_(sorted(projects)))
+        if hidden_gt_names:
+            query = query.where(
+                or_(evaluations.c.gt_name.is_(None), evaluations.c.gt_name.not_in(sorted(hidden_gt_names)))
+            )
         if gt_name is not None:
             query = query.where(evaluations.c.gt_name == gt_name)
         for key, value in (labels or {}).items():
