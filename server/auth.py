@@ -3,9 +3,9 @@
 Each route declares its :class:`~kitti_eval_server.policy.Access` where it is declared (its access dependency
 in :mod:`kitti_eval_server.deps`); the door finds the route a request is for and, in accounts mode, checks the
 token (``Authorization: Bearer``, or the web session's cookie) before the body is read. A route that declares
-no access is refused, in both modes (fail closed); a path no route serves asks for a token before it is told
-404. Only then does the route's dependency ask :class:`~kitti_eval_server.policy.Policy` whether the caller
-may do what the route does.
+no access is refused, in both modes (fail closed); an API path no route serves asks for a token before it is
+told 404, a page path is told 404 at once. Only then does the route's dependency ask
+:class:`~kitti_eval_server.policy.Policy` whether the caller may do what the route does.
 
 A client (by IP address, :func:`client_of`) whose tokens were refused ``auth_max_failures`` times within
 ``auth_failure_window_s`` gets 429 with Retry-After until the window has passed, without its token being
@@ -267,8 +267,10 @@ class AuthMiddleware:
         if served and access is None:
             await self._refuse(scope, receive, send, Forbidden("this route declares no access rule: refused"))
             return
-        if access is Access.PUBLIC or not self.policy.accounts:
-            await self.app(scope, receive, send)  # open mode: the route's dependency decides
+        if (not served and not is_api(path)) or access is Access.PUBLIC or not self.policy.accounts:
+            # a page no route serves: the router's 404 (a browser's /favicon.ico gets no sign-in page, whose new
+            # CSRF cookie would spoil the form it is showing); open mode: the route's dependency decides
+            await self.app(scope, receive, send)
             return
         if access is Access.SCRAPER and self.policy.own_metrics_token():
             await self.app(scope, receive, send)  # its own token, compared by the route's dependency

@@ -63,17 +63,19 @@ _FORMS = ("application/x-www-form-urlencoded", "multipart/form-data")
 FORM_MAX_FIELDS = 16
 
 
-async def _csrf_sent(request: Request, caller: Caller) -> str | None:
+async def _csrf_sent(request: Request, caller: Caller) -> tuple[str | None, bool]:
     """The CSRF token a web session's change carries: the X-CSRF-Token header, else a form's ``csrf`` field
     (read once here; the route's own ``request.form()`` gets the same parsed form)."""
     if not caller.session or request.method.upper() in SAFE_METHODS:
-        return None
+        return None, False
     sent = request.headers.get(CSRF_HEADER)
-    if sent is None and request.headers.get("content-type", "").split(";")[0].strip().lower() in _FORMS:
+    if sent is not None:
+        return sent, True
+    if request.headers.get("content-type", "").split(";")[0].strip().lower() in _FORMS:
         form = await request.form(max_files=1, max_fields=FORM_MAX_FIELDS)
         value = form.get("csrf")
         sent = value if isinstance(value, str) else None
-    return sent
+    return sent, False
 
 
 def _decider(access: Access) -> Callable[..., Awaitable[Caller]]:
@@ -89,13 +91,15 @@ def _decider(access: Access) -> Callable[..., Awaitable[Caller]]:
         caller: Caller | None = request.scope.get(CALLER_KEY)
         if caller is None:
             caller = policy.anonymous(client) if policy.accounts else policy.everyone(client)
+        csrf, in_header = await _csrf_sent(request, caller)
         try:
             admitted = policy.admit(
                 access,
                 caller,
                 method=request.method,
                 bearer=credentials.credentials if credentials is not None else None,
-                csrf=await _csrf_sent(request, caller),
+                csrf=csrf,
+                header=in_header,
             )
         except Forbidden as e:
             if caller.signed_in and policy.accounts:

@@ -198,10 +198,13 @@ class Policy:
         return hmac.compare_digest(presented.encode(), expected.encode())
 
     # -- routes ------------------------------------------------------------------------------------------
-    def admit(self, access: Access, caller: Caller, *, method: str, bearer: str | None, csrf: str | None) -> Caller:
+    def admit(
+        self, access: Access, caller: Caller, *, method: str, bearer: str | None, csrf: str | None, header: bool = False
+    ) -> Caller:
         """The caller a route declared with ``access`` runs for, or the refusal (401/403). ``bearer``: the
         request's bearer token (open mode's admin actions, ``/metrics``' own token); ``csrf``: the CSRF token
-        the request carries (header or form field), checked for a web session's changes."""
+        the request carries (``header``: in the X-CSRF-Token header, else a form's field), checked for a web
+        session's changes."""
         if access is Access.PUBLIC or access is Access.ANYONE:
             return caller
         if access is Access.SCRAPER:
@@ -230,17 +233,16 @@ class Policy:
         if access in (Access.WRITER, Access.ADMIN) and not caller.can_write:
             raise Forbidden("this token is read-only")
         if method.upper() not in SAFE_METHODS:
-            self.check_csrf(caller, csrf)  # whatever the route: a web session's change carries its CSRF token
+            self.check_csrf(caller, csrf, header=header)  # whatever the route: a session's change carries it
         return caller
 
-    def check_csrf(self, caller: Caller, sent: str | None) -> None:
+    def check_csrf(self, caller: Caller, sent: str | None, *, header: bool = False) -> None:
         """A web session's change carries the session's CSRF token (a form's ``csrf`` field, a script's
         ``X-CSRF-Token`` header); a page on another site cannot know it."""
         if caller.session and not (sent and caller.csrf and hmac.compare_digest(sent, caller.csrf)):
-            raise Forbidden(
-                "this form has expired or did not come from this site; reload the page and send it again "
-                "(a script using the session cookie sends the page's CSRF token in the X-CSRF-Token header)"
-            )
+            if header:
+                raise Forbidden("the X-CSRF-Token header does not hold this web session's CSRF token")
+            raise Forbidden("the form is stale or came from another site (no valid CSRF token); reload the page")
 
     # -- projects, evaluations, ground truths ------------------------------------------------------------
     def project_filter(self, caller: Caller) -> frozenset[str] | None:

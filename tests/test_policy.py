@@ -359,3 +359,13 @@ def test_an_evaluation_against_a_benchmarks_test_set_scores_nothing_for_a_member
         assert f"/evaluations/{old}" not in c.get("/", headers=alice).text
         assert c.get(f"/v1/evaluations/{old}", headers=teams.headers("root")).status_code == 200
         assert old in [e["id"] for e in ok(c.get("/v1/evaluations", headers=teams.headers("root")))["items"]]
+
+
+def test_a_path_no_route_serves_is_a_404_that_spoils_no_sign_in_form(tmp_path) -> None:
+    """A browser showing the sign-in form also asks for /favicon.ico: its answer must not set a new sign-in
+    CSRF cookie, or the form it is showing could not be sent."""
+    with app_client(tmp_path / "data", auth="accounts") as c:
+        r = c.get("/favicon.ico")
+        assert r.status_code == 404 and "set-cookie" not in r.headers
+        assert c.get("/v1/no-such-thing").status_code == 401  # the API asks for a token first, as before
+        assert c.get("/").status_code == 401  # a page that exists still asks for a token
