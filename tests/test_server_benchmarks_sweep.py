@@ -96,3 +96,38 @@ def test_and_directly(world) -> None:
     assert answered.count(200) >= 12  # most of them answered, with something in them
     own = ok(c.get("/v1/benchmarks/bench/submissions", headers=alice))
     assert len(own["items"]) == 1 and own["items"][0]["participant"] == "alice"
+
+
+def test_before_the_reveal_no_participant_sees_a_private_or_whole_set_score(tmp_path) -> None:
+    """A benchmark with a public/private split: every benchmark route and page a participant or an anonymous
+    reader can ask, asked plainly, shows the public part's scores and neither the private part's nor the whole
+    set's, until the reveal; then they appear."""
+    with app_client(tmp_path / "data", auth="accounts") as c:
+        hosted = host(c, benchmark={"quota": "10/1", "split_percent": 50})
+        alice = hosted.headers("alice")
+        sid = ok(submit(c, alice, golden_bytes("result.pkl")), 201)["id"]
+        ok(c.post(f"/v1/benchmarks/bench/submissions/{sid}/publish", headers=alice, json={"method": "a"}))
+        (full,) = ok(c.get("/v1/benchmarks/bench/submissions/all", headers=ADMIN))["items"]
+        public, private, whole = full["parts"]["public"][KEY], full["parts"]["private"][KEY], full["scores"][KEY]
+        assert len({public, private, whole}) == 3  # three numbers, told apart
+        hidden = [f"{private}", f"{whole}"]
+        paths = [
+            "/v1/benchmarks",
+            "/v1/benchmarks/bench",
+            "/v1/benchmarks/bench/leaderboard",
+            "/v1/benchmarks/bench/leaderboard?format=csv",
+            "/benchmarks/bench",
+            "/v1/benchmarks/bench/submissions",
+            f"/v1/benchmarks/bench/submissions/{sid}",
+        ]
+        shown_public = False
+        for path in paths:
+            for headers in ({}, alice):
+                text = c.get(path, headers=headers).text
+                assert not any(h in text for h in hidden), (path, bool(headers))
+                shown_public |= f"{public}" in text
+        assert shown_public
+        ok(c.post("/v1/benchmarks/bench/close", headers=ADMIN))
+        ok(c.post("/v1/benchmarks/bench/reveal", headers=ADMIN))
+        assert f"{private}" in c.get("/v1/benchmarks/bench/leaderboard").text
+        assert f"{whole}" in c.get(f"/v1/benchmarks/bench/submissions/{sid}", headers=alice).text
