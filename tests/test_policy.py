@@ -369,3 +369,22 @@ def test_a_path_no_route_serves_is_a_404_that_spoils_no_sign_in_form(tmp_path) -
         assert r.status_code == 404 and "set-cookie" not in r.headers
         assert c.get("/v1/no-such-thing").status_code == 401  # the API asks for a token first, as before
         assert c.get("/").status_code == 401  # a page that exists still asks for a token
+
+
+def test_no_class_of_the_service_needs_400_lines() -> None:
+    sizes = {}
+    for path in (ROOT / "server").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ClassDef):
+                sizes[f"{path.relative_to(ROOT)}:{node.name}"] = node.end_lineno - node.lineno + 1
+    assert len(sizes) > 30 and max(sizes.values()) < 400, max(sizes.items(), key=lambda kv: kv[1])
+
+
+def test_routes_call_the_parts_never_the_store() -> None:
+    """The routes and pages reach the database only through the service's parts."""
+    found = []
+    for folder in (ROOT / "server" / "routes", ROOT / "server" / "web"):
+        for path in folder.rglob("*.py"):
+            text = path.read_text(encoding="utf-8")
+            found += [f"{path.name}: {m}" for m in re.findall(r"\.store\.\w+", text)]
+    assert found == []
