@@ -1,8 +1,8 @@
 """The database, by area: :mod:`.database` holds what they share (the tables, the engine, the schema, the
 retry of a call that found SQLite locked); :mod:`.ground_truth_store`, :mod:`.evaluation_store`,
-:mod:`.account_store` and :mod:`.benchmark_store` each define an area's records (frozen dataclasses) and a
-class of its reads and writes. :class:`Store` is all four over one :class:`Database`, as the service and the
-command line use it. (The modules are named after their classes, not their tables: a submodule named
+:mod:`.account_store`, :mod:`.benchmark_store` and :mod:`.job_store` each define an area's records (frozen
+dataclasses) and a class of its reads and writes. :class:`Store` is all five over one :class:`Database`, as the
+service and the command line use it. (The modules are named after their classes, not their tables: a submodule named
 ``ground_truths`` would replace the table of that name among the package's attributes when imported.)
 """
 
@@ -19,6 +19,7 @@ from .database import (
     evaluations,
     ground_truth_files,
     ground_truths,
+    jobs,
     memberships,
     metadata,
     new_id,
@@ -31,6 +32,7 @@ from .database import (
 )
 from .evaluation_store import EvaluationRecord, EvaluationStore
 from .ground_truth_store import GroundTruthRecord, GroundTruthStore
+from .job_store import JobRecord, JobStore
 
 __all__ = [
     "Store",
@@ -40,6 +42,7 @@ __all__ = [
     "EvaluationStore",
     "AccountStore",
     "BenchmarkStore",
+    "JobStore",
     "GroundTruthRecord",
     "EvaluationRecord",
     "UserRecord",
@@ -47,6 +50,7 @@ __all__ = [
     "AuditRecord",
     "BenchmarkRecord",
     "SubmissionRecord",
+    "JobRecord",
     "QuotaRefused",
     "PublishRefused",
     "new_id",
@@ -64,10 +68,11 @@ __all__ = [
     "benchmarks",
     "submissions",
     "quota_locks",
+    "jobs",
 ]
 
 
-class Store(GroundTruthStore, EvaluationStore, AccountStore, BenchmarkStore):
+class Store(GroundTruthStore, EvaluationStore, AccountStore, BenchmarkStore, JobStore):
     """Every area of the database on one :class:`Database` (SQLite or PostgreSQL)."""
 
     def __init__(self, url: str, *, busy_s: float = 10.0) -> None:

@@ -1,7 +1,8 @@
 """The shared part of the database: the SQLAlchemy 2 Core tables, the engine, the schema and its upgrades, and
 the retry of a call that found SQLite locked. Each area of the store (:mod:`.ground_truth_store`,
 :mod:`.evaluation_store`, :mod:`.account_store`, :mod:`.benchmark_store`) reads and writes its tables
-through one :class:`Database`.
+through one :class:`Database`; :mod:`.job_store` is the queue of work (evaluations, submissions, rescoring)
+the service's workers take from.
 
 SQLite (the default, one file in the data folder) runs in WAL mode with ``synchronous=FULL``; PostgreSQL is
 reached through psycopg 3. Every write is one transaction committed before the method returns, so a
@@ -33,6 +34,7 @@ from sqlalchemy import (
     MetaData,
     String,
     Table,
+    Text,
     create_engine,
     event,
     insert,
@@ -64,6 +66,7 @@ __all__ = [
     "benchmarks",
     "submissions",
     "quota_locks",
+    "jobs",
 ]
 
 metadata = MetaData()
@@ -238,6 +241,31 @@ quota_locks = Table(
     metadata,
     Column("benchmark", String(64), primary_key=True),
     Column("participant", String(64), primary_key=True),
+)
+
+#: the queue of work: every evaluation, submission and rescoring, recorded when its input is stored and taken by
+#: a worker (of this process or another) with a lease; see kitti_eval_server.jobs for the rules
+jobs = Table(
+    "jobs",
+    metadata,
+    Column("id", String(32), primary_key=True),
+    Column("kind", String(16), nullable=False),  # evaluation | submission | rescore
+    Column("state", String(16), nullable=False),  # queued | running | done | failed | cancelled
+    Column("attempts", Integer, nullable=False),  # 0 when queued, +1 at each claim
+    Column("max_attempts", Integer, nullable=False),
+    Column("worker", String(128), nullable=True),  # who holds it (running) or held it last
+    Column("lease_until", DateTime(timezone=True), nullable=True),  # running: another worker may take it after
+    Column("accepted_at", DateTime(timezone=True), nullable=False),
+    Column("started_at", DateTime(timezone=True), nullable=True),  # the first claim
+    Column("finished_at", DateTime(timezone=True), nullable=True),
+    Column("owner", String(64), nullable=False),  # the caller's name (per-participant limits)
+    Column("grp", String(128), nullable=True),  # e.g. the benchmark a rescoring belongs to
+    Column("payload", _JSON, nullable=False),  # the executor's input
+    Column("result_id", String(32), nullable=True),
+    Column("error", Text, nullable=True),
+    Index("ix_jobs_claim", "state", "accepted_at", "id"),
+    Index("ix_jobs_owner", "owner", "accepted_at"),
+    Index("ix_jobs_group", "grp", "accepted_at"),
 )
 
 
