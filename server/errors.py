@@ -295,7 +295,7 @@ async def _api_error(request: Request, exc: Exception) -> Response:
         response: Response = page(request, exc)
         response.headers.update(exc.headers)
         return response
-    return error_response(exc.status_code, exc.code, exc.message, exc.headers)
+    return error_response(exc.status_code, exc.code, exc.message, exc.headers, **getattr(exc, "details", {}))
 
 
 async def _library_error(request: Request, exc: Exception) -> JSONResponse:

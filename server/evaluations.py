@@ -12,6 +12,7 @@ import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -27,8 +28,8 @@ from .errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, clip, echo
 from .evaluator import EvalOptions, evaluate_document, summarize
 from .ground_truths import GroundTruthCache
 from .policy import Caller, Policy
-from .store import EvaluationRecord, GroundTruthRecord, Store, new_id
-from .uploads import FileIn, Limits, load_upload, receive_upload
+from .store import EvaluationRecord, GroundTruthRecord, JobInput, Store, new_id
+from .uploads import FileIn, Limits, Upload, load_upload, receive_upload
 
 __all__ = ["Evaluations", "FileIn", "sealed_document", "MAX_INSPECTED"]
 
@@ -48,6 +49,21 @@ def sealed_document(doc: dict[str, Any]) -> dict[str, Any]:
     notes[0] += f", {withheld} frames without predictions)" if withheld else ")"
     out["warnings"] = notes
     return out
+
+
+@dataclass(frozen=True)
+class _Accepted:
+    """An evaluation accepted for running at once (no queue)."""
+
+    id: str
+    payload: dict[str, Any]
+
+
+def _input(name: str, upload: Upload) -> JobInput:
+    upload.file.seek(0)
+    content = upload.file.read()
+    upload.file.seek(0)
+    return JobInput(name, upload.filename, upload.sha256, content)
 
 
 class Evaluations:
@@ -84,30 +100,90 @@ class Evaluations:
         caller: Caller,
         project: str | None = None,
     ) -> EvaluationRecord:
-        """Load, evaluate, store (committed) and return the record. In accounts mode the evaluation belongs to
-        ``project`` (default: the ground truth's, else the caller's only one), which must be the caller's. A
-        benchmark's test set is refused to all but admins (whose evaluations against it are audited)."""
-        started = time.perf_counter()
+        """Accept and run at once, in this thread (the command line's offline service, and tests): the record,
+        committed."""
+        job = self.accept(predictions, gt_name, gt_file, options, labels, caller, project)
+        record, write = self.execute(job.id, job.payload)
+        with self.store.engine.begin() as conn:
+            write(conn)
+        return record
+
+    def accept(
+        self,
+        predictions: FileIn,
+        gt_name: str | None,
+        gt_file: FileIn | None,
+        options: EvalOptions,
+        labels: Mapping[str, str],
+        caller: Caller,
+        project: str | None = None,
+        *,
+        enqueue: Callable[[str, dict[str, Any]], Any] | None = None,
+    ) -> Any:
+        """Check what can be checked before the evaluation (the options, the ground truth and the caller's right
+        to it, the project), keep the uploaded files as the job's inputs and enqueue the job (``enqueue(job_id,
+        payload)``; without it, a record of the accepted job to execute at once). In accounts mode the
+        evaluation belongs to ``project`` (default: the ground truth's, else the caller's only one), which must
+        be the caller's. A benchmark's test set is refused to all but admins (whose evaluations against it are
+        audited)."""
         if (gt_name is None) == (gt_file is None):
             raise BadRequest(
                 "give the ground truth either by name (form field 'gt', e.g. 'demo'; GET "
                 "/v1/ground-truths lists them) or as a file (form field 'gt_file'), not both"
             )
-        config = options.config()  # bad options fail before any upload is read
+        options.config()  # bad options fail before any upload is read
         gt_record = self.ground_truths.get(gt_name, caller) if gt_name is not None else None
         if gt_record is not None:
             self.policy.may_evaluate_against(caller, gt_record)
         project = self._project_for(caller, project, gt_record)
+        job_id = new_id()
+        inputs = [_input("predictions", receive_upload(predictions.file, predictions.filename, "predictions"))]
+        if gt_file is not None:
+            inputs.append(_input("gt_file", receive_upload(gt_file.file, gt_file.filename, "gt_file")))
+        payload = {
+            "evaluation_id": job_id,
+            "gt_name": gt_name,
+            "gt_sha256": gt_record.sha256 if gt_record is not None else None,
+            "options": options.to_dict(),
+            "labels": dict(labels),
+            "project": project,
+        }
+        self.store.add_job_inputs(job_id, inputs)
+        if gt_record is not None and self.policy.is_test_set(gt_record):
+            self.audit.record(caller, "evaluation.test_set", f"{job_id} on {gt_record.name}")
+        if enqueue is None:
+            return _Accepted(job_id, payload)
+        return enqueue(job_id, payload)
+
+    def execute(self, job_id: str, payload: Mapping[str, Any]) -> tuple[EvaluationRecord, Callable[[Any], None]]:
+        """Run an accepted evaluation: load its inputs, evaluate. Returns the record and the writes that store
+        it (the record, the predictions when they are kept, the inputs' removal), for the transaction that
+        ends the job. Raises the library's or the service's errors for an input that cannot be evaluated."""
+        started = time.perf_counter()
+        options = EvalOptions.from_dict(payload["options"])
+        config = options.config()
+        gt_name: str | None = payload["gt_name"]
+        pred_input = self.store.job_input(job_id, "predictions")
+        if pred_input is None:
+            raise Conflict(f"the inputs of evaluation {job_id} are gone (it has run already)")
         with self.scratch() as scratch:
-            if gt_record is not None:
+            gt_record = None
+            if gt_name is not None:
+                gt_record = self.store.get_ground_truth(gt_name)
+                if gt_record is None or gt_record.sha256 != payload["gt_sha256"]:
+                    raise Conflict(
+                        f"the ground truth {gt_name!r} was deleted or replaced after the evaluation was accepted; "
+                        "upload the predictions again"
+                    )
                 gt = self.ground_truths.files.load(gt_record)
                 gt_sha256 = gt_record.sha256
             else:
-                assert gt_file is not None
-                gt_upload = receive_upload(gt_file.file, gt_file.filename, "gt_file")
+                gt_input = self.store.job_input(job_id, "gt_file")
+                assert gt_input is not None
+                gt_upload = receive_upload(io.BytesIO(gt_input.content), gt_input.filename, "gt_file")
                 gt = load_upload(gt_upload, "ground_truth", scratch / "gt", self.limits).annotations
                 gt_sha256 = gt_upload.sha256
-            pred = receive_upload(predictions.file, predictions.filename, "predictions")
+            pred = receive_upload(io.BytesIO(pred_input.content), pred_input.filename, "predictions")
             keep = self.keep_predictions and gt_record is not None
             loaded = load_upload(
                 pred, "detections", scratch / "pred", self.limits, keep_lidar=keep, known_frames=gt.frame_index()
@@ -122,12 +198,11 @@ class Evaluations:
             )
             if gt_record is not None and gt_record.sealed:
                 doc = sealed_document(doc)
-            if keep:
-                pred.file.seek(0)
-                self.store.add_prediction_file(pred.sha256, pred.file.read())
-                self.predictions.put(pred.sha256, loaded.annotations)
+        if keep:
+            self.store.add_prediction_file(pred.sha256, pred_input.content)
+            self.predictions.put(pred.sha256, loaded.annotations)
         record = EvaluationRecord(
-            id=new_id(),
+            id=payload["evaluation_id"],
             created_at=datetime.now(timezone.utc),
             gt_name=gt_name,
             gt_sha256=gt_sha256,
@@ -139,13 +214,10 @@ class Evaluations:
             duration_ms=round((time.perf_counter() - started) * 1000, 3),
             summary=summarize(doc),
             result=doc,
-            labels=dict(labels),
+            labels=dict(payload["labels"]),
             options=options.to_dict(),
-            project=project,
+            project=payload["project"],
         )
-        self.store.add_evaluation(record)
-        if gt_record is not None and self.policy.is_test_set(gt_record):
-            self.audit.record(caller, "evaluation.test_set", f"{record.id} on {gt_record.name}")
         log.info(
             "evaluation %s: %s frames against %s in %.0f ms",
             record.id,
@@ -153,7 +225,12 @@ class Evaluations:
             gt_name or "an uploaded ground truth",
             record.duration_ms,
         )
-        return record
+
+        def write(conn: Any) -> None:
+            self.store.add_evaluation_in(conn, record)
+            self.store.delete_job_inputs_in(conn, job_id)
+
+        return record, write
 
     def _project_for(self, caller: Caller, wanted: str | None, gt_record: GroundTruthRecord | None) -> str | None:
         """The project a new evaluation belongs to (None in open mode)."""

@@ -26,7 +26,7 @@ from .errors import StartupRefused, install_error_handlers
 from .middleware import AdmissionMiddleware, BodyMiddleware
 from .observability import Metrics, RequestMiddleware, configure_logging
 from .policy import Access
-from .routes import admin, benchmarks, evaluations, frames, gates, ground_truths, health, metrics
+from .routes import admin, benchmarks, evaluations, frames, gates, ground_truths, health, jobs, metrics
 from .service import Service
 from .settings import Settings, default_data_dir
 from .shutdown import Drainer
@@ -94,6 +94,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     app.include_router(health.router)
     app.include_router(evaluations.router)
+    app.include_router(jobs.router)
     app.include_router(ground_truths.router)
     app.include_router(gates.router)
     app.include_router(frames.router)

@@ -322,6 +322,10 @@ class Policy:
         """A submission is its participant's: only they read its scores, publish or withdraw it."""
         return caller.signed_in and caller.token_id is not None and caller.name == participant
 
+    def sees_job(self, caller: Caller, owner: str) -> bool:
+        """A job is its owner's (who uploaded or submitted), and every admin's."""
+        return caller.is_admin or (caller.signed_in and caller.name == owner)
+
     def require_admin(self, caller: Caller) -> None:
         """For what a route already declared ADMIN and a domain method checks again (the command line's
         caller is an admin)."""

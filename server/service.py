@@ -28,6 +28,7 @@ from .catalog import GroundTruthCatalog
 from .errors import StartupRefused
 from .evaluations import Evaluations, sealed_document
 from .ground_truths import GroundTruthCache, GroundTruths
+from .jobs import JobQueue, JobRecord
 from .observability import AdmissionState
 from .policy import AuthMode, Policy
 from .runner import Runner, release_memory
@@ -35,6 +36,7 @@ from .scratch import ScratchSpace
 from .settings import Settings
 from .store import Store
 from .uploads import FileIn, Limits, receive_upload
+from .workers import Workers
 
 __all__ = ["Service", "FileIn", "DEMO_NAME", "sealed_document", "release_memory"]
 
@@ -92,6 +94,11 @@ class Service:
         self.warmup_error: str | None = None
         #: set on SIGTERM: not ready, no new evaluations, the admitted ones finish (see server.shutdown)
         self.draining = threading.Event()
+        #: every accepted evaluation is a job; workers of this process run them (and any ``kitti-eval worker``)
+        self.jobs = JobQueue(self.store, lease_s=settings.job_lease_s, max_attempts=settings.job_max_attempts)
+        self.workers = Workers(
+            self.jobs, {"evaluation": self._run_evaluation}, threads=settings.job_threads, admission=self.admission
+        )
         self.benchmarks = Benchmarks(
             self.store,
             self.ground_truths,
@@ -104,7 +111,8 @@ class Service:
 
     # -- lifecycle ---------------------------------------------------------------------------------------
     def start(self) -> None:
-        """Create folders and tables, register the demo, start the warm-up (called from the lifespan)."""
+        """Create folders and tables, register the demo, start the warm-up and the workers (called from the
+        lifespan)."""
         self.runner.open()
         self.scratch_space.open()  # and removes what processes killed meanwhile left
         log.info("data folder %s", self.data_dir)
@@ -117,6 +125,7 @@ class Service:
             threading.Thread(target=self._warm_up, name="kitti-eval-warmup", daemon=True).start()
         else:
             self.warm.set()
+        self.workers.start()
 
     def _check_open_mode(self) -> None:
         """Open mode serves every project's work to anyone: not on a database whose accounts say otherwise,
@@ -132,7 +141,22 @@ class Service:
                 "or set KITTI_EVAL_ALLOW_OPEN_WITH_ACCOUNTS=true to serve it open anyway"
             )
 
+    def _run_evaluation(self, job: JobRecord) -> tuple[str, Callable[[Any], None]]:
+        record, write = self.evaluations.execute(job.id, job.payload)
+        return record.id, write
+
+    def enqueue_evaluation(self, caller: Any) -> Callable[[str, dict[str, Any]], JobRecord]:
+        """How an accepted evaluation of ``caller``'s is queued (and the idle workers of this process woken)."""
+
+        def enqueue(job_id: str, payload: dict[str, Any]) -> JobRecord:
+            job = self.jobs.enqueue("evaluation", payload, owner=caller.name, job_id=job_id)
+            self.workers.wake()
+            return job
+
+        return enqueue
+
     def stop(self) -> None:
+        self.workers.stop(self.settings.shutdown_grace_s)
         self.store.dispose()
         self.scratch_space.close()
 

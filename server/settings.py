@@ -59,6 +59,21 @@ class Settings(BaseSettings):
     max_concurrent_evals: Annotated[int, Field(gt=0)] = 2
     """Evaluations (loading, validating, matching) running at the same time, each on its own thread."""
 
+    wait_s: Annotated[float, Field(ge=0, le=3600)] = 600.0
+    """How long ``POST /v1/evaluations`` waits for its result when the request does not say (``wait``): 201 with
+    the evaluation when it is done by then, else 202 with the job to poll."""
+
+    job_threads: Annotated[int, Field(ge=0)] = 2
+    """Workers in the service's own process that run the accepted evaluations (0: none; ``kitti-eval worker``
+    processes on this or other machines run them)."""
+
+    job_lease_s: Annotated[float, Field(gt=0)] = 30.0
+    """How long a worker holds a job without a heartbeat (it beats every third of it); a worker that stops
+    loses its job to another once it has run out."""
+
+    job_max_attempts: Annotated[int, Field(ge=1)] = 3
+    """Attempts of a job whose worker was lost or failed on something other than its input."""
+
     max_queued_evals: Annotated[int, Field(ge=0)] = 8
     """Evaluation requests admitted beyond those running (waiting for a slot); past that the service answers
     503 with Retry-After. A request is admitted once its upload has arrived in full, so clients still sending

@@ -326,7 +326,7 @@ def test_every_route_reaches_the_services_with_a_caller_the_policy_decided(tmp_p
         reached = set(calls)
         assert len(reached) >= 20, sorted(reached)  # the walk reached the services, or it proves nothing
         for expected in (
-            "Evaluations.evaluate",
+            "Evaluations.accept",
             "Evaluations.get",
             "GroundTruthCatalog.listed",
             "Benchmarks.leaderboard",

@@ -349,14 +349,14 @@ def test_oversized_upload_is_413_declared_or_streamed(tmp_path) -> None:
 
 def test_saturated_service_answers_503_with_retry_after(tmp_path, monkeypatch) -> None:
     started, release = threading.Event(), threading.Event()
-    original = Evaluations.evaluate
+    original = Evaluations.execute  # what a worker runs of an accepted evaluation
 
     def slow_evaluate(self, *args, **kwargs):
         started.set()
         assert release.wait(30)
         return original(self, *args, **kwargs)
 
-    monkeypatch.setattr(Evaluations, "evaluate", slow_evaluate)
+    monkeypatch.setattr(Evaluations, "execute", slow_evaluate)
     with app_client(tmp_path / "data", max_concurrent_evals=1, max_queued_evals=0, retry_after_s=7) as c:
         results = {}
         t = threading.Thread(target=lambda: results.setdefault("first", upload(c, golden_bytes("result.pkl"))))
@@ -415,7 +415,7 @@ def test_an_unexpected_failure_is_a_500_without_details(tmp_path, monkeypatch) -
     def boom(self, *args, **kwargs):
         raise RuntimeError("secret detail /srv/internal/path")
 
-    monkeypatch.setattr(Evaluations, "evaluate", boom)
+    monkeypatch.setattr(Evaluations, "execute", boom)
     with app_client(tmp_path / "data") as c:
         r = upload(c, DEMO_PRED)
         err = assert_error(r, 500)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
+import anyio.to_thread
 from fastapi import APIRouter, File, Form, Query, UploadFile
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 
@@ -24,6 +25,7 @@ from ..schemas import (
 )
 from ..service import FileIn
 from ..store import EvaluationRecord
+from ..workers import JobFailed, await_job, job_view
 
 _errors: dict[int | str, dict[str, Any]] = {
     404: {"model": ErrorResponse, "description": "unknown evaluation or ground truth"},
@@ -109,6 +111,15 @@ async def create_evaluation(
             "else your only one); ignored in open mode"
         ),
     ] = None,
+    wait: Annotated[
+        float | None,
+        Query(
+            ge=0,
+            le=3600,
+            description="seconds to wait for the result (default KITTI_EVAL_WAIT_S, 600): 201 with the evaluation "
+            "when it is done by then, else 202 with the job to poll (GET its Location); 0 answers at once",
+        ),
+    ] = None,
 ) -> Response:
     """Evaluate `predictions` against a ground truth and store the result with the inputs' sha256 and the
     labels. The JSON is the document `kitti-eval --format json` prints, plus `id` and `evaluation`."""
@@ -125,17 +136,29 @@ async def create_evaluation(
         lidar_only=lidar_only,
     )
     gt_in = FileIn(gt_file.file, gt_file.filename) if gt_file is not None else None
-    record = await service.run(
-        service.evaluations.evaluate,
-        FileIn(predictions.file, predictions.filename),
-        gt or None,
-        gt_in,
-        options,
-        labels,
-        caller,
-        project or None,
+    job = await service.run(
+        lambda: service.evaluations.accept(
+            FileIn(predictions.file, predictions.filename),
+            gt or None,
+            gt_in,
+            options,
+            labels,
+            caller,
+            project or None,
+            enqueue=service.enqueue_evaluation(caller),
+        )
     )
-    return _respond(record, fmt, status=201)
+    ended = await await_job(service.jobs, job.id, service.settings.wait_s if wait is None else wait)
+    if ended.state == "done":
+        assert ended.result_id is not None
+        record = await anyio.to_thread.run_sync(service.evaluations.get, ended.result_id, caller)
+        return _respond(record, fmt, status=201)
+    if ended.state == "failed":
+        raise JobFailed(ended.error)
+    position = await anyio.to_thread.run_sync(service.jobs.position, job.id)
+    return JSONResponse(
+        job_view(ended, position), status_code=202, headers={"Location": f"/v1/jobs/{job.id}", "Retry-After": "1"}
+    )
 
 
 @router.get("", response_model=EvaluationList, summary="History, newest first")

@@ -32,6 +32,7 @@ from .database import (
 )
 from .evaluation_store import EvaluationRecord, EvaluationStore
 from .ground_truth_store import GroundTruthRecord, GroundTruthStore
+from .job_input_store import JobInput, JobInputStore
 from .job_store import JobRecord, JobStore
 
 __all__ = [
@@ -53,6 +54,7 @@ __all__ = [
     "JobRecord",
     "QuotaRefused",
     "PublishRefused",
+    "JobInput",
     "new_id",
     "metadata",
     "ground_truths",
@@ -72,7 +74,7 @@ __all__ = [
 ]
 
 
-class Store(GroundTruthStore, EvaluationStore, AccountStore, BenchmarkStore, JobStore):
+class Store(GroundTruthStore, EvaluationStore, AccountStore, BenchmarkStore, JobStore, JobInputStore):
     """Every area of the database on one :class:`Database` (SQLite or PostgreSQL)."""
 
     def __init__(self, url: str, *, busy_s: float = 10.0) -> None:

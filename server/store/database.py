@@ -67,6 +67,7 @@ __all__ = [
     "submissions",
     "quota_locks",
     "jobs",
+    "job_inputs",
 ]
 
 metadata = MetaData()
@@ -266,6 +267,19 @@ jobs = Table(
     Index("ix_jobs_claim", "state", "accepted_at", "id"),
     Index("ix_jobs_owner", "owner", "accepted_at"),
     Index("ix_jobs_group", "grp", "accepted_at"),
+)
+
+
+#: the files a job was accepted with (the predictions; a ground truth uploaded with the request), kept in the
+#: database so that a worker on any machine reads them, and deleted when the job ends
+job_inputs = Table(
+    "job_inputs",
+    metadata,
+    Column("job_id", String(32), primary_key=True),
+    Column("name", String(32), primary_key=True),  # predictions | gt_file
+    Column("filename", String(255), nullable=False),
+    Column("sha256", String(64), nullable=False),
+    Column("content", LargeBinary, nullable=False),
 )
 
 

@@ -8,7 +8,7 @@ from datetime import datetime
 from typing import Any
 
 from sqlalchemy import exists, insert, or_, select
-from sqlalchemy.engine import RowMapping
+from sqlalchemy.engine import Connection, RowMapping
 
 from .database import Area, evaluation_labels, evaluations, retry_when_locked, utc
 
@@ -40,14 +40,19 @@ class EvaluationStore(Area):
 
     @retry_when_locked
     def add_evaluation(self, record: EvaluationRecord) -> None:
-        values = {k: v for k, v in record.__dict__.items() if k != "labels"}
         with self.engine.begin() as conn:
-            conn.execute(insert(evaluations).values(**values))
-            if record.labels:
-                conn.execute(
-                    insert(evaluation_labels),
-                    [{"evaluation_id": record.id, "key": k, "value": v} for k, v in record.labels.items()],
-                )
+            self.add_evaluation_in(conn, record)
+
+    @staticmethod
+    def add_evaluation_in(conn: Connection, record: EvaluationRecord) -> None:
+        """Within a transaction of the caller's (a job's, committed with the job's end)."""
+        values = {k: v for k, v in record.__dict__.items() if k != "labels"}
+        conn.execute(insert(evaluations).values(**values))
+        if record.labels:
+            conn.execute(
+                insert(evaluation_labels),
+                [{"evaluation_id": record.id, "key": k, "value": v} for k, v in record.labels.items()],
+            )
 
     @retry_when_locked
     def get_evaluation(self, evaluation_id: str) -> EvaluationRecord | None:
