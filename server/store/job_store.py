@@ -3,8 +3,8 @@
 A job is taken in one transaction that no other taker can share: on PostgreSQL the oldest takeable row is
 locked with ``SELECT ... FOR UPDATE SKIP LOCKED`` (takers on other servers skip it and lock the next one), on
 SQLite the transaction holds the database's write lock from its start (``BEGIN IMMEDIATE``). Every change of a
-job held by a worker first reads the job's row under the same locks, with the worker's name among the
-conditions, so a worker that lost its job (taken over, cancelled) changes nothing.
+job held by a worker has the worker's name among its conditions (an UPDATE guarded by them, or a read of the row
+under the same locks before the change), so a worker that lost its job (taken over, cancelled) changes nothing.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import and_, func, insert, or_, select, update
+from sqlalchemy import Update, and_, func, insert, or_, select, update
 from sqlalchemy.engine import Connection, RowMapping
 
 from .database import Area, dated, jobs, retry_when_locked, utc
@@ -63,7 +63,7 @@ class JobStore(Area):
     @retry_when_locked
     def add_job(self, record: JobRecord) -> bool:
         """False if the id is taken."""
-        return self._insert(jobs, **self._values(record))
+        return self._insert(jobs, **self._job_values(record))
 
     @retry_when_locked
     def add_jobs(self, records: Sequence[JobRecord]) -> None:
@@ -71,7 +71,7 @@ class JobStore(Area):
         if not records:
             return
         with self.engine.begin() as conn:
-            conn.execute(insert(jobs), [self._values(r) for r in records])
+            conn.execute(insert(jobs), [self._job_values(r) for r in records])
 
     @retry_when_locked
     def get_job(self, job_id: str) -> JobRecord | None:
@@ -80,7 +80,7 @@ class JobStore(Area):
         return None if row is None else self._job(row)
 
     @contextlib.contextmanager
-    def _writing(self) -> Iterator[Connection]:
+    def _job_writing(self) -> Iterator[Connection]:
         """One transaction, committed when the block ends and rolled back when it raises; on SQLite it holds the
         write lock from its start (no other writer between its reads and its writes, and no failed upgrade of a
         read transaction to a write one)."""
@@ -111,7 +111,7 @@ class JobStore(Area):
             query = query.where(jobs.c.kind.in_(list(kinds)))
         query = query.order_by(jobs.c.accepted_at, jobs.c.id).limit(1).with_for_update(skip_locked=True)
         lost: list[str] = []
-        with self._writing() as conn:
+        with self._job_writing() as conn:
             while True:
                 row = conn.execute(query).mappings().first()
                 if row is None:
@@ -132,20 +132,21 @@ class JobStore(Area):
                 conn.execute(update(jobs).where(jobs.c.id == job.id).values(**taken))
                 return JobRecord(**{**job.__dict__, **taken}), lost
 
-    def _held(self, conn: Connection, job_id: str, worker: str) -> JobRecord | None:
+    def _job_held(self, conn: Connection, job_id: str, worker: str) -> JobRecord | None:
         """The job, locked for the transaction, if it is running and held by ``worker``."""
         query = select(jobs).where(jobs.c.id == job_id, jobs.c.state == "running", jobs.c.worker == worker)
         row = conn.execute(query.with_for_update()).mappings().first()
         return None if row is None else self._job(row)
 
+    def _job_guarded(self, job_id: str, worker: str) -> Update:
+        """An UPDATE of the job that changes it only if it is running and held by ``worker``."""
+        return update(jobs).where(jobs.c.id == job_id, jobs.c.state == "running", jobs.c.worker == worker)
+
     @retry_when_locked
     def extend_lease(self, job_id: str, worker: str, lease_until: datetime) -> bool:
         """Keep the job until ``lease_until``; False when ``worker`` no longer holds it."""
-        with self._writing() as conn:
-            if self._held(conn, job_id, worker) is None:
-                return False
-            conn.execute(update(jobs).where(jobs.c.id == job_id).values(lease_until=lease_until))
-        return True
+        with self.engine.begin() as conn:
+            return bool(conn.execute(self._job_guarded(job_id, worker).values(lease_until=lease_until)).rowcount)
 
     @retry_when_locked
     def complete_job(
@@ -161,13 +162,12 @@ class JobStore(Area):
         called) when the job is no longer the worker's; an exception of ``within`` rolls back and propagates."""
         done = dict(state="done", result_id=result_id, finished_at=finished_at, lease_until=None, error=None)
         try:
-            with self._writing() as conn:
-                if self._held(conn, job_id, worker) is None:
+            with self._job_writing() as conn:
+                if self._job_held(conn, job_id, worker) is None:
                     raise _NotHeld
                 if within is not None:
                     within(conn)
-                guarded = update(jobs).where(jobs.c.id == job_id, jobs.c.state == "running", jobs.c.worker == worker)
-                if not conn.execute(guarded.values(**done)).rowcount:
+                if not conn.execute(self._job_guarded(job_id, worker).values(**done)).rowcount:
                     raise _NotHeld
         except _NotHeld:
             return False
@@ -177,8 +177,8 @@ class JobStore(Area):
     def fail_job(self, job_id: str, worker: str, error: str, finished_at: datetime, *, retry: bool) -> JobRecord | None:
         """Queue the job again (``retry`` and attempts left: the worker and lease cleared, ``error`` kept as the
         last one) or fail it with ``error``; None when ``worker`` no longer holds it, else the job as it is now."""
-        with self._writing() as conn:
-            job = self._held(conn, job_id, worker)
+        with self._job_writing() as conn:
+            job = self._job_held(conn, job_id, worker)
             if job is None:
                 return None
             if retry and job.attempts < job.max_attempts:
@@ -191,19 +191,15 @@ class JobStore(Area):
     @retry_when_locked
     def release_job(self, job_id: str, worker: str) -> bool:
         """Queue the job again without counting the attempt; False when ``worker`` no longer holds it."""
-        with self._writing() as conn:
-            job = self._held(conn, job_id, worker)
-            if job is None:
-                return False
-            values = dict(state="queued", worker=None, lease_until=None, attempts=max(0, job.attempts - 1))
-            conn.execute(update(jobs).where(jobs.c.id == job_id).values(**values))
-        return True
+        values = dict(state="queued", worker=None, lease_until=None, attempts=jobs.c.attempts - 1)
+        with self.engine.begin() as conn:
+            return bool(conn.execute(self._job_guarded(job_id, worker).values(**values)).rowcount)
 
     @retry_when_locked
     def cancel_job(self, job_id: str, finished_at: datetime) -> JobRecord | None:
         """A queued or running job becomes cancelled; any other is left as it is. The job as it is now (None:
         no such job)."""
-        with self._writing() as conn:
+        with self._job_writing() as conn:
             row = conn.execute(select(jobs).where(jobs.c.id == job_id).with_for_update()).mappings().first()
             if row is None:
                 return None
@@ -219,7 +215,7 @@ class JobStore(Area):
         """An ended job (done, failed, cancelled) is queued again as new, at the end of the queue (accepted at
         ``accepted_at``, no attempt, no worker, result or error); a queued or running one is left as it is. The
         job as it is now (None: no such job)."""
-        with self._writing() as conn:
+        with self._job_writing() as conn:
             row = conn.execute(select(jobs).where(jobs.c.id == job_id).with_for_update()).mappings().first()
             if row is None:
                 return None
@@ -270,7 +266,7 @@ class JobStore(Area):
         if group is not None:
             query = query.where(jobs.c.grp == group)
         with self.engine.connect() as conn:
-            found: dict[str, int] = dict(conn.execute(query).tuples().all())
+            found: dict[str, int] = dict(conn.execute(query).all())
         return {state: int(found.get(state, 0)) for state in JOB_STATES}
 
     @retry_when_locked
@@ -291,7 +287,7 @@ class JobStore(Area):
         return None if oldest is None else utc(oldest)
 
     @staticmethod
-    def _values(record: JobRecord) -> dict[str, Any]:
+    def _job_values(record: JobRecord) -> dict[str, Any]:
         values = dict(record.__dict__)
         values["grp"] = values.pop("group")
         values["payload"] = dict(record.payload)
