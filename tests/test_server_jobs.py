@@ -1,0 +1,97 @@
+"""Evaluations as durable jobs, through the API: accepted at once, run by workers with a lease, answered when
+done (201 as before), or polled (202 and the job's Location); a lost worker's job taken over and stored once;
+a job accepted before a restart run after it."""
+
+from __future__ import annotations
+
+import time
+
+from server_accounts import make_teams
+from server_helpers import app_client, assert_error, golden_bytes, upload
+
+from kitti_eval_server.workers import Workers
+
+
+def _until_ended(c, job_id: str, headers: dict[str, str] | None = None, timeout_s: float = 60) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        job = c.get(f"/v1/jobs/{job_id}", headers=headers or {}).json()
+        if job["state"] in ("done", "failed", "cancelled"):
+            return job
+        assert time.monotonic() < deadline, job
+        time.sleep(0.05)
+
+
+def _scores(doc: dict) -> dict:
+    """The evaluation document without what tells two evaluations apart (id, time)."""
+    return {k: v for k, v in doc.items() if k not in ("id", "evaluation")}
+
+
+def test_wait_zero_answers_at_once_and_the_job_leads_to_the_same_evaluation(tmp_path) -> None:
+    with app_client(tmp_path / "data") as c:
+        pred = golden_bytes("result.pkl")
+        now = upload(c, pred)
+        assert now.status_code == 201  # the default waits for the result, as every client expects
+        later = upload(c, pred, params={"wait": "0"})
+        assert later.status_code == 202, later.text
+        job = later.json()
+        assert later.headers["location"] == f"/v1/jobs/{job['id']}" and job["kind"] == "evaluation"
+        assert job["state"] in ("queued", "running", "done")
+        ended = _until_ended(c, job["id"])
+        assert ended["state"] == "done" and ended["attempts"] == 1 and ended["evaluation"] == job["id"]
+        stored = c.get(ended["result_location"]).json()
+        assert _scores(stored) == _scores(now.json()) and stored["ap"]
+
+
+def test_an_input_refused_by_a_worker_is_answered_as_before(tmp_path) -> None:
+    with app_client(tmp_path / "data") as c:
+        r = upload(c, b"\x80\x04not a pickle at all")
+        err = assert_error(r, 422)
+        assert err["code"] in ("invalid_input", "unknown_format", "unsafe_pickle"), err
+        job = upload(c, b"\x80\x04not a pickle at all", params={"wait": "0"}).json()
+        ended = _until_ended(c, job["id"])
+        assert ended["state"] == "failed" and ended["attempts"] == 1  # a refusal is not tried again
+        assert ended["error"]["status"] == 422 and ended["error"]["message"] == err["message"]
+
+
+def test_a_job_is_its_owners_and_the_admins(tmp_path) -> None:
+    with app_client(tmp_path / "data", auth="accounts") as c:
+        teams = make_teams(c)
+        r = upload(c, golden_bytes("result.pkl"), gt="gt-a", params={"wait": "0"}, headers=teams.headers("alice"))
+        job_id = r.json()["id"]
+        assert c.get(f"/v1/jobs/{job_id}", headers=teams.headers("alice")).status_code == 200
+        assert c.get(f"/v1/jobs/{job_id}", headers=teams.headers("root")).status_code == 200
+        assert c.get(f"/v1/jobs/{job_id}", headers=teams.headers("bob")).status_code == 404
+        assert c.get(f"/v1/jobs/{job_id}").status_code == 401
+
+
+def test_a_lost_workers_job_is_taken_over_and_stored_once(tmp_path) -> None:
+    """A worker that claimed the job and stopped (no heartbeat: killed) loses it when its lease runs out; the
+    next worker runs it; the first one's late result is not stored."""
+    with app_client(tmp_path / "data", job_threads=0, job_lease_s=0.5) as c:
+        service = c.app.state.service
+        job_id = upload(c, golden_bytes("result.pkl"), params={"wait": "0"}).json()["id"]
+        lost = service.jobs.claim("lost-worker")
+        assert lost is not None and lost.id == job_id
+        record, write = service.evaluations.execute(job_id, lost.payload)  # it got this far, then stopped
+        workers = Workers(service.jobs, {"evaluation": service._run_evaluation}, threads=1, idle_s=0.05)
+        workers.start()
+        try:
+            ended = _until_ended(c, job_id)
+        finally:
+            workers.stop(10)
+        assert ended["state"] == "done" and ended["attempts"] == 2
+        assert service.jobs.finish(job_id, "lost-worker", record.id, within=write) is False  # too late
+        listed = c.get("/v1/evaluations").json()["items"]
+        assert [e["id"] for e in listed].count(job_id) == 1
+
+
+def test_a_job_accepted_before_a_restart_runs_after_it(tmp_path) -> None:
+    with app_client(tmp_path / "data", job_threads=0) as c:
+        job_id = upload(c, golden_bytes("result.pkl"), params={"wait": "0"}).json()["id"]
+        assert c.get(f"/v1/jobs/{job_id}").json()["state"] == "queued"
+        assert c.get(f"/v1/jobs/{job_id}").json()["position"] == 1
+    with app_client(tmp_path / "data") as c:  # the same database, workers this time
+        ended = _until_ended(c, job_id)
+        assert ended["state"] == "done"
+        assert c.get(f"/v1/evaluations/{job_id}").status_code == 200
