@@ -161,11 +161,12 @@ class JobQueue:
         return records
 
     def claim(self, worker: str, *, kinds: Sequence[str] | None = None) -> JobRecord | None:
-        """Take the oldest queued job (by ``accepted_at``, then ``id``), or a running one whose lease ran out
-        (taken over from a worker that was lost), of ``kinds`` (None: any): it becomes running, held by
-        ``worker`` for ``lease_s``, with one attempt more (``started_at`` is set at its first claim). None when
-        there is none. A lapsed job that already used its ``max_attempts`` is failed instead ("the worker was
-        lost N times"), and the next is looked at.
+        """Take a job of ``kinds`` (None: any): the oldest (by ``accepted_at``, then ``id``) running one whose
+        lease ran out (taken over from a worker that was lost; it was at the head of the queue when first
+        claimed), else the oldest queued one. It becomes running, held by ``worker`` for ``lease_s``, with one
+        attempt more (``started_at`` is set at its first claim). None when there is none. A lapsed job that
+        already used its ``max_attempts`` is failed instead ("the worker was lost N times"), and the next is
+        looked at.
 
         Never gives a job to two workers: on PostgreSQL the row is locked with ``SELECT ... FOR UPDATE SKIP
         LOCKED`` (concurrent claims take the next rows), on SQLite the claim holds the write lock from its

@@ -101,19 +101,27 @@ class JobStore(Area):
     def claim_job(
         self, worker: str, *, now: datetime, lease_until: datetime, kinds: Sequence[str] | None = None
     ) -> tuple[JobRecord | None, list[str]]:
-        """Take the oldest job (``accepted_at``, ``id``) that is queued, or running with a lease run out before
-        ``now``, for ``worker`` until ``lease_until``: (the job, or None when there is none; the ids of the jobs
-        failed on the way). A lapsed job whose attempts reached its ``max_attempts`` is failed (its worker was
-        lost that many times) instead of taken, and the next one is looked at."""
-        takeable = or_(jobs.c.state == "queued", and_(jobs.c.state == "running", jobs.c.lease_until < now))
-        query = select(jobs).where(takeable)
+        """Take a job for ``worker`` until ``lease_until``: the oldest (by ``accepted_at``, then ``id``) of those
+        running with a lease run out before ``now`` (their workers were lost; they were at the head of the queue
+        when first claimed), else the oldest queued one. Answers (the job, or None when there is none; the ids
+        of the jobs failed on the way): a lapsed job whose attempts reached its ``max_attempts`` is failed (its
+        worker was lost that many times) instead of taken, and the next one is looked at.
+
+        Each of the two looks is an ordered scan of the (state, accepted_at, id) index that stops at the first
+        row, however long the queue and its history."""
+        lapsed = select(jobs).where(jobs.c.state == "running", jobs.c.lease_until < now)
+        queued = select(jobs).where(jobs.c.state == "queued")
         if kinds is not None:
-            query = query.where(jobs.c.kind.in_(list(kinds)))
-        query = query.order_by(jobs.c.accepted_at, jobs.c.id).limit(1).with_for_update(skip_locked=True)
+            lapsed = lapsed.where(jobs.c.kind.in_(list(kinds)))
+            queued = queued.where(jobs.c.kind.in_(list(kinds)))
+        first = [
+            query.order_by(jobs.c.accepted_at, jobs.c.id).limit(1).with_for_update(skip_locked=True)
+            for query in (lapsed, queued)
+        ]
         lost: list[str] = []
         with self._job_writing() as conn:
             while True:
-                row = conn.execute(query).mappings().first()
+                row = conn.execute(first[0]).mappings().first() or conn.execute(first[1]).mappings().first()
                 if row is None:
                     return None, lost
                 job = self._job(row)
