@@ -191,3 +191,30 @@ def test_a_read_only_installation_still_loads_them(wheel: Path, tmp_path: Path) 
     assert done.returncode == 0, done.stdout + done.stderr
     assert json.loads(done.stdout.strip().splitlines()[-1])["compiled"] == []
     assert not list(home.rglob("*.nbi"))
+
+
+def test_the_service_from_the_wheel_warms_up_and_evaluates_without_compiling(wheel: Path, tmp_path: Path) -> None:
+    """``kitti-eval serve`` of the installed wheel: ready once its warm-up has loaded every kernel, an upload
+    of the demo gives the demo's numbers, and numba's cache (in a folder of the test's) stays empty: a kernel
+    compiled in the service's process would have been saved there."""
+    from server_helpers import LiveServer
+
+    from kitti_eval.io.synth import demo_paths
+
+    python = install_in_fresh_venv(wheel, tmp_path / "venv", dependencies_from_here=True)
+    cache = tmp_path / "numba-cache"
+    where = [str(python), "-c", "import kitti_eval_server; print(kitti_eval_server.__file__)"]
+    served = subprocess.run(where, cwd=tmp_path, capture_output=True, text=True, check=True).stdout.strip()
+    assert Path(served).is_relative_to(tmp_path / "venv")  # the service the server below runs is the wheel's
+    environ = {"NUMBA_CACHE_DIR": str(cache)}
+    server = LiveServer(tmp_path / "data", via_serve=True, python=python, environ=environ).start()
+    try:
+        with server.client() as client, open(demo_paths()[1], "rb") as predictions:
+            done = client.post("/v1/evaluations", data={"gt": "demo"}, files={"predictions": predictions})
+        log = server.log()
+    finally:
+        server.stop()
+    assert done.status_code == 201, done.text
+    assert done.json()["ap"] == _host_document(tmp_path)["ap"]
+    assert "kernels warm in" in log, log
+    assert not list(cache.rglob("*.nbi"))
