@@ -15,6 +15,10 @@ module it imports (:mod:`kitti_eval.core.kernel_cache`). :func:`cache_key` names
 job can keep ``NUMBA_CACHE_DIR`` between runs and restore it only where every kernel in it is valid
 (``python -m kitti_eval._jit --cache-key``).
 
+A platform wheel (``scripts/build_wheel.py``) carries the kernels compiled for a generic CPU, which
+:mod:`kitti_eval.core.kernel_cache` loads where numba's own cache has none: such an installation compiles
+nothing on first use, and :func:`kernels_cached` counts them.
+
 A first run compiles two groups: the restricted unpickler's scan (needed to load the inputs) and the
 evaluation kernels. On two or more cores :func:`warm_in_background` compiles the second group in another
 process while this one compiles the first, so a fresh install pays roughly the larger of the two.
@@ -37,20 +41,31 @@ _EVAL_MARKERS = ("matching._pass2-*.nbi", "geometry._frame_overlaps_kernel-*.nbi
 _LOAD_MARKERS = ("_pickle_scan.scan-*.nbi",)
 
 
-def _cache_places() -> list[tuple[Path, bool]]:
-    """Where numba keeps this package's cache, as (folder, search below it) pairs, in numba's order."""
+def _cache_places() -> list[tuple[Path, str]]:
+    """Where this package's kernels are kept, as (folder, glob pattern of a marker below it) pairs: numba's
+    places in numba's order, then the kernels a platform wheel ships when this process can use them."""
     custom = os.environ.get("NUMBA_CACHE_DIR")
     if custom:
-        return [(Path(custom), True)]
-    user = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "numba"
-    return [(_PACKAGE, True), (user, True)]  # the package and its sub-packages keep their own __pycache__
+        places = [(Path(custom), "**/{}")]
+    else:
+        user = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "numba"
+        # the package and its sub-packages keep their own __pycache__
+        places = [(_PACKAGE, "**/__pycache__/{}"), (user, "**/{}")]
+    from .core.kernel_cache import shipped_kernels
+
+    shipped = shipped_kernels()
+    if shipped is not None:
+        from numba.core.registry import cpu_target
+
+        if shipped.usable_on(cpu_target.target_context.codegen().magic_tuple()):
+            places.append((shipped.root, "**/{}"))
+    return places
 
 
 def _cached(markers: tuple[str, ...]) -> bool:
+    places = _cache_places()
     for marker in markers:
-        if not any(
-            place.is_dir() and any(place.glob(f"**/{marker}" if deep else marker)) for place, deep in _cache_places()
-        ):
+        if not any(place.is_dir() and any(place.glob(pattern.format(marker))) for place, pattern in places):
             return False
     return True
 

@@ -151,9 +151,20 @@ class LiveServer:
     """``uvicorn kitti_eval_server.main:app`` in a subprocess on 127.0.0.1 and a free port, configured by
     environment."""
 
-    def __init__(self, data_dir: Path, *, via_serve: bool = False, **settings: Any) -> None:
+    def __init__(
+        self,
+        data_dir: Path,
+        *,
+        via_serve: bool = False,
+        python: Path | None = None,
+        environ: dict[str, str] | None = None,
+        **settings: Any,
+    ) -> None:
         self.data_dir = data_dir
         self.via_serve = via_serve  # ``kitti-eval serve`` (its graceful shutdown) instead of plain uvicorn
+        # another installation's interpreter (then run outside the checkout), and variables of its own
+        self.python = python
+        self.environ = environ or {}
         self.settings = {"admin_token": ADMIN_TOKEN, **settings}
         self.port = 0
         self.proc: subprocess.Popen[bytes] | None = None
@@ -166,6 +177,7 @@ class LiveServer:
     def start(self, timeout: float = READY_TIMEOUT_S) -> LiveServer:
         self.port = free_port()
         env = {k: v for k, v in os.environ.items() if not k.startswith("KITTI_EVAL_")}
+        env.update(self.environ)
         env["KITTI_EVAL_DATA_DIR"] = str(self.data_dir)
         env.update({f"KITTI_EVAL_{k.upper()}": str(v) for k, v in self.settings.items()})
         log = open(self.log_path, "ab")  # noqa: SIM115 - closed in stop()
@@ -177,8 +189,8 @@ class LiveServer:
             command = ["-m", "uvicorn", "kitti_eval_server.main:app", "--host", "127.0.0.1", "--port", str(self.port)]
             command += ["--log-level", "warning"]
         self.proc = subprocess.Popen(
-            [sys.executable, *command],
-            cwd=ROOT,
+            [str(self.python or sys.executable), *command],
+            cwd=ROOT if self.python is None else self.data_dir.parent,
             env=env,
             stdout=log,
             stderr=subprocess.STDOUT,

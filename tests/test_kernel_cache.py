@@ -15,14 +15,18 @@ import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
+import numba
 import pytest
 
 import kitti_eval
 from kitti_eval.core import kernel_cache
 
 PACKAGE = Path(kitti_eval.__file__).resolve().parent
+_DISABLE_JIT = bool(numba.config.DISABLE_JIT)
 
 # the error decomposition and the AP table of the bundled demo, and which kernels numba compiled
 _RUN = """
@@ -189,3 +193,126 @@ def test_the_package_kernels_are_located_by_the_kernel_locator_and_others_are_no
         return x
 
     assert not isinstance(FunctionCache(elsewhere)._impl.locator, kernel_cache.KernelLocator)
+
+
+# -- the kernels a platform wheel ships (kitti_eval/_kernels/, written by scripts/build_wheel.py) ----------------
+
+
+class _Compiles:
+    """The kernels numba compiles while the block runs (a load from a cache is not a compile)."""
+
+    def __enter__(self) -> list[str]:
+        from numba.core import event
+
+        self.names: list[str] = []
+        names = self.names
+
+        class Listener(event.Listener):
+            def on_start(self, ev: event.Event) -> None:
+                names.append(ev.data["dispatcher"].py_func.__qualname__)
+
+            def on_end(self, ev: event.Event) -> None:
+                pass
+
+        self._scope = event.install_listener("numba:compile", Listener())
+        self._scope.__enter__()
+        return names
+
+    def __exit__(self, *exc: object) -> None:
+        self._scope.__exit__(*exc)
+
+
+def _ship(root: Path, kernel: Any, *, stamp: tuple[str, str] | None = None) -> None:
+    """Lay out ``root`` as a wheel's ``_kernels`` folder: a manifest for this numba and Python and the generic
+    CPU, and ``kernel``'s code from numba's cache of this machine saved under the generic key (with ``stamp``
+    instead of the sources' own, if given)."""
+    from numba.core.caching import IndexDataCacheFile
+
+    (sig,) = kernel.signatures
+    cres, cache = kernel.overloads[sig], kernel._cache
+    target = (cres.library.codegen.magic_tuple()[0], "generic", "")
+    manifest = {"numba": numba.__version__, "python": kernel_cache.python_tag(), "target": target, "kernels": 1}
+    root.mkdir(parents=True)
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    shipped = kernel_cache.read_manifest(root)
+    assert shipped is not None and shipped.target == target
+    folder = shipped.folder(cache._impl.locator.py_file)
+    assert folder == root / "core"  # folders named as the package's
+    folder.mkdir()
+    index = IndexDataCacheFile(
+        cache_path=str(folder),
+        filename_base=cache._impl.filename_base,
+        source_stamp=stamp or cache._impl.locator.get_source_stamp(),
+    )
+    key = cache._index_key(sig, cres.library.codegen)
+    data = cache._cache_file.load(key)  # as numba keeps it on disk (the session's warm-up saved or loaded it)
+    assert data is not None
+    index.save((key[0], target, *key[2:]), data)
+
+
+@pytest.fixture
+def shipped_root(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
+    """A ``_kernels`` folder of this test's, and numba's own cache in an empty folder (so it holds nothing)."""
+    import numba
+
+    root = tmp_path / "_kernels"
+    monkeypatch.setattr(kernel_cache, "SHIPPED_ROOT", root)
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "numba-cache"))
+    kernel_cache.shipped_kernels.cache_clear()
+    yield root
+    kernel_cache.shipped_kernels.cache_clear()
+
+
+def _fresh(kernel: Any) -> Any:
+    """A new dispatcher of ``kernel``'s function, as a new process's import makes it."""
+    return kernel_cache.njit(cache=True, nogil=True)(kernel.py_func)
+
+
+@pytest.mark.skipif(_DISABLE_JIT, reason="NUMBA_DISABLE_JIT: nothing is compiled")
+def test_a_kernel_missing_from_numbas_cache_loads_the_shipped_one(shipped_root: Path) -> None:
+    import numpy as np
+
+    from kitti_eval.core import geometry
+
+    kernel = geometry._iou_2d_kernel
+    _ship(shipped_root, kernel)
+    fresh = _fresh(kernel)
+    assert isinstance(fresh._cache, kernel_cache.KernelCache)
+    assert fresh._cache.cache_path.startswith(str(shipped_root.parent / "numba-cache"))  # numba's place for saving
+    (sig,) = kernel.signatures
+    with _Compiles() as compiled:
+        fresh.compile(sig)
+    assert compiled == [] and fresh.stats.cache_hits[sig] == 1
+    a = np.array([[0.0, 0.0, 10.0, 10.0], [5.0, 5.0, 20.0, 20.0]])
+    assert np.array_equal(fresh(a, a, True), kernel(a, a, True))
+    assert not any(Path(fresh._cache.cache_path).glob("*.nbi"))  # nothing written: the shipped code is only read
+
+
+@pytest.mark.skipif(_DISABLE_JIT, reason="NUMBA_DISABLE_JIT: nothing is compiled")
+def test_a_shipped_kernel_of_other_sources_is_not_loaded(shipped_root: Path) -> None:
+    """The shipped index carries the content stamp: an installation whose sources differ compiles."""
+    from kitti_eval.core import geometry
+
+    kernel = geometry._iou_2d_kernel
+    _ship(shipped_root, kernel, stamp=("kitti-eval-kernel-closure-1", "0" * 64))
+    fresh = _fresh(kernel)
+    with _Compiles() as compiled:
+        fresh.compile(kernel.signatures[0])
+    assert "_iou_2d_kernel" in compiled
+    assert any(Path(fresh._cache.cache_path).glob("geometry._iou_2d_kernel-*.nbi"))  # saved where numba saves
+
+
+def test_shipped_kernels_are_used_only_for_their_numba_python_and_a_portable_target(shipped_root: Path) -> None:
+    assert kernel_cache.shipped_kernels() is None  # no manifest: an editable or source install
+    shipped_root.mkdir()
+    here = (numba.__version__, kernel_cache.python_tag())
+    for (numba_version, python), usable in [(here, True), (("0.1.0", here[1]), False), ((here[0], "py27"), False)]:
+        manifest = {"numba": numba_version, "python": python, "target": ["x86_64-unknown-linux-gnu", "generic", ""]}
+        (shipped_root / "manifest.json").write_text(json.dumps({**manifest, "kernels": 3}))
+        kernel_cache.shipped_kernels.cache_clear()
+        assert (kernel_cache.shipped_kernels() is not None) == usable
+    x86 = kernel_cache.ShippedKernels(shipped_root, "", "", ("x86_64-unknown-linux-gnu", "generic", ""), 1)
+    assert x86.usable_on(("x86_64-unknown-linux-gnu", "skylake-avx512", "+avx512f"))
+    assert not x86.usable_on(("aarch64-unknown-linux-gnu", "neoverse-n1", ""))
+    host_specific = kernel_cache.ShippedKernels(shipped_root, "", "", ("x86_64-unknown-linux-gnu", "znver4", ""), 1)
+    assert not host_specific.usable_on(("x86_64-unknown-linux-gnu", "skylake", ""))

@@ -85,6 +85,27 @@ def test_nothing_imports_the_folder_name() -> None:
     assert "server" not in sys.modules
 
 
+PIP = [sys.executable, "-m", "pip", "--disable-pip-version-check", "--quiet"]
+
+
+def install_in_fresh_venv(wheel: Path, venv: Path, *, dependencies_from_here: bool = False) -> Path:
+    """A new virtual environment (no pip of its own) with ``wheel`` alone installed in it, offline; its
+    interpreter. With ``dependencies_from_here``, it finds the packages the wheel needs (numba, numpy, ...) in
+    this environment's site-packages, after its own (a path in a .pth file: no .pth file of this environment
+    runs there, so this environment's editable kitti-eval is not importable)."""
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    python = venv / ("Scripts/python.exe" if sys.platform == "win32" else "bin/python")
+    subprocess.run([*PIP, "--python", str(python), "install", "--no-deps", "--no-index", str(wheel)], check=True)
+    if dependencies_from_here:
+        import sysconfig
+
+        get = [str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"]
+        site = Path(subprocess.run(get, capture_output=True, text=True, check=True).stdout.strip())
+        here = dict.fromkeys([sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]])
+        (site / "_dependencies_from_here.pth").write_text("".join(f"{path}\n" for path in here))
+    return python
+
+
 @pytest.mark.slow
 def test_the_wheel_installs_kitti_eval_server_and_no_server(tmp_path: Path) -> None:
     """Build the wheel from a copy of what the Dockerfile copies (no build folders land in the checkout),
@@ -96,8 +117,7 @@ def test_the_wheel_installs_kitti_eval_server_and_no_server(tmp_path: Path) -> N
     for name in ("kitti_eval", "server"):
         shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.nbi", "*.nbc"))
     dist = tmp_path / "dist"
-    pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "--quiet"]
-    subprocess.run([*pip, "wheel", "--no-deps", str(src), "-w", str(dist)], check=True, capture_output=True)
+    subprocess.run([*PIP, "wheel", "--no-deps", str(src), "-w", str(dist)], check=True, capture_output=True)
     (wheel,) = dist.glob("*.whl")
     assert wheel.name == "kitti_eval-0.1.0-py3-none-any.whl"
 
@@ -116,9 +136,7 @@ def test_the_wheel_installs_kitti_eval_server_and_no_server(tmp_path: Path) -> N
     assert "kitti-eval = kitti_eval.cli:entry" in (meta / "entry_points.txt").read_text()
 
     venv = tmp_path / "venv"
-    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
-    python = venv / ("Scripts/python.exe" if sys.platform == "win32" else "bin/python")
-    subprocess.run([*pip, "--python", str(python), "install", "--no-deps", "--no-index", str(wheel)], check=True)
+    python = install_in_fresh_venv(wheel, venv)
     code = (
         "import importlib.util as u\n"
         "try:\n    import server\nexcept ModuleNotFoundError as e:\n    print(e.name)\n"

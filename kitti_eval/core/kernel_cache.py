@@ -19,28 +19,62 @@ always does), finds the folder through numba's own locators (``NUMBA_CACHE_DIR``
 ``__pycache__``, the user-wide cache) and changes only the stamp. Kernel modules import :func:`njit` from
 here, so the locator is in place before their first kernel is decorated (``tests/test_kernel_cache.py``
 checks that no module takes ``njit`` from numba directly).
+
+A platform wheel (``scripts/build_wheel.py``) also carries the kernels, compiled for the generic CPU of its
+platform (``NUMBA_CPU_NAME=generic`` in the build's process only), in ``kitti_eval/_kernels/``: a folder of
+numba cache files laid out like the package, with a manifest naming the numba and Python versions and the
+target they were compiled for. numba keys a cached kernel by the CPU it was compiled for, so a process
+compiling for its own CPU (the default, which this module leaves alone) would never look at them. The
+:func:`njit` of this module therefore gives every cached kernel a :class:`KernelCache`: numba's own cache
+(same folders, same keys, new compilations saved where numba saves them) that, when it holds nothing for
+the kernel, reads the shipped index under the generic target's key. Generic code runs on every CPU of its
+target (x86-64 code without AVX runs on any x86-64), and it is numba's own loader that links it in. The
+shipped index carries the same content stamp as any other, so an edited installation never loads them, and
+it is only read: a read-only site-packages or a ``NUMBA_CACHE_DIR`` elsewhere changes nothing.
 """
 
 from __future__ import annotations
 
 import ast
 import hashlib
+import inspect
+import json
 import os
-from collections.abc import Iterator
+import sys
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from typing import Any
 
-from numba import njit
+import numba
 from numba.core import caching
+from numba.core.dispatcher import Dispatcher
 
-__all__ = ["KernelLocator", "kernel_modules", "kernel_stamp", "njit"]
+__all__ = [
+    "SHIPPED_ROOT",
+    "KernelCache",
+    "KernelLocator",
+    "ShippedKernels",
+    "kernel_modules",
+    "kernel_stamp",
+    "njit",
+    "python_tag",
+    "read_manifest",
+    "shipped_kernels",
+]
 
 #: the folder of this package (``kitti_eval/``): the locator answers for the files below it
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]
 _PACKAGE_NAME = PACKAGE_ROOT.name
 #: marks a stamp as this package's (numba compares stamps for equality; any picklable value will do)
 _STAMP_TAG = "kitti-eval-kernel-closure-1"
+#: where a platform wheel keeps its kernels: numba's cache files, in folders named as the package's
+SHIPPED_ROOT = PACKAGE_ROOT / "_kernels"
+#: what the build writes beside them: numba and Python versions, the target compiled for, the kernels
+MANIFEST = "manifest.json"
+#: CPU names whose code runs on every CPU of their target triple (numba's magic tuple: triple, name, features)
+PORTABLE_CPUS = frozenset({"generic"})
 
 
 def _module_file(root: Path, dotted: str) -> Path | None:
@@ -166,6 +200,10 @@ class KernelLocator(caching._CacheLocator):
         self._inner = inner
         self._py_file = py_file
 
+    @property
+    def py_file(self) -> str:
+        return self._py_file
+
     def ensure_cache_path(self) -> None:
         self._inner.ensure_cache_path()
 
@@ -193,6 +231,106 @@ class KernelLocator(caching._CacheLocator):
                     return None  # sources not readable as files: numba's own stamp
                 return cls(inner, py_file)
         return None
+
+
+def python_tag() -> str:
+    """The Python part of numba's cache file names (``py311``): a cache is for one Python version."""
+    return f"py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}"
+
+
+@dataclass(frozen=True)
+class ShippedKernels:
+    """The kernels a platform wheel carries, as its manifest describes them."""
+
+    root: Path
+    numba: str
+    python: str
+    #: numba's magic tuple of the build's codegen: (target triple, CPU name, CPU features)
+    target: tuple[str, str, str]
+    kernels: int
+
+    def usable_on(self, magic: tuple[str, str, str]) -> bool:
+        """True when code compiled for :attr:`target` runs under a codegen of ``magic`` (same triple)."""
+        return self.target[0] == magic[0] and self.target[1] in PORTABLE_CPUS
+
+    def folder(self, py_file: str) -> Path:
+        """Where the cache files of the kernels of ``py_file`` (a module of the package) are."""
+        return self.root.joinpath(*Path(py_file).resolve().relative_to(PACKAGE_ROOT).parent.parts)
+
+
+def read_manifest(root: Path | None = None) -> ShippedKernels | None:
+    """The manifest of ``root`` (:data:`SHIPPED_ROOT`), or None when there is none (an editable or source
+    install) or it is unreadable."""
+    root = SHIPPED_ROOT if root is None else root
+    try:
+        doc = json.loads((root / MANIFEST).read_text(encoding="utf-8"))
+        triple, cpu, features = (str(part) for part in doc["target"])
+        return ShippedKernels(root, str(doc["numba"]), str(doc["python"]), (triple, cpu, features), int(doc["kernels"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+@cache
+def shipped_kernels() -> ShippedKernels | None:
+    """The kernels this installation carries, if they were built for the running numba and Python."""
+    shipped = read_manifest()
+    if shipped is None or shipped.numba != numba.__version__ or shipped.python != python_tag():
+        return None
+    return shipped
+
+
+class KernelCache(caching.FunctionCache):
+    """numba's cache of one kernel of the package, which also reads the kernels a platform wheel ships.
+
+    Loading looks in numba's own place first, under numba's own key (the kernels compiled on this machine,
+    for its CPU); when that holds nothing, in the shipped index under the key of the target the wheel was
+    built for, if code for that target runs here. Saving is numba's: a kernel compiled here is kept in
+    numba's place, for this CPU; the shipped files are never written."""
+
+    def __init__(self, py_func: Any) -> None:
+        super().__init__(py_func)
+        self._shipped: tuple[ShippedKernels, caching.IndexDataCacheFile] | None = None
+        shipped = shipped_kernels()
+        if shipped is not None and isinstance(self._impl.locator, KernelLocator):
+            index = caching.IndexDataCacheFile(
+                cache_path=str(shipped.folder(self._impl.locator.py_file)),
+                filename_base=self._impl.filename_base,
+                source_stamp=self._impl.locator.get_source_stamp(),
+            )
+            self._shipped = shipped, index
+
+    def _load_overload(self, sig: Any, target_context: Any) -> Any:
+        data = super()._load_overload(sig, target_context)
+        if data is not None or self._shipped is None or not self._enabled:
+            return data
+        shipped, index = self._shipped
+        codegen = target_context.codegen()
+        if not shipped.usable_on(codegen.magic_tuple()):
+            return None
+        own_key = self._index_key(sig, codegen)
+        found = index.load((own_key[0], shipped.target, *own_key[2:]))
+        return None if found is None else self._impl.rebuild(target_context, found)
+
+
+def njit(*args: Any, **options: Any) -> Any:
+    """numba's ``njit``, whose kernels with ``cache=True`` have a :class:`KernelCache`.
+
+    As a decorator, bare or with options. Given signatures (``njit("f8(f8)", ...)``), numba compiles at once,
+    before a cache could be swapped in: that form is numba's own, with numba's cache."""
+    if len(args) == 1 and inspect.isfunction(args[0]):
+        return _kernel(args[0], options)
+    if args:
+        return numba.njit(*args, **options)
+    return lambda func: _kernel(func, options)
+
+
+def _kernel(func: Callable[..., Any], options: dict[str, Any]) -> Any:
+    options = dict(options)
+    cached = bool(options.pop("cache", False))
+    dispatcher = numba.njit(**options)(func)
+    if cached and isinstance(dispatcher, Dispatcher):  # under NUMBA_DISABLE_JIT numba returns the function
+        dispatcher._cache = KernelCache(dispatcher.py_func)  # type: ignore[attr-defined]
+    return dispatcher
 
 
 def _install() -> None:
