@@ -180,6 +180,7 @@ def test_every_cached_kernel_goes_through_the_locator() -> None:
     assert offenders == []
 
 
+@pytest.mark.skipif(numba.config.DISABLE_JIT, reason="NUMBA_DISABLE_JIT: no dispatchers, no cache")
 def test_the_package_kernels_are_located_by_the_kernel_locator_and_others_are_not() -> None:
     from numba.core.caching import FunctionCache
 
