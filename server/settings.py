@@ -67,6 +67,11 @@ class Settings(BaseSettings):
     """Workers in the service's own process that run the accepted evaluations (0: none; ``kitti-eval worker``
     processes on this or other machines run them)."""
 
+    worker_processes: Annotated[int, Field(ge=0)] = 0
+    """Worker processes the service starts with itself (``kitti-eval serve``, or any process running the app),
+    one thread each, stopped (drained) with it: one command uses the machine's cores. 0: only the threads of
+    ``job_threads`` (and any ``kitti-eval worker``). Each process of ``uvicorn --workers`` would start its own."""
+
     job_lease_s: Annotated[float, Field(gt=0)] = 30.0
     """How long a worker holds a job without a heartbeat (it beats every third of it); a worker that stops
     loses its job to another once it has run out."""

@@ -68,7 +68,7 @@ def test_a_job_is_its_owners_and_the_admins(tmp_path) -> None:
 def test_a_lost_workers_job_is_taken_over_and_stored_once(tmp_path) -> None:
     """A worker that claimed the job and stopped (no heartbeat: killed) loses it when its lease runs out; the
     next worker runs it; the first one's late result is not stored."""
-    with app_client(tmp_path / "data", job_threads=0, job_lease_s=0.5) as c:
+    with app_client(tmp_path / "data", ready=False, job_threads=0, job_lease_s=0.5) as c:
         service = c.app.state.service
         job_id = upload(c, golden_bytes("result.pkl"), params={"wait": "0"}).json()["id"]
         lost = service.jobs.claim("lost-worker")
@@ -87,7 +87,7 @@ def test_a_lost_workers_job_is_taken_over_and_stored_once(tmp_path) -> None:
 
 
 def test_a_job_accepted_before_a_restart_runs_after_it(tmp_path) -> None:
-    with app_client(tmp_path / "data", job_threads=0) as c:
+    with app_client(tmp_path / "data", ready=False, job_threads=0) as c:
         job_id = upload(c, golden_bytes("result.pkl"), params={"wait": "0"}).json()["id"]
         assert c.get(f"/v1/jobs/{job_id}").json()["state"] == "queued"
         assert c.get(f"/v1/jobs/{job_id}").json()["position"] == 1
