@@ -28,6 +28,7 @@ from .catalog import GroundTruthCatalog
 from .errors import StartupRefused
 from .evaluations import Evaluations, sealed_document
 from .ground_truths import GroundTruthCache, GroundTruths
+from .job_admin import JobAdmin
 from .jobs import JobQueue, JobRecord
 from .observability import AdmissionState
 from .policy import AuthMode, Policy
@@ -99,6 +100,14 @@ class Service:
         self.jobs = JobQueue(self.store, lease_s=settings.job_lease_s, max_attempts=settings.job_max_attempts)
         self.workers = Workers(
             self.jobs, {"evaluation": self._run_evaluation}, threads=settings.job_threads, admission=self.admission
+        )
+        #: the jobs as admins see them (list, cancel, run again)
+        self.job_admin = JobAdmin(
+            self.jobs,
+            self.policy,
+            self.audit,
+            run_again={"evaluation": self.evaluations.why_not_again},
+            wake=self.workers.wake,
         )
         #: worker processes of the service's own (KITTI_EVAL_WORKER_PROCESSES), started and stopped with it
         self.pool: WorkerPool | None = None

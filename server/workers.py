@@ -35,6 +35,8 @@ __all__ = [
     "JobEnded",
     "OUTCOMES",
     "JobFailed",
+    "JobCancelled",
+    "admin_job_view",
     "error_of",
     "worker_name",
     "await_job",
@@ -283,6 +285,13 @@ class JobFailed(ApiError):
         self.details = {k: body[k] for k in ("frame", "field") if k in body}
 
 
+class JobCancelled(ApiError):
+    """A job an admin cancelled before it ended."""
+
+    status_code = 409
+    code = "cancelled"
+
+
 async def await_job(queue: JobQueue, job_id: str, timeout_s: float) -> JobRecord:
     """The job once it has ended, or as it is when ``timeout_s`` has passed. Polls without holding a thread:
     at once, then at growing intervals (20 ms to 250 ms)."""
@@ -318,4 +327,21 @@ def job_view(record: JobRecord, position: int | None) -> dict[str, Any]:
     if record.state == "failed":
         failure = JobFailed(record.error)
         out["error"] = {"status": failure.status_code, "code": failure.code, "message": failure.message}
+    return out
+
+
+def admin_job_view(record: JobRecord) -> dict[str, Any]:
+    """A job as the admins' list shows it: its owner, its worker and lease, and the last error of one queued
+    again after a failure."""
+    out = job_view(record, None)
+    out.update(
+        owner=record.owner,
+        group=record.group,
+        max_attempts=record.max_attempts,
+        worker=record.worker,
+        lease_until=record.lease_until.isoformat() if record.lease_until else None,
+    )
+    if record.error and record.state != "failed":
+        last = JobFailed(record.error)
+        out["last_error"] = {"status": last.status_code, "code": last.code, "message": last.message}
     return out
