@@ -233,8 +233,8 @@ class Workers:
         except BaseException as e:  # noqa: BLE001 - every failure is the job's, recorded with it
             body, retry = error_of(e)
             detail = f": {body['code']}: {body['message']}"
-            if retry:
-                log.error("job %s failed (attempt %s)", job.id, job.attempts, exc_info=True)
+            if body["code"] == "internal_error":  # a bug: its traceback for the log (the job keeps the message)
+                log.error("job %s raised an unexpected error (attempt %s)", job.id, job.attempts, exc_info=True)
             if self.queue.fail(job.id, name, json.dumps(body), retry=retry):
                 outcome = "refused" if not retry else "retried" if job.attempts < job.max_attempts else "failed"
             return False
