@@ -227,3 +227,33 @@ def test_sigterm_drains_a_worker_and_it_exits_0(tmp_path, grace: str) -> None:
         assert f"job {first} evaluation released" in text
     assert "kitti-eval worker: stopped" in text and f"worker process {pid}: stopped" in text
     store.dispose()
+
+
+@pytest.mark.slow
+def test_serve_starts_its_own_worker_processes_and_drains_them(tmp_path) -> None:
+    """``KITTI_EVAL_WORKER_PROCESSES=2`` with no worker thread: the evaluations run in the 2 processes the server
+    started, which the metrics count; SIGTERM stops the server and its processes with it."""
+    from server_helpers import LiveServer, golden_bytes
+    from test_server_operations import scrape, value
+
+    data_dir = tmp_path / "data"
+    server = LiveServer(data_dir, via_serve=True, job_threads=0, worker_processes=2).start()
+    try:
+        with server.client() as c:
+            answers = [upload(c, golden_bytes("result.pkl")) for _ in range(4)]
+            assert [r.status_code for r in answers] == [201] * 4, answers[0].text
+            samples = scrape(c)
+        assert value(samples, "kitti_eval_job_worker_processes_alive") == 2
+        assert value(samples, "kitti_eval_job_workers_alive") == 0
+        assert value(samples, "kitti_eval_job_workers_seen") == 2
+        store = Store(f"sqlite:///{data_dir / 'kitti-eval.db'}")
+        jobs = [JobQueue(store).get(r.json()["id"]) for r in answers]
+        pids = {int(j.worker.split(":")[1]) for j in jobs if j is not None and j.worker}
+        assert pids and server.proc is not None and server.proc.pid not in pids  # run by the worker processes
+        server.proc.send_signal(signal.SIGTERM)
+        assert server.proc.wait(60) in (0, -15), server.log()
+    finally:
+        server.stop()
+    assert not any(_alive(pid) for pid in pids)
+    assert JobQueue(store).workers_seen(3600) == []  # each process removed its row as it stopped
+    store.dispose()
