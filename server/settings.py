@@ -57,7 +57,8 @@ class Settings(BaseSettings):
     """Most members (files and folders) an uploaded zip or tar may have. KITTI val has 3769 frames."""
 
     max_concurrent_evals: Annotated[int, Field(gt=0)] = 2
-    """Evaluations (loading, validating, matching) running at the same time, each on its own thread."""
+    """Uploads read and stored as jobs at the same time, each on a thread of its own (the workers run the
+    evaluations: ``job_threads``, ``worker_processes``, ``kitti-eval worker``)."""
 
     wait_s: Annotated[float, Field(ge=0, le=3600)] = 600.0
     """How long ``POST /v1/evaluations`` waits for its result when the request does not say (``wait``): 201 with

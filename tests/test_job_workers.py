@@ -158,7 +158,7 @@ def test_a_worker_process_killed_mid_batch_loses_nothing_and_stores_nothing_twic
     """20 evaluations, 2 worker processes; one is killed with SIGKILL while it runs a job: its job is taken
     over once its lease has run out, the pool starts another process, and every job is done exactly once."""
     data_dir = tmp_path / "data"
-    ids = _accept(data_dir, 20)
+    ids = _accept(data_dir, 20, fields={"errors": "true"})  # most of a second each
     store = Store(f"sqlite:///{data_dir / 'kitti-eval.db'}")
     queue = JobQueue(store)
     proc, log_path = _worker(data_dir, "--processes", "2", KITTI_EVAL_JOB_LEASE_S="1")
@@ -169,10 +169,14 @@ def test_a_worker_process_killed_mid_batch_loses_nothing_and_stores_nothing_twic
             running = queue.list(state="running")
             return running[0] if counts["done"] >= 3 and running else None
 
-        victim = _until(running_after_some_done, 120, "a job running after 3 done", log_path)
-        pid = int(victim.worker.split(":")[1])
+        seen = _until(running_after_some_done, 120, "a job running after 3 done", log_path)
+        pid = int(seen.worker.split(":")[1])
         assert pid != proc.pid  # a process of the pool, not the command itself
         os.kill(pid, signal.SIGKILL)
+        # the job the killed process held when it died (the one seen running, unless it had just ended it)
+        held = [j for j in queue.list(state="running") if j.worker.split(":")[1] == str(pid)]
+        assert len(held) == 1, (seen, held)
+        victim = held[0]
         _until(lambda: queue.counts()["done"] == 20, 180, "all 20 done", log_path)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(60) == 0, log_path.read_text()[-4000:]
