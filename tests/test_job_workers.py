@@ -16,6 +16,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -109,10 +110,12 @@ def _pickled(obj: Any) -> bytes:
 SLOW_OPTIONS = {"errors": "true", "coco": "true", "curves": "true", "ranges": "0,10,20,30,40,50,60,inf"}
 
 
-def _accept(data_dir: Path, n: int, *, fields: dict[str, str] | None = None) -> list[str]:
+def _accept(
+    data_dir: Path, n: int, *, fields: dict[str, str] | None = None, database_url: str | None = None
+) -> list[str]:
     """``n`` evaluations of a KITTI-val-sized set accepted by a service without workers: their job ids."""
     infos, results = generate(3769, seed=5)
-    with app_client(data_dir, ready=False, job_threads=0, warmup=False) as c:
+    with app_client(data_dir, ready=False, job_threads=0, warmup=False, database_url=database_url) as c:
         assert register(c, "val", _pickled(infos), "infos.pkl").status_code == 201
         pred = _pickled(results)
         ids = []
@@ -123,12 +126,16 @@ def _accept(data_dir: Path, n: int, *, fields: dict[str, str] | None = None) -> 
     return ids
 
 
-def _worker(data_dir: Path, *args: str, **env: str) -> tuple[subprocess.Popen[bytes], Path]:
-    """``kitti-eval worker --data-dir DATA_DIR ARGS`` in a process of its own, its log in a file."""
+def _worker(
+    data_dir: Path, *args: str, database_url: str | None = None, **env: str
+) -> tuple[subprocess.Popen[bytes], Path]:
+    """``kitti-eval worker --data-dir DATA_DIR ARGS`` (or ``--database-url``) in a process of its own, its log in
+    a file."""
     log_path = data_dir.parent / f"worker-{time.monotonic_ns()}.log"
     environ = {k: v for k, v in os.environ.items() if not k.startswith("KITTI_EVAL_")}
     environ.update({"KITTI_EVAL_LOG_FORMAT": "text", **env})
-    command = [sys.executable, "-m", "kitti_eval.cli", "worker", "--data-dir", str(data_dir), *args]
+    where = ["--database-url", database_url] if database_url else ["--data-dir", str(data_dir)]
+    command = [sys.executable, "-m", "kitti_eval.cli", "worker", *where, *args]
     with open(log_path, "wb") as log:
         proc = subprocess.Popen(command, cwd=ROOT, env=environ, stdout=log, stderr=subprocess.STDOUT)
     return proc, log_path
@@ -153,15 +160,31 @@ def _alive(pid: int) -> bool:
     return True
 
 
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database(request, tmp_path) -> Iterator[str | None]:
+    """None (the data folder's SQLite), or the URL of a throwaway PostgreSQL."""
+    if request.param == "sqlite":
+        yield None
+        return
+    from server_postgres import PostgresCluster, why_no_postgres
+
+    missing = why_no_postgres()
+    if missing:
+        pytest.skip(missing)
+    with PostgresCluster() as cluster:
+        yield cluster.url.replace("postgresql://", "postgresql+psycopg://", 1)
+
+
 @pytest.mark.slow
-def test_a_worker_process_killed_mid_batch_loses_nothing_and_stores_nothing_twice(tmp_path) -> None:
+def test_a_worker_process_killed_mid_batch_loses_nothing_and_stores_nothing_twice(tmp_path, database) -> None:
     """20 evaluations, 2 worker processes; one is killed with SIGKILL while it runs a job: its job is taken
-    over once its lease has run out, the pool starts another process, and every job is done exactly once."""
+    over once its lease has run out, the pool starts another process, and every job is done exactly once. On
+    SQLite and on PostgreSQL (where the claims lock rows with SKIP LOCKED)."""
     data_dir = tmp_path / "data"
-    ids = _accept(data_dir, 20, fields={"errors": "true"})  # most of a second each
-    store = Store(f"sqlite:///{data_dir / 'kitti-eval.db'}")
+    ids = _accept(data_dir, 20, fields={"errors": "true"}, database_url=database)  # most of a second each
+    store = Store(database or f"sqlite:///{data_dir / 'kitti-eval.db'}")
     queue = JobQueue(store)
-    proc, log_path = _worker(data_dir, "--processes", "2", KITTI_EVAL_JOB_LEASE_S="1")
+    proc, log_path = _worker(data_dir, "--processes", "2", database_url=database, KITTI_EVAL_JOB_LEASE_S="1")
     try:
 
         def running_after_some_done() -> Any:
