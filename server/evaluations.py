@@ -28,7 +28,7 @@ from .errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, clip, echo
 from .evaluator import EvalOptions, evaluate_document, summarize
 from .ground_truths import GroundTruthCache
 from .policy import Caller, Policy
-from .store import EvaluationRecord, GroundTruthRecord, JobInput, Store, new_id
+from .store import EvaluationRecord, GroundTruthRecord, JobInput, JobRecord, Store, new_id
 from .uploads import FileIn, Limits, Upload, load_upload, receive_upload
 
 __all__ = ["Evaluations", "FileIn", "sealed_document", "MAX_INSPECTED"]
@@ -231,6 +231,15 @@ class Evaluations:
             self.store.delete_job_inputs_in(conn, job_id)
 
         return record, write
+
+    def why_not_again(self, job: JobRecord) -> str | None:
+        """Why an ended evaluation job cannot run again (None: it can): once done, its evaluation is stored (a
+        second run would store it twice); and its inputs must still be kept (they go when it is done)."""
+        if job.state == "done":
+            return f"job {job.id} is done and its evaluation is stored: upload the predictions again for a new one"
+        if self.store.job_input(job.id, "predictions") is None:
+            return f"the inputs of job {job.id} are gone: upload the predictions again"
+        return None
 
     def _project_for(self, caller: Caller, wanted: str | None, gt_record: GroundTruthRecord | None) -> str | None:
         """The project a new evaluation belongs to (None in open mode)."""

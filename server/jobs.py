@@ -36,10 +36,10 @@ from typing import Any
 from sqlalchemy.engine import Connection
 from sqlalchemy.exc import IntegrityError
 
-from .store import JobRecord, Store, new_id
+from .store import JobRecord, Store, WorkerRecord, new_id
 from .store.job_store import ENDED_STATES, JOB_STATES
 
-__all__ = ["JobQueue", "JobRecord", "JOB_KINDS", "JOB_STATES", "ENDED_STATES", "now_utc"]
+__all__ = ["JobQueue", "JobRecord", "WorkerRecord", "JOB_KINDS", "JOB_STATES", "ENDED_STATES", "now_utc"]
 
 #: what a job runs: an evaluation, a benchmark submission's scoring, or a submission scored again
 JOB_KINDS = ("evaluation", "submission", "rescore")
@@ -255,6 +255,24 @@ class JobQueue:
         """Seconds since the oldest queued job was accepted (None when none is queued)."""
         oldest = self.store.oldest_queued_at()
         return None if oldest is None else max(0.0, (self._now() - oldest).total_seconds())
+
+    # -- the processes that run jobs ------------------------------------------------------------------------
+    #: a process not seen for this long is forgotten (its row dropped by any other's beat)
+    FORGET_WORKERS_S = 3600.0
+
+    def worker_beat(self, name: str, *, host: str, pid: int, threads: int, started_at: datetime) -> None:
+        """The process ``name`` (``host:pid``), running ``threads`` workers since ``started_at``, is alive now."""
+        now = self._now()
+        record = WorkerRecord(name, host, pid, threads, started_at, now)
+        self.store.beat_worker(record, forget_before=now - timedelta(seconds=self.FORGET_WORKERS_S))
+
+    def worker_gone(self, name: str) -> None:
+        """The process ``name`` stopped (its row is removed)."""
+        self.store.forget_worker(name)
+
+    def workers_seen(self, within_s: float) -> builtins.list[WorkerRecord]:
+        """The processes that beat within the last ``within_s`` seconds."""
+        return self.store.workers_seen(self._now() - timedelta(seconds=within_s))
 
     def wait(self, job_id: str, timeout_s: float, *, poll_s: float = 0.05) -> JobRecord | None:
         """Block until the job is done, failed or cancelled, or ``timeout_s`` has passed; the job as it is then

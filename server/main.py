@@ -55,6 +55,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app_metrics = Metrics(service) if settings.metrics == "on" else None
     if app_metrics is not None:
         service.ground_truths.cache.on_lookup = app_metrics.cache_hit
+        service.workers.on_ended = app_metrics.job_ended
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

@@ -26,7 +26,7 @@ import re
 import sys
 import time
 import uuid
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -55,6 +55,7 @@ REQUEST_ID_HEADER = "x-request-id"
 _SANE_ID = re.compile(r"[A-Za-z0-9._:-]{1,128}")
 #: the paths whose POST runs an evaluation
 EVALUATION_PATHS = frozenset({"/v1/evaluations", "/ui/evaluations"})
+_ATTEMPT_BUCKETS = (1, 2, 3, 5, 10)
 _LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0)
 
 access_log = logging.getLogger("kitti_eval.server.access")
@@ -77,8 +78,35 @@ class _Warm(Protocol):
     def is_set(self) -> bool: ...
 
 
+class _Jobs(Protocol):
+    def counts(self) -> dict[str, int]: ...
+
+    def oldest_queued_age_s(self) -> float | None: ...
+
+    def workers_seen(self, within_s: float) -> Sequence[_SeenWorker]: ...
+
+
+class _SeenWorker(Protocol):
+    @property
+    def threads(self) -> int: ...
+
+
+class _Alive(Protocol):
+    @property
+    def alive(self) -> int: ...
+
+
 class ServiceState(Protocol):
     """What the metrics read of the service (:class:`kitti_eval_server.service.Service` has it)."""
+
+    @property
+    def jobs(self) -> _Jobs: ...
+
+    @property
+    def workers(self) -> _Alive: ...
+
+    @property
+    def pool(self) -> _Alive | None: ...
 
     @property
     def admission(self) -> AdmissionState: ...
@@ -125,6 +153,21 @@ class Metrics:
         self.cache_lookups = Counter(
             "kitti_eval_ground_truth_cache_lookups", "Ground-truth cache lookups", ["result"], registry=r
         )
+        self.job_seconds = Histogram(
+            "kitti_eval_job_duration_seconds",
+            "Time a run of a job took on a worker of this process, by kind and outcome (done, refused, retried, "
+            "failed, lost, released)",
+            ["kind", "outcome"],
+            buckets=_LATENCY_BUCKETS,
+            registry=r,
+        )
+        self.job_attempts = Histogram(
+            "kitti_eval_job_attempts",
+            "Which attempt a run of a job was (1: its first), by kind and outcome",
+            ["kind", "outcome"],
+            buckets=_ATTEMPT_BUCKETS,
+            registry=r,
+        )
         self.state = None if service is None else _StateCollector(service, with_pid=self.multiprocess_dir is not None)
         if self.state is not None:
             r.register(self.state)
@@ -142,9 +185,18 @@ class Metrics:
     def cache_hit(self, hit: bool) -> None:
         self.cache_lookups.labels("hit" if hit else "miss").inc()
 
+    def job_ended(self, kind: str, outcome: str, seconds: float, attempt: int) -> None:
+        """A worker's run of a job ended (:attr:`kitti_eval_server.workers.Workers.on_ended`)."""
+        self.job_seconds.labels(kind, outcome).observe(seconds)
+        self.job_attempts.labels(kind, outcome).observe(attempt)
+
 
 class _StateCollector(Collector):
-    """Gauges read from the service when scraped: admission, the ground-truth cache, the kernels."""
+    """Gauges read from the service when scraped: admission, the ground-truth cache, the kernels, the queue of
+    jobs and the workers (the last two read from the database: left out of a scrape that cannot read it)."""
+
+    #: a worker process seen on the database within this long counts among ``job_workers_seen``
+    SEEN_S = 60.0
 
     def __init__(self, service: ServiceState, *, with_pid: bool) -> None:
         self.service = service
@@ -168,6 +220,38 @@ class _StateCollector(Collector):
         )
         for name, doc, value in gauges:
             yield self._gauge(f"kitti_eval_{name}", doc, value)
+        yield from self._jobs()
+
+    def _jobs(self) -> Iterable[GaugeMetricFamily]:
+        s = self.service
+        yield self._gauge("kitti_eval_job_workers_alive", "Worker threads alive in this process", s.workers.alive)
+        pool = s.pool
+        yield self._gauge(
+            "kitti_eval_job_worker_processes_alive",
+            "Worker processes of this service's own (KITTI_EVAL_WORKER_PROCESSES) running",
+            pool.alive if pool is not None else 0,
+        )
+        try:
+            counts = s.jobs.counts()
+            oldest = s.jobs.oldest_queued_age_s()
+            seen = s.jobs.workers_seen(self.SEEN_S)
+        except Exception:  # noqa: BLE001 - the database is away: the rest of the scrape still answers
+            errors_log.debug("could not read the jobs for the metrics", exc_info=True)
+            return
+        by_state = GaugeMetricFamily("kitti_eval_jobs", "Jobs in the database by state", labels=[*self.labels, "state"])
+        for state, n in counts.items():
+            by_state.add_metric([*self.labels.values(), state], n)
+        yield by_state
+        yield self._gauge(
+            "kitti_eval_jobs_oldest_queued_age_seconds",
+            "Seconds since the oldest queued job was accepted (0: none is queued)",
+            oldest or 0.0,
+        )
+        yield self._gauge(
+            "kitti_eval_job_workers_seen",
+            "Worker threads of the processes seen on the database within the last minute (this one's included)",
+            sum(w.threads for w in seen),
+        )
 
 
 @dataclass

@@ -145,6 +145,7 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
     ("own submissions: publish, withdraw", Access.WRITER, "until the benchmark closes", "no"),
     ("benchmarks: create, close, reopen, reveal, rescore, disqualify", Access.ADMIN, "no", "yes"),
     ("accounts: users, projects, members, tokens, audit log", Access.ADMIN, "no", "yes"),
+    ("jobs: list, cancel, re-run", Access.ADMIN, "no", "yes"),
     ("metrics", Access.SCRAPER, "with the metrics token, else any token", "yes"),
 )
 

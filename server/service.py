@@ -28,6 +28,7 @@ from .catalog import GroundTruthCatalog
 from .errors import StartupRefused
 from .evaluations import Evaluations, sealed_document
 from .ground_truths import GroundTruthCache, GroundTruths
+from .job_admin import JobAdmin
 from .jobs import JobQueue, JobRecord
 from .observability import AdmissionState
 from .policy import AuthMode, Policy
@@ -36,6 +37,7 @@ from .scratch import ScratchSpace
 from .settings import Settings
 from .store import Store
 from .uploads import FileIn, Limits, receive_upload
+from .worker_pool import WorkerPool
 from .workers import Workers
 
 __all__ = ["Service", "FileIn", "DEMO_NAME", "sealed_document", "release_memory"]
@@ -99,6 +101,16 @@ class Service:
         self.workers = Workers(
             self.jobs, {"evaluation": self._run_evaluation}, threads=settings.job_threads, admission=self.admission
         )
+        #: the jobs as admins see them (list, cancel, run again)
+        self.job_admin = JobAdmin(
+            self.jobs,
+            self.policy,
+            self.audit,
+            run_again={"evaluation": self.evaluations.why_not_again},
+            wake=self.workers.wake,
+        )
+        #: worker processes of the service's own (KITTI_EVAL_WORKER_PROCESSES), started and stopped with it
+        self.pool: WorkerPool | None = None
         self.benchmarks = Benchmarks(
             self.store,
             self.ground_truths,
@@ -125,6 +137,24 @@ class Service:
             threading.Thread(target=self._warm_up, name="kitti-eval-warmup", daemon=True).start()
         else:
             self.warm.set()
+        self.workers.start()
+        if self.settings.worker_processes:
+            self.pool = WorkerPool(
+                self.settings.worker_processes,
+                threads=1,
+                grace_s=self.settings.shutdown_grace_s,
+                work_dir=self.data_dir,
+                database_url=self.settings.resolved_database_url,
+            )
+            self.pool.start()
+
+    def run_jobs(self) -> None:
+        """Start as a worker process (``kitti-eval worker``): the scratch space, the tables, the kernels, then the
+        workers; no HTTP, no admin token, no demo. :meth:`stop` ends it."""
+        self.scratch_space.open()
+        self.store.create_schema()
+        warm_up(everything=False)
+        self.warm.set()
         self.workers.start()
 
     def _check_open_mode(self) -> None:
@@ -155,8 +185,14 @@ class Service:
 
         return enqueue
 
-    def stop(self) -> None:
-        self.workers.stop(self.settings.shutdown_grace_s)
+    def stop(self, grace_s: float | None = None) -> None:
+        """Stop the workers (the running jobs have ``grace_s``, default ``KITTI_EVAL_SHUTDOWN_GRACE_S``, to finish;
+        those still running then go back to the queue) and the worker processes, then close the database."""
+        grace = self.settings.shutdown_grace_s if grace_s is None else grace_s
+        if self.pool is not None:
+            self.pool.stop(grace)
+            self.pool = None
+        self.workers.stop(grace)
         self.store.dispose()
         self.scratch_space.close()
 
@@ -213,7 +249,26 @@ class Service:
         except Exception as e:  # noqa: BLE001 - any failure means not ready
             log.warning("database ping failed: %s", e)
             return "the database is unavailable"
-        return None
+        return self._no_worker()
+
+    #: a worker process not seen on the database for this long does not count for the readiness
+    WORKERS_SEEN_S = 60.0
+
+    def _no_worker(self) -> str | None:
+        """Why no accepted evaluation would run (None: a worker can run it): no worker thread in this process,
+        no worker process of its own alive, and no worker process seen on the database within a minute."""
+        if self.workers.threads > 0 or (self.pool is not None and self.pool.alive > 0):
+            return None
+        try:
+            if self.jobs.workers_seen(self.WORKERS_SEEN_S):
+                return None
+        except Exception as e:  # noqa: BLE001 - the ping answered: a failure here is a passing one
+            log.warning("could not read the worker processes: %s", e)
+            return "the database is unavailable"
+        return (
+            "no worker runs evaluations: KITTI_EVAL_JOB_THREADS is 0, KITTI_EVAL_WORKER_PROCESSES is 0, and no "
+            f"'kitti-eval worker' was seen on the database in the last {self.WORKERS_SEEN_S:g} s"
+        )
 
     # -- the runner ----------------------------------------------------------------------------------------
     async def run(self, func: Callable[..., T], *args: Any) -> T:

@@ -57,7 +57,8 @@ class Settings(BaseSettings):
     """Most members (files and folders) an uploaded zip or tar may have. KITTI val has 3769 frames."""
 
     max_concurrent_evals: Annotated[int, Field(gt=0)] = 2
-    """Evaluations (loading, validating, matching) running at the same time, each on its own thread."""
+    """Uploads read and stored as jobs at the same time, each on a thread of its own (the workers run the
+    evaluations: ``job_threads``, ``worker_processes``, ``kitti-eval worker``)."""
 
     wait_s: Annotated[float, Field(ge=0, le=3600)] = 600.0
     """How long ``POST /v1/evaluations`` waits for its result when the request does not say (``wait``): 201 with
@@ -66,6 +67,11 @@ class Settings(BaseSettings):
     job_threads: Annotated[int, Field(ge=0)] = 2
     """Workers in the service's own process that run the accepted evaluations (0: none; ``kitti-eval worker``
     processes on this or other machines run them)."""
+
+    worker_processes: Annotated[int, Field(ge=0)] = 0
+    """Worker processes the service starts with itself (``kitti-eval serve``, or any process running the app),
+    one thread each, stopped (drained) with it: one command uses the machine's cores. 0: only the threads of
+    ``job_threads`` (and any ``kitti-eval worker``). Each process of ``uvicorn --workers`` would start its own."""
 
     job_lease_s: Annotated[float, Field(gt=0)] = 30.0
     """How long a worker holds a job without a heartbeat (it beats every third of it); a worker that stops

@@ -25,11 +25,23 @@ import anyio.to_thread
 from kitti_eval.errors import KittiEvalError
 
 from .errors import ApiError, fault_of, library_error_status
-from .jobs import ENDED_STATES, JobQueue, JobRecord
+from .jobs import ENDED_STATES, JobQueue, JobRecord, now_utc
 from .observability import AdmissionState
 from .runner import release_memory
 
-__all__ = ["Workers", "Handler", "JobFailed", "error_of", "worker_name", "await_job", "job_view"]
+__all__ = [
+    "Workers",
+    "Handler",
+    "JobEnded",
+    "OUTCOMES",
+    "JobFailed",
+    "JobCancelled",
+    "admin_job_view",
+    "error_of",
+    "worker_name",
+    "await_job",
+    "job_view",
+]
 
 log = logging.getLogger("kitti_eval.server")
 
@@ -61,8 +73,19 @@ def error_of(exc: BaseException) -> tuple[dict[str, Any], bool]:
     return {"status": 500, "code": "internal_error", "message": "the evaluation failed on the server"}, True
 
 
+#: told of every run of a job in this process: (kind, outcome, seconds, the attempt it was)
+JobEnded = Callable[[str, str, float, int], None]
+
+#: what a run of a job ended with (the log line's and the metrics' ``outcome``)
+OUTCOMES = ("done", "refused", "retried", "failed", "lost", "released")
+
+
 class Workers:
-    """``threads`` workers of this process on ``queue``, running each kind of job with its handler."""
+    """``threads`` workers of this process on ``queue``, running each kind of job with its handler.
+
+    While its threads run, the process beats its row in the database every ``beat_s`` (the readiness and the
+    metrics of any process on the database count the workers seen lately). Each run of a job writes one log
+    line (the job, its kind, the outcome, the seconds) and is told to ``on_ended`` (the metrics)."""
 
     def __init__(
         self,
@@ -73,6 +96,7 @@ class Workers:
         admission: AdmissionState | None = None,
         idle_s: float = 0.5,
         names: Callable[[int], str] = worker_name,
+        beat_s: float = 15.0,
     ) -> None:
         self.queue = queue
         self.handlers = dict(handlers)
@@ -80,11 +104,18 @@ class Workers:
         self.admission = admission or AdmissionState()
         self.idle_s = idle_s
         self.names = names
+        self.beat_s = beat_s
+        self.on_ended: JobEnded | None = None
+        self.process_name = f"{socket.gethostname()}:{os.getpid()}"
         self._wake = threading.Condition()
         self._pending = 0
         self._stopping = threading.Event()
         self._running: list[threading.Thread] = []
+        self._beating: threading.Thread | None = None
         self._count_lock = threading.Lock()
+        #: worker name -> the job it runs now
+        self._current: dict[str, JobRecord] = {}
+        self._released: set[str] = set()
 
     # -- life ----------------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -95,15 +126,36 @@ class Workers:
             )
             thread.start()
             self._running.append(thread)
+        if self.threads:
+            self._beating = threading.Thread(target=self._beat_process, name="kitti-eval-worker-beat", daemon=True)
+            self._beating.start()
 
-    def stop(self, grace_s: float = 30.0) -> None:
-        """Take no new job; the running ones finish within ``grace_s`` (a job still running then goes back to
-        the queue when its lease runs out)."""
+    def stop(self, grace_s: float = 30.0) -> int:
+        """Take no new job; the running ones have ``grace_s`` to finish, then those still running are released
+        back to the queue (their attempt not counted; another worker runs them, and this one's late result, if
+        it comes, is not stored). How many were released."""
         self._stopping.set()
         self.wake(len(self._running))
+        deadline = time.monotonic() + grace_s
         for thread in self._running:
-            thread.join(grace_s)
-        self._running = []
+            thread.join(max(0.0, deadline - time.monotonic()))
+        with self._count_lock:
+            held = list(self._current.items())
+        released = 0
+        for name, job in held:
+            try:
+                if self.queue.release(job.id, name):
+                    released += 1
+                    with self._count_lock:
+                        self._released.add(job.id)
+                    log.warning("job %s %s released: still running after %g s of grace", job.id, job.kind, grace_s)
+            except Exception:  # noqa: BLE001 - its lease runs out and another worker takes it over
+                log.warning("job %s could not be released", job.id, exc_info=True)
+        self._running = [t for t in self._running if t.is_alive()]
+        if self._beating is not None:
+            self._beating.join(max(1.0, deadline - time.monotonic()))
+            self._beating = None
+        return released
 
     def wake(self, n: int = 1) -> None:
         """Jobs were enqueued in this process: idle workers look at once."""
@@ -113,7 +165,31 @@ class Workers:
 
     @property
     def alive(self) -> int:
+        """Worker threads alive in this process."""
         return sum(t.is_alive() for t in self._running)
+
+    @property
+    def busy(self) -> int:
+        """Jobs running in this process now."""
+        with self._count_lock:
+            return len(self._current)
+
+    def _beat_process(self) -> None:
+        started_at = now_utc()
+        host, pid = socket.gethostname(), os.getpid()
+        while True:
+            try:
+                self.queue.worker_beat(
+                    self.process_name, host=host, pid=pid, threads=self.threads, started_at=started_at
+                )
+            except Exception:  # noqa: BLE001 - the next beat may reach the database
+                log.warning("could not record worker process %s in the database", self.process_name, exc_info=True)
+            if self._stopping.wait(self.beat_s):
+                break
+        try:
+            self.queue.worker_gone(self.process_name)
+        except Exception:  # noqa: BLE001 - forgotten an hour later anyway
+            log.debug("could not remove worker process %s from the database", self.process_name, exc_info=True)
 
     # -- the loop ------------------------------------------------------------------------------------------
     def _loop(self, name: str) -> None:
@@ -147,24 +223,49 @@ class Workers:
 
         beating = threading.Thread(target=heartbeat, name=f"heartbeat-{job.id}", daemon=True)
         beating.start()
+        started = time.perf_counter()
         with self._count_lock:
             self.admission.running += 1
+            self._current[name] = job
+        outcome, detail = "lost", ""
         try:
             result_id, write = self.handlers[job.kind](job)
         except BaseException as e:  # noqa: BLE001 - every failure is the job's, recorded with it
             body, retry = error_of(e)
-            if retry:
-                log.exception("job %s failed (attempt %s)", job.id, job.attempts)
-            else:
-                log.info("job %s refused: %s", job.id, body["message"])
-            self.queue.fail(job.id, name, json.dumps(body), retry=retry)
+            detail = f": {body['code']}: {body['message']}"
+            if body["code"] == "internal_error":  # a bug: its traceback for the log (the job keeps the message)
+                log.error("job %s raised an unexpected error (attempt %s)", job.id, job.attempts, exc_info=True)
+            if self.queue.fail(job.id, name, json.dumps(body), retry=retry):
+                outcome = "refused" if not retry else "retried" if job.attempts < job.max_attempts else "failed"
             return False
         else:
-            return self.queue.finish(job.id, name, result_id, within=write)
+            committed = self.queue.finish(job.id, name, result_id, within=write)
+            outcome = "done" if committed else "lost"
+            return committed
         finally:
             beat.set()
             with self._count_lock:
                 self.admission.running -= 1
+                self._current.pop(name, None)
+                if job.id in self._released:
+                    self._released.discard(job.id)
+                    outcome = "released" if outcome == "lost" else outcome
+            seconds = time.perf_counter() - started
+            log.info(
+                "job %s %s %s in %.2f s (attempt %d of %d)%s",
+                job.id,
+                job.kind,
+                outcome,
+                seconds,
+                job.attempts,
+                job.max_attempts,
+                detail,
+            )
+            if self.on_ended is not None:
+                try:
+                    self.on_ended(job.kind, outcome, seconds, job.attempts)
+                except Exception:  # noqa: BLE001 - a metric never fails a job
+                    log.debug("on_ended failed", exc_info=True)
             release_memory()
 
 
@@ -182,6 +283,13 @@ class JobFailed(ApiError):
         self.status_code = int(body.get("status") or 500)
         self.code = str(body.get("code") or "job_failed")
         self.details = {k: body[k] for k in ("frame", "field") if k in body}
+
+
+class JobCancelled(ApiError):
+    """A job an admin cancelled before it ended."""
+
+    status_code = 409
+    code = "cancelled"
 
 
 async def await_job(queue: JobQueue, job_id: str, timeout_s: float) -> JobRecord:
@@ -219,4 +327,21 @@ def job_view(record: JobRecord, position: int | None) -> dict[str, Any]:
     if record.state == "failed":
         failure = JobFailed(record.error)
         out["error"] = {"status": failure.status_code, "code": failure.code, "message": failure.message}
+    return out
+
+
+def admin_job_view(record: JobRecord) -> dict[str, Any]:
+    """A job as the admins' list shows it: its owner, its worker and lease, and the last error of one queued
+    again after a failure."""
+    out = job_view(record, None)
+    out.update(
+        owner=record.owner,
+        group=record.group,
+        max_attempts=record.max_attempts,
+        worker=record.worker,
+        lease_until=record.lease_until.isoformat() if record.lease_until else None,
+    )
+    if record.error and record.state != "failed":
+        last = JobFailed(record.error)
+        out["last_error"] = {"status": last.status_code, "code": last.code, "message": last.message}
     return out

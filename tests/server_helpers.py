@@ -40,12 +40,14 @@ def golden_bytes(name: str) -> bytes:
 
 
 @contextlib.contextmanager
-def app_client(data_dir: Path, **settings: Any) -> Iterator[TestClient]:
-    """A TestClient on a fresh app (lifespan run), waiting until /readyz says ready."""
+def app_client(data_dir: Path, *, ready: bool = True, **settings: Any) -> Iterator[TestClient]:
+    """A TestClient on a fresh app (lifespan run), waiting until /readyz says ready (unless ``ready`` is False:
+    a service without a worker of its own is never ready until a worker process is seen)."""
     settings.setdefault("admin_token", ADMIN_TOKEN)
     app = create_app(Settings(data_dir=data_dir, **settings))
     with TestClient(app, raise_server_exceptions=False) as client:
-        wait_ready(client.get)
+        if ready:
+            wait_ready(client.get)
         yield client
 
 

@@ -163,3 +163,29 @@ def test_benchmarks_from_the_cli(admin, tmp_path) -> None:
     assert admin("benchmark", "disqualify", "kitti-3d", made["id"])[0] == 0
     assert admin("benchmark", "export", "kitti-3d")[1].splitlines()[1:] == []
     assert "kitti-3d\ttest-set\topen\tpublic" in admin("benchmark", "list")[1]
+
+
+def test_jobs_from_the_cli(admin, tmp_path) -> None:
+    """``admin jobs list|cancel|rerun`` on the service's database: the same rules as the HTTP routes, audited as
+    the command line's login."""
+    with app_client(tmp_path / "data", ready=False, job_threads=0) as c:
+        ids = [upload(c, golden_bytes("result.pkl"), params={"wait": "0"}).json()["id"] for _ in range(2)]
+    code, out, err = admin("jobs", "list")
+    assert code == 0 and [line.split("\t")[0] for line in out.splitlines()] == ids[::-1]
+    assert out.splitlines()[0].split("\t")[1:5] == ["evaluation", "queued", "0/3", "anyone"]
+    assert "2 queued" in err
+    assert admin("jobs", "list", "--state", "running")[1] == ""
+    code, out, _ = admin("jobs", "cancel", ids[0])
+    assert code == 0 and out == f"job {ids[0]} cancelled\n"
+    code, _, err = admin("jobs", "cancel", ids[0])
+    assert code == 1 and "nothing to cancel" in err
+    assert admin("jobs", "cancel", "nope")[0] == 1
+    assert admin("jobs", "rerun", ids[1])[0] == 1  # queued: it runs without being told to
+    code, out, _ = admin("jobs", "rerun", ids[0])
+    assert code == 0 and out == f"job {ids[0]} queued again\n"
+    assert admin("jobs", "list", "--state", "queued", "--limit", "1")[1].split("\t")[0] == ids[0]  # newest: at the end
+    audit = [line.split("\t") for line in admin("audit")[1].splitlines()]
+    assert [(a[1].startswith("cli:"), a[2], a[3]) for a in audit[:2]] == [
+        (True, "job.rerun", ids[0]),
+        (True, "job.cancel", ids[0]),
+    ]

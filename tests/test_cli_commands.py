@@ -14,7 +14,19 @@ import pytest
 import kitti_eval.cli as cli
 
 CLI = Path(cli.__file__).resolve().parent
-COMMAND_NAMES = ["demo", "gate", "compare", "frames", "inspect", "errors", "describe", "validate", "serve", "admin"]
+COMMAND_NAMES = [
+    "demo",
+    "gate",
+    "compare",
+    "frames",
+    "inspect",
+    "errors",
+    "describe",
+    "validate",
+    "serve",
+    "worker",
+    "admin",
+]
 
 
 def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:

@@ -229,7 +229,7 @@ def test_a_member_of_a_project_sees_and_changes_what_the_policy_says(tmp_path) -
 def _spied_methods(service) -> list[tuple[object, str]]:
     """(part, method name) of every method of the service's parts that takes a caller."""
     found = []
-    for part in (service.evaluations, service.catalog, service.benchmarks, service.accounts):
+    for part in (service.evaluations, service.catalog, service.benchmarks, service.accounts, service.job_admin):
         for name, fn in inspect.getmembers(type(part), inspect.isfunction):
             if not name.startswith("_") and "caller" in inspect.signature(fn).parameters:
                 found.append((part, name))

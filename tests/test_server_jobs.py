@@ -4,10 +4,11 @@ a job accepted before a restart run after it."""
 
 from __future__ import annotations
 
+import threading
 import time
 
 from server_accounts import make_teams
-from server_helpers import app_client, assert_error, golden_bytes, upload
+from server_helpers import ADMIN, app_client, assert_error, golden_bytes, upload
 
 from kitti_eval_server.workers import Workers
 
@@ -68,7 +69,7 @@ def test_a_job_is_its_owners_and_the_admins(tmp_path) -> None:
 def test_a_lost_workers_job_is_taken_over_and_stored_once(tmp_path) -> None:
     """A worker that claimed the job and stopped (no heartbeat: killed) loses it when its lease runs out; the
     next worker runs it; the first one's late result is not stored."""
-    with app_client(tmp_path / "data", job_threads=0, job_lease_s=0.5) as c:
+    with app_client(tmp_path / "data", ready=False, job_threads=0, job_lease_s=0.5) as c:
         service = c.app.state.service
         job_id = upload(c, golden_bytes("result.pkl"), params={"wait": "0"}).json()["id"]
         lost = service.jobs.claim("lost-worker")
@@ -87,7 +88,7 @@ def test_a_lost_workers_job_is_taken_over_and_stored_once(tmp_path) -> None:
 
 
 def test_a_job_accepted_before_a_restart_runs_after_it(tmp_path) -> None:
-    with app_client(tmp_path / "data", job_threads=0) as c:
+    with app_client(tmp_path / "data", ready=False, job_threads=0) as c:
         job_id = upload(c, golden_bytes("result.pkl"), params={"wait": "0"}).json()["id"]
         assert c.get(f"/v1/jobs/{job_id}").json()["state"] == "queued"
         assert c.get(f"/v1/jobs/{job_id}").json()["position"] == 1
@@ -95,3 +96,76 @@ def test_a_job_accepted_before_a_restart_runs_after_it(tmp_path) -> None:
         ended = _until_ended(c, job_id)
         assert ended["state"] == "done"
         assert c.get(f"/v1/evaluations/{job_id}").status_code == 200
+
+
+def test_admins_list_cancel_and_rerun_jobs(tmp_path) -> None:
+    """Every owner's jobs, by state, newest first; a queued job cancelled, then run again; an ended evaluation
+    run again only while its inputs are kept and it is not done; each change audited."""
+    with app_client(tmp_path / "data", ready=False, job_threads=0) as c:
+        service = c.app.state.service
+        ids = [upload(c, golden_bytes("result.pkl"), params={"wait": "0"}).json()["id"] for _ in range(3)]
+        assert c.get("/v1/admin/jobs").status_code == 401  # open mode: the admin token
+        listed = c.get("/v1/admin/jobs", headers=ADMIN).json()
+        assert [j["id"] for j in listed["items"]] == ids[::-1] and listed["next_offset"] is None
+        assert listed["counts"] == {"queued": 3, "running": 0, "done": 0, "failed": 0, "cancelled": 0}
+        assert {(j["owner"], j["state"], j["attempts"], j["max_attempts"]) for j in listed["items"]} == {
+            ("anyone", "queued", 0, 3)
+        }
+        page = c.get("/v1/admin/jobs", params={"state": "queued", "limit": 2}, headers=ADMIN).json()
+        assert [j["id"] for j in page["items"]] == ids[:0:-1] and page["next_offset"] == 2
+        assert c.get("/v1/admin/jobs", params={"state": "lost"}, headers=ADMIN).status_code == 422
+
+        cancelled = c.post(f"/v1/admin/jobs/{ids[0]}/cancel", headers=ADMIN)
+        assert cancelled.status_code == 200 and cancelled.json()["state"] == "cancelled", cancelled.text
+        assert_error(c.post(f"/v1/admin/jobs/{ids[0]}/cancel", headers=ADMIN), 409, "nothing to cancel")
+        assert_error(c.post(f"/v1/admin/jobs/{ids[1]}/rerun", headers=ADMIN), 409, "queued")
+        assert_error(c.post("/v1/admin/jobs/nope/cancel", headers=ADMIN), 404)
+        assert c.post(f"/v1/admin/jobs/{ids[1]}/cancel").status_code == 401
+        again = c.post(f"/v1/admin/jobs/{ids[0]}/rerun", headers=ADMIN).json()
+        assert again["state"] == "queued" and again["attempts"] == 0 and again["position"] is None
+
+        workers = Workers(service.jobs, {"evaluation": service._run_evaluation}, threads=1, idle_s=0.05)
+        workers.start()
+        try:
+            ended = [_until_ended(c, i) for i in ids]
+        finally:
+            workers.stop(10)
+        assert [e["state"] for e in ended] == ["done"] * 3
+        assert_error(c.post(f"/v1/admin/jobs/{ids[0]}/rerun", headers=ADMIN), 409, "done")
+        assert [e["id"] for e in c.get("/v1/evaluations").json()["items"]].count(ids[0]) == 1
+        audit = c.get("/v1/admin/audit", headers=ADMIN).json()["items"]
+        assert [(a["action"], a["target"], a["actor"]) for a in audit if a["action"].startswith("job.")] == [
+            ("job.rerun", ids[0], "admin-token"),
+            ("job.cancel", ids[0], "admin-token"),
+        ]
+
+
+def test_a_failed_evaluation_runs_again_with_its_inputs_and_a_waiting_request_learns_of_a_cancel(tmp_path) -> None:
+    with app_client(tmp_path / "data", ready=False, job_threads=0) as c:
+        service = c.app.state.service
+        job_id = upload(c, b"\x80\x04not a pickle at all", params={"wait": "0"}).json()["id"]
+        workers = Workers(service.jobs, {"evaluation": service._run_evaluation}, threads=1, idle_s=0.05)
+        workers.start()
+        try:
+            assert _until_ended(c, job_id)["state"] == "failed"
+            rerun = c.post(f"/v1/admin/jobs/{job_id}/rerun", headers=ADMIN)
+            assert rerun.status_code == 200, rerun.text  # its inputs were kept: it runs, and is refused again
+            ended = _until_ended(c, job_id)
+            assert ended["state"] == "failed" and ended["attempts"] == 1 and ended["error"]["status"] == 422
+        finally:
+            workers.stop(10)
+        answers: list = []
+        request = threading.Thread(
+            target=lambda: answers.append(upload(c, golden_bytes("result.pkl"), params={"wait": "30"}))
+        )
+        request.start()
+        deadline = time.monotonic() + 30
+        while not (queued := service.jobs.list(state="queued")):
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        service.job_admin.cancel(queued[0].id, service.policy.command_line("ops"))
+        request.join(30)
+        err = assert_error(answers[0], 409, "cancelled")  # the waiting request is told, not left to poll
+        assert err["code"] == "cancelled"
+        listed = c.get("/v1/admin/jobs", params={"state": "cancelled"}, headers=ADMIN).json()["items"]
+        assert [j["id"] for j in listed] == [queued[0].id]

@@ -301,3 +301,66 @@ def test_metrics_in_accounts_mode(service_client: Any) -> None:
         assert scrape(client, authorization="Bearer scrape-me")
         assert client.get("/metrics").status_code == 401
         assert client.get("/metrics", headers={"Authorization": "Bearer kte_0_wrong"}).status_code == 403
+
+
+def test_the_queue_and_the_workers_in_the_metrics(service_client: Any) -> None:
+    """Jobs by state, the runs of this process's workers by kind and outcome, the workers alive here and seen on
+    the database."""
+    with service_client() as client:
+        before = scrape(client)
+        assert upload(client, golden_bytes("result.pkl")).status_code == 201
+        assert upload(client, golden_bytes("result.pkl")).status_code == 201
+        assert upload(client, b"not a pickle at all", "result.pkl").status_code == 422
+        after = scrape(client)
+
+    def delta(name: str, **labels: str) -> float:
+        return value(after, name, **labels) - value(before, name, **labels)
+
+    jobs = {state: value(after, "kitti_eval_jobs", state=state) for state in ("queued", "running", "done", "failed")}
+    assert jobs == {"queued": 0, "running": 0, "done": 2, "failed": 1}
+    assert value(after, "kitti_eval_jobs_oldest_queued_age_seconds") == 0
+    duration = "kitti_eval_job_duration_seconds_count"
+    assert delta(duration, kind="evaluation", outcome="done") == 2
+    assert delta(duration, kind="evaluation", outcome="refused") == 1  # the input's fault: not tried again
+    assert delta("kitti_eval_job_attempts_sum", kind="evaluation", outcome="done") == 2  # each at its first
+    assert value(after, "kitti_eval_job_workers_alive") == 2  # KITTI_EVAL_JOB_THREADS
+    assert value(after, "kitti_eval_job_worker_processes_alive") == 0
+    assert value(after, "kitti_eval_job_workers_seen") == 2  # this process's, seen on the database
+
+
+def test_no_worker_no_readiness(service_client: Any) -> None:
+    """With no worker thread and no worker process of its own, the service is ready only while a worker process
+    beat its row on the database within the last minute; a queued job's age shows meanwhile."""
+    import time
+    from datetime import datetime, timedelta, timezone
+
+    from kitti_eval_server.jobs import JobQueue
+
+    with service_client(job_threads=0, ready=False) as client:
+        service = client.app.state.service
+        deadline = time.monotonic() + 120
+        while not service.warm.is_set():
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        r = client.get("/readyz")
+        assert r.status_code == 503 and "no worker runs evaluations" in r.json()["error"]["message"], r.text
+        assert upload(client, golden_bytes("result.pkl"), params={"wait": "0"}).status_code == 202
+        long_ago = datetime.now(timezone.utc) - timedelta(minutes=2)
+        JobQueue(service.store, clock=lambda: long_ago).worker_beat(
+            "elsewhere:1", host="elsewhere", pid=1, threads=3, started_at=long_ago
+        )
+        assert client.get("/readyz").status_code == 503  # seen two minutes ago: gone, as far as anyone knows
+        time.sleep(0.05)
+        samples = scrape(client)
+        assert value(samples, "kitti_eval_jobs", state="queued") == 1
+        assert value(samples, "kitti_eval_jobs_oldest_queued_age_seconds") > 0
+        assert value(samples, "kitti_eval_job_workers_seen") == 0
+        assert value(samples, "kitti_eval_job_workers_alive") == 0
+        now = datetime.now(timezone.utc)
+        service.jobs.worker_beat("elsewhere:1", host="elsewhere", pid=1, threads=3, started_at=long_ago)
+        service.jobs.worker_beat("other:2", host="other", pid=2, threads=1, started_at=now)
+        assert client.get("/readyz").status_code == 200
+        assert value(scrape(client), "kitti_eval_job_workers_seen") == 4
+        service.jobs.worker_gone("elsewhere:1")
+        service.jobs.worker_gone("other:2")
+        assert client.get("/readyz").status_code == 503

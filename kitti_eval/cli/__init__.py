@@ -19,7 +19,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from ..errors import ConfigError, InputError, KittiEvalError
-from . import admin, compare, demo, describe, errors, evaluate, frames, gate, inspect, serve, validate
+from . import admin, compare, demo, describe, errors, evaluate, frames, gate, inspect, serve, validate, worker
 from .common import EXIT_INPUT, EXIT_USAGE, PROG, config, limits_from, say
 
 __all__ = ["main", "entry", "COMMANDS"]
@@ -35,6 +35,7 @@ COMMANDS: tuple[Callable[[Any], object], ...] = (
     describe.add_parser,
     validate.add_parser,
     serve.add_parser,
+    worker.add_parser,
     admin.add_parser,
 )
 

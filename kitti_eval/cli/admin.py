@@ -1,4 +1,4 @@
-"""``kitti-eval admin``: users, projects, memberships, tokens, ground truths and the audit log of the service,
+"""``kitti-eval admin``: users, projects, memberships, tokens, ground truths, jobs and the audit log of the service,
 run on the server's machine against its database (the service's settings: ``KITTI_EVAL_DATA_DIR``,
 ``KITTI_EVAL_DATABASE_URL``, or ``--data-dir``/``--database-url``).
 
@@ -27,7 +27,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     """Add ``admin`` and its subcommands to the CLI's subparsers."""
     p = sub.add_parser(
         "admin",
-        help="accounts, projects, tokens and ground truths of the service (on the server's machine)",
+        help="accounts, projects, tokens, ground truths and jobs of the service (on the server's machine)",
         description="Manage the service's accounts and ground truths directly in its database. Reads the "
         "service's settings (KITTI_EVAL_DATA_DIR, KITTI_EVAL_DATABASE_URL); needs the server extra.",
     )
@@ -121,6 +121,15 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     dq.add_argument("name")
     dq.add_argument("submission")
 
+    jobs = what.add_parser("jobs", help="the queue of evaluations: list, cancel, run again").add_subparsers(
+        dest="admin_action", metavar="ACTION", required=True
+    )
+    jl = jobs.add_parser("list", help="jobs of every owner, newest first (the counts by state on stderr)")
+    jl.add_argument("--state", choices=["queued", "running", "done", "failed", "cancelled"])
+    jl.add_argument("--limit", type=int, default=50)
+    jobs.add_parser("cancel", help="cancel a queued or running job (its result is not stored)").add_argument("job_id")
+    jobs.add_parser("rerun", help="queue an ended job again (a failed or cancelled evaluation)").add_argument("job_id")
+
     audit = what.add_parser("audit", help="the audit log, newest first")
     audit.add_argument("--limit", type=int, default=50)
     p.set_defaults(run=run)
@@ -162,6 +171,8 @@ def run(args: argparse.Namespace) -> int:
             return _ground_truth(args, settings, caller)
         if args.admin_what == "benchmark":
             return _benchmark(args, settings, caller)
+        if args.admin_what == "jobs":
+            return _jobs(args, settings, caller)
         store = Store(settings.resolved_database_url, busy_s=settings.database_busy_s)
         try:
             store.create_schema()
@@ -312,4 +323,32 @@ def _benchmark(args: argparse.Namespace, settings: Any, caller: Any) -> int:
         elif action == "export":
             board = benchmarks.leaderboard(args.name, caller)
             sys.stdout.write(benchmarks.leaderboard_csv(board))
+    return EXIT_OK
+
+
+def _jobs(args: argparse.Namespace, settings: Any, caller: Any) -> int:
+    from kitti_eval_server.workers import JobFailed
+
+    with _offline_service(settings) as service:
+        admin = service.job_admin
+        if args.admin_action == "list":
+            for job in admin.listed(caller, state=args.state, limit=max(1, args.limit)):
+                if job.state == "done":
+                    detail = job.result_id or "-"
+                elif job.state == "running":
+                    detail = job.worker or "-"
+                else:
+                    detail = JobFailed(job.error).message if job.error else "-"
+                print(
+                    f"{job.id}\t{job.kind}\t{job.state}\t{job.attempts}/{job.max_attempts}\t{job.owner}\t"
+                    f"{job.accepted_at.isoformat()}\t{detail}"
+                )
+            counts = admin.counts(caller)
+            _say(", ".join(f"{n} {state}" for state, n in counts.items()))
+        elif args.admin_action == "cancel":
+            job = admin.cancel(args.job_id, caller)
+            print(f"job {job.id} cancelled")
+        elif args.admin_action == "rerun":
+            job = admin.rerun(args.job_id, caller)
+            print(f"job {job.id} queued again")
     return EXIT_OK

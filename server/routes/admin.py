@@ -1,9 +1,9 @@
-"""``/v1/admin``: users, projects, memberships, tokens and the audit log. Admins only (the admin token, or in
-accounts mode an admin's token that may write); every change is in the audit log."""
+"""``/v1/admin``: users, projects, memberships, tokens, the audit log and the jobs. Admins only (the admin token, or
+in accounts mode an admin's token that may write); every change is in the audit log."""
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query, Response
 from fastapi.responses import JSONResponse
@@ -13,6 +13,7 @@ from ..accounts import READ, WRITE
 from ..deps import AdminCaller, ServiceDep
 from ..schemas import ErrorResponse, iso
 from ..store import TokenRecord, UserRecord
+from ..workers import admin_job_view
 
 router = APIRouter(
     prefix="/v1/admin",
@@ -20,8 +21,8 @@ router = APIRouter(
     responses={
         401: {"model": ErrorResponse, "description": "no token, or not a valid one"},
         403: {"model": ErrorResponse, "description": "not an admin, or a read-only token"},
-        404: {"model": ErrorResponse, "description": "no such user, project or token"},
-        409: {"model": ErrorResponse, "description": "the name is taken"},
+        404: {"model": ErrorResponse, "description": "no such user, project, token or job"},
+        409: {"model": ErrorResponse, "description": "the name is taken; the job cannot be cancelled or run again"},
     },
 )
 
@@ -144,3 +145,31 @@ def list_audit(
         "limit": limit,
         "offset": offset,
     }
+
+
+@router.get("/jobs", summary="Jobs of every owner, newest first, with the counts by state")
+def list_jobs(
+    service: ServiceDep,
+    caller: AdminCaller,
+    state: Annotated[Literal["queued", "running", "done", "failed", "cancelled"] | None, Query()] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0,
+) -> dict[str, Any]:
+    records = service.job_admin.listed(caller, state=state, limit=limit + 1, offset=offset)
+    return {
+        "items": [admin_job_view(r) for r in records[:limit]],
+        "counts": service.job_admin.counts(caller),
+        "limit": limit,
+        "offset": offset,
+        "next_offset": offset + limit if len(records) > limit else None,
+    }
+
+
+@router.post("/jobs/{job_id}/cancel", summary="Cancel a queued or running job (its result is not stored)")
+def cancel_job(job_id: str, service: ServiceDep, caller: AdminCaller) -> dict[str, Any]:
+    return admin_job_view(service.job_admin.cancel(job_id, caller))
+
+
+@router.post("/jobs/{job_id}/rerun", summary="Queue an ended job again (a failed or cancelled evaluation)")
+def rerun_job(job_id: str, service: ServiceDep, caller: AdminCaller) -> dict[str, Any]:
+    return admin_job_view(service.job_admin.rerun(job_id, caller))

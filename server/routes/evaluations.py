@@ -25,7 +25,7 @@ from ..schemas import (
 )
 from ..service import FileIn
 from ..store import EvaluationRecord
-from ..workers import JobFailed, await_job, job_view
+from ..workers import JobCancelled, JobFailed, await_job, job_view
 
 _errors: dict[int | str, dict[str, Any]] = {
     404: {"model": ErrorResponse, "description": "unknown evaluation or ground truth"},
@@ -155,6 +155,8 @@ async def create_evaluation(
         return _respond(record, fmt, status=201)
     if ended.state == "failed":
         raise JobFailed(ended.error)
+    if ended.state == "cancelled":
+        raise JobCancelled(f"the evaluation's job {job.id} was cancelled by an admin before it ended")
     position = await anyio.to_thread.run_sync(service.jobs.position, job.id)
     return JSONResponse(
         job_view(ended, position), status_code=202, headers={"Location": f"/v1/jobs/{job.id}", "Retry-After": "1"}

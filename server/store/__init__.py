@@ -1,7 +1,8 @@
 """The database, by area: :mod:`.database` holds what they share (the tables, the engine, the schema, the
 retry of a call that found SQLite locked); :mod:`.ground_truth_store`, :mod:`.evaluation_store`,
-:mod:`.account_store`, :mod:`.benchmark_store` and :mod:`.job_store` each define an area's records (frozen
-dataclasses) and a class of its reads and writes. :class:`Store` is all five over one :class:`Database`, as the
+:mod:`.account_store`, :mod:`.benchmark_store`, :mod:`.job_store`, :mod:`.job_input_store` and :mod:`.worker_store`
+each define an area's records (frozen dataclasses) and a class of its reads and writes. :class:`Store` is all of
+them over one :class:`Database`, as the
 service and the command line use it. (The modules are named after their classes, not their tables: a submodule named
 ``ground_truths`` would replace the table of that name among the package's attributes when imported.)
 """
@@ -34,6 +35,7 @@ from .evaluation_store import EvaluationRecord, EvaluationStore
 from .ground_truth_store import GroundTruthRecord, GroundTruthStore
 from .job_input_store import JobInput, JobInputStore
 from .job_store import JobRecord, JobStore
+from .worker_store import WorkerRecord, WorkerStore
 
 __all__ = [
     "Store",
@@ -44,6 +46,7 @@ __all__ = [
     "AccountStore",
     "BenchmarkStore",
     "JobStore",
+    "WorkerStore",
     "GroundTruthRecord",
     "EvaluationRecord",
     "UserRecord",
@@ -52,6 +55,7 @@ __all__ = [
     "BenchmarkRecord",
     "SubmissionRecord",
     "JobRecord",
+    "WorkerRecord",
     "QuotaRefused",
     "PublishRefused",
     "JobInput",
@@ -74,7 +78,7 @@ __all__ = [
 ]
 
 
-class Store(GroundTruthStore, EvaluationStore, AccountStore, BenchmarkStore, JobStore, JobInputStore):
+class Store(GroundTruthStore, EvaluationStore, AccountStore, BenchmarkStore, JobStore, JobInputStore, WorkerStore):
     """Every area of the database on one :class:`Database` (SQLite or PostgreSQL)."""
 
     def __init__(self, url: str, *, busy_s: float = 10.0) -> None:

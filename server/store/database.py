@@ -68,6 +68,7 @@ __all__ = [
     "quota_locks",
     "jobs",
     "job_inputs",
+    "job_workers",
 ]
 
 metadata = MetaData()
@@ -280,6 +281,21 @@ job_inputs = Table(
     Column("filename", String(255), nullable=False),
     Column("sha256", String(64), nullable=False),
     Column("content", LargeBinary, nullable=False),
+)
+
+
+#: the processes that run jobs, each beating its row while it runs (what the readiness and the metrics say of the
+#: workers outside the service's own process); a row no process has beaten for an hour is dropped
+job_workers = Table(
+    "job_workers",
+    metadata,
+    Column("name", String(128), primary_key=True),  # host:pid
+    Column("host", String(255), nullable=False),
+    Column("pid", Integer, nullable=False),
+    Column("threads", Integer, nullable=False),
+    Column("started_at", DateTime(timezone=True), nullable=False),
+    Column("seen_at", DateTime(timezone=True), nullable=False),
+    Index("ix_job_workers_seen", "seen_at"),
 )
 
 
