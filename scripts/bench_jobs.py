@@ -1,0 +1,136 @@
+"""Evaluations as jobs, measured on this machine: a real ``kitti-eval serve`` on a KITTI-val-sized generated set
+(3769 frames), uploads from several clients at once.
+
+* throughput: evaluations finished per second, from the first acceptance to the last result, for the default
+  service (its own worker threads) and for one with worker processes of its own (``--processes``);
+* acceptance: how long ``POST /v1/evaluations?wait=0`` takes to answer 202 while the workers are busy (median
+  and 95th percentile): accepting never waits for a free evaluator.
+
+``python scripts/bench_jobs.py [--uploads 40] [--clients 8] [--processes 2]``. Prints the figures; exits 0.
+Everything runs on loopback in a temporary folder and stops by itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pickle
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import httpx
+
+from kitti_eval.io.synth import generate
+
+ADMIN = "bench-admin-token"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _serve(data: Path, port: int, env: dict[str, str]) -> subprocess.Popen[bytes]:
+    full = {**os.environ, "KITTI_EVAL_ADMIN_TOKEN": ADMIN, "KITTI_EVAL_LOG_FORMAT": "json", **env}
+    cmd = [sys.executable, "-m", "kitti_eval.cli", "serve", "--port", str(port), "--data-dir", str(data)]
+    proc = subprocess.Popen(cmd, env=full, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 180
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
+                return proc
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.2)
+    proc.terminate()
+    raise SystemExit("the service did not become ready in 180 s")
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> None:
+    proc.terminate()
+    try:
+        proc.wait(60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
+def _run(label: str, env: dict[str, str], gt: bytes, pred: bytes, uploads: int, clients: int) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        port = _free_port()
+        proc = _serve(Path(tmp) / "data", port, env)
+        base = f"http://127.0.0.1:{port}"
+        try:
+            with httpx.Client(base_url=base, timeout=600) as c:
+                r = c.post(
+                    "/v1/ground-truths",
+                    data={"name": "val"},
+                    files={"file": ("kitti_infos_val.pkl", gt)},
+                    headers={"Authorization": f"Bearer {ADMIN}"},
+                )
+                r.raise_for_status()
+                c.post("/v1/evaluations", data={"gt": "val"}, files={"predictions": ("result.pkl", pred)})
+
+                def accept(_: int) -> tuple[float, str]:
+                    with httpx.Client(base_url=base, timeout=600) as own:
+                        t0 = time.perf_counter()
+                        r = own.post(
+                            "/v1/evaluations",
+                            params={"wait": "0"},
+                            data={"gt": "val"},
+                            files={"predictions": ("result.pkl", pred)},
+                        )
+                        assert r.status_code in (201, 202), r.text[:300]
+                        return time.perf_counter() - t0, r.json()["id"]
+
+                started = time.perf_counter()
+                with ThreadPoolExecutor(clients) as pool:
+                    accepted = list(pool.map(accept, range(uploads)))
+                pending = {job for _, job in accepted}
+                while pending:
+                    for job in list(pending):
+                        state = c.get(f"/v1/jobs/{job}").json()["state"]
+                        if state in ("done", "failed", "cancelled"):
+                            assert state == "done", state
+                            pending.discard(job)
+                    time.sleep(0.1)
+                wall = time.perf_counter() - started
+        finally:
+            _stop(proc)
+    latencies = sorted(t for t, _ in accepted)
+    p95 = latencies[max(0, int(round(0.95 * len(latencies))) - 1)]
+    print(
+        f"{label:<28} {uploads} evaluations in {wall:6.1f} s: {uploads / wall:4.2f} a second; "
+        f"acceptance median {statistics.median(latencies) * 1000:5.0f} ms, p95 {p95 * 1000:5.0f} ms"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--uploads", type=int, default=40)
+    p.add_argument("--clients", type=int, default=8)
+    p.add_argument("--processes", type=int, default=2, help="worker processes of the second configuration")
+    args = p.parse_args(argv)
+    infos, results = generate(3769, seed=0)
+    gt, pred = pickle.dumps(infos, protocol=4), pickle.dumps(results, protocol=4)
+    print(f"{os.cpu_count()} cores; {len(pred) / 1e6:.1f} MB result.pkl, 3769 frames")
+    _run("default (2 worker threads)", {}, gt, pred, args.uploads, args.clients)
+    _run(
+        f"{args.processes} worker processes",
+        {"KITTI_EVAL_JOB_THREADS": "0", "KITTI_EVAL_WORKER_PROCESSES": str(args.processes)},
+        gt,
+        pred,
+        args.uploads,
+        args.clients,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
