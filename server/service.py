@@ -96,9 +96,6 @@ class Service:
         self.draining = threading.Event()
         #: every accepted evaluation is a job; workers of this process run them (and any ``kitti-eval worker``)
         self.jobs = JobQueue(self.store, lease_s=settings.job_lease_s, max_attempts=settings.job_max_attempts)
-        self.workers = Workers(
-            self.jobs, {"evaluation": self._run_evaluation}, threads=settings.job_threads, admission=self.admission
-        )
         self.benchmarks = Benchmarks(
             self.store,
             self.ground_truths,
@@ -107,6 +104,19 @@ class Service:
             self.runner.scratch,
             self.limits,
             draining=self.draining.is_set,
+            jobs=self.jobs,
+            wake=lambda n: self.workers.wake(n),
+        )
+        #: every submission's scoring and rescoring is a job too
+        self.workers = Workers(
+            self.jobs,
+            {
+                "evaluation": self._run_evaluation,
+                "submission": self.benchmarks.score_job,
+                "rescore": self.benchmarks.score_job,
+            },
+            threads=settings.job_threads,
+            admission=self.admission,
         )
 
     # -- lifecycle ---------------------------------------------------------------------------------------

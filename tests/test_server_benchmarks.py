@@ -25,6 +25,13 @@ def world(tmp_path):
         yield c, host(c)
 
 
+def await_rescoring(c, job_ids, timeout_s: float = 120.0) -> None:
+    queue = c.app.state.service.jobs
+    for job_id in job_ids:
+        ended = queue.wait(job_id, timeout_s)
+        assert ended is not None and ended.state == "done", ended
+
+
 def fresh_ap(gt_path, pred_path, column="Car/3d/moderate/R40/strict") -> float:
     gt, dt = load_ground_truth(gt_path), load_detections(pred_path)
     doc = evaluate_document(gt, dt, EvalOptions().config())
@@ -162,8 +169,10 @@ def test_rescoring_after_the_ground_truth_changed_equals_fresh_evaluations(world
     assert c.delete("/v1/ground-truths/test-set", headers=ADMIN).status_code == 204
     files = {"file": ("label_2.tar.gz", corrected)}
     ok(c.post("/v1/ground-truths", data={"name": "test-set", "sealed": "true"}, files=files, headers=ADMIN), 201)
-    done = ok(c.post("/v1/benchmarks/bench/rescore", headers=ADMIN))
-    assert done["rescored"] == 2 and done["failed"] == 0
+    done = ok(c.post("/v1/benchmarks/bench/rescore", headers=ADMIN), 202)
+    assert done["queued"] == 2 and len(done["jobs"]) == 2
+    await_rescoring(c, done["jobs"])
+    assert ok(c.get("/v1/benchmarks/bench", headers=ADMIN))["rescoring"]["done"] == 2
     board = ok(c.get("/v1/benchmarks/bench/leaderboard"))
     gt = load_ground_truth(tmp_path / "corrected")
     (tmp_path / "pred").mkdir()
