@@ -247,9 +247,9 @@ class JobQueue:
         """Newest first (by ``accepted_at``); each filter given narrows the list."""
         return self.store.list_jobs(state=state, kind=kind, owner=owner, group=group, limit=limit, offset=offset)
 
-    def counts(self, *, owner: str | None = None, group: str | None = None) -> dict[str, int]:
-        """Jobs by state (every state a key, 0 when none), of ``owner`` and of ``group`` when given."""
-        return self.store.count_jobs(owner=owner, group=group)
+    def counts(self, *, owner: str | None = None, group: str | None = None, kind: str | None = None) -> dict[str, int]:
+        """Jobs by state (every state a key, 0 when none), of ``owner``, ``group`` and ``kind`` when given."""
+        return self.store.count_jobs(owner=owner, group=group, kind=kind)
 
     def oldest_queued_age_s(self) -> float | None:
         """Seconds since the oldest queued job was accepted (None when none is queued)."""

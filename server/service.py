@@ -98,8 +98,16 @@ class Service:
         self.draining = threading.Event()
         #: every accepted evaluation is a job; workers of this process run them (and any ``kitti-eval worker``)
         self.jobs = JobQueue(self.store, lease_s=settings.job_lease_s, max_attempts=settings.job_max_attempts)
+        #: evaluations, benchmark submissions' scorings and rescorings, each kind a job of its own
         self.workers = Workers(
-            self.jobs, {"evaluation": self._run_evaluation}, threads=settings.job_threads, admission=self.admission
+            self.jobs,
+            {
+                "evaluation": self._run_evaluation,
+                "submission": lambda job: self.benchmarks.score_job(job),
+                "rescore": lambda job: self.benchmarks.score_job(job),
+            },
+            threads=settings.job_threads,
+            admission=self.admission,
         )
         #: the jobs as admins see them (list, cancel, run again)
         self.job_admin = JobAdmin(
@@ -119,6 +127,8 @@ class Service:
             self.runner.scratch,
             self.limits,
             draining=self.draining.is_set,
+            jobs=self.jobs,
+            wake=lambda n: self.workers.wake(n),
         )
 
     # -- lifecycle ---------------------------------------------------------------------------------------

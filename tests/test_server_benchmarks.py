@@ -25,6 +25,18 @@ def world(tmp_path):
         yield c, host(c)
 
 
+def submit_now(c, headers):
+    files = {"predictions": ("result.pkl", golden_bytes("result.pkl"), "application/octet-stream")}
+    return c.post("/v1/benchmarks/bench/submissions", params={"wait": 0}, files=files, headers=headers)
+
+
+def await_rescoring(c, job_ids, timeout_s: float = 120.0) -> None:
+    queue = c.app.state.service.jobs
+    for job_id in job_ids:
+        ended = queue.wait(job_id, timeout_s)
+        assert ended is not None and ended.state == "done", ended
+
+
 def fresh_ap(gt_path, pred_path, column="Car/3d/moderate/R40/strict") -> float:
     gt, dt = load_ground_truth(gt_path), load_detections(pred_path)
     doc = evaluate_document(gt, dt, EvalOptions().config())
@@ -162,8 +174,10 @@ def test_rescoring_after_the_ground_truth_changed_equals_fresh_evaluations(world
     assert c.delete("/v1/ground-truths/test-set", headers=ADMIN).status_code == 204
     files = {"file": ("label_2.tar.gz", corrected)}
     ok(c.post("/v1/ground-truths", data={"name": "test-set", "sealed": "true"}, files=files, headers=ADMIN), 201)
-    done = ok(c.post("/v1/benchmarks/bench/rescore", headers=ADMIN))
-    assert done["rescored"] == 2 and done["failed"] == 0
+    done = ok(c.post("/v1/benchmarks/bench/rescore", headers=ADMIN), 202)
+    assert done["queued"] == 2 and len(done["jobs"]) == 2
+    await_rescoring(c, done["jobs"])
+    assert ok(c.get("/v1/benchmarks/bench", headers=ADMIN))["rescoring"]["done"] == 2
     board = ok(c.get("/v1/benchmarks/bench/leaderboard"))
     gt = load_ground_truth(tmp_path / "corrected")
     (tmp_path / "pred").mkdir()
@@ -240,3 +254,74 @@ def test_validate_against_a_benchmark_url_refuses_what_is_not_one() -> None:
         fetch_frames("ftp://example.org/benchmarks/x")
     with pytest.raises(InputError, match="cannot fetch the frame ids"):
         fetch_frames(f"http://127.0.0.1:{free_port()}/benchmarks/bench")
+
+
+def test_a_submission_is_accepted_at_once_and_scored_by_a_job(world) -> None:
+    c, hosted = world
+    alice = hosted.headers("alice")
+    service = c.app.state.service
+    service.workers.stop(5)  # no free evaluator: acceptance must not wait for one
+    try:
+        response = submit_now(c, alice)
+        job = ok(response, 202)
+        assert response.headers["Location"] == f"/v1/jobs/{job['id']}" and job["state"] == "queued"
+        mine = ok(c.get("/v1/benchmarks/bench/submissions", headers=alice))
+        (accepted,) = mine["items"]
+        assert accepted["id"] == job["id"] and accepted["status"] == "accepted" and accepted["scores"] is None
+        assert mine["quota"]["used"] == 1
+    finally:
+        service.workers.start()
+    await_rescoring(c, [job["id"]])
+    (scored,) = ok(c.get("/v1/benchmarks/bench/submissions", headers=alice))["items"]
+    assert scored["status"] == "scored" and scored["created_at"] == accepted["created_at"]
+    assert scored["scores"]["Car/3d/moderate/R40/strict"] == fresh_ap(
+        GOLDEN / "kitti_infos_val.pkl", GOLDEN / "result.pkl"
+    )
+    assert ok(c.get(f"/v1/jobs/{job['id']}", headers=alice))["result_location"].endswith(job["id"])
+    assert ok(submit(c, alice, golden_bytes("result.pkl")), 201)["status"] == "scored"
+
+
+def test_a_submission_whose_scoring_fails_is_failed_and_not_counted(world) -> None:
+    from sqlalchemy import update
+
+    from kitti_eval_server.store.database import job_inputs
+
+    c, hosted = world
+    alice = hosted.headers("alice")
+    service = c.app.state.service
+    service.workers.stop(5)
+    try:
+        job = ok(submit_now(c, alice), 202)
+        with service.store.engine.begin() as conn:  # the stored input no longer loads
+            conn.execute(update(job_inputs).where(job_inputs.c.job_id == job["id"]).values(content=b"not a pickle"))
+    finally:
+        service.workers.start()
+    ended = service.jobs.wait(job["id"], 120)
+    assert ended is not None and ended.state == "failed"
+    seen = ok(c.get(f"/v1/jobs/{job['id']}", headers=alice))
+    assert seen["error"]["status"] < 500
+    mine = ok(c.get("/v1/benchmarks/bench/submissions", headers=alice))
+    assert [s["status"] for s in mine["items"]] == ["failed"] and mine["quota"]["used"] == 0
+
+
+def test_rescoring_ten_submissions_returns_at_once_and_the_jobs_score_them(tmp_path) -> None:
+    with app_client(tmp_path / "data", auth="accounts", auth_max_failures=1_000_000) as c:
+        hosted = host(c, benchmark={"quota": "10/1"})
+        alice = hosted.headers("alice")
+        made = [ok(submit(c, alice, golden_bytes("result.pkl")), 201)["id"] for _ in range(10)]
+        service = c.app.state.service
+        service.workers.stop(5)
+        try:
+            done = ok(c.post("/v1/benchmarks/bench/rescore", headers=ADMIN), 202)
+            assert done["queued"] == 10 and done["rescoring"]["queued"] == 10
+            assert ok(c.get("/v1/benchmarks/bench", headers=ADMIN))["rescoring"]["queued"] == 10
+            assert "rescoring" not in ok(c.get("/v1/benchmarks/bench", headers=alice))
+        finally:
+            service.workers.start()
+        await_rescoring(c, done["jobs"])
+        assert ok(c.get("/v1/benchmarks/bench", headers=ADMIN))["rescoring"]["done"] == 10
+        expected = fresh_ap(GOLDEN / "kitti_infos_val.pkl", GOLDEN / "result.pkl")
+        rows = {s["id"]: s for s in ok(c.get("/v1/benchmarks/bench/submissions/all", headers=ADMIN))["items"]}
+        assert sorted(rows) == sorted(made)
+        for row in rows.values():
+            assert row["status"] == "scored" and row["scores"]["Car/3d/moderate/R40/strict"] == expected

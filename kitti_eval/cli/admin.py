@@ -255,6 +255,18 @@ def _offline_service(settings: Any) -> Iterator[Any]:
         service.stop()
 
 
+def _run_jobs(service: Any, job_ids: list[str]) -> list[Any]:
+    """Run the queued rescoring jobs in this process until none is left (a service's workers on the same database
+    may take some of ``job_ids`` meanwhile: those are waited for); the jobs ``job_ids`` as they ended."""
+    from kitti_eval_server.workers import Workers, worker_name
+
+    workers = Workers(service.jobs, service.workers.handlers, threads=0)
+    name = worker_name(0) + ":admin"
+    while (job := service.jobs.claim(name, kinds=["rescore"])) is not None:
+        workers.run_one(job, name)
+    return [service.jobs.wait(job_id, service.jobs.lease_s * service.jobs.max_attempts + 60) for job_id in job_ids]
+
+
 def _ground_truth(args: argparse.Namespace, settings: Any, caller: Any) -> int:
     from kitti_eval_server.service import FileIn
 
@@ -311,8 +323,10 @@ def _benchmark(args: argparse.Namespace, settings: Any, caller: Any) -> int:
             bench = benchmarks.set_state(args.name, caller=caller, **values)
             print(f"benchmark {bench.name}: {'open' if bench.is_open() else 'closed'}, board {bench.phase}")
         elif action == "rescore":
-            done = benchmarks.rescore(args.name, caller=caller)
-            print(f"benchmark {args.name}: {done['rescored']} submissions rescored, {done['failed']} failed")
+            queued = benchmarks.rescore(args.name, caller=caller)
+            ended = _run_jobs(service, queued["jobs"])
+            done = sum(1 for j in ended if j is not None and j.state == "done")
+            print(f"benchmark {args.name}: {done} submissions rescored, {len(ended) - done} failed")
         elif action == "submissions":
             for s in benchmarks.all_submissions(args.name, caller):
                 flags = ",".join(k for k in ("published", "disqualified") if s[k]) or "-"

@@ -17,6 +17,7 @@ from ..audit import Audit
 from ..errors import BadRequest, Conflict, NotFound, echo
 from ..evaluator import EvalOptions
 from ..ground_truths import GroundTruths
+from ..jobs import JobQueue
 from ..policy import Caller, Policy
 from ..store import BenchmarkRecord, GroundTruthRecord, Store
 from ..uploads import Limits
@@ -42,7 +43,11 @@ class BenchmarkCatalog:
         limits: Limits,
         *,
         draining: Callable[[], bool] = lambda: False,
+        jobs: JobQueue | None = None,
+        wake: Callable[[int], None] = lambda n: None,
     ) -> None:
+        """``jobs``: the queue submissions' scorings and rescorings go through; ``wake(n)``: n jobs were queued
+        (idle workers of this process look at once)."""
         self.store = store
         self.ground_truths = ground_truths
         self.policy = policy
@@ -50,6 +55,8 @@ class BenchmarkCatalog:
         self.scratch = scratch
         self.limits = limits
         self.draining = draining
+        self.jobs = jobs or JobQueue(store)
+        self.wake = wake
 
     # -- seeing -------------------------------------------------------------------------------------------
     def _get(self, name: str) -> Benchmark:

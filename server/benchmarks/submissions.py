@@ -6,20 +6,23 @@ from __future__ import annotations
 import io
 import math
 import re
+from collections.abc import Callable
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any
 
 from kitti_eval.core.frames import Annotations
-from kitti_eval.errors import InputError, KittiEvalError
+from kitti_eval.errors import InputError
 from kitti_eval.io.submission import SubmissionRules, validate_submission
 
 from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
 from ..evaluations import sealed_document
 from ..evaluator import evaluate_document
+from ..jobs import JobRecord
 from ..policy import Caller
-from ..store import GroundTruthRecord, PublishRefused, QuotaRefused, SubmissionRecord, new_id
+from ..store import GroundTruthRecord, JobInput, PublishRefused, QuotaRefused, SubmissionRecord, new_id
 from ..uploads import FileIn, clean_filename, load_upload, receive_upload
+from ..workers import error_of
 from .catalog import BenchmarkCatalog
 from .rules import Benchmark, in_public_part, scores_of
 
@@ -107,33 +110,34 @@ class Submissions(BenchmarkCatalog):
         return _submission_view(again, bench, full=False, everything=True)
 
     def rescore(self, name: str, *, caller: Caller) -> dict[str, Any]:
-        """Evaluate every stored submission again against the ground truth as registered now."""
+        """Queue one job per stored submission that evaluates it again against the ground truth as registered
+        when the job runs; returns at once (``GET /v1/benchmarks/{name}`` shows an admin the jobs' progress)."""
         self.policy.require_admin(caller)
         bench = self._get(name)
-        record, gt = self._ground_truth(bench)
-        done = failed = 0
-        for row in self.store.list_submissions(name):
-            content = self.store.prediction_content(row.pred_sha256)
-            if content is None:
-                failed += 1
-                continue
-            try:
-                with self.scratch() as scratch:
-                    upload = receive_upload(io.BytesIO(content), row.pred_filename, "predictions")
-                    dt = load_upload(
-                        upload, "detections", scratch, self.limits, known_frames=gt.frame_index()
-                    ).annotations
-                self._score(bench, record, gt, dt, row.id)
-                done += 1
-            except KittiEvalError:
-                self.store.update_submission(row.id, status="failed")
-                failed += 1
-        self.audit.record(caller, "benchmark.rescore", name, detail=f"{done} rescored")
-        return {"benchmark": name, "rescored": done, "failed": failed, "ground_truth_sha256": record.sha256}
+        record, _ = self._ground_truth(bench)
+        rows = self.store.list_submissions(name)
+        queued = self.jobs.enqueue_many(
+            "rescore", [{"submission_id": r.id, "benchmark": name} for r in rows], owner=caller.name, group=name
+        )
+        self.wake(len(queued))
+        self.audit.record(caller, "benchmark.rescore", name, detail=f"{len(queued)} queued")
+        return {
+            "benchmark": name,
+            "queued": len(queued),
+            "jobs": [j.id for j in queued],
+            "rescoring": self.rescoring(name),
+            "ground_truth_sha256": record.sha256,
+        }
+
+    def rescoring(self, name: str) -> dict[str, int]:
+        """The rescoring jobs of the benchmark by state (every rescoring so far: queued, running, done, ...)."""
+        return self.jobs.counts(group=name, kind="rescore")
 
     # -- participants -------------------------------------------------------------------------------------
-    def submit(self, name: str, predictions: FileIn, caller: Caller) -> dict[str, Any]:
-        """Validate, count against the quota and accept (one transaction), evaluate, store."""
+    def submit(self, name: str, predictions: FileIn, caller: Caller) -> JobRecord:
+        """Validate, count against the quota and accept (one transaction; the acceptance time is the
+        submission's), keep the upload as the job's input and queue its scoring: the job, whose id is the
+        submission's. Never waits for an evaluator."""
         if self.draining():
             raise NotReady("the service is shutting down; submit again in a moment")
         if not self.policy.accounts:
@@ -147,42 +151,83 @@ class Submissions(BenchmarkCatalog):
         with self.scratch() as scratch:
             upload = receive_upload(predictions.file, predictions.filename, "predictions")
             self._validate(upload.file, upload.filename, gt, scratch)
-            count, days = bench.quota
-            now = datetime.now(timezone.utc)
-            window = timedelta(days=days)
-            submission_id = new_id()
-            accepted = SubmissionRecord(
-                id=submission_id,
-                benchmark=name,
-                participant=caller.name,
-                created_at=now,
-                status="accepted",
-                pred_filename=upload.filename,
-                pred_sha256=upload.sha256,
-                pred_size=upload.size,
-            )
-            try:
-                self.store.accept_submission(accepted, limit=count, window_start=now - window, window=window)
-            except QuotaRefused as e:
-                retry = max(1, math.ceil((e.retry_at - datetime.now(timezone.utc)).total_seconds()))
-                raise QuotaExceeded(
-                    f"the quota of {count} accepted submissions per {days:g} days is used; the next one is "
-                    f"accepted from {e.retry_at.isoformat()} (in {retry} s)",
-                    retry,
-                    e.retry_at,
-                ) from None
-            upload.file.seek(0)
-            self.store.add_prediction_file(upload.sha256, upload.file.read())
-            try:
-                dt = load_upload(
-                    upload, "detections", scratch / "pred", self.limits, known_frames=gt.frame_index()
-                ).annotations
-                self._score(bench, record, gt, dt, submission_id)
-            except BaseException:
-                self.store.update_submission(submission_id, status="failed")
-                raise
+        count, days = bench.quota
+        now = datetime.now(timezone.utc)
+        window = timedelta(days=days)
+        submission_id = new_id()
+        accepted = SubmissionRecord(
+            id=submission_id,
+            benchmark=name,
+            participant=caller.name,
+            created_at=now,
+            status="accepted",
+            pred_filename=upload.filename,
+            pred_sha256=upload.sha256,
+            pred_size=upload.size,
+        )
+        try:
+            self.store.accept_submission(accepted, limit=count, window_start=now - window, window=window)
+        except QuotaRefused as e:
+            retry = max(1, math.ceil((e.retry_at - datetime.now(timezone.utc)).total_seconds()))
+            raise QuotaExceeded(
+                f"the quota of {count} accepted submissions per {days:g} days is used; the next one is "
+                f"accepted from {e.retry_at.isoformat()} (in {retry} s)",
+                retry,
+                e.retry_at,
+            ) from None
+        upload.file.seek(0)
+        content = upload.file.read()
+        self.store.add_prediction_file(upload.sha256, content)
+        self.store.add_job_inputs(submission_id, [JobInput("predictions", upload.filename, upload.sha256, content)])
+        job = self.jobs.enqueue(
+            "submission",
+            {"submission_id": submission_id, "benchmark": name},
+            owner=caller.name,
+            group=name,
+            job_id=submission_id,
+        )
+        self.wake(1)
         self.audit.record(caller, "submission.add", f"{name} {submission_id}")
-        return self.submission(name, submission_id, caller)
+        return job
+
+    def score_job(self, job: JobRecord) -> tuple[str, Callable[[Any], None]]:
+        """Run a submission's scoring or rescoring job: the submission's id and the writes of its scores (for
+        the transaction that ends the job). A submission whose input cannot be scored, or whose last attempt
+        failed, is marked failed (and no longer counts against the quota)."""
+        sid = str(job.payload["submission_id"])
+        row = self.store.get_submission(sid)
+        if row is None:
+            raise Conflict(f"the submission {sid} is gone")
+        try:
+            bench = self._get(row.benchmark)
+            record, gt = self._ground_truth(bench)
+            dt = self._predictions(job, row, gt)
+            values = self._scores(bench, record, gt, dt)
+        except BaseException as e:
+            _, retry = error_of(e)
+            if not retry or job.attempts >= job.max_attempts:
+                self.store.update_submission(sid, status="failed")
+            raise
+
+        def write(conn: Any) -> None:
+            self.store.update_submission_in(conn, sid, **values)
+            if job.kind == "submission":
+                self.store.delete_job_inputs_in(conn, job.id)
+
+        return sid, write
+
+    def _predictions(self, job: JobRecord, row: SubmissionRecord, gt: Annotations) -> Annotations:
+        """The submission's predictions: its job's input (a submission's scoring), else the kept file."""
+        stored = self.store.job_input(job.id, "predictions") if job.kind == "submission" else None
+        if stored is not None:
+            content: bytes | None = stored.content
+        else:
+            content = self.store.prediction_content(row.pred_sha256)
+        if content is None:
+            raise Conflict(f"the predictions of submission {row.id} are not kept")
+        with self.scratch() as scratch:
+            upload = receive_upload(io.BytesIO(content), row.pred_filename, "predictions")
+            return load_upload(upload, "detections", scratch, self.limits, known_frames=gt.frame_index()).annotations
 
     def _validate(self, file: Any, filename: str, gt: Annotations, scratch: Path) -> None:
         """The CLI's checks (:func:`validate_submission`), their sentences naming the upload, not the scratch path."""
@@ -204,7 +249,8 @@ class Submissions(BenchmarkCatalog):
         if not outcome.ok:
             raise InvalidSubmission([line.replace(str(target), shown) for line in outcome.lines()])
 
-    def _score(self, bench: Benchmark, record: GroundTruthRecord, gt: Annotations, dt: Annotations, sid: str) -> None:
+    def _scores(self, bench: Benchmark, record: GroundTruthRecord, gt: Annotations, dt: Annotations) -> dict[str, Any]:
+        """A submission's scored values: its (sealed) documents and its scores on the whole set and each part."""
         config = bench.options().config()
         columns = list(dict.fromkeys([*bench.columns, *bench.key]))
         doc = evaluate_document(gt, dt, config)
@@ -223,15 +269,14 @@ class Submissions(BenchmarkCatalog):
                         public_result = sealed_document(part_doc)
                 else:
                     scores[part] = dict.fromkeys(columns)
-        self.store.update_submission(
-            sid,
-            status="scored",
-            result=sealed_document(doc),
-            scores=scores,
-            public_result=public_result,
-            gt_sha256=record.sha256,
-            scored_at=datetime.now(timezone.utc),
-        )
+        return {
+            "status": "scored",
+            "result": sealed_document(doc),
+            "scores": scores,
+            "public_result": public_result,
+            "gt_sha256": record.sha256,
+            "scored_at": datetime.now(timezone.utc),
+        }
 
     def _own(self, name: str, submission_id: str, caller: Caller) -> SubmissionRecord:
         """One of the caller's own submissions (another's is as absent as a missing one; admins list every

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
+import anyio.to_thread
 from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, Field
@@ -15,6 +16,7 @@ from ..errors import error_body
 from ..policy import Caller
 from ..schemas import ErrorResponse
 from ..service import FileIn
+from ..workers import JobFailed, await_job, job_view
 
 router = APIRouter(
     prefix="/v1/benchmarks",
@@ -96,9 +98,12 @@ def list_benchmarks(benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str
     return {"items": [b.describe() for b in benchmarks.visible(caller)]}
 
 
-@router.get("/{name}", summary="One benchmark")
+@router.get("/{name}", summary="One benchmark (admins: with the rescoring jobs by state)")
 def get_benchmark(name: str, benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
-    return benchmarks.get(name, caller).describe()
+    out = benchmarks.get(name, caller).describe()
+    if caller.is_admin:
+        out["rescoring"] = benchmarks.rescoring(name)
+    return out
 
 
 @router.get("/{name}/frames", summary="The test frame ids (for kitti-eval validate --benchmark)")
@@ -145,9 +150,14 @@ def reveal(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[st
     return _admin_state(name, benchmarks, caller, revealed=True)
 
 
-@router.post("/{name}/rescore", summary="Evaluate every submission again on the current ground truth (admins)")
-async def rescore(name: str, benchmarks: BenchmarksDep, service: ServiceDep, caller: AdminCaller) -> dict[str, Any]:
-    return await service.run(lambda: benchmarks.rescore(name, caller=caller))
+@router.post(
+    "/{name}/rescore",
+    status_code=202,
+    summary="Queue one job per submission that evaluates it again on the ground truth as registered (admins)",
+)
+async def rescore(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+    """Returns at once with the jobs queued; `GET /v1/benchmarks/{name}` shows their progress (`rescoring`)."""
+    return await anyio.to_thread.run_sync(lambda: benchmarks.rescore(name, caller=caller))
 
 
 @router.get("/{name}/submissions/all", summary="Every submission, published or not (admins)")
@@ -165,6 +175,7 @@ def disqualify(name: str, submission_id: str, benchmarks: BenchmarksDep, caller:
     status_code=201,
     summary="Submit predictions on the test set",
     responses={
+        202: {"description": "accepted (counted against the quota), not scored yet: the job to poll (Location)"},
         422: {"model": ErrorResponse, "description": "the submission breaks the rules (not counted)"},
         429: {"model": ErrorResponse, "description": "the quota is used; see Retry-After"},
     },
@@ -177,10 +188,21 @@ async def submit(
     predictions: Annotated[
         UploadFile, File(description="a zip or tar of KITTI result txt files (one a test frame), or a result.pkl")
     ],
+    wait: Annotated[
+        float | None,
+        Query(
+            ge=0,
+            le=3600,
+            description="seconds to wait for the scores (default KITTI_EVAL_WAIT_S): 201 with the submission when "
+            "it is scored by then, else 202 with the job to poll (GET its Location); 0 answers at once",
+        ),
+    ] = None,
 ) -> JSONResponse:
+    """Checked, counted against the quota and accepted at once (the acceptance time is the submission's); its
+    scoring is a job, run by the next free worker."""
     file = FileIn(predictions.file, predictions.filename)
     try:
-        body = await service.run(lambda: benchmarks.submit(name, file, caller))
+        job = await service.run(lambda: benchmarks.submit(name, file, caller))
     except InvalidSubmission as e:
         out = error_body(e.code, e.message)
         out["error"]["problems"] = e.problems
@@ -189,7 +211,16 @@ async def submit(
         out = error_body(e.code, e.message)
         out["error"]["retry_at"] = e.retry_at.isoformat()
         return JSONResponse(out, status_code=429, headers=e.headers)
-    return JSONResponse(body, status_code=201, headers={"Location": f"/v1/benchmarks/{name}/submissions/{body['id']}"})
+    ended = await await_job(service.jobs, job.id, service.settings.wait_s if wait is None else wait)
+    if ended.state == "done":
+        body = await anyio.to_thread.run_sync(benchmarks.submission, name, job.id, caller)
+        return JSONResponse(body, status_code=201, headers={"Location": f"/v1/benchmarks/{name}/submissions/{job.id}"})
+    if ended.state == "failed":
+        raise JobFailed(ended.error)
+    position = await anyio.to_thread.run_sync(service.jobs.position, job.id)
+    return JSONResponse(
+        job_view(ended, position), status_code=202, headers={"Location": f"/v1/jobs/{job.id}", "Retry-After": "1"}
+    )
 
 
 @router.get("/{name}/submissions", summary="Your submissions and your quota")

@@ -189,7 +189,12 @@ class BenchmarkStore(Area):
     @retry_when_locked
     def update_submission(self, submission_id: str, **values: Any) -> bool:
         with self.engine.begin() as conn:
-            done = conn.execute(update(submissions).where(submissions.c.id == submission_id).values(**values))
+            return self.update_submission_in(conn, submission_id, **values)
+
+    @staticmethod
+    def update_submission_in(conn: Connection, submission_id: str, **values: Any) -> bool:
+        """Within a transaction of the caller's (the one that ends the scoring's job)."""
+        done = conn.execute(update(submissions).where(submissions.c.id == submission_id).values(**values))
         return bool(done.rowcount)
 
     @retry_when_locked

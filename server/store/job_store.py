@@ -266,9 +266,13 @@ class JobStore(Area):
         return [self._job(r) for r in rows]
 
     @retry_when_locked
-    def count_jobs(self, *, owner: str | None = None, group: str | None = None) -> dict[str, int]:
+    def count_jobs(
+        self, *, owner: str | None = None, group: str | None = None, kind: str | None = None
+    ) -> dict[str, int]:
         """Jobs by state, every state present (0 when none)."""
         query = select(jobs.c.state, func.count()).group_by(jobs.c.state)
+        if kind is not None:
+            query = query.where(jobs.c.kind == kind)
         if owner is not None:
             query = query.where(jobs.c.owner == owner)
         if group is not None:
