@@ -10,10 +10,10 @@ A submission is checked first with :func:`kitti_eval.io.submission.validate_subm
 ids (the sentences ``kitti-eval validate`` prints; a refused submission costs nothing), then counted against
 the quota and accepted in one transaction (``BenchmarkStore.accept_submission``; the acceptance time is the
 submission's), then scored on the sealed set by a job (:mod:`kitti_eval_server.jobs`: a worker of this or
-another process; rescoring queues one job per submission). Its participant sees its aggregate result (on the public part only while a
-benchmark with a split is not revealed); nobody else sees it until it is published. What is published is
-frozen when the benchmark closes, and a benchmark may cap the entries a participant has published
-(``max_published``).
+another process; rescoring queues one job per submission). Its participant sees its aggregate result (on the
+public part only while a benchmark with a split is not revealed); nobody else sees it until it is
+published. What is published is frozen when the benchmark closes, and a benchmark may cap the entries a
+participant has published (``max_published``).
 
 The public/private split: with ``split_percent`` p, a test frame is in the public part when the first 8 bytes
 of sha256(seed + ":" + frame id), read as an integer, are below p % of 2**64. The seed is 32 random hex digits
