@@ -205,7 +205,24 @@ class Workers:
                         self._wake.wait(self.idle_s)
                     self._pending = max(0, self._pending - 1)
                 continue
-            self.run_one(job, name)
+            try:
+                self.run_one(job, name)
+            except Exception:  # noqa: BLE001 - the database went away for good: the job's lease will lapse
+                log.warning("worker %s could not record the end of job %s", name, job.id, exc_info=True)
+
+    def _until_recorded(self, record: Callable[[], bool]) -> bool:
+        """Record a job's end, trying again while the database is away (its lease is still being extended, so
+        the job stays this worker's meanwhile; once the lease lapses, ``record`` answers False)."""
+        delay = 0.1
+        while True:
+            try:
+                return record()
+            except Exception:
+                if self._stopping.is_set():
+                    raise
+                log.warning("recording a job's end failed; trying again in %.1f s", delay, exc_info=True)
+                time.sleep(delay)
+                delay = min(5.0, delay * 2)
 
     def run_one(self, job: JobRecord, name: str) -> bool:
         """Run a claimed job, extending its lease meanwhile; True when its result was committed."""
@@ -235,11 +252,11 @@ class Workers:
             detail = f": {body['code']}: {body['message']}"
             if body["code"] == "internal_error":  # a bug: its traceback for the log (the job keeps the message)
                 log.error("job %s raised an unexpected error (attempt %s)", job.id, job.attempts, exc_info=True)
-            if self.queue.fail(job.id, name, json.dumps(body), retry=retry):
+            if self._until_recorded(lambda: self.queue.fail(job.id, name, json.dumps(body), retry=retry)):
                 outcome = "refused" if not retry else "retried" if job.attempts < job.max_attempts else "failed"
             return False
         else:
-            committed = self.queue.finish(job.id, name, result_id, within=write)
+            committed = self._until_recorded(lambda: self.queue.finish(job.id, name, result_id, within=write))
             outcome = "done" if committed else "lost"
             return committed
         finally:
