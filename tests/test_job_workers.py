@@ -35,6 +35,30 @@ def _queue(tmp_path: Path, **kwargs: Any) -> JobQueue:
     return JobQueue(store, **kwargs)
 
 
+def test_a_database_away_while_a_job_ends_neither_loses_the_job_nor_kills_the_worker(tmp_path) -> None:
+    """Recording a job's end fails twice (the database is away); the worker tries again and the job is done,
+    once; the same thread then runs the next job."""
+    queue = _queue(tmp_path, lease_s=5)
+    first, second = queue.enqueue("evaluation", {}, owner="me"), queue.enqueue("evaluation", {}, owner="me")
+    finish, failures = queue.finish, [0]
+
+    def flaky(*args: Any, **kwargs: Any) -> bool:
+        if failures[0] < 2:
+            failures[0] += 1
+            raise ConnectionError("the database is away")
+        return finish(*args, **kwargs)
+
+    queue.finish = flaky  # type: ignore[method-assign]
+    workers = Workers(queue, {"evaluation": lambda job: (job.id, lambda conn: None)}, threads=1, idle_s=0.02)
+    workers.start()
+    try:
+        ended = [queue.wait(job.id, 30) for job in (first, second)]
+    finally:
+        workers.stop(5)
+    assert [(e.state, e.attempts) for e in ended if e is not None] == [("done", 1), ("done", 1)]
+    assert failures == [2]
+
+
 def test_a_job_that_keeps_failing_is_failed_with_its_reason(tmp_path, caplog) -> None:
     """A fault of the machine is tried again, up to the job's attempts; then the job is failed with the error a
     client would have been answered. One log line a run: the job, its kind, the outcome, the seconds."""
