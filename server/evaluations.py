@@ -12,7 +12,6 @@ import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager
-from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -51,14 +50,6 @@ def sealed_document(doc: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-@dataclass(frozen=True)
-class _Accepted:
-    """An evaluation accepted for running at once (no queue)."""
-
-    id: str
-    payload: dict[str, Any]
-
-
 def _input(name: str, upload: Upload) -> JobInput:
     upload.file.seek(0)
     content = upload.file.read()
@@ -90,24 +81,6 @@ class Evaluations:
         self.scratch = scratch
         self.keep_predictions = keep_predictions
 
-    def evaluate(
-        self,
-        predictions: FileIn,
-        gt_name: str | None,
-        gt_file: FileIn | None,
-        options: EvalOptions,
-        labels: Mapping[str, str],
-        caller: Caller,
-        project: str | None = None,
-    ) -> EvaluationRecord:
-        """Accept and run at once, in this thread (the command line's offline service, and tests): the record,
-        committed."""
-        job = self.accept(predictions, gt_name, gt_file, options, labels, caller, project)
-        record, write = self.execute(job.id, job.payload)
-        with self.store.engine.begin() as conn:
-            write(conn)
-        return record
-
     def accept(
         self,
         predictions: FileIn,
@@ -118,11 +91,11 @@ class Evaluations:
         caller: Caller,
         project: str | None = None,
         *,
-        enqueue: Callable[[str, dict[str, Any]], Any] | None = None,
-    ) -> Any:
+        enqueue: Callable[[str, dict[str, Any]], JobRecord],
+    ) -> JobRecord:
         """Check what can be checked before the evaluation (the options, the ground truth and the caller's right
         to it, the project), keep the uploaded files as the job's inputs and enqueue the job (``enqueue(job_id,
-        payload)``; without it, a record of the accepted job to execute at once). In accounts mode the
+        payload)``, which a worker runs with :meth:`execute`). In accounts mode the
         evaluation belongs to ``project`` (default: the ground truth's, else the caller's only one), which must
         be the caller's. A benchmark's test set is refused to all but admins (whose evaluations against it are
         audited)."""
@@ -151,8 +124,6 @@ class Evaluations:
         self.store.add_job_inputs(job_id, inputs)
         if gt_record is not None and self.policy.is_test_set(gt_record):
             self.audit.record(caller, "evaluation.test_set", f"{job_id} on {gt_record.name}")
-        if enqueue is None:
-            return _Accepted(job_id, payload)
         return enqueue(job_id, payload)
 
     def execute(self, job_id: str, payload: Mapping[str, Any]) -> tuple[EvaluationRecord, Callable[[Any], None]]:

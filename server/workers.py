@@ -40,6 +40,7 @@ __all__ = [
     "error_of",
     "worker_name",
     "await_job",
+    "await_outcome",
     "job_view",
 ]
 
@@ -307,6 +308,17 @@ class JobCancelled(ApiError):
 
     status_code = 409
     code = "cancelled"
+
+
+async def await_outcome(queue: JobQueue, job_id: str, timeout_s: float) -> JobRecord:
+    """:func:`await_job`, with a failed job raised as the error its input is answered with and a cancelled one
+    as :class:`JobCancelled`: the job returned is done, or still queued or running."""
+    ended = await await_job(queue, job_id, timeout_s)
+    if ended.state == "failed":
+        raise JobFailed(ended.error)
+    if ended.state == "cancelled":
+        raise JobCancelled(f"the {ended.kind} job {job_id} was cancelled by an admin before it ended")
+    return ended
 
 
 async def await_job(queue: JobQueue, job_id: str, timeout_s: float) -> JobRecord:

@@ -169,3 +169,14 @@ def test_a_failed_evaluation_runs_again_with_its_inputs_and_a_waiting_request_le
         assert err["code"] == "cancelled"
         listed = c.get("/v1/admin/jobs", params={"state": "cancelled"}, headers=ADMIN).json()["items"]
         assert [j["id"] for j in listed] == [queued[0].id]
+
+
+def test_the_upload_form_runs_through_the_queue_too(tmp_path) -> None:
+    """The web form accepts a job as the API does: with no worker to run it within the wait, the page says
+    it is queued (202) and the history shows it once a worker has run it."""
+    with app_client(tmp_path / "data", job_threads=0, wait_s=0, ready=False) as c:
+        files = {"predictions": ("result.pkl", golden_bytes("result.pkl"))}
+        page = c.post("/ui/evaluations", data={"gt": "demo"}, files=files, follow_redirects=False)
+        assert page.status_code == 202 and "is queued" in page.text, page.text[:500]
+        (job,) = c.app.state.service.jobs.list()
+        assert job.kind == "evaluation" and job.state == "queued" and job.id in page.text

@@ -16,7 +16,8 @@ from ..errors import error_body
 from ..policy import Caller
 from ..schemas import ErrorResponse
 from ..service import FileIn
-from ..workers import JobFailed, await_job, job_view
+from ..workers import await_outcome
+from .jobs import still_pending
 
 router = APIRouter(
     prefix="/v1/benchmarks",
@@ -211,16 +212,11 @@ async def submit(
         out = error_body(e.code, e.message)
         out["error"]["retry_at"] = e.retry_at.isoformat()
         return JSONResponse(out, status_code=429, headers=e.headers)
-    ended = await await_job(service.jobs, job.id, service.settings.wait_s if wait is None else wait)
-    if ended.state == "done":
-        body = await anyio.to_thread.run_sync(benchmarks.submission, name, job.id, caller)
-        return JSONResponse(body, status_code=201, headers={"Location": f"/v1/benchmarks/{name}/submissions/{job.id}"})
-    if ended.state == "failed":
-        raise JobFailed(ended.error)
-    position = await anyio.to_thread.run_sync(service.jobs.position, job.id)
-    return JSONResponse(
-        job_view(ended, position), status_code=202, headers={"Location": f"/v1/jobs/{job.id}", "Retry-After": "1"}
-    )
+    ended = await await_outcome(service.jobs, job.id, service.settings.wait_s if wait is None else wait)
+    if ended.state != "done":
+        return await still_pending(service.jobs, ended)
+    body = await anyio.to_thread.run_sync(benchmarks.submission, name, job.id, caller)
+    return JSONResponse(body, status_code=201, headers={"Location": f"/v1/benchmarks/{name}/submissions/{job.id}"})
 
 
 @router.get("/{name}/submissions", summary="Your submissions and your quota")

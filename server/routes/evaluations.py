@@ -25,7 +25,8 @@ from ..schemas import (
 )
 from ..service import FileIn
 from ..store import EvaluationRecord
-from ..workers import JobCancelled, JobFailed, await_job, job_view
+from ..workers import await_outcome
+from .jobs import still_pending
 
 _errors: dict[int | str, dict[str, Any]] = {
     404: {"model": ErrorResponse, "description": "unknown evaluation or ground truth"},
@@ -148,19 +149,12 @@ async def create_evaluation(
             enqueue=service.enqueue_evaluation(caller),
         )
     )
-    ended = await await_job(service.jobs, job.id, service.settings.wait_s if wait is None else wait)
-    if ended.state == "done":
-        assert ended.result_id is not None
-        record = await anyio.to_thread.run_sync(service.evaluations.get, ended.result_id, caller)
-        return _respond(record, fmt, status=201)
-    if ended.state == "failed":
-        raise JobFailed(ended.error)
-    if ended.state == "cancelled":
-        raise JobCancelled(f"the evaluation's job {job.id} was cancelled by an admin before it ended")
-    position = await anyio.to_thread.run_sync(service.jobs.position, job.id)
-    return JSONResponse(
-        job_view(ended, position), status_code=202, headers={"Location": f"/v1/jobs/{job.id}", "Retry-After": "1"}
-    )
+    ended = await await_outcome(service.jobs, job.id, service.settings.wait_s if wait is None else wait)
+    if ended.state != "done":
+        return await still_pending(service.jobs, ended)
+    assert ended.result_id is not None
+    record = await anyio.to_thread.run_sync(service.evaluations.get, ended.result_id, caller)
+    return _respond(record, fmt, status=201)
 
 
 @router.get("", response_model=EvaluationList, summary="History, newest first")

@@ -7,9 +7,11 @@ from typing import Any
 
 import anyio.to_thread
 from fastapi import APIRouter
+from fastapi.responses import JSONResponse
 
 from ..deps import ReaderCaller, ServiceDep
 from ..errors import NotFound, echo
+from ..jobs import JobQueue, JobRecord
 from ..schemas import ErrorResponse
 from ..workers import job_view
 
@@ -18,6 +20,14 @@ router = APIRouter(
     tags=["jobs"],
     responses={404: {"model": ErrorResponse, "description": "no such job (or not yours)"}},
 )
+
+
+async def still_pending(queue: JobQueue, record: JobRecord) -> JSONResponse:
+    """The answer to a request whose job is still queued or running when it stops waiting: 202, the job and
+    where to poll it."""
+    position = await anyio.to_thread.run_sync(queue.position, record.id)
+    headers = {"Location": f"/v1/jobs/{record.id}", "Retry-After": "1"}
+    return JSONResponse(job_view(record, position), status_code=202, headers=headers)
 
 
 @router.get("/{job_id}", summary="An accepted evaluation's job: its state, and its evaluation once done")

@@ -39,6 +39,7 @@ from ..routes.frames import MAX_SCORE
 from ..schemas import iso
 from ..service import FileIn, Service
 from ..store import EvaluationRecord
+from ..workers import await_outcome
 from .svg import bar_chart, bev_view, points_text, pr_chart
 
 __all__ = ["router", "templates", "STATIC_DIR", "sign_in_page", "error_page"]
@@ -280,16 +281,23 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
             options = EvalOptions(
                 protocol=values.get("protocol", "official"), curves=True, errors=values.get("errors") == "true"
             )
-            record = await service.run(
-                service.evaluations.evaluate,
-                FileIn(predictions.file, predictions.filename),
-                values.get("gt") or None,
-                None,
-                options,
-                labels,
-                caller,
-                values.get("project") or None,
+            upload = FileIn(predictions.file, predictions.filename)
+            job = await service.run(
+                lambda: service.evaluations.accept(
+                    upload,
+                    values.get("gt") or None,
+                    None,
+                    options,
+                    labels,
+                    caller,
+                    values.get("project") or None,
+                    enqueue=service.enqueue_evaluation(caller),
+                )
             )
+        ended = await await_outcome(service.jobs, job.id, service.settings.wait_s)
+        if ended.state != "done":
+            notice = f"evaluation {job.id} is {ended.state}; it appears in the history below once it is done"
+            return await anyio.to_thread.run_sync(partial(_home, request, service, caller, status=202, error=notice))
     except Exception as e:  # the refusals the JSON API answers 4xx, and a full disk (507)
         failure: ApiError | KittiEvalError | HTTPException | None = (
             e
@@ -303,7 +311,7 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
         return await anyio.to_thread.run_sync(
             partial(_home, request, service, caller, status=_status(failure), error=clip(str(message)), form=refill)
         )
-    return RedirectResponse(f"/evaluations/{quote(record.id)}", status_code=303)
+    return RedirectResponse(f"/evaluations/{quote(job.id)}", status_code=303)
 
 
 # -------------------------------------------------------------------------------------------- evaluation
