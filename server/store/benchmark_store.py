@@ -133,14 +133,8 @@ class BenchmarkStore(Area):
                 )
                 yield conn
             return
-        with self.engine.connect() as conn:
-            conn.exec_driver_sql("BEGIN IMMEDIATE")
-            try:
-                yield conn
-                conn.commit()
-            except BaseException:
-                conn.rollback()
-                raise
+        with self._writing() as conn:
+            yield conn
 
     @retry_when_locked
     def accept_submission(

@@ -11,12 +11,13 @@ caller that answers 2xx after it has a durable row.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import sqlite3
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from datetime import datetime, timezone
 from typing import Any, TypeVar
 
@@ -42,7 +43,7 @@ from sqlalchemy import (
     text,
 )
 from sqlalchemy.dialects.postgresql import JSONB
-from sqlalchemy.engine import Engine, RowMapping
+from sqlalchemy.engine import Connection, Engine, RowMapping
 from sqlalchemy.exc import IntegrityError, OperationalError
 
 __all__ = [
@@ -455,6 +456,24 @@ class Area:
     @property
     def dialect(self) -> str:
         return self.db.dialect
+
+    @contextlib.contextmanager
+    def _writing(self) -> Iterator[Connection]:
+        """One transaction, committed when the block ends and rolled back when it raises; on SQLite it holds the
+        write lock from its start (``BEGIN IMMEDIATE``: no other writer between its reads and its writes, and no
+        failed upgrade of a read transaction to a write one)."""
+        if self.dialect != "sqlite":
+            with self.engine.begin() as conn:
+                yield conn
+            return
+        with self.engine.connect() as conn:
+            conn.exec_driver_sql("BEGIN IMMEDIATE")
+            try:
+                yield conn
+                conn.commit()
+            except BaseException:
+                conn.rollback()
+                raise
 
     @retry_when_locked
     def _insert(self, table: Table, **values: Any) -> bool:

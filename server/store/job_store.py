@@ -9,8 +9,7 @@ under the same locks before the change), so a worker that lost its job (taken ov
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -79,24 +78,6 @@ class JobStore(Area):
             row = conn.execute(select(jobs).where(jobs.c.id == job_id)).mappings().first()
         return None if row is None else self._job(row)
 
-    @contextlib.contextmanager
-    def _job_writing(self) -> Iterator[Connection]:
-        """One transaction, committed when the block ends and rolled back when it raises; on SQLite it holds the
-        write lock from its start (no other writer between its reads and its writes, and no failed upgrade of a
-        read transaction to a write one)."""
-        if self.dialect != "sqlite":
-            with self.engine.begin() as conn:
-                yield conn
-            return
-        with self.engine.connect() as conn:
-            conn.exec_driver_sql("BEGIN IMMEDIATE")
-            try:
-                yield conn
-                conn.commit()
-            except BaseException:
-                conn.rollback()
-                raise
-
     @retry_when_locked
     def claim_job(
         self, worker: str, *, now: datetime, lease_until: datetime, kinds: Sequence[str] | None = None
@@ -119,7 +100,7 @@ class JobStore(Area):
             for query in (lapsed, queued)
         ]
         lost: list[str] = []
-        with self._job_writing() as conn:
+        with self._writing() as conn:
             while True:
                 row = conn.execute(first[0]).mappings().first() or conn.execute(first[1]).mappings().first()
                 if row is None:
@@ -170,7 +151,7 @@ class JobStore(Area):
         called) when the job is no longer the worker's; an exception of ``within`` rolls back and propagates."""
         done = dict(state="done", result_id=result_id, finished_at=finished_at, lease_until=None, error=None)
         try:
-            with self._job_writing() as conn:
+            with self._writing() as conn:
                 if self._job_held(conn, job_id, worker) is None:
                     raise _NotHeld
                 if within is not None:
@@ -185,7 +166,7 @@ class JobStore(Area):
     def fail_job(self, job_id: str, worker: str, error: str, finished_at: datetime, *, retry: bool) -> JobRecord | None:
         """Queue the job again (``retry`` and attempts left: the worker and lease cleared, ``error`` kept as the
         last one) or fail it with ``error``; None when ``worker`` no longer holds it, else the job as it is now."""
-        with self._job_writing() as conn:
+        with self._writing() as conn:
             job = self._job_held(conn, job_id, worker)
             if job is None:
                 return None
@@ -207,7 +188,7 @@ class JobStore(Area):
     def cancel_job(self, job_id: str, finished_at: datetime) -> JobRecord | None:
         """A queued or running job becomes cancelled; any other is left as it is. The job as it is now (None:
         no such job)."""
-        with self._job_writing() as conn:
+        with self._writing() as conn:
             row = conn.execute(select(jobs).where(jobs.c.id == job_id).with_for_update()).mappings().first()
             if row is None:
                 return None
@@ -223,7 +204,7 @@ class JobStore(Area):
         """An ended job (done, failed, cancelled) is queued again as new, at the end of the queue (accepted at
         ``accepted_at``, no attempt, no worker, result or error); a queued or running one is left as it is. The
         job as it is now (None: no such job)."""
-        with self._job_writing() as conn:
+        with self._writing() as conn:
             row = conn.execute(select(jobs).where(jobs.c.id == job_id).with_for_update()).mappings().first()
             if row is None:
                 return None
