@@ -52,7 +52,8 @@ class GroundTruthCatalog:
     def to_evaluate(self, caller: Caller) -> list[GroundTruthRecord]:
         """The ground truths the caller may evaluate against (what the upload form offers): those they see,
         less the benchmarks' test sets unless they are an admin."""
-        return [r for r in self.listed(caller) if caller.is_admin or not self.policy.is_test_set(r)]
+        hidden = set(self.policy.hidden_ground_truths(caller))  # one look at the benchmarks, not one a record
+        return [r for r in self.listed(caller) if r.name not in hidden]
 
     def add(
         self, name: str, file: FileIn, *, caller: Caller, project: str | None = None, sealed: bool = False
