@@ -26,6 +26,7 @@ process while this one compiles the first, so a fresh install pays roughly the l
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import os
@@ -33,6 +34,7 @@ import pickle
 import platform
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 _PACKAGE = Path(__file__).resolve().parent
@@ -96,6 +98,25 @@ def cache_key() -> str:
     for source in sorted(_PACKAGE.rglob("*.py")):
         digest.update(b"\0" + source.relative_to(_PACKAGE).as_posix().encode() + b"\0" + source.read_bytes())
     return f"kitti-eval-{__version__}-numba-{numba.__version__}-py{platform.python_version()}-{digest.hexdigest()[:16]}"
+
+
+@contextlib.contextmanager
+def compilations() -> Iterator[list[str]]:
+    """The qualified names of the kernels numba compiles while the block runs (numba's compile events): what
+    the tests and the wheel's scripts count to show that a cache was used."""
+    from numba.core import event
+
+    compiled: list[str] = []
+
+    class _Listener(event.Listener):
+        def on_start(self, ev: event.Event) -> None:
+            compiled.append(ev.data["dispatcher"].py_func.__qualname__)
+
+        def on_end(self, ev: event.Event) -> None:
+            pass
+
+    with event.install_listener("numba:compile", _Listener()):
+        yield compiled
 
 
 def warm_in_background() -> subprocess.Popen[bytes] | None:

@@ -48,18 +48,9 @@ _WARM = {
 # what the console script runs (kitti_eval.cli:entry: main, then os._exit), with numba's compile events counted
 _FIRST_USE = """
 import json, os, sys
-from numba.core import event
+from kitti_eval._jit import compilations
 
-compiled = []
-
-class Compiles(event.Listener):
-    def on_start(self, ev):
-        compiled.append(ev.data["dispatcher"].py_func.__qualname__)
-
-    def on_end(self, ev):
-        pass
-
-with event.install_listener("numba:compile", Compiles()):
+with compilations() as compiled:
     from kitti_eval.cli import main
 
     code = main(["demo"])

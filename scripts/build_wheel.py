@@ -54,18 +54,9 @@ SHIPPED = Path("kitti_eval") / "_kernels"
 # run in the build's copy: compile every kernel, count the compilations, describe the interpreter and target
 _COMPILE = r"""
 import json, sys, sysconfig
-from numba.core import event
+from kitti_eval._jit import compilations
 
-compiled = []
-
-class Compiles(event.Listener):
-    def on_start(self, ev):
-        compiled.append(ev.data["dispatcher"].py_func.__qualname__)
-
-    def on_end(self, ev):
-        pass
-
-with event.install_listener("numba:compile", Compiles()):
+with compilations() as compiled:
     import kitti_eval
     from kitti_eval import _jit
 

@@ -23,18 +23,9 @@ PACKAGE = Path(kitti_eval.__file__).resolve().parent
 # kitti-eval demo, after every kernel of every entry point, counting numba's compilations (as tests/test_jit.py)
 _COUNT = """
 import json, sys
-from numba.core import event
+from kitti_eval._jit import compilations
 
-compiled = []
-
-class Compiles(event.Listener):
-    def on_start(self, ev):
-        compiled.append(ev.data["dispatcher"].py_func.__qualname__)
-
-    def on_end(self, ev):
-        pass
-
-with event.install_listener("numba:compile", Compiles()):
+with compilations() as compiled:
     import kitti_eval
     from kitti_eval import _jit
     from kitti_eval.cli import main

@@ -31,18 +31,9 @@ _DISABLE_JIT = bool(numba.config.DISABLE_JIT)
 # the error decomposition and the AP table of the bundled demo, and which kernels numba compiled
 _RUN = """
 import json, sys
-from numba.core import event
+from kitti_eval._jit import compilations
 
-compiled = []
-
-class Compiles(event.Listener):
-    def on_start(self, ev):
-        compiled.append(ev.data["dispatcher"].py_func.__qualname__)
-
-    def on_end(self, ev):
-        pass
-
-with event.install_listener("numba:compile", Compiles()):
+with compilations() as compiled:
     import kitti_eval
     from kitti_eval.analysis.decomposition import decompose, errors_document
     from kitti_eval.core.evaluation import evaluate

@@ -30,18 +30,9 @@ ROOT = Path(__file__).resolve().parent.parent
 # kitti-eval demo and every kernel of every entry point (the service's warm-up), counting numba's compilations
 _COUNT = """
 import json, sys
-from numba.core import event
+from kitti_eval._jit import compilations
 
-compiled = []
-
-class Compiles(event.Listener):
-    def on_start(self, ev):
-        compiled.append(ev.data["dispatcher"].py_func.__qualname__)
-
-    def on_end(self, ev):
-        pass
-
-with event.install_listener("numba:compile", Compiles()):
+with compilations() as compiled:
     import kitti_eval
     from kitti_eval import _jit
     from kitti_eval.cli import main
