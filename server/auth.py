@@ -38,7 +38,6 @@ __all__ = [
     "Door",
     "FailureLimiter",
     "CALLER_KEY",
-    "DECIDED_KEY",
     "SESSION_COOKIE",
     "CSRF_COOKIE",
     "access_of",
@@ -48,8 +47,6 @@ __all__ = [
 
 #: the caller the door resolved from a token (accounts mode)
 CALLER_KEY = "kitti_eval.caller"
-#: the caller the route's access dependency admitted (what the services are handed)
-DECIDED_KEY = "kitti_eval.decided"
 SESSION_COOKIE = "kitti_eval_session"
 #: the sign-in form's CSRF token (before there is a session)
 CSRF_COOKIE = "kitti_eval_signin"

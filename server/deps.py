@@ -13,7 +13,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from kitti_eval.report.render import OutputFormat
 
-from .auth import CALLER_KEY, DECIDED_KEY, access_of, client_of
+from .auth import CALLER_KEY, client_of
 from .errors import BadRequest, Forbidden, echo
 from .policy import CSRF_HEADER, SAFE_METHODS, Access, Caller, Policy
 from .service import Service
@@ -34,7 +34,6 @@ __all__ = [
     "WriterCaller",
     "AdminCaller",
     "ScraperCaller",
-    "access_of",
     "negotiate_format",
     "FormatDep",
 ]
@@ -108,7 +107,6 @@ def _decider(access: Access) -> Callable[..., Awaitable[Caller]]:
                     partial(service.audit.refused_use, caller, f"{request.method} {request.url.path}", e.message)
                 )
             raise
-        request.scope[DECIDED_KEY] = admitted
         return admitted
 
     decide.__name__ = f"require_{access.name.lower()}"
