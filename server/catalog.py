@@ -9,7 +9,7 @@ from contextlib import AbstractContextManager
 from pathlib import Path
 
 from .audit import Audit
-from .errors import NotFound, echo
+from .errors import NotFound
 from .ground_truths import GroundTruths
 from .policy import Caller, Policy
 from .store import GroundTruthRecord, Store
@@ -26,12 +26,15 @@ class GroundTruthCatalog:
         policy: Policy,
         audit: Audit,
         scratch: Callable[[], AbstractContextManager[Path]],
+        check_project: Callable[[str], str],
     ) -> None:
         self.files = files
         self.store = store
         self.policy = policy
         self.audit = audit
         self.scratch = scratch
+        #: the accounts' check that a project exists (404 otherwise)
+        self.check_project = check_project
 
     def get(self, name: str, caller: Caller) -> GroundTruthRecord:
         """The registered ground truth, if the caller may use it; another project's is as absent as a missing
@@ -61,8 +64,8 @@ class GroundTruthCatalog:
         """Register a named ground truth (admins); ``project``: only its members see and use it (None:
         everyone); ``sealed``: no per-frame view of it ever leaves the service."""
         self.policy.require_admin(caller)
-        if project is not None and not self.store.project_exists(project):
-            raise NotFound(f"no project named {echo(project)}")
+        if project is not None:
+            self.check_project(project)
         with self.scratch() as scratch:
             upload = receive_upload(file.file, file.filename, "file")
             record = self.files.register(name, upload, scratch, project=project, sealed=sealed)

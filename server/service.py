@@ -78,7 +78,14 @@ class Service:
             self.runner.scratch,
         )
         #: the ground truths as callers see them (the policy's rules and the audit over ``ground_truths``)
-        self.catalog = GroundTruthCatalog(self.ground_truths, self.store, self.policy, self.audit, self.runner.scratch)
+        self.catalog = GroundTruthCatalog(
+            self.ground_truths,
+            self.store,
+            self.policy,
+            self.audit,
+            self.runner.scratch,
+            check_project=self.accounts.check_project,
+        )
         self.predictions = GroundTruthCache(
             settings.pred_cache_entries, settings.gt_cache_bytes, what="predictions", setting="KITTI_EVAL_GT_CACHE_MB"
         )
