@@ -21,7 +21,7 @@ from typing import Any
 
 import pytest
 from server_accounts import add_token, bearer
-from server_helpers import ADMIN, ADMIN_TOKEN, app_client, assert_error, golden_bytes, upload, wait_ready
+from server_helpers import ADMIN, ADMIN_TOKEN, LogRecords, app_client, assert_error, golden_bytes, upload, wait_ready
 
 from kitti_eval.io.synth import demo_paths
 from kitti_eval_server import Settings, create_app
@@ -199,20 +199,11 @@ def test_messages_about_a_registered_ground_truth_name_no_server_path_and_a_seal
 # ------------------------------------------------------------------------------------------ log lines
 
 
-class _Records(logging.Handler):
-    def __init__(self) -> None:
-        super().__init__()
-        self.records: list[logging.LogRecord] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.records.append(record)
-
-
 @pytest.fixture
-def service_log() -> Iterator[_Records]:
+def service_log() -> Iterator[LogRecords]:
     """The records of the service's loggers (under pytest the root logger is configured, so the service
     installs no handler of its own: the test formats the records with the service's formatters)."""
-    handler = _Records()
+    handler = LogRecords()
     logger = logging.getLogger("kitti_eval.server")
     logger.addHandler(handler)
     level = logger.level
@@ -224,7 +215,7 @@ def service_log() -> Iterator[_Records]:
         logger.setLevel(level)
 
 
-def test_a_request_path_cannot_forge_a_log_line(tmp_path: Path, service_log: _Records) -> None:
+def test_a_request_path_cannot_forge_a_log_line(tmp_path: Path, service_log: LogRecords) -> None:
     forged = "/v1/evaluations/x%0Afake%20line%0D%0AINFO:%20%20%20%20%20kitti-eval:%20audit%5C%E2%80%A8"
     with peer_client(tmp_path / "data", "127.0.0.1", auth="accounts") as c:
         service_log.records.clear()

@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
-from server_helpers import ADMIN, ADMIN_TOKEN, golden_bytes, register, upload
+from server_helpers import ADMIN, ADMIN_TOKEN, LogRecords, golden_bytes, register, upload
 
 from kitti_eval.io.synth import demo_paths
 from kitti_eval_server.observability import JsonFormatter, wants_json
@@ -31,18 +31,9 @@ def value(samples: dict, name: str, **labels: str) -> float:
     return samples.get((name, tuple(sorted(labels.items()))), 0.0)
 
 
-class Lines(logging.Handler):
-    def __init__(self) -> None:
-        super().__init__()
-        self.records: list[logging.LogRecord] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.records.append(record)
-
-
 @pytest.fixture
-def access() -> Iterator[Lines]:
-    handler = Lines()
+def access() -> Iterator[LogRecords]:
+    handler = LogRecords()
     logger = logging.getLogger("kitti_eval.server.access")
     logger.addHandler(handler)
     level = logger.level
@@ -138,7 +129,7 @@ def test_request_ids_are_returned_and_in_every_error(client: Any) -> None:
     assert r.status_code == 422 and r.json()["error"]["request_id"] == "u1"
 
 
-def test_one_access_line_a_request_never_a_token(service_client: Any, access: Lines) -> None:
+def test_one_access_line_a_request_never_a_token(service_client: Any, access: LogRecords) -> None:
     with service_client(log_format="json") as client:
         access.records.clear()
         assert register(client, "small", golden_bytes("kitti_infos_val.pkl"), "kitti_infos_val.pkl").status_code == 201
