@@ -237,6 +237,7 @@ def _home(
     *,
     status: int = 200,
     error: str | None = None,
+    notice: str | None = None,
     form: Mapping[str, str] | None = None,
 ) -> Response:
     return _render(
@@ -244,6 +245,7 @@ def _home(
         "home.html",
         status,
         error=error,
+        notice=notice,
         form=dict(form or {}),
         ground_truths=[g.name for g in service.catalog.to_evaluate(caller)],
         projects=_projects(service, caller),
@@ -297,7 +299,7 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
         ended = await await_outcome(service.jobs, job.id, service.settings.wait_s)
         if ended.state != "done":
             notice = f"evaluation {job.id} is {ended.state}; it appears in the history below once it is done"
-            return await anyio.to_thread.run_sync(partial(_home, request, service, caller, status=202, error=notice))
+            return await anyio.to_thread.run_sync(partial(_home, request, service, caller, status=202, notice=notice))
     except Exception as e:  # the refusals the JSON API answers 4xx, and a full disk (507)
         failure: ApiError | KittiEvalError | HTTPException | None = (
             e
