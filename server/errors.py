@@ -32,6 +32,8 @@ __all__ = [
     "Sealed",
     "TooManyRequests",
     "Busy",
+    "QueueFull",
+    "TooManyQueued",
     "NotReady",
     "PayloadTooLarge",
     "DatabaseUnavailable",
@@ -117,6 +119,22 @@ class Busy(ApiError):
 
     status_code = 503
     code = "busy"
+
+    def __init__(self, message: str, retry_after_s: int) -> None:
+        super().__init__(message, headers={"Retry-After": str(retry_after_s)})
+
+
+class QueueFull(Busy):
+    """The job queue holds as many jobs, or as many bytes of their inputs, as the service keeps."""
+
+    code = "queue_full"
+
+
+class TooManyQueued(ApiError):
+    """The caller has as many jobs queued or running as one caller may."""
+
+    status_code = 429
+    code = "too_many_queued"
 
     def __init__(self, message: str, retry_after_s: int) -> None:
         super().__init__(message, headers={"Retry-After": str(retry_after_s)})

@@ -26,6 +26,7 @@ from .catalog import GroundTruthCatalog
 from .errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, clip, echo
 from .evaluator import EvalOptions, evaluate_document, summarize
 from .ground_truths import GroundTruthCache
+from .jobs import JobQueue
 from .policy import Caller, Policy
 from .store import EvaluationRecord, GroundTruthRecord, JobInput, JobRecord, Store, new_id
 from .uploads import FileIn, Limits, Upload, load_upload, receive_upload
@@ -69,6 +70,7 @@ class Evaluations:
         audit: Audit,
         limits: Limits,
         scratch: Callable[[], AbstractContextManager[Path]],
+        jobs: JobQueue,
         *,
         keep_predictions: bool,
     ) -> None:
@@ -79,6 +81,7 @@ class Evaluations:
         self.audit = audit
         self.limits = limits
         self.scratch = scratch
+        self.jobs = jobs
         self.keep_predictions = keep_predictions
 
     def accept(
@@ -121,6 +124,7 @@ class Evaluations:
             "labels": dict(labels),
             "project": project,
         }
+        self.jobs.admit(caller.name if self.policy.accounts else None, sum(len(i.content) for i in inputs))
         self.store.add_job_inputs(job_id, inputs)
         if gt_record is not None and self.policy.is_test_set(gt_record):
             self.audit.record(caller, "evaluation.test_set", f"{job_id} on {gt_record.name}")

@@ -30,16 +30,18 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
 from typing import Any
 
 from sqlalchemy.engine import Connection
 from sqlalchemy.exc import IntegrityError
 
+from .errors import QueueFull, TooManyQueued
 from .store import JobRecord, Store, WorkerRecord, new_id
 from .store.job_store import ENDED_STATES, JOB_STATES
 
-__all__ = ["JobQueue", "JobRecord", "WorkerRecord", "JOB_KINDS", "JOB_STATES", "ENDED_STATES", "now_utc"]
+__all__ = ["JobQueue", "QueueLimits", "JobRecord", "WorkerRecord", "JOB_KINDS", "JOB_STATES", "ENDED_STATES", "now_utc"]
 
 #: what a job runs: an evaluation, a benchmark submission's scoring, or a submission scored again
 JOB_KINDS = ("evaluation", "submission", "rescore")
@@ -86,21 +88,71 @@ class _Endings:
 _ENDINGS = _Endings()
 
 
+@dataclass(frozen=True)
+class QueueLimits:
+    """What the queue holds at most; :meth:`JobQueue.admit` refuses a new job past it (with ``retry_after_s``).
+    The defaults are the service's settings' (``KITTI_EVAL_MAX_QUEUED_JOBS``, ...)."""
+
+    #: jobs queued or running, everybody's
+    jobs: int = 2000
+    #: jobs queued or running of one owner
+    per_owner: int = 20
+    #: bytes of the inputs of the jobs queued or running
+    input_bytes: int = 4096 << 20
+    retry_after_s: int = 2
+
+
 class JobQueue:
     """The jobs of one database, as the service and its workers use them."""
 
     def __init__(
-        self, store: Store, *, lease_s: float = 30.0, max_attempts: int = 3, clock: Callable[[], datetime] = now_utc
+        self,
+        store: Store,
+        *,
+        lease_s: float = 30.0,
+        max_attempts: int = 3,
+        limits: QueueLimits | None = None,
+        clock: Callable[[], datetime] = now_utc,
     ) -> None:
         """``lease_s``: how long a claim or a heartbeat keeps a job its worker's; ``max_attempts``: the claims
-        a job enqueued here gets (a failure with retry, or a lost worker, uses one); ``clock``: the current time
-        (timezone-aware)."""
+        a job enqueued here gets (a failure with retry, or a lost worker, uses one); ``limits``: what
+        :meth:`admit` lets in; ``clock``: the current time (timezone-aware)."""
         if lease_s <= 0 or max_attempts < 1:
             raise ValueError("lease_s must be positive and max_attempts at least 1")
         self.store = store
         self.lease_s = lease_s
         self.max_attempts = max_attempts
+        self.limits = limits or QueueLimits()
         self.clock = clock
+
+    def admit(self, owner: str | None, size: int) -> None:
+        """Refuse a new job of ``owner``'s (None: nobody's in particular, as in open mode) with ``size`` bytes
+        of input when the queue is full: 503 :class:`~kitti_eval_server.errors.QueueFull` past the jobs or the
+        bytes it holds, 429 :class:`~kitti_eval_server.errors.TooManyQueued` past the jobs one owner may have
+        queued or running. Busy evaluators are no reason: a job waits its turn. Checked before the job's input
+        is stored; requests accepted at the same moment may each pass it (the limits are exceeded by at most
+        those)."""
+        lim = self.limits
+        total, mine = self.store.active_jobs(owner or "")
+        if total >= lim.jobs:
+            raise QueueFull(
+                f"the queue holds {total} jobs, as many as it keeps (KITTI_EVAL_MAX_QUEUED_JOBS); retry in "
+                f"{lim.retry_after_s} s",
+                lim.retry_after_s,
+            )
+        if owner is not None and mine >= lim.per_owner:
+            raise TooManyQueued(
+                f"you have {mine} jobs queued or running, as many as one user may "
+                f"(KITTI_EVAL_MAX_QUEUED_PER_CALLER); retry when one has ended",
+                lim.retry_after_s,
+            )
+        held = self.store.job_input_bytes()
+        if held + size > lim.input_bytes:
+            raise QueueFull(
+                f"the queue's inputs take {held / (1 << 20):.0f} MB, as much as it keeps "
+                f"(KITTI_EVAL_MAX_QUEUED_INPUT_MB); retry in {lim.retry_after_s} s",
+                lim.retry_after_s,
+            )
 
     def _now(self) -> datetime:
         now = self.clock()

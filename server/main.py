@@ -109,7 +109,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(
         AdmissionMiddleware,
         paths=frozenset({"/v1/evaluations", "/ui/evaluations"}),
-        capacity=lambda: settings.evaluation_places,
         retry_after_s=lambda: settings.retry_after_s,
         state=service.admission,
         draining=service.draining.is_set,

@@ -18,7 +18,7 @@ total size (its ``max_part_size`` covers plain form fields only), and FastAPI pa
 route runs, which is why the cap is enforced on the byte stream here.
 
 :class:`AdmissionMiddleware` (inside it) counts the evaluation requests in progress, whose bodies have
-arrived by then, and answers 503 with Retry-After past the capacity.
+arrived by then, for a graceful shutdown, and refuses new ones while the service drains.
 """
 
 from __future__ import annotations
@@ -241,33 +241,32 @@ class BodyMiddleware:
 
 
 class AdmissionMiddleware:
-    """Admit at most ``capacity()`` evaluation requests at once (waiting for a slot or running).
+    """Count the evaluation requests in progress (accepted, stored, or waiting for their result), which a
+    graceful shutdown lets finish, and refuse new ones while the service drains.
 
-    It runs inside :class:`BodyMiddleware`, so a request is counted from the moment its body has arrived, and
-    a client slow to send its upload holds no place. The count lives on the event loop (no lock needed). A
-    request past the capacity gets 503 with Retry-After and is not queued.
-    """
+    It runs inside :class:`BodyMiddleware`, so a request is counted from the moment its body has arrived. It
+    refuses nothing for being busy: what the service holds is bounded by the job queue's limits
+    (:meth:`~kitti_eval_server.jobs.JobQueue.admit`) and the requests waiting for a result by
+    ``max_queued_evals`` (past it a request is answered 202 at once)."""
 
     def __init__(
         self,
         app: ASGIApp,
         *,
         paths: frozenset[str],
-        capacity: Callable[[], int],
         retry_after_s: Callable[[], int],
         state: AdmissionState | None = None,
         draining: Callable[[], bool] = lambda: False,
     ) -> None:
         self.app = app
         self.paths = paths
-        self.capacity = capacity
         self.retry_after_s = retry_after_s
         self.state = state or AdmissionState()
         self.draining = draining
 
     @property
     def in_flight(self) -> int:
-        """Evaluation requests admitted now (waiting for a thread or running)."""
+        """Evaluation requests in progress."""
         return self.state.in_flight
 
     @in_flight.setter
@@ -285,18 +284,6 @@ class AdmissionMiddleware:
                 503,
                 error_body(
                     "shutting_down", f"this server is shutting down; retry in {retry} s (another replica may answer)"
-                ),
-                {"retry-after": str(retry), "connection": "close"},
-            )
-            return
-        if self.in_flight >= self.capacity():
-            retry = self.retry_after_s()
-            await _send_json(
-                send,
-                503,
-                error_body(
-                    "busy",
-                    f"all evaluation slots are taken ({self.in_flight} requests in progress); retry in {retry} s",
                 ),
                 {"retry-after": str(retry), "connection": "close"},
             )

@@ -213,6 +213,7 @@ class _StateCollector(Collector):
         gauges = (
             ("evaluations_in_progress", "Evaluation requests admitted (running or waiting)", s.admission.in_flight),
             ("evaluations_running", "Evaluations running on worker threads", s.admission.running),
+            ("requests_waiting", "Requests waiting for their job to end (wait)", s.admission.waiting),
             ("bodies_receiving", "Request bodies being received", s.admission.receiving),
             ("ground_truth_cache_entries", "Ground-truth sets held in memory", len(cache)),
             ("ground_truth_cache_bytes", "Bytes of the ground-truth sets held in memory", cache.nbytes),
@@ -261,6 +262,8 @@ class AdmissionState:
     in_flight: int = 0
     running: int = 0
     receiving: int = 0
+    #: requests waiting for their job's outcome
+    waiting: int = 0
 
 
 # ------------------------------------------------------------------------------------------- requests

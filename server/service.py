@@ -29,7 +29,7 @@ from .errors import StartupRefused
 from .evaluations import Evaluations, sealed_document
 from .ground_truths import GroundTruthCache, GroundTruths
 from .job_admin import JobAdmin
-from .jobs import JobQueue, JobRecord
+from .jobs import JobQueue, JobRecord, QueueLimits
 from .observability import AdmissionState
 from .policy import AuthMode, Policy
 from .runner import Runner, release_memory
@@ -38,7 +38,7 @@ from .settings import Settings
 from .store import Store
 from .uploads import FileIn, Limits, receive_upload
 from .worker_pool import WorkerPool
-from .workers import Workers
+from .workers import Workers, await_outcome
 
 __all__ = ["Service", "FileIn", "DEMO_NAME", "sealed_document", "release_memory"]
 
@@ -89,6 +89,18 @@ class Service:
         self.predictions = GroundTruthCache(
             settings.pred_cache_entries, settings.gt_cache_bytes, what="predictions", setting="KITTI_EVAL_GT_CACHE_MB"
         )
+        #: every accepted evaluation is a job; workers of this process run them (and any ``kitti-eval worker``)
+        self.jobs = JobQueue(
+            self.store,
+            lease_s=settings.job_lease_s,
+            max_attempts=settings.job_max_attempts,
+            limits=QueueLimits(
+                jobs=settings.max_queued_jobs,
+                per_owner=settings.max_queued_per_caller,
+                input_bytes=int(settings.max_queued_input_mb * (1 << 20)),
+                retry_after_s=settings.retry_after_s,
+            ),
+        )
         self.evaluations = Evaluations(
             self.store,
             self.catalog,
@@ -97,14 +109,13 @@ class Service:
             self.audit,
             self.limits,
             self.runner.scratch,
+            self.jobs,
             keep_predictions=settings.keep_predictions,
         )
         self.warm = threading.Event()
         self.warmup_error: str | None = None
         #: set on SIGTERM: not ready, no new evaluations, the admitted ones finish (see server.shutdown)
         self.draining = threading.Event()
-        #: every accepted evaluation is a job; workers of this process run them (and any ``kitti-eval worker``)
-        self.jobs = JobQueue(self.store, lease_s=settings.job_lease_s, max_attempts=settings.job_max_attempts)
         #: evaluations, benchmark submissions' scorings and rescorings, each kind a job of its own
         self.workers = Workers(
             self.jobs,
@@ -288,6 +299,19 @@ class Service:
         )
 
     # -- the runner ----------------------------------------------------------------------------------------
+    async def outcome(self, job_id: str, wait_s: float | None = None) -> JobRecord:
+        """A just-accepted job once it has ended, or as it is after ``wait_s`` (default ``KITTI_EVAL_WAIT_S``);
+        a failed one raised as the error its input is answered with (:func:`await_outcome`). Past
+        ``KITTI_EVAL_MAX_QUEUED_EVALS`` requests waiting at once, it does not wait (the job is answered as it is)."""
+        timeout = self.settings.wait_s if wait_s is None else wait_s
+        if self.admission.waiting >= self.settings.max_queued_evals:
+            timeout = 0.0
+        self.admission.waiting += 1
+        try:
+            return await await_outcome(self.jobs, job_id, timeout)
+        finally:
+            self.admission.waiting -= 1
+
     async def run(self, func: Callable[..., T], *args: Any) -> T:
         """Blocking work on the runner's threads (:meth:`Runner.run <kitti_eval_server.runner.Runner.run>`)."""
         return await self.runner.run(func, *args)

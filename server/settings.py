@@ -80,10 +80,21 @@ class Settings(BaseSettings):
     job_max_attempts: Annotated[int, Field(ge=1)] = 3
     """Attempts of a job whose worker was lost or failed on something other than its input."""
 
-    max_queued_evals: Annotated[int, Field(ge=0)] = 8
-    """Evaluation requests admitted beyond those running (waiting for a slot); past that the service answers
-    503 with Retry-After. A request is admitted once its upload has arrived in full, so clients still sending
-    take no place here (see ``max_receiving_bodies``)."""
+    max_queued_evals: Annotated[int, Field(ge=0)] = 256
+    """Requests that wait for their result at once (``wait``); past that a request is answered 202 at once with
+    its job to poll. It bounds the connections held open, never what is accepted: a waiting request holds no
+    evaluator, and accepting never waits for one."""
+
+    max_queued_jobs: Annotated[int, Field(gt=0)] = 2000
+    """Jobs queued or running, all callers together; past that an evaluation or a submission is answered 503
+    ``queue_full`` with Retry-After (nothing of it is kept or counted)."""
+
+    max_queued_per_caller: Annotated[int, Field(gt=0)] = 20
+    """Jobs of one user queued or running (accounts mode); past that 429 ``too_many_queued`` with Retry-After."""
+
+    max_queued_input_mb: Annotated[float, Field(gt=0)] = 4096.0
+    """Uploaded inputs of the jobs not yet ended, kept in the database until their job ends; past that 503
+    ``queue_full`` with Retry-After."""
 
     retry_after_s: Annotated[int, Field(ge=1)] = 2
     """The Retry-After a 503 carries."""
@@ -95,7 +106,7 @@ class Settings(BaseSettings):
 
     max_receiving_bodies: Annotated[int | None, Field(gt=0)] = None
     """Request bodies received at the same time; past that the service answers 503 with Retry-After. Unset:
-    four times the evaluation places, ``4 * (max_concurrent_evals + max_queued_evals)`` (40 by default)."""
+    64, or four times ``max_concurrent_evals`` when that is more."""
 
     admin_token: SecretStr | None = None
     """Bearer token for registering and deleting ground truths. Unset: one is generated on first start and
@@ -190,13 +201,8 @@ class Settings(BaseSettings):
         return self.database_url or f"sqlite:///{self.data_dir.resolve() / 'kitti-eval.db'}"
 
     @property
-    def evaluation_places(self) -> int:
-        """Evaluation requests admitted at once: running and queued."""
-        return self.max_concurrent_evals + self.max_queued_evals
-
-    @property
     def receiving_bodies(self) -> int:
-        return self.max_receiving_bodies or 4 * self.evaluation_places
+        return self.max_receiving_bodies or max(64, 4 * self.max_concurrent_evals)
 
     @property
     def max_upload_bytes(self) -> int:

@@ -40,6 +40,7 @@ __all__ = [
     "sniff",
     "extract_txt_folder",
     "load_upload",
+    "load_txt_folder",
     "clean_filename",
 ]
 
@@ -200,8 +201,22 @@ def load_upload(
         )
         return Loaded(fmt, annotations, None)
     folder, names = extract_txt_folder(upload.file, fmt, scratch, limits, upload.filename)
-    try:
-        annotations = load_kitti_txt_dir(folder, kind, max_frames=limits.frames, known_frames=known_frames)
-    except InputError as e:
-        raise _relabel(e, names, upload.filename) from None
+    annotations = load_txt_folder(folder, names, upload.filename, limits, kind, known_frames=known_frames)
     return Loaded(fmt, annotations, folder)
+
+
+def load_txt_folder(
+    folder: Path,
+    names: dict[str, str],
+    source: str,
+    limits: Limits,
+    kind: Kind = "detections",
+    *,
+    known_frames: Collection[str] | None = None,
+) -> Annotations:
+    """The txt files of an unpacked upload (:func:`extract_txt_folder`'s folder and names), loaded; errors name
+    the upload and its members, never the folder."""
+    try:
+        return load_kitti_txt_dir(folder, kind, max_frames=limits.frames, known_frames=known_frames)
+    except InputError as e:
+        raise _relabel(e, names, source) from None

@@ -59,15 +59,17 @@ def error_of(exc: BaseException) -> tuple[dict[str, Any], bool]:
     """(the error as the API answers it, whether to try again): a refusal of the input is final; a fault of
     the database or the disk, or a bug, is tried again."""
     if isinstance(exc, ApiError):
-        return {"status": exc.status_code, "code": exc.code, "message": exc.message}, exc.status_code >= 500
+        details = {k: v for k, v in getattr(exc, "details", {}).items() if k not in ("status", "code", "message")}
+        body = {"status": exc.status_code, "code": exc.code, "message": exc.message, **details}
+        return body, exc.status_code >= 500
     if isinstance(exc, KittiEvalError):
         status, code = library_error_status(exc)
-        body: dict[str, Any] = {"status": status, "code": code, "message": str(exc)}
+        lib: dict[str, Any] = {"status": status, "code": code, "message": str(exc)}
         for detail in ("frame", "field"):
             value = getattr(exc, detail, None)
             if value is not None:
-                body[detail] = value
-        return body, False
+                lib[detail] = value
+        return lib, False
     fault = fault_of(exc, 2) if isinstance(exc, Exception) else None
     if fault is not None:
         return {"status": fault.status_code, "code": fault.code, "message": fault.message}, True
@@ -300,7 +302,7 @@ class JobFailed(ApiError):
         super().__init__(str(body.get("message") or error or "the job failed"))
         self.status_code = int(body.get("status") or 500)
         self.code = str(body.get("code") or "job_failed")
-        self.details = {k: body[k] for k in ("frame", "field") if k in body}
+        self.details = {k: v for k, v in body.items() if k not in ("status", "code", "message")}
 
 
 class JobCancelled(ApiError):

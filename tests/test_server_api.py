@@ -347,7 +347,7 @@ def test_oversized_upload_is_413_declared_or_streamed(tmp_path) -> None:
         assert upload(c, golden_bytes("result.pkl")).status_code == 201  # and it goes on serving
 
 
-def test_saturated_service_answers_503_with_retry_after(tmp_path, monkeypatch) -> None:
+def test_a_full_job_queue_answers_503_with_retry_after(tmp_path, monkeypatch) -> None:
     started, release = threading.Event(), threading.Event()
     original = Evaluations.execute  # what a worker runs of an accepted evaluation
 
@@ -357,15 +357,15 @@ def test_saturated_service_answers_503_with_retry_after(tmp_path, monkeypatch) -
         return original(self, *args, **kwargs)
 
     monkeypatch.setattr(Evaluations, "execute", slow_evaluate)
-    with app_client(tmp_path / "data", max_concurrent_evals=1, max_queued_evals=0, retry_after_s=7) as c:
+    with app_client(tmp_path / "data", max_queued_jobs=1, retry_after_s=7) as c:
         results = {}
         t = threading.Thread(target=lambda: results.setdefault("first", upload(c, golden_bytes("result.pkl"))))
         t.start()
         try:
             assert started.wait(30)
             busy = upload(c, golden_bytes("result.pkl"))
-            assert_error(busy, 503, "retry")
-            assert busy.headers["retry-after"] == "7"
+            assert_error(busy, 503, "KITTI_EVAL_MAX_QUEUED_JOBS")
+            assert busy.json()["error"]["code"] == "queue_full" and busy.headers["retry-after"] == "7"
             assert c.get("/v1/evaluations").status_code == 200  # reads are not queued behind evaluations
         finally:
             release.set()

@@ -325,3 +325,75 @@ def test_rescoring_ten_submissions_returns_at_once_and_the_jobs_score_them(tmp_p
         assert sorted(rows) == sorted(made)
         for row in rows.values():
             assert row["status"] == "scored" and row["scores"]["Car/3d/moderate/R40/strict"] == expected
+
+
+def _verdicts(c, tmp_path, name: str, data: bytes) -> tuple[object, object]:
+    """(what ``kitti-eval validate`` says of the file, what a submission's scoring job says of it on its one
+    read): the problems, "valid", or the error raised (class and message)."""
+    from kitti_eval_server.benchmarks import InvalidSubmission
+
+    service = c.app.state.service
+    bench = service.benchmarks._get("bench")
+    _, gt = service.benchmarks._ground_truth(bench)
+    path = tmp_path / name
+    path.write_bytes(data)
+    try:
+        outcome = validate_submission(path, SubmissionRules(frames=tuple(gt.frame_ids)))
+        cli: object = "valid" if outcome.ok else [line.replace(str(path), name) for line in outcome.lines()]
+    except Exception as e:  # noqa: BLE001 - the class is the verdict
+        cli = f"{type(e).__name__}: {str(e).replace(str(path), name)}"
+    try:
+        dt = service.benchmarks._checked(data, name, gt)
+        job: object = "valid"
+        assert set(dt.frame_ids) == set(gt.frame_ids)  # what is scored is every test frame
+    except InvalidSubmission as e:
+        job = e.problems
+    except Exception as e:  # noqa: BLE001 - the service's ArchiveError is the library's InputError, as a 422
+        job = f"{type(e).__name__.replace('ArchiveError', 'InputError')}: {e}"
+    return cli, job
+
+
+def test_a_submissions_one_read_says_what_kitti_eval_validate_says(world, tmp_path) -> None:
+    """The scoring job reads a submission once and checks it there: on valid files, files with every kind of
+    problem, in every form, and unreadable or unsafe ones, its verdict is the validator's."""
+    import os
+    import pickle
+
+    c, _ = world
+    txt = golden_txt("pred.tar.gz")
+    members = list(txt)
+    problems = dict(list(txt.items())[2:])  # two test frames missing
+    problems[members[2]] = b"Car 0 0 0 1 2 3\n"  # too few fields
+    problems[members[3]] = b"Bus 0 0 0.1 10 20 110 120 1.5 1.6 3.9 1.0 1.5 20 0.1 0.9\n"
+    problems[members[4]] = b"Car 0 0 0.1 10 20 110 120 1.5 1.6 3.9 nan 1.5 20 0.1 0.9\n"
+    problems[members[5]] = b"Car 0 0 0.1 10 20 110 120 1.5 1.6 3.9 1.0 1.5 20 0.1 high\n"
+    folder = members[0].rsplit("/", 1)[0] + "/" if "/" in members[0] else ""
+    problems[folder + "999999.txt"] = b""
+    problems[folder + "notes.txt"] = b"hello\n"
+    results = pickle.loads(golden_bytes("result.pkl"))
+    bad_class = [dict(r) for r in results[:-1]]
+    bad_class[0]["name"] = bad_class[0]["name"].copy()
+    bad_class[0]["name"][:] = "Bus"
+    not_finite = [dict(r) for r in results]
+    not_finite[1]["location"] = not_finite[1]["location"] + float("inf")
+    cases = {
+        "result.pkl": golden_bytes("result.pkl"),
+        "pred.zip": zip_of(txt),
+        "pred.tar.gz": golden_bytes("pred.tar.gz"),
+        "problems.zip": zip_of(problems),
+        "problems.tar.gz": tar_of(problems),
+        "bad-class.pkl": pickle.dumps(bad_class, protocol=4),
+        "not-finite.pkl": pickle.dumps(not_finite, protocol=4),
+        "unsafe.pkl": pickle.dumps(os.system, protocol=4),
+        "garbage.bin": b"\x00 not a submission",
+        "empty.zip": zip_of({}),
+    }
+    seen = {}
+    for name, data in cases.items():
+        cli, job = _verdicts(c, tmp_path, name, data)
+        assert job == cli, (name, cli, job)
+        seen[name] = cli
+    assert seen["result.pkl"] == seen["pred.zip"] == seen["pred.tar.gz"] == "valid"
+    assert isinstance(seen["problems.zip"], list) and len(seen["problems.zip"]) == 6, seen["problems.zip"]
+    assert isinstance(seen["bad-class.pkl"], list) and isinstance(seen["not-finite.pkl"], list)
+    assert seen["unsafe.pkl"].startswith("UnsafePickleError")

@@ -180,3 +180,50 @@ def test_the_upload_form_runs_through_the_queue_too(tmp_path) -> None:
         assert page.status_code == 202 and "is queued" in page.text, page.text[:500]
         (job,) = c.app.state.service.jobs.list()
         assert job.kind == "evaluation" and job.state == "queued" and job.id in page.text
+
+
+def test_busy_evaluators_refuse_nothing_only_the_queues_limits_do(tmp_path) -> None:
+    """With no worker running, uploads are accepted (202) up to the queue's limits: a user's jobs (429
+    too_many_queued, another user still accepted), all jobs (503 queue_full), the inputs' bytes (503), each
+    with Retry-After; a refused request keeps nothing."""
+    pred = golden_bytes("result.pkl")
+    with app_client(tmp_path / "data", auth="accounts", max_queued_per_caller=3, max_queued_jobs=5) as c:
+        teams = make_teams(c)
+        service = c.app.state.service
+        service.workers.stop(5)
+        before = service.jobs.counts()["queued"]
+        alice, bob = teams.headers("alice"), teams.headers("bob")
+        now = {"wait": "0"}
+        answers = [upload(c, pred, gt="gt-a", headers=alice, params=now).status_code for _ in range(3)]
+        assert answers == [202, 202, 202]  # nothing runs, nothing is refused for it
+        mine = upload(c, pred, gt="gt-a", headers=alice, params=now)
+        err = assert_error(mine, 429, "KITTI_EVAL_MAX_QUEUED_PER_CALLER")
+        assert err["code"] == "too_many_queued" and mine.headers["retry-after"]
+        room = 5 - before - 3
+        assert [upload(c, pred, gt="gt-b", headers=bob, params=now).status_code for _ in range(room)] == [202] * room
+        full = upload(c, pred, gt="gt-b", headers=bob, params=now)
+        assert assert_error(full, 503, "KITTI_EVAL_MAX_QUEUED_JOBS")["code"] == "queue_full"
+        assert full.headers["retry-after"] == "2"
+        assert service.jobs.counts()["queued"] == 5
+        service.workers.start()
+        deadline = time.monotonic() + 120
+        while service.jobs.counts()["queued"] or service.jobs.counts()["running"]:
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        assert upload(c, pred, gt="gt-a", headers=alice).status_code == 201  # room again
+    with app_client(tmp_path / "bytes", max_queued_input_mb=1.5 * len(pred) / (1 << 20)) as c:
+        service = c.app.state.service
+        service.workers.stop(5)
+        assert upload(c, pred, params={"wait": "0"}).status_code == 202
+        over = upload(c, pred, params={"wait": "0"})
+        assert assert_error(over, 503, "KITTI_EVAL_MAX_QUEUED_INPUT_MB")["code"] == "queue_full"
+        assert service.jobs.counts()["queued"] == 1
+        service.workers.start()
+
+
+def test_past_the_waiting_requests_bound_a_request_is_answered_202_at_once(tmp_path) -> None:
+    with app_client(tmp_path / "data", max_queued_evals=0) as c:
+        response = upload(c, golden_bytes("result.pkl"))
+        assert response.status_code == 202, response.text
+        ended = _until_ended(c, response.json()["id"])
+        assert ended["state"] == "done"

@@ -25,7 +25,14 @@ from ..errors import InputError
 from .archives import ArchiveLimits
 from .loaders import _read_text, _txt_files, extract_txt_archive, input_kind, load_detections, parse_kitti_txt
 
-__all__ = ["KITTI_RESULT_CLASSES", "SubmissionRules", "Validation", "validate_submission", "validate_annotations"]
+__all__ = [
+    "KITTI_RESULT_CLASSES",
+    "SubmissionRules",
+    "Validation",
+    "validate_submission",
+    "validate_annotations",
+    "validate_txt_folder",
+]
 
 #: the object classes of KITTI's labels (DontCare marks regions, it is no result class); case-insensitive
 KITTI_RESULT_CLASSES = ("Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram", "Misc")
@@ -134,7 +141,7 @@ def validate_submission(
     """
     p = Path(path)
     if p.is_dir():
-        return _validate_txt_folder(p, rules)
+        return validate_txt_folder(p, rules)
     kind = input_kind(p)
     if kind == "pickle":
         collector = _Collector(rules)
@@ -148,7 +155,7 @@ def validate_submission(
         return validate_annotations(annos, rules, collector)
     with tempfile.TemporaryDirectory(prefix="kitti-eval-submission-") as tmp:
         folder = extract_txt_archive(p, tmp, limits=limits or ArchiveLimits())
-        return _validate_txt_folder(folder, rules, shown_as=str(p))
+        return validate_txt_folder(folder, rules, shown_as=str(p))
 
 
 def validate_annotations(annos: Annotations, rules: SubmissionRules, collector: _Collector | None = None) -> Validation:
@@ -161,7 +168,9 @@ def validate_annotations(annos: Annotations, rules: SubmissionRules, collector: 
     return c.out
 
 
-def _validate_txt_folder(folder: Path, rules: SubmissionRules, *, shown_as: str | None = None) -> Validation:
+def validate_txt_folder(folder: Path, rules: SubmissionRules, *, shown_as: str | None = None) -> Validation:
+    """The checks of :func:`validate_submission` on a folder of result txt files (an archive unpacked into it:
+    ``shown_as`` names the archive)."""
     c = _Collector(rules)
     files: dict[str, Path] = {}
     for path in sorted(_txt_files(folder), key=lambda q: q.name):

@@ -88,15 +88,20 @@ class BenchmarkCatalog:
         return [Benchmark.from_record(r) for r in self.store.benchmarks_using(name)]
 
     def _ground_truth(self, bench: Benchmark) -> tuple[GroundTruthRecord, Annotations]:
-        """The benchmark's test set as registered now: refused unless it is sealed (registering a benchmark's
-        ground truth unsealed is refused too, so this holds unless the database was changed by hand)."""
+        """The benchmark's test set as registered now, loaded (see :meth:`_ground_truth_record`)."""
+        record = self._ground_truth_record(bench)
+        return record, self.ground_truths.load(record)
+
+    def _ground_truth_record(self, bench: Benchmark) -> GroundTruthRecord:
+        """The record of the benchmark's test set as registered now: refused unless it is sealed (registering a
+        benchmark's ground truth unsealed is refused too, so this holds unless the database was changed by hand)."""
         record = self.ground_truths.record(bench.gt_name)
         if not record.sealed:
             raise Conflict(
                 f"the test set {bench.gt_name!r} of benchmark {bench.name!r} is not sealed; an admin deletes it "
                 "and registers it again with sealed=true"
             )
-        return record, self.ground_truths.load(record)
+        return record
 
     # -- admin ----------------------------------------------------------------------------------------------
     def create(

@@ -1,4 +1,4 @@
-"""Submissions to a benchmark: accepted (checked, then counted against the quota), scored on the sealed test
+"""Submissions to a benchmark: accepted (counted against the quota), checked and scored on the sealed test
 set, published and withdrawn by their participants; listed, disqualified and rescored by admins."""
 
 from __future__ import annotations
@@ -8,12 +8,11 @@ import math
 import re
 from collections.abc import Callable
 from datetime import datetime, timedelta, timezone
-from pathlib import Path
 from typing import Any
 
 from kitti_eval.core.frames import Annotations
 from kitti_eval.errors import InputError
-from kitti_eval.io.submission import SubmissionRules, validate_submission
+from kitti_eval.io.submission import SubmissionRules, validate_annotations, validate_txt_folder
 
 from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
 from ..evaluations import sealed_document
@@ -21,7 +20,15 @@ from ..evaluator import evaluate_document
 from ..jobs import JobRecord
 from ..policy import Caller
 from ..store import GroundTruthRecord, JobInput, PublishRefused, QuotaRefused, SubmissionRecord, new_id
-from ..uploads import FileIn, clean_filename, load_upload, receive_upload
+from ..uploads import (
+    FileIn,
+    InputFormat,
+    extract_txt_folder,
+    load_txt_folder,
+    load_upload,
+    receive_upload,
+    sniff,
+)
 from ..workers import error_of
 from .catalog import BenchmarkCatalog
 from .rules import Benchmark, in_public_part, scores_of
@@ -49,6 +56,7 @@ class InvalidSubmission(ApiError):
     def __init__(self, problems: list[str]) -> None:
         super().__init__(f"the submission is not valid ({len(problems)} problems): " + "; ".join(problems[:5]))
         self.problems = problems
+        self.details = {"problems": problems}
 
 
 def _submission_view(
@@ -135,9 +143,10 @@ class Submissions(BenchmarkCatalog):
 
     # -- participants -------------------------------------------------------------------------------------
     def submit(self, name: str, predictions: FileIn, caller: Caller) -> JobRecord:
-        """Validate, count against the quota and accept (one transaction; the acceptance time is the
-        submission's), keep the upload as the job's input and queue its scoring: the job, whose id is the
-        submission's. Never waits for an evaluator."""
+        """Count against the quota and accept (one transaction; the acceptance time is the submission's), keep
+        the upload as the job's input and queue its scoring: the job, whose id is the submission's. Never waits
+        for an evaluator, and reads nothing of the file: its scoring job checks it as ``kitti-eval validate``
+        does on the read it scores (see :meth:`score_job`)."""
         if self.draining():
             raise NotReady("the service is shutting down; submit again in a moment")
         if not self.policy.accounts:
@@ -147,10 +156,9 @@ class Submissions(BenchmarkCatalog):
         bench = self.get(name, caller)
         if not bench.is_open():
             raise Conflict(f"the benchmark {name!r} is not open for submissions")
-        record, gt = self._ground_truth(bench)
-        with self.scratch() as scratch:
-            upload = receive_upload(predictions.file, predictions.filename, "predictions")
-            self._validate(upload.file, upload.filename, gt, scratch)
+        self._ground_truth_record(bench)  # registered, and sealed if it is to be
+        upload = receive_upload(predictions.file, predictions.filename, "predictions")
+        self.jobs.admit(caller.name, upload.size)
         count, days = bench.quota
         now = datetime.now(timezone.utc)
         window = timedelta(days=days)
@@ -177,7 +185,6 @@ class Submissions(BenchmarkCatalog):
             ) from None
         upload.file.seek(0)
         content = upload.file.read()
-        self.store.add_prediction_file(upload.sha256, content)
         self.store.add_job_inputs(submission_id, [JobInput("predictions", upload.filename, upload.sha256, content)])
         job = self.jobs.enqueue(
             "submission",
@@ -192,7 +199,9 @@ class Submissions(BenchmarkCatalog):
 
     def score_job(self, job: JobRecord) -> tuple[str, Callable[[Any], None]]:
         """Run a submission's scoring or rescoring job: the submission's id and the writes of its scores (for
-        the transaction that ends the job). A submission whose input cannot be scored, or whose last attempt
+        the transaction that ends the job). A submission's first scoring checks it as ``kitti-eval validate``
+        does on the same read of the file: one that breaks the rules is removed (it never counted) and its job
+        fails with the validator's sentences. A submission whose input cannot be read, or whose last attempt
         failed, is marked failed (and no longer counts against the quota)."""
         sid = str(job.payload["submission_id"])
         row = self.store.get_submission(sid)
@@ -201,8 +210,18 @@ class Submissions(BenchmarkCatalog):
         try:
             bench = self._get(row.benchmark)
             record, gt = self._ground_truth(bench)
-            dt = self._predictions(job, row, gt)
+            if job.kind == "submission":
+                stored = self.store.job_input(job.id, "predictions")
+                if stored is None:
+                    raise Conflict(f"the predictions of submission {row.id} are not kept")
+                dt = self._checked(stored.content, row.pred_filename, gt)
+                self.store.add_prediction_file(row.pred_sha256, stored.content)
+            else:
+                dt = self._kept_predictions(row, gt)
             values = self._scores(bench, record, gt, dt)
+        except InvalidSubmission:
+            self.store.delete_submission(sid)
+            raise
         except BaseException as e:
             _, retry = error_of(e)
             if not retry or job.attempts >= job.max_attempts:
@@ -216,38 +235,39 @@ class Submissions(BenchmarkCatalog):
 
         return sid, write
 
-    def _predictions(self, job: JobRecord, row: SubmissionRecord, gt: Annotations) -> Annotations:
-        """The submission's predictions: its job's input (a submission's scoring), else the kept file."""
-        stored = self.store.job_input(job.id, "predictions") if job.kind == "submission" else None
-        if stored is not None:
-            content: bytes | None = stored.content
-        else:
-            content = self.store.prediction_content(row.pred_sha256)
+    def _kept_predictions(self, row: SubmissionRecord, gt: Annotations) -> Annotations:
+        """A scored submission's predictions, from the kept file (a rescoring)."""
+        content = self.store.prediction_content(row.pred_sha256)
         if content is None:
             raise Conflict(f"the predictions of submission {row.id} are not kept")
         with self.scratch() as scratch:
             upload = receive_upload(io.BytesIO(content), row.pred_filename, "predictions")
             return load_upload(upload, "detections", scratch, self.limits, known_frames=gt.frame_index()).annotations
 
-    def _validate(self, file: Any, filename: str, gt: Annotations, scratch: Path) -> None:
-        """The CLI's checks (:func:`validate_submission`), their sentences naming the upload, not the scratch path."""
-        shown = clean_filename(filename, "predictions")
-        path = scratch / "submission"
-        path.mkdir()
-        target = path / "upload"
-        file.seek(0)
-        with open(target, "wb") as out:
-            while chunk := file.read(1 << 20):
-                out.write(chunk)
-        file.seek(0)
-        try:
-            outcome = validate_submission(
-                target, SubmissionRules(frames=tuple(gt.frame_ids)), limits=self.limits.archive
-            )
-        except InputError as e:
-            raise type(e)(e.message.replace(str(target), shown), source=shown, frame=e.frame, field=e.field) from None
-        if not outcome.ok:
-            raise InvalidSubmission([line.replace(str(target), shown) for line in outcome.lines()])
+    def _checked(self, content: bytes, filename: str, gt: Annotations) -> Annotations:
+        """The submission's predictions, read once and checked as :func:`validate_submission` checks them (its
+        sentences, naming the upload): raises :class:`InvalidSubmission` with them when it breaks the rules;
+        unreadable or unsafe input raises as every load does."""
+        rules = SubmissionRules(frames=tuple(gt.frame_ids))
+        with self.scratch() as scratch:
+            upload = receive_upload(io.BytesIO(content), filename, "predictions")
+            fmt = sniff(upload.file, upload.filename)
+            if fmt is InputFormat.PICKLE:
+                try:
+                    annotations = load_upload(upload, "detections", scratch, self.limits).annotations
+                except InputError as e:
+                    if type(e) is not InputError:  # unsafe or unknown: not a submission at all
+                        raise
+                    raise InvalidSubmission([str(e)]) from None
+                outcome = validate_annotations(annotations, rules)
+                if not outcome.ok:
+                    raise InvalidSubmission(outcome.lines())
+                return annotations
+            folder, names = extract_txt_folder(upload.file, fmt, scratch, self.limits, upload.filename)
+            outcome = validate_txt_folder(folder, rules, shown_as=upload.filename)
+            if not outcome.ok:
+                raise InvalidSubmission(outcome.lines())
+            return load_txt_folder(folder, names, upload.filename, self.limits)
 
     def _scores(self, bench: Benchmark, record: GroundTruthRecord, gt: Annotations, dt: Annotations) -> dict[str, Any]:
         """A submission's scored values: its (sealed) documents and its scores on the whole set and each part."""

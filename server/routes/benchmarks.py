@@ -16,7 +16,6 @@ from ..errors import error_body
 from ..policy import Caller
 from ..schemas import ErrorResponse
 from ..service import FileIn
-from ..workers import await_outcome
 from .jobs import still_pending
 
 router = APIRouter(
@@ -212,7 +211,7 @@ async def submit(
         out = error_body(e.code, e.message)
         out["error"]["retry_at"] = e.retry_at.isoformat()
         return JSONResponse(out, status_code=429, headers=e.headers)
-    ended = await await_outcome(service.jobs, job.id, service.settings.wait_s if wait is None else wait)
+    ended = await service.outcome(job.id, wait)
     if ended.state != "done":
         return await still_pending(service.jobs, ended)
     body = await anyio.to_thread.run_sync(benchmarks.submission, name, job.id, caller)

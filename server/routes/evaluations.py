@@ -25,7 +25,6 @@ from ..schemas import (
 )
 from ..service import FileIn
 from ..store import EvaluationRecord
-from ..workers import await_outcome
 from .jobs import still_pending
 
 _errors: dict[int | str, dict[str, Any]] = {
@@ -149,7 +148,7 @@ async def create_evaluation(
             enqueue=service.enqueue_evaluation(caller),
         )
     )
-    ended = await await_outcome(service.jobs, job.id, service.settings.wait_s if wait is None else wait)
+    ended = await service.outcome(job.id, wait)
     if ended.state != "done":
         return await still_pending(service.jobs, ended)
     assert ended.result_id is not None

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import func, insert, select, update
+from sqlalchemy import delete, func, insert, select, update
 from sqlalchemy.engine import Connection, RowMapping
 
 from .database import Area, benchmarks, dated, quota_locks, retry_when_locked, submissions, utc
@@ -184,6 +184,12 @@ class BenchmarkStore(Area):
     def update_submission(self, submission_id: str, **values: Any) -> bool:
         with self.engine.begin() as conn:
             return self.update_submission_in(conn, submission_id, **values)
+
+    @retry_when_locked
+    def delete_submission(self, submission_id: str) -> bool:
+        """Remove a submission that never counted (its first scoring found it breaks the rules)."""
+        with self.engine.begin() as conn:
+            return bool(conn.execute(delete(submissions).where(submissions.c.id == submission_id)).rowcount)
 
     @staticmethod
     def update_submission_in(conn: Connection, submission_id: str, **values: Any) -> bool:

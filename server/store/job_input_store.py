@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sqlalchemy import delete, insert, select
+from sqlalchemy import delete, func, insert, select
 from sqlalchemy.engine import Connection
 
-from .database import Area, job_inputs, retry_when_locked
+from .database import Area, job_inputs, jobs, retry_when_locked
 
 __all__ = ["JobInput", "JobInputStore"]
 
@@ -43,6 +43,16 @@ class JobInputStore(Area):
         if row is None:
             return None
         return JobInput(row["name"], row["filename"], row["sha256"], bytes(row["content"]))
+
+    @retry_when_locked
+    def job_input_bytes(self) -> int:
+        """Bytes of the inputs kept for the jobs queued or running."""
+        active = select(jobs.c.id).where(jobs.c.state.in_(("queued", "running")))
+        query = select(func.coalesce(func.sum(func.length(job_inputs.c.content)), 0)).where(
+            job_inputs.c.job_id.in_(active)
+        )
+        with self.engine.connect() as conn:
+            return int(conn.execute(query).scalar_one())
 
     @staticmethod
     def delete_job_inputs_in(conn: Connection, job_id: str) -> None:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import Update, and_, func, insert, or_, select, update
+from sqlalchemy import Update, and_, case, func, insert, or_, select, update
 from sqlalchemy.engine import Connection, RowMapping
 
 from .database import Area, dated, jobs, retry_when_locked, utc
@@ -261,6 +261,17 @@ class JobStore(Area):
         with self.engine.connect() as conn:
             found: dict[str, int] = dict(conn.execute(query).all())
         return {state: int(found.get(state, 0)) for state in JOB_STATES}
+
+    @retry_when_locked
+    def active_jobs(self, owner: str) -> tuple[int, int]:
+        """Jobs queued or running: all of them, and ``owner``'s."""
+        active = jobs.c.state.in_(("queued", "running"))
+        query = select(func.count(), func.coalesce(func.sum(case((jobs.c.owner == owner, 1), else_=0)), 0)).where(
+            active
+        )
+        with self.engine.connect() as conn:
+            total, mine = conn.execute(query).one()
+        return int(total), int(mine)
 
     @retry_when_locked
     def queued_before(self, job_id: str) -> int | None:

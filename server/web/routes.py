@@ -39,7 +39,6 @@ from ..routes.frames import MAX_SCORE
 from ..schemas import iso
 from ..service import FileIn, Service
 from ..store import EvaluationRecord
-from ..workers import await_outcome
 from .svg import bar_chart, bev_view, points_text, pr_chart
 
 __all__ = ["router", "templates", "STATIC_DIR", "sign_in_page", "error_page"]
@@ -296,7 +295,7 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
                     enqueue=service.enqueue_evaluation(caller),
                 )
             )
-        ended = await await_outcome(service.jobs, job.id, service.settings.wait_s)
+        ended = await service.outcome(job.id)
         if ended.state != "done":
             notice = f"evaluation {job.id} is {ended.state}; it appears in the history below once it is done"
             return await anyio.to_thread.run_sync(partial(_home, request, service, caller, status=202, notice=notice))
