@@ -23,7 +23,8 @@ from pathlib import Path
 from ..core.frames import Annotations, normalize_frame_id
 from ..errors import InputError
 from .archives import ArchiveLimits
-from .loaders import _read_text, _txt_files, extract_txt_archive, input_kind, load_detections, parse_kitti_txt
+from .formats.kitti_txt import extract_txt_archive, input_kind, parse_kitti_txt, read_text, txt_files
+from .loaders import load_detections
 
 __all__ = ["KITTI_RESULT_CLASSES", "SubmissionRules", "Validation", "validate_submission", "validate_annotations"]
 
@@ -164,7 +165,7 @@ def validate_annotations(annos: Annotations, rules: SubmissionRules, collector: 
 def _validate_txt_folder(folder: Path, rules: SubmissionRules, *, shown_as: str | None = None) -> Validation:
     c = _Collector(rules)
     files: dict[str, Path] = {}
-    for path in sorted(_txt_files(folder), key=lambda q: q.name):
+    for path in sorted(txt_files(folder), key=lambda q: q.name):
         try:
             fid = normalize_frame_id(path.stem)
         except (TypeError, ValueError):
@@ -182,7 +183,7 @@ def _validate_txt_folder(folder: Path, rules: SubmissionRules, *, shown_as: str 
         if fid not in wanted:
             continue  # named above; what it holds does not matter
         try:
-            names, values = parse_kitti_txt(_read_text(path), "detections", frame=fid, source=path.name)
+            names, values = parse_kitti_txt(read_text(path), "detections", frame=fid, source=path.name)
         except InputError as e:
             c.out.frames += 1
             c.problem(f"{path.name}: {e.message}")
