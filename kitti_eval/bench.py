@@ -181,7 +181,7 @@ def _generate(directory: Path, frames: int, seed: int) -> tuple[Path, Path]:
         [
             sys.executable,
             "-m",
-            "kitti_eval.io.synth",
+            "kitti_eval.synth",
             "--frames",
             str(frames),
             "--seed",

@@ -30,7 +30,7 @@ TARGETS = {"rss_in_process_mib": 3072.0, "rss_cluster_mib": 2048.0, "linear_rati
 
 def _write_shards(directory: Path, shards: int) -> None:
     """``shards`` KITTI-val-sized shards: ``gt-K.pkl`` and ``pred-K.pkl``, frame ids continuing."""
-    from .io.synth import generate, write_infos, write_results
+    from .synth import generate, write_infos, write_results
 
     for k in range(shards):
         infos, results = generate(VAL_FRAMES, seed=1000 + k, dets_per_frame=40.0, gt_per_frame=8.0)

@@ -16,7 +16,7 @@ from kitti_eval.core.result import EvalResult
 from kitti_eval.errors import InputError
 from kitti_eval.io.loaders import load_detections, load_ground_truth
 from kitti_eval.io.safe_pickle import load_pickle
-from kitti_eval.io.synth import generate, write_label_dir, write_result_dir
+from kitti_eval.synth import generate, write_label_dir, write_result_dir
 
 GOLDEN = Path(__file__).parent / "data" / "golden"
 

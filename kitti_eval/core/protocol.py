@@ -38,6 +38,7 @@ __all__ = [
     "RECALL_MODES",
     "DEFAULT_CLASSES",
     "KNOWN_CLASSES",
+    "KITTI_CLASSES",
     "CLASS_OVERLAPS",
     "NEIGHBOURS",
     "DONTCARE",
@@ -128,6 +129,8 @@ CLASS_OVERLAPS: Mapping[str, Mapping[str, tuple[float, float, float]]] = Mapping
     }
 )
 DEFAULT_CLASSES: tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")
+#: the object classes of KITTI's labels (DontCare marks regions, it is no object class)
+KITTI_CLASSES: tuple[str, ...] = ("Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram", "Misc")
 KNOWN_CLASSES: tuple[str, ...] = tuple(CLASS_OVERLAPS)
 
 #: Ground truth of a neighbour class is ignored for the evaluated class: never a miss, and a detection

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..core.frames import Annotations, normalize_frame_id
+from ..core.protocol import KITTI_CLASSES
 from ..errors import InputError
 from .archives import ArchiveLimits
 from .formats.kitti_txt import extract_txt_archive, input_kind, parse_kitti_txt, read_text, txt_files
@@ -28,8 +29,8 @@ from .loaders import load_detections
 
 __all__ = ["KITTI_RESULT_CLASSES", "SubmissionRules", "Validation", "validate_submission", "validate_annotations"]
 
-#: the object classes of KITTI's labels (DontCare marks regions, it is no result class); case-insensitive
-KITTI_RESULT_CLASSES = ("Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram", "Misc")
+#: the classes a result may name (compared case-insensitively): KITTI's object classes
+KITTI_RESULT_CLASSES = KITTI_CLASSES
 #: frames named in one sentence before "and N more"
 _SHOWN_FRAMES = 20
 
