@@ -325,7 +325,7 @@ def test_ten_times_kitti_val_in_shards_on_a_local_cluster_equals_the_whole(tmp_p
     processes, against the same set evaluated in one piece: every value and curve to 1e-9."""
     pytest.importorskip("distributed")
     from kitti_eval.analysis.cluster import cluster_mapper
-    from kitti_eval.bench_sharded import _write_shards
+    from kitti_eval.speed_sharded import _write_shards
 
     _write_shards(tmp_path, 10)
     infos: list = []

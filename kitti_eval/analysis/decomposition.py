@@ -75,6 +75,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from ..core.ap import average_precision, curve_from_counts
 from ..core.arrays import kernel_input
 from ..core.evaluation import Plan, Totals, plan_evaluation, result_from_counts
 from ..core.frames import Annotations
@@ -99,7 +100,6 @@ from ..core.matching import (
     frame_events_many,
     score_thresholds,
 )
-from ..core.metrics import average_precision, curve_from_counts
 from ..core.protocol import N_SAMPLE_PTS, RECALL_MODES, Difficulty, EvalConfig, Metric
 from ..core.result import EvalResult
 from ..errors import ConfigError

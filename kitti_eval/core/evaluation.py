@@ -16,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import InputError
+from .ap import Curve, average_precision, curve_from_counts
 from .frames import Annotations, dimension_order_warnings, size_warnings
 from .geometry import FrameOverlaps, frame_overlaps
 from .matching import (
@@ -28,7 +29,6 @@ from .matching import (
     pr_counts_many,
     second_passes,
 )
-from .metrics import Curve, average_precision, curve_from_counts
 from .protocol import (
     ALL_METRICS,
     DONTCARE,

@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from .metrics import Curve
+from .ap import Curve
 from .protocol import ALL_METRICS, Difficulty, Metric
 
 __all__ = ["EvalResult", "SCHEMA_VERSION"]

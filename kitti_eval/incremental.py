@@ -244,7 +244,7 @@ class KittiMetric:
             unknown = sorted(set(options) - _CONFIG_FIELDS)
             if unknown:
                 hint = (
-                    " (ann_file is an argument of the mmengine metric, kitti_eval.compat.mmdet3d_metric, which an "
+                    " (ann_file is an argument of the mmengine metric, kitti_eval.compat.mmdet3d_evaluator, which an "
                     "mmdetection3d config builds when mmengine and torch are installed)"
                     if "ann_file" in unknown
                     else ""
