@@ -100,7 +100,16 @@ from ..core.matching import (
     frame_events_many,
     score_thresholds,
 )
-from ..core.protocol import N_SAMPLE_PTS, RECALL_MODES, Difficulty, EvalConfig, Metric
+from ..core.protocol import (
+    DEFAULT_OSET,
+    DEFAULT_RECALL,
+    METRICS,
+    N_SAMPLE_PTS,
+    RECALL_MODES,
+    Difficulty,
+    EvalConfig,
+    Metric,
+)
 from ..core.result import EvalResult
 from ..errors import ConfigError
 
@@ -351,7 +360,7 @@ class SlotErrors:
     fixed: Mapping[str, Mapping[str, float]]
     counts: Mapping[str, int]
 
-    def delta(self, kind: str, recall: str = "R40") -> float:
+    def delta(self, kind: str, recall: str = DEFAULT_RECALL) -> float:
         """AP points gained by fixing ``kind`` (a type, or "all")."""
         return self.fixed[kind][recall] - self.ap[recall]
 
@@ -688,7 +697,7 @@ def decompose(
     dt: Annotations,
     config: EvalConfig | None = None,
     *,
-    oset: str = "strict",
+    oset: str = DEFAULT_OSET,
     workers: int | None = None,
 ) -> Decomposition:
     """The error decomposition and true-positive errors of ``dt`` against ``gt`` (see the module docstring)."""
@@ -701,7 +710,7 @@ def evaluate_with_errors(
     config: EvalConfig | None = None,
     *,
     keep_curves: bool = False,
-    oset: str = "strict",
+    oset: str = DEFAULT_OSET,
 ) -> tuple[EvalResult, Decomposition]:
     """:func:`~kitti_eval.core.evaluation.evaluate` and the decomposition, from one plan (the overlaps and
     ignore codes are computed once for both)."""
@@ -710,7 +719,7 @@ def evaluate_with_errors(
     return result, decompose_plan(plan, oset=oset)
 
 
-def decompose_plan(plan: Plan, *, oset: str = "strict", workers: int | None = None) -> Decomposition:
+def decompose_plan(plan: Plan, *, oset: str = DEFAULT_OSET, workers: int | None = None) -> Decomposition:
     """:func:`decompose` on a planned evaluation (its overlaps and ignore codes, computed once)."""
     import time
 
@@ -794,8 +803,7 @@ def decompose_plan(plan: Plan, *, oset: str = "strict", workers: int | None = No
     n_workers = default_workers() if workers is None else max(1, int(workers))
     _map(run, jobs, n_workers)
     errors: dict[str, dict[str, dict[str, SlotErrors | None]]] = {
-        cls: {m: {d.label: None for d in Difficulty} for m in ("bbox", "bev", "3d", "aos")}
-        for cls in plan.config.classes
+        cls: {m: {d.label: None for d in Difficulty} for m in METRICS} for cls in plan.config.classes
     }
     tp: dict[str, dict[str, TPErrors | None]] = {
         cls: {d.label: None for d in Difficulty} for cls in plan.config.classes
@@ -889,7 +897,6 @@ _SHORT = {
     "orientation": "orient",
     "all": "all",
 }
-_METRICS = ("bbox", "bev", "3d", "aos")
 
 
 def _cell(value: float | None, width: int, digits: int = 2) -> str:
@@ -901,13 +908,13 @@ def _rows(dec: Decomposition, recall: str) -> list[tuple[str, str, str, SlotErro
     return [
         (cls, metric, d, e)
         for cls in dec.classes
-        for metric in _METRICS
+        for metric in METRICS
         for d, e in dec.errors[cls][metric].items()
         if e is not None
     ]
 
 
-def render_errors(dec: Decomposition, fmt: str = "table", *, recall: str = "R40") -> str:
+def render_errors(dec: Decomposition, fmt: str = "table", *, recall: str = DEFAULT_RECALL) -> str:
     """The decomposition as a text table, Markdown or JSON (:func:`errors_document`; both recall modes)."""
     import json
 

@@ -42,7 +42,15 @@ from ..core.frames import (
     unsized_boxes,
 )
 from ..core.matching import PRCounts, score_thresholds
-from ..core.protocol import INVALID_ALPHA, OVERLAP_METRICS, EvalConfig, Metric, did_you_mean
+from ..core.protocol import (
+    DEFAULT_METRIC,
+    DEFAULT_OSET,
+    INVALID_ALPHA,
+    OVERLAP_METRICS,
+    EvalConfig,
+    Metric,
+    did_you_mean,
+)
 from ..core.result import EvalResult
 from ..errors import ConfigError, InputError
 
@@ -448,9 +456,9 @@ def frame_stats_sharded(
     config: EvalConfig | None = None,
     *,
     cls: str = "Car",
-    metric: str = "3d",
+    metric: str = DEFAULT_METRIC,
     difficulty: str = "moderate",
-    oset: str = "strict",
+    oset: str = DEFAULT_OSET,
     score_threshold: float = 0.0,
     gt_format: str | None = None,
     pred_format: str | None = None,
