@@ -24,7 +24,7 @@ _LAZY = {
     "load_ground_truth": "kitti_eval.io.loaders",
     "load_detections": "kitti_eval.io.loaders",
     "get_official_eval_result": "kitti_eval.compat.openpcdet",
-    "KittiMetric": "kitti_eval.metric",
+    "KittiMetric": "kitti_eval.incremental",
 }
 
 __all__ = [

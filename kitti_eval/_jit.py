@@ -140,7 +140,7 @@ def warm_up(everything: bool = True) -> None:
     labels, the IoU functions). A tiny generated scene has the array types of every real input."""
     from .core.evaluation import evaluate
     from .core.frames import Annotations
-    from .io.synth import generate
+    from .synth import generate
 
     infos, results = generate(4, seed=0)
     gt = Annotations.from_frames("ground_truth", "warm-up", [(i["image"]["image_idx"], i["annos"]) for i in infos])

@@ -3,7 +3,7 @@
     val_evaluator = dict(type="kitti_eval.KittiMetric", ann_file="data/kitti/kitti_infos_val.pkl")
 
 mmengine imports ``<scope>.registry`` itself when a config names a type ``<scope>.<Name>`` of another scope;
-the metric class is imported from :mod:`kitti_eval.compat.mmdet3d_metric` when first asked for. Without
+the metric class is imported from :mod:`kitti_eval.compat.mmdet3d_evaluator` when first asked for. Without
 mmengine installed, ``METRICS`` is None and nothing else happens.
 """
 
@@ -22,5 +22,5 @@ except ImportError:  # mmengine is optional
     pass
 else:
     METRICS = Registry(
-        "metric", parent=_MMENGINE_METRICS, scope="kitti_eval", locations=["kitti_eval.compat.mmdet3d_metric"]
+        "metric", parent=_MMENGINE_METRICS, scope="kitti_eval", locations=["kitti_eval.compat.mmdet3d_evaluator"]
     )

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import httpx
 
-from kitti_eval.io.synth import generate
+from kitti_eval.synth import generate
 
 ADMIN = "bench-admin-token"
 

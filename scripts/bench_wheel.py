@@ -145,7 +145,7 @@ def _venv(where: Path, wheel: Path) -> tuple[Path, float]:
 
 
 def _generate(where: Path) -> tuple[Path, Path]:
-    argv = [sys.executable, "-m", "kitti_eval.io.synth", "--frames", "3769", "--seed", "0"]
+    argv = [sys.executable, "-m", "kitti_eval.synth", "--frames", "3769", "--seed", "0"]
     _run([*argv, "--dets-per-frame", "40", "--gt-per-frame", "8", "--out", str(where)])
     return where / "kitti_infos_val.pkl", where / "result.pkl"
 

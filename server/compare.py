@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from kitti_eval.analysis.compare import compare_documents, render_comparison
+from kitti_eval.analysis.result_diff import compare_documents, render_comparison
 
 from .schemas import iso
 from .store import EvaluationRecord

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from kitti_eval._jit import warm_up
-from kitti_eval.io.synth import demo_paths
+from kitti_eval.demo import demo_paths
 
 from .accounts import Accounts
 from .audit import Audit

@@ -27,7 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from server_helpers import LiveServer  # noqa: E402
 
-from kitti_eval.io.synth import demo_paths  # noqa: E402
+from kitti_eval.demo import demo_paths  # noqa: E402
 
 GIB = 1 << 30
 

@@ -8,9 +8,9 @@ import math
 import numpy as np
 from naive_matching import NO_DETECTION, pr_counts_naive, statistics_naive, thresholds_naive
 
+from kitti_eval.core.ap import average_precision, curve_from_counts
 from kitti_eval.core.evaluation import plan_evaluation
 from kitti_eval.core.matching import PRCounts
-from kitti_eval.core.metrics import average_precision, curve_from_counts
 from kitti_eval.core.protocol import Metric
 
 TYPES = ("classification", "localization", "both", "duplicate", "background", "missed")

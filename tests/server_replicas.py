@@ -122,7 +122,7 @@ def _throughput(uploads: int, concurrency: int) -> None:  # pragma: no cover - a
 
     from server_postgres import PostgresCluster
 
-    from kitti_eval.io.synth import demo_paths
+    from kitti_eval.demo import demo_paths
 
     predictions = demo_paths()[1].read_bytes()  # the bundled demo: 200 frames, against the `demo` ground truth
     with PostgresCluster() as pg, tempfile.TemporaryDirectory() as tmp:

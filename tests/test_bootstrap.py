@@ -13,7 +13,7 @@ from kitti_eval.core.evaluation import evaluate, plan_evaluation
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import OPENPCDET, EvalConfig
 from kitti_eval.io.loaders import load_detections, load_ground_truth
-from kitti_eval.io.synth import generate
+from kitti_eval.synth import generate
 
 GOLDEN = Path(__file__).parent / "data" / "golden"
 

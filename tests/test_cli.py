@@ -256,8 +256,8 @@ def test_demo_where_prints_one_path_a_line(capsys):
 def test_a_tiny_negative_difference_prints_as_zero_not_minus_zero():
     from types import SimpleNamespace
 
-    from kitti_eval.analysis.compare import render_comparison
     from kitti_eval.analysis.gate import ValueKey
+    from kitti_eval.analysis.result_diff import render_comparison
 
     key = ValueKey("Car", "3d", "moderate")
     cmp = SimpleNamespace(

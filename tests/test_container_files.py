@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from kitti_eval.cli import main as cli_main
-from kitti_eval.io.synth import demo_paths
+from kitti_eval.demo import demo_paths
 
 ROOT = Path(__file__).resolve().parent.parent
 

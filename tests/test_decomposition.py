@@ -34,7 +34,8 @@ from kitti_eval.analysis.decomposition import (
 from kitti_eval.core.evaluation import evaluate
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import EvalConfig
-from kitti_eval.io.synth import demo_paths, generate
+from kitti_eval.demo import demo_paths
+from kitti_eval.synth import generate
 
 CAR = EvalConfig(classes=("Car",))
 CAR_PED = EvalConfig(classes=("Car", "Pedestrian"))

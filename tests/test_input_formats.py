@@ -31,7 +31,7 @@ from kitti_eval.io.loaders import (
     read_split,
 )
 from kitti_eval.io.safe_pickle import load_pickle
-from kitti_eval.io.synth import generate
+from kitti_eval.synth import generate
 
 SMALL = Path(__file__).parent / "data" / "golden" / "small"
 CATEGORIES = {
@@ -560,7 +560,7 @@ def _same_file_cases(tmp_path: Path) -> dict[str, tuple[str, bytes]]:
     import gzip as gz
     import zipfile
 
-    from kitti_eval.io.synth import write_result_dir
+    from kitti_eval.synth import write_result_dir
 
     pred_dir = tmp_path / "pred"
     write_result_dir(pred_dir, generate(3, seed=1)[1])

@@ -18,9 +18,9 @@ from kitti_eval.cli import main
 from kitti_eval.core.evaluation import plan_evaluation
 from kitti_eval.core.matching import DET_LABELS, GT_LABELS, label_frame
 from kitti_eval.core.protocol import EvalConfig
+from kitti_eval.demo import demo_paths
 from kitti_eval.errors import ConfigError, InputError
 from kitti_eval.io.loaders import load_detections, load_ground_truth
-from kitti_eval.io.synth import demo_paths
 
 GOLDEN = Path(__file__).parent / "data" / "golden" / "small"
 

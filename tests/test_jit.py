@@ -14,8 +14,8 @@ from numba.core import event
 
 import kitti_eval
 from kitti_eval import _jit
+from kitti_eval.demo import demo_paths
 from kitti_eval.io.safe_pickle import load_pickle
-from kitti_eval.io.synth import demo_paths
 
 
 class _Compiles(event.Listener):

@@ -23,7 +23,7 @@ from typing import Any
 import pytest
 from server_helpers import ROOT, app_client, register, upload
 
-from kitti_eval.io.synth import generate
+from kitti_eval.synth import generate
 from kitti_eval_server.jobs import JobQueue
 from kitti_eval_server.store import Store
 from kitti_eval_server.workers import Workers

@@ -38,7 +38,7 @@ with compilations() as compiled:
     from kitti_eval.analysis.decomposition import decompose, errors_document
     from kitti_eval.core.evaluation import evaluate
     from kitti_eval.io.loaders import load_pair
-    from kitti_eval.io.synth import demo_paths
+    from kitti_eval.demo import demo_paths
 
     gt_path, dt_path = demo_paths()
     gt, dt = load_pair(gt_path, dt_path)

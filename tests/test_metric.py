@@ -15,8 +15,8 @@ from numba.core import event
 
 from kitti_eval import Annotations, ConfigError, EvalConfig, InputError, KittiMetric, evaluate
 from kitti_eval.core.protocol import OPENPCDET, DifficultyLimits, DistanceRange, Protocol, parse_ranges
+from kitti_eval.incremental import _COLUMNS, config_from_state, config_state
 from kitti_eval.io.safe_pickle import load_pickle
-from kitti_eval.metric import _COLUMNS, config_from_state, config_state
 
 GOLDEN = Path(__file__).parent / "data" / "golden" / "small"
 

@@ -21,7 +21,7 @@ from test_metric import _Compiles
 
 from kitti_eval import ConfigError, InputError
 from kitti_eval.compat.mmdet3d import kitti_eval
-from kitti_eval.compat.mmdet3d_metric import adapter_class, predictions_to_kitti
+from kitti_eval.compat.mmdet3d_evaluator import adapter_class, predictions_to_kitti
 from kitti_eval.io.calib import Calib, calib_from_info
 
 GOLDEN = Path(__file__).parent / "data" / "golden" / "small"
@@ -253,7 +253,7 @@ def test_mmengine_registry_finds_the_dotted_type(golden):
     """With mmengine installed: a config's type='kitti_eval.KittiMetric', built under mmdetection3d's scope,
     reaches kitti-eval's registry node (mmengine imports kitti_eval.registry by itself)."""
     registry = pytest.importorskip("mmengine.registry")
-    from kitti_eval.compat import mmdet3d_metric
+    from kitti_eval.compat import mmdet3d_evaluator as mmdet3d_metric
 
     infos, results, ann_file, samples = golden
     import kitti_eval.registry as node

@@ -12,7 +12,7 @@ import pytest
 from kitti_eval import KittiMetric
 from kitti_eval.compat import openpcdet
 from kitti_eval.compat.mmdet3d import kitti_eval
-from kitti_eval.io.synth import demo_paths
+from kitti_eval.demo import demo_paths
 
 SECTION = "## Use it in your training framework"
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kitti_eval.core.ap import average_precision, average_precisions, curve_from_counts, envelope
 from kitti_eval.core.matching import PRCounts
-from kitti_eval.core.metrics import average_precision, average_precisions, curve_from_counts, envelope
 
 
 def test_r40_and_r11_of_a_ramp() -> None:

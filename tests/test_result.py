@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from kitti_eval.core.metrics import Curve
+from kitti_eval.core.ap import Curve
 from kitti_eval.core.protocol import Difficulty, Metric
 from kitti_eval.core.result import SCHEMA_VERSION, EvalResult
 

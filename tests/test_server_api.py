@@ -25,7 +25,7 @@ from server_helpers import (
 )
 
 from kitti_eval.cli import main as cli_main
-from kitti_eval.io.synth import demo_paths
+from kitti_eval.demo import demo_paths
 from kitti_eval_server import Settings, create_app
 from kitti_eval_server.evaluations import Evaluations
 from kitti_eval_server.ground_truths import GroundTruthCache, annotations_nbytes

@@ -8,7 +8,7 @@ from pathlib import Path
 from server_helpers import assert_error, upload
 
 from kitti_eval.cli import main as cli_main
-from kitti_eval.io.synth import demo_paths
+from kitti_eval.demo import demo_paths
 
 DEMO_PRED = demo_paths()[1].read_bytes()
 ERROR_KEYS = ("errors", "errors_r11", "tp_errors")

@@ -37,7 +37,7 @@ from server_helpers import (
 from server_postgres import PostgresCluster, why_no_postgres
 from sqlalchemy.exc import IntegrityError, OperationalError
 
-from kitti_eval.io.synth import generate
+from kitti_eval.synth import generate
 from kitti_eval_server.errors import fault_of
 
 # ------------------------------------------------------------------------------------------ classification

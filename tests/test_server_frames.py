@@ -14,9 +14,9 @@ from server_helpers import app_client, assert_error, golden_bytes, register, upl
 from kitti_eval.analysis.diagnostics import frame_stats, frames_document
 from kitti_eval.analysis.inspection import inspect_frame
 from kitti_eval.core.protocol import EvalConfig
+from kitti_eval.demo import demo_paths
 from kitti_eval.io.loaders import load_detections, load_ground_truth
 from kitti_eval.io.safe_pickle import load_pickle
-from kitti_eval.io.synth import demo_paths
 
 GT_PATH, PRED_PATH = demo_paths()
 DEMO_PRED = PRED_PATH.read_bytes()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from server_helpers import assert_error, upload
 
-from kitti_eval.io.synth import demo_paths
+from kitti_eval.demo import demo_paths
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,7 @@ import pytest
 from server_accounts import add_token, bearer
 from server_helpers import ADMIN, ADMIN_TOKEN, LogRecords, app_client, assert_error, golden_bytes, upload, wait_ready
 
-from kitti_eval.io.synth import demo_paths
+from kitti_eval.demo import demo_paths
 from kitti_eval_server import Settings, create_app
 from kitti_eval_server.auth import client_of
 from kitti_eval_server.errors import StartupRefused

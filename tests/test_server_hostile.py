@@ -32,7 +32,7 @@ from server_helpers import (
 from server_payloads import CANARY_MOD, Reducer, hostile_pickles
 
 from kitti_eval.io.safe_pickle import load_pickle
-from kitti_eval.io.synth import generate
+from kitti_eval.synth import generate
 
 try:
     from numpy._core.multiarray import _reconstruct

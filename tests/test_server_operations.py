@@ -12,7 +12,7 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 from server_helpers import ADMIN, ADMIN_TOKEN, LogRecords, golden_bytes, register, upload
 
-from kitti_eval.io.synth import demo_paths
+from kitti_eval.demo import demo_paths
 from kitti_eval_server.observability import JsonFormatter, wants_json
 
 
@@ -206,7 +206,7 @@ def test_sigterm_during_uploads_drains_then_stops(tmp_path: Any, via_serve: bool
     import httpx
     from server_helpers import LiveServer
 
-    from kitti_eval.io.synth import generate
+    from kitti_eval.synth import generate
 
     infos, results = generate(1500, seed=9)  # about half a second an evaluation
     data_dir = tmp_path / "data"

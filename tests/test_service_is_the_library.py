@@ -57,7 +57,7 @@ def test_bad_options_are_refused_with_the_same_words(flags: list[str], fields: d
 
 
 def _two_demo_evaluations(client) -> list[str]:  # noqa: ANN001 - a TestClient
-    from kitti_eval.io.synth import demo_paths
+    from kitti_eval.demo import demo_paths
 
     data = demo_paths()[1].read_bytes()
     return [upload(client, data, "result.pkl.gz").json()["id"] for _ in range(2)]
@@ -77,7 +77,7 @@ def _two_demo_evaluations(client) -> list[str]:  # noqa: ANN001 - a TestClient
 def test_gate_verdicts_equal_the_clis(body: dict, flags: list[str], tmp_path: Path) -> None:
     """The same rules on the same two results: the service's JUnit report is the CLI's, to the byte."""
     from kitti_eval import cli
-    from kitti_eval.io.synth import demo_paths
+    from kitti_eval.demo import demo_paths
 
     with app_client(tmp_path / "data") as client:
         current, base = _two_demo_evaluations(client)
@@ -95,7 +95,7 @@ def test_gate_verdicts_equal_the_clis(body: dict, flags: list[str], tmp_path: Pa
 
 def test_gate_rules_are_refused_with_the_same_words(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from kitti_eval import cli
-    from kitti_eval.io.synth import demo_paths
+    from kitti_eval.demo import demo_paths
 
     gt, pred = demo_paths()
     with app_client(tmp_path / "data") as client:

@@ -16,7 +16,7 @@ from kitti_eval.core.result import EvalResult
 from kitti_eval.errors import InputError
 from kitti_eval.io.loaders import load_detections, load_ground_truth
 from kitti_eval.io.safe_pickle import load_pickle
-from kitti_eval.io.synth import generate, write_label_dir, write_result_dir
+from kitti_eval.synth import generate, write_label_dir, write_result_dir
 
 GOLDEN = Path(__file__).parent / "data" / "golden"
 
@@ -325,7 +325,7 @@ def test_ten_times_kitti_val_in_shards_on_a_local_cluster_equals_the_whole(tmp_p
     processes, against the same set evaluated in one piece: every value and curve to 1e-9."""
     pytest.importorskip("distributed")
     from kitti_eval.analysis.cluster import cluster_mapper
-    from kitti_eval.bench_sharded import _write_shards
+    from kitti_eval.speed_sharded import _write_shards
 
     _write_shards(tmp_path, 10)
     infos: list = []

@@ -13,7 +13,7 @@ import pytest
 from kitti_eval.cli import main
 from kitti_eval.errors import UnsafePickleError
 from kitti_eval.io.submission import SubmissionRules, validate_submission
-from kitti_eval.io.synth import generate, write_result_dir
+from kitti_eval.synth import generate, write_result_dir
 
 FRAMES = tuple(f"{i:06d}" for i in range(12))
 

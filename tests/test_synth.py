@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kitti_eval.io import synth
+from kitti_eval import synth
 
 GT_KEYS = [
     "name",

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 from server_helpers import LiveServer, free_port
 
+from kitti_eval.demo import demo_paths
 from kitti_eval.io.safe_pickle import load_pickle
-from kitti_eval.io.synth import demo_paths
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")

@@ -12,7 +12,7 @@ from server_helpers import upload
 from test_web_pages import _DICHROMACY, Page, _external, css_rules, evaluation_id, lab, submit
 
 from kitti_eval.analysis.decomposition import AOS_TYPES, ERROR_TYPES, TP_ERRORS
-from kitti_eval.io.synth import demo_paths
+from kitti_eval.demo import demo_paths
 from kitti_eval_server.web.svg import bar_chart
 
 DEMO_PRED = demo_paths()[1].read_bytes()

@@ -12,7 +12,7 @@ import pytest
 from server_helpers import app_client, golden_bytes, upload
 
 from kitti_eval.cli import main as cli_main
-from kitti_eval.io.synth import demo_paths
+from kitti_eval.demo import demo_paths
 from kitti_eval_server.web import STATIC_DIR
 from kitti_eval_server.web.svg import Plot, bev_corners, bev_view, pr_chart
 

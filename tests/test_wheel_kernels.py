@@ -190,7 +190,7 @@ def test_the_service_from_the_wheel_warms_up_and_evaluates_without_compiling(whe
     compiled in the service's process would have been saved there."""
     from server_helpers import LiveServer
 
-    from kitti_eval.io.synth import demo_paths
+    from kitti_eval.demo import demo_paths
 
     python = install_in_fresh_venv(wheel, tmp_path / "venv", dependencies_from_here=True)
     cache = tmp_path / "numba-cache"

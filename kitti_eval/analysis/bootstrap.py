@@ -14,12 +14,12 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
+from ..core.ap import average_precisions, envelope
 from ..core.arrays import kernel_input
 from ..core.evaluation import Plan, Slot, evaluate, plan_evaluation
 from ..core.frames import Annotations
 from ..core.kernel_cache import njit
 from ..core.matching import FrameEvents, default_workers, threshold_step
-from ..core.metrics import average_precisions, envelope
 from ..core.protocol import N_SAMPLE_PTS, EvalConfig, Metric
 from ..core.result import EvalResult
 from .gate import ValueKey
@@ -91,7 +91,7 @@ def resampled_ap(events: FrameEvents, weights: npt.ArrayLike) -> npt.NDArray[np.
     Returns
     -------
     (B, 4) float64: precision AP R11, R40 and orientation AP R11, R40, in percent (the curves interpolated
-    and averaged by :mod:`kitti_eval.core.metrics`, as every AP is)
+    and averaged by :mod:`kitti_eval.core.ap`, as every AP is)
     """
     w = kernel_input(weights, np.int64)
     if w.ndim != 2 or w.shape[1] != events.valid.shape[0] or (w < 0).any():

@@ -75,6 +75,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from ..core.ap import average_precision, curve_from_counts
 from ..core.arrays import kernel_input
 from ..core.evaluation import Plan, Totals, plan_evaluation, result_from_counts
 from ..core.frames import Annotations
@@ -84,19 +85,31 @@ from ..core.matching import (
     Candidates,
     FrameEvents,
     Frames,
+    MatchingInputs,
     MatchJob,
     PRCounts,
+    _best_overlaps,
     _candidates,
     _frame_pass1,
     _frame_pass2,
     _rank_descending,
     _widest,
+    checked_inputs,
+    checked_layout,
     default_workers,
     frame_events_many,
     score_thresholds,
 )
-from ..core.metrics import average_precision, curve_from_counts
-from ..core.protocol import N_SAMPLE_PTS, RECALL_MODES, Difficulty, EvalConfig, Metric
+from ..core.protocol import (
+    DEFAULT_OSET,
+    DEFAULT_RECALL,
+    METRICS,
+    N_SAMPLE_PTS,
+    RECALL_MODES,
+    Difficulty,
+    EvalConfig,
+    Metric,
+)
 from ..core.result import EvalResult
 from ..errors import ConfigError
 
@@ -141,26 +154,12 @@ def _group_maxima(
     pair_offsets: np.ndarray, gt_offsets: np.ndarray, dt_offsets: np.ndarray, ov: np.ndarray, groups: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each detection's largest overlap with the ground truth of each group of ``groups`` (G, M) and the
-    row of that box (the first in file order on ties; -1 and 0.0 without an overlap > 0)."""
-    n_groups = groups.shape[0]
-    n_frames = gt_offsets.shape[0] - 1
-    n_dt = dt_offsets[n_frames]
-    best = np.zeros((n_groups, n_dt), dtype=np.float64)
-    arg = np.full((n_groups, n_dt), -1, dtype=np.int64)
-    for f in range(n_frames):
-        g0, g1 = gt_offsets[f], gt_offsets[f + 1]
-        d0, d1 = dt_offsets[f], dt_offsets[f + 1]
-        n_gt = g1 - g0
-        for j in range(d1 - d0):
-            row = pair_offsets[f] + j * n_gt
-            for i in range(n_gt):
-                o = ov[row + i]
-                if o <= 0.0:
-                    continue
-                for g in range(n_groups):
-                    if groups[g, g0 + i] and o > best[g, d0 + j]:
-                        best[g, d0 + j] = o
-                        arg[g, d0 + j] = g0 + i
+    row of that box (the first in file order on ties; -1 and 0.0 without an overlap > 0): the matching's
+    :func:`kitti_eval.core.matching._best_overlaps`, with the rows."""
+    n_dt = dt_offsets[dt_offsets.shape[0] - 1]
+    best = np.zeros((groups.shape[0], n_dt), dtype=np.float64)
+    arg = np.full((groups.shape[0], n_dt), -1, dtype=np.int64)
+    _best_overlaps(pair_offsets, ov, gt_offsets, dt_offsets, groups, best, arg)
     return best, arg
 
 
@@ -253,46 +252,33 @@ def group_maxima(
     ``groups`` (G, M) bool, the boxes of each group. Returns ``best`` (G, N) float64 (0.0 where no overlap
     is > 0) and ``arg`` (G, N) int64, the row of that box (the first on ties, -1 without one).
     """
-    po = kernel_input(pair_offsets, np.int64)
-    go = kernel_input(gt_offsets, np.int64)
-    do = kernel_input(dt_offsets, np.int64)
-    ov = kernel_input(overlaps, np.float64)
+    po, (ov,), go, do = checked_layout(pair_offsets, [overlaps], gt_offsets, dt_offsets)
     gr = kernel_input(groups, np.bool_)
-    if not po.shape == go.shape == do.shape or po.ndim != 1 or ov.shape != (int(po[-1]),):
-        raise ValueError("Expected offsets (F + 1,) and `overlaps` (P,) in the layout of pr_counts")
     if gr.ndim != 2 or gr.shape[1] != int(go[-1]):
         raise ValueError(f"Expected `groups` with shape (G, {int(go[-1])}), got {gr.shape}")
     return _group_maxima(po, go, do, ov, gr)
 
 
-def _index_candidates(
-    pair_offsets: np.ndarray,
-    ov: np.ndarray,
-    gt_offsets: np.ndarray,
-    dt_offsets: np.ndarray,
-    ignored_gt: np.ndarray,
-    ignored_det: np.ndarray,
-    dontcare: np.ndarray,
-    score: np.ndarray,
-    min_overlap: float,
-) -> Candidates:
-    """The matching's candidates (:func:`kitti_eval.core.matching._candidates`) with each box's row in
-    place of its alpha, so that what a kernel reads off them can be mapped back to the boxes."""
-    groups = np.stack([ignored_gt != -1, dontcare])
-    best, _ = _group_maxima(pair_offsets, gt_offsets, dt_offsets, ov, groups)
+def _index_candidates(m: MatchingInputs, min_overlap: float) -> Candidates:
+    """The candidates (:func:`kitti_eval.core.matching._candidates`) of the one matching of ``m`` (checked
+    inputs) with each box's row in place of its alpha, so that what a kernel reads off them can be mapped back
+    to the boxes."""
+    ov, ignored_gt, ignored_det = m.overlaps[0], m.ignored_gt[0], m.ignored_det[0]
+    groups = np.stack([ignored_gt != -1, m.dontcare])
+    best, _ = _group_maxima(m.pair_offsets, m.gt_offsets, m.dt_offsets, ov, groups)
     n_gt, n_dt = ignored_gt.shape[0], ignored_det.shape[0]
     frames = Frames(
-        pair_offsets,
-        gt_offsets,
-        dt_offsets,
-        score,
+        m.pair_offsets,
+        m.gt_offsets,
+        m.dt_offsets,
+        m.score,
         np.arange(n_gt, dtype=np.float64),
         np.arange(n_dt, dtype=np.float64),
     )
-    return _candidates(frames, ov, ignored_gt, ignored_det, dontcare, best[0], best[1], float(min_overlap))
+    return _candidates(frames, ov, ignored_gt, ignored_det, m.dontcare, best[0], best[1], float(min_overlap))
 
 
-def _matching_arrays(
+def _one_matching(
     pair_offsets: npt.ArrayLike,
     overlaps: npt.ArrayLike,
     gt_offsets: npt.ArrayLike,
@@ -301,21 +287,10 @@ def _matching_arrays(
     ignored_det: npt.ArrayLike,
     dontcare: npt.ArrayLike | None,
     score: npt.ArrayLike,
-) -> tuple[np.ndarray, ...]:
-    po = kernel_input(pair_offsets, np.int64)
-    go = kernel_input(gt_offsets, np.int64)
-    do = kernel_input(dt_offsets, np.int64)
-    ov = kernel_input(overlaps, np.float64)
-    ig = kernel_input(ignored_gt, np.int8)
-    idet = kernel_input(ignored_det, np.int8)
-    n_gt, n_dt = int(go[-1]), int(do[-1])
-    dc = np.zeros(n_gt, dtype=np.bool_) if dontcare is None else kernel_input(dontcare, np.bool_)
-    sc = kernel_input(score, np.float64)
-    if not po.shape == go.shape == do.shape or po.ndim != 1 or ov.shape != (int(po[-1]),):
-        raise ValueError("Expected offsets (F + 1,) and `overlaps` (P,) in the layout of pr_counts")
-    if ig.shape != (n_gt,) or dc.shape != (n_gt,) or idet.shape != (n_dt,) or sc.shape != (n_dt,):
-        raise ValueError(f"Expected ground-truth arrays ({n_gt},) and detection arrays ({n_dt},)")
-    return po, ov, go, do, ig, idet, dc, sc
+) -> MatchingInputs:
+    """The checked inputs of one matching (one row of ignore codes; no orientation)."""
+    ig, idet = np.asarray(ignored_gt)[None], np.asarray(ignored_det)[None]
+    return checked_inputs(MatchingInputs(pair_offsets, [overlaps], gt_offsets, dt_offsets, ig, idet, dontcare, score))
 
 
 def pass1_taken(
@@ -331,11 +306,8 @@ def pass1_taken(
 ) -> npt.NDArray[np.int64]:
     """(N,) the ground-truth row that took each detection in the devkit's pass 1 (every detection taking
     part), -1 if none. Arguments as :func:`kitti_eval.core.matching.pr_counts` (one matching)."""
-    po, ov, go, do, ig, idet, dc, sc = _matching_arrays(
-        pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score
-    )
-    c = _index_candidates(po, ov, go, do, ig, idet, dc, sc, min_overlap)
-    return _pass1_taken(c, float(min_overlap), int(do[-1]))
+    m = _one_matching(pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score)
+    return _pass1_taken(_index_candidates(m, min_overlap), float(min_overlap), int(m.dt_offsets[-1]))
 
 
 def tp_error_sums(
@@ -354,14 +326,12 @@ def tp_error_sums(
 ) -> npt.NDArray[np.float64]:
     """(T, 4): at each score threshold, pass 2's true positives and their summed translation, scale and
     orientation errors (see the module docstring). Boxes are (x, y, z, l, h, w, ry) rows."""
-    po, ov, go, do, ig, idet, dc, sc = _matching_arrays(
-        pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score
-    )
+    m = _one_matching(pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score)
     db = kernel_input(dt_boxes, np.float64)
     gb = kernel_input(gt_boxes, np.float64)
-    if db.shape != (idet.shape[0], 7) or gb.shape != (ig.shape[0], 7):
+    if db.shape != (m.ignored_det.shape[1], 7) or gb.shape != (m.ignored_gt.shape[1], 7):
         raise ValueError("Expected `dt_boxes` (N, 7) and `gt_boxes` (M, 7)")
-    c = _index_candidates(po, ov, go, do, ig, idet, dc, sc, min_overlap)
+    c = _index_candidates(m, min_overlap)
     ev_score, ev_delta = _tp_error_events(c, float(min_overlap), db, gb)
     return _at_thresholds(ev_score, ev_delta, np.asarray(thresholds, dtype=np.float64))
 
@@ -390,7 +360,7 @@ class SlotErrors:
     fixed: Mapping[str, Mapping[str, float]]
     counts: Mapping[str, int]
 
-    def delta(self, kind: str, recall: str = "R40") -> float:
+    def delta(self, kind: str, recall: str = DEFAULT_RECALL) -> float:
         """AP points gained by fixing ``kind`` (a type, or "all")."""
         return self.fixed[kind][recall] - self.ap[recall]
 
@@ -727,7 +697,7 @@ def decompose(
     dt: Annotations,
     config: EvalConfig | None = None,
     *,
-    oset: str = "strict",
+    oset: str = DEFAULT_OSET,
     workers: int | None = None,
 ) -> Decomposition:
     """The error decomposition and true-positive errors of ``dt`` against ``gt`` (see the module docstring)."""
@@ -740,7 +710,7 @@ def evaluate_with_errors(
     config: EvalConfig | None = None,
     *,
     keep_curves: bool = False,
-    oset: str = "strict",
+    oset: str = DEFAULT_OSET,
 ) -> tuple[EvalResult, Decomposition]:
     """:func:`~kitti_eval.core.evaluation.evaluate` and the decomposition, from one plan (the overlaps and
     ignore codes are computed once for both)."""
@@ -749,7 +719,7 @@ def evaluate_with_errors(
     return result, decompose_plan(plan, oset=oset)
 
 
-def decompose_plan(plan: Plan, *, oset: str = "strict", workers: int | None = None) -> Decomposition:
+def decompose_plan(plan: Plan, *, oset: str = DEFAULT_OSET, workers: int | None = None) -> Decomposition:
     """:func:`decompose` on a planned evaluation (its overlaps and ignore codes, computed once)."""
     import time
 
@@ -833,8 +803,7 @@ def decompose_plan(plan: Plan, *, oset: str = "strict", workers: int | None = No
     n_workers = default_workers() if workers is None else max(1, int(workers))
     _map(run, jobs, n_workers)
     errors: dict[str, dict[str, dict[str, SlotErrors | None]]] = {
-        cls: {m: {d.label: None for d in Difficulty} for m in ("bbox", "bev", "3d", "aos")}
-        for cls in plan.config.classes
+        cls: {m: {d.label: None for d in Difficulty} for m in METRICS} for cls in plan.config.classes
     }
     tp: dict[str, dict[str, TPErrors | None]] = {
         cls: {d.label: None for d in Difficulty} for cls in plan.config.classes
@@ -928,7 +897,6 @@ _SHORT = {
     "orientation": "orient",
     "all": "all",
 }
-_METRICS = ("bbox", "bev", "3d", "aos")
 
 
 def _cell(value: float | None, width: int, digits: int = 2) -> str:
@@ -940,13 +908,13 @@ def _rows(dec: Decomposition, recall: str) -> list[tuple[str, str, str, SlotErro
     return [
         (cls, metric, d, e)
         for cls in dec.classes
-        for metric in _METRICS
+        for metric in METRICS
         for d, e in dec.errors[cls][metric].items()
         if e is not None
     ]
 
 
-def render_errors(dec: Decomposition, fmt: str = "table", *, recall: str = "R40") -> str:
+def render_errors(dec: Decomposition, fmt: str = "table", *, recall: str = DEFAULT_RECALL) -> str:
     """The decomposition as a text table, Markdown or JSON (:func:`errors_document`; both recall modes)."""
     import json
 

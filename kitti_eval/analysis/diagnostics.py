@@ -20,7 +20,7 @@ import numpy.typing as npt
 from ..core.evaluation import Facts, Plan, plan_evaluation
 from ..core.frames import Annotations
 from ..core.matching import MatchJob
-from ..core.protocol import THRESHOLD_SETS, Difficulty, EvalConfig, Metric
+from ..core.protocol import DEFAULT_METRIC, DEFAULT_OSET, THRESHOLD_SETS, Difficulty, EvalConfig, Metric
 from ..errors import ConfigError
 
 __all__ = ["FrameStats", "frame_stats", "frames_document", "render_frames", "with_class", "parse_slot", "slot_job"]
@@ -99,9 +99,9 @@ def frame_stats(
     config: EvalConfig | None = None,
     *,
     cls: str = "Car",
-    metric: str = "3d",
+    metric: str = DEFAULT_METRIC,
     difficulty: str = "moderate",
-    oset: str = "strict",
+    oset: str = DEFAULT_OSET,
     score_threshold: float = 0.0,
     facts: Facts | None = None,
 ) -> FrameStats:

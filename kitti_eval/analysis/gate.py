@@ -31,7 +31,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..core.protocol import ALL_METRICS, RECALL_MODES, THRESHOLD_SETS, Difficulty
+from ..core.protocol import (
+    DEFAULT_OSET,
+    DEFAULT_RECALL,
+    DIFFICULTIES,
+    METRICS,
+    RECALL_MODES,
+    THRESHOLD_SETS,
+)
 from ..errors import ConfigError, InputError
 from .decomposition import AOS_TYPES
 
@@ -57,9 +64,7 @@ __all__ = [
     "render_junit",
 ]
 
-_METRICS = tuple(m.value for m in ALL_METRICS)
 _ERROR_TYPES = frozenset(AOS_TYPES)
-_DIFFS = tuple(d.label for d in Difficulty)
 _OPS = {">=": operator.ge, ">": operator.gt, "<=": operator.le, "<": operator.lt}
 
 
@@ -70,8 +75,8 @@ class ValueKey:
     cls: str
     metric: str
     difficulty: str
-    recall: str = "R40"
-    oset: str = "strict"
+    recall: str = DEFAULT_RECALL
+    oset: str = DEFAULT_OSET
     #: an error type of the decomposition ("" for the AP itself)
     error: str = ""
 
@@ -91,10 +96,12 @@ class ValueKey:
             key = cls(parts[0], parts[1], parts[2], parts[4] if len(parts) == 5 else "R40", "strict", parts[3])
         else:
             key = cls(*parts)
-        if key.metric not in _METRICS:
-            raise ConfigError(f"unknown metric {key.metric!r} in {text!r}; expected one of {', '.join(_METRICS)}")
-        if key.difficulty not in _DIFFS:
-            raise ConfigError(f"unknown difficulty {key.difficulty!r} in {text!r}; expected one of {', '.join(_DIFFS)}")
+        if key.metric not in METRICS:
+            raise ConfigError(f"unknown metric {key.metric!r} in {text!r}; expected one of {', '.join(METRICS)}")
+        if key.difficulty not in DIFFICULTIES:
+            raise ConfigError(
+                f"unknown difficulty {key.difficulty!r} in {text!r}; expected one of {', '.join(DIFFICULTIES)}"
+            )
         if key.recall not in RECALL_MODES:
             raise ConfigError(f"unknown recall mode {key.recall!r} in {text!r}; expected R40 or R11")
         if key.oset not in THRESHOLD_SETS:
@@ -118,6 +125,13 @@ class ValueKey:
             raise InputError(f"the result has no class {self.cls!r} (it has {', '.join(by_cls) or 'none'})")
         value = by_cls[self.cls][self.metric][self.difficulty]
         return None if value is None else float(value)
+
+    def find(self, doc: Mapping[str, Any]) -> float | None:
+        """The value in a result document, None where the document has none (no such class, table or key)."""
+        try:
+            return self.read(doc)
+        except (InputError, KeyError, TypeError, AttributeError):
+            return None
 
     def _read_error(self, doc: Mapping[str, Any]) -> float | None:
         table = doc.get("errors" if self.recall == "R40" else "errors_r11")
@@ -313,8 +327,8 @@ def _all_keys(doc: Mapping[str, Any]) -> Iterable[ValueKey]:
     for oset in doc.get("threshold_sets", THRESHOLD_SETS):
         for recall in RECALL_MODES:
             for cls in doc["classes"]:
-                for metric in _METRICS:
-                    for d in _DIFFS:
+                for metric in METRICS:
+                    for d in DIFFICULTIES:
                         yield ValueKey(cls, metric, d, recall, oset)
 
 
@@ -339,8 +353,8 @@ def run_gate(
             current["ap"][oset][recall][cls][m][d] is not None
             for oset in current["threshold_sets"]
             for recall in RECALL_MODES
-            for m in _METRICS
-            for d in _DIFFS
+            for m in METRICS
+            for d in DIFFICULTIES
         )
         msg = (
             ""

@@ -24,7 +24,7 @@ import numpy as np
 from ..core.evaluation import Plan, plan_evaluation
 from ..core.frames import Annotations, normalize_frame_id
 from ..core.matching import DET_LABELS, GT_LABELS, MatchJob, label_frame
-from ..core.protocol import OVERLAP_METRICS, Difficulty, EvalConfig, Metric
+from ..core.protocol import DEFAULT_METRIC, DEFAULT_OSET, OVERLAP_METRICS, Difficulty, EvalConfig, Metric
 from ..errors import ConfigError, InputError
 from .diagnostics import parse_slot, slot_job, with_class
 
@@ -234,9 +234,9 @@ def inspect_frame(
     config: EvalConfig | None = None,
     *,
     cls: str = "Car",
-    metric: str = "3d",
+    metric: str = DEFAULT_METRIC,
     difficulty: str = "moderate",
-    oset: str = "strict",
+    oset: str = DEFAULT_OSET,
     score_threshold: float | None = None,
 ) -> dict[str, Any]:
     """Every box of one frame, for each of ``models`` (name, detections), labelled by the matching.

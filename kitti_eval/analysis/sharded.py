@@ -42,7 +42,15 @@ from ..core.frames import (
     unsized_boxes,
 )
 from ..core.matching import PRCounts, score_thresholds
-from ..core.protocol import INVALID_ALPHA, OVERLAP_METRICS, EvalConfig, Metric, did_you_mean
+from ..core.protocol import (
+    DEFAULT_METRIC,
+    DEFAULT_OSET,
+    INVALID_ALPHA,
+    OVERLAP_METRICS,
+    EvalConfig,
+    Metric,
+    did_you_mean,
+)
 from ..core.result import EvalResult
 from ..errors import ConfigError, InputError
 
@@ -74,20 +82,23 @@ class _NotPaired(Exception):
 # ----------------------------------------------------------------------------------------------- loading
 
 
-def _load_part(part: Part, warnings: list[str] | None = None) -> tuple[Annotations, Annotations]:
-    """The part's ground truth and its predictions (the loaders' warnings go to ``warnings``)."""
-    from ..io.loaders import load_detections, load_ground_truth_and_calibs
+def _load_part(part: Part) -> tuple[Annotations, Annotations, list[str]]:
+    """The part's ground truth, its predictions and the warnings of reading them."""
+    from ..io.reading import LoadOptions, read_annotations, read_ground_truth_and_calibs
 
-    gt, calibs = load_ground_truth_and_calibs(part.gt, fmt=part.gt_format, warnings=warnings)
-    pieces = [load_detections(p, fmt=part.pred_format, calibs=calibs, warnings=warnings) for p in part.preds]
+    loaded_gt, calibs = read_ground_truth_and_calibs(part.gt, LoadOptions(fmt=part.gt_format))
+    loaded = [read_annotations(p, "detections", LoadOptions(fmt=part.pred_format, calibs=calibs)) for p in part.preds]
+    gt = loaded_gt.annotations
+    pieces = [piece.annotations for piece in loaded]
+    warnings = [*loaded_gt.warnings, *(w for piece in loaded for w in piece.warnings)]
     wanted = gt.frame_index()
     if part.paired:
         for piece in pieces:
             if any(fid not in wanted for fid in piece.frame_ids):
                 raise _NotPaired(piece.source)
         if len(pieces) == 1:
-            return gt, pieces[0]
-    return gt, _concat("detections", pieces, wanted)
+            return gt, pieces[0], warnings
+    return gt, _concat("detections", pieces, wanted), warnings
 
 
 def _concat(kind: str, pieces: Sequence[Annotations], wanted: Mapping[str, int] | None) -> Annotations:
@@ -107,9 +118,9 @@ def _concat(kind: str, pieces: Sequence[Annotations], wanted: Mapping[str, int] 
 
 
 def _frame_ids(path: str, kind: str, fmt: str | None) -> tuple[str, ...]:
-    from ..io.loaders import load_annotations
+    from ..io.reading import LoadOptions, read_annotations
 
-    return load_annotations(path, kind, fmt=fmt).frame_ids  # type: ignore[arg-type]
+    return read_annotations(path, kind, LoadOptions(fmt=fmt)).annotations.frame_ids  # type: ignore[arg-type]
 
 
 def parts_of(
@@ -201,8 +212,7 @@ class _Phase1:
         from ..core.evaluation import range_num_gt
 
         t0 = time.perf_counter()
-        warnings: list[str] = []
-        gt, dt = _load_part(part, warnings)
+        gt, dt, warnings = _load_part(part)
         plan = plan_evaluation(gt, dt, self.config, facts=Facts.every_job(self.config))
         passes = plan.first_passes()
         aligned = plan.dt
@@ -242,7 +252,7 @@ class _Phase2:
     events: bool = False
 
     def __call__(self, part: Part) -> tuple[list[np.ndarray], list[Any] | None]:
-        gt, dt = _load_part(part)
+        gt, dt, _ = _load_part(part)
         plan = plan_evaluation(gt, dt, self.config, facts=self.facts)
         counts = plan.second_passes(self.thresholds)
         return [np.stack([c.tp, c.fp, c.fn, c.similarity]) for c in counts], plan.events() if self.events else None
@@ -423,7 +433,7 @@ class _FramesPhase:
     def __call__(self, part: Part) -> tuple[Any, bool]:
         from .diagnostics import frame_stats
 
-        gt, dt = _load_part(part)
+        gt, dt, _ = _load_part(part)
         cls, metric, difficulty, oset = self.slot
         stats = frame_stats(
             gt,
@@ -446,9 +456,9 @@ def frame_stats_sharded(
     config: EvalConfig | None = None,
     *,
     cls: str = "Car",
-    metric: str = "3d",
+    metric: str = DEFAULT_METRIC,
     difficulty: str = "moderate",
-    oset: str = "strict",
+    oset: str = DEFAULT_OSET,
     score_threshold: float = 0.0,
     gt_format: str | None = None,
     pred_format: str | None = None,

@@ -10,7 +10,7 @@ import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from ..core.protocol import DEFAULT_CLASSES, KNOWN_CLASSES, PROTOCOLS, THRESHOLD_SETS
+from ..core.protocol import DEFAULT_CLASSES, DIFFICULTIES, KNOWN_CLASSES, PROTOCOLS, THRESHOLD_SETS
 from ..errors import ConfigError, InputError
 from ..report.render import OutputFormat
 
@@ -171,7 +171,7 @@ def add_slot_options(p: argparse.ArgumentParser, metrics: list[str]) -> None:
     """Which matching to look at: class, metric, difficulty and IoU threshold set."""
     p.add_argument("--class", dest="cls", default="Car", help="the class (default Car)")
     p.add_argument("--metric", default="3d", choices=metrics, help="default 3d")
-    p.add_argument("--difficulty", default="moderate", choices=["easy", "moderate", "hard"])
+    p.add_argument("--difficulty", default="moderate", choices=list(DIFFICULTIES))
     p.add_argument("--set", dest="oset", default="strict", choices=list(THRESHOLD_SETS), help="IoU threshold set")
 
 

@@ -43,7 +43,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from ..analysis.bootstrap import paired_bootstrap
-    from ..analysis.compare import compare_documents, render_comparison
+    from ..analysis.result_diff import compare_documents, render_comparison
 
     if args.bootstrap < 0:
         raise ConfigError("--bootstrap must be >= 0")

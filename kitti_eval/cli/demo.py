@@ -26,7 +26,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..io.synth import demo_paths
+    from ..demo import demo_paths
 
     gt_path, pred_path = demo_paths()
     if args.where:

@@ -35,12 +35,12 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from ..analysis.decomposition import decompose_plan, render_errors
     from ..core.evaluation import plan_evaluation
-    from ..io.loaders import load_pair
+    from ..io.reading import read_pair
 
     cfg = config(args)
     warmer = start_warm_up()
-    load_warnings: list[str] = []
-    gt, dt = load_pair(args.gt, args.pred, warnings=load_warnings)
+    pair = read_pair(args.gt, args.pred)
+    gt, dt, load_warnings = pair.gt, pair.dt, pair.warnings
     wait(warmer)
     plan = plan_evaluation(gt, dt, cfg)
     text = render_errors(decompose_plan(plan, oset=args.oset), args.format, recall=args.recall)

@@ -46,7 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "checkpoints in one process",
     )
     add_eval_options(p)
-    from ..io.loaders import FORMATS
+    from ..io.formats import FORMATS
 
     fmts = p.add_argument_group("input formats")
     fmts.add_argument(
@@ -117,20 +117,19 @@ def run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 def run_pair(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
     """Evaluate one prediction file against the ground truth and write the result (``demo`` too)."""
     from ..core.evaluation import evaluate
-    from ..io.loaders import load_pair
+    from ..io.reading import LoadOptions, read_pair
     from ..report.render import render
 
     cfg = config(args)
     warmer = start_warm_up()
-    load_warnings: list[str] = []
-    gt, dt = load_pair(
+    pair = read_pair(
         gt_path,
         pred_path,
         gt_format=getattr(args, "gt_format", None),
-        pred_format=getattr(args, "pred_format", None),
+        options=LoadOptions(fmt=getattr(args, "pred_format", None)),
         split=getattr(args, "split", None),
-        warnings=load_warnings,
     )
+    gt, dt, load_warnings = pair.gt, pair.dt, pair.warnings
     wait(warmer)
     plot_dir = getattr(args, "plot_dir", None)
     keep_curves = args.curves or bool(plot_dir)

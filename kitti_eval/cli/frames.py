@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from ..core.protocol import OVERLAP_METRIC_NAMES
 from ..errors import ConfigError
 from .common import EXIT_OK, add_config_options, add_slot_options, config, emit, several_gt
 
@@ -22,7 +23,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("--pred", required=True, nargs="+", action="extend", help="predictions (with --sharded: the shards)")
     p.add_argument("--sharded", action="store_true", help="--gt and --pred are shards of one set, read part by part")
-    add_slot_options(p, ["bbox", "bev", "3d"])
+    add_slot_options(p, list(OVERLAP_METRIC_NAMES))
     p.add_argument(
         "--score-threshold",
         type=float,

@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from ..core.protocol import METRICS
 from ..errors import ConfigError
 from .common import EXIT_OK, add_config_options, add_slot_options, config, emit
 
@@ -31,7 +32,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         "kitti_models/ in the path, else the file name)",
     )
     p.add_argument("--frame", required=True, help="frame id, e.g. 000015 (or 15)")
-    add_slot_options(p, ["bbox", "bev", "3d", "aos"])
+    add_slot_options(p, list(METRICS))
     p.add_argument(
         "--score-threshold",
         type=float,

@@ -52,7 +52,15 @@ import numpy as np
 
 from ..core.evaluation import evaluate
 from ..core.frames import Annotations
-from ..core.protocol import INVALID_ALPHA, OPENPCDET, EvalConfig, coco_thresholds
+from ..core.protocol import (
+    DIFFICULTIES,
+    INVALID_ALPHA,
+    METRICS,
+    OPENPCDET,
+    OVERLAP_METRIC_NAMES,
+    EvalConfig,
+    coco_thresholds,
+)
 from ..core.result import EvalResult
 from ..errors import ConfigError, InputError
 from ._common import warn_about
@@ -62,8 +70,7 @@ __all__ = ["kitti_eval", "kitti_eval_coco_style", "ap_dict", "result_text", "CLA
 #: mmdetection3d's class indices (its ``class_to_name``).
 CLASS_BY_INDEX = ("Car", "Pedestrian", "Cyclist", "Van", "Person_sitting")
 #: what ``eval_types`` may hold
-EVAL_TYPES = ("bbox", "bev", "3d", "aos")
-_DIFFS = ("easy", "moderate", "hard")
+EVAL_TYPES = METRICS
 #: (metric of EvalResult, its name in ap_dict keys, its row label in the text), in the text's row order
 _ROWS = (("bbox", "2D", "bbox"), ("bev", "BEV", "bev "), ("3d", "3D", "3d  "))
 #: the order mmdetection3d fills ap_dict in: 3D, BEV, 2D
@@ -175,7 +182,7 @@ def _with_aos(gt: Annotations, dt: Annotations, want_aos: bool) -> tuple[Annotat
     return gt.subset(order), dt.subset(order), True
 
 
-def ap_dict(result: EvalResult, eval_types: Sequence[str] = ("bbox", "bev", "3d")) -> dict[str, float]:
+def ap_dict(result: EvalResult, eval_types: Sequence[str] = OVERLAP_METRIC_NAMES) -> dict[str, float]:
     """mmdetection3d's ``ap_dict`` of a result: per recall mode (AP11, then AP40), per class, threshold set and
     difficulty the 3D, BEV and 2D values (those in ``eval_types``), then the ``Overall`` means over the classes
     at the strict thresholds when there are several classes."""
@@ -187,12 +194,12 @@ def ap_dict(result: EvalResult, eval_types: Sequence[str] = ("bbox", "bev", "3d"
                 if oset not in result.threshold_sets:
                     continue
                 by_metric = result.ap[oset][recall][cls]
-                for d in _DIFFS:
+                for d in DIFFICULTIES:
                     for metric in _KEY_ORDER:
                         if metric in types:
                             out[f"KITTI/{cls}_{_KEY[metric]}_{tag}_{d}_{suffix}"] = _value(by_metric[metric][d])
         if len(result.classes) > 1:
-            for d in _DIFFS:
+            for d in DIFFICULTIES:
                 for metric in _KEY_ORDER:
                     if metric in types:
                         values = [_value(result.ap["strict"][recall][c][metric][d]) for c in result.classes]
@@ -201,7 +208,7 @@ def ap_dict(result: EvalResult, eval_types: Sequence[str] = ("bbox", "bev", "3d"
 
 
 def result_text(
-    result: EvalResult, eval_types: Sequence[str] = ("bbox", "bev", "3d"), *, aos: bool | None = None
+    result: EvalResult, eval_types: Sequence[str] = OVERLAP_METRIC_NAMES, *, aos: bool | None = None
 ) -> str:
     """mmdetection3d's printed text of a result: an AP11 and an AP40 section, each with a block per class and
     threshold set (the rows of ``eval_types``, and AOS when ``aos``, by default when the result has AOS and
@@ -221,13 +228,15 @@ def result_text(
                 lines.append(f"{cls} {tag}@{ious['bbox']:.2f}, {ious['bev']:.2f}, {ious['3d']:.2f}:")
                 for m, label in metrics:
                     digits = 2 if m == "aos" else 4
-                    vals = ", ".join(f"{_value(result.ap[oset][recall][cls][m][d]):.{digits}f}" for d in _DIFFS)
+                    vals = ", ".join(f"{_value(result.ap[oset][recall][cls][m][d]):.{digits}f}" for d in DIFFICULTIES)
                     lines.append(f"{label} {tag}:{vals}")
         if len(result.classes) > 1:
-            lines += ["", f"Overall {tag}@{', '.join(_DIFFS)}:"]
+            lines += ["", f"Overall {tag}@{', '.join(DIFFICULTIES)}:"]
             for m, label in metrics:
                 digits = 2 if m == "aos" else 4
-                means = [_mean([_value(result.ap["strict"][recall][c][m][d]) for c in result.classes]) for d in _DIFFS]
+                means = [
+                    _mean([_value(result.ap["strict"][recall][c][m][d]) for c in result.classes]) for d in DIFFICULTIES
+                ]
                 lines.append(f"{label} {tag}:" + ", ".join(f"{v:.{digits}f}" for v in means))
     return "\n".join(lines) + "\n"
 
@@ -236,7 +245,7 @@ def kitti_eval(
     gt_annos: Sequence[Mapping[str, Any]],
     dt_annos: Sequence[Mapping[str, Any]],
     current_classes: Any,
-    eval_types: Sequence[str] = ("bbox", "bev", "3d"),
+    eval_types: Sequence[str] = OVERLAP_METRIC_NAMES,
 ) -> tuple[str, dict[str, float]]:
     """Evaluate like mmdetection3d 1.x's function of the same name; returns ``(result_str, ap_dict)``.
 
@@ -273,5 +282,7 @@ def kitti_eval_coco_style(
         lines.append(f"{cls} coco AP@{t[0]:.2f}:{step:.2f}:{t[-1]:.2f}:")
         metrics = [(m, label) for m, _, label in _ROWS] + ([("aos", "aos ")] if show_aos else [])
         for m, label in metrics:
-            lines.append(f"{label} AP:" + ", ".join(f"{_value(result.coco['R11'][cls][m][d]):.2f}" for d in _DIFFS))
+            lines.append(
+                f"{label} AP:" + ", ".join(f"{_value(result.coco['R11'][cls][m][d]):.2f}" for d in DIFFICULTIES)
+            )
     return "\n".join(lines) + "\n"

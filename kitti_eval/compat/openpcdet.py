@@ -16,7 +16,7 @@ import numpy as np
 
 from ..core.evaluation import evaluate
 from ..core.frames import Annotations
-from ..core.protocol import OPENPCDET, EvalConfig
+from ..core.protocol import DIFFICULTIES, METRICS, OPENPCDET, EvalConfig
 from ..core.result import EvalResult
 from ..errors import ConfigError, InputError
 from ..report.render import render_table
@@ -26,7 +26,6 @@ __all__ = ["get_official_eval_result", "ret_dict"]
 
 #: OpenPCDet's class indices.
 _CLASS_BY_INDEX = ("Car", "Pedestrian", "Cyclist", "Van", "Person_sitting", "Truck")
-_DIFFS = ("easy", "moderate", "hard")
 
 
 def _class_names(current_classes: Any) -> tuple[str, ...]:
@@ -51,10 +50,10 @@ def ret_dict(result: EvalResult) -> dict[str, float]:
     for cls in result.classes:
         by_metric = result.ap["strict"]["R40"][cls]
         if result.aos_evaluated:
-            for d in _DIFFS:
+            for d in DIFFICULTIES:
                 out[f"{cls}_aos/{d}_R40"] = _value(by_metric["aos"][d])
         for metric, key in (("3d", "3d"), ("bev", "bev"), ("bbox", "image")):
-            for d in _DIFFS:
+            for d in DIFFICULTIES:
                 out[f"{cls}_{key}/{d}_R40"] = _value(by_metric[metric][d])
     return out
 
@@ -87,11 +86,11 @@ def get_official_eval_result(
     result = evaluate(gt, dt, config, keep_curves=PR_detail_dict is not None)
     warn_about(result)
     if PR_detail_dict is not None and result.curves is not None:
-        for metric in ("bbox", "bev", "3d", "aos"):
+        for metric in METRICS:
             arr = np.zeros((len(config.classes), 3, len(config.threshold_sets), 41))
             for j, cls in enumerate(config.classes):
                 for k, oset in enumerate(config.threshold_sets):
-                    for i, d in enumerate(_DIFFS):
+                    for i, d in enumerate(DIFFICULTIES):
                         curve = result.curves[oset][cls][metric].get(d)
                         if curve is not None:
                             arr[j, i, k] = curve.orientation if metric == "aos" else curve.precision

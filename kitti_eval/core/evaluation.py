@@ -10,16 +10,18 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
 from ..errors import InputError
+from .ap import Curve, average_precision, curve_from_counts
 from .frames import Annotations, dimension_order_warnings, size_warnings
 from .geometry import FrameOverlaps, frame_overlaps
 from .matching import (
     FrameEvents,
+    MatchingInputs,
     MatchJob,
     PRCounts,
     first_passes,
@@ -27,7 +29,6 @@ from .matching import (
     pr_counts_many,
     second_passes,
 )
-from .metrics import Curve, average_precision, curve_from_counts
 from .protocol import (
     ALL_METRICS,
     DONTCARE,
@@ -218,10 +219,10 @@ class Plan:
     num_det: dict[str, int]
     timings: dict[str, float]
 
-    def _matching_inputs(self) -> tuple[Any, Any, Any, Any, Any, Any, Any, Any, Any, Any]:
-        """The arguments every matching of the plan shares (see :func:`kitti_eval.core.matching.pr_counts`)."""
+    def _matching_inputs(self) -> MatchingInputs:
+        """The arrays every matching of the plan shares (see :func:`kitti_eval.core.matching.pr_counts`)."""
         fo = self.overlaps
-        return (
+        return MatchingInputs(
             fo.pair_offsets,
             (fo.bbox, fo.bev, fo.d3),
             self.gt.offsets,

@@ -52,6 +52,9 @@ __all__ = [
     "default_workers",
     "DET_LABELS",
     "GT_LABELS",
+    "MatchingInputs",
+    "checked_inputs",
+    "checked_layout",
 ]
 
 _NO_DETECTION = -10000000.0
@@ -121,8 +124,11 @@ def _best_overlaps(
     dt_offsets: np.ndarray,
     groups: np.ndarray,
     best: np.ndarray,
+    arg: np.ndarray,
 ) -> None:
-    """Fill ``best`` (G, N), zeros on entry: each detection's largest overlap with each group's rows."""
+    """Fill ``best`` (G, N), zeros on entry: each detection's largest overlap with each group's rows; and, when
+    ``arg`` is (G, N) too (not (0, 0)), the row of that box (the first in file order on ties)."""
+    with_arg = arg.shape[0] > 0
     n_frames = gt_offsets.shape[0] - 1
     n_groups = groups.shape[0]
     for f in range(n_frames):
@@ -138,6 +144,8 @@ def _best_overlaps(
                     for g in range(n_groups):
                         if groups[g, g0 + i] and o > best[g, d0 + j]:
                             best[g, d0 + j] = o
+                            if with_arg:
+                                arg[g, d0 + j] = g0 + i
 
 
 class Frames(NamedTuple):
@@ -710,6 +718,71 @@ def pr_counts(
     return counts
 
 
+class MatchingInputs(NamedTuple):
+    """The arrays every matching over one set of frames shares: the arguments of :func:`pr_counts_many` before
+    ``jobs``, in the layout of :func:`pr_counts`. :func:`checked_inputs` makes them the kernels' arrays (the
+    kernels take them one by one, unpacked).
+
+    ``overlaps``: one to three (P,) arrays (bbox, BEV, 3D); ``ignored_gt`` (K, M) and ``ignored_det`` (K, N):
+    one row of ignore codes per (class, difficulty); ``dontcare`` (M,), None for no DontCare rows;
+    ``gt_alpha`` (M,) and ``dt_alpha`` (N,), None where no orientation is used (zeros).
+    """
+
+    # array-likes as given; numpy arrays once checked (Any: a NamedTuple cannot be generic on Python 3.10)
+    pair_offsets: Any
+    overlaps: Sequence[Any]
+    gt_offsets: Any
+    dt_offsets: Any
+    ignored_gt: Any
+    ignored_det: Any
+    dontcare: Any
+    score: Any
+    gt_alpha: Any = None
+    dt_alpha: Any = None
+
+
+def checked_layout(
+    pair_offsets: npt.ArrayLike, overlaps: Sequence[npt.ArrayLike], gt_offsets: npt.ArrayLike, dt_offsets: npt.ArrayLike
+) -> tuple[np.ndarray, list[np.ndarray], np.ndarray, np.ndarray]:
+    """The frames' CSR offsets and the overlap arrays as kernel arrays, checked against each other."""
+    po = kernel_input(pair_offsets, np.int64)
+    go = kernel_input(gt_offsets, np.int64)
+    do = kernel_input(dt_offsets, np.int64)
+    if not po.shape == go.shape == do.shape or po.ndim != 1:
+        raise ValueError("Expected `pair_offsets`, `gt_offsets` and `dt_offsets` with the same shape (F + 1,)")
+    n_pairs = int(po[-1])
+    ovs = [kernel_input(o, np.float64) for o in overlaps]
+    if not 1 <= len(ovs) <= 3 or any(o.shape != (n_pairs,) for o in ovs):
+        raise ValueError(f"Expected one to three `overlaps` arrays with shape ({n_pairs},)")
+    return po, ovs, go, do
+
+
+def checked_inputs(inputs: MatchingInputs) -> MatchingInputs:
+    """``inputs`` as the kernels take them (:func:`kitti_eval.core.arrays.kernel_input`), every shape checked
+    (ValueError naming the arrays); None ``dontcare``, ``gt_alpha``, ``dt_alpha`` become zeros."""
+    po, ovs, go, do = checked_layout(inputs.pair_offsets, inputs.overlaps, inputs.gt_offsets, inputs.dt_offsets)
+    n_gt, n_dt = int(go[-1]), int(do[-1])
+    ig = kernel_input(inputs.ignored_gt, np.int8)
+    idet = kernel_input(inputs.ignored_det, np.int8)
+    if ig.ndim != 2 or ig.shape[1] != n_gt or idet.shape != (ig.shape[0], n_dt):
+        raise ValueError(
+            f"Expected `ignored_gt` (K, {n_gt}) and `ignored_det` (K, {n_dt}), got {ig.shape} and {idet.shape}"
+        )
+
+    def array(value: npt.ArrayLike | None, n: int, dtype: type) -> np.ndarray:
+        return np.zeros(n, dtype=dtype) if value is None else kernel_input(value, dtype)
+
+    dc = array(inputs.dontcare, n_gt, np.bool_)
+    gt_alpha = array(inputs.gt_alpha, n_gt, np.float64)
+    score = kernel_input(inputs.score, np.float64)
+    dt_alpha = array(inputs.dt_alpha, n_dt, np.float64)
+    if dc.shape != (n_gt,) or gt_alpha.shape != (n_gt,):
+        raise ValueError(f"Expected ground-truth arrays with shape ({n_gt},)")
+    if score.shape != (n_dt,) or dt_alpha.shape != (n_dt,):
+        raise ValueError(f"Expected detection arrays with shape ({n_dt},)")
+    return MatchingInputs(po, ovs, go, do, ig, idet, dc, score, gt_alpha, dt_alpha)
+
+
 def default_workers() -> int:
     """Threads used for the matchings: ``$KITTI_EVAL_THREADS``, else the CPUs this process may use."""
     env = os.environ.get("KITTI_EVAL_THREADS", "").strip()
@@ -767,47 +840,18 @@ class _Prepared:
         return out
 
 
-def _prepare(
-    pair_offsets: npt.ArrayLike,
-    overlaps: Sequence[npt.ArrayLike],
-    gt_offsets: npt.ArrayLike,
-    dt_offsets: npt.ArrayLike,
-    ignored_gt: npt.ArrayLike,
-    ignored_det: npt.ArrayLike,
-    dontcare: npt.ArrayLike,
-    score: npt.ArrayLike,
-    gt_alpha: npt.ArrayLike,
-    dt_alpha: npt.ArrayLike,
-    jobs: Sequence[MatchJob],
-    workers: int | None,
-) -> _Prepared:
-    pair_offsets = kernel_input(pair_offsets, np.int64)
-    gt_offsets = kernel_input(gt_offsets, np.int64)
-    dt_offsets = kernel_input(dt_offsets, np.int64)
-    if not pair_offsets.shape == gt_offsets.shape == dt_offsets.shape or pair_offsets.ndim != 1:
-        raise ValueError("Expected `pair_offsets`, `gt_offsets` and `dt_offsets` with the same shape (F + 1,)")
-    n_gt, n_dt, n_pairs = int(gt_offsets[-1]), int(dt_offsets[-1]), int(pair_offsets[-1])
-    ovs = [kernel_input(o, np.float64) for o in overlaps]
-    if not 1 <= len(ovs) <= 3 or any(o.shape != (n_pairs,) for o in ovs):
-        raise ValueError(f"Expected one to three `overlaps` arrays with shape ({n_pairs},)")
-    ig = kernel_input(ignored_gt, np.int8)
-    idet = kernel_input(ignored_det, np.int8)
-    if ig.ndim != 2 or ig.shape[1] != n_gt or idet.shape != (ig.shape[0], n_dt):
-        raise ValueError(
-            f"Expected `ignored_gt` (K, {n_gt}) and `ignored_det` (K, {n_dt}), got {ig.shape} and {idet.shape}"
-        )
-    dc = kernel_input(dontcare, np.bool_)
-    gt_alpha = kernel_input(gt_alpha, np.float64)
-    score = kernel_input(score, np.float64)
-    dt_alpha = kernel_input(dt_alpha, np.float64)
-    if dc.shape != (n_gt,) or gt_alpha.shape != (n_gt,):
-        raise ValueError(f"Expected ground-truth arrays with shape ({n_gt},)")
-    if score.shape != (n_dt,) or dt_alpha.shape != (n_dt,):
-        raise ValueError(f"Expected detection arrays with shape ({n_dt},)")
+#: ``arg`` of :func:`_best_overlaps` when only the overlaps are wanted
+_NO_ARG = np.zeros((0, 0), dtype=np.int64)
+
+
+def _prepare(inputs: MatchingInputs, jobs: Sequence[MatchJob], workers: int | None) -> _Prepared:
+    checked = checked_inputs(inputs)
+    pair_offsets, ovs, gt_offsets, dt_offsets, ig, idet, dc, score, gt_alpha, dt_alpha = checked
+    n_gt, n_dt = int(gt_offsets[-1]), int(dt_offsets[-1])
     for job in jobs:
         if not (0 <= job.overlap < len(ovs) and 0 <= job.codes < ig.shape[0]):
             raise ValueError(f"{job} refers to overlaps or ignore codes that were not given")
-    ov3 = (ovs + [ovs[0]] * 3)[:3]
+    ov3 = ([*ovs] + [ovs[0]] * 3)[:3]
     # the ground truth taking part depends only on the ignore-code row (per class, not per difficulty)
     rows = sorted({j.codes for j in jobs})
     group_of_row: dict[int, int] = {}
@@ -830,7 +874,7 @@ def _prepare(
     prep = _Prepared(frames, ov3, ig, idet, dc, best, job_group, hands)
 
     def fill_best(m: int) -> None:
-        _best_overlaps(pair_offsets, ov3[m], gt_offsets, dt_offsets, groups, best[m])
+        _best_overlaps(pair_offsets, ov3[m], gt_offsets, dt_offsets, groups, best[m], _NO_ARG)
 
     prep.pool_map(fill_best, metrics_used)  # the kernels release the GIL: plain threads run them in parallel
     return prep
@@ -863,20 +907,10 @@ def pr_counts_many(
     jobs : what to match; see :class:`MatchJob`
     workers : threads to spread the jobs over (default :func:`default_workers`)
     """
-    p = _prepare(
-        pair_offsets,
-        overlaps,
-        gt_offsets,
-        dt_offsets,
-        ignored_gt,
-        ignored_det,
-        dontcare,
-        score,
-        gt_alpha,
-        dt_alpha,
-        jobs,
-        workers,
+    inputs = MatchingInputs(
+        pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score, gt_alpha, dt_alpha
     )
+    p = _prepare(inputs, jobs, workers)
 
     def count(k: int) -> PRCounts:
         c = p.candidates(jobs[k], k)
@@ -886,10 +920,6 @@ def pr_counts_many(
     return p.map_jobs(count)
 
 
-#: the arguments of :func:`pr_counts_many` before ``jobs``, as a tuple
-MatchingInputs = tuple[Any, Any, Any, Any, Any, Any, Any, Any, Any, Any]
-
-
 def first_passes(
     inputs: MatchingInputs, jobs: Sequence[MatchJob], *, workers: int | None = None
 ) -> list[tuple[np.ndarray, int]]:
@@ -897,7 +927,7 @@ def first_passes(
     scores of pass 1's true positives and the number of valid ground-truth boxes. Over parts of a set,
     these are what the whole set's score thresholds come from (:func:`score_thresholds` of the concatenated
     scores and the summed counts)."""
-    p = _prepare(*inputs, jobs, workers)
+    p = _prepare(inputs, jobs, workers)
     return p.map_jobs(lambda k: _first_pass(p.candidates(jobs[k], k), jobs[k]))
 
 
@@ -911,7 +941,7 @@ def second_passes(
 ) -> list[PRCounts]:
     """Phase 2 of :func:`pr_counts_many` alone: per job, the counts at the given score thresholds (those of
     the whole set); over parts of a set they add up to the whole set's counts."""
-    p = _prepare(*inputs, jobs, workers)
+    p = _prepare(inputs, jobs, workers)
 
     def count(k: int) -> PRCounts:
         c = p.candidates(jobs[k], k)
@@ -975,20 +1005,10 @@ def frame_events_many(
     workers: int | None = None,
 ) -> list[FrameEvents]:
     """Per-frame step functions for the same jobs as :func:`pr_counts_many` (arguments alike)."""
-    p = _prepare(
-        pair_offsets,
-        overlaps,
-        gt_offsets,
-        dt_offsets,
-        ignored_gt,
-        ignored_det,
-        dontcare,
-        score,
-        gt_alpha,
-        dt_alpha,
-        jobs,
-        workers,
+    inputs = MatchingInputs(
+        pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score, gt_alpha, dt_alpha
     )
+    p = _prepare(inputs, jobs, workers)
 
     def run(k: int) -> FrameEvents:
         job = jobs[k]

@@ -35,9 +35,16 @@ __all__ = [
     "OVERLAP_INDEX",
     "ALL_METRICS",
     "THRESHOLD_SETS",
+    "METRICS",
+    "OVERLAP_METRIC_NAMES",
+    "DIFFICULTIES",
+    "DEFAULT_METRIC",
+    "DEFAULT_RECALL",
+    "DEFAULT_OSET",
     "RECALL_MODES",
     "DEFAULT_CLASSES",
     "KNOWN_CLASSES",
+    "KITTI_CLASSES",
     "CLASS_OVERLAPS",
     "NEIGHBOURS",
     "DONTCARE",
@@ -116,6 +123,17 @@ NO_DIFFICULTY = DifficultyLimits(
 #: The two IoU threshold sets OpenPCDet prints: the official one and a looser one.
 THRESHOLD_SETS: tuple[str, ...] = ("strict", "loose")
 
+#: the metrics' names, in the order tables show them: bbox, bev, 3d, aos
+METRICS: tuple[str, ...] = tuple(m.value for m in ALL_METRICS)
+#: the names of the metrics with an overlap of their own: bbox, bev, 3d
+OVERLAP_METRIC_NAMES: tuple[str, ...] = tuple(m.value for m in OVERLAP_METRICS)
+#: the difficulties' names, easiest first
+DIFFICULTIES: tuple[str, ...] = tuple(d.label for d in Difficulty)
+#: the value a single number stands for unless told: the 3D metric, at the R40 recall, of the strict set
+DEFAULT_METRIC = Metric.THREE_D.value
+DEFAULT_RECALL = "R40"
+DEFAULT_OSET = THRESHOLD_SETS[0]
+
 #: IoU a match must *exceed* (strictly), per class and threshold set, as (bbox, bev, 3d).
 CLASS_OVERLAPS: Mapping[str, Mapping[str, tuple[float, float, float]]] = MappingProxyType(
     {
@@ -128,6 +146,8 @@ CLASS_OVERLAPS: Mapping[str, Mapping[str, tuple[float, float, float]]] = Mapping
     }
 )
 DEFAULT_CLASSES: tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")
+#: the object classes of KITTI's labels (DontCare marks regions, it is no object class)
+KITTI_CLASSES: tuple[str, ...] = ("Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram", "Misc")
 KNOWN_CLASSES: tuple[str, ...] = tuple(CLASS_OVERLAPS)
 
 #: Ground truth of a neighbour class is ignored for the evaluated class: never a miss, and a detection

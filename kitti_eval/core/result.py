@@ -8,8 +8,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from .metrics import Curve
-from .protocol import ALL_METRICS, Difficulty, Metric
+from .ap import Curve
+from .protocol import ALL_METRICS, DEFAULT_OSET, DEFAULT_RECALL, Difficulty, Metric
 
 __all__ = ["EvalResult", "SCHEMA_VERSION"]
 
@@ -52,7 +52,12 @@ class EvalResult:
     coco: Mapping[str, Any] | None = None
 
     def get(
-        self, cls: str, metric: str | Metric, difficulty: str | Difficulty, recall: str = "R40", oset: str = "strict"
+        self,
+        cls: str,
+        metric: str | Metric,
+        difficulty: str | Difficulty,
+        recall: str = DEFAULT_RECALL,
+        oset: str = DEFAULT_OSET,
     ) -> float | None:
         """One value, e.g. ``result.get("Car", "3d", "moderate")`` (R40, strict thresholds)."""
         m = Metric(metric).value

@@ -1,2 +1,2 @@
 """Reading inputs: OpenPCDet and mmdetection3d pickles (through the restricted unpickler), KITTI txt folders
-and archives of them, calibration; and the synthetic KITTI generator behind the demo data."""
+and archives of them (one module per format in :mod:`kitti_eval.io.formats`), calibration."""

@@ -1,4 +1,4 @@
-"""LiDAR boxes (OpenPCDet convention) to KITTI camera boxes, with one frame's calibration (numpy).
+"""LiDAR boxes (OpenPCDet convention) to KITTI camera boxes and back, with one frame's calibration (numpy).
 
 OpenPCDet ``boxes_lidar`` rows are ``x, y, z, dx, dy, dz, heading``: the geometric centre in the Velodyne
 frame, ``dx`` = l, ``dy`` = w, ``dz`` = h, heading about z. The camera box is the bottom centre
@@ -23,6 +23,8 @@ __all__ = [
     "camera_lidar_disagreement",
     "disagreeing_boxes",
     "wrap_angle",
+    "rect_to_velo",
+    "camera_to_lidar",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -99,6 +101,51 @@ def lidar_to_camera(boxes_lidar: npt.ArrayLike, calib: Calib) -> dict[str, F64]:
         bbox[:, [0, 2]] = np.clip(bbox[:, [0, 2]], 0, w - 1)
         bbox[:, [1, 3]] = np.clip(bbox[:, [1, 3]], 0, h - 1)
     return {"location": loc, "dimensions": dims, "rotation_y": ry, "alpha": alpha, "bbox": bbox}
+
+
+def rect_to_velo(r0_rect: npt.ArrayLike, velo_to_cam: npt.ArrayLike) -> F64:
+    """(4, 4) camera (rectified) -> LiDAR: the inverse of ``R0_rect @ Tr_velo_to_cam`` ((3, 3) and (3, 4)), in
+    closed form.
+
+    The rigid inverse ``[A^-1, -A^-1 t]`` (A^-1 by its adjugate, as A is only nearly orthonormal) is worked
+    out on Python floats, one IEEE operation at a time in a fixed order, so every machine gets the same bits.
+    ``np.linalg.inv`` and ``@`` go through LAPACK and BLAS kernels that differ by CPU (FMA, blocking) and
+    change the last bit of some LiDAR boxes from one machine to another.
+    """
+    r0 = np.asarray(r0_rect, dtype=np.float64)[:3, :3].tolist()
+    v = np.asarray(velo_to_cam, dtype=np.float64)[:3, :4].tolist()
+    a = [[r0[i][0] * v[0][j] + r0[i][1] * v[1][j] + r0[i][2] * v[2][j] for j in range(3)] for i in range(3)]
+    t = [r0[i][0] * v[0][3] + r0[i][1] * v[1][3] + r0[i][2] * v[2][3] for i in range(3)]
+    cof = [
+        [
+            a[(j + 1) % 3][(i + 1) % 3] * a[(j + 2) % 3][(i + 2) % 3]
+            - a[(j + 1) % 3][(i + 2) % 3] * a[(j + 2) % 3][(i + 1) % 3]
+            for j in range(3)
+        ]
+        for i in range(3)
+    ]
+    det = a[0][0] * cof[0][0] + a[0][1] * cof[1][0] + a[0][2] * cof[2][0]
+    inv = [[cof[i][j] / det for j in range(3)] for i in range(3)]
+    out = np.eye(4)
+    for i in range(3):
+        out[i, :3] = inv[i]
+        out[i, 3] = -(inv[i][0] * t[0] + inv[i][1] * t[1] + inv[i][2] * t[2])
+    return out
+
+
+def camera_to_lidar(location: F64, dimensions: F64, rotation_y: F64, rect_to_velo: F64) -> F64:
+    """(N, 7) OpenPCDet LiDAR boxes (x, y, z of the geometric centre, l, w, h, heading = -(ry + pi/2)) of
+    float64 camera boxes, with the (4, 4) camera -> LiDAR matrix of :func:`rect_to_velo`: the inverse of
+    :func:`lidar_to_camera`."""
+    m = rect_to_velo
+    loc, dims = location, dimensions
+    out = np.empty((len(loc), 7))
+    for r in range(3):  # elementwise, not `loc @ m.T`: a BLAS call with 3 columns is slower, and threaded
+        out[:, r] = m[r, 0] * loc[:, 0] + m[r, 1] * loc[:, 1] + m[r, 2] * loc[:, 2] + m[r, 3]
+    out[:, 2] += dims[:, 1] / 2
+    out[:, 3:6] = dims[:, [0, 2, 1]]
+    out[:, 6] = -(rotation_y + np.pi / 2)
+    return out
 
 
 def disagreeing_boxes(

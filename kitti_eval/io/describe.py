@@ -112,13 +112,10 @@ def _lidar_check(frames: Sequence[Mapping[str, Any]], calibs: Mapping[str, Any],
 
 def describe(path: str | Path, kind: str | None = None, gt: str | Path | None = None) -> str:
     """The report for one file (raises InputError when it cannot be read)."""
-    from .loaders import (
-        annotations_from_object,
-        calibs_from_object,
-        detect_format,
-        is_archive,
-        load_annotations,
-    )
+    from .camera import calibs_from_object
+    from .formats import detect_format
+    from .formats.kitti_txt import is_archive
+    from .reading import LoadOptions, read_annotations, read_object
     from .safe_pickle import load_pickle
 
     p = Path(path)
@@ -133,7 +130,7 @@ def describe(path: str | Path, kind: str | None = None, gt: str | Path | None = 
         annos: Annotations | None = None
         for k in kinds:
             try:
-                annos = load_annotations(p, k)
+                annos = read_annotations(p, k).annotations
                 break
             except InputError:
                 if k == kinds[-1]:
@@ -153,12 +150,11 @@ def describe(path: str | Path, kind: str | None = None, gt: str | Path | None = 
         calibs = calibs_from_object(obj) if guess == "ground_truth" else {}
         if gt is not None:
             calibs = calibs_from_object(load_pickle(Path(gt), source=str(gt)))
-        warnings: list[str] = []
         if guess == "detections" and not calibs and any("boxes_lidar" in f and "location" not in f for f in frames):
             # LiDAR-only boxes cannot become camera boxes without calibration: count what is there
-            annos = annotations_from_object(obj, guess, source=str(path), calibs=_PseudoCalibs(), warnings=warnings)
+            annos = read_object(obj, guess, str(path), LoadOptions(calibs=_PseudoCalibs())).annotations
         else:
-            annos = annotations_from_object(obj, guess, source=str(path), calibs=calibs, warnings=warnings)
+            annos = read_object(obj, guess, str(path), LoadOptions(calibs=calibs)).annotations
         if guess == "detections":
             _lidar_check(frames, calibs, lines)
         if frames:

@@ -21,9 +21,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..core.frames import Annotations, normalize_frame_id
+from ..core.protocol import KITTI_CLASSES
 from ..errors import InputError
 from .archives import ArchiveLimits
-from .loaders import _read_text, _txt_files, extract_txt_archive, input_kind, load_detections, parse_kitti_txt
+from .formats.kitti_txt import extract_txt_archive, input_kind, parse_kitti_txt, read_text, txt_files
+from .loaders import load_detections
 
 __all__ = [
     "KITTI_RESULT_CLASSES",
@@ -34,8 +36,8 @@ __all__ = [
     "validate_txt_folder",
 ]
 
-#: the object classes of KITTI's labels (DontCare marks regions, it is no result class); case-insensitive
-KITTI_RESULT_CLASSES = ("Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram", "Misc")
+#: the classes a result may name (compared case-insensitively): KITTI's object classes
+KITTI_RESULT_CLASSES = KITTI_CLASSES
 #: frames named in one sentence before "and N more"
 _SHOWN_FRAMES = 20
 
@@ -173,7 +175,7 @@ def validate_txt_folder(folder: Path, rules: SubmissionRules, *, shown_as: str |
     ``shown_as`` names the archive)."""
     c = _Collector(rules)
     files: dict[str, Path] = {}
-    for path in sorted(_txt_files(folder), key=lambda q: q.name):
+    for path in sorted(txt_files(folder), key=lambda q: q.name):
         try:
             fid = normalize_frame_id(path.stem)
         except (TypeError, ValueError):
@@ -191,7 +193,7 @@ def validate_txt_folder(folder: Path, rules: SubmissionRules, *, shown_as: str |
         if fid not in wanted:
             continue  # named above; what it holds does not matter
         try:
-            names, values = parse_kitti_txt(_read_text(path), "detections", frame=fid, source=path.name)
+            names, values = parse_kitti_txt(read_text(path), "detections", frame=fid, source=path.name)
         except InputError as e:
             c.out.frames += 1
             c.problem(f"{path.name}: {e.message}")

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ..core.protocol import N_SAMPLE_PTS, Difficulty
+from ..core.protocol import DEFAULT_METRIC, DEFAULT_OSET, METRICS, N_SAMPLE_PTS, Difficulty
 from ..core.result import EvalResult
 from ..errors import ConfigError
 
@@ -51,14 +51,14 @@ def _save(plt: Any, fig: Any, ax: Any, path: Path, title: str, ylabel: str) -> P
     return path
 
 
-def plot_pr_curves(result: EvalResult, out_dir: str | Path, *, oset: str = "strict") -> list[Path]:
+def plot_pr_curves(result: EvalResult, out_dir: str | Path, *, oset: str = DEFAULT_OSET) -> list[Path]:
     """One PNG per class and metric, easy / moderate / hard together; returns the files written."""
     plt = _pyplot()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for cls in result.classes:
-        for metric in ("bbox", "bev", "3d", "aos"):
+        for metric in METRICS:
             curves = {d.label: _curve(result, oset, cls, metric, d.label) for d in Difficulty}
             if all(c is None for c in curves.values()):
                 continue
@@ -85,9 +85,9 @@ def plot_overlays(
     named: Sequence[tuple[str, EvalResult]],
     out_dir: str | Path,
     *,
-    metric: str = "3d",
+    metric: str = DEFAULT_METRIC,
     difficulty: str = "moderate",
-    oset: str = "strict",
+    oset: str = DEFAULT_OSET,
 ) -> list[Path]:
     """One PNG per class overlaying the curves of several results (e.g. checkpoints or models)."""
     plt = _pyplot()

@@ -8,7 +8,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from ..core.protocol import Difficulty
+from ..core.protocol import DIFFICULTIES, METRICS
 from ..core.result import EvalResult
 
 __all__ = ["OutputFormat", "render", "render_table", "render_json", "render_markdown"]
@@ -23,7 +23,6 @@ class OutputFormat(str, enum.Enum):
         return self.value
 
 
-_DIFFS = [d.label for d in Difficulty]
 _ROW_LABELS = (("bbox", "bbox AP:"), ("bev", "bev  AP:"), ("3d", "3d   AP:"))
 
 
@@ -64,9 +63,9 @@ def _coco_blocks(result: EvalResult) -> list[str]:
 
 def _rows(by_metric: Any, with_aos: bool) -> list[str]:
     """The bbox / bev / 3d rows (4 decimals) and the aos row (2 decimals) of one block: easy, moderate, hard."""
-    lines = [label + ", ".join(_num(by_metric[metric][d], 4) for d in _DIFFS) for metric, label in _ROW_LABELS]
+    lines = [label + ", ".join(_num(by_metric[metric][d], 4) for d in DIFFICULTIES) for metric, label in _ROW_LABELS]
     if with_aos:
-        lines.append("aos  AP:" + ", ".join(_num(by_metric["aos"][d], 2) for d in _DIFFS))
+        lines.append("aos  AP:" + ", ".join(_num(by_metric["aos"][d], 2) for d in DIFFICULTIES))
     return lines
 
 
@@ -109,9 +108,9 @@ def render_markdown(result: EvalResult) -> str:
             out.append("| Class | Metric | IoU | Easy | Moderate | Hard |")
             out.append("|---|---|---:|---:|---:|---:|")
             for cls in result.classes:
-                for metric in ("bbox", "bev", "3d", "aos"):
+                for metric in METRICS:
                     iou = result.overlaps[cls][oset]["bbox" if metric == "aos" else metric]
-                    vals = " | ".join(_num(result.ap[oset][recall][cls][metric][d], 2) for d in _DIFFS)
+                    vals = " | ".join(_num(result.ap[oset][recall][cls][metric][d], 2) for d in DIFFICULTIES)
                     out.append(f"| {cls} | {metric} | {iou:.2f} | {vals} |")
             out.append("")
     for rng in result.ranges:
@@ -120,9 +119,9 @@ def render_markdown(result: EvalResult) -> str:
         out.append("| Class | Metric | Easy | Moderate | Hard |")
         out.append("|---|---|---:|---:|---:|")
         for cls in result.classes:
-            for metric in ("bbox", "bev", "3d", "aos"):
+            for metric in METRICS:
                 vals = (
-                    " | ".join(_num(rng["ap"]["strict"]["R40"][cls][metric][d], 2) for d in _DIFFS)
+                    " | ".join(_num(rng["ap"]["strict"]["R40"][cls][metric][d], 2) for d in DIFFICULTIES)
                     if "strict" in rng["ap"]
                     else ""
                 )
@@ -134,8 +133,8 @@ def render_markdown(result: EvalResult) -> str:
         out.append("| Class | Metric | Easy | Moderate | Hard |")
         out.append("|---|---|---:|---:|---:|")
         for cls in result.classes:
-            for metric in ("bbox", "bev", "3d", "aos"):
-                vals = " | ".join(_num(result.coco["R40"][cls][metric][d], 2) for d in _DIFFS)
+            for metric in METRICS:
+                vals = " | ".join(_num(result.coco["R40"][cls][metric][d], 2) for d in DIFFICULTIES)
                 out.append(f"| {cls} | {metric} | {vals} |")
         out.append("")
     gt_line = ", ".join(f"{cls} {result.num_gt[cls]['moderate']}" for cls in result.classes)

@@ -10,6 +10,9 @@ from dataclasses import dataclass, fields
 from datetime import datetime, timezone
 from typing import Any
 
+from kitti_eval.analysis.gate import ValueKey
+from kitti_eval.core.protocol import DEFAULT_OSET, DEFAULT_RECALL, DIFFICULTIES, METRICS, RECALL_MODES
+
 from ..errors import BadRequest, echo
 from ..evaluator import EvalOptions
 from ..store import BenchmarkRecord
@@ -27,9 +30,8 @@ __all__ = [
 ]
 
 DEFAULT_KEY = "Car/3d/moderate/R40/strict"
-_METRICS = ("bbox", "bev", "3d", "aos")
-DIFFICULTIES = ("easy", "moderate", "hard")
-_RECALLS = ("R40", "R11")
+#: the recall modes as a column's help names them, the default first
+_RECALLS = tuple(reversed(RECALL_MODES))
 
 
 def parse_quota(text: str) -> tuple[int, float]:
@@ -49,17 +51,17 @@ def parse_column(text: str, classes: Sequence[str], sets: Sequence[str]) -> str:
     parts = text.strip().split("/")
     if not 3 <= len(parts) <= 5:
         raise BadRequest(f"a column is CLASS/METRIC/DIFFICULTY[/R40|R11[/SET]], e.g. {DEFAULT_KEY}; got {echo(text)}")
-    parts += ["R40", sets[0] if "strict" not in sets else "strict"][len(parts) - 3 :]
+    parts += [DEFAULT_RECALL, sets[0] if DEFAULT_OSET not in sets else DEFAULT_OSET][len(parts) - 3 :]
     cls, metric, difficulty, recall, oset = parts
     known = {c.lower(): c for c in classes}
     if cls.lower() not in known:
         raise BadRequest(f"column {echo(text)}: the class is one of {', '.join(classes)}")
-    if metric not in _METRICS or difficulty not in DIFFICULTIES or recall not in _RECALLS or oset not in sets:
+    if metric not in METRICS or difficulty not in DIFFICULTIES or recall not in _RECALLS or oset not in sets:
         raise BadRequest(
-            f"column {echo(text)}: metric {'/'.join(_METRICS)}, difficulty {'/'.join(DIFFICULTIES)}, "
+            f"column {echo(text)}: metric {'/'.join(METRICS)}, difficulty {'/'.join(DIFFICULTIES)}, "
             f"recall {'/'.join(_RECALLS)}, set {'/'.join(sets)}"
         )
-    return "/".join((known[cls.lower()], metric, difficulty, recall, oset))
+    return str(ValueKey(known[cls.lower()], metric, difficulty, recall, oset))
 
 
 def in_public_part(seed: str, frame_id: str, percent: float) -> bool:
@@ -91,9 +93,8 @@ def scores_of(doc: Mapping[str, Any], columns: Sequence[str]) -> dict[str, float
     """The AP of each column in an evaluation document, rounded to 4 places."""
     out: dict[str, float | None] = {}
     for column in columns:
-        cls, metric, difficulty, recall, oset = column.split("/")
-        value: Any = doc.get("ap", {}).get(oset, {}).get(recall, {}).get(cls, {}).get(metric, {}).get(difficulty)
-        out[column] = None if value is None else round(float(value), 4)
+        value = ValueKey(*column.split("/")).find(doc)
+        out[column] = None if value is None else round(value, 4)
     return out
 
 

@@ -244,7 +244,7 @@ class KittiMetric:
             unknown = sorted(set(options) - _CONFIG_FIELDS)
             if unknown:
                 hint = (
-                    " (ann_file is an argument of the mmengine metric, kitti_eval.compat.mmdet3d_metric, which an "
+                    " (ann_file is an argument of the mmengine metric, kitti_eval.compat.mmdet3d_evaluator, which an "
                     "mmdetection3d config builds when mmengine and torch are installed)"
                     if "ann_file" in unknown
                     else ""
@@ -299,7 +299,7 @@ class KittiMetric:
         """
         calibs = None
         if not isinstance(gt_frames, Annotations):
-            from .io.loaders import calibs_from_object
+            from .io.camera import calibs_from_object
 
             calibs = calibs_from_object(gt_frames)
         gt = self._read(gt_frames, "ground_truth", None)
@@ -332,11 +332,11 @@ class KittiMetric:
         elif isinstance(obj, (list, tuple, dict)) and not obj:
             annos = Annotations.from_frames(kind, source, [])
         else:
-            from .io.loaders import annotations_from_object
+            from .io.reading import LoadOptions, read_object
 
-            found: list[str] = []
-            annos = annotations_from_object(_with_sample_ids(obj), kind, source=source, calibs=calibs, warnings=found)
-            self._warn(found)
+            loaded = read_object(_with_sample_ids(obj), kind, source, LoadOptions(calibs=calibs))
+            annos = loaded.annotations
+            self._warn(loaded.warnings)
         if annos.missing_fields and not self._config.lidar_only:
             field = "bbox" if "bbox" in annos.missing_fields else next(iter(annos.missing_fields))
             raise InputError(

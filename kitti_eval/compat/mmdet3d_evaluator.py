@@ -167,7 +167,7 @@ def adapter_class(base: type, print_log: Callable[..., Any]) -> type:
     from .mmdet3d import ap_dict, result_text
 
     class KittiMetric(base):
-        """mmdetection3d's ``KittiMetric`` on kitti-eval (see :mod:`kitti_eval.compat.mmdet3d_metric`)."""
+        """mmdetection3d's ``KittiMetric`` on kitti-eval (see :mod:`kitti_eval.compat.mmdet3d_evaluator`)."""
 
         default_prefix = "Kitti metric"
 
@@ -256,9 +256,9 @@ def adapter_class(base: type, print_log: Callable[..., Any]) -> type:
 
         def compute_metrics(self, results: list[Any]) -> dict[str, float]:
             """Evaluate every sample's predictions against ``ann_file``; mmdetection3d's keys and text."""
+            from ..incremental import KittiMetric as Incremental
             from ..io.loaders import annotations_from_object
             from ..io.safe_pickle import load_pickle
-            from ..metric import KittiMetric as Incremental
 
             gt = annotations_from_object(
                 load_pickle(self.ann_file, source=self.ann_file),

@@ -17,7 +17,7 @@ the same seed gives the same ground truth whatever the detection settings.
 
 Command line::
 
-    python -m kitti_eval.io.synth --frames 3769 --seed 0 --dets-per-frame 40 --out DIR [--txt] [--gzip]
+    python -m kitti_eval.synth --frames 3769 --seed 0 --dets-per-frame 40 --out DIR [--txt] [--gzip]
 """
 
 from __future__ import annotations
@@ -34,15 +34,17 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from .core.protocol import KITTI_CLASSES
+from .demo import DEMO_ARGS, demo_paths
+from .io.calib import camera_to_lidar, rect_to_velo, wrap_angle
+
 __all__ = [
     "generate",
     "write_infos",
     "write_results",
     "write_label_dir",
     "write_result_dir",
-    "demo_paths",
     "box_corners_image",
-    "DEMO_ARGS",
     "IMAGE_SHAPE",
     "main",
 ]
@@ -52,9 +54,6 @@ F64 = npt.NDArray[np.float64]
 #: (H, W) of every synthetic frame, as in ``info['image']['image_shape']``.
 IMAGE_SHAPE = (375, 1242)
 
-#: How the bundled demo under ``kitti_eval/data/demo`` was made: ``generate(**DEMO_ARGS)``.
-DEMO_ARGS: dict[str, Any] = {"frames": 200, "seed": 7, "dets_per_frame": 12.0}
-_DEMO_FILES = ("kitti_infos_val.pkl.gz", "result.pkl.gz")
 
 # KITTI training calibration of frame 000000 (also the golden cases' calib.txt), parsed to float32 as
 # OpenPCDet's Calibration does.
@@ -108,40 +107,11 @@ _V2C = np.array(
 ).reshape(3, 4)
 
 
-def _rect_to_lidar() -> F64:
-    """(4, 4) camera (rectified) -> LiDAR: the inverse of ``R0_rect @ Tr_velo_to_cam``, in closed form.
-
-    The rigid inverse ``[A^-1, -A^-1 t]`` (A^-1 by its adjugate, as A is only nearly orthonormal) is worked
-    out on Python floats, one IEEE operation at a time in a fixed order, so every machine gets the same bits.
-    ``np.linalg.inv`` and ``@`` go through LAPACK and BLAS kernels that differ by CPU (FMA, blocking) and
-    change the last bit of some LiDAR boxes from one machine to another.
-    """
-    r0 = _R0.astype(np.float64).tolist()
-    v = _V2C.astype(np.float64).tolist()
-    a = [[r0[i][0] * v[0][j] + r0[i][1] * v[1][j] + r0[i][2] * v[2][j] for j in range(3)] for i in range(3)]
-    t = [r0[i][0] * v[0][3] + r0[i][1] * v[1][3] + r0[i][2] * v[2][3] for i in range(3)]
-    cof = [
-        [
-            a[(j + 1) % 3][(i + 1) % 3] * a[(j + 2) % 3][(i + 2) % 3]
-            - a[(j + 1) % 3][(i + 2) % 3] * a[(j + 2) % 3][(i + 1) % 3]
-            for j in range(3)
-        ]
-        for i in range(3)
-    ]
-    det = a[0][0] * cof[0][0] + a[0][1] * cof[1][0] + a[0][2] * cof[2][0]
-    inv = [[cof[i][j] / det for j in range(3)] for i in range(3)]
-    out = np.eye(4)
-    for i in range(3):
-        out[i, :3] = inv[i]
-        out[i, 3] = -(inv[i][0] * t[0] + inv[i][1] * t[1] + inv[i][2] * t[2])
-    return out
-
-
-_RECT_TO_LIDAR = _rect_to_lidar()
+_RECT_TO_LIDAR = rect_to_velo(_R0, _V2C)
 
 # Ground-truth classes: name, share of objects (KITTI train label counts), mean (l, h, w) and its spread (m),
 # probability that the detector finds a near, unoccluded one, and the detector class (index into _PRED_NAMES).
-_GT_NAMES = ("Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram", "Misc")
+_GT_NAMES = KITTI_CLASSES  # the arrays below follow its order
 _GT_SHARE = np.array([28742, 2914, 1094, 4487, 222, 1627, 511, 973], dtype=np.float64)
 _GT_LHW = np.array(
     [
@@ -234,22 +204,6 @@ def box_corners_image(
     return bbox, raw, min_depth
 
 
-def _camera_to_lidar(loc: F64, dims: F64, ry: F64) -> F64:
-    """(N, 7) OpenPCDet LiDAR boxes x, y, z (geometric centre), l, w, h, heading = -(ry + pi/2)."""
-    m = _RECT_TO_LIDAR
-    out = np.empty((len(loc), 7))
-    for r in range(3):  # elementwise, not `loc @ m.T`: a BLAS call with 3 columns is slower, and threaded
-        out[:, r] = m[r, 0] * loc[:, 0] + m[r, 1] * loc[:, 1] + m[r, 2] * loc[:, 2] + m[r, 3]
-    out[:, 2] += dims[:, 1] / 2
-    out[:, 3:6] = dims[:, [0, 2, 1]]
-    out[:, 6] = -(ry + np.pi / 2)
-    return out
-
-
-def _wrap(a: F64) -> F64:
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
 def _round(a: F64, decimals: int | None) -> F64:
     return a if decimals is None else np.round(a, decimals) + 0.0  # + 0.0 turns -0.0 into 0.0
 
@@ -322,7 +276,7 @@ def _sample_objects(
         np.where(rng.random(n) < 0.5, -np.pi / 2, np.pi / 2) + rng.normal(0, 0.15, n),
         rng.uniform(-np.pi, np.pi, n),
     )
-    return np.stack([x, y, z], axis=1), dims, _wrap(ry)
+    return np.stack([x, y, z], axis=1), dims, wrap_angle(ry)
 
 
 def _ground_truth(
@@ -359,7 +313,7 @@ def _ground_truth(
     occ = np.digitize(0.75 * (z - 4.0) / 66.0 + rng.random(n), [0.7, 1.05, 1.42]).astype(np.float64)
     trunc = np.round(trunc, 2) + 0.0
     bbox = np.round(bbox, 2) + 0.0
-    alpha = np.round(_wrap(ry - np.arctan2(loc[:, 0], z)), 2) + 0.0
+    alpha = np.round(wrap_angle(ry - np.arctan2(loc[:, 0], z)), 2) + 0.0
     face = dims[:, 1] * np.maximum(dims[:, 0], dims[:, 2])
     points = 6.0e4 * face / z**2 * (1.0 - 0.25 * occ) * (1.0 - trunc) * rng.lognormal(0.0, 0.35, n)
     # DontCare regions: small boxes around the horizon
@@ -477,7 +431,7 @@ def _detections(
     cls = np.concatenate([t_cls, f_cls])
     loc = _round(np.concatenate([t_loc, f_loc]), decimals)
     dims = _round(np.concatenate([t_dims, f_dims]), decimals)
-    ry = _round(_wrap(np.concatenate([t_ry, f_ry])), decimals)
+    ry = _round(wrap_angle(np.concatenate([t_ry, f_ry])), decimals)
     score = _round(np.clip(1.0 / (1.0 + np.exp(-np.concatenate([logit, f_logit]))), 1e-3, 0.999), decimals)
     bbox, raw, depth = box_corners_image(loc, dims, ry)
     ok, _ = _visible(bbox, raw, depth)
@@ -496,7 +450,7 @@ def _detections(
         "location": loc,
         "rotation_y": ry,
         "score": score[order],
-        "boxes_lidar": _camera_to_lidar(loc, dims, ry),
+        "boxes_lidar": camera_to_lidar(loc, dims, ry, _RECT_TO_LIDAR),
         "counts": np.bincount(frame[order], minlength=frames),
     }
 
@@ -588,7 +542,9 @@ def _build_infos(gt: dict[str, np.ndarray], frames: int) -> list[dict[str, Any]]
         "num_points_in_gt": gt["num_points_in_gt"],
     }
     # gt_boxes_lidar has no DontCare rows: (num_obj, 7), from the float32 locations as OpenPCDet's
-    lidar = _camera_to_lidar(cols["location"][real].astype(np.float64), gt["dimensions"][real], gt["rotation_y"][real])
+    lidar = camera_to_lidar(
+        cols["location"][real].astype(np.float64), gt["dimensions"][real], gt["rotation_y"][real], _RECT_TO_LIDAR
+    )
     n_real = np.bincount(gt["frame"][real], minlength=frames)
     real_ends = np.cumsum(n_real)
     # np.array(list_of_names) in OpenPCDet: the width of a frame's longest name
@@ -789,21 +745,12 @@ def write_result_dir(directory: str | Path, results: Sequence[dict[str, Any]]) -
         (out / f"{r['frame_id']}.txt").write_text(text)
 
 
-def demo_paths() -> tuple[Path, Path]:
-    """(ground truth, predictions) of the bundled demo: gzipped ``kitti_infos_val.pkl`` and ``result.pkl``.
-
-    Made by ``generate(**DEMO_ARGS)`` (200 frames, seed 7, 12 detections a frame).
-    """
-    root = Path(__file__).resolve().parent.parent / "data" / "demo"
-    return root / _DEMO_FILES[0], root / _DEMO_FILES[1]
-
-
 # ---------------------------------------------------------------------------------------- command line
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m kitti_eval.io.synth", description="Write a synthetic KITTI validation set."
+        prog="python -m kitti_eval.synth", description="Write a synthetic KITTI validation set."
     )
     parser.add_argument("--frames", type=int, default=3769)
     parser.add_argument("--seed", type=int, default=0)
