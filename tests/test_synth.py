@@ -155,6 +155,17 @@ def test_ground_truth_does_not_depend_on_detection_settings() -> None:
     assert sum(len(r["name"]) for r in res_b) > 3 * sum(len(r["name"]) for r in res_a)
 
 
+def test_a_detector_seed_draws_other_detections_of_the_same_ground_truth() -> None:
+    infos, results = synth.generate(30, seed=2, dets_per_frame=8)
+    infos_a, res_a = synth.generate(30, seed=2, dets_per_frame=8, detector_seed=11)
+    infos_b, res_b = synth.generate(30, seed=2, dets_per_frame=8, detector_seed=12)
+    _assert_same(infos, infos_a)
+    _assert_same(infos, infos_b)
+    _assert_same((infos_a, res_a), synth.generate(30, seed=2, dets_per_frame=8, detector_seed=11))
+    scores = [np.concatenate([r["score"] for r in res]) for res in (results, res_a, res_b)]
+    assert len({s.tobytes() for s in scores}) == 3
+
+
 def test_infos_structure_matches_openpcdet(data) -> None:
     infos, _ = data
     assert isinstance(infos, list) and len(infos) == 120

@@ -24,7 +24,14 @@ from ..core.protocol import N_SAMPLE_PTS, EvalConfig, Metric
 from ..core.result import EvalResult
 from .gate import ValueKey
 
-__all__ = ["resampled_ap", "resampled_values", "paired_intervals", "frame_weights", "paired_bootstrap"]
+__all__ = [
+    "resampled_ap",
+    "resampled_values",
+    "paired_intervals",
+    "interval95",
+    "frame_weights",
+    "paired_bootstrap",
+]
 
 
 #: resamples swept together over a matching's events (one pass over the events per block)
@@ -247,9 +254,18 @@ def paired_intervals(
         vb = values_b.get(key)
         if vb is None:
             continue
-        delta = vb - va
-        if np.isnan(delta).any():
-            continue
-        lo, hi = np.percentile(delta, [2.5, 97.5])
-        intervals[key] = (float(lo), float(hi))
+        found = interval95(vb - va)
+        if found is not None:
+            intervals[key] = found
     return intervals
+
+
+def interval95(values: npt.ArrayLike) -> tuple[float, float] | None:
+    """The 2.5th and 97.5th percentiles of resampled values (numpy's default, linear interpolation): every
+    95% interval of the paired bootstrap, of a difference (:func:`paired_intervals`) or of one result's value
+    (:mod:`.ranking`). None when there are none or one is NaN."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.size == 0 or np.isnan(v).any():
+        return None
+    lo, hi = np.percentile(v, [2.5, 97.5])
+    return float(lo), float(hi)

@@ -659,6 +659,7 @@ def generate(
     empty_pred_frac: float = 0.02,
     pred_decimals: int | None = 4,
     numpy_frame_ids: bool = True,
+    detector_seed: int | None = None,
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """A synthetic KITTI validation set: ``(infos, results)`` as OpenPCDet's pickles hold them.
 
@@ -673,6 +674,8 @@ def generate(
     empty_pred_frac : share of frames without detections (OpenPCDet's empty template)
     pred_decimals : detections are rounded to this many decimals (None: full float32)
     numpy_frame_ids : ``frame_id`` as ``numpy.str_`` (what OpenPCDet's collate produces) or plain ``str``
+    detector_seed : the detections' own seed (default: drawn from ``seed``): the same ground truth with
+        another draw of the same detector, e.g. two training runs of one model
 
     Returns
     -------
@@ -695,7 +698,7 @@ def generate(
     gt_seq, det_seq = np.random.SeedSequence(seed).spawn(2)
     gt = _ground_truth(np.random.default_rng(gt_seq), frames, gt_per_frame, dontcare_per_frame, empty_gt_frac)
     infos = _build_infos(gt, frames)
-    rng = np.random.default_rng(det_seq)
+    rng = np.random.default_rng(det_seq if detector_seed is None else detector_seed)
     keys = ("cls", "location", "dimensions", "rotation_y", "occluded", "truncated")
     real = gt["cls"] >= 0
     objects = {k: gt[k][real] for k in keys}
