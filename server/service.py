@@ -105,13 +105,15 @@ class Service:
         self.draining = threading.Event()
         #: every accepted evaluation is a job; workers of this process run them (and any ``kitti-eval worker``)
         self.jobs = JobQueue(self.store, lease_s=settings.job_lease_s, max_attempts=settings.job_max_attempts)
-        #: evaluations, benchmark submissions' scorings and rescorings, each kind a job of its own
+        #: evaluations, benchmark submissions' scorings and rescorings, and the resampled keys of each scoring
+        #: (the board's intervals), each kind a job of its own
         self.workers = Workers(
             self.jobs,
             {
                 "evaluation": self._run_evaluation,
                 "submission": lambda job: self.benchmarks.score_job(job),
                 "rescore": lambda job: self.benchmarks.score_job(job),
+                "intervals": lambda job: self.benchmarks.intervals_job(job),
             },
             threads=settings.job_threads,
             admission=self.admission,

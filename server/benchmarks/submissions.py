@@ -3,7 +3,6 @@ set, published and withdrawn by their participants; listed, disqualified and res
 
 from __future__ import annotations
 
-import io
 import math
 import re
 from collections.abc import Callable
@@ -21,10 +20,10 @@ from ..evaluator import evaluate_document
 from ..jobs import JobRecord
 from ..policy import Caller
 from ..store import GroundTruthRecord, JobInput, PublishRefused, QuotaRefused, SubmissionRecord, new_id
-from ..uploads import FileIn, clean_filename, load_upload, receive_upload
+from ..uploads import FileIn, clean_filename, receive_upload
 from ..workers import error_of
-from .catalog import BenchmarkCatalog
-from .rules import Benchmark, in_public_part, scores_of
+from .intervals import Intervals
+from .rules import Benchmark, part_frames, scores_of
 
 __all__ = ["Submissions", "QuotaExceeded", "InvalidSubmission"]
 
@@ -88,7 +87,7 @@ def _submission_view(
     return out
 
 
-class Submissions(BenchmarkCatalog):
+class Submissions(Intervals):
     """A benchmark's submissions: the participants' side and the admins'."""
 
     # -- admin ----------------------------------------------------------------------------------------------
@@ -211,23 +210,11 @@ class Submissions(BenchmarkCatalog):
 
         def write(conn: Any) -> None:
             self.store.update_submission_in(conn, sid, **values)
+            self.queue_intervals_in(conn, row, values["scored_at"])
             if job.kind == "submission":
                 self.store.delete_job_inputs_in(conn, job.id)
 
         return sid, write
-
-    def _predictions(self, job: JobRecord, row: SubmissionRecord, gt: Annotations) -> Annotations:
-        """The submission's predictions: its job's input (a submission's scoring), else the kept file."""
-        stored = self.store.job_input(job.id, "predictions") if job.kind == "submission" else None
-        if stored is not None:
-            content: bytes | None = stored.content
-        else:
-            content = self.store.prediction_content(row.pred_sha256)
-        if content is None:
-            raise Conflict(f"the predictions of submission {row.id} are not kept")
-        with self.scratch() as scratch:
-            upload = receive_upload(io.BytesIO(content), row.pred_filename, "predictions")
-            return load_upload(upload, "detections", scratch, self.limits, known_frames=gt.frame_index()).annotations
 
     def _validate(self, file: Any, filename: str, gt: Annotations, scratch: Path) -> None:
         """The CLI's checks (:func:`validate_submission`), their sentences naming the upload, not the scratch path."""
@@ -256,11 +243,8 @@ class Submissions(BenchmarkCatalog):
         doc = evaluate_document(gt, dt, config)
         scores: dict[str, dict[str, float | None]] = {"all": scores_of(doc, columns)}
         public_result = None
-        percent = bench.split_percent
-        if percent is not None and bench.split_seed:
-            parts: dict[str, list[str]] = {"public": [], "private": []}
-            for f in gt.frame_ids:
-                parts["public" if in_public_part(bench.split_seed, f, percent) else "private"].append(f)
+        parts = part_frames(bench.split_seed, gt.frame_ids, bench.split_percent)
+        if "all" not in parts:
             for part, frames in parts.items():
                 if frames:
                     part_doc = evaluate_document(gt.subset(frames), dt.subset(frames), config)
@@ -288,8 +272,13 @@ class Submissions(BenchmarkCatalog):
         return record
 
     def submission(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
+        """One of the caller's submissions with its full result and its ``comparison`` (:meth:`comparison`: with
+        their best earlier submission and the leader, on the part the board shows)."""
         record = self._own(name, submission_id, caller)
-        return _submission_view(record, self._get(name), full=True)
+        bench = self._get(name)
+        out = _submission_view(record, bench, full=True)
+        out["comparison"] = self.comparison(bench, record)
+        return out
 
     def mine(self, name: str, caller: Caller) -> dict[str, Any]:
         bench = self.get(name, caller)
