@@ -1,7 +1,8 @@
 """The leaderboard's intervals in process (SQLite): every entry's 95% interval, rank range and difference to the
 next from the benchmark's resamples, equal to the library's on the same files; the participant's comparison
-equal to ``kitti-eval compare --bootstrap`` with the board's seed; null while computed (and computed for
-entries that lack them); the public part until the reveal, the private part after it."""
+equal to ``kitti-eval compare --bootstrap`` with the board's seed; kept with each scoring, and for entries
+that lack them computed by a job, null meanwhile; the public part until the reveal, the private part after
+it."""
 
 from __future__ import annotations
 
@@ -17,7 +18,6 @@ import pytest
 from server_benchmarks import Hosted, ok, submit
 from server_helpers import ADMIN, app_client
 from server_postgres import PostgresCluster, why_no_postgres
-from test_ranking import _jittered
 
 from kitti_eval.analysis.bootstrap import frame_weights, interval95
 from kitti_eval.analysis.gate import ValueKey
@@ -36,8 +36,8 @@ FRAMES = 300
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory) -> dict[str, Path]:
-    """A 300-frame test set and four results: three draws of one detector and, from a fourth draw, a clearly
-    worse one (its boxes 10 cm off)."""
+    """A 300-frame test set and four results: three draws of one detector and a draw of a clearly worse one
+    (its boxes 10 cm further off)."""
     where = tmp_path_factory.mktemp("board-files")
     infos, _ = generate(FRAMES, seed=21, dets_per_frame=12.0)
     write_infos(where / "gt.pkl", infos)
@@ -46,7 +46,7 @@ def files(tmp_path_factory) -> dict[str, Path]:
         out[name] = where / f"{name}.pkl"
         write_results(out[name], generate(FRAMES, seed=21, dets_per_frame=12.0, detector_seed=seed)[1])
     out["worse"] = where / "worse.pkl"
-    write_results(out["worse"], _jittered(generate(FRAMES, seed=21, dets_per_frame=12.0, detector_seed=4)[1], 0.1, 5))
+    write_results(out["worse"], generate(FRAMES, seed=21, dets_per_frame=12.0, detector_seed=4, location_noise=0.1)[1])
     return out
 
 
@@ -84,15 +84,6 @@ def _settled(c: Any, timeout_s: float = 120.0) -> dict[str, Any]:
             return board
         assert time.monotonic() < deadline, board["bootstrap"]
         time.sleep(0.1)
-
-
-def _computed(c: Any, *ids: str) -> None:
-    """Wait for the jobs computing these submissions' resampled keys (published or not)."""
-    service = c.app.state.service
-    for sid in ids:
-        row = service.store.get_submission(sid)
-        job = service.jobs.wait(intervals_job_id(sid, row.scored_at, board_seed(row.benchmark), RESAMPLES), 120)
-        assert job is not None and job.state == "done", job
 
 
 def _library_interval(gt_path: Path, pred: Path, frames: list[str] | None, seed: int) -> tuple[float, float] | None:
@@ -173,7 +164,6 @@ def test_the_comparison_equals_kitti_eval_compare_with_the_boards_seed(tmp_path,
         leader = _enter(c, hosted, "alice", files["a"], "A")
         first = _enter(c, hosted, "bob", files["worse"])
         second = _enter(c, hosted, "bob", files["c"])
-        _computed(c, leader["id"], first["id"], second["id"])
         seed = board_seed("bench")
         comparison = ok(c.get(f"/v1/benchmarks/bench/submissions/{second['id']}", headers=hosted.headers("bob")))[
             "comparison"
@@ -252,7 +242,6 @@ def test_the_public_part_until_the_reveal_then_the_private_one(tmp_path, files) 
         hosted = _host(c, files, split_percent=50)
         a = _enter(c, hosted, "alice", files["a"], "A")
         w = _enter(c, hosted, "bob", files["worse"], "W")
-        _computed(c, a["id"], w["id"])
         seed = board_seed("bench")
         split_seed = c.app.state.service.store.get_benchmark("bench").split_seed
         gt = load_ground_truth(files["gt"])

@@ -166,6 +166,25 @@ def test_a_detector_seed_draws_other_detections_of_the_same_ground_truth() -> No
     assert len({s.tobytes() for s in scores}) == 3
 
 
+def test_location_noise_makes_a_less_precise_detector_of_the_same_ground_truth() -> None:
+    from kitti_eval.core.evaluation import evaluate
+    from kitti_eval.core.frames import Annotations
+
+    infos, sharp = synth.generate(200, seed=4, dets_per_frame=8, detector_seed=1)
+    infos_b, blurred = synth.generate(200, seed=4, dets_per_frame=8, detector_seed=1, location_noise=0.1)
+    _assert_same(infos, infos_b)
+    gt = Annotations.from_frames("ground_truth", "gt", [(i["image"]["image_idx"], i["annos"]) for i in infos])
+    ap = [
+        evaluate(gt, Annotations.from_frames("detections", "dt", [(r["frame_id"], r) for r in res])).get(
+            "Car", "3d", "moderate"
+        )
+        for res in (sharp, blurred)
+    ]
+    assert ap[0] is not None and ap[1] is not None and ap[0] - ap[1] > 10
+    with pytest.raises(ValueError, match="location_noise"):
+        synth.generate(5, location_noise=-1.0)
+
+
 def test_infos_structure_matches_openpcdet(data) -> None:
     infos, _ = data
     assert isinstance(infos, list) and len(infos) == 120

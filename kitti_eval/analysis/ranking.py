@@ -34,10 +34,16 @@ __all__ = [
     "Standing",
     "standings",
     "rank_order",
+    "Ranked",
+    "Ranking",
+    "render_ranking",
+    "METHOD",
 ]
 
 #: the level of every interval and rank range here
 LEVEL = 0.95
+#: how the bootstrap behind every interval here is named (the leaderboard's ``bootstrap.method`` too)
+METHOD = "paired bootstrap over frames"
 #: the rank range's percentiles of the ranks (the intervals': :func:`.bootstrap.interval95`)
 _PERCENTILES = (2.5, 97.5)
 _RECALL_COLUMN = {"R11": 0, "R40": 1}
@@ -168,3 +174,108 @@ def standings(values: Sequence[npt.ArrayLike | None]) -> list[Standing]:
 def rank_order(points: Sequence[float | None]) -> list[int]:
     """Indices of ``points`` best first (the highest value), ties and Nones in their given order, Nones last."""
     return sorted(range(len(points)), key=lambda i: (points[i] is None, -(points[i] or 0.0)))
+
+
+@dataclass(frozen=True)
+class Ranked:
+    """One result of a ranked table: its name, its key, and its key under each resample (None without a
+    bootstrap)."""
+
+    name: str
+    key: float | None
+    values: npt.NDArray[np.float64] | None = None
+
+
+@dataclass(frozen=True)
+class Ranking:
+    """Results ranked by a key (best first, ties in the order given, those without a key last), with their
+    standings when they were resampled (``resamples`` > 0, the same draws for every result)."""
+
+    keys: tuple[ValueKey, ...]
+    results: tuple[Ranked, ...]
+    resamples: int = 0
+    seed: int | None = None
+
+    def rows(self) -> list[tuple[int, Ranked, Standing | None]]:
+        """(rank, result, standing) best first; the standing is None without a bootstrap or a key."""
+        order = rank_order([r.key for r in self.results])
+        ranked = [self.results[i] for i in order]
+        keyed = [r for r in ranked if r.key is not None]
+        places: list[Standing | None] = [None] * len(ranked)
+        if self.resamples:
+            places[: len(keyed)] = standings([r.values for r in keyed])
+        return [(i + 1, r, s) for i, (r, s) in enumerate(zip(ranked, places))]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON: the key's columns, the bootstrap (None without one) and the results, best first, with the
+        names the hosted leaderboard uses (``key``, ``interval``, ``rank_range``, ``differs_from_next``)."""
+        return {
+            "schema_version": 1,
+            "key": [str(k) for k in self.keys],
+            "bootstrap": {"method": METHOD, "resamples": self.resamples, "seed": self.seed, "level": LEVEL}
+            if self.resamples
+            else None,
+            "results": [
+                {
+                    "rank": rank,
+                    "result": r.name,
+                    "key": r.key,
+                    "interval": list(s.interval) if s and s.interval else None,
+                    "rank_range": list(s.rank_range) if s and s.rank_range else None,
+                    "differs_from_next": s.differs_from_next if s else None,
+                    "difference_to_next": list(s.to_next) if s and s.to_next else None,
+                }
+                for rank, r, s in self.rows()
+            ],
+        }
+
+
+def render_ranking(ranking: Ranking, fmt: str = "table") -> str:
+    """The ranked table as text, Markdown or JSON (``kitti-eval compare`` with several results)."""
+    import json
+
+    if fmt == "json":
+        return json.dumps(ranking.to_dict(), indent=2, allow_nan=False) + "\n"
+    key_name = str(ranking.keys[0]) if len(ranking.keys) == 1 else "key"
+    legend = "" if len(ranking.keys) == 1 else "key: the mean of " + ", ".join(map(str, ranking.keys))
+    booted = bool(ranking.resamples)
+
+    def num(v: float | None) -> str:
+        return "-" if v is None else f"{round(v, 4) + 0.0:.4f}"
+
+    def interval(s: Standing | None) -> str:
+        return "-" if s is None or s.interval is None else f"[{num(s.interval[0])}, {num(s.interval[1])}]"
+
+    def ranks(s: Standing | None) -> str:
+        if s is None or s.rank_range is None:
+            return "-"
+        best, worst = s.rank_range
+        return str(best) if best == worst else f"{best}-{worst}"
+
+    def lead(s: Standing | None) -> str:
+        return "*" if s is not None and s.differs_from_next else ""
+
+    rows = ranking.rows()
+    note = (
+        f"{ranking.resamples} resamples ({METHOD}, seed {ranking.seed}), the same for every result; ranks: those "
+        "a result takes in 95% of the resamples; * : its lead over the next is significant (the 95% interval of "
+        "the difference excludes 0)"
+    )
+    if fmt == "markdown":
+        head = ["rank", "result", f"`{key_name}`"] + (["95% interval", "ranks", "lead"] if booted else [])
+        lines = ["| " + " | ".join(head) + " |", "|---:|---|---:|" + ("---|---|:---:|" if booted else "")]
+        for rank, r, s in rows:
+            cells = [str(rank), f"`{r.name}`", num(r.key)] + ([interval(s), ranks(s), lead(s)] if booted else [])
+            lines.append("| " + " | ".join(cells) + " |")
+        notes = [n for n in (legend, note if booted else "") if n]
+        return "\n".join(lines) + "\n" + "".join(f"\n{n}.\n" for n in notes)
+    table = [["rank", "result", key_name] + (["95% interval", "ranks", "lead"] if booted else [])]
+    for rank, r, s in rows:
+        table.append([str(rank), r.name, num(r.key)] + ([interval(s), ranks(s), lead(s)] if booted else []))
+    widths = [max(len(row[i]) for row in table) for i in range(len(table[0]))]
+    right = {0, 2}
+    lines = [
+        "  ".join(c.rjust(widths[i]) if i in right else c.ljust(widths[i]) for i, c in enumerate(row)).rstrip()
+        for row in table
+    ]
+    return "\n".join(lines) + "\n" + "".join(f"{n}\n" for n in (legend, note if booted else "") if n)

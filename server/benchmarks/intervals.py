@@ -1,21 +1,23 @@
 """How sure the board is: each entry's ranking key under the paired bootstrap over frames, kept per submission.
 
-After each scoring, a job (kind ``intervals``, queued in the transaction that stores the scores) computes the
-submission's ranking key under :data:`RESAMPLES` resamples of the frames of each part a board may rank on
-(the whole test set without a split; the public and the private part with one), every submission of a
-benchmark under the same draws: :func:`kitti_eval.analysis.bootstrap.frame_weights` over the part's frames,
-in the test set's order, with the benchmark's seed (:func:`board_seed`, from its name). A resampled key is
-the mean of the key's columns under the resample, each the AP :func:`kitti_eval.analysis.bootstrap.resampled_ap`
-gives (the one ``kitti-eval compare --bootstrap`` gives). The values are kept in the database
-(``submission_resamples``: one float64 a resample, per submission and part), so the board ranks from them
-as it answers (:func:`kitti_eval.analysis.ranking.standings`): each entry's 95% interval, its rank range
-and whether it differs from the next, all of them recomputed from the kept values when an entry comes or
-goes, which is cheap. A participant's submission is compared with their previous best and with the leader
-the same way, on the part the board shows (the public part until the reveal).
+Each scoring (of a submission, or a rescoring) also computes the submission's ranking key under
+:data:`RESAMPLES` resamples of the frames of each part a board may rank on (the whole test set without a
+split; the public and the private part with one), every submission of a benchmark under the same draws:
+:func:`kitti_eval.analysis.bootstrap.frame_weights` over the part's frames, in the test set's order, with the
+benchmark's seed (:func:`board_seed`, from its name). It reuses the scoring's own plan of each evaluation
+(:func:`kitti_eval.analysis.ranking.evaluate_resampled`): only the key's matching is swept again, 1000 times.
+A resampled key is the mean of the key's columns under the resample, each the AP
+:func:`kitti_eval.analysis.bootstrap.resampled_ap` gives (the one ``kitti-eval compare --bootstrap`` gives).
+The values are kept in the database with the scores, in the same transaction (``submission_resamples``: one
+float64 a resample, per submission and part), so the board ranks from them as it answers
+(:func:`kitti_eval.analysis.ranking.standings`): each entry's 95% interval, its rank range and whether it
+differs from the next, all recomputed from the kept values when an entry comes or goes, which is cheap. A
+participant's submission is compared with their previous best and with the leader the same way, on the part
+the board shows (the public part until the reveal).
 
-A submission scored before this existed, or whose job was lost, gets its job when the board or its
-participant first finds it missing (the job's id is a function of the submission's scoring, so it is queued
-once).
+A submission scored before the values were kept has none: the board (or its participant's view) that finds
+one missing queues a job (kind ``intervals``) that computes them; its id is a function of the submission's
+scoring, so it is queued once, and the entry is ``null`` (``pending``) until it is done.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import numpy.typing as npt
 
 from kitti_eval.analysis.bootstrap import frame_weights, interval95
 from kitti_eval.analysis.gate import ValueKey
-from kitti_eval.analysis.ranking import LEVEL, resampled_key
+from kitti_eval.analysis.ranking import LEVEL, METHOD, resampled_key
 from kitti_eval.core.evaluation import plan_evaluation
 from kitti_eval.core.frames import Annotations
 
@@ -47,7 +49,6 @@ __all__ = ["Intervals", "RESAMPLES", "METHOD", "board_seed", "intervals_job_id",
 
 #: resamples of every board
 RESAMPLES = 1000
-METHOD = "paired bootstrap over frames"
 #: a board's part as the JSON names it
 _PART_NAMES = {"all": "whole", "public": "public", "private": "private"}
 
@@ -100,54 +101,50 @@ class Intervals(BenchmarkCatalog):
             "level": LEVEL,
         }
 
-    # -- the job ----------------------------------------------------------------------------------------------
-    def queue_intervals_in(self, conn: Any, row: SubmissionRecord, scored_at: datetime) -> None:
-        """Within the transaction that stores a scoring: drop the submission's resampled keys (of an earlier
-        scoring) and queue the job that computes this scoring's."""
-        seed = board_seed(row.benchmark)
-        self.store.delete_resampled_keys_in(conn, row.id)
-        self.jobs.enqueue_in(
-            conn,
-            "intervals",
-            {"submission_id": row.id, "benchmark": row.benchmark, "scored_at": scored_at.isoformat()},
-            owner=row.participant,
-            group=row.benchmark,
-            job_id=intervals_job_id(row.id, scored_at, seed, RESAMPLES),
-        )
+    # -- computing ------------------------------------------------------------------------------------------
+    def board_weights(self, bench: Benchmark, n_frames: int) -> npt.NDArray[np.int64]:
+        """The benchmark's draws of a part of ``n_frames`` frames (every submission's, kept in this process)."""
+        return _weights(n_frames, RESAMPLES, board_seed(bench.name))
+
+    def resampled_key_record(
+        self, bench: Benchmark, part: str, values: npt.NDArray[np.float64], n_frames: int
+    ) -> ResampledKey:
+        """The row kept of a submission's key under the resamples of a part of ``n_frames`` frames."""
+        return ResampledKey(part, board_seed(bench.name), RESAMPLES, n_frames, values.astype("<f8").tobytes())
+
+    def resampled_keys_of(self, bench: Benchmark, gt: Annotations, dt: Annotations) -> list[ResampledKey]:
+        """The key of the predictions ``dt`` under the benchmark's resamples of each part of its test set (a
+        scoring computes the same beside its documents, from the same plans)."""
+        config = bench.options().config()
+        keys = [ValueKey.parse(k) for k in bench.key]
+        out = []
+        for part, frames in part_frames(bench.split_seed, gt.frame_ids, bench.split_percent).items():
+            if not frames:
+                continue
+            g, d = (gt, dt) if part == "all" else (gt.subset(frames), dt.subset(frames))
+            values = resampled_key(plan_evaluation(g, d, config), keys, self.board_weights(bench, len(frames)))
+            out.append(self.resampled_key_record(bench, part, values, len(frames)))
+        return out
 
     def intervals_job(self, job: JobRecord) -> tuple[str, Callable[[Any], None]]:
-        """Run an ``intervals`` job: the submission's id and the write of its resampled keys (for the
-        transaction that ends the job; nothing is written when the submission was scored again meanwhile,
-        whose own job writes them)."""
+        """Run an ``intervals`` job (queued for a scored submission without resampled keys: one scored before
+        they were kept): the submission's id and the write of its resampled keys (for the transaction that ends
+        the job; nothing is written when the submission was scored again meanwhile, which kept its own)."""
         sid = str(job.payload["submission_id"])
         scored_at = datetime.fromisoformat(str(job.payload["scored_at"]))
         row = self.store.get_submission(sid)
         if row is None or row.status != "scored" or row.scored_at != scored_at:
-            return sid, lambda conn: None  # gone, or scored again: that scoring queued its own job
+            return sid, lambda conn: None  # gone, or scored again: that scoring kept its own
         bench = self._get(row.benchmark)
         record, gt = self._ground_truth(bench)
         if record.sha256 != row.gt_sha256:
-            return sid, lambda conn: None  # the test set changed: a rescoring (and its job) follows
+            return sid, lambda conn: None  # the test set changed: a rescoring follows
         keys = self.resampled_keys_of(bench, gt, self._predictions(job, row, gt))
 
         def write(conn: Any) -> None:
             self.store.replace_resampled_keys_in(conn, sid, scored_at, keys)
 
         return sid, write
-
-    def resampled_keys_of(self, bench: Benchmark, gt: Annotations, dt: Annotations) -> list[ResampledKey]:
-        """The key of the predictions ``dt`` under the benchmark's resamples of each part of its test set."""
-        config = bench.options().config()
-        keys = [ValueKey.parse(k) for k in bench.key]
-        seed = board_seed(bench.name)
-        out = []
-        for part, frames in part_frames(bench.split_seed, gt.frame_ids, bench.split_percent).items():
-            if not frames:
-                continue
-            g, d = (gt, dt) if part == "all" else (gt.subset(frames), dt.subset(frames))
-            values = resampled_key(plan_evaluation(g, d, config), keys, _weights(len(frames), RESAMPLES, seed))
-            out.append(ResampledKey(part, seed, RESAMPLES, len(frames), values.astype("<f8").tobytes()))
-        return out
 
     def _predictions(self, job: JobRecord, row: SubmissionRecord, gt: Annotations) -> Annotations:
         """The submission's predictions: its job's input (a submission's scoring), else the kept file."""

@@ -10,16 +10,25 @@ from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any
 
+from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.core.frames import Annotations
 from kitti_eval.errors import InputError
 from kitti_eval.io.submission import SubmissionRules, validate_submission
 
 from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
 from ..evaluations import sealed_document
-from ..evaluator import evaluate_document
+from ..evaluator import evaluate_document, evaluate_document_resampled
 from ..jobs import JobRecord
 from ..policy import Caller
-from ..store import GroundTruthRecord, JobInput, PublishRefused, QuotaRefused, SubmissionRecord, new_id
+from ..store import (
+    GroundTruthRecord,
+    JobInput,
+    PublishRefused,
+    QuotaRefused,
+    ResampledKey,
+    SubmissionRecord,
+    new_id,
+)
 from ..uploads import FileIn, clean_filename, receive_upload
 from ..workers import error_of
 from .intervals import Intervals
@@ -201,7 +210,7 @@ class Submissions(Intervals):
             bench = self._get(row.benchmark)
             record, gt = self._ground_truth(bench)
             dt = self._predictions(job, row, gt)
-            values = self._scores(bench, record, gt, dt)
+            values, resampled = self._scores(bench, record, gt, dt)
         except BaseException as e:
             _, retry = error_of(e)
             if not retry or job.attempts >= job.max_attempts:
@@ -210,7 +219,7 @@ class Submissions(Intervals):
 
         def write(conn: Any) -> None:
             self.store.update_submission_in(conn, sid, **values)
-            self.queue_intervals_in(conn, row, values["scored_at"])
+            self.store.replace_resampled_keys_in(conn, sid, values["scored_at"], resampled)
             if job.kind == "submission":
                 self.store.delete_job_inputs_in(conn, job.id)
 
@@ -236,24 +245,38 @@ class Submissions(Intervals):
         if not outcome.ok:
             raise InvalidSubmission([line.replace(str(target), shown) for line in outcome.lines()])
 
-    def _scores(self, bench: Benchmark, record: GroundTruthRecord, gt: Annotations, dt: Annotations) -> dict[str, Any]:
-        """A submission's scored values: its (sealed) documents and its scores on the whole set and each part."""
+    def _scores(
+        self, bench: Benchmark, record: GroundTruthRecord, gt: Annotations, dt: Annotations
+    ) -> tuple[dict[str, Any], list[ResampledKey]]:
+        """A submission's scored values: its (sealed) documents and its scores on the whole set and each part;
+        and its key under the benchmark's resamples of each part a board ranks on (from the same plans)."""
         config = bench.options().config()
         columns = list(dict.fromkeys([*bench.columns, *bench.key]))
-        doc = evaluate_document(gt, dt, config)
+        keys = [ValueKey.parse(k) for k in bench.key]
+        parts = part_frames(bench.split_seed, gt.frame_ids, bench.split_percent)
+        resampled: list[ResampledKey] = []
+
+        def scored(part: str, g: Annotations, d: Annotations) -> dict[str, Any]:
+            if part not in parts:  # the whole set of a benchmark with a split: no board ranks on it
+                return evaluate_document(g, d, config)
+            n = len(parts[part])
+            doc, values = evaluate_document_resampled(g, d, config, keys, self.board_weights(bench, n))
+            resampled.append(self.resampled_key_record(bench, part, values, n))
+            return doc
+
+        doc = scored("all", gt, dt)
         scores: dict[str, dict[str, float | None]] = {"all": scores_of(doc, columns)}
         public_result = None
-        parts = part_frames(bench.split_seed, gt.frame_ids, bench.split_percent)
         if "all" not in parts:
             for part, frames in parts.items():
                 if frames:
-                    part_doc = evaluate_document(gt.subset(frames), dt.subset(frames), config)
+                    part_doc = scored(part, gt.subset(frames), dt.subset(frames))
                     scores[part] = scores_of(part_doc, columns)
                     if part == "public":
                         public_result = sealed_document(part_doc)
                 else:
                     scores[part] = dict.fromkeys(columns)
-        return {
+        values = {
             "status": "scored",
             "result": sealed_document(doc),
             "scores": scores,
@@ -261,6 +284,7 @@ class Submissions(Intervals):
             "gt_sha256": record.sha256,
             "scored_at": datetime.now(timezone.utc),
         }
+        return values, resampled
 
     def _own(self, name: str, submission_id: str, caller: Caller) -> SubmissionRecord:
         """One of the caller's own submissions (another's is as absent as a missing one; admins list every
