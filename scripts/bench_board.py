@@ -256,6 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     from kitti_eval_server import Settings, create_app
     from kitti_eval_server.benchmarks.intervals import RESAMPLES
 
+    load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="bench-board-") as tmp:
         data = Path(tmp) / "data"
         settings = Settings(
@@ -274,7 +275,10 @@ def main(argv: list[str] | None = None) -> int:
     load = os.getloadavg()
     cores = len(os.sched_getaffinity(0))
     print(f"leaderboard intervals: {args.entries} entries, {RESAMPLES} resamples, {args.frames}-frame test set")
-    print(f"  cores available: {cores}; load average now {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
+    print(
+        f"  cores available: {cores}; load average (1, 5, 15 min) at the start {load_before[0]:.2f} "
+        f"{load_before[1]:.2f} {load_before[2]:.2f}, at the end {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}"
+    )
     print(
         f"  with each scoring: the key's matching and {RESAMPLES} sweeps {scored['resampling_cpu']:.1f} s CPU "
         f"({scored['resampling_calls']:.0f} calls), the draws {scored['draws_cpu']:.2f} s CPU (made once); a scoring "

@@ -44,7 +44,7 @@ __all__ = [
 LEVEL = 0.95
 #: how the bootstrap behind every interval here is named (the leaderboard's ``bootstrap.method`` too)
 METHOD = "paired bootstrap over frames"
-#: the rank range's percentiles of the ranks (the intervals': :func:`.bootstrap.interval95`)
+#: the percentiles of every interval (:func:`.bootstrap.interval95`'s) and of the ranks for a rank range
 _PERCENTILES = (2.5, 97.5)
 _RECALL_COLUMN = {"R11": 0, "R40": 1}
 
@@ -156,18 +156,29 @@ def standings(values: Sequence[npt.ArrayLike | None]) -> list[Standing]:
         best = np.percentile(ranks, _PERCENTILES[0], axis=1, method="lower")
         worst = np.percentile(ranks, _PERCENTILES[1], axis=1, method="higher")
         ranges = [(int(b), int(w)) for b, w in zip(best, worst)]
+    diffs = [None if a is None or b is None else a - b for a, b in zip(arrays, [*arrays[1:], None])]
     out = []
-    for i, a in enumerate(arrays):
-        nxt = arrays[i + 1] if i + 1 < len(arrays) else None
-        to_next = None if a is None or nxt is None else interval95(a - nxt)
+    for interval, rank_range, to_next in zip(_intervals95(arrays), ranges, _intervals95(diffs)):
         out.append(
             Standing(
-                interval=None if a is None else interval95(a),
-                rank_range=ranges[i],
+                interval=interval,
+                rank_range=rank_range,
                 to_next=to_next,
                 differs_from_next=None if to_next is None else bool(to_next[0] > 0 or to_next[1] < 0),
             )
         )
+    return out
+
+
+def _intervals95(rows: Sequence[npt.NDArray[np.float64] | None]) -> list[tuple[float, float] | None]:
+    """:func:`.bootstrap.interval95` of each row (None for None, an empty row or one with a NaN), in one call
+    of numpy: the same interpolation, row by row, so the same numbers."""
+    usable = [i for i, r in enumerate(rows) if r is not None and r.size and not np.isnan(r).any()]
+    out: list[tuple[float, float] | None] = [None] * len(rows)
+    if usable:
+        low, high = np.percentile(np.stack([np.asarray(rows[i]) for i in usable]), _PERCENTILES, axis=1)
+        for i, lo, hi in zip(usable, low, high):
+            out[i] = (float(lo), float(hi))
     return out
 
 

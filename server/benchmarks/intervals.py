@@ -84,12 +84,13 @@ def ranked_rows(bench: Benchmark, rows: Sequence[SubmissionRecord]) -> list[tupl
 
 
 def rounded(pair: tuple[float, float] | None) -> list[float] | None:
+    """An interval as the JSON shows it: to 4 places, as the keys are."""
     return None if pair is None else [round(pair[0], 4), round(pair[1], 4)]
 
 
 class Intervals(BenchmarkCatalog):
-    """The resampled keys of a benchmark's submissions: computed by a job, kept, and read by the board and by
-    the participants' comparisons."""
+    """The resampled keys of a benchmark's submissions: computed with each scoring (or by a job for one scored
+    before), kept, and read by the board and by the participants' comparisons."""
 
     def bootstrap_of(self, bench: Benchmark) -> dict[str, Any]:
         """What the board says of its intervals (without ``pending``)."""
