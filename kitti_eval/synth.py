@@ -18,6 +18,7 @@ the same seed gives the same ground truth whatever the detection settings.
 Command line::
 
     python -m kitti_eval.synth --frames 3769 --seed 0 --dets-per-frame 40 --out DIR [--txt] [--gzip]
+        [--detector-seed N] [--location-noise METRES]
 """
 
 from __future__ import annotations
@@ -373,10 +374,12 @@ def _detections(
     dets_per_frame: float,
     empty_pred_frac: float,
     decimals: int | None,
+    location_noise: float = 0.0,
 ) -> dict[str, np.ndarray]:
     """Flat arrays of the detections of ``frames`` frames (frame-major, by descending score in a frame).
 
-    ``gt`` holds the labelled objects (no DontCare) of these frames, ``frame`` counted from 0.
+    ``gt`` holds the labelled objects (no DontCare) of these frames, ``frame`` counted from 0;
+    ``location_noise``: a further N(0, it) metres on x and z of each true positive.
     """
     g_frame, g_cls = gt["frame"], gt["cls"]
     g_loc, g_dims, g_ry = gt["location"], gt["dimensions"], gt["rotation_y"]
@@ -400,6 +403,8 @@ def _detections(
     sd_xz = (0.02 + 0.0035 * z) * (0.6 + 0.4 * np.minimum(t_dims[:, 2] / 1.63, 1.0))
     err = rng.normal(0.0, 1.0, (len(idx), 3)) * np.stack([sd_xz, 0.02 + 0.001 * z, sd_xz], axis=1)
     t_loc = t_loc + err
+    if location_noise > 0:
+        t_loc[:, [0, 2]] += rng.normal(0.0, location_noise, (len(idx), 2))
     t_dims = t_dims * np.exp(rng.normal(0.0, 0.045, (len(idx), 3)))
     flip = rng.random(len(idx)) < 0.04
     t_ry = t_ry + rng.normal(0.0, 1.0, len(idx)) * (_PRED_YAW_SD[t_cls] + 0.002 * z) + np.pi * flip
@@ -615,6 +620,8 @@ def generate(
     empty_pred_frac: float = 0.02,
     pred_decimals: int | None = 4,
     numpy_frame_ids: bool = True,
+    detector_seed: int | None = None,
+    location_noise: float = 0.0,
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """A synthetic KITTI validation set: ``(infos, results)`` as OpenPCDet's pickles hold them.
 
@@ -629,6 +636,10 @@ def generate(
     empty_pred_frac : share of frames without detections (OpenPCDet's empty template)
     pred_decimals : detections are rounded to this many decimals (None: full float32)
     numpy_frame_ids : ``frame_id`` as ``numpy.str_`` (what OpenPCDet's collate produces) or plain ``str``
+    detector_seed : the detections' own seed (default: drawn from ``seed``): the same ground truth with
+        another draw of the same detector, e.g. two training runs of one model
+    location_noise : a further error of every found object's ground-plane position (x and z), N(0, this)
+        metres: a less precise detector (0: none, and the same detections as without it)
 
     Returns
     -------
@@ -645,13 +656,15 @@ def generate(
     ):
         if not value >= 0:
             raise ValueError(f"Expected `{name}` >= 0, got {value}")
+    if not location_noise >= 0:
+        raise ValueError(f"Expected `location_noise` >= 0, got {location_noise}")
     for name, value in (("empty_gt_frac", empty_gt_frac), ("empty_pred_frac", empty_pred_frac)):
         if not 0 <= value <= 1:
             raise ValueError(f"Expected `{name}` in [0, 1], got {value}")
     gt_seq, det_seq = np.random.SeedSequence(seed).spawn(2)
     gt = _ground_truth(np.random.default_rng(gt_seq), frames, gt_per_frame, dontcare_per_frame, empty_gt_frac)
     infos = _build_infos(gt, frames)
-    rng = np.random.default_rng(det_seq)
+    rng = np.random.default_rng(det_seq if detector_seed is None else detector_seed)
     keys = ("cls", "location", "dimensions", "rotation_y", "occluded", "truncated")
     real = gt["cls"] >= 0
     objects = {k: gt[k][real] for k in keys}
@@ -663,7 +676,7 @@ def generate(
         lo, hi = np.searchsorted(objects["frame"], [first, last])
         chunk = {k: v[lo:hi] for k, v in objects.items()}
         chunk["frame"] = chunk["frame"] - first
-        det = _detections(rng, chunk, last - first, dets_per_frame, empty_pred_frac, pred_decimals)
+        det = _detections(rng, chunk, last - first, dets_per_frame, empty_pred_frac, pred_decimals, location_noise)
         results += _build_results(det, first, numpy_frame_ids)
     return infos, results
 
@@ -757,6 +770,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--dets-per-frame", type=float, default=10.0)
     parser.add_argument("--gt-per-frame", type=float, default=6.5)
     parser.add_argument("--dontcare-per-frame", type=float, default=1.5)
+    parser.add_argument(
+        "--detector-seed",
+        type=int,
+        help="the detections' own seed: the same ground truth (--seed) with another draw of the same detector",
+    )
+    parser.add_argument(
+        "--location-noise",
+        type=float,
+        default=0.0,
+        metavar="METRES",
+        help="a further error of each found object's ground-plane position: a less precise detector",
+    )
     parser.add_argument("--out", type=Path, help="output folder")
     parser.add_argument("--txt", action="store_true", help="also write label_2/ and pred/ txt folders")
     parser.add_argument("--gzip", action="store_true", help="write kitti_infos_val.pkl.gz and result.pkl.gz")
@@ -779,6 +804,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             dets_per_frame=args.dets_per_frame,
             gt_per_frame=args.gt_per_frame,
             dontcare_per_frame=args.dontcare_per_frame,
+            detector_seed=args.detector_seed,
+            location_noise=args.location_noise,
         )
         ext = ".pkl.gz" if args.gzip else ".pkl"
         gt_path, pred_path = args.out / f"kitti_infos_val{ext}", args.out / f"result{ext}"

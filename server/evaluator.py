@@ -1,4 +1,4 @@
-"""Request options to an :class:`~kitti_eval.core.protocol.EvalConfig`, and the one call of ``evaluate`` here.
+"""Request options to an :class:`~kitti_eval.core.protocol.EvalConfig`, and the calls of ``evaluate`` here.
 
 Evaluations run on several threads at once: the library's kernels are compiled ``nogil`` and keep no
 state, so that is safe.
@@ -13,7 +13,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+import numpy.typing as npt
+
 from kitti_eval.analysis.decomposition import errors_document, evaluate_with_errors
+from kitti_eval.analysis.gate import ValueKey
+from kitti_eval.analysis.ranking import evaluate_resampled
 from kitti_eval.core.evaluation import evaluate
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
@@ -25,6 +30,7 @@ from .errors import BadRequest, echo
 __all__ = [
     "EvalOptions",
     "evaluate_document",
+    "evaluate_document_resampled",
     "check_image_fields",
     "summarize",
     "parse_labels",
@@ -120,6 +126,17 @@ def evaluate_document(
         result = evaluate(gt, dt, config, keep_curves=curves)
     doc: dict[str, Any] = json.loads(render_json(result, include_curves=curves, extra=extra))
     return doc
+
+
+def evaluate_document_resampled(
+    gt: Annotations, dt: Annotations, config: EvalConfig, keys: Sequence[ValueKey], weights: npt.NDArray[np.int64]
+) -> tuple[dict[str, Any], npt.NDArray[np.float64]]:
+    """:func:`evaluate_document`'s document (no curves, no errors) and the mean of ``keys`` under each row of
+    frame ``weights`` (:func:`kitti_eval.analysis.ranking.evaluate_resampled`), from one planned evaluation."""
+    check_image_fields(gt, dt, config, gt_frames_shown=False)
+    result, values = evaluate_resampled(gt, dt, config, keys, weights)
+    doc: dict[str, Any] = json.loads(render_json(result))
+    return doc, values
 
 
 def check_image_fields(gt: Annotations, dt: Annotations, config: EvalConfig, *, gt_frames_shown: bool) -> None:

@@ -43,8 +43,9 @@ from .store.job_store import ENDED_STATES, JOB_STATES
 
 __all__ = ["JobQueue", "QueueLimits", "JobRecord", "WorkerRecord", "JOB_KINDS", "JOB_STATES", "ENDED_STATES", "now_utc"]
 
-#: what a job runs: an evaluation, a benchmark submission's scoring, or a submission scored again
-JOB_KINDS = ("evaluation", "submission", "rescore")
+#: what a job runs: an evaluation, a benchmark submission's scoring, a submission scored again, or a scored
+#: submission's ranking key under its benchmark's bootstrap resamples (queued by its scoring)
+JOB_KINDS = ("evaluation", "submission", "rescore", "intervals")
 
 
 def now_utc() -> datetime:
@@ -195,6 +196,13 @@ class JobQueue:
         if existing is None:  # deleted in between: only a database changed by hand gets here
             raise RuntimeError(f"job {record.id} could neither be added nor read")
         return existing
+
+    def enqueue_in(
+        self, conn: Connection, kind: str, payload: dict, *, owner: str, group: str | None = None, job_id: str
+    ) -> bool:
+        """Record a queued job within the caller's transaction (committed with it: the end of the job that
+        queues it). False when a job already has ``job_id`` (then nothing is added)."""
+        return self.store.add_job_in(conn, self._new(kind, payload, owner, group, job_id, self._now()))
 
     def enqueue_many(
         self, kind: str, payloads: builtins.list[dict], *, owner: str, group: str | None = None

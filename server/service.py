@@ -116,13 +116,15 @@ class Service:
         self.warmup_error: str | None = None
         #: set on SIGTERM: not ready, no new evaluations, the admitted ones finish (see server.shutdown)
         self.draining = threading.Event()
-        #: evaluations, benchmark submissions' scorings and rescorings, each kind a job of its own
+        #: evaluations, benchmark submissions' scorings and rescorings, and the resampled keys of each scoring
+        #: (the board's intervals), each kind a job of its own
         self.workers = Workers(
             self.jobs,
             {
                 "evaluation": self._run_evaluation,
                 "submission": lambda job: self.benchmarks.score_job(job),
                 "rescore": lambda job: self.benchmarks.score_job(job),
+                "intervals": lambda job: self.benchmarks.intervals_job(job),
             },
             threads=settings.job_threads,
             admission=self.admission,

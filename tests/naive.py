@@ -87,3 +87,38 @@ def iou_3d_naive(a, b, criterion: str = "union") -> np.ndarray:
             denom = vol_a if criterion == "first" else vol_a + vol_b - inter
             out[i, j] = inter / denom if denom > 0 else 0.0
     return out
+
+
+def resampled_curves_naive(events, weights) -> np.ndarray:
+    """The paired bootstrap's curves (``kitti_eval.analysis.bootstrap._resampled_curves``) one resample at a
+    time: the devkit's threshold rule stepped over every repeated true positive, then one sweep of the events
+    per resample."""
+    from kitti_eval.core.matching import threshold_step
+    from kitti_eval.core.protocol import N_SAMPLE_PTS
+
+    weights = np.asarray(weights, dtype=np.int64)
+    out = np.zeros((weights.shape[0], 2, N_SAMPLE_PTS))
+    for b, w in enumerate(weights.tolist()):
+        n_gt = sum(wf * int(v) for wf, v in zip(w, events.valid.tolist()))
+        repeated = [float(s) for s, f in zip(events.tp_score.tolist(), events.tp_frame.tolist()) for _ in range(w[f])]
+        if n_gt == 0 or not repeated:
+            continue
+        thresholds, current = [], 0.0
+        for i, score in enumerate(repeated):
+            take, current = threshold_step(i, len(repeated), n_gt, current, N_SAMPLE_PTS)
+            if take and len(thresholds) < N_SAMPLE_PTS:
+                thresholds.append(score)
+        tp = fp = sim = 0.0
+        e = 0
+        n_e = len(events.ev_score)
+        for t, thr in enumerate(thresholds):
+            while e < n_e and events.ev_score[e] >= thr:
+                ww = w[int(events.ev_frame[e])]
+                if ww != 0:
+                    tp += ww * float(events.ev_delta[e, 0])
+                    fp += ww * float(events.ev_delta[e, 1])
+                    sim += ww * float(events.ev_delta[e, 3])
+                e += 1
+            out[b, 0, t] = tp / (tp + fp) if tp + fp > 0 else math.nan
+            out[b, 1, t] = sim / (tp + fp) if tp + fp > 0 else math.nan
+    return out

@@ -88,6 +88,31 @@ def test_interval_covers_a_known_difference_and_is_zero_when_nothing_changed():
     assert same and all(iv == (0.0, 0.0) for iv in same.values())
 
 
+@pytest.mark.parametrize("case", ["small", "edge", "quirks"])
+def test_the_blocked_sweep_equals_one_sweep_per_resample(case):
+    """Bit for bit: each resample adds the same terms in the same order in both, and the bisection finds the
+    thresholds the step-by-step rule takes. 70 resamples: two full blocks and a part of one; some frames
+    drawn often, some never."""
+    from naive import resampled_curves_naive
+
+    from kitti_eval.analysis.bootstrap import _resampled_curves
+
+    gt = load_ground_truth(GOLDEN / case / "kitti_infos_val.pkl")
+    dt = load_detections(GOLDEN / case / "result.pkl")
+    plan = plan_evaluation(gt, dt, EvalConfig())
+    weights = frame_weights(gt.num_frames, 70, seed=4)
+    weights[:3] = 0  # nothing drawn: no curve at all
+    weights[3, :] = 0
+    weights[3, 0] = gt.num_frames  # one frame drawn every time
+    checked = 0
+    for ev in plan.events(workers=1):
+        got = _resampled_curves(ev.valid, ev.tp_score, ev.tp_frame, ev.ev_score, ev.ev_frame, ev.ev_delta, weights)
+        want = resampled_curves_naive(ev, weights)
+        np.testing.assert_array_equal(got, want)
+        checked += int(np.isfinite(want).any())
+    assert checked > 10
+
+
 def test_weights_are_reproducible_and_sum_to_frames():
     w1, w2 = frame_weights(100, 20, seed=5), frame_weights(100, 20, seed=5)
     np.testing.assert_array_equal(w1, w2)

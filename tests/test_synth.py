@@ -155,6 +155,36 @@ def test_ground_truth_does_not_depend_on_detection_settings() -> None:
     assert sum(len(r["name"]) for r in res_b) > 3 * sum(len(r["name"]) for r in res_a)
 
 
+def test_a_detector_seed_draws_other_detections_of_the_same_ground_truth() -> None:
+    infos, results = synth.generate(30, seed=2, dets_per_frame=8)
+    infos_a, res_a = synth.generate(30, seed=2, dets_per_frame=8, detector_seed=11)
+    infos_b, res_b = synth.generate(30, seed=2, dets_per_frame=8, detector_seed=12)
+    _assert_same(infos, infos_a)
+    _assert_same(infos, infos_b)
+    _assert_same((infos_a, res_a), synth.generate(30, seed=2, dets_per_frame=8, detector_seed=11))
+    scores = [np.concatenate([r["score"] for r in res]) for res in (results, res_a, res_b)]
+    assert len({s.tobytes() for s in scores}) == 3
+
+
+def test_location_noise_makes_a_less_precise_detector_of_the_same_ground_truth() -> None:
+    from kitti_eval.core.evaluation import evaluate
+    from kitti_eval.core.frames import Annotations
+
+    infos, sharp = synth.generate(200, seed=4, dets_per_frame=8, detector_seed=1)
+    infos_b, blurred = synth.generate(200, seed=4, dets_per_frame=8, detector_seed=1, location_noise=0.1)
+    _assert_same(infos, infos_b)
+    gt = Annotations.from_frames("ground_truth", "gt", [(i["image"]["image_idx"], i["annos"]) for i in infos])
+    ap = [
+        evaluate(gt, Annotations.from_frames("detections", "dt", [(r["frame_id"], r) for r in res])).get(
+            "Car", "3d", "moderate"
+        )
+        for res in (sharp, blurred)
+    ]
+    assert ap[0] is not None and ap[1] is not None and ap[0] - ap[1] > 10
+    with pytest.raises(ValueError, match="location_noise"):
+        synth.generate(5, location_noise=-1.0)
+
+
 def test_infos_structure_matches_openpcdet(data) -> None:
     infos, _ = data
     assert isinstance(infos, list) and len(infos) == 120

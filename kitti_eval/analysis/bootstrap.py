@@ -24,7 +24,66 @@ from ..core.protocol import N_SAMPLE_PTS, EvalConfig, Metric
 from ..core.result import EvalResult
 from .gate import ValueKey
 
-__all__ = ["resampled_ap", "resampled_values", "paired_intervals", "frame_weights", "paired_bootstrap"]
+__all__ = [
+    "resampled_ap",
+    "resampled_values",
+    "paired_intervals",
+    "interval95",
+    "frame_weights",
+    "paired_bootstrap",
+]
+
+
+#: resamples swept together over a matching's events (one pass over the events per block)
+_BLOCK = 32
+
+
+@njit(cache=True, nogil=True)
+def _resampled_thresholds(
+    valid: np.ndarray,
+    tp_score: np.ndarray,
+    tp_frame: np.ndarray,
+    weights: np.ndarray,
+    thresholds: np.ndarray,
+    n_thr: np.ndarray,
+) -> None:
+    """Into ``thresholds[b, :n_thr[b]]``: the devkit's score thresholds over the true positives of resample b
+    (each repeated by its frame's weight). The rule (:func:`threshold_step`) is monotone in the index of the
+    true positive: false up to the next threshold, true from it on (its two recalls grow with the index, and
+    so does their rounding), so each threshold is found by bisection instead of a step per true positive;
+    the takes, and the recall targets they update, are the ones the step-by-step loop makes."""
+    n_b, n_f = weights.shape
+    n_k = tp_score.shape[0]
+    before = np.empty(n_k + 1, np.int64)  # before[k]: the repeated true positives ahead of the k-th
+    for b in range(n_b):
+        w = weights[b]
+        n_gt = 0
+        for f in range(n_f):
+            n_gt += w[f] * valid[f]
+        before[0] = 0
+        for k in range(n_k):
+            before[k + 1] = before[k] + w[tp_frame[k]]
+        n_tp = int(before[n_k])
+        n_thr[b] = 0
+        if n_gt == 0 or n_tp == 0:
+            continue
+        current = 0.0
+        i = 0
+        m = 0
+        while m < N_SAMPLE_PTS and i < n_tp:
+            lo, hi = i, n_tp - 1  # the last one is always taken
+            while lo < hi:
+                mid = (lo + hi) // 2
+                take, _ = threshold_step(mid, n_tp, n_gt, current, N_SAMPLE_PTS)
+                if take:
+                    hi = mid
+                else:
+                    lo = mid + 1
+            _, current = threshold_step(lo, n_tp, n_gt, current, N_SAMPLE_PTS)
+            thresholds[b, m] = tp_score[np.searchsorted(before, lo, side="right") - 1]
+            m += 1
+            i = lo + 1
+        n_thr[b] = m
 
 
 @njit(cache=True, nogil=True)
@@ -38,45 +97,61 @@ def _resampled_curves(
     weights: np.ndarray,
 ) -> np.ndarray:
     """(B, 2, 41): precision and orientation similarity / (TP + FP) at each score threshold (zeros past the
-    last; NaN where nothing is detected) for each row of frame weights (B, F), before max-interpolation."""
-    n_b = weights.shape[0]
+    last; NaN where nothing is detected) for each row of frame weights (B, F), before max-interpolation.
+
+    The events (sorted by score, descending) are swept once per block of resamples: each resample keeps its
+    own sums and records them when the sweep passes its next threshold. Each resample adds the same terms in
+    the same order as a sweep of its own would, so the numbers are the same; the events are read once a
+    block rather than once a resample (reading them was most of the time)."""
+    n_b, n_f = weights.shape
     out = np.zeros((n_b, 2, N_SAMPLE_PTS))
-    for b in range(n_b):
-        w = weights[b]
-        n_gt = 0
-        for f in range(valid.shape[0]):
-            n_gt += w[f] * valid[f]
-        n_tp = 0
-        for k in range(tp_score.shape[0]):
-            n_tp += w[tp_frame[k]]
-        if n_gt == 0 or n_tp == 0:
-            continue
-        # the devkit's score thresholds over the resampled true positives (each repeated by its weight)
-        thresholds = np.empty(N_SAMPLE_PTS)
-        n_thr = 0
-        current = 0.0
-        i = 0
-        for k in range(tp_score.shape[0]):
-            for _ in range(w[tp_frame[k]]):
-                take, current = threshold_step(i, n_tp, n_gt, current, N_SAMPLE_PTS)
-                if take and n_thr < N_SAMPLE_PTS:
-                    thresholds[n_thr] = tp_score[k]
-                    n_thr += 1
-                i += 1
-        tp = 0.0
-        fp = 0.0
-        sim = 0.0
-        e = 0
-        for t in range(n_thr):
-            while e < ev_score.shape[0] and ev_score[e] >= thresholds[t]:
-                ww = w[ev_frame[e]]
+    thresholds = np.empty((n_b, N_SAMPLE_PTS))
+    n_thr = np.zeros(n_b, np.int64)
+    _resampled_thresholds(valid, tp_score, tp_frame, weights, thresholds, n_thr)
+    block = np.zeros((n_f, _BLOCK))  # the block's weights, a frame's in one row
+    tp = np.zeros(_BLOCK)
+    fp = np.zeros(_BLOCK)
+    sim = np.zeros(_BLOCK)
+    t = np.zeros(_BLOCK, np.int64)
+    n_e = ev_score.shape[0]
+    for b0 in range(0, n_b, _BLOCK):
+        nb = min(_BLOCK, n_b - b0)
+        for f in range(n_f):
+            for r in range(nb):
+                block[f, r] = weights[b0 + r, f]
+        top = -np.inf  # the highest next threshold of the block
+        for r in range(nb):
+            tp[r] = 0.0
+            fp[r] = 0.0
+            sim[r] = 0.0
+            t[r] = 0
+            if n_thr[b0 + r] > 0:
+                top = max(top, thresholds[b0 + r, 0])
+        for e in range(n_e + 1):
+            s = ev_score[e] if e < n_e else -np.inf
+            if s < top:  # some resample's threshold is above this event: record its sums first
+                top = -np.inf
+                for r in range(nb):
+                    b = b0 + r
+                    while t[r] < n_thr[b] and s < thresholds[b, t[r]]:
+                        den = tp[r] + fp[r]
+                        out[b, 0, t[r]] = tp[r] / den if den > 0 else np.nan
+                        out[b, 1, t[r]] = sim[r] / den if den > 0 else np.nan
+                        t[r] += 1
+                    if t[r] < n_thr[b]:
+                        top = max(top, thresholds[b, t[r]])
+                if top == -np.inf:  # every threshold of the block recorded
+                    break
+            if e == n_e:
+                break
+            row = block[ev_frame[e]]
+            d_tp, d_fp, d_sim = ev_delta[e, 0], ev_delta[e, 1], ev_delta[e, 3]
+            for r in range(nb):
+                ww = row[r]
                 if ww != 0:
-                    tp += ww * ev_delta[e, 0]
-                    fp += ww * ev_delta[e, 1]
-                    sim += ww * ev_delta[e, 3]
-                e += 1
-            out[b, 0, t] = tp / (tp + fp) if tp + fp > 0 else np.nan
-            out[b, 1, t] = sim / (tp + fp) if tp + fp > 0 else np.nan
+                    tp[r] += ww * d_tp
+                    fp[r] += ww * d_fp
+                    sim[r] += ww * d_sim
     return out
 
 
@@ -179,9 +254,18 @@ def paired_intervals(
         vb = values_b.get(key)
         if vb is None:
             continue
-        delta = vb - va
-        if np.isnan(delta).any():
-            continue
-        lo, hi = np.percentile(delta, [2.5, 97.5])
-        intervals[key] = (float(lo), float(hi))
+        found = interval95(vb - va)
+        if found is not None:
+            intervals[key] = found
     return intervals
+
+
+def interval95(values: npt.ArrayLike) -> tuple[float, float] | None:
+    """The 2.5th and 97.5th percentiles of resampled values (numpy's default, linear interpolation): every
+    95% interval of the paired bootstrap, of a difference (:func:`paired_intervals`) or of one result's value
+    (:mod:`.ranking`). None when there are none or one is NaN."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.size == 0 or np.isnan(v).any():
+        return None
+    lo, hi = np.percentile(v, [2.5, 97.5])
+    return float(lo), float(hi)

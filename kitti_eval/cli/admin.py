@@ -256,13 +256,14 @@ def _offline_service(settings: Any) -> Iterator[Any]:
 
 
 def _run_jobs(service: Any, job_ids: list[str]) -> list[Any]:
-    """Run the queued rescoring jobs in this process until none is left (a service's workers on the same database
-    may take some of ``job_ids`` meanwhile: those are waited for); the jobs ``job_ids`` as they ended."""
+    """Run the queued rescoring jobs, and the jobs of the board's intervals they queue, in this process until none
+    is left (a service's workers on the same database may take some of ``job_ids`` meanwhile: those are waited
+    for); the jobs ``job_ids`` as they ended."""
     from kitti_eval_server.workers import Workers, worker_name
 
     workers = Workers(service.jobs, service.workers.handlers, threads=0)
     name = worker_name(0) + ":admin"
-    while (job := service.jobs.claim(name, kinds=["rescore"])) is not None:
+    while (job := service.jobs.claim(name, kinds=["rescore", "intervals"])) is not None:
         workers.run_one(job, name)
     return [service.jobs.wait(job_id, service.jobs.lease_s * service.jobs.max_attempts + 60) for job_id in job_ids]
 

@@ -23,9 +23,15 @@ ranking after the close) the board shows the scores on the public part; after th
 private part. A benchmark is revealed only once it has opened and is closed, and is never reopened after.
 Its test set stays sealed: a ground truth is registered under a benchmark's test set name sealed only.
 
+How sure the board is: after each scoring a job computes the submission's ranking key under the benchmark's
+1000 bootstrap resamples of the frames of each part (the same draws for every submission), kept in the
+database; the board gives each entry's 95% interval, rank range and whether it differs from the next from
+them, and a participant's submission is compared with their previous best and the leader (:mod:`.intervals`).
+
 The modules: :mod:`.rules` (a benchmark's definition and rules), :mod:`.catalog` (seeing benchmarks, the
-admins' actions on them), :mod:`.submissions` (accepting, scoring, publishing), :mod:`.leaderboard` (ranking,
-CSV) and :mod:`.markdown` (the description as HTML).
+admins' actions on them), :mod:`.intervals` (the resampled keys: computed, kept, compared),
+:mod:`.submissions` (accepting, scoring, publishing), :mod:`.leaderboard` (ranking, CSV) and
+:mod:`.markdown` (the description as HTML).
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
 """A benchmark's leaderboard: its published, scored entries ranked by the key on the scores of the board's
-phase (the whole test set, its public part, or its private part once revealed), as JSON or CSV."""
+phase (the whole test set, its public part, or its private part once revealed), with how sure each place is
+(:mod:`.intervals`), as JSON or CSV."""
 
 from __future__ import annotations
 
@@ -8,27 +9,35 @@ import io
 from collections.abc import Mapping
 from typing import Any
 
+from kitti_eval.analysis.ranking import standings
+
 from ..errors import BadRequest
 from ..policy import Caller
-from .catalog import BenchmarkCatalog
-from .rules import key_value
+from .intervals import Intervals, ranked_rows, rounded
 
 __all__ = ["Leaderboard"]
 
 
-class Leaderboard(BenchmarkCatalog):
+class Leaderboard(Intervals):
     """The boards of the benchmarks."""
 
     def leaderboard(
         self, name: str, caller: Caller, *, sort: str | None = None, order: str | None = None
     ) -> dict[str, Any]:
+        """The published, scored entries ranked by the key (best first; ties by submission time), each with
+        its 95% ``interval``, its ``rank_range`` and whether it ``differs_from_next`` (:mod:`.intervals`:
+        from the kept resampled keys; None while an entry's are being computed, counted in
+        ``bootstrap.pending``), then sorted as asked."""
         bench = self.get(name, caller)
         phase = bench.phase
+        ranked = ranked_rows(bench, self.store.list_submissions(name, published_only=True))
+        values = self.resampled(bench, [row for row, key in ranked if key is not None])
+        keyed = [row.id for row, key in ranked if key is not None]
+        standing = dict(zip(keyed, standings([values.get(i) for i in keyed])))
         entries: list[dict[str, Any]] = []
-        for row in self.store.list_submissions(name, published_only=True):
-            if row.status != "scored":
-                continue
+        for i, (row, key) in enumerate(ranked, 1):
             scores = (row.scores or {}).get(phase) or {}
+            place = standing.get(row.id)
             entries.append(
                 {
                     "id": row.id,
@@ -38,23 +47,23 @@ class Leaderboard(BenchmarkCatalog):
                     "link": None if row.anonymous else row.link,
                     "anonymous": bool(row.anonymous),
                     "date": row.created_at.isoformat(),
-                    "key": key_value(scores, bench.key),
+                    "key": key,
                     "columns": {c: scores.get(c) for c in bench.columns},
+                    "rank": i,
+                    "interval": rounded(place.interval) if place else None,
+                    "rank_range": list(place.rank_range) if place and place.rank_range else None,
+                    "differs_from_next": place.differs_from_next if place else None,
                 }
             )
-        # the rank: by the key, best first, ties by submission time (the list is oldest first: sort is stable)
-        ranked = sorted(entries, key=lambda e: (e["key"] is None, -(e["key"] or 0.0)))
-        for i, entry in enumerate(ranked, 1):
-            entry["rank"] = i
         sort = sort or "key"
         if sort not in ("key", "rank", "method", "date", *bench.columns):
             raise BadRequest(f"sort by rank, key, method, date or a column: {', '.join(bench.columns)}")
         order = order or ("asc" if sort in ("rank", "method", "date") else "desc")
         if order not in ("asc", "desc"):
             raise BadRequest("order is asc or desc")
-        rows = ranked
+        rows = entries
         if sort not in ("key", "rank") or order != "desc" or sort == "rank":
-            rows = self._sorted(ranked, sort, order)
+            rows = self._sorted(entries, sort, order)
         return {
             "benchmark": bench.name,
             "title": bench.title,
@@ -64,6 +73,7 @@ class Leaderboard(BenchmarkCatalog):
             "sort": sort,
             "order": order,
             "entries": rows,
+            "bootstrap": {**self.bootstrap_of(bench), "pending": sum(1 for i in keyed if i not in values)},
         }
 
     @staticmethod
@@ -87,10 +97,27 @@ class Leaderboard(BenchmarkCatalog):
         out = io.StringIO()
         writer = csv.writer(out, lineterminator="\n")
         key_name = "key (" + " + ".join(board["key"]) + ")" if len(board["key"]) > 1 else board["key"][0]
-        writer.writerow(["rank", "method", "participant", "affiliation", "link", "date", key_name, *board["columns"]])
+        writer.writerow(
+            [
+                "rank",
+                "method",
+                "participant",
+                "affiliation",
+                "link",
+                "date",
+                key_name,
+                *board["columns"],
+                "interval_low",
+                "interval_high",
+                "rank_best",
+                "rank_worst",
+            ]
+        )
         for e in board["entries"]:
             cells = [e["rank"], e["method"], e["participant"], e["affiliation"], e["link"], e["date"], e["key"]]
             cells += [e["columns"].get(c) for c in board["columns"]]
+            cells += e["interval"] or [None, None]
+            cells += e["rank_range"] or [None, None]
             writer.writerow(["" if c is None else _cell(c) for c in cells])
         return out.getvalue()
 

@@ -25,6 +25,7 @@ __all__ = [
     "parse_column",
     "parse_time",
     "in_public_part",
+    "part_frames",
     "key_value",
     "scores_of",
 ]
@@ -67,6 +68,17 @@ def parse_column(text: str, classes: Sequence[str], sets: Sequence[str]) -> str:
 def in_public_part(seed: str, frame_id: str, percent: float) -> bool:
     digest = hashlib.sha256(f"{seed}:{frame_id}".encode()).digest()
     return int.from_bytes(digest[:8], "big") < percent / 100 * 2**64
+
+
+def part_frames(seed: str | None, frame_ids: Sequence[str], percent: float | None) -> dict[str, list[str]]:
+    """The frames of each part a board may rank on, in the test set's order: ``public`` and ``private`` with a
+    split (``percent`` and its ``seed``), else ``all``."""
+    if percent is None or not seed:
+        return {"all": list(frame_ids)}
+    parts: dict[str, list[str]] = {"public": [], "private": []}
+    for f in frame_ids:
+        parts["public" if in_public_part(seed, f, percent) else "private"].append(f)
+    return parts
 
 
 def parse_time(value: str | datetime | None, what: str) -> datetime | None:

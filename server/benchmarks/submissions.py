@@ -10,16 +10,25 @@ from collections.abc import Callable
 from datetime import datetime, timedelta, timezone
 from typing import Any
 
+from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.core.frames import Annotations
 from kitti_eval.errors import InputError
 from kitti_eval.io.submission import SubmissionRules, validate_annotations, validate_txt_folder
 
 from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
 from ..evaluations import sealed_document
-from ..evaluator import evaluate_document
+from ..evaluator import evaluate_document, evaluate_document_resampled
 from ..jobs import JobRecord
 from ..policy import Caller
-from ..store import GroundTruthRecord, JobInput, PublishRefused, QuotaRefused, SubmissionRecord, new_id
+from ..store import (
+    GroundTruthRecord,
+    JobInput,
+    PublishRefused,
+    QuotaRefused,
+    ResampledKey,
+    SubmissionRecord,
+    new_id,
+)
 from ..uploads import (
     FileIn,
     InputFormat,
@@ -30,8 +39,8 @@ from ..uploads import (
     sniff,
 )
 from ..workers import error_of
-from .catalog import BenchmarkCatalog
-from .rules import Benchmark, in_public_part, scores_of
+from .intervals import Intervals
+from .rules import Benchmark, part_frames, scores_of
 
 __all__ = ["Submissions", "QuotaExceeded", "InvalidSubmission"]
 
@@ -96,7 +105,7 @@ def _submission_view(
     return out
 
 
-class Submissions(BenchmarkCatalog):
+class Submissions(Intervals):
     """A benchmark's submissions: the participants' side and the admins'."""
 
     # -- admin ----------------------------------------------------------------------------------------------
@@ -217,8 +226,8 @@ class Submissions(BenchmarkCatalog):
                 dt = self._checked(stored.content, row.pred_filename, gt)
                 self.store.add_prediction_file(row.pred_sha256, stored.content)
             else:
-                dt = self._kept_predictions(row, gt)
-            values = self._scores(bench, record, gt, dt)
+                dt = self._predictions(job, row, gt)  # a rescoring: the kept file
+            values, resampled = self._scores(bench, record, gt, dt)
         except InvalidSubmission:
             self.store.delete_submission(sid)
             raise
@@ -230,19 +239,11 @@ class Submissions(BenchmarkCatalog):
 
         def write(conn: Any) -> None:
             self.store.update_submission_in(conn, sid, **values)
+            self.store.replace_resampled_keys_in(conn, sid, values["scored_at"], resampled)
             if job.kind == "submission":
                 self.store.delete_job_inputs_in(conn, job.id)
 
         return sid, write
-
-    def _kept_predictions(self, row: SubmissionRecord, gt: Annotations) -> Annotations:
-        """A scored submission's predictions, from the kept file (a rescoring)."""
-        content = self.store.prediction_content(row.pred_sha256)
-        if content is None:
-            raise Conflict(f"the predictions of submission {row.id} are not kept")
-        with self.scratch() as scratch:
-            upload = receive_upload(io.BytesIO(content), row.pred_filename, "predictions")
-            return load_upload(upload, "detections", scratch, self.limits, known_frames=gt.frame_index()).annotations
 
     def _checked(self, content: bytes, filename: str, gt: Annotations) -> Annotations:
         """The submission's predictions, read once and checked as :func:`validate_submission` checks them (its
@@ -269,27 +270,38 @@ class Submissions(BenchmarkCatalog):
                 raise InvalidSubmission(outcome.lines())
             return load_txt_folder(folder, names, upload.filename, self.limits)
 
-    def _scores(self, bench: Benchmark, record: GroundTruthRecord, gt: Annotations, dt: Annotations) -> dict[str, Any]:
-        """A submission's scored values: its (sealed) documents and its scores on the whole set and each part."""
+    def _scores(
+        self, bench: Benchmark, record: GroundTruthRecord, gt: Annotations, dt: Annotations
+    ) -> tuple[dict[str, Any], list[ResampledKey]]:
+        """A submission's scored values: its (sealed) documents and its scores on the whole set and each part;
+        and its key under the benchmark's resamples of each part a board ranks on (from the same plans)."""
         config = bench.options().config()
         columns = list(dict.fromkeys([*bench.columns, *bench.key]))
-        doc = evaluate_document(gt, dt, config)
+        keys = [ValueKey.parse(k) for k in bench.key]
+        parts = part_frames(bench.split_seed, gt.frame_ids, bench.split_percent)
+        resampled: list[ResampledKey] = []
+
+        def scored(part: str, g: Annotations, d: Annotations) -> dict[str, Any]:
+            if part not in parts:  # the whole set of a benchmark with a split: no board ranks on it
+                return evaluate_document(g, d, config)
+            n = len(parts[part])
+            doc, values = evaluate_document_resampled(g, d, config, keys, self.board_weights(bench, n))
+            resampled.append(self.resampled_key_record(bench, part, values, n))
+            return doc
+
+        doc = scored("all", gt, dt)
         scores: dict[str, dict[str, float | None]] = {"all": scores_of(doc, columns)}
         public_result = None
-        percent = bench.split_percent
-        if percent is not None and bench.split_seed:
-            parts: dict[str, list[str]] = {"public": [], "private": []}
-            for f in gt.frame_ids:
-                parts["public" if in_public_part(bench.split_seed, f, percent) else "private"].append(f)
+        if "all" not in parts:
             for part, frames in parts.items():
                 if frames:
-                    part_doc = evaluate_document(gt.subset(frames), dt.subset(frames), config)
+                    part_doc = scored(part, gt.subset(frames), dt.subset(frames))
                     scores[part] = scores_of(part_doc, columns)
                     if part == "public":
                         public_result = sealed_document(part_doc)
                 else:
                     scores[part] = dict.fromkeys(columns)
-        return {
+        values = {
             "status": "scored",
             "result": sealed_document(doc),
             "scores": scores,
@@ -297,6 +309,7 @@ class Submissions(BenchmarkCatalog):
             "gt_sha256": record.sha256,
             "scored_at": datetime.now(timezone.utc),
         }
+        return values, resampled
 
     def _own(self, name: str, submission_id: str, caller: Caller) -> SubmissionRecord:
         """One of the caller's own submissions (another's is as absent as a missing one; admins list every
@@ -308,8 +321,13 @@ class Submissions(BenchmarkCatalog):
         return record
 
     def submission(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
+        """One of the caller's submissions with its full result and its ``comparison`` (:meth:`comparison`: with
+        their best earlier submission and the leader, on the part the board shows)."""
         record = self._own(name, submission_id, caller)
-        return _submission_view(record, self._get(name), full=True)
+        bench = self._get(name)
+        out = _submission_view(record, bench, full=True)
+        out["comparison"] = self.comparison(bench, record)
+        return out
 
     def mine(self, name: str, caller: Caller) -> dict[str, Any]:
         bench = self.get(name, caller)

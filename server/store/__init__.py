@@ -10,7 +10,14 @@ service and the command line use it. (The modules are named after their classes,
 from __future__ import annotations
 
 from .account_store import AccountStore, AuditRecord, TokenRecord, UserRecord
-from .benchmark_store import BenchmarkRecord, BenchmarkStore, PublishRefused, QuotaRefused, SubmissionRecord
+from .benchmark_store import (
+    BenchmarkRecord,
+    BenchmarkStore,
+    PublishRefused,
+    QuotaRefused,
+    ResampledKey,
+    SubmissionRecord,
+)
 from .database import (
     Area,
     Database,
@@ -27,6 +34,7 @@ from .database import (
     prediction_files,
     projects,
     quota_locks,
+    submission_resamples,
     submissions,
     tokens,
     users,
@@ -54,6 +62,7 @@ __all__ = [
     "AuditRecord",
     "BenchmarkRecord",
     "SubmissionRecord",
+    "ResampledKey",
     "JobRecord",
     "WorkerRecord",
     "QuotaRefused",
@@ -73,6 +82,7 @@ __all__ = [
     "audit",
     "benchmarks",
     "submissions",
+    "submission_resamples",
     "quota_locks",
     "jobs",
 ]

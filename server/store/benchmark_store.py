@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Mapping
+from collections.abc import Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
@@ -11,9 +11,18 @@ from typing import Any
 from sqlalchemy import delete, func, insert, select, update
 from sqlalchemy.engine import Connection, RowMapping
 
-from .database import Area, benchmarks, dated, quota_locks, retry_when_locked, submissions, utc
+from .database import (
+    Area,
+    benchmarks,
+    dated,
+    quota_locks,
+    retry_when_locked,
+    submission_resamples,
+    submissions,
+    utc,
+)
 
-__all__ = ["BenchmarkRecord", "SubmissionRecord", "QuotaRefused", "PublishRefused", "BenchmarkStore"]
+__all__ = ["BenchmarkRecord", "SubmissionRecord", "ResampledKey", "QuotaRefused", "PublishRefused", "BenchmarkStore"]
 
 
 class QuotaRefused(Exception):
@@ -77,6 +86,17 @@ class SubmissionRecord:
     link: str | None = None
     published_at: datetime | None = None
     disqualified: bool = False
+
+
+@dataclass(frozen=True)
+class ResampledKey:
+    """A submission's ranking key under each bootstrap resample of one part of the test set."""
+
+    part: str  # all | public | private
+    seed: int
+    resamples: int
+    frames: int  # the part's frames the resamples draw from
+    key_values: bytes  # float64, little-endian, one a resample
 
 
 class BenchmarkStore(Area):
@@ -217,6 +237,58 @@ class BenchmarkStore(Area):
         with self.engine.connect() as conn:
             rows = conn.execute(query).mappings().all()
         return [self._submission(r) for r in rows]
+
+    @staticmethod
+    def delete_resampled_keys_in(conn: Connection, submission_id: str) -> None:
+        """Within the transaction that scores the submission again: its resampled keys are of the last scoring."""
+        conn.execute(delete(submission_resamples).where(submission_resamples.c.submission_id == submission_id))
+
+    @staticmethod
+    def replace_resampled_keys_in(
+        conn: Connection, submission_id: str, scored_at: datetime, keys: Sequence[ResampledKey]
+    ) -> bool:
+        """Within a job's ending transaction: the submission's resampled keys become ``keys``, if it is still
+        scored as it was at ``scored_at`` (else nothing is written: a later scoring has its own). Whether they
+        were written."""
+        row = conn.execute(
+            select(submissions.c.benchmark, submissions.c.scored_at, submissions.c.status).where(
+                submissions.c.id == submission_id
+            )
+        ).first()
+        if row is None or row.status != "scored" or row.scored_at is None or utc(row.scored_at) != scored_at:
+            return False
+        conn.execute(delete(submission_resamples).where(submission_resamples.c.submission_id == submission_id))
+        if keys:
+            conn.execute(
+                insert(submission_resamples),
+                [
+                    {
+                        "submission_id": submission_id,
+                        "benchmark": row.benchmark,
+                        "scored_at": scored_at,
+                        **{k: getattr(key, k) for k in ("part", "seed", "resamples", "frames", "key_values")},
+                    }
+                    for key in keys
+                ],
+            )
+        return True
+
+    @retry_when_locked
+    def resampled_keys(
+        self, benchmark: str, *, part: str, seed: int, resamples: int, ids: Collection[str] | None = None
+    ) -> dict[str, bytes]:
+        """Submission id -> its resampled key on ``part`` under the (``seed``, ``resamples``) draws, of the
+        submissions of ``benchmark`` (those of ``ids`` only, when given) that have one."""
+        c = submission_resamples.c
+        query = select(c.submission_id, c.key_values).where(
+            c.benchmark == benchmark, c.part == part, c.seed == seed, c.resamples == resamples
+        )
+        if ids is not None:
+            if not ids:
+                return {}
+            query = query.where(c.submission_id.in_(list(ids)))
+        with self.engine.connect() as conn:
+            return {r.submission_id: bytes(r.key_values) for r in conn.execute(query)}
 
     @staticmethod
     def _benchmark(row: RowMapping) -> BenchmarkRecord:

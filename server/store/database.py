@@ -66,6 +66,7 @@ __all__ = [
     "audit",
     "benchmarks",
     "submissions",
+    "submission_resamples",
     "quota_locks",
     "jobs",
     "job_inputs",
@@ -236,6 +237,23 @@ submissions = Table(
     Column("published_at", DateTime(timezone=True), nullable=True),
     Column("disqualified", Boolean, nullable=False),
     Index("ix_submissions_quota", "benchmark", "participant", "created_at"),
+)
+
+#: a scored submission's ranking key under each of its benchmark's bootstrap resamples over the frames of a part
+#: of the test set (see kitti_eval_server.benchmarks.intervals): written by a job after each scoring, read by
+#: the leaderboard; one row per (submission, part, seed, resamples)
+submission_resamples = Table(
+    "submission_resamples",
+    metadata,
+    Column("submission_id", String(32), ForeignKey("submissions.id", ondelete="CASCADE"), primary_key=True),
+    Column("part", String(16), primary_key=True),  # all | public | private
+    Column("seed", BigInteger, primary_key=True),
+    Column("resamples", Integer, primary_key=True),
+    Column("benchmark", String(64), nullable=False),
+    Column("scored_at", DateTime(timezone=True), nullable=False),  # the scoring the values are of
+    Column("frames", Integer, nullable=False),  # the part's frames the resamples draw from
+    Column("key_values", LargeBinary, nullable=False),  # float64, little-endian: the key under each resample
+    Index("ix_submission_resamples_board", "benchmark", "part", "seed", "resamples"),
 )
 
 #: one row per (benchmark, participant), locked while a submission is counted against the quota

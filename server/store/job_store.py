@@ -32,7 +32,7 @@ class JobRecord:
     """A job's row (``group`` is the ``grp`` column)."""
 
     id: str
-    kind: str  # evaluation | submission | rescore
+    kind: str  # evaluation | submission | rescore | intervals
     state: str  # queued | running | done | failed | cancelled
     attempts: int  # 0 when queued, +1 at each claim
     max_attempts: int
@@ -63,6 +63,14 @@ class JobStore(Area):
     def add_job(self, record: JobRecord) -> bool:
         """False if the id is taken."""
         return self._insert(jobs, **self._job_values(record))
+
+    @classmethod
+    def add_job_in(cls, conn: Connection, record: JobRecord) -> bool:
+        """Within a transaction of the caller's (another job's end): False if the id is taken (nothing added)."""
+        if conn.execute(select(jobs.c.id).where(jobs.c.id == record.id)).first() is not None:
+            return False
+        conn.execute(insert(jobs).values(**cls._job_values(record)))
+        return True
 
     @retry_when_locked
     def add_jobs(self, records: Sequence[JobRecord]) -> None:
