@@ -11,7 +11,7 @@
   on the same database, median and 95th percentile of 30 requests (target < 50 ms), and where the time of one
   read goes (the submissions' rows, the kept values, the standings).
 
-The entries are generated (:mod:`kitti_eval.io.synth`): each its own draw of the detector, some less precise
+The entries are generated (:mod:`kitti_eval.synth`): each its own draw of the detector, some less precise
 (their boxes up to 10 cm further off), so that the board has close and distant neighbours. Generating and
 submitting them is not counted.
 
@@ -38,7 +38,7 @@ from typing import Any
 
 import httpx
 
-from kitti_eval.io.synth import generate
+from kitti_eval.synth import generate
 
 ADMIN = "bench-admin-token"
 HEADERS = {"Authorization": f"Bearer {ADMIN}"}

@@ -16,7 +16,7 @@ from kitti_eval.cli import main
 from kitti_eval.core.evaluation import plan_evaluation
 from kitti_eval.core.protocol import EvalConfig
 from kitti_eval.io.loaders import load_detections, load_ground_truth
-from kitti_eval.io.synth import generate, write_infos, write_results
+from kitti_eval.synth import generate, write_infos, write_results
 
 KEY = "Car/3d/moderate/R40/strict"
 

@@ -1,4 +1,4 @@
-"""Curves and AP (kitti_eval.core.metrics): the interpolation and the R11/R40 averages, stated as arithmetic."""
+"""Curves and AP (kitti_eval.core.ap): the interpolation and the R11/R40 averages, stated as arithmetic."""
 
 from __future__ import annotations
 

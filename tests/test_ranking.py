@@ -19,7 +19,7 @@ from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import EvalConfig
 from kitti_eval.errors import ConfigError
 from kitti_eval.io.loaders import load_detections, load_ground_truth
-from kitti_eval.io.synth import generate
+from kitti_eval.synth import generate
 
 GOLDEN = Path(__file__).parent / "data" / "golden"
 CAR = ValueKey("Car", "3d", "moderate")

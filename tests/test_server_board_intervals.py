@@ -25,7 +25,7 @@ from kitti_eval.analysis.ranking import resampled_key
 from kitti_eval.cli import main
 from kitti_eval.core.evaluation import plan_evaluation
 from kitti_eval.io.loaders import load_detections, load_ground_truth
-from kitti_eval.io.synth import generate, write_infos, write_results
+from kitti_eval.synth import generate, write_infos, write_results
 from kitti_eval_server.benchmarks.intervals import RESAMPLES, board_seed, intervals_job_id
 from kitti_eval_server.benchmarks.rules import part_frames
 from kitti_eval_server.evaluator import EvalOptions

@@ -1,4 +1,4 @@
-"""kitti_eval.io.synth: OpenPCDet's structures exactly, self-consistent geometry, writers, the bundled demo."""
+"""kitti_eval.synth: OpenPCDet's structures exactly, self-consistent geometry, writers, the bundled demo."""
 
 from __future__ import annotations
 
