@@ -40,12 +40,17 @@ class Leaderboard(BenchmarkCatalog):
                     "date": row.created_at.isoformat(),
                     "key": key_value(scores, bench.key),
                     "columns": {c: scores.get(c) for c in bench.columns},
+                    "baseline": bool(row.baseline),
                 }
             )
-        # the rank: by the key, best first, ties by submission time (the list is oldest first: sort is stable)
+        # the rank: by the key, best first, ties by submission time (the list is oldest first: sort is stable);
+        # an admin's baseline stands in its place by the key without a rank of its own
         ranked = sorted(entries, key=lambda e: (e["key"] is None, -(e["key"] or 0.0)))
-        for i, entry in enumerate(ranked, 1):
-            entry["rank"] = i
+        rank = 0
+        for entry in ranked:
+            if not entry["baseline"]:
+                rank += 1
+            entry["rank"] = None if entry["baseline"] else rank
         sort = sort or "key"
         if sort not in ("key", "rank", "method", "date", *bench.columns):
             raise BadRequest(f"sort by rank, key, method, date or a column: {', '.join(bench.columns)}")
@@ -68,8 +73,12 @@ class Leaderboard(BenchmarkCatalog):
 
     @staticmethod
     def _sorted(entries: list[dict[str, Any]], sort: str, order: str) -> list[dict[str, Any]]:
+        place = {id(e): i for i, e in enumerate(entries)}  # the key's order: where baselines stand among ranks
+
         def value(e: dict[str, Any]) -> Any:
-            if sort in ("key", "rank", "method", "date"):
+            if sort == "rank":
+                return place[id(e)]
+            if sort in ("key", "method", "date"):
                 return e[sort]
             return e["columns"].get(sort)
 
@@ -89,7 +98,8 @@ class Leaderboard(BenchmarkCatalog):
         key_name = "key (" + " + ".join(board["key"]) + ")" if len(board["key"]) > 1 else board["key"][0]
         writer.writerow(["rank", "method", "participant", "affiliation", "link", "date", key_name, *board["columns"]])
         for e in board["entries"]:
-            cells = [e["rank"], e["method"], e["participant"], e["affiliation"], e["link"], e["date"], e["key"]]
+            rank = "baseline" if e["rank"] is None else e["rank"]
+            cells = [rank, e["method"], e["participant"], e["affiliation"], e["link"], e["date"], e["key"]]
             cells += [e["columns"].get(c) for c in board["columns"]]
             writer.writerow(["" if c is None else _cell(c) for c in cells])
         return out.getvalue()
