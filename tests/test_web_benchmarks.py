@@ -67,9 +67,11 @@ def test_a_participant_goes_from_the_list_to_a_published_entry_through_forms(wor
     csrf = sign_in(c, hosted.tokens["alice"])
     listed = c.get("/benchmarks")
     assert listed.status_code == 200
-    row = re.search(r'<tr data-name="bench">(.*?)</tr>', listed.text, re.S)
-    assert row and "3 per 1 day" not in row.group(1) and "3 submissions per 1 day" in row.group(1)
-    assert "Car 3D moderate" in row.group(1) and "3 of 3" in row.group(1)
+    row = re.search(r'<article class="bench-card" data-name="bench">(.*?)</article>', listed.text, re.S)
+    assert row and "3 submissions per 1 day" in row.group(1)
+    assert "Car 3D moderate (R40, strict IoU)" in row.group(
+        1
+    ) and "<strong>3 of 3</strong> submissions left" in row.group(1)
     page = c.get("/benchmarks/bench").text
     assert 'id="quota-left"' in page and "<strong>3</strong> of 3 submissions left" in page
     assert 'action="/benchmarks/bench/submissions"' in page
@@ -346,5 +348,5 @@ def test_the_first_visit_in_accounts_mode_is_a_calm_sign_in_form(world) -> None:
     c.cookies.clear()
     # the benchmarks are open to anyone: the public one is listed without signing in, with no form
     listed = c.get("/benchmarks")
-    assert listed.status_code == 200 and 'data-name="bench"' in listed.text and "Left" not in listed.text
+    assert listed.status_code == 200 and 'data-name="bench"' in listed.text and 'class="left"' not in listed.text
     assert 'id="yours"' not in c.get("/benchmarks/bench").text

@@ -152,12 +152,21 @@ def _benchmark_context(
         "has_intervals": any("interval" in e for e in board["entries"]),
         "has_ranges": any("rank_range" in e for e in board["entries"]),
         "key_label": _rules(described)["key"],
+        "key_short": _short_key(described["key"], board["columns"]),
         "number": number,
         "mine": mine,
+        "accounts": service.policy.accounts,
         "max_upload_bytes": service.settings.max_upload_bytes,
         "problems": None,
         "error": None,
     }
+
+
+def _short_key(key: list[str], columns: list[str]) -> str:
+    """The key as its column's header says it: without the recall mode and IoU set the columns share."""
+    common = board_header(columns)["common"]
+    label = " + ".join(column_label(k, common=common) for k in key)
+    return f"mean of {label}" if len(key) > 1 else label
 
 
 @router.get("/benchmarks/{name}")

@@ -148,22 +148,21 @@ def bootstrap_line(board: Mapping[str, Any]) -> str | None:
     if not isinstance(boot, Mapping):
         return None
     level = boot.get("level")
-    if isinstance(level, (int, float)):
-        percent = level * 100 if level <= 1 else level
-        shown = f"{percent:g} %"
-    else:
-        shown = "the"
-    method = boot.get("method") or "bootstrap"
+    shown = ""
+    if isinstance(level, (int, float)) and not isinstance(level, bool):
+        shown = f" ({level * 100 if level <= 1 else level:g} %)"
     part = boot.get("part")
-    where = f" of the test frames' {part} part" if part in ("public", "private") else " of the test frames"
+    where = f", on the {part} part of the test frames" if part in ("public", "private") else ""
     text = (
-        f"Intervals: {shown} intervals of the key by {method} over resamples{where}; "
-        f"{boot.get('resamples')} resamples, seed {boot.get('seed')}."
+        f"Intervals{shown}: {boot.get('method') or 'bootstrap'}, {boot.get('resamples')} resamples, "
+        f"seed {boot.get('seed')}{where}."
     )
     pending = boot.get("pending")
     if pending:
-        count = f"{pending} " if isinstance(pending, int) and not isinstance(pending, bool) else ""
-        text += f" The intervals of {count}entries are being computed (shown as “computing”)."
+        if isinstance(pending, int) and not isinstance(pending, bool):
+            text += f" Still computing those of {pending} {'entry' if pending == 1 else 'entries'}."
+        else:
+            text += " Some are still being computed."
     return text
 
 
