@@ -215,9 +215,15 @@ def test_an_admins_baseline_is_on_the_board_without_a_rank_and_under_no_quota(tm
         ]
         assert ("baseline.add", "root") in actions and ("baseline.publish", "root") in actions
         assert ("submission.add", "alice") in actions and ("baseline.add", "alice") not in actions
-        # a participant cannot publish as a baseline, and a closed benchmark takes no baseline either
+        # a closed benchmark takes no baseline either; one that has not opened yet takes baselines only
         ok(c.post("/v1/benchmarks/bench/close", headers=ADMIN))
         assert submit(c, root, golden_bytes("result.pkl")).status_code == 409
+        body = {"name": "later", "ground_truth": "test-set", "opens_at": "2099-01-01T00:00:00+00:00"}
+        ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)
+        assert ok(submit(c, root, golden_bytes("result.pkl"), name="later"), 201)["baseline"] is True
+        assert submit(c, hosted.headers("alice"), golden_bytes("result.pkl"), name="later").status_code == 409
+        # the admin token is no account: it submits nothing
+        assert submit(c, ADMIN, golden_bytes("result.pkl"), name="later").status_code == 403
 
 
 def test_the_board_renders_intervals_rank_ranges_and_ties_when_the_board_has_them(world, monkeypatch) -> None:
@@ -350,3 +356,49 @@ def test_the_first_visit_in_accounts_mode_is_a_calm_sign_in_form(world) -> None:
     listed = c.get("/benchmarks")
     assert listed.status_code == 200 and 'data-name="bench"' in listed.text and 'class="left"' not in listed.text
     assert 'id="yours"' not in c.get("/benchmarks/bench").text
+
+
+def test_a_queued_submission_says_its_place_and_reloads_itself(tmp_path) -> None:
+    """Without a worker the submission waits in the queue: its page says so, with its place, and reloads."""
+    with app_client(tmp_path / "data", auth="accounts", job_threads=0, ready=False) as c:
+        hosted = host(c)
+        files = {"predictions": ("result.pkl", golden_bytes("result.pkl"), "application/octet-stream")}
+        first = c.post(
+            "/v1/benchmarks/bench/submissions", params={"wait": 0}, files=files, headers=hosted.headers("bob")
+        )
+        assert first.status_code == 202, first.text
+        sign_in(c, hosted.tokens["alice"])
+        csrf = _hidden(c.get("/benchmarks/bench").text)
+        r = form_submit(c, golden_bytes("result.pkl"), csrf=csrf)
+        assert r.status_code == 303
+        page = c.get(r.headers["location"]).text
+        assert 'data-state="queued"' in page and "queued (2nd in line)" in page  # bob's is first
+        assert '<meta http-equiv="refresh" content="2">' in page and 'id="publish-form"' not in page
+        listed = c.get("/benchmarks/bench").text
+        assert 'class="state queued">queued (2nd in line)<' in listed and "<strong>2</strong> of 3" in listed
+        c.cookies.clear()
+
+
+def test_a_failed_scoring_says_why_and_stops_reloading(world, monkeypatch) -> None:
+    from kitti_eval.errors import InputError
+
+    c, hosted = world
+    benchmarks = c.app.state.benchmarks
+
+    def refuse(*args, **kwargs):
+        raise InputError("predictions for frame 000007: boxes with a negative size", frame="000007", field="dimensions")
+
+    monkeypatch.setattr(benchmarks, "_scores", refuse)
+    csrf = sign_in(c, hosted.tokens["alice"])
+    r = form_submit(c, golden_bytes("result.pkl"), csrf=csrf)
+    assert r.status_code == 303
+    url = r.headers["location"]
+    deadline = time.monotonic() + 60
+    while 'data-state="failed"' not in (page := c.get(url).text):
+        assert time.monotonic() < deadline, page[:2000]
+        time.sleep(0.1)
+    failure = re.search(r'<p class="error" role="alert" id="failure">(.*?)</p>', page, re.S)
+    assert failure and "frame 000007: boxes with a negative size" in failure.group(1)
+    assert 'http-equiv="refresh"' not in page and 'id="publish-form"' not in page
+    assert "<strong>3</strong> of 3" in c.get("/benchmarks/bench").text  # a failed one does not count
+    c.cookies.clear()
