@@ -170,7 +170,7 @@ def test_the_new_forms_need_the_sessions_csrf_token(world) -> None:
 
 def test_an_admins_baseline_is_on_the_board_without_a_rank_and_under_no_quota(tmp_path) -> None:
     with app_client(tmp_path / "data", auth="accounts") as c:
-        hosted = host(c, benchmark={"quota": "1/1"})
+        hosted = host(c, benchmark={"quota": "1/1", "max_published": 1})
         root = hosted.headers("root")
         baselines = [ok(submit(c, root, golden_bytes("result.pkl")), 201) for _ in range(3)]  # over a quota of 1
         assert all(b["baseline"] is True for b in baselines)
@@ -215,6 +215,10 @@ def test_an_admins_baseline_is_on_the_board_without_a_rank_and_under_no_quota(tm
         ]
         assert ("baseline.add", "root") in actions and ("baseline.publish", "root") in actions
         assert ("submission.add", "alice") in actions and ("baseline.add", "alice") not in actions
+        # no cap on published baselines (max_published is 1 here)
+        second = f"/v1/benchmarks/bench/submissions/{baselines[1]['id']}/publish"
+        ok(c.post(second, json={"method": "R2"}, headers=root))
+        assert sum(e["baseline"] for e in ok(c.get("/v1/benchmarks/bench/leaderboard"))["entries"]) == 2
         # a closed benchmark takes no baseline either; one that has not opened yet takes baselines only
         ok(c.post("/v1/benchmarks/bench/close", headers=ADMIN))
         assert submit(c, root, golden_bytes("result.pkl")).status_code == 409
