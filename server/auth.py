@@ -287,7 +287,9 @@ class AuthMiddleware:
             await self._refuse(scope, receive, send, error)
             return
         if token is None:
-            await self._refuse(scope, receive, send, Unauthorized("sign in: send 'Authorization: Bearer <token>'"))
+            # a page's first visit is not a failure: the sign-in form, without an error
+            unsigned = Unauthorized("sign in: send 'Authorization: Bearer <token>'")
+            await self._refuse(scope, receive, send, unsigned, quiet=True)
             return
         if via_cookie and is_api(path) and method not in SAFE_METHODS and _header(scope, CSRF_HEADER.encode()) is None:
             error = Forbidden(
@@ -324,11 +326,13 @@ class AuthMiddleware:
         send: Send,
         error: ApiError,
         clear_cookie: bool = False,
+        quiet: bool = False,
     ) -> None:
+        """The API's error, or for a page the sign-in form with the error (``quiet``: without it)."""
         if is_api(scope["path"]) or isinstance(error, Forbidden):
             response: Response = error_response(error.status_code, error.code, error.message, error.headers)
         else:
-            response = await self.sign_in_page(scope, error.status_code, error.message)
+            response = await self.sign_in_page(scope, error.status_code, None if quiet else error.message)
             response.headers.update(error.headers)
         if clear_cookie:
             response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")

@@ -140,9 +140,15 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
     ("frames of an evaluation", Access.READER, "their projects', never of a sealed ground truth", "never sealed"),
     ("ground truths: list, read", Access.READER, "their projects' and shared", "all"),
     ("ground truths: register, delete", Access.ADMIN, "no", "yes"),
-    ("benchmark submissions: submit", Access.WRITER, "within the quota, while open", "no (not a participant)"),
+    ("benchmark submissions: submit", Access.WRITER, "within the quota, while open", "as baselines (below)"),
     ("own submissions: scores", Access.READER, "public part until the reveal, then all", "all (submissions/all)"),
-    ("own submissions: publish, withdraw", Access.WRITER, "until the benchmark closes", "no"),
+    ("own submissions: publish, withdraw", Access.WRITER, "until the benchmark closes", "their baselines"),
+    (
+        "benchmark baselines: submit, publish, withdraw",
+        Access.WRITER,
+        "no",
+        "under no quota, shown unranked, until the close",
+    ),
     ("benchmarks: create, close, reopen, reveal, rescore, disqualify", Access.ADMIN, "no", "yes"),
     ("accounts: users, projects, members, tokens, audit log", Access.ADMIN, "no", "yes"),
     ("jobs: list, cancel, re-run", Access.ADMIN, "no", "yes"),
@@ -316,7 +322,8 @@ class Policy:
         return project is None or self.sees_project(caller, project)
 
     def is_participant(self, caller: Caller) -> bool:
-        """Who may submit: a signed-in user's own token (not the admin token, not open mode's everyone)."""
+        """Who may submit: a signed-in user's own token (not the admin token, not open mode's everyone). An
+        admin's submission is a baseline: counted against no quota, shown on the board without a rank."""
         return self.accounts and caller.signed_in and caller.token_id is not None
 
     def owns(self, caller: Caller, participant: str) -> bool:

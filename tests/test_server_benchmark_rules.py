@@ -157,7 +157,7 @@ def test_max_published_from_the_cli(tmp_path, monkeypatch, capsys) -> None:
         assert ok(c.get("/v1/benchmarks/kitti-3d", headers={"Authorization": f"Bearer {token}"}))["max_published"] == 2
 
 
-def test_a_database_from_before_max_published_and_public_result_is_upgraded(tmp_path) -> None:
+def test_a_database_from_before_max_published_public_result_and_baselines_is_upgraded(tmp_path) -> None:
     data = tmp_path / "data"
     with app_client(data, auth="accounts") as c:
         hosted = host(c)
@@ -165,12 +165,17 @@ def test_a_database_from_before_max_published_and_public_result_is_upgraded(tmp_
     db = sqlite3.connect(data / "kitti-eval.db")
     db.execute("ALTER TABLE benchmarks DROP COLUMN max_published")
     db.execute("ALTER TABLE submissions DROP COLUMN public_result")
+    db.execute("ALTER TABLE submissions DROP COLUMN baseline")
     db.commit()
     db.close()
     with app_client(data, auth="accounts") as c:
         assert ok(c.get("/v1/benchmarks/bench"))["max_published"] is None
         assert ok(c.get(f"/v1/benchmarks/bench/submissions/{sid}", headers=hosted.headers("alice")))["result"]
         ok(_publish(c, hosted, "alice", sid))
+        entries = ok(c.get("/v1/benchmarks/bench/leaderboard"))["entries"]
+        assert [(e["id"], e["rank"], e["baseline"]) for e in entries] == [(sid, 1, False)]  # an old row: no baseline
+        baseline = ok(submit(c, hosted.headers("root"), golden_bytes("result.pkl")), 201)
+        assert baseline["baseline"] is True
         body = {"name": "capped", "ground_truth": "test-set", "max_published": 1}
         assert ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)["max_published"] == 1
 

@@ -105,3 +105,33 @@ def test_concurrent_uploads_and_sigkill_on_postgres(postgres, tmp_path) -> None:
         raise AssertionError(f"server failed:\n{server.log()}") from None
     finally:
         server.stop()
+
+
+def test_baselines_on_postgres_and_the_column_added_to_an_older_database(postgres, tmp_path) -> None:
+    """An admin's baseline (no quota, no rank) on PostgreSQL; a database made before baselines gets the column
+    (``BOOLEAN NOT NULL DEFAULT FALSE``) at start-up, its rows reading as participants' submissions."""
+    from server_benchmarks import host, ok, submit
+    from sqlalchemy import create_engine, text
+
+    url = postgres.url.rsplit("/", 1)[0] + "/baselines"
+    admin_engine = create_engine(postgres.url, isolation_level="AUTOCOMMIT")
+    with admin_engine.connect() as conn:
+        conn.execute(text("CREATE DATABASE baselines"))
+    admin_engine.dispose()
+    with app_client(tmp_path / "data", database_url=url, auth="accounts") as c:
+        hosted = host(c, benchmark={"quota": "1/1"})
+        old = ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 201)
+    engine = create_engine(url)
+    with engine.begin() as conn:
+        conn.execute(text("ALTER TABLE submissions DROP COLUMN baseline"))
+    engine.dispose()
+    with app_client(tmp_path / "data", database_url=url, auth="accounts") as c:
+        root = hosted.headers("root")
+        made = [ok(submit(c, root, golden_bytes("result.pkl")), 201) for _ in range(2)]  # over a quota of 1
+        assert [m["baseline"] for m in made] == [True, True]
+        for who, sid in (("alice", old["id"]), ("root", made[0]["id"])):
+            body = {"method": who}
+            ok(c.post(f"/v1/benchmarks/bench/submissions/{sid}/publish", json=body, headers=hosted.headers(who)))
+        entries = ok(c.get("/v1/benchmarks/bench/leaderboard"))["entries"]
+        assert [(e["method"], e["rank"], e["baseline"]) for e in entries] == [("alice", 1, False), ("root", None, True)]
+        assert submit(c, hosted.headers("alice"), golden_bytes("result.pkl")).status_code == 429  # hers is used

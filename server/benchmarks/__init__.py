@@ -4,7 +4,8 @@ Who takes part: a benchmark is seen by everyone who sees its ground truth (the m
 project, every signed-in account when the ground truth is shared) and, when it is public, its leaderboard by
 anyone, without a token. Whoever sees a benchmark may submit to it with a token that may write (accounts mode
 only: a participant is an account). Admins create, close, reopen, reveal and rescore benchmarks, list every
-submission and disqualify entries.
+submission and disqualify entries; what an admin submits is a baseline (counted against no quota, accepted
+until the close, on the board in its place by the key without a rank of its own).
 
 A submission is checked first with :func:`kitti_eval.io.submission.validate_submission` against the test frame
 ids (the sentences ``kitti-eval validate`` prints; a refused submission costs nothing), then counted against

@@ -202,7 +202,8 @@ class Intervals(BenchmarkCatalog):
         own = self.store.list_submissions(bench.name, participant=record.participant)
         before = [r for r in own if r.created_at < record.created_at]
         earlier = [(r, k) for r, k in ranked_rows(bench, before) if k is not None]
-        board = ranked_rows(bench, self.store.list_submissions(bench.name, published_only=True))
+        published = self.store.list_submissions(bench.name, published_only=True)
+        board = ranked_rows(bench, [r for r in published if not r.baseline])  # baselines lead no one
         leader = board[0] if board and board[0][1] is not None else None
         mine = key_value((record.scores or {}).get(bench.phase) or {}, bench.key)
         others = [x for x in (earlier[0] if earlier else None, leader) if x is not None]

@@ -32,10 +32,17 @@ class Leaderboard(Intervals):
         phase = bench.phase
         ranked = ranked_rows(bench, self.store.list_submissions(name, published_only=True))
         values = self.resampled(bench, [row for row, key in ranked if key is not None])
-        keyed = [row.id for row, key in ranked if key is not None]
+        # the participants are ranked among themselves (1, 2, 3, ... without a gap); an admin's baseline stands
+        # in its place by the key without a rank, and its interval is its own
+        ranked_ids = [row.id for row, _ in ranked if not row.baseline]
+        rank_of = {sid: i for i, sid in enumerate(ranked_ids, 1)}
+        keyed = [row.id for row, key in ranked if key is not None and not row.baseline]
         standing = dict(zip(keyed, standings([values.get(i) for i in keyed])))
+        for row, key in ranked:
+            if row.baseline and key is not None:
+                standing[row.id] = standings([values.get(row.id)])[0]
         entries: list[dict[str, Any]] = []
-        for i, (row, key) in enumerate(ranked, 1):
+        for row, key in ranked:
             scores = (row.scores or {}).get(phase) or {}
             place = standing.get(row.id)
             entries.append(
@@ -49,12 +56,14 @@ class Leaderboard(Intervals):
                     "date": row.created_at.isoformat(),
                     "key": key,
                     "columns": {c: scores.get(c) for c in bench.columns},
-                    "rank": i,
+                    "baseline": bool(row.baseline),
+                    "rank": None if row.baseline else rank_of[row.id],
                     "interval": rounded(place.interval) if place else None,
-                    "rank_range": list(place.rank_range) if place and place.rank_range else None,
-                    "differs_from_next": place.differs_from_next if place else None,
+                    "rank_range": list(place.rank_range) if place and place.rank_range and not row.baseline else None,
+                    "differs_from_next": place.differs_from_next if place and not row.baseline else None,
                 }
             )
+        pending = sum(1 for row, key in ranked if key is not None and row.id not in values)
         sort = sort or "key"
         if sort not in ("key", "rank", "method", "date", *bench.columns):
             raise BadRequest(f"sort by rank, key, method, date or a column: {', '.join(bench.columns)}")
@@ -73,13 +82,17 @@ class Leaderboard(Intervals):
             "sort": sort,
             "order": order,
             "entries": rows,
-            "bootstrap": {**self.bootstrap_of(bench), "pending": sum(1 for i in keyed if i not in values)},
+            "bootstrap": {**self.bootstrap_of(bench), "pending": pending},
         }
 
     @staticmethod
     def _sorted(entries: list[dict[str, Any]], sort: str, order: str) -> list[dict[str, Any]]:
+        place = {id(e): i for i, e in enumerate(entries)}  # the key's order: where baselines stand among ranks
+
         def value(e: dict[str, Any]) -> Any:
-            if sort in ("key", "rank", "method", "date"):
+            if sort == "rank":
+                return place[id(e)]
+            if sort in ("key", "method", "date"):
                 return e[sort]
             return e["columns"].get(sort)
 
@@ -114,7 +127,8 @@ class Leaderboard(Intervals):
             ]
         )
         for e in board["entries"]:
-            cells = [e["rank"], e["method"], e["participant"], e["affiliation"], e["link"], e["date"], e["key"]]
+            rank = "baseline" if e["rank"] is None else e["rank"]
+            cells = [rank, e["method"], e["participant"], e["affiliation"], e["link"], e["date"], e["key"]]
             cells += [e["columns"].get(c) for c in board["columns"]]
             cells += e["interval"] or [None, None]
             cells += e["rank_range"] or [None, None]

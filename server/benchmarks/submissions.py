@@ -95,6 +95,7 @@ def _submission_view(
         "affiliation": record.affiliation,
         "link": record.link,
         "disqualified": bool(record.disqualified),
+        "baseline": bool(record.baseline),
         "scored_at": record.scored_at.isoformat() if record.scored_at else None,
         "scored_on": shown,
         "scores": scores.get(shown),
@@ -163,7 +164,10 @@ class Submissions(Intervals):
         if not self.policy.is_participant(caller):
             raise Forbidden("a participant submits with their own token (kitti-eval admin token add USER)")
         bench = self.get(name, caller)
-        if not bench.is_open():
+        baseline = caller.is_admin  # an admin's submission is a baseline: under no quota, never ranked
+        if baseline and bench.is_closed():
+            raise Conflict(f"the benchmark {name!r} is closed: its board is frozen")
+        if not baseline and not bench.is_open():
             raise Conflict(f"the benchmark {name!r} is not open for submissions")
         self._ground_truth_record(bench)  # registered, and sealed if it is to be
         upload = receive_upload(predictions.file, predictions.filename, "predictions")
@@ -181,9 +185,11 @@ class Submissions(Intervals):
             pred_filename=upload.filename,
             pred_sha256=upload.sha256,
             pred_size=upload.size,
+            baseline=baseline,
         )
         try:
-            self.store.accept_submission(accepted, limit=count, window_start=now - window, window=window)
+            limit = None if baseline else count
+            self.store.accept_submission(accepted, limit=limit, window_start=now - window, window=window)
         except QuotaRefused as e:
             retry = max(1, math.ceil((e.retry_at - datetime.now(timezone.utc)).total_seconds()))
             raise QuotaExceeded(
@@ -203,7 +209,7 @@ class Submissions(Intervals):
             job_id=submission_id,
         )
         self.wake(1)
-        self.audit.record(caller, "submission.add", f"{name} {submission_id}")
+        self.audit.record(caller, "baseline.add" if baseline else "submission.add", f"{name} {submission_id}")
         return job
 
     def score_job(self, job: JobRecord) -> tuple[str, Callable[[Any], None]]:
@@ -334,10 +340,12 @@ class Submissions(Intervals):
         records = self.store.list_submissions(name, participant=caller.name)
         count, days = bench.quota
         since = datetime.now(timezone.utc) - timedelta(days=days)
-        used = sum(1 for r in records if r.created_at > since and r.status != "failed")
+        used = sum(1 for r in records if r.created_at > since and r.status != "failed" and not r.baseline)
         return {
             "items": [_submission_view(r, bench, full=False) for r in reversed(records)],
             "quota": {"submissions": count, "days": days, "used": used, "left": max(0, count - used)},
+            # an admin submits baselines: counted against no quota ("left" does not apply)
+            "baselines": bool(caller.is_admin),
         }
 
     def publish(
@@ -367,7 +375,7 @@ class Submissions(Intervals):
         try:
             self.store.publish_submission(
                 record,
-                cap=bench.max_published,
+                cap=None if record.baseline else bench.max_published,
                 method=method,
                 anonymous=anonymous,
                 affiliation=affiliation or None,
@@ -379,14 +387,16 @@ class Submissions(Intervals):
                 f"at most {bench.max_published} published entries per participant in {name!r}, and "
                 f"{record.participant} has them: withdraw one first"
             ) from None
-        self.audit.record(caller, "submission.publish", f"{name} {submission_id}", detail=method)
+        action = "baseline.publish" if record.baseline else "submission.publish"
+        self.audit.record(caller, action, f"{name} {submission_id}", detail=method)
         return self.submission(name, submission_id, caller)
 
     def withdraw(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
-        self._own(name, submission_id, caller)
+        record = self._own(name, submission_id, caller)
         self._still_selecting(name)
         self.store.update_submission(submission_id, published=False, published_at=None)
-        self.audit.record(caller, "submission.withdraw", f"{name} {submission_id}")
+        action = "baseline.withdraw" if record.baseline else "submission.withdraw"
+        self.audit.record(caller, action, f"{name} {submission_id}")
         return self.submission(name, submission_id, caller)
 
     def _still_selecting(self, name: str) -> Benchmark:

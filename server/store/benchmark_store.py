@@ -86,6 +86,7 @@ class SubmissionRecord:
     link: str | None = None
     published_at: datetime | None = None
     disqualified: bool = False
+    baseline: bool = False  # an admin's: on the board as a reference, not ranked, under no quota
 
 
 @dataclass(frozen=True)
@@ -158,10 +159,11 @@ class BenchmarkStore(Area):
 
     @retry_when_locked
     def accept_submission(
-        self, record: SubmissionRecord, *, limit: int, window_start: datetime, window: timedelta
+        self, record: SubmissionRecord, *, limit: int | None, window_start: datetime, window: timedelta
     ) -> None:
         """Insert the submission if its participant has fewer than ``limit`` submissions in this benchmark
-        since ``window_start``; else raise :class:`QuotaRefused`. Counting and inserting are one transaction
+        since ``window_start``; else raise :class:`QuotaRefused` (``limit`` None: an admin's baseline, inserted
+        uncounted). Counting and inserting are one transaction
         holding the (benchmark, participant) pair's lock, so concurrent submissions, from any number of
         servers on the database, are counted one after another and none is admitted over the limit."""
         count_query = select(func.count(), func.min(submissions.c.created_at)).where(
@@ -169,7 +171,12 @@ class BenchmarkStore(Area):
             submissions.c.participant == record.participant,
             submissions.c.created_at > window_start,
             submissions.c.status != "failed",
+            submissions.c.baseline.is_(False),
         )
+        if limit is None:
+            with self.engine.begin() as conn:
+                conn.execute(insert(submissions).values(**record.__dict__))
+            return
         with self._holding(record.benchmark, record.participant) as conn:
             used, oldest = conn.execute(count_query).one()
             if used >= limit:

@@ -236,6 +236,8 @@ submissions = Table(
     Column("link", String(500), nullable=True),
     Column("published_at", DateTime(timezone=True), nullable=True),
     Column("disqualified", Boolean, nullable=False),
+    #: an admin's submission: shown on the board as a reference, not ranked, counted against no quota
+    Column("baseline", Boolean, nullable=False, default=False),
     Index("ix_submissions_quota", "benchmark", "participant", "created_at"),
 )
 
@@ -324,7 +326,7 @@ _ADDED_COLUMNS = {
     "evaluations": {"options": "{json}", "project": "VARCHAR(64)"},
     "ground_truths": {"project": "VARCHAR(64)", "sealed": "BOOLEAN NOT NULL DEFAULT FALSE"},
     "benchmarks": {"max_published": "INTEGER"},
-    "submissions": {"public_result": "{json}"},
+    "submissions": {"public_result": "{json}", "baseline": "BOOLEAN NOT NULL DEFAULT FALSE"},
 }
 
 #: the PostgreSQL advisory lock held while the schema is created or upgraded (any fixed 64-bit number)

@@ -1,42 +1,341 @@
-"""The benchmark page ``/benchmarks/{name}``: the description and the leaderboard, rendered on the server (no
-script needed). Readable without a token when the benchmark is public."""
+"""The benchmark pages: the list of benchmarks (``/benchmarks``), a benchmark with its board and, for a
+participant, their rules, quota and submissions and the form to submit (``/benchmarks/{name}``), and one of
+their submissions with its state, scores and the form to publish or withdraw it
+(``/benchmarks/{name}/submissions/{id}``). Rendered on the server: every form works without scripts (the
+upload's progress bar is the only thing a script adds), and the page of a submission still being scored
+reloads itself (``<meta http-equiv="refresh">``). The public pages are readable without a token when the
+benchmark is public; the forms go through the same service methods, and the same policy, as the JSON API.
+"""
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from collections.abc import Mapping
+from functools import partial
+from typing import Annotated, Any, Literal
+from urllib.parse import quote
 
+import anyio.to_thread
 from fastapi import APIRouter, Query, Request
-from fastapi.responses import Response
+from fastapi.responses import RedirectResponse, Response
 from markupsafe import Markup
+from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException
 
-from ..benchmarks import Benchmarks, render_markdown
-from ..deps import AnyoneCaller
-from ..errors import ApiError, clip
-from .routes import _render
+from kitti_eval.errors import KittiEvalError
 
-__all__ = ["router"]
+from ..benchmarks import Benchmarks, InvalidSubmission, render_markdown
+from ..deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..errors import ApiError, BadRequest, clip, fault_of
+from ..policy import Caller
+from ..service import FileIn, Service
+from ..workers import JobFailed
+from .boards import board_entries, board_header, bootstrap_line, column_label, comparison_rows, full_time, number
+from .routes import _render, _status
+
+__all__ = ["router", "REFRESH_S"]
 
 router = APIRouter(include_in_schema=False)
+
+#: how often the page of a submission still being scored reloads itself
+REFRESH_S = 2
+_PUBLISH_FIELDS = 8
+
+
+def _benchmarks(request: Request) -> Benchmarks:
+    benchmarks: Benchmarks = request.app.state.benchmarks
+    return benchmarks
+
+
+def _failure(e: Exception, service: Service) -> ApiError | KittiEvalError | HTTPException | None:
+    """What a form's request is answered with: the refusals the JSON API answers 4xx, a full disk (507)."""
+    if isinstance(e, (ApiError, KittiEvalError, HTTPException)):
+        return e
+    return fault_of(e, service.settings.retry_after_s)
+
+
+def _message(failure: ApiError | KittiEvalError | HTTPException) -> str:
+    return clip(str(failure.detail if isinstance(failure, HTTPException) else failure))
+
+
+def _error(request: Request, failure: ApiError | KittiEvalError | HTTPException) -> Response:
+    status = _status(failure)
+    return _render(request, "error.html", status, status=status, message=_message(failure))
+
+
+# ----------------------------------------------------------------------------------------------- the list
+
+
+def _rules(bench: Mapping[str, Any]) -> dict[str, Any]:
+    """A benchmark's rules as the pages say them."""
+    n, days = bench["quota"]["submissions"], bench["quota"]["days"]
+    split = bench.get("split_percent")
+    return {
+        "key": " + ".join(column_label(k) for k in bench["key"]) + (" (mean)" if len(bench["key"]) > 1 else ""),
+        "quota": f"{n} submission{'s' if n != 1 else ''} per {days:g} day{'s' if days != 1 else ''}",
+        "closes": full_time(bench["closes_at"]) if bench.get("closes_at") else None,
+        "opens": full_time(bench["opens_at"]),
+        "split": (
+            None
+            if split is None
+            else f"the board shows the scores on a public part ({split:g} % of the test frames) until the reveal; "
+            "the final ranking uses the rest"
+        ),
+        "max_published": bench.get("max_published"),
+    }
+
+
+def _participant(service: Service, caller: Caller) -> bool:
+    """Whether the caller may submit (and so has submissions and a quota): a signed-in user's token."""
+    return service.policy.is_participant(caller)
+
+
+@router.get("/benchmarks")
+def benchmarks_page(request: Request, service: ServiceDep, caller: AnyoneCaller) -> Response:
+    """The benchmarks the caller sees, with their rules and, for a participant, the submissions left."""
+    benchmarks = _benchmarks(request)
+    rows = []
+    for bench in benchmarks.visible(caller):
+        described = bench.describe()
+        mine = benchmarks.mine(bench.name, caller) if _participant(service, caller) else None
+        rows.append({"bench": described, "rules": _rules(described), "mine": mine})
+    return _render(request, "benchmarks.html", rows=rows, participant=_participant(service, caller))
+
+
+# ---------------------------------------------------------------------------------------------- one bench
+
+
+def _states(service: Service, items: list[dict[str, Any]], key: list[str]) -> list[dict[str, Any]]:
+    """The caller's submissions, each with the state its scoring is in and its key."""
+    return [{**item, "state": _state(service, item), "key": _key(item.get("scores") or {}, key)} for item in items]
+
+
+def _state(service: Service, submission: Mapping[str, Any]) -> dict[str, Any]:
+    """A submission's state as the pages say it: queued (with its place in the queue), running, scored or
+    failed (with the reason its evaluation was refused)."""
+    if submission["status"] == "scored":
+        return {"name": "scored", "text": "scored", "done": True}
+    job = service.jobs.get(submission["id"])
+    if submission["status"] == "failed" or (job is not None and job.state in ("failed", "cancelled")):
+        reason = JobFailed(job.error).message if job is not None and job.error else "the evaluation failed"
+        return {"name": "failed", "text": "failed", "reason": clip(reason), "done": True}
+    if job is not None and job.state == "running":
+        return {"name": "running", "text": "being scored", "done": False}
+    position = service.jobs.position(submission["id"])
+    text = "queued" if position is None else f"queued ({_ordinal(position)} in line)"
+    return {"name": "queued", "text": text, "position": position, "done": False}
+
+
+def _ordinal(n: int) -> str:
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
+
+
+def _benchmark_context(
+    request: Request, service: Service, caller: Caller, name: str, sort: str | None, order: str | None
+) -> dict[str, Any]:
+    benchmarks = _benchmarks(request)
+    bench = benchmarks.get(name, caller)
+    board = benchmarks.leaderboard(name, caller, sort=sort, order=order)
+    described = bench.describe()
+    mine = None
+    if _participant(service, caller):
+        mine = benchmarks.mine(name, caller)
+        mine["items"] = _states(service, mine["items"], described["key"])
+    return {
+        "bench": described,
+        "rules": _rules(described),
+        "description": Markup(render_markdown(bench.description)),  # noqa: S704 - every character escaped first
+        "board": board,
+        "header": board_header(board["columns"]),
+        "entries": board_entries(board),
+        "bootstrap": bootstrap_line(board),
+        "has_intervals": any("interval" in e for e in board["entries"]),
+        "has_ranges": any("rank_range" in e for e in board["entries"]),
+        "key_label": _rules(described)["key"],
+        "key_short": _short_key(described["key"], board["columns"]),
+        "number": number,
+        "mine": mine,
+        "accounts": service.policy.accounts,
+        "max_upload_bytes": service.settings.max_upload_bytes,
+        "problems": None,
+        "error": None,
+    }
+
+
+def _short_key(key: list[str], columns: list[str]) -> str:
+    """The key as its column's header says it: without the recall mode and IoU set the columns share."""
+    common = board_header(columns)["common"]
+    label = " + ".join(column_label(k, common=common) for k in key)
+    return f"mean of {label}" if len(key) > 1 else label
 
 
 @router.get("/benchmarks/{name}")
 def benchmark_page(
     request: Request,
+    service: ServiceDep,
     caller: AnyoneCaller,
     name: str,
     sort: Annotated[str | None, Query(max_length=200)] = None,
     order: Annotated[Literal["asc", "desc"] | None, Query()] = None,
 ) -> Response:
-    benchmarks: Benchmarks = request.app.state.benchmarks
     try:
-        bench = benchmarks.get(name, caller)
-        board = benchmarks.leaderboard(name, caller, sort=sort, order=order)
+        context = _benchmark_context(request, service, caller, name, sort, order)
     except ApiError as e:
-        return _render(request, "error.html", e.status_code, status=e.status_code, message=clip(e.message))
-    return _render(
-        request,
-        "benchmark.html",
-        bench=bench.describe(),
-        description=Markup(render_markdown(bench.description)),  # noqa: S704 - every character escaped first
-        board=board,
-    )
+        return _error(request, e)
+    return _render(request, "benchmark.html", **context)
+
+
+@router.post("/benchmarks/{name}/submissions")
+async def submit_form(request: Request, service: ServiceDep, caller: WriterCaller, name: str) -> Response:
+    """The submission form: checked (a refused file shows the validator's sentences and counts nothing),
+    counted against the quota and accepted; then the submission's page, which follows its scoring."""
+    benchmarks = _benchmarks(request)
+    try:
+        async with request.form(max_files=1, max_fields=FORM_MAX_FIELDS) as form:
+            predictions = form.get("predictions")
+            if not isinstance(predictions, UploadFile) or not predictions.filename:
+                raise BadRequest("choose a predictions file (a zip or tar of KITTI result txt files, or a result.pkl)")
+            file = FileIn(predictions.file, predictions.filename)
+            job = await service.run(lambda: benchmarks.submit(name, file, caller))
+    except Exception as e:  # noqa: BLE001 - the refusals are answered as the page; anything else is raised
+        failure = _failure(e, service)
+        if failure is None:
+            raise
+        return await anyio.to_thread.run_sync(partial(_refused, request, service, caller, name, failure))
+    return RedirectResponse(f"/benchmarks/{quote(name)}/submissions/{quote(job.id)}", status_code=303)
+
+
+def _refused(
+    request: Request,
+    service: Service,
+    caller: Caller,
+    name: str,
+    failure: ApiError | KittiEvalError | HTTPException,
+) -> Response:
+    """The benchmark's page again, with why the submission was refused (with the status the API answers)."""
+    try:
+        context = _benchmark_context(request, service, caller, name, None, None)
+    except ApiError as e:
+        return _error(request, e)
+    if isinstance(failure, InvalidSubmission):
+        context["problems"] = [clip(p) for p in failure.problems]
+    else:
+        context["error"] = _message(failure)
+    response = _render(request, "benchmark.html", _status(failure), **context)
+    if isinstance(failure, ApiError):
+        response.headers.update(failure.headers)
+    return response
+
+
+# ----------------------------------------------------------------------------------------- one submission
+
+
+def _submission_context(
+    request: Request, service: Service, caller: Caller, name: str, submission_id: str
+) -> dict[str, Any]:
+    benchmarks = _benchmarks(request)
+    submission = benchmarks.submission(name, submission_id, caller)
+    bench = benchmarks.get(name, caller)
+    described = bench.describe()
+    state = _state(service, submission)
+    columns = described["columns"]
+    scores = submission.get("scores") or {}
+    return {
+        "bench": described,
+        "rules": _rules(described),
+        "sub": submission,
+        "state": state,
+        "refresh": None if state["done"] else REFRESH_S,
+        "header": board_header(columns),
+        "scores": scores,
+        "key": scores and _key(scores, described["key"]),
+        "key_label": _rules(described)["key"],
+        "comparison": comparison_rows(submission["comparison"]) if "comparison" in submission else None,
+        "may_select": not bench.is_closed(),
+        "number": number,
+        "submitted": full_time(submission["created_at"]),
+        "error": None,
+        "form": {},
+    }
+
+
+def _key(scores: Mapping[str, float | None], key: list[str]) -> float | None:
+    values = [scores.get(k) for k in key]
+    if not values or any(v is None for v in values):
+        return None
+    return sum(v for v in values if v is not None) / len(values)
+
+
+@router.get("/benchmarks/{name}/submissions/{submission_id}")
+def submission_page(
+    request: Request, service: ServiceDep, caller: ReaderCaller, name: str, submission_id: str
+) -> Response:
+    try:
+        context = _submission_context(request, service, caller, name, submission_id)
+    except ApiError as e:
+        return _error(request, e)
+    return _render(request, "submission.html", **context)
+
+
+@router.post("/benchmarks/{name}/submissions/{submission_id}/publish")
+async def publish_form(
+    request: Request, service: ServiceDep, caller: WriterCaller, name: str, submission_id: str
+) -> Response:
+    """Publish one of the caller's scored submissions on the board; then the board, at the entry."""
+    benchmarks = _benchmarks(request)
+    values: dict[str, str] = {}
+    try:
+        async with request.form(max_files=0, max_fields=_PUBLISH_FIELDS) as form:
+            values = {k: v for k, v in form.items() if isinstance(v, str)}
+        await anyio.to_thread.run_sync(
+            lambda: benchmarks.publish(
+                name,
+                submission_id,
+                caller,
+                method=values.get("method", ""),
+                anonymous=values.get("anonymous") == "true",
+                affiliation=values.get("affiliation", "").strip() or None,
+                link=values.get("link", "").strip() or None,
+            )
+        )
+    except Exception as e:  # noqa: BLE001 - the refusals are answered as the page; anything else is raised
+        failure = _failure(e, service)
+        if failure is None:
+            raise
+        refill = {k: clip(v) for k, v in values.items() if k != "csrf"}
+        return await anyio.to_thread.run_sync(
+            partial(_submission_refused, request, service, caller, name, submission_id, failure, refill)
+        )
+    return RedirectResponse(f"/benchmarks/{quote(name)}#entry-{quote(submission_id)}", status_code=303)
+
+
+@router.post("/benchmarks/{name}/submissions/{submission_id}/withdraw")
+async def withdraw_form(
+    request: Request, service: ServiceDep, caller: WriterCaller, name: str, submission_id: str
+) -> Response:
+    """Take one of the caller's entries off the board; then the submission's page again."""
+    benchmarks = _benchmarks(request)
+    try:
+        await anyio.to_thread.run_sync(lambda: benchmarks.withdraw(name, submission_id, caller))
+    except ApiError as e:
+        return await anyio.to_thread.run_sync(
+            partial(_submission_refused, request, service, caller, name, submission_id, e, {})
+        )
+    return RedirectResponse(f"/benchmarks/{quote(name)}/submissions/{quote(submission_id)}", status_code=303)
+
+
+def _submission_refused(
+    request: Request,
+    service: Service,
+    caller: Caller,
+    name: str,
+    submission_id: str,
+    failure: ApiError | KittiEvalError | HTTPException,
+    form: dict[str, str],
+) -> Response:
+    try:
+        context = _submission_context(request, service, caller, name, submission_id)
+    except ApiError as e:
+        return _error(request, e)
+    context.update(error=_message(failure), form=form)
+    return _render(request, "submission.html", _status(failure), **context)

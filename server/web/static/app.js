@@ -1,6 +1,7 @@
-// kitti-eval pages: drag and drop onto the upload form, the size check, and the history's buttons.
-// Without it the pages still work (the history's Compare sends ?e=&e= and the server orders the two),
-// except the history's Open frame button.
+// kitti-eval pages: drag and drop onto the upload form, the size check, the history's buttons, and the
+// benchmark submission's progress bar. Without it the pages still work (the history's Compare sends ?e=&e= and
+// the server orders the two; a submission is sent by the form itself, without a bar), except the history's
+// Open frame button.
 "use strict";
 
 function setupUpload() {
@@ -82,7 +83,61 @@ function setupHistory() {
   update();
 }
 
+// A benchmark submission sent with XMLHttpRequest, to show its upload's progress. The answer is what the
+// form would have got: a redirect to the submission's page (followed), or the benchmark's page again with why
+// the file was refused (shown in place of this one).
+function setupSubmission() {
+  const form = document.querySelector("form.submission");
+  if (!form || !window.XMLHttpRequest || !window.FormData || !window.DOMParser) return;
+  const bar = document.getElementById("submit-progress");
+  const note = document.getElementById("submit-note");
+  const button = form.querySelector("button[type=submit]");
+  const input = form.querySelector("input[type=file]");
+  const maxBytes = Number(form.dataset.maxBytes);
+  form.addEventListener("submit", (event) => {
+    const file = input.files && input.files[0];
+    if (!file) return;
+    event.preventDefault();
+    if (maxBytes && file.size > maxBytes) {
+      note.textContent = `${file.name} is larger than the upload limit of ${(maxBytes / 1048576).toFixed(0)} MB.`;
+      return;
+    }
+    const xhr = new XMLHttpRequest();
+    xhr.open("POST", form.action);
+    xhr.upload.addEventListener("progress", (e) => {
+      if (!e.lengthComputable) return;
+      bar.max = e.total;
+      bar.value = e.loaded;
+      note.textContent = `${Math.round((100 * e.loaded) / e.total)} % sent`;
+    });
+    xhr.upload.addEventListener("load", () => {
+      bar.removeAttribute("value");  // indeterminate while the service checks the file
+      note.textContent = "Sent; checking it…";
+    });
+    xhr.addEventListener("load", () => {
+      if (xhr.status < 400 && xhr.responseURL && xhr.responseURL !== form.action) {
+        window.location.assign(xhr.responseURL);
+        return;
+      }
+      const page = new DOMParser().parseFromString(xhr.responseText, "text/html");
+      document.title = page.title;
+      document.body.replaceWith(document.adoptNode(page.body));
+      setupSubmission();
+    });
+    xhr.addEventListener("error", () => {
+      bar.hidden = true;
+      button.disabled = false;
+      note.textContent = "The upload stopped (the connection was lost); nothing was counted. Try again.";
+    });
+    bar.hidden = false;
+    button.disabled = true;
+    note.textContent = "0 % sent";
+    xhr.send(new FormData(form));
+  });
+}
+
 document.addEventListener("DOMContentLoaded", () => {
   setupUpload();
   setupHistory();
+  setupSubmission();
 });
