@@ -281,7 +281,29 @@ def test_a_submission_is_accepted_at_once_and_scored_by_a_job(world) -> None:
     assert ok(submit(c, alice, golden_bytes("result.pkl")), 201)["status"] == "scored"
 
 
-def test_a_submission_whose_scoring_fails_is_failed_and_not_counted(world) -> None:
+def test_a_submission_whose_scoring_fails_is_failed_and_not_counted(world, monkeypatch) -> None:
+    from kitti_eval.errors import InputError
+
+    c, hosted = world
+    alice = hosted.headers("alice")
+    service = c.app.state.service
+
+    def refuse(*args, **kwargs):  # the file passed its check; its scoring fails on the input
+        raise InputError("boxes with a negative size", frame="000007", field="dimensions")
+
+    monkeypatch.setattr(service.benchmarks, "_scores", refuse)
+    job = ok(submit_now(c, alice), 202)
+    ended = service.jobs.wait(job["id"], 120)
+    assert ended is not None and ended.state == "failed"
+    seen = ok(c.get(f"/v1/jobs/{job['id']}", headers=alice))
+    assert seen["error"]["status"] < 500
+    mine = ok(c.get("/v1/benchmarks/bench/submissions", headers=alice))
+    assert [s["status"] for s in mine["items"]] == ["failed"] and mine["quota"]["used"] == 0
+
+
+def test_a_file_its_scoring_job_cannot_read_is_refused_and_removed(world) -> None:
+    """Acceptance reads nothing of the file; its job's check refuses an unreadable one as an upload is refused
+    (422, the reader's message), and the submission is removed: it never counted."""
     from sqlalchemy import update
 
     from kitti_eval_server.store.database import job_inputs
@@ -297,11 +319,19 @@ def test_a_submission_whose_scoring_fails_is_failed_and_not_counted(world) -> No
     finally:
         service.workers.start()
     ended = service.jobs.wait(job["id"], 120)
-    assert ended is not None and ended.state == "failed"
+    assert ended is not None and ended.state == "failed" and ended.attempts == 1
     seen = ok(c.get(f"/v1/jobs/{job['id']}", headers=alice))
-    assert seen["error"]["status"] < 500
+    assert seen["error"]["status"] == 422
     mine = ok(c.get("/v1/benchmarks/bench/submissions", headers=alice))
-    assert [s["status"] for s in mine["items"]] == ["failed"] and mine["quota"]["used"] == 0
+    assert mine["items"] == [] and mine["quota"]["used"] == 0
+    r = c.post(
+        "/v1/benchmarks/bench/submissions",
+        files={"predictions": ("x.pkl", b"not a pickle", "application/octet-stream")},
+        headers=alice,
+    )
+    assert r.status_code == 422 and r.json()["error"]["message"] == seen["error"]["message"].replace(
+        "result.pkl", "x.pkl"
+    )
 
 
 def test_rescoring_ten_submissions_returns_at_once_and_the_jobs_score_them(tmp_path) -> None:

@@ -244,7 +244,19 @@ def test_the_board_renders_intervals_rank_ranges_and_ties_when_the_board_has_the
     benchmarks = c.app.state.benchmarks
     plain = benchmarks.leaderboard
 
-    page = c.get("/benchmarks/bench").text  # the keys absent: nothing of them
+    page = c.get("/benchmarks/bench").text  # the board's own intervals, rank ranges and bootstrap line
+    assert page.count('<span class="interval">[') == 2 and 'id="bootstrap"' in page
+
+    def without_intervals(name, caller, **kw):  # a board without the keys (an older service): nothing of them
+        board = plain(name, caller, **kw)
+        board.pop("bootstrap")
+        for entry in board["entries"]:
+            for k in ("interval", "rank_range", "differs_from_next"):
+                entry.pop(k)
+        return board
+
+    monkeypatch.setattr(benchmarks, "leaderboard", without_intervals)
+    page = c.get("/benchmarks/bench").text
     assert "computing" not in page and 'class="interval"' not in page and 'class="range"' not in page
     assert 'id="bootstrap"' not in page and "≈" not in page
 
@@ -321,9 +333,17 @@ def test_the_submission_page_shows_the_comparison_when_the_submission_has_one(wo
     c, hosted = world
     sid = ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 201)["id"]
     sign_in(c, hosted.tokens["alice"])
-    assert 'id="comparison"' not in c.get(f"/benchmarks/bench/submissions/{sid}").text
+    assert 'id="comparison"' in c.get(f"/benchmarks/bench/submissions/{sid}").text  # the service's own
     benchmarks = c.app.state.benchmarks
     plain = benchmarks.submission
+
+    def without(name, submission_id, caller):  # a submission without the key (an older service): no table
+        out = plain(name, submission_id, caller)
+        out.pop("comparison")
+        return out
+
+    monkeypatch.setattr(benchmarks, "submission", without)
+    assert 'id="comparison"' not in c.get(f"/benchmarks/bench/submissions/{sid}").text
 
     def compared(name, submission_id, caller):
         out = plain(name, submission_id, caller)
@@ -406,3 +426,29 @@ def test_a_failed_scoring_says_why_and_stops_reloading(world, monkeypatch) -> No
     assert 'http-equiv="refresh"' not in page and 'id="publish-form"' not in page
     assert "<strong>3</strong> of 3" in c.get("/benchmarks/bench").text  # a failed one does not count
     c.cookies.clear()
+
+
+def test_a_file_refused_after_the_form_answered_shows_its_sentences_on_the_submissions_page(world) -> None:
+    """A submission whose scoring job ran after the form stopped waiting: its page (where the form sent the
+    participant) shows the validator's sentences once the job refused it, and the quota is untouched."""
+    c, hosted = world
+    alice = hosted.headers("alice")
+    service = c.app.state.service
+    txt = golden_txt("pred.tar.gz")
+    broken = dict(list(txt.items())[1:])  # one test frame missing
+    service.workers.stop(5)  # the job waits: the API answers 202
+    try:
+        files = {"predictions": ("broken.zip", zip_of(broken), "application/octet-stream")}
+        job = ok(c.post("/v1/benchmarks/bench/submissions", params={"wait": 0}, files=files, headers=alice), 202)
+    finally:
+        service.workers.start()
+    ended = service.jobs.wait(job["id"], 120)
+    assert ended is not None and ended.state == "failed"
+    sign_in(c, hosted.tokens["alice"])
+    page = c.get(f"/benchmarks/bench/submissions/{job['id']}")
+    assert page.status_code == 422
+    assert "1 test frames are missing: 000000" in page.text and "does not count against your quota" in page.text
+    c.cookies.clear()
+    assert c.get(f"/benchmarks/bench/submissions/{job['id']}", headers=hosted.headers("bob")).status_code == 404
+    mine = ok(c.get("/v1/benchmarks/bench/submissions", headers=alice))
+    assert mine["items"] == [] and mine["quota"]["used"] == 0

@@ -15,7 +15,7 @@ from kitti_eval.core.frames import Annotations
 from kitti_eval.errors import InputError
 from kitti_eval.io.submission import SubmissionRules, validate_annotations, validate_txt_folder
 
-from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
+from ..errors import ApiError, ArchiveError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
 from ..evaluations import sealed_document
 from ..evaluator import evaluate_document, evaluate_document_resampled
 from ..jobs import JobRecord
@@ -38,7 +38,7 @@ from ..uploads import (
     receive_upload,
     sniff,
 )
-from ..workers import error_of
+from ..workers import JobFailed, error_of
 from .intervals import Intervals
 from .rules import Benchmark, part_frames, scores_of
 
@@ -215,9 +215,10 @@ class Submissions(Intervals):
     def score_job(self, job: JobRecord) -> tuple[str, Callable[[Any], None]]:
         """Run a submission's scoring or rescoring job: the submission's id and the writes of its scores (for
         the transaction that ends the job). A submission's first scoring checks it as ``kitti-eval validate``
-        does on the same read of the file: one that breaks the rules is removed (it never counted) and its job
-        fails with the validator's sentences. A submission whose input cannot be read, or whose last attempt
-        failed, is marked failed (and no longer counts against the quota)."""
+        does on the same read of the file: one that breaks the rules, or cannot be read, is removed (it never
+        counted, as a file refused at once would not) and its job fails with the validator's sentences or the
+        reader's refusal. A submission whose scoring fails, or whose last attempt failed, is marked failed (and
+        no longer counts against the quota)."""
         sid = str(job.payload["submission_id"])
         row = self.store.get_submission(sid)
         if row is None:
@@ -229,14 +230,15 @@ class Submissions(Intervals):
                 stored = self.store.job_input(job.id, "predictions")
                 if stored is None:
                     raise Conflict(f"the predictions of submission {row.id} are not kept")
-                dt = self._checked(stored.content, row.pred_filename, gt)
+                try:
+                    dt = self._checked(stored.content, row.pred_filename, gt)
+                except (InputError, ArchiveError, InvalidSubmission):  # the file is refused: it never counted
+                    self.store.delete_submission(sid)
+                    raise
                 self.store.add_prediction_file(row.pred_sha256, stored.content)
             else:
                 dt = self._predictions(job, row, gt)  # a rescoring: the kept file
             values, resampled = self._scores(bench, record, gt, dt)
-        except InvalidSubmission:
-            self.store.delete_submission(sid)
-            raise
         except BaseException as e:
             _, retry = error_of(e)
             if not retry or job.attempts >= job.max_attempts:
@@ -250,6 +252,17 @@ class Submissions(Intervals):
                 self.store.delete_job_inputs_in(conn, job.id)
 
         return sid, write
+
+    def refusal(self, submission_id: str, caller: Caller) -> JobFailed | None:
+        """Why the caller's submission was refused by its scoring job's check of the file (the validator's
+        sentences, or the reader's refusal), if that is what happened to it: the job failed and the submission
+        was removed (it never counted)."""
+        job = self.jobs.get(submission_id)
+        if job is None or job.kind != "submission" or job.state != "failed":
+            return None
+        if not self.policy.sees_job(caller, job.owner) or self.store.get_submission(submission_id) is not None:
+            return None
+        return JobFailed(job.error)
 
     def _checked(self, content: bytes, filename: str, gt: Annotations) -> Annotations:
         """The submission's predictions, read once and checked as :func:`validate_submission` checks them (its

@@ -25,7 +25,7 @@ from kitti_eval.errors import KittiEvalError
 
 from ..benchmarks import Benchmarks, InvalidSubmission, render_markdown
 from ..deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
-from ..errors import ApiError, BadRequest, clip, fault_of
+from ..errors import ApiError, BadRequest, NotFound, clip, fault_of
 from ..policy import Caller
 from ..service import FileIn, Service
 from ..workers import JobFailed
@@ -38,6 +38,9 @@ router = APIRouter(include_in_schema=False)
 
 #: how often the page of a submission still being scored reloads itself
 REFRESH_S = 2
+#: how long the submission form waits for the file's check and scoring before it shows the submission's page
+#: (which follows the rest): a refused file is shown on the form when its job ran by then
+FORM_WAIT_S = 10.0
 _PUBLISH_FIELDS = 8
 
 
@@ -47,7 +50,10 @@ def _benchmarks(request: Request) -> Benchmarks:
 
 
 def _failure(e: Exception, service: Service) -> ApiError | KittiEvalError | HTTPException | None:
-    """What a form's request is answered with: the refusals the JSON API answers 4xx, a full disk (507)."""
+    """What a form's request is answered with: the refusals the JSON API answers 4xx, a full disk (507); a
+    scoring job that found the file breaks the rules, as the validator's sentences."""
+    if isinstance(e, JobFailed) and e.code == InvalidSubmission.code and isinstance(e.details.get("problems"), list):
+        return InvalidSubmission([str(p) for p in e.details["problems"]])
     if isinstance(e, (ApiError, KittiEvalError, HTTPException)):
         return e
     return fault_of(e, service.settings.retry_after_s)
@@ -187,8 +193,9 @@ def benchmark_page(
 
 @router.post("/benchmarks/{name}/submissions")
 async def submit_form(request: Request, service: ServiceDep, caller: WriterCaller, name: str) -> Response:
-    """The submission form: checked (a refused file shows the validator's sentences and counts nothing),
-    counted against the quota and accepted; then the submission's page, which follows its scoring."""
+    """The submission form: counted against the quota and accepted, then checked and scored by its job (a
+    refused file shows the validator's sentences here when the job ran within ``FORM_WAIT_S``, and counts
+    nothing); then the submission's page, which follows its scoring."""
     benchmarks = _benchmarks(request)
     try:
         async with request.form(max_files=1, max_fields=FORM_MAX_FIELDS) as form:
@@ -197,6 +204,13 @@ async def submit_form(request: Request, service: ServiceDep, caller: WriterCalle
                 raise BadRequest("choose a predictions file (a zip or tar of KITTI result txt files, or a result.pkl)")
             file = FileIn(predictions.file, predictions.filename)
             job = await service.run(lambda: benchmarks.submit(name, file, caller))
+        try:
+            await service.outcome(job.id, FORM_WAIT_S)  # the file's check runs in its job: a refusal shows here
+        except JobFailed:
+            if await anyio.to_thread.run_sync(_refused_job, service, caller, job.id) is not None:
+                raise  # the file was refused (and removed): the form says why
+            # its scoring failed: the submission's page says why
+
     except Exception as e:  # noqa: BLE001 - the refusals are answered as the page; anything else is raised
         failure = _failure(e, service)
         if failure is None:
@@ -272,9 +286,24 @@ def submission_page(
 ) -> Response:
     try:
         context = _submission_context(request, service, caller, name, submission_id)
+    except NotFound as e:
+        refused = _refused_job(service, caller, submission_id)
+        if refused is not None:  # its scoring found the file breaks the rules: it was removed, never counted
+            return _refused(request, service, caller, name, refused)
+        return _error(request, e)
     except ApiError as e:
         return _error(request, e)
     return _render(request, "submission.html", **context)
+
+
+def _refused_job(service: Service, caller: Caller, submission_id: str) -> ApiError | None:
+    """Why the caller's submission was refused by its scoring job's check of the file, if it was: the
+    validator's sentences as on the form, or the reader's refusal."""
+    failed = service.benchmarks.refusal(submission_id, caller)
+    if failed is None:
+        return None
+    failure = _failure(failed, service)
+    return failure if isinstance(failure, ApiError) else failed
 
 
 @router.post("/benchmarks/{name}/submissions/{submission_id}/publish")
