@@ -1,5 +1,5 @@
 # kitti-eval HTTP service: docker build -t kitti-eval . && docker run -p 8000:8000 -v kitti-eval-data:/data kitti-eval
-# Settings are KITTI_EVAL_* environment variables (see "Settings" in README.md), e.g.
+# Settings are KITTI_EVAL_* environment variables (see docs/service/deployment.md, "Settings"), e.g.
 #   -e KITTI_EVAL_ADMIN_TOKEN=... -e KITTI_EVAL_DATABASE_URL=postgresql://user:pw@db:5432/kitti
 FROM python:3.11-slim
 

@@ -14,7 +14,7 @@ A :class:`Caller` is made by the policy alone (:meth:`Policy.everyone`, :meth:`P
 :meth:`kitti_eval_server.accounts.Accounts.resolve` for a token), and the routes receive it from their access
 dependency. ``KITTI_EVAL_AUTH`` is an :class:`AuthMode`: in ``open`` mode everyone is :meth:`Policy.everyone`
 (sees and changes everything, admin actions need the admin token); in ``accounts`` mode the rules below
-apply. The README's table "Who may do what" is checked against :data:`RULES` by a test.
+apply. The table "Who may do what" of docs/service/accounts.md is checked against :data:`RULES` by a test.
 """
 
 from __future__ import annotations
@@ -125,7 +125,7 @@ class _GroundTruth(Protocol):
 
 
 #: the rules as one table: (route group, access, what a member may do there, what an admin may do there).
-#: The README's "Who may do what" table is this one (tests/test_policy.py compares them).
+#: The "Who may do what" table of docs/service/accounts.md is this one (tests/test_policy.py compares them).
 RULES: Sequence[tuple[str, Access, str, str]] = (
     ("probes, sign-in page, static files", Access.PUBLIC, "yes", "yes"),
     ("public benchmarks: description, frame ids, board", Access.ANYONE, "yes (no token needed)", "yes"),

@@ -166,7 +166,7 @@ class Settings(BaseSettings):
     have, or after this long at most."""
 
     metrics: Literal["on", "off"] = "on"
-    """``GET /metrics`` in Prometheus' text format (see README "Operations"); ``off`` answers 404 there."""
+    """``GET /metrics`` in Prometheus' text format (see docs/service/operations.md); ``off`` answers 404 there."""
 
     metrics_token: SecretStr | None = None
     """When set, ``/metrics`` needs ``Authorization: Bearer <this>`` (a scraper's own token, not the admin's)."""

@@ -1,5 +1,6 @@
-"""The README's CI job keeps numba's cache between runs: its steps, run on two installs of the package made at
-different times, compile the kernels in the first and nothing in the second with the first's cache restored."""
+"""The CI job of docs/cli/gates.md keeps numba's cache between runs: its steps, run on two installs of the package
+made at different times, compile the kernels in the first and nothing in the second with the first's cache
+restored."""
 
 from __future__ import annotations
 
@@ -38,9 +39,9 @@ print(json.dumps({"package": kitti_eval.__file__, "code": code, "compiled": comp
 
 def _job() -> dict[str, Any]:
     yaml = pytest.importorskip("yaml")
-    text = (ROOT / "README.md").read_text()
+    text = (ROOT / "docs" / "cli" / "gates.md").read_text()
     block = re.search(r"```yaml\n(name: kitti-gate\n.*?)```", text, re.S)
-    assert block, "the README lost its CI job"
+    assert block, "docs/cli/gates.md lost its CI job"
     return dict(yaml.safe_load(block.group(1))["jobs"]["gate"])
 
 
@@ -48,7 +49,7 @@ def _step(job: dict[str, Any], name: str) -> tuple[int, dict[str, Any]]:
     for i, step in enumerate(job["steps"]):
         if name in (step.get("name"), step.get("id"), step.get("uses")):
             return i, step
-    raise AssertionError(f"no step {name!r} in the README's CI job")
+    raise AssertionError(f"no step {name!r} in the CI job of docs/cli/gates.md")
 
 
 def test_the_readme_job_keeps_numbas_cache_under_kitti_evals_key() -> None:

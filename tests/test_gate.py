@@ -188,16 +188,16 @@ def test_cli_gate_usage_and_input_errors(capsys, tmp_path):
 
 
 def test_readme_ci_example_runs_as_written(tmp_path):
-    """The 'Evaluate and gate' step of the README's CI job, run by bash on the bundled demo data."""
+    """The 'Evaluate and gate' step of the CI job in docs/cli/gates.md, run by bash on the bundled demo data."""
     import os
     import re
     import shutil
     import subprocess
     import sys
 
-    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    readme = (Path(__file__).parents[1] / "docs" / "cli" / "gates.md").read_text()
     block = re.search(r"- name: Evaluate and gate\n\s+run: \|\n((?:          .*\n)+)", readme)
-    assert block, "the README's CI example lost its 'Evaluate and gate' step"
+    assert block, "the docs' CI example lost its 'Evaluate and gate' step"
     script = "set -euo pipefail\n" + "\n".join(line[10:] for line in block.group(1).splitlines())
     bash = shutil.which("bash")
     if bash is None:

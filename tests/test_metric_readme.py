@@ -1,4 +1,5 @@
-"""The README's "Use it in your training framework" outputs are what the code prints on the bundled demo."""
+"""The outputs on docs/frameworks.md ("Use it in your training framework") are what the code prints on the bundled
+demo."""
 
 from __future__ import annotations
 
@@ -14,14 +15,13 @@ from kitti_eval.compat import openpcdet
 from kitti_eval.compat.mmdet3d import kitti_eval
 from kitti_eval.demo import demo_paths
 
-SECTION = "## Use it in your training framework"
+SECTION = "# Use it in your training framework"
 
 
 @pytest.fixture(scope="module")
 def section() -> str:
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    start = text.index(SECTION)
-    return text[start : text.index("\n## ", start + 1)]
+    text = (Path(__file__).resolve().parents[1] / "docs" / "frameworks.md").read_text()
+    return text[text.index(SECTION) :]  # the page is the section
 
 
 @pytest.fixture(scope="module")

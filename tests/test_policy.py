@@ -1,6 +1,6 @@
 """One policy, closed by default: every route declares its access, the door refuses one that does not, no
-service method defaults its caller, callers are made by the policy alone, and the README's table of who may
-do what is the policy's own.
+service method defaults its caller, callers are made by the policy alone, and the table of who may do what
+(docs/service/accounts.md) is the policy's own.
 
 A web session's change carries its CSRF token whatever the door (a page form's field, a script's header):
 the session cookie alone drives nothing.
@@ -47,7 +47,7 @@ def test_every_route_of_the_app_declares_its_access(tmp_path) -> None:
     assert len(table) > 50
     undeclared = sorted(k for k, v in table.items() if v is None)
     assert undeclared == []
-    # a few, as the README's table has them
+    # a few, as the docs' table has them
     assert table["GET /healthz"] is Access.PUBLIC and table["POST /signin"] is Access.PUBLIC
     assert table["GET /v1/benchmarks/{name}/leaderboard"] is Access.ANYONE
     assert table["GET /v1/evaluations/{evaluation_id}"] is Access.READER
@@ -123,7 +123,7 @@ def test_callers_are_made_by_the_policy_alone() -> None:
 
 
 def test_the_readme_table_is_the_policy() -> None:
-    text = (ROOT / "README.md").read_text()
+    text = (ROOT / "docs" / "service" / "accounts.md").read_text()
     start = text.index("| Route group | Access | A member | An admin |")
     rows = []
     for line in text[start:].splitlines()[2:]:

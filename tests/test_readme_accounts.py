@@ -1,16 +1,16 @@
-"""The accounts example of the README, run as written against a live service in accounts mode (bash and curl
-needed): the admin commands on the server's machine, then the member's uploads with the tokens they made."""
+"""The accounts example of docs/service/accounts.md, run as written against a live service in accounts mode (bash
+and curl needed): the admin commands on the server's machine, then the member's uploads with the tokens they made."""
 
 from __future__ import annotations
 
 import os
-import re
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from doc_examples import take
 from server_accounts import bearer
 from server_helpers import ADMIN, LiveServer
 
@@ -19,17 +19,11 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(shutil.which("bash") is None or shutil.which("curl") is None, reason="needs bash and curl"),
 ]
-
-
-def _blocks_after(text: str, marker: str, count: int) -> list[str]:
-    start = text.index(marker)
-    blocks = re.findall(r"```bash\n(.*?)```", text[start:], re.S)[:count]
-    assert len(blocks) == count, f"fewer than {count} bash blocks after {marker!r}"
-    return blocks
+SETUP, MEMBER = take("docs/service/accounts.md", "# Accounts, projects and sealed test sets", 2)
 
 
 def test_the_accounts_example_runs_as_written(tmp_path: Path) -> None:
-    setup, member = _blocks_after((ROOT / "README.md").read_text(), "### Accounts, projects and sealed test sets", 2)
+    setup, member = SETUP.code, MEMBER.code
     assert "/srv/kitti-eval" in setup and "http://127.0.0.1:8000" in member
     with LiveServer(tmp_path / "data", auth="accounts") as server:
         script = setup.replace("/srv/kitti-eval", str(server.data_dir)) + member.replace(

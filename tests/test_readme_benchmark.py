@@ -1,18 +1,18 @@
-"""The README's "Hosting a benchmark" example, run as written against a live service in accounts mode (bash,
-curl and python3 needed): the admin's commands, then the participant's validate, submit and publish."""
+"""The "Hosting a benchmark" example (docs/service/benchmarks.md), run as written against a live service in accounts
+mode (bash, curl and python3 needed): the admin's commands, then the participant's validate, submit and publish."""
 
 from __future__ import annotations
 
 import csv
 import io
 import os
-import re
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from doc_examples import take
 from server_helpers import ADMIN, LiveServer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -20,12 +20,11 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(shutil.which("bash") is None or shutil.which("curl") is None, reason="needs bash and curl"),
 ]
+ADMIN_BLOCK, PARTICIPANT_BLOCK = take("docs/service/benchmarks.md", "# Hosting a benchmark", 2)
 
 
 def test_the_benchmark_example_runs_as_written(tmp_path: Path) -> None:
-    text = (ROOT / "README.md").read_text()
-    start = text.index("### Hosting a benchmark")
-    admin, participant = re.findall(r"```bash\n(.*?)```", text[start:], re.S)[:2]
+    admin, participant = ADMIN_BLOCK.code, PARTICIPANT_BLOCK.code
     assert "/srv/kitti-eval" in admin and "http://127.0.0.1:8000" in participant
     with LiveServer(tmp_path / "data", auth="accounts") as server:
         script = admin.replace("/srv/kitti-eval", str(server.data_dir)) + participant.replace(

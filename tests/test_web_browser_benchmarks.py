@@ -62,7 +62,9 @@ def test_the_leaderboard_page_shows_the_published_entry_without_scripts(tmp_path
         key = round(published["scores"]["Car/3d/moderate/R40/strict"], 4)
         # the method with its participant below it, then the key (two decimals on the board: the intervals, once
         # computed, are shown under it and say what further decimals would be worth)
-        assert [cells[0].split("\n")[0], cells[1]] == ["1", "Shown-Method\nalice (Lab A)"] and cells[2].split("\n")[0] == f"{key:.2f}"
+        assert [cells[0].split("\n")[0], cells[1]] == ["1", "Shown-Method\nalice (Lab A)"] and cells[2].split("\n")[
+            0
+        ] == f"{key:.2f}"
         assert rows[0].find_element(By.CSS_SELECTOR, "td.method a").get_attribute("href") == "https://example.org/m"
         browser.find_element(By.LINK_TEXT, "Method").click()  # a plain link: sorting needs no script
         assert "sort=method" in browser.current_url

@@ -13,14 +13,26 @@ import sys
 from pathlib import Path
 
 import pytest
+from doc_examples import TAKEN, examples
 from server_helpers import LiveServer
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 
 
+def _take_all(page: str) -> dict[str, list[str]]:
+    """Every bash block of ``page``, recorded as run by this module (see tests/doc_examples.py)."""
+    chosen = [e for e in examples(page) if e.lang == "bash"]
+    for e in chosen:
+        TAKEN[(e.page, e.line)] = __name__
+    return {page: [e.code for e in chosen]}
+
+
+_TAKEN_HERE = {**_take_all("docs/cli/compare-many.md"), **_take_all("docs/service/leaderboard-intervals.md")}
+
+
 def _blocks(page: Path) -> list[str]:
-    return re.findall(r"```bash\n(.*?)```", page.read_text(encoding="utf-8"), re.S)
+    return _TAKEN_HERE[page.relative_to(ROOT).as_posix()]
 
 
 def _run(script: str, cwd: Path) -> subprocess.CompletedProcess[str]:
