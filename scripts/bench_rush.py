@@ -1,0 +1,280 @@
+"""A deadline rush on a hosted benchmark, measured on this machine: 200 submissions from 50 participants sent
+within a few seconds to a benchmark with a quota of 3 a day, on a KITTI-val-sized sealed test set (3769
+frames). What it checks and prints:
+
+* every answer is 202 (accepted, ``?wait=0``) or 429 (the quota): exactly 150 and 50, and no 503;
+* how long acceptance took to answer (median, 95th percentile: the target is 2 s);
+* that all 150 accepted are scored, none lost and none twice (one scored submission and one finished job
+  each, no job attempted more than once), and how long the scoring of them all took (evaluations a second).
+
+Two configurations: the default ``kitti-eval serve`` on SQLite (its own workers), and, with ``--postgres``,
+3 replicas of ``kitti-eval serve`` without workers of their own and 2 ``kitti-eval worker`` processes on a
+throwaway PostgreSQL cluster (Debian's ``postgresql`` binaries), the participants' requests spread over the
+replicas.
+
+``python scripts/bench_rush.py [--participants 50] [--each 4] [--postgres]``. Prints the figures; exits 1 when
+a check fails. Everything runs on loopback in temporary folders and stops by itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+import pickle
+import pwd
+import shutil
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from kitti_eval.synth import generate
+
+ADMIN = "bench-admin-token"
+QUOTA = 3
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _start(cmd: list[str], env: dict[str, str], log: Path) -> subprocess.Popen[bytes]:
+    full = {**os.environ, "KITTI_EVAL_ADMIN_TOKEN": ADMIN, "KITTI_EVAL_LOG_FORMAT": "json", **env}
+    with open(log, "wb") as out:
+        return subprocess.Popen(cmd, env=full, stdout=out, stderr=subprocess.STDOUT)
+
+
+def _serve(data: Path, env: dict[str, str]) -> tuple[subprocess.Popen[bytes], str]:
+    port = _free_port()
+    cmd = [sys.executable, "-m", "kitti_eval.cli", "serve", "--port", str(port), "--data-dir", str(data)]
+    data.mkdir(parents=True, exist_ok=True)
+    proc = _start(cmd, {"KITTI_EVAL_AUTH": "accounts", **env}, data.parent / f"serve-{port}.log")
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 180
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"{url}/healthz", timeout=2).status_code == 200:
+                return proc, url
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.2)
+    proc.terminate()
+    raise SystemExit(f"the service did not answer in 180 s (see {data.parent}/serve-{port}.log)")
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> None:
+    proc.terminate()
+    try:
+        proc.wait(60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
+def _ready(url: str, timeout_s: float = 180) -> None:
+    deadline = time.monotonic() + timeout_s
+    while httpx.get(f"{url}/readyz", timeout=5).status_code != 200:
+        if time.monotonic() > deadline:
+            raise SystemExit(f"{url} not ready in {timeout_s:g} s")
+        time.sleep(0.2)
+
+
+class _Postgres:
+    """initdb + pg_ctl in a temporary folder on a free loopback port (as ``nobody`` when run as root)."""
+
+    def __init__(self) -> None:
+        found = shutil.which("pg_ctl") or next(iter(sorted(glob.glob("/usr/lib/postgresql/*/bin/pg_ctl"))[-1:]), None)
+        if found is None:
+            raise SystemExit("--postgres needs PostgreSQL's binaries (Debian's postgresql package)")
+        self.bindir = Path(found).resolve().parent
+        self.root = Path(tempfile.mkdtemp(prefix="kitti-eval-rush-pg-"))
+        self.port = _free_port()
+        self.as_nobody = os.geteuid() == 0
+        if self.as_nobody:
+            nobody = pwd.getpwnam("nobody")
+            os.chown(self.root, nobody.pw_uid, nobody.pw_gid)
+
+    @property
+    def url(self) -> str:
+        return f"postgresql://postgres@127.0.0.1:{self.port}/postgres"
+
+    def _run(self, *args: str) -> None:
+        cmd = [str(self.bindir / args[0]), *args[1:]]
+        if self.as_nobody:
+            cmd = ["runuser", "-u", "nobody", "--", *cmd]
+        subprocess.run(cmd, cwd=self.root, check=True, capture_output=True, timeout=120)
+
+    def __enter__(self) -> _Postgres:
+        data = str(self.root / "data")
+        self._run("initdb", "-D", data, "-U", "postgres", "--auth=trust", "-E", "UTF8", "--locale=C", "--no-sync")
+        options = f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1 -c max_connections=200"
+        self._run("pg_ctl", "-D", data, "-o", options, "-l", str(self.root / "log"), "-w", "-t", "60", "start")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            self._run("pg_ctl", "-D", str(self.root / "data"), "-m", "immediate", "-w", "stop")
+        finally:
+            shutil.rmtree(self.root, ignore_errors=True)
+
+
+def _host(url: str, gt: bytes, participants: int) -> dict[str, str]:
+    """Users with tokens, the sealed test set and the benchmark (quota 3 a day); {user: token}."""
+    admin = {"Authorization": f"Bearer {ADMIN}"}
+    tokens = {}
+    with httpx.Client(base_url=url, timeout=600, headers=admin) as c:
+        for i in range(participants):
+            user = f"team{i:02d}"
+            c.post("/v1/admin/users", json={"name": user}).raise_for_status()
+            tokens[user] = c.post("/v1/admin/tokens", json={"user": user}).json()["token"]
+        files = {"file": ("kitti_infos_test.pkl", gt)}
+        c.post("/v1/ground-truths", data={"name": "test-set", "sealed": "true"}, files=files).raise_for_status()
+        body = {"name": "rush", "ground_truth": "test-set", "quota": f"{QUOTA}/1"}
+        c.post("/v1/benchmarks", json=body).raise_for_status()
+    return tokens
+
+
+def _rush(urls: list[str], tokens: dict[str, str], pred: bytes, each: int) -> list[tuple[str, int, float, str]]:
+    """Every participant sends ``each`` submissions, all participants at once (one thread each, their requests
+    to the replicas in turn): (participant, status, seconds, the job's id or the error's code)."""
+
+    def participant(k: int) -> list[tuple[str, int, float, str]]:
+        user, token = list(tokens.items())[k]
+        out = []
+        with httpx.Client(timeout=600, headers={"Authorization": f"Bearer {token}"}) as c:
+            for j in range(each):
+                url = urls[(k * each + j) % len(urls)]
+                t0 = time.perf_counter()
+                r = c.post(
+                    f"{url}/v1/benchmarks/rush/submissions",
+                    params={"wait": "0"},
+                    files={"predictions": ("result.pkl", pred, "application/octet-stream")},
+                )
+                seconds = time.perf_counter() - t0
+                body: Any = r.json()
+                what = body.get("id") if r.status_code == 202 else body.get("error", {}).get("code", "?")
+                out.append((user, r.status_code, seconds, str(what)))
+        return out
+
+    with ThreadPoolExecutor(len(tokens)) as pool:
+        return [answer for answers in pool.map(participant, range(len(tokens))) for answer in answers]
+
+
+def _until_scored(url: str, count: int, timeout_s: float) -> tuple[list[dict[str, Any]], float]:
+    admin = {"Authorization": f"Bearer {ADMIN}"}
+    started = time.perf_counter()
+    with httpx.Client(base_url=url, timeout=600, headers=admin) as c:
+        while True:
+            rows = c.get("/v1/benchmarks/rush/submissions/all").json()["items"]
+            if sum(r["status"] in ("scored", "failed") for r in rows) >= count or len(rows) < count:
+                return rows, time.perf_counter() - started
+            if time.perf_counter() - started > timeout_s:
+                return rows, time.perf_counter() - started
+            time.sleep(0.5)
+
+
+def _jobs(url: str) -> list[dict[str, Any]]:
+    admin = {"Authorization": f"Bearer {ADMIN}"}
+    out: list[dict[str, Any]] = []
+    with httpx.Client(base_url=url, timeout=600, headers=admin) as c:
+        while True:
+            page = c.get("/v1/admin/jobs", params={"limit": 500, "offset": len(out)}).json()["items"]
+            out += page
+            if len(page) < 500:
+                return out
+
+
+def _run(label: str, urls: list[str], gt: bytes, pred: bytes, participants: int, each: int) -> bool:
+    tokens = _host(urls[0], gt, participants)
+    for url in urls:
+        _ready(url)
+    t0 = time.perf_counter()
+    answers = _rush(urls, tokens, pred, each)
+    sent_in = time.perf_counter() - t0
+    statuses = Counter(status for _, status, _, _ in answers)
+    latencies = sorted(seconds for _, _, seconds, _ in answers)
+    p95 = latencies[max(0, int(round(0.95 * len(latencies))) - 1)]
+    accepted = [job for _, status, _, job in answers if status == 202]
+    rows, scoring = _until_scored(urls[0], len(accepted), timeout_s=1800)
+    total = time.perf_counter() - t0
+    scored = [r for r in rows if r["status"] == "scored"]
+    jobs = [j for j in _jobs(urls[0]) if j["kind"] == "submission"]
+    attempts = Counter(j["attempts"] for j in jobs)
+    per_user = Counter(r["participant"] for r in rows)
+    checks = {
+        f"{participants * QUOTA} accepted, {participants * (each - QUOTA)} refused 429, no 503": (
+            statuses[202] == participants * QUOTA
+            and statuses[429] == participants * (each - QUOTA)
+            and sum(statuses.values()) == participants * each
+        ),
+        "acceptance answered within 2 s at the 95th percentile": p95 <= 2.0,
+        "every accepted one scored, each once": (
+            len(scored) == len(accepted) == len(rows)
+            and {r["id"] for r in scored} == set(accepted)
+            and len({r["id"] for r in rows}) == len(rows)
+        ),
+        f"at most {QUOTA} a participant": max(per_user.values(), default=0) <= QUOTA,
+        "one job a submission, all done, none run twice": (
+            len(jobs) == len(accepted) and all(j["state"] == "done" for j in jobs) and set(attempts) <= {1}
+        ),
+    }
+    print(f"\n{label}")
+    print(f"  {len(answers)} submissions sent in {sent_in:.1f} s: {dict(sorted(statuses.items()))}")
+    print(
+        f"  acceptance: median {statistics.median(latencies) * 1000:.0f} ms, p95 {p95 * 1000:.0f} ms, "
+        f"max {latencies[-1] * 1000:.0f} ms"
+    )
+    print(
+        f"  {len(scored)} scored {scoring:.1f} s after the last answer, {total:.1f} s after the first request: "
+        f"{len(scored) / total:.2f} evaluations a second; job attempts {dict(attempts)}"
+    )
+    for name, ok in checks.items():
+        print(f"  [{'ok' if ok else 'FAILED'}] {name}")
+    return all(checks.values())
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--participants", type=int, default=50)
+    p.add_argument("--each", type=int, default=4, help="submissions each participant sends (the quota is 3)")
+    p.add_argument("--frames", type=int, default=3769)
+    p.add_argument("--postgres", action="store_true", help="also 3 replicas and 2 workers on PostgreSQL")
+    p.add_argument("--skip-sqlite", action="store_true")
+    args = p.parse_args(argv)
+    infos, results = generate(args.frames, seed=0)
+    gt, pred = pickle.dumps(infos, protocol=4), pickle.dumps(results, protocol=4)
+    print(f"{os.cpu_count()} cores; a {len(pred) / 1e6:.1f} MB result.pkl of {args.frames} frames")
+    ok = True
+    if not args.skip_sqlite:
+        with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:
+            proc, url = _serve(Path(tmp) / "data", {})
+            stack.callback(_stop, proc)
+            ok &= _run("kitti-eval serve (SQLite, its own workers)", [url], gt, pred, args.participants, args.each)
+    if args.postgres:
+        with tempfile.TemporaryDirectory() as tmp, _Postgres() as pg, ExitStack() as stack:
+            env = {"KITTI_EVAL_DATABASE_URL": pg.url, "KITTI_EVAL_JOB_THREADS": "0"}
+            urls = []
+            for i in range(3):
+                proc, url = _serve(Path(tmp) / f"replica{i}", env)
+                stack.callback(_stop, proc)
+                urls.append(url)
+            worker = [sys.executable, "-m", "kitti_eval.cli", "worker", "--database-url", pg.url, "--processes", "2"]
+            stack.callback(_stop, _start(worker, {}, Path(tmp) / "worker.log"))
+            label = "3 replicas of kitti-eval serve, 2 kitti-eval worker processes, PostgreSQL"
+            ok &= _run(label, urls, gt, pred, args.participants, args.each)
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
