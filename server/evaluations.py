@@ -236,6 +236,14 @@ class Evaluations:
         mine = ", ".join(sorted(caller.projects)) if caller.projects is not None else "any project"
         raise BadRequest(f"name the project of the evaluation (form field 'project'): {mine or 'you have none'}")
 
+    def job_of(self, evaluation_id: str, caller: Caller) -> tuple[JobRecord, int | None] | None:
+        """The job of an accepted evaluation not stored yet (queued, running, failed or cancelled) and its place
+        in the queue, if the caller may see it (its owner's, and the admins')."""
+        job = self.jobs.get(evaluation_id)
+        if job is None or job.kind != "evaluation" or not self.policy.sees_job(caller, job.owner):
+            return None
+        return job, self.jobs.position(job.id)
+
     def get(self, evaluation_id: str, caller: Caller) -> EvaluationRecord:
         """The evaluation, if the caller may see it; another project's is as absent as a missing one, and takes
         as long to refuse (one small read of its project, before anything else is loaded)."""

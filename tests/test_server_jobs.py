@@ -172,14 +172,37 @@ def test_a_failed_evaluation_runs_again_with_its_inputs_and_a_waiting_request_le
 
 
 def test_the_upload_form_runs_through_the_queue_too(tmp_path) -> None:
-    """The web form accepts a job as the API does: with no worker to run it within the wait, the page says
-    it is queued (202) and the history shows it once a worker has run it."""
+    """The web form accepts a job as the API does: with no worker to run it within the wait, it sends the
+    browser to the evaluation's page, which says it is queued (with its place) and reloads itself without a
+    script until the scores are there."""
     with app_client(tmp_path / "data", job_threads=0, wait_s=0, ready=False) as c:
         files = {"predictions": ("result.pkl", golden_bytes("result.pkl"))}
-        page = c.post("/ui/evaluations", data={"gt": "demo"}, files=files, follow_redirects=False)
-        assert page.status_code == 202 and "is queued" in page.text, page.text[:500]
+        sent = c.post("/ui/evaluations", data={"gt": "demo"}, files=files, follow_redirects=False)
         (job,) = c.app.state.service.jobs.list()
-        assert job.kind == "evaluation" and job.state == "queued" and job.id in page.text
+        assert sent.status_code == 303 and sent.headers["location"] == f"/evaluations/{job.id}", sent.text[:500]
+        assert job.kind == "evaluation" and job.state == "queued"
+        page = c.get(f"/evaluations/{job.id}")
+        assert page.status_code == 200 and 'data-state="queued"' in page.text and "1st in line" in page.text
+        assert '<meta http-equiv="refresh" content="2">' in page.text
+        c.app.state.service.workers.threads = 1
+        c.app.state.service.workers.start()
+        ended = c.app.state.service.jobs.wait(job.id, 120)
+        assert ended is not None and ended.state == "done"
+        done = c.get(f"/evaluations/{job.id}")
+        assert done.status_code == 200 and "http-equiv" not in done.text and 'id="state"' not in done.text
+
+
+def test_a_refused_upload_s_page_says_why_and_stops_reloading(tmp_path) -> None:
+    with app_client(tmp_path / "data") as c:
+        job = upload(c, b"\x80\x04not a pickle at all", params={"wait": "0"}).json()
+        assert _until_ended(c, job["id"])["state"] == "failed"
+        page = c.get(f"/evaluations/{job['id']}")
+        assert page.status_code == 422 and 'data-state="failed"' in page.text and "http-equiv" not in page.text
+        assert "The evaluation was refused" in page.text
+    with app_client(tmp_path / "accounts", auth="accounts") as c:  # someone else's job is not there for you
+        teams = make_teams(c)
+        r = upload(c, golden_bytes("result.pkl"), gt="gt-a", params={"wait": "0"}, headers=teams.headers("alice"))
+        assert c.get(f"/evaluations/{r.json()['id']}", headers=teams.headers("bob")).status_code == 404
 
 
 def test_busy_evaluators_refuse_nothing_only_the_queues_limits_do(tmp_path) -> None:

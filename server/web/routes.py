@@ -32,13 +32,25 @@ from ..accounts import TokenRefused
 from ..auth import CALLER_KEY, CSRF_COOKIE, SESSION_COOKIE
 from ..compare import compare
 from ..deps import FORM_MAX_FIELDS, PublicCaller, ReaderCaller, ServiceDep, WriterCaller
-from ..errors import MAX_ECHO_CHARS, ApiError, BadRequest, Forbidden, clip, echo, fault_of, library_error_status
+from ..errors import (
+    MAX_ECHO_CHARS,
+    ApiError,
+    BadRequest,
+    Forbidden,
+    NotFound,
+    clip,
+    echo,
+    fault_of,
+    library_error_status,
+)
 from ..evaluator import ERRORS_SET, EvalOptions, parse_labels
+from ..jobs import JobRecord
 from ..policy import Caller
 from ..routes.frames import MAX_SCORE
 from ..schemas import iso
 from ..service import FileIn, Service
 from ..store import EvaluationRecord
+from ..workers import JobFailed
 from .svg import bar_chart, bev_view, points_text, pr_chart
 
 __all__ = ["router", "templates", "STATIC_DIR", "sign_in_page", "error_page"]
@@ -236,7 +248,6 @@ def _home(
     *,
     status: int = 200,
     error: str | None = None,
-    notice: str | None = None,
     form: Mapping[str, str] | None = None,
 ) -> Response:
     return _render(
@@ -244,7 +255,6 @@ def _home(
         "home.html",
         status,
         error=error,
-        notice=notice,
         form=dict(form or {}),
         ground_truths=[g.name for g in service.catalog.to_evaluate(caller)],
         projects=_projects(service, caller),
@@ -295,10 +305,7 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
                     enqueue=service.enqueue_evaluation(caller),
                 )
             )
-        ended = await service.outcome(job.id)
-        if ended.state != "done":
-            notice = f"evaluation {job.id} is {ended.state}; it appears in the history below once it is done"
-            return await anyio.to_thread.run_sync(partial(_home, request, service, caller, status=202, notice=notice))
+        await service.outcome(job.id, min(service.settings.wait_s, FORM_WAIT_S))  # else its page follows it
     except Exception as e:  # the refusals the JSON API answers 4xx, and a full disk (507)
         failure: ApiError | KittiEvalError | HTTPException | None = (
             e
@@ -316,6 +323,40 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
 
 
 # -------------------------------------------------------------------------------------------- evaluation
+
+#: how long the upload form waits for the evaluation before it shows the evaluation's page (which follows it)
+FORM_WAIT_S = 10.0
+#: how often the page of an evaluation still queued or running reloads itself
+REFRESH_S = 2
+
+
+def _ordinal(n: int) -> str:
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
+
+
+def _job_page(request: Request, job: JobRecord, position: int | None) -> Response:
+    """An accepted evaluation that is not stored: queued (with its place), running (both reload themselves
+    every ``REFRESH_S`` without a script), failed with the reason its input was refused, or cancelled."""
+    failure = JobFailed(job.error) if job.state == "failed" else None
+    if job.state == "queued":
+        text = "queued" if position is None else f"queued ({_ordinal(position)} in line)"
+    else:
+        text = {"running": "being evaluated", "failed": "failed", "cancelled": "cancelled by an admin"}.get(
+            job.state, job.state
+        )
+    status = failure.status_code if failure is not None else 409 if job.state == "cancelled" else 200
+    return _render(
+        request,
+        "job.html",
+        status,
+        job=job,
+        state=job.state,
+        text=text,
+        refresh=REFRESH_S if job.state in ("queued", "running") else None,
+        reason=clip(failure.message) if failure is not None else None,
+        accepted=job.accepted_at.strftime("%Y-%m-%d %H:%M:%S UTC"),
+    )
 
 
 def score_tables(result: Mapping[str, Any]) -> list[dict[str, Any]]:
@@ -432,6 +473,11 @@ async def evaluation_page(
 ) -> Response:
     try:
         record = await anyio.to_thread.run_sync(service.evaluations.get, evaluation_id, caller)
+    except NotFound as e:  # accepted and not done yet (or failed): its job's page, which follows it
+        pending = await anyio.to_thread.run_sync(service.evaluations.job_of, evaluation_id, caller)
+        if pending is None:
+            return _error_page(request, e)
+        return _job_page(request, *pending)
     except ApiError as e:
         return _error_page(request, e)
     result = record.result
