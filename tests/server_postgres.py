@@ -62,6 +62,9 @@ class PostgresCluster:
         self.data = self.root / "data"
         self.port = free_port()
         self.started = False
+        #: the addresses the server listens on (listen_addresses), and networks trusted besides loopback
+        self.listen = "127.0.0.1"
+        self.trusted: list[str] = []
         if _as_nobody():
             nobody = pwd.getpwnam("nobody")
             os.chown(self.root, nobody.pw_uid, nobody.pw_gid)
@@ -72,7 +75,7 @@ class PostgresCluster:
         return f"postgresql://postgres@127.0.0.1:{self.port}/postgres"
 
     def _run(self, *args: str, timeout: float = 60) -> None:
-        cmd = [str(self.bindir / args[0]), *args[1:]]
+        cmd = [args[0] if args[0] == "sh" else str(self.bindir / args[0]), *args[1:]]
         if _as_nobody():
             cmd = ["runuser", "-u", "nobody", "--", *cmd]
         proc = subprocess.run(cmd, cwd=self.root, capture_output=True, text=True, timeout=timeout)
@@ -94,7 +97,11 @@ class PostgresCluster:
 
     def resume(self) -> PostgresCluster:
         """Start the server on its data folder and port (the first start, or again after :meth:`halt`)."""
-        options = f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1 -c max_connections=60"
+        options = f"-p {self.port} -k {self.root} -c listen_addresses={self.listen} -c max_connections=60"
+        if self.trusted:
+            hba = self.data / "pg_hba.conf"
+            lines = "".join(f"host all all {network} trust\n" for network in self.trusted)
+            self._run("sh", "-c", f"printf '%s' '{lines}' >> {hba}")
         self._run(
             "pg_ctl",
             "-D",
