@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
@@ -34,6 +35,7 @@ from .web import STATIC_DIR
 from .web import router as web_router
 from .web.benchmarks import router as benchmark_pages
 from .web.routes import error_page, sign_in_page
+from .worker_pool import cpus
 
 __all__ = ["create_app", "serve"]  # and `app`, built on first access
 
@@ -200,7 +202,13 @@ def serve(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
     except SystemExit as e:
         return int(e.code) if isinstance(e.code, int) else 2
-    overrides = {k: v for k, v in (("data_dir", args.data_dir), ("database_url", args.database_url)) if v}
+    overrides: dict[str, Any] = {
+        k: v for k, v in (("data_dir", args.data_dir), ("database_url", args.database_url)) if v
+    }
+    if "KITTI_EVAL_WORKER_PROCESSES" not in os.environ and "KITTI_EVAL_JOB_THREADS" not in os.environ:
+        # one command uses the machine: a worker process a CPU (evaluations in parallel processes, not threads
+        # of one, whose pickle loading shares one interpreter lock), none of the web process's own
+        overrides.update(worker_processes=cpus(), job_threads=0)
     try:
         settings = Settings(**overrides)
     except ValidationError as e:
