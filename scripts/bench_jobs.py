@@ -2,7 +2,8 @@
 (3769 frames), uploads from several clients at once.
 
 * throughput: evaluations finished per second, from the first acceptance to the last result, for the default
-  service (its own worker threads) and for one with worker processes of its own (``--processes``);
+  ``kitti-eval serve`` (a worker process of its own a CPU), for one whose web process runs the jobs on two
+  threads, and for one with no worker of its own beside ``kitti-eval worker --processes N`` (``--processes``);
 * acceptance: how long ``POST /v1/evaluations?wait=0`` takes to answer 202 while the workers are busy (median
   and 95th percentile): accepting never waits for a free evaluator.
 
@@ -61,9 +62,20 @@ def _stop(proc: subprocess.Popen[bytes]) -> None:
         proc.kill()
 
 
-def _run(label: str, env: dict[str, str], gt: bytes, pred: bytes, uploads: int, clients: int) -> None:
+def _run(
+    label: str, env: dict[str, str], gt: bytes, pred: bytes, uploads: int, clients: int, *, workers: int = 0
+) -> None:
+    """``workers``: a ``kitti-eval worker --processes N`` beside the service, on its SQLite database."""
     with tempfile.TemporaryDirectory() as tmp:
         port = _free_port()
+        worker = None
+        if workers:
+            data = Path(tmp) / "data"
+            data.mkdir()
+            cmd = [sys.executable, "-m", "kitti_eval.cli", "worker", "--data-dir", str(data)]
+            worker = subprocess.Popen(
+                [*cmd, "--processes", str(workers)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+            )
         proc = _serve(Path(tmp) / "data", port, env)
         base = f"http://127.0.0.1:{port}"
         try:
@@ -103,6 +115,8 @@ def _run(label: str, env: dict[str, str], gt: bytes, pred: bytes, uploads: int, 
                 wall = time.perf_counter() - started
         finally:
             _stop(proc)
+            if worker is not None:
+                _stop(worker)
     latencies = sorted(t for t, _ in accepted)
     p95 = latencies[max(0, int(round(0.95 * len(latencies))) - 1)]
     print(
@@ -120,11 +134,12 @@ def main(argv: list[str] | None = None) -> int:
     infos, results = generate(3769, seed=0)
     gt, pred = pickle.dumps(infos, protocol=4), pickle.dumps(results, protocol=4)
     print(f"{os.cpu_count()} cores; {len(pred) / 1e6:.1f} MB result.pkl, 3769 frames")
-    _run("default (2 worker threads)", {}, gt, pred, args.uploads, args.clients)
-    processes = {"KITTI_EVAL_JOB_THREADS": "0", "KITTI_EVAL_WORKER_PROCESSES": str(args.processes)}
-    _run(f"{args.processes} worker processes", processes, gt, pred, args.uploads, args.clients)
-    one = {**processes, "KITTI_EVAL_THREADS": "1"}  # each evaluation's matching on one thread: no oversubscription
-    _run(f"{args.processes} processes, 1 thread each", one, gt, pred, args.uploads, args.clients)
+    _run("kitti-eval serve (default)", {}, gt, pred, args.uploads, args.clients)
+    threads = {"KITTI_EVAL_WORKER_PROCESSES": "0", "KITTI_EVAL_JOB_THREADS": "2"}
+    _run("2 worker threads, no process", threads, gt, pred, args.uploads, args.clients)
+    none = {"KITTI_EVAL_WORKER_PROCESSES": "0", "KITTI_EVAL_JOB_THREADS": "0"}
+    label = f"{args.processes} kitti-eval worker procs"
+    _run(label, none, gt, pred, args.uploads, args.clients, workers=args.processes)
     return 0
 
 
