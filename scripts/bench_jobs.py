@@ -22,6 +22,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -38,20 +39,29 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _serve(data: Path, port: int, env: dict[str, str]) -> subprocess.Popen[bytes]:
+def _serve(
+    data: Path, port: int, env: dict[str, str], started: Callable[[], None] | None = None
+) -> subprocess.Popen[bytes]:
+    """``kitti-eval serve`` on ``data``, once ready; ``started`` is called once it answers (and its database
+    exists), before it is ready (a service without workers of its own is ready once one is there)."""
     full = {**os.environ, "KITTI_EVAL_ADMIN_TOKEN": ADMIN, "KITTI_EVAL_LOG_FORMAT": "json", **env}
     cmd = [sys.executable, "-m", "kitti_eval.cli", "serve", "--port", str(port), "--data-dir", str(data)]
     proc = subprocess.Popen(cmd, env=full, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 180
-    while time.monotonic() < deadline:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
-                return proc
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.2)
-    proc.terminate()
-    raise SystemExit("the service did not become ready in 180 s")
+    for path in ("/healthz", "/readyz"):
+        while True:
+            try:
+                if httpx.get(f"http://127.0.0.1:{port}{path}", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            if time.monotonic() > deadline:
+                proc.terminate()
+                raise SystemExit("the service did not become ready in 180 s")
+            time.sleep(0.2)
+        if path == "/healthz" and started is not None:
+            started()
+    return proc
 
 
 def _stop(proc: subprocess.Popen[bytes]) -> None:
@@ -68,15 +78,15 @@ def _run(
     """``workers``: a ``kitti-eval worker --processes N`` beside the service, on its SQLite database."""
     with tempfile.TemporaryDirectory() as tmp:
         port = _free_port()
-        worker = None
-        if workers:
-            data = Path(tmp) / "data"
-            data.mkdir()
+        data = Path(tmp) / "data"
+        worker: list[subprocess.Popen[bytes]] = []
+
+        def start_workers() -> None:
             cmd = [sys.executable, "-m", "kitti_eval.cli", "worker", "--data-dir", str(data)]
-            worker = subprocess.Popen(
-                [*cmd, "--processes", str(workers)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-            )
-        proc = _serve(Path(tmp) / "data", port, env)
+            cmd += ["--processes", str(workers)]
+            worker.append(subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+
+        proc = _serve(data, port, env, start_workers if workers else None)
         base = f"http://127.0.0.1:{port}"
         try:
             with httpx.Client(base_url=base, timeout=600) as c:
@@ -115,8 +125,8 @@ def _run(
                 wall = time.perf_counter() - started
         finally:
             _stop(proc)
-            if worker is not None:
-                _stop(worker)
+            for w in worker:
+                _stop(w)
     latencies = sorted(t for t, _ in accepted)
     p95 = latencies[max(0, int(round(0.95 * len(latencies))) - 1)]
     print(

@@ -94,11 +94,11 @@ class Evaluations:
         caller: Caller,
         project: str | None = None,
         *,
-        enqueue: Callable[[str, dict[str, Any]], JobRecord],
+        enqueue: Callable[[str, dict[str, Any], list[JobInput]], JobRecord],
     ) -> JobRecord:
         """Check what can be checked before the evaluation (the options, the ground truth and the caller's right
-        to it, the project), keep the uploaded files as the job's inputs and enqueue the job (``enqueue(job_id,
-        payload)``, which a worker runs with :meth:`execute`). In accounts mode the
+        to it, the project), and enqueue the job with the uploaded files as its inputs (``enqueue(job_id,
+        payload, inputs)``, one transaction; a worker runs it with :meth:`execute`). In accounts mode the
         evaluation belongs to ``project`` (default: the ground truth's, else the caller's only one), which must
         be the caller's. A benchmark's test set is refused to all but admins (whose evaluations against it are
         audited)."""
@@ -125,10 +125,10 @@ class Evaluations:
             "project": project,
         }
         self.jobs.admit(caller.name if self.policy.accounts else None, sum(len(i.content) for i in inputs))
-        self.store.add_job_inputs(job_id, inputs)
+        job = enqueue(job_id, payload, inputs)  # the job and its inputs: one transaction
         if gt_record is not None and self.policy.is_test_set(gt_record):
             self.audit.record(caller, "evaluation.test_set", f"{job_id} on {gt_record.name}")
-        return enqueue(job_id, payload)
+        return job
 
     def execute(self, job_id: str, payload: Mapping[str, Any]) -> tuple[EvaluationRecord, Callable[[Any], None]]:
         """Run an accepted evaluation: load its inputs, evaluate. Returns the record and the writes that store

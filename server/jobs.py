@@ -38,7 +38,7 @@ from sqlalchemy.engine import Connection
 from sqlalchemy.exc import IntegrityError
 
 from .errors import QueueFull, TooManyQueued
-from .store import JobRecord, Store, WorkerRecord, new_id
+from .store import JobInput, JobRecord, Store, WorkerRecord, new_id
 from .store.job_store import ENDED_STATES, JOB_STATES
 
 __all__ = ["JobQueue", "QueueLimits", "JobRecord", "WorkerRecord", "JOB_KINDS", "JOB_STATES", "ENDED_STATES", "now_utc"]
@@ -184,13 +184,21 @@ class JobQueue:
         )
 
     def enqueue(
-        self, kind: str, payload: dict, *, owner: str, group: str | None = None, job_id: str | None = None
+        self,
+        kind: str,
+        payload: dict,
+        *,
+        owner: str,
+        group: str | None = None,
+        job_id: str | None = None,
+        inputs: builtins.list[JobInput] | None = None,
     ) -> JobRecord:
-        """Record a queued job (committed when this returns). ``job_id``: the id to give it (a new one when
-        None); when a job already has it, that job is returned as it is (enqueueing the same job again, as a
-        retried request does, records it once)."""
+        """Record a queued job (committed when this returns), with its uploaded ``inputs`` in the same
+        transaction. ``job_id``: the id to give it (a new one when None); when a job already has it, that job
+        is returned as it is (enqueueing the same job again, as a retried request does, records it once)."""
         record = self._new(kind, payload, owner, group, job_id, self._now())
-        if self.store.add_job(record):
+        added = self.store.add_job_with_inputs(record, inputs) if inputs else self.store.add_job(record)
+        if added:
             return record
         existing = self.store.get_job(record.id)
         if existing is None:  # deleted in between: only a database changed by hand gets here

@@ -35,7 +35,7 @@ from .policy import AuthMode, Policy
 from .runner import Runner, release_memory
 from .scratch import ScratchSpace
 from .settings import Settings
-from .store import Store
+from .store import JobInput, Store
 from .uploads import FileIn, Limits, receive_upload
 from .worker_pool import WorkerPool
 from .workers import Workers, await_outcome
@@ -205,11 +205,11 @@ class Service:
         record, write = self.evaluations.execute(job.id, job.payload)
         return record.id, write
 
-    def enqueue_evaluation(self, caller: Any) -> Callable[[str, dict[str, Any]], JobRecord]:
+    def enqueue_evaluation(self, caller: Any) -> Callable[[str, dict[str, Any], list[JobInput]], JobRecord]:
         """How an accepted evaluation of ``caller``'s is queued (and the idle workers of this process woken)."""
 
-        def enqueue(job_id: str, payload: dict[str, Any]) -> JobRecord:
-            job = self.jobs.enqueue("evaluation", payload, owner=caller.name, job_id=job_id)
+        def enqueue(job_id: str, payload: dict[str, Any], inputs: list[JobInput]) -> JobRecord:
+            job = self.jobs.enqueue("evaluation", payload, owner=caller.name, job_id=job_id, inputs=inputs)
             self.workers.wake()
             return job
 

@@ -73,6 +73,11 @@ class Settings(BaseSettings):
     one thread each, stopped (drained) with it: one command uses the machine's cores. 0: only the threads of
     ``job_threads`` (and any ``kitti-eval worker``). Each process of ``uvicorn --workers`` would start its own."""
 
+    worker_nice: Annotated[int, Field(ge=0, le=19)] = 10
+    """How much a worker process (``kitti-eval worker``, and the service's own) lowers its scheduling priority
+    (``nice``): on a machine it shares with a web process, accepting requests comes before evaluating them, so
+    a rush is answered at once and evaluated right after. 0: the same priority."""
+
     job_lease_s: Annotated[float, Field(gt=0)] = 30.0
     """How long a worker holds a job without a heartbeat (it beats every third of it); a worker that stops
     loses its job to another once it has run out."""

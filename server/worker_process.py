@@ -131,6 +131,8 @@ def child_main(argv: Sequence[str] | None = None) -> int:
     if settings.database_url is None:
         log.error("a worker process needs KITTI_EVAL_DATABASE_URL")
         return EXIT_USAGE
+    if settings.worker_nice:
+        os.nice(settings.worker_nice)  # accepting (the web process) before evaluating, on a shared machine
     service = Service(settings)
     if os.environ.get("PROMETHEUS_MULTIPROC_DIR"):  # counted with the service's, in its scrape
         service.workers.on_ended = Metrics().job_ended

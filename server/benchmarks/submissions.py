@@ -187,9 +187,19 @@ class Submissions(Intervals):
             pred_size=upload.size,
             baseline=baseline,
         )
+        upload.file.seek(0)
+        inputs = [JobInput("predictions", upload.filename, upload.sha256, upload.file.read())]
+        payload = {"submission_id": submission_id, "benchmark": name}
+
+        def with_its_job(conn: Any) -> None:  # the submission, its input and its job: one commit
+            self.store.add_job_inputs_in(conn, submission_id, inputs)
+            self.jobs.enqueue_in(conn, "submission", payload, owner=caller.name, group=name, job_id=submission_id)
+
         try:
             limit = None if baseline else count
-            self.store.accept_submission(accepted, limit=limit, window_start=now - window, window=window)
+            self.store.accept_submission(
+                accepted, limit=limit, window_start=now - window, window=window, then=with_its_job
+            )
         except QuotaRefused as e:
             retry = max(1, math.ceil((e.retry_at - datetime.now(timezone.utc)).total_seconds()))
             raise QuotaExceeded(
@@ -198,16 +208,8 @@ class Submissions(Intervals):
                 retry,
                 e.retry_at,
             ) from None
-        upload.file.seek(0)
-        content = upload.file.read()
-        self.store.add_job_inputs(submission_id, [JobInput("predictions", upload.filename, upload.sha256, content)])
-        job = self.jobs.enqueue(
-            "submission",
-            {"submission_id": submission_id, "benchmark": name},
-            owner=caller.name,
-            group=name,
-            job_id=submission_id,
-        )
+        job = self.jobs.get(submission_id)
+        assert job is not None
         self.wake(1)
         self.audit.record(caller, "baseline.add" if baseline else "submission.add", f"{name} {submission_id}")
         return job

@@ -34,6 +34,7 @@ from .database import (
     prediction_files,
     projects,
     quota_locks,
+    retry_when_locked,
     submission_resamples,
     submissions,
     tokens,
@@ -98,6 +99,16 @@ class Store(GroundTruthStore, EvaluationStore, AccountStore, BenchmarkStore, Job
     @property
     def busy_s(self) -> float | None:
         return self.db.busy_s
+
+    @retry_when_locked
+    def add_job_with_inputs(self, record: JobRecord, inputs: list[JobInput]) -> bool:
+        """The job and its uploaded files in one transaction (one commit: a job is never without its input);
+        False, and nothing added, when the job's id is taken."""
+        with self._writing() as conn:
+            if not self.add_job_in(conn, record):
+                return False
+            self.add_job_inputs_in(conn, record.id, inputs)
+            return True
 
     @property
     def lock_retries(self) -> int:

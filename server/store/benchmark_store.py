@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Collection, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
@@ -159,13 +159,20 @@ class BenchmarkStore(Area):
 
     @retry_when_locked
     def accept_submission(
-        self, record: SubmissionRecord, *, limit: int | None, window_start: datetime, window: timedelta
+        self,
+        record: SubmissionRecord,
+        *,
+        limit: int | None,
+        window_start: datetime,
+        window: timedelta,
+        then: Callable[[Connection], object] | None = None,
     ) -> None:
         """Insert the submission if its participant has fewer than ``limit`` submissions in this benchmark
         since ``window_start``; else raise :class:`QuotaRefused` (``limit`` None: an admin's baseline, inserted
         uncounted). Counting and inserting are one transaction
         holding the (benchmark, participant) pair's lock, so concurrent submissions, from any number of
-        servers on the database, are counted one after another and none is admitted over the limit."""
+        servers on the database, are counted one after another and none is admitted over the limit. ``then``
+        writes what goes with the submission in the same transaction."""
         count_query = select(func.count(), func.min(submissions.c.created_at)).where(
             submissions.c.benchmark == record.benchmark,
             submissions.c.participant == record.participant,
@@ -176,12 +183,16 @@ class BenchmarkStore(Area):
         if limit is None:
             with self.engine.begin() as conn:
                 conn.execute(insert(submissions).values(**record.__dict__))
+                if then is not None:
+                    then(conn)
             return
         with self._holding(record.benchmark, record.participant) as conn:
             used, oldest = conn.execute(count_query).one()
             if used >= limit:
                 raise QuotaRefused(utc(oldest) + window, used)
             conn.execute(insert(submissions).values(**record.__dict__))
+            if then is not None:  # what is recorded with it (its job and input), in the same commit
+                then(conn)
 
     @retry_when_locked
     def publish_submission(self, record: SubmissionRecord, *, cap: int | None, **values: Any) -> None:

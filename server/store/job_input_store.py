@@ -24,13 +24,18 @@ class JobInputStore(Area):
     @retry_when_locked
     def add_job_inputs(self, job_id: str, inputs: list[JobInput]) -> None:
         with self.engine.begin() as conn:
-            conn.execute(
-                insert(job_inputs),
-                [
-                    {"job_id": job_id, "name": i.name, "filename": i.filename, "sha256": i.sha256, "content": i.content}
-                    for i in inputs
-                ],
-            )
+            self.add_job_inputs_in(conn, job_id, inputs)
+
+    @staticmethod
+    def add_job_inputs_in(conn: Connection, job_id: str, inputs: list[JobInput]) -> None:
+        """Within a transaction of the caller's (the one that records the job)."""
+        conn.execute(
+            insert(job_inputs),
+            [
+                {"job_id": job_id, "name": i.name, "filename": i.filename, "sha256": i.sha256, "content": i.content}
+                for i in inputs
+            ],
+        )
 
     @retry_when_locked
     def job_input(self, job_id: str, name: str) -> JobInput | None:
