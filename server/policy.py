@@ -125,7 +125,7 @@ class _GroundTruth(Protocol):
 
 
 #: the rules as one table: (route group, access, what a member may do there, what an admin may do there).
-#: The "Who may do what" table of docs/service/accounts.md is this one (tests/test_policy.py compares them).
+#: The "Who may do what" table of docs/service/accounts.md is this one (tests/server/test_policy.py compares them).
 RULES: Sequence[tuple[str, Access, str, str]] = (
     ("probes, sign-in page, static files", Access.PUBLIC, "yes", "yes"),
     ("public benchmarks: description, frame ids, board", Access.ANYONE, "yes (no token needed)", "yes"),

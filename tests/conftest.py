@@ -1,4 +1,10 @@
-"""Shared fixtures: the kernels warmed once per session, and the service's test client."""
+"""Shared fixtures: the kernels warmed once per session, and the service's test client; a marker a folder.
+
+The tests are grouped by layer, a folder each, and each folder's tests carry its name as a marker:
+``core`` (kernels, curves, the protocol's scenarios: a seconds-long loop), ``io``, ``analysis``, ``cli``,
+``compat``, ``server`` (the service, its jobs and databases: processes), ``web`` (pages, some in Chromium),
+``docs`` (the README's and the pages' examples), ``packaging`` (wheels, containers, CI). ``pytest tests/core``
+or ``pytest -m core`` runs one; ``helpers/`` holds what they share (on the path by pyproject's ``pythonpath``)."""
 
 from __future__ import annotations
 
@@ -36,7 +42,19 @@ def client(service_client: Callable[..., AbstractContextManager[Any]]) -> Iterat
         yield c
 
 
+FOLDERS = ("core", "io", "analysis", "cli", "compat", "server", "web", "docs", "packaging")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        folder = item.path.parent.name
+        if folder in FOLDERS:
+            item.add_marker(getattr(pytest.mark, folder))
+
+
 def pytest_configure(config: pytest.Config) -> None:
+    for folder in FOLDERS:
+        config.addinivalue_line("markers", f"{folder}: the tests of tests/{folder}/ (a marker a folder)")
     config.addinivalue_line(
         "markers", "slow: kills or starts server processes, or builds the wheel (seconds each); -m 'not slow' skips"
     )

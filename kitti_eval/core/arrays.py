@@ -3,7 +3,7 @@
 numba compiles one version of a kernel per combination of argument types, and a read-only or strided
 array is another type than a writeable C-contiguous one. The wrappers in :mod:`kitti_eval.core` and
 :mod:`kitti_eval.analysis` pass every array through :func:`kernel_input` first, so each kernel is compiled
-once and cached once whatever the caller handed over (``tests/test_jit.py`` counts the compilations).
+once and cached once whatever the caller handed over (``tests/core/test_jit.py`` counts the compilations).
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ The stamp is given to numba through a cache locator: :class:`KernelLocator` sits
 locators, answers only for functions defined in this package (a user's own numba code is cached as numba
 always does), finds the folder through numba's own locators (``NUMBA_CACHE_DIR``, the package's
 ``__pycache__``, the user-wide cache) and changes only the stamp. Kernel modules import :func:`njit` from
-here, so the locator is in place before their first kernel is decorated (``tests/test_kernel_cache.py``
+here, so the locator is in place before their first kernel is decorated (``tests/packaging/test_kernel_cache.py``
 checks that no module takes ``njit`` from numba directly).
 
 A platform wheel (``scripts/build_wheel.py``) also carries the kernels, compiled for the generic CPU of its

@@ -1,0 +1,203 @@
+"""Every import inside the project points down: no module imports, directly or through others, one that
+imports it back.
+
+The graph is read from the source with :mod:`ast`, not by importing anything. It holds every import
+statement of ``kitti_eval`` and of the service (``server/`` in the repository, installed as
+``kitti_eval_server``): absolute and relative ones, at module level, under ``if TYPE_CHECKING:``, and
+inside functions. The lazy ones count too: a function's ``from .x import y`` runs as surely as a module's
+(only later), and a circle that closes through one is still a circle in the design, one that a later move
+of that import to the top of its module would turn into an ImportError. Importing ``a.b.c`` also runs the
+packages ``a`` and ``a.b``; those implied edges are left out, as every module would otherwise be in a
+circle with its package's ``__init__``. An edge to a package is kept only when the statement names the
+package itself (``from .. import name`` where ``name`` is not a module).
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+#: import name -> the folder it is installed from (pyproject.toml's package-dir mapping)
+PACKAGES = {"kitti_eval": ROOT / "kitti_eval", "kitti_eval_server": ROOT / "server"}
+
+
+def modules(packages: Mapping[str, Path]) -> dict[str, tuple[Path, bool]]:
+    """Dotted module name -> (file, whether it is a package's ``__init__``)."""
+    found: dict[str, tuple[Path, bool]] = {}
+    for name, folder in packages.items():
+        for path in sorted(folder.rglob("*.py")):
+            parts = [name, *path.relative_to(folder).with_suffix("").parts]
+            is_package = parts[-1] == "__init__"
+            found[".".join(parts[:-1] if is_package else parts)] = (path, is_package)
+    return found
+
+
+def _absolute(module: str, is_package: bool, node: ast.ImportFrom) -> str:
+    if node.level == 0:
+        return node.module or ""
+    base = module.split(".") if is_package else module.split(".")[:-1]
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join([*base, node.module] if node.module else base)
+
+
+def import_graph(packages: Mapping[str, Path]) -> dict[str, set[str]]:
+    """Module -> the project's modules it imports (each statement's innermost module of the project)."""
+    known = modules(packages)
+    graph: dict[str, set[str]] = {name: set() for name in known}
+    for module, (path, is_package) in known.items():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = _absolute(module, is_package, node)
+                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in known else base for a in node.names]
+            else:
+                continue
+            for target in targets:
+                while target and target not in known:  # `import kitti_eval.core.x.y` of a name in x
+                    target = target.rpartition(".")[0]
+                if target and target != module:
+                    graph[module].add(target)
+    return graph
+
+
+def cycles(graph: Mapping[str, Iterable[str]]) -> list[list[str]]:
+    """One circle through each strongly connected group of modules, as ``[a, b, ..., a]`` (Tarjan's
+    algorithm, iterative; then a shortest way back to the group's first module)."""
+    edges = {v: sorted(ws) for v, ws in graph.items()}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    groups: list[list[str]] = []
+    for start in sorted(edges):
+        if start in index:
+            continue
+        work = [(start, 0)]
+        while work:
+            v, i = work.pop()
+            if i == 0:
+                index[v] = low[v] = len(index)
+                stack.append(v)
+                on_stack.add(v)
+            if i < len(edges[v]):
+                work.append((v, i + 1))
+                w = edges[v][i]
+                if w not in index:
+                    work.append((w, 0))
+                elif w in on_stack:
+                    low[v] = min(low[v], index[w])
+                continue
+            if work:
+                parent = work[-1][0]
+                low[parent] = min(low[parent], low[v])
+            if low[v] == index[v]:
+                group = []
+                while True:
+                    w = stack.pop()
+                    on_stack.discard(w)
+                    group.append(w)
+                    if w == v:
+                        break
+                if len(group) > 1 or v in edges[v]:
+                    groups.append(sorted(group))
+    found = []
+    for group in groups:
+        members, first = set(group), group[0]
+        paths = {w: [first, w] for w in edges[first] if w in members}
+        frontier = list(paths)
+        while first not in paths:
+            step = []
+            for v in frontier:
+                for w in edges[v]:
+                    if w in members and w not in paths:
+                        paths[w] = [*paths[v], w]
+                        step.append(w)
+            frontier = step
+        found.append(paths[first])
+    return sorted(found)
+
+
+def report(circles: list[list[str]]) -> str:
+    return "import circles:\n" + "\n".join(" -> ".join(c) for c in circles)
+
+
+def test_no_import_circle() -> None:
+    circles = cycles(import_graph(PACKAGES))
+    assert circles == [], report(circles)
+
+
+def test_the_graph_holds_every_kind_of_import() -> None:
+    graph = import_graph(PACKAGES)
+    assert {m.partition(".")[0] for m in graph} == {"kitti_eval", "kitti_eval_server"}
+    assert {"kitti_eval.core", "kitti_eval.core.matching", "kitti_eval_server.routes.health"} < graph.keys()
+    assert "kitti_eval.core.arrays" in graph["kitti_eval.core.geometry"]  # relative, module level
+    assert "kitti_eval.core.evaluation" in graph["kitti_eval._jit"]  # inside warm_up()
+    assert "kitti_eval._jit" in graph["kitti_eval_server.service"]  # absolute, from the service
+    assert graph["kitti_eval.core.arrays"] == set()
+
+
+def test_the_bottom_of_the_house_imports_nothing_above_it() -> None:
+    """``core`` is the bottom: it imports only itself, the error tree and numpy/numba; the numba cache's
+    warm-up is the top: only the CLI and the service import it."""
+    graph = import_graph(PACKAGES)
+    for module, targets in graph.items():
+        if module.startswith("kitti_eval.core."):
+            above = {t for t in targets if not t.startswith("kitti_eval.core") and t != "kitti_eval.errors"}
+            assert above == set(), module
+    importers = {m for m, targets in graph.items() if "kitti_eval._jit" in targets}
+    assert importers and all(m.startswith(("kitti_eval.cli", "kitti_eval_server.")) for m in importers), importers
+
+
+def _write(folder: Path, files: Mapping[str, str]) -> None:
+    for name, text in files.items():
+        path = folder / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+
+
+def test_a_circle_is_found_and_named(tmp_path: Path) -> None:
+    """The check can fail: a circle closed by a lazy relative import is found and named (a module that
+    names itself is no edge, and a package's ``__init__`` importing a module of the circle is not in it)."""
+    _write(
+        tmp_path / "pkg",
+        {
+            "__init__.py": "from .top import run\n",
+            "low/__init__.py": "",
+            "low/kernels.py": "def k():\n    from ..top import run\n    return run\n",
+            "mid.py": "from .low import kernels\n",
+            "top.py": "import pkg.mid\n\ndef run():\n    pass\n",
+            "alone.py": "from . import alone\n",
+            "clean.py": "from .low.kernels import k\nimport numpy\n",
+        },
+    )
+    graph = import_graph({"pkg": tmp_path / "pkg"})
+    assert graph["pkg.mid"] == {"pkg.low.kernels"}
+    assert graph["pkg.clean"] == {"pkg.low.kernels"}
+    assert graph["pkg"] == {"pkg.top"}
+    assert graph["pkg.alone"] == set()  # a module importing itself by name is no edge of the graph
+    assert cycles(graph) == [["pkg.low.kernels", "pkg.top", "pkg.mid", "pkg.low.kernels"]]
+    assert report(cycles(graph)) == "import circles:\npkg.low.kernels -> pkg.top -> pkg.mid -> pkg.low.kernels"
+
+
+def test_each_circle_is_named_once_by_a_shortest_way_round() -> None:
+    """The shape of the circle this test was written against (the kernels' array convention and the
+    warm-up in one module, below the kernels and above the analyses at once), beside a separate one."""
+    graph = {
+        "kitti_eval._jit": {"kitti_eval.core.evaluation", "kitti_eval.analysis.bootstrap"},
+        "kitti_eval.core.evaluation": {"kitti_eval.core.matching"},
+        "kitti_eval.core.matching": {"kitti_eval._jit"},
+        "kitti_eval.analysis.bootstrap": {"kitti_eval._jit", "kitti_eval.core.evaluation"},
+        "x": {"y"},
+        "y": {"x", "kitti_eval.core.matching"},
+    }
+    assert cycles(graph) == [
+        ["kitti_eval._jit", "kitti_eval.analysis.bootstrap", "kitti_eval._jit"],
+        ["x", "y", "x"],
+    ]
+    graph["kitti_eval.core.matching"] = set()  # the kernels no longer import the warm-up
+    assert cycles(graph) == [["kitti_eval._jit", "kitti_eval.analysis.bootstrap", "kitti_eval._jit"], ["x", "y", "x"]]
+    graph["kitti_eval.analysis.bootstrap"] = {"kitti_eval.core.evaluation"}
+    assert cycles(graph) == [["x", "y", "x"]]
