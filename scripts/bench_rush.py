@@ -24,7 +24,6 @@ import os
 import pickle
 import pwd
 import shutil
-import socket
 import statistics
 import subprocess
 import sys
@@ -37,17 +36,12 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+from bench_jobs import _free_port, _stop  # this folder's: the same loopback port and stop
 
 from kitti_eval.synth import generate
 
 ADMIN = "bench-admin-token"
 QUOTA = 3
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _start(cmd: list[str], env: dict[str, str], log: Path) -> subprocess.Popen[bytes]:
@@ -72,14 +66,6 @@ def _serve(data: Path, env: dict[str, str]) -> tuple[subprocess.Popen[bytes], st
         time.sleep(0.2)
     proc.terminate()
     raise SystemExit(f"the service did not answer in 180 s (see {data.parent}/serve-{port}.log)")
-
-
-def _stop(proc: subprocess.Popen[bytes]) -> None:
-    proc.terminate()
-    try:
-        proc.wait(60)
-    except subprocess.TimeoutExpired:
-        proc.kill()
 
 
 def _ready(url: str, timeout_s: float = 180) -> None:

@@ -30,7 +30,7 @@ from ..policy import Caller
 from ..service import FileIn, Service
 from ..workers import JobFailed
 from .boards import board_entries, board_header, bootstrap_line, column_label, comparison_rows, full_time, number
-from .routes import _render, _status
+from .routes import _render, _status, queued_text
 
 __all__ = ["router", "REFRESH_S"]
 
@@ -52,11 +52,20 @@ def _benchmarks(request: Request) -> Benchmarks:
 def _failure(e: Exception, service: Service) -> ApiError | KittiEvalError | HTTPException | None:
     """What a form's request is answered with: the refusals the JSON API answers 4xx, a full disk (507); a
     scoring job that found the file breaks the rules, as the validator's sentences."""
-    if isinstance(e, JobFailed) and e.code == InvalidSubmission.code and isinstance(e.details.get("problems"), list):
-        return InvalidSubmission([str(p) for p in e.details["problems"]])
+    if isinstance(e, JobFailed):
+        return _as_refusal(e)
     if isinstance(e, (ApiError, KittiEvalError, HTTPException)):
         return e
     return fault_of(e, service.settings.retry_after_s)
+
+
+def _as_refusal(failed: JobFailed) -> ApiError:
+    """A failed job as the form answers it: the validator's sentences when its check found the file breaks the
+    rules, else the job's error."""
+    problems = failed.details.get("problems")
+    if failed.code == InvalidSubmission.code and isinstance(problems, list):
+        return InvalidSubmission([str(p) for p in problems])
+    return failed
 
 
 def _message(failure: ApiError | KittiEvalError | HTTPException) -> str:
@@ -127,13 +136,7 @@ def _state(service: Service, submission: Mapping[str, Any]) -> dict[str, Any]:
     if job is not None and job.state == "running":
         return {"name": "running", "text": "being scored", "done": False}
     position = service.jobs.position(submission["id"])
-    text = "queued" if position is None else f"queued ({_ordinal(position)} in line)"
-    return {"name": "queued", "text": text, "position": position, "done": False}
-
-
-def _ordinal(n: int) -> str:
-    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
-    return f"{n}{suffix}"
+    return {"name": "queued", "text": queued_text(position), "position": position, "done": False}
 
 
 def _benchmark_context(
@@ -300,10 +303,7 @@ def _refused_job(service: Service, caller: Caller, submission_id: str) -> ApiErr
     """Why the caller's submission was refused by its scoring job's check of the file, if it was: the
     validator's sentences as on the form, or the reader's refusal."""
     failed = service.benchmarks.refusal(submission_id, caller)
-    if failed is None:
-        return None
-    failure = _failure(failed, service)
-    return failure if isinstance(failure, ApiError) else failed
+    return None if failed is None else _as_refusal(failed)
 
 
 @router.post("/benchmarks/{name}/submissions/{submission_id}/publish")

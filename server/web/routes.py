@@ -330,9 +330,12 @@ FORM_WAIT_S = 10.0
 REFRESH_S = 2
 
 
-def _ordinal(n: int) -> str:
-    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
-    return f"{n}{suffix}"
+def queued_text(position: int | None) -> str:
+    """A queued job's state as the pages say it: ``queued (3rd in line)`` (``position``: 1 for the next)."""
+    if position is None:
+        return "queued"
+    suffix = "th" if 10 <= position % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(position % 10, "th")
+    return f"queued ({position}{suffix} in line)"
 
 
 def _job_page(request: Request, job: JobRecord, position: int | None) -> Response:
@@ -340,7 +343,7 @@ def _job_page(request: Request, job: JobRecord, position: int | None) -> Respons
     every ``REFRESH_S`` without a script), failed with the reason its input was refused, or cancelled."""
     failure = JobFailed(job.error) if job.state == "failed" else None
     if job.state == "queued":
-        text = "queued" if position is None else f"queued ({_ordinal(position)} in line)"
+        text = queued_text(position)
     else:
         text = {"running": "being evaluated", "failed": "failed", "cancelled": "cancelled by an admin"}.get(
             job.state, job.state
