@@ -21,6 +21,7 @@ from pydantic import ValidationError
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from kitti_eval import __version__
+from kitti_eval.core.matching import available_cpus
 
 from .auth import AuthMiddleware, Door
 from .errors import StartupRefused, install_error_handlers
@@ -35,7 +36,6 @@ from .web import STATIC_DIR
 from .web import router as web_router
 from .web.benchmarks import router as benchmark_pages
 from .web.routes import error_page, sign_in_page
-from .worker_pool import cpus
 
 __all__ = ["create_app", "serve"]  # and `app`, built on first access
 
@@ -208,7 +208,7 @@ def serve(argv: Sequence[str] | None = None) -> int:
     if "KITTI_EVAL_WORKER_PROCESSES" not in os.environ and "KITTI_EVAL_JOB_THREADS" not in os.environ:
         # one command uses the machine: a worker process a CPU (evaluations in parallel processes, not threads
         # of one, whose pickle loading shares one interpreter lock), none of the web process's own
-        overrides.update(worker_processes=cpus(), job_threads=0)
+        overrides.update(worker_processes=available_cpus(), job_threads=0)
     try:
         settings = Settings(**overrides)
     except ValidationError as e:

@@ -24,7 +24,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["WorkerPool", "CHILD_MODULE", "cpus"]
+from kitti_eval.core.matching import available_cpus
+
+__all__ = ["WorkerPool", "CHILD_MODULE"]
 
 log = logging.getLogger("kitti_eval.server")
 
@@ -70,7 +72,7 @@ class WorkerPool:
         self.env = {**(os.environ if env is None else env), "KITTI_EVAL_DATABASE_URL": database_url}
         # each process matches on its share of the CPUs (unless told otherwise): N processes on N cores, one
         # evaluation each, with no more matching threads than cores
-        self.env.setdefault("KITTI_EVAL_THREADS", str(max(1, cpus() // (processes * threads))))
+        self.env.setdefault("KITTI_EVAL_THREADS", str(max(1, available_cpus() // (processes * threads))))
         self._slots = [_Slot() for _ in range(processes)]
         self._lock = threading.Lock()
         self._stopping = threading.Event()
@@ -181,11 +183,3 @@ class WorkerPool:
         """The exit codes of the processes that ended while the pool ran (those it started again after)."""
         with self._lock:
             return [code for slot in self._slots for code in slot.exits]
-
-
-def cpus() -> int:
-    """The CPUs this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)

@@ -50,6 +50,7 @@ __all__ = [
     "label_frame",
     "score_thresholds",
     "default_workers",
+    "available_cpus",
     "DET_LABELS",
     "GT_LABELS",
     "MatchingInputs",
@@ -788,6 +789,11 @@ def default_workers() -> int:
     env = os.environ.get("KITTI_EVAL_THREADS", "").strip()
     if env.isdigit() and int(env) > 0:
         return int(env)
+    return available_cpus()
+
+
+def available_cpus() -> int:
+    """The CPUs this process may use."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - not Linux
