@@ -18,6 +18,7 @@ from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from pydantic import ValidationError
+from starlette.formparsers import MultiPartParser
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from kitti_eval import __version__
@@ -25,7 +26,7 @@ from kitti_eval.core.matching import available_cpus
 
 from .auth import AuthMiddleware, Door
 from .errors import StartupRefused, install_error_handlers
-from .middleware import AdmissionMiddleware, BodyMiddleware
+from .middleware import PART_MEMORY_BYTES, AdmissionMiddleware, BodyMiddleware
 from .observability import Metrics, RequestMiddleware, configure_logging
 from .policy import Access
 from .routes import admin, benchmarks, evaluations, frames, gates, ground_truths, health, jobs, metrics
@@ -115,6 +116,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         state=service.admission,
         draining=service.draining.is_set,
     )
+    # an uploaded file of up to PART_MEMORY_BYTES stays in memory while its request is stored: past Starlette's
+    # spooled file's size (MultiPartParser.spool_max_size, 1 MB by default) every val-sized upload would be
+    # written to a temporary file and read back once more
+    MultiPartParser.spool_max_size = PART_MEMORY_BYTES
     app.add_middleware(
         BodyMiddleware,
         limit=settings.max_upload_bytes,
@@ -122,6 +127,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         max_receiving=settings.receiving_bodies,
         retry_after_s=lambda: settings.retry_after_s,
         spool_dir=service.data_dir / "tmp",
+        memory_bytes=settings.body_memory_bytes,
         state=service.admission,
     )
     # the door: each route's declared access before its body is read (a request without a valid token sends

@@ -11,11 +11,12 @@ evaluation place while it sends:
   they answer their other errors;
 * a client that goes away mid-body gets nothing, and the app is not called.
 
-A body is kept in memory up to a few MB, beyond that in an unnamed temporary file in the service's scratch
-folder (the operating system removes it when it is closed, or when the process dies); the app then reads it
-through a ``receive`` that replays it. Starlette spools uploaded files to disk too but puts no cap on their
-total size (its ``max_part_size`` covers plain form fields only), and FastAPI parses the whole form before a
-route runs, which is why the cap is enforced on the byte stream here.
+Bodies are kept in memory, as the chunks that arrived, while all the bodies in memory together stay within a
+budget (``KITTI_EVAL_BODY_MEMORY_MB``); a body that would pass it goes to an unnamed temporary file in the
+service's scratch folder (the operating system removes it when it is closed, or when the process dies). The
+app then reads it through a ``receive`` that replays it. Starlette spools uploaded files to disk too but puts
+no cap on their total size (its ``max_part_size`` covers plain form fields only), and FastAPI parses the whole
+form before a route runs, which is why the cap is enforced on the byte stream here.
 
 :class:`AdmissionMiddleware` (inside it) counts the evaluation requests in progress, whose bodies have
 arrived by then, for a graceful shutdown, and refuses new ones while the service drains.
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import json
 import tempfile
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import IO
@@ -37,10 +39,13 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from .errors import error_body, fault_of
 from .observability import AdmissionState
 
-__all__ = ["BodyMiddleware", "AdmissionMiddleware", "BodyTooLarge"]
+__all__ = ["BodyMiddleware", "AdmissionMiddleware", "BodyTooLarge", "MEMORY_BYTES", "PART_MEMORY_BYTES"]
 
-#: a body larger than this goes to a temporary file
-SPOOL_BYTES = 2 << 20
+#: the request bodies kept in memory, all together (more go to temporary files)
+MEMORY_BYTES = 256 << 20
+#: an uploaded file (a part of a multipart body) kept in memory while its request is handled; larger ones are
+#: spooled to a temporary file by Starlette's form parser
+PART_MEMORY_BYTES = 16 << 20
 #: what is written to (and replayed from) the temporary file at a time
 _CHUNK = 1 << 20
 
@@ -81,21 +86,51 @@ def _content_length(scope: Scope) -> int | None:
         return None
 
 
-class _Body:
-    """A request body as it arrives: in memory up to ``SPOOL_BYTES``, then in an unnamed temporary file."""
+class _Memory:
+    """The bytes of request bodies held in memory, all bodies together, against a budget."""
 
-    def __init__(self, spool_dir: Path | None) -> None:
+    def __init__(self, budget: int) -> None:
+        self.budget = budget
+        self.held = 0
+
+    def take(self, n: int) -> bool:
+        if self.held + n > self.budget:
+            return False
+        self.held += n
+        return True
+
+    def give(self, n: int) -> None:
+        self.held -= n
+
+
+class _Body:
+    """A request body as it arrives: the chunks themselves in memory while the bodies in memory stay within the
+    budget (no copy: the app is handed the same chunks), else in an unnamed temporary file."""
+
+    def __init__(self, spool_dir: Path | None, memory: _Memory) -> None:
         self.spool_dir = spool_dir
+        self.memory = memory
         self.size = 0
-        self.pending = bytearray()  # not yet written to the file (all of it while there is no file)
+        self.chunks: deque[bytes] = deque()  # in memory, not yet handed over (while there is no file)
+        self.held = 0  # bytes of the memory budget this body holds, until it is closed
+        self.pending = bytearray()  # not yet written to the file
         self.file: IO[bytes] | None = None
 
     async def add(self, data: bytes) -> None:
         self.size += len(data)
-        self.pending += data
-        if self.file is None and len(self.pending) > SPOOL_BYTES:
+        if self.file is None:
+            if self.memory.take(len(data)):
+                self.held += len(data)
+                self.chunks.append(data)
+                return
+            # past the budget: this body goes to a file, with what it had in memory
             self.file = await anyio.to_thread.run_sync(self._open)
-        if self.file is not None and len(self.pending) >= _CHUNK:
+            self.pending += b"".join(self.chunks)
+            self.chunks.clear()
+            self.memory.give(self.held)
+            self.held = 0
+        self.pending += data
+        if len(self.pending) >= _CHUNK:
             await self._flush()
 
     def _open(self) -> IO[bytes]:
@@ -107,7 +142,9 @@ class _Body:
         await anyio.to_thread.run_sync(self.file.write, data)
 
     def replay(self, then: Receive) -> Receive:
-        """A ``receive`` that hands the body over again, then passes on to ``then`` (for ``http.disconnect``)."""
+        """A ``receive`` that hands the body over again, then passes on to ``then`` (for ``http.disconnect``).
+        Chunks in memory are let go as they are handed over (the app keeps what it needs of them); the budget
+        they held is given back when the body is closed, at the end of the request."""
         done = False
 
         async def receive() -> Message:
@@ -115,8 +152,9 @@ class _Body:
             if done:
                 return await then()
             if self.file is None:
-                done = True
-                return {"type": "http.request", "body": bytes(self.pending), "more_body": False}
+                chunk = self.chunks.popleft() if self.chunks else b""
+                done = not self.chunks
+                return {"type": "http.request", "body": chunk, "more_body": not done}
             chunk = await anyio.to_thread.run_sync(self.file.read, _CHUNK)
             done = self.file.tell() >= self.size
             return {"type": "http.request", "body": chunk, "more_body": not done}
@@ -130,6 +168,9 @@ class _Body:
             await anyio.to_thread.run_sync(self.file.seek, 0)
 
     def close(self) -> None:
+        self.chunks.clear()
+        self.memory.give(self.held)
+        self.held = 0
         self.pending = bytearray()
         if self.file is not None:
             self.file.close()
@@ -148,10 +189,12 @@ class BodyMiddleware:
         max_receiving: int,
         retry_after_s: Callable[[], int],
         spool_dir: Path | None = None,
+        memory_bytes: int = MEMORY_BYTES,
         state: AdmissionState | None = None,
     ) -> None:
         self.app = app
         self.limit = limit
+        self.memory = _Memory(memory_bytes)
         self.timeout_s = timeout_s
         self.max_receiving = max_receiving
         self.retry_after_s = retry_after_s
@@ -185,7 +228,7 @@ class BodyMiddleware:
             message = f"too many request bodies are being received ({self.receiving}); retry in {retry} s"
             await _send_json(send, 503, error_body("busy", message), {"retry-after": str(retry), "connection": "close"})
             return
-        body = _Body(self.spool_dir)
+        body = _Body(self.spool_dir, self.memory)
         try:
             self.receiving += 1
             try:

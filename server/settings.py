@@ -109,6 +109,11 @@ class Settings(BaseSettings):
     A body is received before its request takes an evaluation place, so slow senders hold no evaluation place,
     only a receiving one (``max_receiving_bodies``) and for this long at most. 120 s is 200 MB at 1.7 MB/s."""
 
+    body_memory_mb: Annotated[float, Field(ge=0)] = 256.0
+    """Request bodies kept in memory, all together, while they arrive and are read; a body that would pass it
+    goes to a temporary file in the data folder instead. An uploaded file of up to 16 MB stays in memory while
+    its request is stored (KITTI val's result.pkl is 6.6 MB); a larger one goes to a temporary file."""
+
     max_receiving_bodies: Annotated[int | None, Field(gt=0)] = None
     """Request bodies received at the same time; past that the service answers 503 with Retry-After. Unset:
     64, or four times ``max_concurrent_evals`` when that is more."""
@@ -208,6 +213,10 @@ class Settings(BaseSettings):
     @property
     def receiving_bodies(self) -> int:
         return self.max_receiving_bodies or max(64, 4 * self.max_concurrent_evals)
+
+    @property
+    def body_memory_bytes(self) -> int:
+        return int(self.body_memory_mb * (1 << 20))
 
     @property
     def max_upload_bytes(self) -> int:

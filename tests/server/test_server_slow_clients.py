@@ -21,7 +21,7 @@ import anyio
 import pytest
 from server_helpers import ROOT, LiveServer
 
-from kitti_eval_server.middleware import SPOOL_BYTES, BodyMiddleware, BodyTooLarge
+from kitti_eval_server.middleware import BodyMiddleware, BodyTooLarge
 
 SLOW_CLIENTS = 10
 RECEIVING = 12  # bodies received at once: the slow clients and the normal upload fit
@@ -203,9 +203,17 @@ class Recorder:
         await send({"type": "http.response.body", "body": b"ok"})
 
 
-def call(app, messages: list[dict], *, limit: int = 64 * MB, timeout_s: float = 5, spool_dir: Path | None = None):
-    """Run BodyMiddleware(app) on one POST whose body arrives as ``messages`` (then nothing, ever); the
-    messages it sent back."""
+def call(
+    app,
+    messages: list[dict],
+    *,
+    limit: int = 64 * MB,
+    timeout_s: float = 5,
+    spool_dir: Path | None = None,
+    memory_bytes: int = 2 * MB,
+):
+    """Run BodyMiddleware(app) on one POST whose body arrives as ``messages`` (then nothing, ever), with bodies
+    kept in memory up to ``memory_bytes``; the messages it sent back."""
     sent: list[dict] = []
     pending = list(messages)
 
@@ -225,10 +233,17 @@ def call(app, messages: list[dict], *, limit: int = 64 * MB, timeout_s: float = 
         "headers": [(b"transfer-encoding", b"chunked")],
     }
     middleware = BodyMiddleware(
-        app, limit=limit, timeout_s=timeout_s, max_receiving=4, retry_after_s=lambda: 2, spool_dir=spool_dir
+        app,
+        limit=limit,
+        timeout_s=timeout_s,
+        max_receiving=4,
+        retry_after_s=lambda: 2,
+        spool_dir=spool_dir,
+        memory_bytes=memory_bytes,
     )
     anyio.run(middleware, scope, receive, send)
     assert middleware.receiving == 0
+    assert middleware.memory.held == 0  # every body gave its memory back
     return sent
 
 
@@ -266,10 +281,10 @@ def test_a_large_body_is_spooled_unnamed_and_replayed_whole(spools, tmp_path) ->
     assert list(tmp_path.iterdir()) == []  # unnamed: nothing to remove if the process dies
 
 
-def test_a_small_body_stays_in_memory(spools) -> None:
-    data = os.urandom(SPOOL_BYTES)
+def test_a_body_within_the_memory_budget_stays_in_memory(spools) -> None:
+    data = os.urandom(2 * MB)
     app = Recorder()
-    call(app, chunks_of(data))
+    call(app, chunks_of(data), memory_bytes=2 * MB)
     assert app.body == data and spools == []
 
 
@@ -300,3 +315,66 @@ def test_the_spool_is_closed_however_the_request_ends(spools, tmp_path, case) ->
         assert (b"connection", b"close") in sent[0]["headers"]
     elif case == "too large":
         assert isinstance(app.error, BodyTooLarge) and app.error.status_code == 413
+
+
+def test_bodies_share_the_memory_budget_and_give_it_back(spools, tmp_path) -> None:
+    """While one body is held in memory (its app has not answered), a second that would pass the budget goes to
+    a file; both replay whole, and the budget is free again once both have been answered."""
+    first, second = os.urandom(3 * MB), os.urandom(2 * MB)
+    bodies: dict[str, bytes] = {}
+    held_while_first_ran: list[int] = []
+    second_done, first_in = anyio.Event(), anyio.Event()
+
+    async def app(scope, receive, send) -> None:
+        data = b""
+        while True:
+            message = await receive()
+            data += message.get("body", b"")
+            if not message.get("more_body", False):
+                break
+        bodies[scope["path"]] = data
+        if scope["path"] == "/first":
+            held_while_first_ran.append(middleware.memory.held)
+            first_in.set()
+            await second_done.wait()  # the first keeps its memory until the second has been answered
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"ok"})
+        if scope["path"] == "/second":
+            second_done.set()
+
+    middleware = BodyMiddleware(
+        app,
+        limit=64 * MB,
+        timeout_s=5,
+        max_receiving=4,
+        retry_after_s=lambda: 2,
+        spool_dir=tmp_path,
+        memory_bytes=4 * MB,
+    )
+
+    def request(path: str, data: bytes):
+        pending = chunks_of(data)
+
+        async def receive() -> dict:
+            if pending:
+                return pending.pop(0)
+            await anyio.sleep_forever()
+            raise AssertionError("unreachable")
+
+        async def send(message: dict) -> None:
+            pass
+
+        scope = {"type": "http", "method": "POST", "path": path, "headers": [(b"transfer-encoding", b"chunked")]}
+        return middleware(scope, receive, send)
+
+    async def both() -> None:
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(request, "/first", first)
+            await first_in.wait()
+            tg.start_soon(request, "/second", second)
+
+    anyio.run(both)
+    assert bodies == {"/first": first, "/second": second}
+    assert held_while_first_ran == [3 * MB]  # the first in memory
+    assert len(spools) == 1 and spools[0].closed  # the second in a file: 3 + 2 MB would pass the 4 MB budget
+    assert middleware.memory.held == 0
