@@ -8,7 +8,7 @@ line in the log; neither ever holds a token (only a token's id).
 from __future__ import annotations
 
 import logging
-from typing import Protocol
+from typing import Any, Protocol
 
 from .policy import Caller
 from .store import AuditRecord
@@ -21,6 +21,10 @@ log = logging.getLogger("kitti_eval.server")
 class _AuditStore(Protocol):
     def add_audit(self, *, actor: str, action: str, target: str, outcome: str, client: str, detail: str) -> None: ...
 
+    def add_audit_in(
+        self, conn: Any, *, actor: str, action: str, target: str, outcome: str, client: str, detail: str
+    ) -> None: ...
+
     def list_audit(self, *, limit: int = 100, offset: int = 0) -> list[AuditRecord]: ...
 
 
@@ -31,6 +35,14 @@ class Audit:
     def record(self, caller: Caller, action: str, target: str, *, outcome: str = "ok", detail: str = "") -> None:
         """``caller`` did ``action`` on ``target``."""
         self._write(caller.actor, action, target, outcome, caller.client, detail)
+
+    def record_in(self, conn: Any, caller: Caller, action: str, target: str) -> None:
+        """The same, written in the transaction of the change it records (one commit for both). The log line is
+        written at once: call it last in the transaction."""
+        log.info("audit: %s %s %s (%s) from %s %s", caller.actor, action, target, "ok", caller.client, "")
+        self._store.add_audit_in(
+            conn, actor=caller.actor, action=action, target=target, outcome="ok", client=caller.client, detail=""
+        )
 
     def refused_use(self, caller: Caller, target: str, detail: str) -> None:
         """A valid token (or session) was refused what it asked (an admin action, a write with a read-only

@@ -29,7 +29,7 @@ from .ground_truths import GroundTruthCache
 from .jobs import JobQueue
 from .policy import Caller, Policy
 from .store import EvaluationRecord, GroundTruthRecord, JobInput, JobRecord, Store, new_id
-from .uploads import FileIn, Limits, Upload, load_upload, receive_upload
+from .uploads import FileIn, Limits, load_upload, receive_content, receive_upload
 
 __all__ = ["Evaluations", "FileIn", "sealed_document", "MAX_INSPECTED"]
 
@@ -51,11 +51,10 @@ def sealed_document(doc: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _input(name: str, upload: Upload) -> JobInput:
-    upload.file.seek(0)
-    content = upload.file.read()
-    upload.file.seek(0)
-    return JobInput(name, upload.filename, upload.sha256, content)
+def _input(name: str, upload: FileIn) -> JobInput:
+    """An uploaded file as a job's input, kept as it is (read once, hashed)."""
+    received = receive_content(upload.file, upload.filename, name)
+    return JobInput(name, received.filename, received.sha256, received.content)
 
 
 class Evaluations:
@@ -113,9 +112,9 @@ class Evaluations:
             self.policy.may_evaluate_against(caller, gt_record)
         project = self._project_for(caller, project, gt_record)
         job_id = new_id()
-        inputs = [_input("predictions", receive_upload(predictions.file, predictions.filename, "predictions"))]
+        inputs = [_input("predictions", predictions)]
         if gt_file is not None:
-            inputs.append(_input("gt_file", receive_upload(gt_file.file, gt_file.filename, "gt_file")))
+            inputs.append(_input("gt_file", gt_file))
         payload = {
             "evaluation_id": job_id,
             "gt_name": gt_name,

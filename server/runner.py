@@ -53,9 +53,11 @@ class Runner:
         """Called from the lifespan (the limiter belongs to the event loop)."""
         self._limiter = anyio.CapacityLimiter(self.capacity)
 
-    async def run(self, func: Callable[..., T], *args: Any) -> T:
+    async def run(self, func: Callable[..., T], *args: Any, release: bool = True) -> T:
         """Run blocking work on a worker thread, at most ``capacity`` at once; afterwards the memory it freed
-        goes back to the system (:func:`release_memory`)."""
+        goes back to the system (:func:`release_memory`) unless ``release`` is False: work that reads no file
+        (accepting an upload as a job) frees only a few large buffers, which the C library unmaps by itself,
+        and trimming after it would only make the next request fault its pages in again."""
 
         def job() -> T:
             with self._running_lock:
@@ -65,7 +67,8 @@ class Runner:
             finally:
                 with self._running_lock:
                     self.admission.running -= 1
-                release_memory()
+                if release:
+                    release_memory()
 
         return await anyio.to_thread.run_sync(job, limiter=self._limiter)
 

@@ -318,6 +318,11 @@ class Service:
         """Blocking work on the runner's threads (:meth:`Runner.run <kitti_eval_server.runner.Runner.run>`)."""
         return await self.runner.run(func, *args)
 
+    async def accept(self, func: Callable[[], T]) -> T:
+        """Accepting an upload as a job (an evaluation or a submission) on the runner's threads: the file is
+        stored, not read, so nothing is left for :func:`release_memory` to hand back."""
+        return await self.runner.run(func, release=False)
+
     def scratch(self) -> AbstractContextManager[Path]:
         return self.runner.scratch()
 

@@ -36,6 +36,8 @@ __all__ = [
     "Limits",
     "Upload",
     "Loaded",
+    "Received",
+    "receive_content",
     "receive_upload",
     "sniff",
     "extract_txt_folder",
@@ -111,6 +113,26 @@ def clean_filename(name: str | None, default: str) -> str:
     text = (name or "").replace("\\", "/").rsplit("/", 1)[-1]
     text = "".join(c for c in text if c.isprintable()).strip()[:200]
     return text or default
+
+
+@dataclass(frozen=True)
+class Received:
+    """An upload kept as it is, unread (a job's input): the client's name for it, its bytes and their sha256."""
+
+    filename: str
+    sha256: str
+    content: bytes
+
+    @property
+    def size(self) -> int:
+        return len(self.content)
+
+
+def receive_content(file: IO[bytes], filename: str | None, default_name: str) -> Received:
+    """An already spooled upload's bytes, read once, and their sha256."""
+    file.seek(0)
+    content = file.read()
+    return Received(clean_filename(filename, default_name), hashlib.sha256(content).hexdigest(), content)
 
 
 def receive_upload(file: IO[bytes], filename: str | None, default_name: str) -> Upload:

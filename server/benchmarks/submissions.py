@@ -35,6 +35,7 @@ from ..uploads import (
     extract_txt_folder,
     load_txt_folder,
     load_upload,
+    receive_content,
     receive_upload,
     sniff,
 )
@@ -170,7 +171,7 @@ class Submissions(Intervals):
         if not baseline and not bench.is_open():
             raise Conflict(f"the benchmark {name!r} is not open for submissions")
         self._ground_truth_record(bench)  # registered, and sealed if it is to be
-        upload = receive_upload(predictions.file, predictions.filename, "predictions")
+        upload = receive_content(predictions.file, predictions.filename, "predictions")
         self.jobs.admit(caller.name, upload.size)
         count, days = bench.quota
         now = datetime.now(timezone.utc)
@@ -187,13 +188,14 @@ class Submissions(Intervals):
             pred_size=upload.size,
             baseline=baseline,
         )
-        upload.file.seek(0)
-        inputs = [JobInput("predictions", upload.filename, upload.sha256, upload.file.read())]
+        inputs = [JobInput("predictions", upload.filename, upload.sha256, upload.content)]
         payload = {"submission_id": submission_id, "benchmark": name}
+        action = "baseline.add" if baseline else "submission.add"
 
-        def with_its_job(conn: Any) -> None:  # the submission, its input and its job: one commit
+        def with_its_job(conn: Any) -> None:  # the submission, its input, its job and its audit row: one commit
             self.store.add_job_inputs_in(conn, submission_id, inputs)
             self.jobs.enqueue_in(conn, "submission", payload, owner=caller.name, group=name, job_id=submission_id)
+            self.audit.record_in(conn, caller, action, f"{name} {submission_id}")
 
         try:
             limit = None if baseline else count
@@ -211,7 +213,6 @@ class Submissions(Intervals):
         job = self.jobs.get(submission_id)
         assert job is not None
         self.wake(1)
-        self.audit.record(caller, "baseline.add" if baseline else "submission.add", f"{name} {submission_id}")
         return job
 
     def score_job(self, job: JobRecord) -> tuple[str, Callable[[Any], None]]:

@@ -202,7 +202,7 @@ async def submit(
     scoring is a job, run by the next free worker."""
     file = FileIn(predictions.file, predictions.filename)
     try:
-        job = await service.run(lambda: benchmarks.submit(name, file, caller))
+        job = await service.accept(lambda: benchmarks.submit(name, file, caller))
     except InvalidSubmission as e:
         out = error_body(e.code, e.message)
         out["error"]["problems"] = e.problems

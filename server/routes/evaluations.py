@@ -136,7 +136,7 @@ async def create_evaluation(
         lidar_only=lidar_only,
     )
     gt_in = FileIn(gt_file.file, gt_file.filename) if gt_file is not None else None
-    job = await service.run(
+    job = await service.accept(
         lambda: service.evaluations.accept(
             FileIn(predictions.file, predictions.filename),
             gt or None,

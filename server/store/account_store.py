@@ -7,7 +7,7 @@ from datetime import datetime, timezone
 from typing import Any
 
 from sqlalchemy import delete, insert, select, update
-from sqlalchemy.engine import RowMapping
+from sqlalchemy.engine import Connection, RowMapping
 
 from .database import Area, audit, memberships, projects, retry_when_locked, tokens, users, utc
 
@@ -166,17 +166,26 @@ class AccountStore(Area):
     @retry_when_locked
     def add_audit(self, *, actor: str, action: str, target: str, outcome: str, client: str, detail: str) -> None:
         with self.engine.begin() as conn:
-            conn.execute(
-                insert(audit).values(
-                    at=datetime.now(timezone.utc),
-                    actor=actor[:128],
-                    action=action[:64],
-                    target=target[:256],
-                    outcome=outcome[:32],
-                    client=client[:64],
-                    detail=detail[:512],
-                )
+            self.add_audit_in(
+                conn, actor=actor, action=action, target=target, outcome=outcome, client=client, detail=detail
             )
+
+    @staticmethod
+    def add_audit_in(
+        conn: Connection, *, actor: str, action: str, target: str, outcome: str, client: str, detail: str
+    ) -> None:
+        """Within a transaction of the caller's (the one that makes the change it records)."""
+        conn.execute(
+            insert(audit).values(
+                at=datetime.now(timezone.utc),
+                actor=actor[:128],
+                action=action[:64],
+                target=target[:256],
+                outcome=outcome[:32],
+                client=client[:64],
+                detail=detail[:512],
+            )
+        )
 
     @retry_when_locked
     def list_audit(self, *, limit: int = 100, offset: int = 0) -> list[AuditRecord]:

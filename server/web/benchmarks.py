@@ -206,7 +206,7 @@ async def submit_form(request: Request, service: ServiceDep, caller: WriterCalle
             if not isinstance(predictions, UploadFile) or not predictions.filename:
                 raise BadRequest("choose a predictions file (a zip or tar of KITTI result txt files, or a result.pkl)")
             file = FileIn(predictions.file, predictions.filename)
-            job = await service.run(lambda: benchmarks.submit(name, file, caller))
+            job = await service.accept(lambda: benchmarks.submit(name, file, caller))
         try:
             await service.outcome(job.id, FORM_WAIT_S)  # the file's check runs in its job: a refusal shows here
         except JobFailed:

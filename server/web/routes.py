@@ -293,7 +293,7 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
                 protocol=values.get("protocol", "official"), curves=True, errors=values.get("errors") == "true"
             )
             upload = FileIn(predictions.file, predictions.filename)
-            job = await service.run(
+            job = await service.accept(
                 lambda: service.evaluations.accept(
                     upload,
                     values.get("gt") or None,
