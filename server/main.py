@@ -24,11 +24,17 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from kitti_eval import __version__
 from kitti_eval.core.matching import available_cpus
 
-from .auth import AuthMiddleware, Door
-from .errors import StartupRefused, install_error_handlers
-from .middleware import PART_MEMORY_BYTES, AdmissionMiddleware, BodyMiddleware
+from .auth import CALLER_KEY, AuthMiddleware, Door
+from .errors import ApiError, StartupRefused, install_error_handlers
+from .middleware import (
+    PART_MEMORY_BYTES,
+    AdmissionMiddleware,
+    BeforeBodyCheck,
+    BodyMiddleware,
+    RefuseBeforeBody,
+)
 from .observability import Metrics, RequestMiddleware, configure_logging
-from .policy import Access
+from .policy import Access, Caller
 from .routes import admin, benchmarks, evaluations, frames, gates, ground_truths, health, jobs, metrics
 from .service import Service
 from .settings import Settings, default_data_dir
@@ -130,6 +136,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         memory_bytes=settings.body_memory_bytes,
         state=service.admission,
     )
+    # before the body: a submission the quota or the queue refuses now is answered without its file
+    app.add_middleware(
+        RefuseBeforeBody,
+        routes=[("POST", "/v1/benchmarks/{name}/submissions", _submission_refused(service))],
+        caller_key=CALLER_KEY,
+        limit=settings.max_upload_bytes,
+        timeout_s=settings.body_timeout_s,
+    )
     # the door: each route's declared access before its body is read (a request without a valid token sends
     # no body anyone reads); what FastAPI and Starlette add themselves is declared here, where it is added
     door = Door(
@@ -156,6 +170,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # outermost: every request gets its id, its log line and its metrics, whoever answers it
     app.add_middleware(RequestMiddleware, metrics=app_metrics, log_json=lambda: log_json)
     return app
+
+
+def _submission_refused(service: Service) -> BeforeBodyCheck:
+    """A submission's refusal before its file: as the route's access would admit the caller (a writer), then
+    :meth:`Submissions.refused_now <kitti_eval_server.benchmarks.submissions.Submissions.refused_now>`."""
+
+    def check(caller: Caller, params: dict[str, str], size: int) -> ApiError | None:
+        try:
+            service.policy.admit(Access.WRITER, caller, method="POST", bearer=None, csrf=None)
+        except ApiError:
+            return None  # the route refuses it, as always
+        return service.benchmarks.refused_now(params["name"], caller, size)
+
+    return check
 
 
 class _PlainStartupRefusal:

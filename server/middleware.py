@@ -1,6 +1,10 @@
-"""Two ASGI guards: the request body, received in full before the app sees it, then evaluation admission.
+"""ASGI guards around the request body: refusals that need none, the body received in full before the app sees
+it, then evaluation admission.
 
-:class:`BodyMiddleware` (outermost) receives every request body itself, so that a slow sender holds no
+:class:`RefuseBeforeBody` (outermost, inside the door that resolves the caller) answers at once what would be
+refused without needing the body: a benchmark submission past its quota, or while the job queue is full.
+
+:class:`BodyMiddleware` receives every request body itself, so that a slow sender holds no
 evaluation place while it sends:
 
 * a declared ``Content-Length`` over the upload cap is refused with 413 before anything is read;
@@ -27,19 +31,28 @@ from __future__ import annotations
 import json
 import tempfile
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 import anyio
 import anyio.to_thread
 from starlette.exceptions import HTTPException
+from starlette.routing import compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from .errors import error_body, fault_of
+from .errors import ApiError, error_body, fault_of
 from .observability import AdmissionState
 
-__all__ = ["BodyMiddleware", "AdmissionMiddleware", "BodyTooLarge", "MEMORY_BYTES", "PART_MEMORY_BYTES"]
+__all__ = [
+    "BodyMiddleware",
+    "RefuseBeforeBody",
+    "AdmissionMiddleware",
+    "BodyTooLarge",
+    "BeforeBodyCheck",
+    "MEMORY_BYTES",
+    "PART_MEMORY_BYTES",
+]
 
 #: the request bodies kept in memory, all together (more go to temporary files)
 MEMORY_BYTES = 256 << 20
@@ -281,6 +294,83 @@ class BodyMiddleware:
 
     async def _too_large(self) -> Message:
         raise BodyTooLarge(self.limit)
+
+
+#: what a request would be refused with now, known before its body: (caller, path parameters, declared body
+#: size) -> the error, or None to let the request go on
+BeforeBodyCheck = Callable[[Any, dict[str, str], int], "ApiError | None"]
+
+
+class RefuseBeforeBody:
+    """Answer at once a request whose refusal needs no body: a benchmark submission past its participant's
+    quota, or while the job queue is full, is refused the same way once its file has arrived, so nothing of the
+    file is kept, parsed or stored. ``routes``: (method, path as the route declares it, check); a check runs on a
+    thread (it asks the database) for a caller the door resolved from a bearer token, and says None for anything
+    it does not know (the route then answers as always).
+
+    A client waiting for ``100 Continue`` (``Expect: 100-continue``, as curl sends with a large file) is answered
+    before it sends the body, and its connection closed; another's body is read and dropped first, so that it
+    reads its answer on a connection that stays usable (answering mid-body and closing would reset the
+    connection under a client still sending)."""
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        *,
+        routes: Sequence[tuple[str, str, BeforeBodyCheck]],
+        caller_key: str,
+        limit: int,
+        timeout_s: float,
+    ) -> None:
+        self.app = app
+        self.routes = [(method.upper(), compile_path(path)[0], check) for method, path, check in routes]
+        self.caller_key = caller_key
+        self.limit = limit
+        self.timeout_s = timeout_s
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        error = await self._refusal(scope) if scope["type"] == "http" else None
+        if error is None:
+            await self.app(scope, receive, send)
+            return
+        headers = dict(error.headers)
+        body = error_body(error.code, error.message, **getattr(error, "details", {}))
+        if (_header(scope, b"expect") or b"").lower() == b"100-continue":
+            await _send_json(send, error.status_code, body, {**headers, "connection": "close"})
+            return
+        outcome = await self._drain(receive)
+        if outcome == "gone":
+            return
+        if outcome != "complete":
+            headers["connection"] = "close"
+        await _send_json(send, error.status_code, body, headers)
+
+    async def _refusal(self, scope: Scope) -> ApiError | None:
+        caller = scope.get(self.caller_key)
+        if caller is None or getattr(caller, "session", False):
+            return None
+        method = str(scope.get("method", "")).upper()
+        for wanted, pattern, check in self.routes:
+            found = pattern.match(scope.get("path", "")) if method == wanted else None
+            if found is not None:
+                declared = _content_length(scope) or 0
+                return await anyio.to_thread.run_sync(check, caller, found.groupdict(), declared)
+        return None
+
+    async def _drain(self, receive: Receive) -> str:
+        """Read the body and drop it: complete, too_large, late or gone."""
+        size = 0
+        with anyio.move_on_after(self.timeout_s):
+            while True:
+                message = await receive()
+                if message["type"] == "http.disconnect":
+                    return "gone"
+                size += len(message.get("body", b""))
+                if size > self.limit:
+                    return "too_large"
+                if not message.get("more_body", False):
+                    return "complete"
+        return "late"
 
 
 class AdmissionMiddleware:

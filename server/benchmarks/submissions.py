@@ -55,6 +55,17 @@ class QuotaExceeded(ApiError):
     def __init__(self, message: str, retry_after_s: int, retry_at: datetime) -> None:
         super().__init__(message, headers={"Retry-After": str(retry_after_s)})
         self.retry_at = retry_at
+        self.details = {"retry_at": retry_at.isoformat()}
+
+    @classmethod
+    def of(cls, count: int, days: float, retry_at: datetime) -> QuotaExceeded:
+        retry = max(1, math.ceil((retry_at - datetime.now(timezone.utc)).total_seconds()))
+        return cls(
+            f"the quota of {count} accepted submissions per {days:g} days is used; the next one is "
+            f"accepted from {retry_at.isoformat()} (in {retry} s)",
+            retry,
+            retry_at,
+        )
 
 
 class InvalidSubmission(ApiError):
@@ -203,17 +214,32 @@ class Submissions(Intervals):
                 accepted, limit=limit, window_start=now - window, window=window, then=with_its_job
             )
         except QuotaRefused as e:
-            retry = max(1, math.ceil((e.retry_at - datetime.now(timezone.utc)).total_seconds()))
-            raise QuotaExceeded(
-                f"the quota of {count} accepted submissions per {days:g} days is used; the next one is "
-                f"accepted from {e.retry_at.isoformat()} (in {retry} s)",
-                retry,
-                e.retry_at,
-            ) from None
+            raise QuotaExceeded.of(count, days, e.retry_at) from None
         job = self.jobs.get(submission_id)
         assert job is not None
         self.wake(1)
         return job
+
+    def refused_now(self, name: str, caller: Caller, size: int) -> ApiError | None:
+        """What a participant's submission of ``size`` bytes to ``name`` would be refused with now, found before
+        its file is received: a used quota (429 ``quota_exceeded``) or a full queue (:meth:`JobQueue.admit
+        <kitti_eval_server.jobs.JobQueue.admit>`). None when it may be accepted, or for any other answer: the
+        route decides those, and the transaction that accepts counts the quota again."""
+        if not self.policy.accounts or caller.is_admin or not self.policy.is_participant(caller):
+            return None
+        try:
+            bench = self.get(name, caller)
+            if not bench.is_open():
+                return None
+            self.jobs.admit(caller.name, size)
+        except ApiError as e:
+            return e if e.status_code in (429, 503) else None
+        count, days = bench.quota
+        window = timedelta(days=days)
+        used, oldest = self.store.quota_used(name, caller.name, datetime.now(timezone.utc) - window)
+        if used >= count and oldest is not None:
+            return QuotaExceeded.of(count, days, oldest + window)
+        return None
 
     def score_job(self, job: JobRecord) -> tuple[str, Callable[[Any], None]]:
         """Run a submission's scoring or rescoring job: the submission's id and the writes of its scores (for

@@ -10,9 +10,8 @@ from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, Field
 
-from ..benchmarks import DEFAULT_KEY, Benchmarks, InvalidSubmission, QuotaExceeded
+from ..benchmarks import DEFAULT_KEY, Benchmarks
 from ..deps import AdminCaller, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
-from ..errors import error_body
 from ..policy import Caller
 from ..schemas import ErrorResponse
 from ..service import FileIn
@@ -201,16 +200,7 @@ async def submit(
     """Checked, counted against the quota and accepted at once (the acceptance time is the submission's); its
     scoring is a job, run by the next free worker."""
     file = FileIn(predictions.file, predictions.filename)
-    try:
-        job = await service.accept(lambda: benchmarks.submit(name, file, caller))
-    except InvalidSubmission as e:
-        out = error_body(e.code, e.message)
-        out["error"]["problems"] = e.problems
-        return JSONResponse(out, status_code=422)
-    except QuotaExceeded as e:
-        out = error_body(e.code, e.message)
-        out["error"]["retry_at"] = e.retry_at.isoformat()
-        return JSONResponse(out, status_code=429, headers=e.headers)
+    job = await service.accept(lambda: benchmarks.submit(name, file, caller))  # refusals: 422 problems, 429 retry_at
     ended = await service.outcome(job.id, wait)
     if ended.state != "done":
         return await still_pending(service.jobs, ended)

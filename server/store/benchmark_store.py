@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import delete, func, insert, select, update
+from sqlalchemy import Select, delete, func, insert, select, update
 from sqlalchemy.engine import Connection, RowMapping
 
 from .database import (
@@ -100,6 +100,18 @@ class ResampledKey:
     key_values: bytes  # float64, little-endian, one a resample
 
 
+def _quota_count(benchmark: str, participant: str, window_start: datetime) -> Select[int, Any]:
+    """The participant's submissions that count against the quota since ``window_start`` (not failed, not
+    baselines), and the oldest one's acceptance time."""
+    return select(func.count(), func.min(submissions.c.created_at)).where(
+        submissions.c.benchmark == benchmark,
+        submissions.c.participant == participant,
+        submissions.c.created_at > window_start,
+        submissions.c.status != "failed",
+        submissions.c.baseline.is_(False),
+    )
+
+
 class BenchmarkStore(Area):
     """Benchmarks and their submissions, with the quota counted and applied in one transaction."""
 
@@ -173,13 +185,7 @@ class BenchmarkStore(Area):
         holding the (benchmark, participant) pair's lock, so concurrent submissions, from any number of
         servers on the database, are counted one after another and none is admitted over the limit. ``then``
         writes what goes with the submission in the same transaction."""
-        count_query = select(func.count(), func.min(submissions.c.created_at)).where(
-            submissions.c.benchmark == record.benchmark,
-            submissions.c.participant == record.participant,
-            submissions.c.created_at > window_start,
-            submissions.c.status != "failed",
-            submissions.c.baseline.is_(False),
-        )
+        count_query = _quota_count(record.benchmark, record.participant, window_start)
         if limit is None:
             with self.engine.begin() as conn:
                 conn.execute(insert(submissions).values(**record.__dict__))
@@ -193,6 +199,15 @@ class BenchmarkStore(Area):
             conn.execute(insert(submissions).values(**record.__dict__))
             if then is not None:  # what is recorded with it (its job and input), in the same commit
                 then(conn)
+
+    @retry_when_locked
+    def quota_used(self, benchmark: str, participant: str, window_start: datetime) -> tuple[int, datetime | None]:
+        """The participant's submissions that count against the benchmark's quota since ``window_start``, and
+        when the oldest of them was accepted: as :meth:`accept_submission` counts them, read without its lock
+        (a look before a submission's file is received; the count only grows until the window moves on)."""
+        with self.engine.connect() as conn:
+            used, oldest = conn.execute(_quota_count(benchmark, participant, window_start)).one()
+        return int(used), utc(oldest) if oldest is not None else None
 
     @retry_when_locked
     def publish_submission(self, record: SubmissionRecord, *, cap: int | None, **values: Any) -> None:
