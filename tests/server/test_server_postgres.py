@@ -135,3 +135,44 @@ def test_baselines_on_postgres_and_the_column_added_to_an_older_database(postgre
         entries = ok(c.get("/v1/benchmarks/bench/leaderboard"))["entries"]
         assert [(e["method"], e["rank"], e["baseline"]) for e in entries] == [("alice", 1, False), ("root", None, True)]
         assert submit(c, hosted.headers("alice"), golden_bytes("result.pkl")).status_code == 429  # hers is used
+
+
+def test_uploaded_files_are_stored_without_pglz(postgres, tmp_path) -> None:
+    """A job's input is stored as it is (EXTERNAL: it lives until its job ends), the files kept for good with
+    lz4 (PostgreSQL 14 and later); a database made with the defaults is changed at start-up, and its files
+    still read back whole."""
+    from sqlalchemy import create_engine, text
+
+    url = postgres.url.rsplit("/", 1)[0] + "/storage"
+    admin_engine = create_engine(postgres.url, isolation_level="AUTOCOMMIT")
+    with admin_engine.connect() as conn:
+        conn.execute(text("CREATE DATABASE storage"))
+    admin_engine.dispose()
+    query = text(
+        "SELECT c.relname, a.attstorage, a.attcompression FROM pg_attribute a JOIN pg_class c ON a.attrelid = c.oid "
+        "WHERE a.attname = 'content' AND c.relname IN ('job_inputs', 'prediction_files', 'ground_truth_files') "
+        "ORDER BY c.relname"
+    )
+    engine = create_engine(url)
+
+    def columns() -> list[tuple[str, str, str]]:
+        with engine.connect() as conn:
+            return [tuple(r) for r in conn.execute(query)]
+
+    with app_client(tmp_path / "data", database_url=url, keep_predictions=True) as c:
+        first = upload(c, golden_bytes("result.pkl"), gt="demo")
+        assert first.status_code == 201, first.text
+    expected = [("ground_truth_files", "x", "l"), ("job_inputs", "e", ""), ("prediction_files", "x", "l")]
+    assert columns() == expected
+    with engine.begin() as conn:  # as a database made before: pglz, compressed in line
+        for table in ("job_inputs", "prediction_files", "ground_truth_files"):
+            conn.execute(text(f"ALTER TABLE {table} ALTER COLUMN content SET STORAGE EXTENDED"))
+            if table != "job_inputs":
+                conn.execute(text(f"ALTER TABLE {table} ALTER COLUMN content SET COMPRESSION pglz"))
+    with app_client(tmp_path / "data", database_url=url, keep_predictions=True) as c:
+        assert columns() == expected
+        again = upload(c, golden_bytes("result.pkl"), gt="demo")
+        assert again.status_code == 201 and again.json()["ap"] == first.json()["ap"]
+        frame = c.get(f"/v1/evaluations/{first.json()['id']}/frames")  # the file kept before the change
+        assert frame.status_code == 200, frame.text
+    engine.dispose()
