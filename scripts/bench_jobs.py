@@ -1,13 +1,15 @@
 """Evaluations as jobs, measured on this machine: a real ``kitti-eval serve`` on a KITTI-val-sized generated set
 (3769 frames), uploads from several clients at once.
 
-* throughput: evaluations finished per second, from the first acceptance to the last result, for the default
+* throughput: evaluations finished per second, from the first acceptance to the last result, of uploads
+  (``POST /v1/evaluations``) and of benchmark submissions (accounts mode, a participant a client), for the default
   ``kitti-eval serve`` (a worker process of its own a CPU), for one whose web process runs the jobs on two
   threads, and for one with no worker of its own beside ``kitti-eval worker --processes N`` (``--processes``);
 * acceptance: how long ``POST /v1/evaluations?wait=0`` takes to answer 202 while the workers are busy (median
   and 95th percentile): accepting never waits for a free evaluator.
 
-``python scripts/bench_jobs.py [--uploads 40] [--clients 8] [--processes 2]``. Prints the figures; exits 0.
+``python scripts/bench_jobs.py [--uploads 40] [--clients 8] [--processes 2] [--kind uploads|submissions|both]``.
+Prints the figures; exits 0.
 Everything runs on loopback in a temporary folder and stops by itself.
 """
 
@@ -72,10 +74,49 @@ def _stop(proc: subprocess.Popen[bytes]) -> None:
         proc.kill()
 
 
+def _prepare(c: httpx.Client, kind: str, gt: bytes, clients: int) -> list[dict[str, str]]:
+    """The ground truth registered (and for submissions a benchmark on it, with a participant a client); the
+    headers each client sends."""
+    admin = {"Authorization": f"Bearer {ADMIN}"}
+    if kind == "uploads":
+        files = {"file": ("kitti_infos_val.pkl", gt)}
+        c.post("/v1/ground-truths", data={"name": "val"}, files=files, headers=admin).raise_for_status()
+        return [{}] * clients
+    headers = []
+    for i in range(clients):
+        c.post("/v1/admin/users", json={"name": f"team{i}"}, headers=admin).raise_for_status()
+        token = c.post("/v1/admin/tokens", json={"user": f"team{i}"}, headers=admin).json()["token"]
+        headers.append({"Authorization": f"Bearer {token}"})
+    files = {"file": ("kitti_infos_test.pkl", gt)}
+    c.post("/v1/ground-truths", data={"name": "val", "sealed": "true"}, files=files, headers=admin).raise_for_status()
+    body = {"name": "bench", "ground_truth": "val", "quota": "1000/1"}
+    c.post("/v1/benchmarks", json=body, headers=admin).raise_for_status()
+    return headers
+
+
+def _send(c: httpx.Client, kind: str, pred: bytes, headers: dict[str, str]) -> httpx.Response:
+    files = {"predictions": ("result.pkl", pred)}
+    if kind == "uploads":
+        return c.post("/v1/evaluations", params={"wait": "0"}, data={"gt": "val"}, files=files, headers=headers)
+    return c.post("/v1/benchmarks/bench/submissions", params={"wait": "0"}, files=files, headers=headers)
+
+
 def _run(
-    label: str, env: dict[str, str], gt: bytes, pred: bytes, uploads: int, clients: int, *, workers: int = 0
+    label: str,
+    kind: str,
+    env: dict[str, str],
+    gt: bytes,
+    pred: bytes,
+    uploads: int,
+    clients: int,
+    *,
+    workers: int = 0,
 ) -> None:
-    """``workers``: a ``kitti-eval worker --processes N`` beside the service, on its SQLite database."""
+    """``kind``: uploads (``POST /v1/evaluations``) or benchmark submissions, ``uploads`` of them from ``clients``
+    clients at once; ``workers``: a ``kitti-eval worker --processes N`` beside the service, on its SQLite
+    database. One evaluation first, to warm the service; then the clock runs from the first request to the last
+    job done (the jobs' counts, one request every 0.1 s)."""
+    env = {**env, "KITTI_EVAL_AUTH": "accounts" if kind == "submissions" else "open"}
     with tempfile.TemporaryDirectory() as tmp:
         port = _free_port()
         data = Path(tmp) / "data"
@@ -88,49 +129,40 @@ def _run(
 
         proc = _serve(data, port, env, start_workers if workers else None)
         base = f"http://127.0.0.1:{port}"
+        admin = {"Authorization": f"Bearer {ADMIN}"}
         try:
             with httpx.Client(base_url=base, timeout=600) as c:
-                r = c.post(
-                    "/v1/ground-truths",
-                    data={"name": "val"},
-                    files={"file": ("kitti_infos_val.pkl", gt)},
-                    headers={"Authorization": f"Bearer {ADMIN}"},
-                )
-                r.raise_for_status()
-                c.post("/v1/evaluations", data={"gt": "val"}, files={"predictions": ("result.pkl", pred)})
+                headers = _prepare(c, kind, gt, clients)
 
-                def accept(_: int) -> tuple[float, str]:
+                def done() -> int:
+                    counts = c.get("/v1/admin/jobs", params={"limit": 1}, headers=admin).json()["counts"]
+                    assert not counts.get("failed"), counts
+                    return int(counts.get("done", 0))
+
+                _send(c, kind, pred, headers[0]).raise_for_status()
+                while done() < 1:
+                    time.sleep(0.1)
+
+                def accept(i: int) -> float:
                     with httpx.Client(base_url=base, timeout=600) as own:
                         t0 = time.perf_counter()
-                        r = own.post(
-                            "/v1/evaluations",
-                            params={"wait": "0"},
-                            data={"gt": "val"},
-                            files={"predictions": ("result.pkl", pred)},
-                        )
+                        r = _send(own, kind, pred, headers[i % clients])
                         assert r.status_code in (201, 202), r.text[:300]
-                        return time.perf_counter() - t0, r.json()["id"]
+                        return time.perf_counter() - t0
 
                 started = time.perf_counter()
                 with ThreadPoolExecutor(clients) as pool:
-                    accepted = list(pool.map(accept, range(uploads)))
-                pending = {job for _, job in accepted}
-                while pending:
-                    for job in list(pending):
-                        state = c.get(f"/v1/jobs/{job}").json()["state"]
-                        if state in ("done", "failed", "cancelled"):
-                            assert state == "done", state
-                            pending.discard(job)
+                    latencies = sorted(pool.map(accept, range(uploads)))
+                while done() < uploads + 1:
                     time.sleep(0.1)
                 wall = time.perf_counter() - started
         finally:
             _stop(proc)
             for w in worker:
                 _stop(w)
-    latencies = sorted(t for t, _ in accepted)
     p95 = latencies[max(0, int(round(0.95 * len(latencies))) - 1)]
     print(
-        f"{label:<28} {uploads} evaluations in {wall:6.1f} s: {uploads / wall:4.2f} a second; "
+        f"{label:<28} {kind:<11} {uploads} in {wall:5.1f} s: {uploads / wall:4.2f} a second; "
         f"acceptance median {statistics.median(latencies) * 1000:5.0f} ms, p95 {p95 * 1000:5.0f} ms"
     )
 
@@ -139,17 +171,22 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--uploads", type=int, default=40)
     p.add_argument("--clients", type=int, default=8)
-    p.add_argument("--processes", type=int, default=2, help="worker processes of the second configuration")
+    p.add_argument("--processes", type=int, default=2, help="worker processes of the third configuration")
+    p.add_argument("--kind", choices=["uploads", "submissions", "both"], default="both")
+    p.add_argument("--skip-threads", action="store_true", help="leave out the two-threads configuration")
     args = p.parse_args(argv)
     infos, results = generate(3769, seed=0)
     gt, pred = pickle.dumps(infos, protocol=4), pickle.dumps(results, protocol=4)
     print(f"{os.cpu_count()} cores; {len(pred) / 1e6:.1f} MB result.pkl, 3769 frames")
-    _run("kitti-eval serve (default)", {}, gt, pred, args.uploads, args.clients)
+    kinds = ["uploads", "submissions"] if args.kind == "both" else [args.kind]
     threads = {"KITTI_EVAL_WORKER_PROCESSES": "0", "KITTI_EVAL_JOB_THREADS": "2"}
-    _run("2 worker threads, no process", threads, gt, pred, args.uploads, args.clients)
     none = {"KITTI_EVAL_WORKER_PROCESSES": "0", "KITTI_EVAL_JOB_THREADS": "0"}
-    label = f"{args.processes} kitti-eval worker procs"
-    _run(label, none, gt, pred, args.uploads, args.clients, workers=args.processes)
+    for kind in kinds:
+        _run("kitti-eval serve (default)", kind, {}, gt, pred, args.uploads, args.clients)
+        if not args.skip_threads:
+            _run("2 worker threads, no process", kind, threads, gt, pred, args.uploads, args.clients)
+        label = f"{args.processes} kitti-eval worker procs"
+        _run(label, kind, none, gt, pred, args.uploads, args.clients, workers=args.processes)
     return 0
 
 
