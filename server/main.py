@@ -178,10 +178,10 @@ def _submission_refused(service: Service) -> BeforeBodyCheck:
 
     def check(caller: Caller, params: dict[str, str], size: int) -> ApiError | None:
         try:
-            service.policy.admit(Access.WRITER, caller, method="POST", bearer=None, csrf=None)
+            admitted = service.policy.admit(Access.WRITER, caller, method="POST", bearer=None, csrf=None)
         except ApiError:
             return None  # the route refuses it, as always
-        return service.benchmarks.refused_now(params["name"], caller, size)
+        return service.benchmarks.refused_now(params["name"], admitted, size)
 
     return check
 

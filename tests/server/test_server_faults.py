@@ -221,7 +221,8 @@ def test_full_scratch_space_is_507_and_nothing_is_left(tmp_path: Path) -> None:
     data_dir = tmp_path / "data"
     big_gt, big_pred = _big_set()
     archive = zip_of(golden_txt("pred.tar.gz"))
-    with _small_filesystem(data_dir / "tmp", "8m") as scratch, app_client(data_dir) as c:
+    # bodies past 1 MB in memory go to the scratch space, so the 2.5 MB upload is spooled there
+    with _small_filesystem(data_dir / "tmp", "8m") as scratch, app_client(data_dir, body_memory_mb=1) as c:
         assert register(c, "big", big_gt, "big_infos.pkl").status_code == 201
         assert register(c, "small", golden_bytes("kitti_infos_val.pkl"), "kitti_infos_val.pkl").status_code == 201
         before = _evaluation_count(c)
