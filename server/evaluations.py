@@ -7,7 +7,6 @@ the runner's threads (:class:`~kitti_eval_server.runner.Runner`); the routes han
 
 from __future__ import annotations
 
-import io
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -29,7 +28,7 @@ from .ground_truths import GroundTruthCache
 from .jobs import JobQueue
 from .policy import Caller, Policy
 from .store import EvaluationRecord, GroundTruthRecord, JobInput, JobRecord, Store, new_id
-from .uploads import FileIn, Limits, load_upload, receive_content, receive_upload
+from .uploads import FileIn, Limits, load_upload, receive_content, stored_upload
 
 __all__ = ["Evaluations", "FileIn", "sealed_document", "MAX_INSPECTED"]
 
@@ -154,10 +153,10 @@ class Evaluations:
             else:
                 gt_input = self.store.job_input(job_id, "gt_file")
                 assert gt_input is not None
-                gt_upload = receive_upload(io.BytesIO(gt_input.content), gt_input.filename, "gt_file")
+                gt_upload = stored_upload(gt_input.content, gt_input.filename, gt_input.sha256)
                 gt = load_upload(gt_upload, "ground_truth", scratch / "gt", self.limits).annotations
                 gt_sha256 = gt_upload.sha256
-            pred = receive_upload(io.BytesIO(pred_input.content), pred_input.filename, "predictions")
+            pred = stored_upload(pred_input.content, pred_input.filename, pred_input.sha256)
             keep = self.keep_predictions and gt_record is not None
             loaded = load_upload(
                 pred, "detections", scratch / "pred", self.limits, keep_lidar=keep, known_frames=gt.frame_index()
@@ -309,7 +308,7 @@ class Evaluations:
                     "(KITTI_EVAL_KEEP_PREDICTIONS was off); upload them again to look at frames"
                 )
             with self.scratch() as scratch:
-                upload = receive_upload(io.BytesIO(content), record.pred_filename, record.pred_filename)
+                upload = stored_upload(content, record.pred_filename, record.pred_sha256)
                 return load_upload(upload, "detections", scratch, self.limits, keep_lidar=True).annotations
 
         return gt, self.predictions.get_or_load(record.pred_sha256, load_kept), config

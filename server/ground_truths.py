@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import errno
-import io
 import logging
 import os
 import re
@@ -30,7 +29,7 @@ from kitti_eval.io.loaders import load_ground_truth
 
 from .errors import ApiError, BadRequest, Conflict, NotFound, echo
 from .store import GroundTruthRecord, Store
-from .uploads import InputFormat, Limits, Upload, extract_txt_folder, load_upload, receive_upload
+from .uploads import InputFormat, Limits, Upload, extract_txt_folder, load_upload, stored_upload
 
 __all__ = ["GroundTruths", "GroundTruthCache", "NAME_PATTERN", "annotations_nbytes", "display_name"]
 
@@ -239,7 +238,7 @@ class GroundTruths:
         with self.scratch() as scratch:
             folder = None
             if record.format != str(InputFormat.PICKLE):
-                upload = receive_upload(io.BytesIO(content), record.filename, record.filename)
+                upload = stored_upload(content, record.filename, record.sha256)
                 folder, _ = extract_txt_folder(
                     upload.file, InputFormat(record.format), scratch, self.limits, record.filename
                 )

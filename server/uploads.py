@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import enum
 import hashlib
+import io
 from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +40,7 @@ __all__ = [
     "Received",
     "receive_content",
     "receive_upload",
+    "stored_upload",
     "sniff",
     "extract_txt_folder",
     "load_upload",
@@ -133,6 +135,12 @@ def receive_content(file: IO[bytes], filename: str | None, default_name: str) ->
     file.seek(0)
     content = file.read()
     return Received(clean_filename(filename, default_name), hashlib.sha256(content).hexdigest(), content)
+
+
+def stored_upload(content: bytes, filename: str, sha256: str) -> Upload:
+    """A file the service keeps (a job's input, kept predictions, a ground truth's file), as an upload: its name
+    and sha256 are the ones recorded when it was received, so it is not hashed again."""
+    return Upload(file=io.BytesIO(content), filename=filename, sha256=sha256, size=len(content))
 
 
 def receive_upload(file: IO[bytes], filename: str | None, default_name: str) -> Upload:

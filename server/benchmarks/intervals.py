@@ -23,7 +23,6 @@ scoring, so it is queued once, and the entry is ``null`` (``pending``) until it 
 from __future__ import annotations
 
 import hashlib
-import io
 from collections.abc import Callable, Sequence
 from datetime import datetime, timezone
 from functools import lru_cache
@@ -41,7 +40,7 @@ from kitti_eval.core.frames import Annotations
 from ..errors import Conflict
 from ..jobs import JobRecord
 from ..store import ResampledKey, SubmissionRecord
-from ..uploads import load_upload, receive_upload
+from ..uploads import load_upload, stored_upload
 from .catalog import BenchmarkCatalog
 from .rules import Benchmark, key_value, part_frames
 
@@ -157,7 +156,7 @@ class Intervals(BenchmarkCatalog):
         if content is None:
             raise Conflict(f"the predictions of submission {row.id} are not kept")
         with self.scratch() as scratch:
-            upload = receive_upload(io.BytesIO(content), row.pred_filename, "predictions")
+            upload = stored_upload(content, row.pred_filename, row.pred_sha256)
             return load_upload(upload, "detections", scratch, self.limits, known_frames=gt.frame_index()).annotations
 
     # -- reading ----------------------------------------------------------------------------------------------

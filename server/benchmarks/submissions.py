@@ -3,7 +3,6 @@ set, published and withdrawn by their participants; listed, disqualified and res
 
 from __future__ import annotations
 
-import io
 import math
 import re
 from collections.abc import Callable
@@ -32,12 +31,13 @@ from ..store import (
 from ..uploads import (
     FileIn,
     InputFormat,
+    Upload,
     extract_txt_folder,
     load_txt_folder,
     load_upload,
     receive_content,
-    receive_upload,
     sniff,
+    stored_upload,
 )
 from ..workers import JobFailed, error_of
 from .intervals import Intervals
@@ -260,7 +260,7 @@ class Submissions(Intervals):
                 if stored is None:
                     raise Conflict(f"the predictions of submission {row.id} are not kept")
                 try:
-                    dt = self._checked(stored.content, row.pred_filename, gt)
+                    dt = self._checked(stored_upload(stored.content, row.pred_filename, stored.sha256), gt)
                 except (InputError, ArchiveError, InvalidSubmission):  # the file is refused: it never counted
                     self.store.delete_submission(sid)
                     raise
@@ -293,13 +293,12 @@ class Submissions(Intervals):
             return None
         return JobFailed(job.error)
 
-    def _checked(self, content: bytes, filename: str, gt: Annotations) -> Annotations:
+    def _checked(self, upload: Upload, gt: Annotations) -> Annotations:
         """The submission's predictions, read once and checked as :func:`validate_submission` checks them (its
         sentences, naming the upload): raises :class:`InvalidSubmission` with them when it breaks the rules;
         unreadable or unsafe input raises as every load does."""
         rules = SubmissionRules(frames=tuple(gt.frame_ids))
         with self.scratch() as scratch:
-            upload = receive_upload(io.BytesIO(content), filename, "predictions")
             fmt = sniff(upload.file, upload.filename)
             if fmt is InputFormat.PICKLE:
                 try:

@@ -17,6 +17,7 @@ from kitti_eval.io.loaders import load_detections, load_ground_truth
 from kitti_eval.io.submission import SubmissionRules, validate_submission
 from kitti_eval_server.benchmarks import in_public_part, render_markdown
 from kitti_eval_server.evaluator import EvalOptions, evaluate_document
+from kitti_eval_server.uploads import receive_upload
 
 
 @pytest.fixture()
@@ -373,7 +374,7 @@ def _verdicts(c, tmp_path, name: str, data: bytes) -> tuple[object, object]:
     except Exception as e:  # noqa: BLE001 - the class is the verdict
         cli = f"{type(e).__name__}: {str(e).replace(str(path), name)}"
     try:
-        dt = service.benchmarks._checked(data, name, gt)
+        dt = service.benchmarks._checked(receive_upload(io.BytesIO(data), name, "predictions"), gt)
         job: object = "valid"
         assert set(dt.frame_ids) == set(gt.frame_ids)  # what is scored is every test frame
     except InvalidSubmission as e:
