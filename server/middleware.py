@@ -31,7 +31,7 @@ from __future__ import annotations
 import json
 import tempfile
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -97,6 +97,30 @@ def _content_length(scope: Scope) -> int | None:
         return int(value)
     except ValueError:
         return None
+
+
+async def _read_body(
+    receive: Receive, add: Callable[[bytes], Awaitable[None]] | None, limit: int, timeout_s: float
+) -> str:
+    """Read a request body, each chunk handed to ``add`` (None: dropped): complete, too_large (not read past the
+    ``limit``), late (not all there within ``timeout_s``) or gone (the client disconnected)."""
+    size = 0
+    with anyio.move_on_after(timeout_s):
+        while True:
+            message = await receive()
+            if message["type"] == "http.disconnect":
+                return "gone"
+            if message["type"] != "http.request":
+                continue
+            chunk = message.get("body", b"")
+            size += len(chunk)
+            if size > limit:
+                return "too_large"
+            if add is not None:
+                await add(chunk)
+            if not message.get("more_body", False):
+                return "complete"
+    return "late"
 
 
 class _Memory:
@@ -245,7 +269,7 @@ class BodyMiddleware:
         try:
             self.receiving += 1
             try:
-                outcome = await self._receive(receive, body)
+                outcome = await _read_body(receive, body.add, self.limit, self.timeout_s)
                 if outcome == "complete":
                     await body.finish()
             except OSError as e:  # the spool's disk is full: 507, and the partial file goes with body.close()
@@ -274,23 +298,6 @@ class BodyMiddleware:
             # "gone": the client disconnected; there is no one to answer
         finally:
             body.close()
-
-    async def _receive(self, receive: Receive, body: _Body) -> str:
-        """Read the body into ``body``: complete, too_large, late or gone."""
-        with anyio.move_on_after(self.timeout_s):
-            while True:
-                message = await receive()
-                if message["type"] == "http.disconnect":
-                    return "gone"
-                if message["type"] != "http.request":
-                    continue
-                chunk = message.get("body", b"")
-                if body.size + len(chunk) > self.limit:
-                    return "too_large"
-                await body.add(chunk)
-                if not message.get("more_body", False):
-                    return "complete"
-        return "late"
 
     async def _too_large(self) -> Message:
         raise BodyTooLarge(self.limit)
@@ -338,7 +345,7 @@ class RefuseBeforeBody:
         if (_header(scope, b"expect") or b"").lower() == b"100-continue":
             await _send_json(send, error.status_code, body, {**headers, "connection": "close"})
             return
-        outcome = await self._drain(receive)
+        outcome = await _read_body(receive, None, self.limit, self.timeout_s)
         if outcome == "gone":
             return
         if outcome != "complete":
@@ -356,21 +363,6 @@ class RefuseBeforeBody:
                 declared = _content_length(scope) or 0
                 return await anyio.to_thread.run_sync(check, caller, found.groupdict(), declared)
         return None
-
-    async def _drain(self, receive: Receive) -> str:
-        """Read the body and drop it: complete, too_large, late or gone."""
-        size = 0
-        with anyio.move_on_after(self.timeout_s):
-            while True:
-                message = await receive()
-                if message["type"] == "http.disconnect":
-                    return "gone"
-                size += len(message.get("body", b""))
-                if size > self.limit:
-                    return "too_large"
-                if not message.get("more_body", False):
-                    return "complete"
-        return "late"
 
 
 class AdmissionMiddleware:
