@@ -39,10 +39,7 @@ class Audit:
     def record_in(self, conn: Any, caller: Caller, action: str, target: str) -> None:
         """The same, written in the transaction of the change it records (one commit for both). The log line is
         written at once: call it last in the transaction."""
-        log.info("audit: %s %s %s (%s) from %s %s", caller.actor, action, target, "ok", caller.client, "")
-        self._store.add_audit_in(
-            conn, actor=caller.actor, action=action, target=target, outcome="ok", client=caller.client, detail=""
-        )
+        self._write(caller.actor, action, target, "ok", caller.client, "", conn=conn)
 
     def refused_use(self, caller: Caller, target: str, detail: str) -> None:
         """A valid token (or session) was refused what it asked (an admin action, a write with a read-only
@@ -57,6 +54,13 @@ class Audit:
     def entries(self, *, limit: int = 100, offset: int = 0) -> list[AuditRecord]:
         return self._store.list_audit(limit=limit, offset=offset)
 
-    def _write(self, actor: str, action: str, target: str, outcome: str, client: str, detail: str) -> None:
+    def _write(
+        self, actor: str, action: str, target: str, outcome: str, client: str, detail: str, conn: Any = None
+    ) -> None:
+        """A log line and a row (in ``conn``'s transaction when given, else in one of its own)."""
         log.info("audit: %s %s %s (%s) from %s %s", actor, action, target, outcome, client, detail)
-        self._store.add_audit(actor=actor, action=action, target=target, outcome=outcome, client=client, detail=detail)
+        row = {"actor": actor, "action": action, "target": target, "outcome": outcome, "client": client}
+        if conn is None:
+            self._store.add_audit(**row, detail=detail)
+        else:
+            self._store.add_audit_in(conn, **row, detail=detail)
