@@ -457,7 +457,7 @@ class Database:
                         kind = kind.format(json=json_kind)
                         conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {column} {kind}"))
             if self.dialect == "postgresql":
-                _store_files_uncompressed(conn)
+                _file_storage(conn)
 
     @retry_when_locked
     def ping(self) -> None:
@@ -468,7 +468,7 @@ class Database:
         self.engine.dispose()
 
 
-def _store_files_uncompressed(conn: Connection) -> None:
+def _file_storage(conn: Connection) -> None:
     """How PostgreSQL keeps the uploaded files. By default it compresses a large value with pglz before storing
     it, which cost ~95 ms of the database's CPU for every val-sized result.pkl accepted. A job's inputs live until
     the job ends: they are stored as they are (``EXTERNAL``). The files kept for good (predictions, ground truths)
