@@ -94,17 +94,19 @@ def _prepare(c: httpx.Client, kind: str, gt: bytes, clients: int) -> list[dict[s
     return headers
 
 
+def _encode(pred: bytes, data: dict[str, str] | None = None) -> tuple[bytes, str]:
+    """A multipart body with ``pred`` as the ``predictions`` file (and the form fields ``data``), encoded once:
+    the clients stand for machines elsewhere, whose encoding is not the service's work. (body, content type)"""
+    files = {"predictions": ("result.pkl", pred, "application/octet-stream")}
+    request = httpx.Request("POST", "http://x/", data=data, files=files)
+    return request.read(), request.headers["content-type"]
+
+
 def _encoded(kind: str, pred: bytes) -> tuple[str, bytes, str]:
-    """The request's path, body and content type, encoded once: the clients stand for machines elsewhere, whose
-    encoding is not the service's work."""
-    files = {"predictions": ("result.pkl", pred)}
+    """The request's path, body and content type."""
     if kind == "uploads":
-        request = httpx.Request("POST", "http://x/", data={"gt": "val"}, files=files)
-        path = "/v1/evaluations"
-    else:
-        request = httpx.Request("POST", "http://x/", files=files)
-        path = "/v1/benchmarks/bench/submissions"
-    return path, request.read(), request.headers["content-type"]
+        return ("/v1/evaluations", *_encode(pred, {"gt": "val"}))
+    return ("/v1/benchmarks/bench/submissions", *_encode(pred))
 
 
 def _send(c: httpx.Client, request: tuple[str, bytes, str], headers: dict[str, str]) -> httpx.Response:

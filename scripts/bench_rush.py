@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-from bench_jobs import _free_port, _stop  # this folder's: the same loopback port and stop
+from bench_jobs import _encode, _free_port, _stop  # this folder's: the same port, stop and encoding
 
 from kitti_eval.synth import generate
 
@@ -135,15 +135,6 @@ def _host(url: str, gt: bytes, participants: int) -> dict[str, str]:
     return tokens
 
 
-def _multipart(pred: bytes) -> tuple[bytes, str]:
-    """The submission's request body, encoded once (the clients stand for machines elsewhere: their encoding
-    is not the service's work): (body, content type)."""
-    request = httpx.Request(
-        "POST", "http://x/", files={"predictions": ("result.pkl", pred, "application/octet-stream")}
-    )
-    return request.read(), request.headers["content-type"]
-
-
 def _schedule(participants: int, each: int, window_s: float, seed: int = 0) -> list[tuple[int, float]]:
     """When each submission is sent: (participant, seconds from the start). The window is cut into as many equal
     slots as there are submissions, one sent at a random moment of each slot, the slots dealt to the
@@ -162,7 +153,7 @@ def _rush(
     each at its planned moment whatever the answers to the others (an open loop: a slow service does not slow
     the senders), to the replicas in turn: (participant, status, seconds from the planned moment to the
     answer, the job's id or the error's code)."""
-    body, content_type = _multipart(pred)
+    body, content_type = _encode(pred)
     users = list(tokens)
     clients = [
         httpx.Client(timeout=600, headers={"Authorization": f"Bearer {tokens[u]}", "Content-Type": content_type})
