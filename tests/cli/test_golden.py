@@ -12,8 +12,7 @@ import tarfile
 from pathlib import Path
 
 import pytest
-
-from kitti_eval.cli import main
+from cli_runs import cli_json
 
 DATA = Path(__file__).parents[1] / "data" / "golden"
 CASES = sorted(p.name for p in DATA.iterdir() if p.is_dir())
@@ -34,25 +33,7 @@ def case(request, tmp_path_factory):
 
 
 def run_json(gt, pred, protocol, tmp_path, *extra):
-    out = tmp_path / f"{protocol}.json"
-    code = main(
-        [
-            "--gt",
-            str(gt),
-            "--pred",
-            str(pred),
-            "--protocol",
-            protocol,
-            "--format",
-            "json",
-            "--output",
-            str(out),
-            "--quiet",
-            *extra,
-        ]
-    )
-    assert code == 0
-    return json.loads(out.read_text())
+    return cli_json(gt, pred, tmp_path, "--protocol", protocol, *extra)
 
 
 def close(got, want, tol):

@@ -2,26 +2,16 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
+from cli_runs import cli_json
 from server_helpers import assert_error, upload
 
-from kitti_eval.cli import main as cli_main
 from kitti_eval.demo import demo_paths
 
 DEMO_PRED = demo_paths()[1].read_bytes()
 ERROR_KEYS = ("errors", "errors_r11", "tp_errors")
 META = ("id", "evaluation")
-
-
-def cli_json(tmp_path: Path, *flags: str) -> dict:
-    gt, pred = demo_paths()
-    out = tmp_path / "cli.json"
-    argv = ["--gt", str(gt), "--pred", str(pred), "--format", "json", "--output", str(out), "--quiet", *flags]
-    assert cli_main(argv) == 0
-    doc: dict = json.loads(out.read_text())
-    return doc
 
 
 def doc_of(body: dict) -> dict:
@@ -31,7 +21,7 @@ def doc_of(body: dict) -> dict:
 def test_errors_equal_the_clis_and_are_kept(client, tmp_path) -> None:
     r = upload(client, DEMO_PRED, "result.pkl.gz", fields={"errors": "true"})
     assert r.status_code == 201, r.text
-    expected = cli_json(tmp_path, "--errors")
+    expected = cli_json(*demo_paths(), tmp_path, "--errors")
     body = r.json()
     for key in ERROR_KEYS:
         assert body[key] == expected[key], key  # the nested dicts, number for number
@@ -44,7 +34,7 @@ def test_errors_follow_the_options_as_the_cli_does(client, tmp_path) -> None:
     r = upload(client, DEMO_PRED, "result.pkl.gz", fields=fields)
     assert r.status_code == 201, r.text
     flags = ("--errors", "--classes", "Car,Van", "--protocol", "openpcdet", "--iou", "Car=0.6,0.5,0.5")
-    expected = cli_json(tmp_path, *flags)
+    expected = cli_json(*demo_paths(), tmp_path, *flags)
     assert set(r.json()["errors"]) == {"Car", "Van"}
     assert doc_of(r.json()) == expected
 

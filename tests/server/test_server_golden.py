@@ -7,9 +7,8 @@ import tarfile
 from pathlib import Path
 
 import pytest
+from cli_runs import cli_json
 from server_helpers import GOLDEN, golden_bytes, golden_txt, register, tar_of, upload, zip_of
-
-from kitti_eval.cli import main as cli_main
 
 META = ("id", "evaluation")
 
@@ -29,29 +28,6 @@ def client(service_client):
         assert register(c, "small-pkl", golden_bytes("kitti_infos_val.pkl"), "kitti_infos_val.pkl").status_code == 201
         assert register(c, "small-txt", golden_bytes("label_2.tar.gz"), "label_2.tar.gz").status_code == 201
         yield c
-
-
-def cli_json(tmp_path: Path, gt: Path, pred: Path, protocol: str) -> dict:
-    out = tmp_path / "cli.json"
-    assert (
-        cli_main(
-            [
-                "--gt",
-                str(gt),
-                "--pred",
-                str(pred),
-                "--protocol",
-                protocol,
-                "--format",
-                "json",
-                "--output",
-                str(out),
-                "--quiet",
-            ]
-        )
-        == 0
-    )
-    return json.loads(out.read_text())
 
 
 def predictions(kind: str) -> tuple[str, bytes]:
@@ -77,10 +53,13 @@ def test_upload_equals_the_cli(client, txt_dirs, tmp_path, kind, protocol) -> No
     if kind == "pkl":  # the pickle route: infos against result.pkl
         gt_name, expected = (
             "small-pkl",
-            cli_json(tmp_path, GOLDEN / "kitti_infos_val.pkl", GOLDEN / "result.pkl", protocol),
+            cli_json(GOLDEN / "kitti_infos_val.pkl", GOLDEN / "result.pkl", tmp_path, "--protocol", protocol),
         )
     else:  # the txt route: label_2 against the pred folder
-        gt_name, expected = "small-txt", cli_json(tmp_path, txt_dirs["label_2"], txt_dirs["pred"], protocol)
+        gt_name, expected = (
+            "small-txt",
+            cli_json(txt_dirs["label_2"], txt_dirs["pred"], tmp_path, "--protocol", protocol),
+        )
     r = upload(client, data, filename, gt=gt_name, fields={"protocol": protocol})
     assert r.status_code == 201, r.text
     body = r.json()
