@@ -5,15 +5,13 @@ their output checked against it."""
 from __future__ import annotations
 
 import json
-import os
 import re
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
-from doc_examples import TAKEN, examples
+from doc_examples import TAKEN, examples, run_bash
 from server_helpers import LiveServer
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -36,13 +34,7 @@ def _blocks(page: Path) -> list[str]:
 
 
 def _run(script: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("KITTI_EVAL_")}
-    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"  # this kitti-eval and python
-    proc = subprocess.run(
-        ["bash", "-c", "set -euo pipefail\n" + script], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
-    )
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    return proc
+    return run_bash(script, cwd, timeout=600)
 
 
 def _ranks(cell: str) -> tuple[int, int]:

@@ -3,14 +3,11 @@ and curl needed): the admin commands on the server's machine, then the member's 
 
 from __future__ import annotations
 
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
-from doc_examples import take
+from doc_examples import run_bash, take
 from server_accounts import bearer
 from server_helpers import ADMIN, LiveServer
 
@@ -30,17 +27,7 @@ def test_the_accounts_example_runs_as_written(tmp_path: Path) -> None:
             "http://127.0.0.1:8000", server.url
         )
         script += '\necho; echo "TOKEN=$TOKEN"\n'
-        env = {k: v for k, v in os.environ.items() if not k.startswith("KITTI_EVAL_")}
-        env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"  # this kitti-eval
-        proc = subprocess.run(
-            ["bash", "-c", "set -euo pipefail\n" + script],
-            cwd=ROOT,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
-        assert proc.returncode == 0, proc.stdout + proc.stderr
+        proc = run_bash(script, ROOT)
         token = proc.stdout.strip().splitlines()[-1].removeprefix("TOKEN=")
         assert token.startswith("kte_"), proc.stdout[-300:]
         with server.client() as c:

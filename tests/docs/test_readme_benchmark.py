@@ -5,14 +5,11 @@ from __future__ import annotations
 
 import csv
 import io
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
-from doc_examples import take
+from doc_examples import run_bash, take
 from server_helpers import ADMIN, LiveServer
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -30,17 +27,7 @@ def test_the_benchmark_example_runs_as_written(tmp_path: Path) -> None:
         script = admin.replace("/srv/kitti-eval", str(server.data_dir)) + participant.replace(
             "http://127.0.0.1:8000", server.url
         )
-        env = {k: v for k, v in os.environ.items() if not k.startswith("KITTI_EVAL_")}
-        env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"  # this kitti-eval
-        proc = subprocess.run(
-            ["bash", "-c", "set -euo pipefail\n" + script],
-            cwd=tmp_path,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
-        assert proc.returncode == 0, proc.stdout + proc.stderr
+        proc = run_bash(script, tmp_path)
         assert "valid: 200 frames" in proc.stdout  # kitti-eval validate --benchmark
         rows = list(csv.reader(io.StringIO(proc.stdout[proc.stdout.index("rank,method") :])))
         assert rows[1][:4] == ["1", "My detector", "alice", "My lab"], proc.stdout

@@ -10,7 +10,10 @@ why not in an HTML comment on the line just before it::
 from __future__ import annotations
 
 import inspect
+import os
 import re
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,3 +73,20 @@ def take(page: str, after: str, count: int = 1, lang: str = "bash") -> list[Exam
     for example in chosen:
         TAKEN[(example.page, example.line)] = caller
     return chosen
+
+
+def run_bash(script: str, cwd: Path, *, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    """Run an example as a reader would (``set -euo pipefail``), with this checkout's ``kitti-eval`` and ``python``
+    first on the PATH and none of the tester's ``KITTI_EVAL_*`` settings; its exit code asserted 0."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("KITTI_EVAL_")}
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
+    proc = subprocess.run(
+        ["bash", "-c", "set -euo pipefail\n" + script],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc
