@@ -13,6 +13,8 @@ import base64
 import gzip
 import os
 import pickle
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -64,8 +66,10 @@ def live(tmp_path_factory):
         yield server
 
 
-@pytest.fixture(scope="module")
-def browser(tmp_path_factory):
+@contextmanager
+def chromium(profile: Path, *, scripts: bool = True) -> Iterator[Any]:
+    """Headless Chromium at a laptop's width, with a profile of its own in ``profile``, kept off the internet (a
+    proxy where nothing listens); ``scripts`` False: JavaScript switched off."""
     options = webdriver.ChromeOptions()
     options.binary_location = str(CHROMIUM)
     for arg in (
@@ -80,15 +84,23 @@ def browser(tmp_path_factory):
         "--disable-quic",
         "--window-size=1280,1600",
         f"--proxy-server=http://127.0.0.1:{free_port()}",  # nothing listens there: the internet is out of reach
-        f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}",
+        f"--user-data-dir={profile}",
     ):
         options.add_argument(arg)
+    if not scripts:
+        options.add_experimental_option("prefs", {"profile.managed_default_content_settings.javascript": 2})
     driver = webdriver.Chrome(options=options, service=DriverService(executable_path=str(CHROMEDRIVER)))
     driver.set_page_load_timeout(60)
     try:
         yield driver
     finally:
         driver.quit()
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    with chromium(tmp_path_factory.mktemp("chromium-profile")) as driver:
+        yield driver
 
 
 @pytest.fixture(scope="module")

@@ -6,34 +6,16 @@ from __future__ import annotations
 
 import pytest
 from server_benchmarks import host, ok, submit
-from server_helpers import LiveServer, free_port, golden_bytes
-from test_web_browser import CHROMEDRIVER, CHROMIUM, By, DriverService, webdriver
+from server_helpers import LiveServer, golden_bytes
+from test_web_browser import By, chromium
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
 def no_script_browser(tmp_path_factory):
-    options = webdriver.ChromeOptions()
-    options.binary_location = str(CHROMIUM)
-    for arg in (
-        "--headless=new",
-        "--no-sandbox",
-        "--disable-gpu",
-        "--disable-dev-shm-usage",
-        "--no-first-run",
-        "--window-size=1280,1600",
-        f"--proxy-server=http://127.0.0.1:{free_port()}",  # nothing listens there: the internet is out of reach
-        f"--user-data-dir={tmp_path_factory.mktemp('chromium-no-script')}",
-    ):
-        options.add_argument(arg)
-    options.add_experimental_option("prefs", {"profile.managed_default_content_settings.javascript": 2})
-    driver = webdriver.Chrome(options=options, service=DriverService(executable_path=str(CHROMEDRIVER)))
-    driver.set_page_load_timeout(60)
-    try:
+    with chromium(tmp_path_factory.mktemp("chromium-no-script"), scripts=False) as driver:
         yield driver
-    finally:
-        driver.quit()
 
 
 def test_the_leaderboard_page_shows_the_published_entry_without_scripts(tmp_path, no_script_browser) -> None:
