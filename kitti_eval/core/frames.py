@@ -129,6 +129,13 @@ def _is_text(arr: np.ndarray) -> bool:
     return int(codes.max()) <= _MAX_CODE_POINT
 
 
+def _is_text_scalar(value: np.str_) -> bool:
+    """:func:`_is_text` of one numpy str scalar (a scalar holds its code points in native order), without
+    making an array of it: frame ids are checked once a frame."""
+    raw = value.tobytes()
+    return not raw or max(memoryview(raw).cast("I")) <= _MAX_CODE_POINT
+
+
 def shown_frame_id(value: object) -> str:
     """A frame id for messages: normalised where it can be, else a safe description."""
     try:
@@ -139,7 +146,12 @@ def shown_frame_id(value: object) -> str:
 
 def normalize_frame_id(value: object) -> str:
     """A frame's key: digits are zero-padded to six (``15``, ``'15'`` and ``'000015'`` are one frame)."""
-    if isinstance(value, np.str_) and not _is_text(np.asarray(value)):
+    if type(value) is str:  # the common case, first
+        text = value.strip()
+        if not text:
+            raise ValueError("empty frame id")
+        return text.zfill(6) if text.isdigit() else text
+    if isinstance(value, np.str_) and not _is_text_scalar(value):
         raise ValueError("it is not text (a code point above U+10FFFF)")
     if isinstance(value, (bool, np.bool_)):
         raise TypeError("a frame id cannot be a boolean")
@@ -157,16 +169,17 @@ def normalize_frame_id(value: object) -> str:
     raise TypeError(f"a frame id must be a string or an integer, got {type(value).__name__}")
 
 
-def _names(value: Any, n_hint: int | None, where: dict[str, str]) -> npt.NDArray[np.str_]:
+def _names(value: Any, source: str, frame: str) -> npt.NDArray[np.str_]:
+    """One frame's class names as a numpy str array. A ``U`` array is returned as it is: whether its code
+    points are text is checked once for all frames (:func:`_names_are_text`)."""
     arr = np.asarray(value) if not isinstance(value, np.ndarray) else value
     if arr.size == 0:
         return np.zeros(0, dtype="<U1")
+    if arr.dtype.kind == "U" and arr.ndim == 1:
+        return arr
+    where = {"source": source, "frame": frame, "field": "name"}
     if arr.ndim != 1:
         raise InputError(f"expected a 1-D array of class names, got shape {arr.shape}", **where)
-    if arr.dtype.kind == "U":
-        if not _is_text(arr):
-            raise InputError("class names must be text; a name holds a code point above U+10FFFF", **where)
-        return arr
     if arr.dtype.kind == "S":
         # bytes are names as the references read them: a byte that is not UTF-8 makes a name no class has
         # (U+FFFD in its place), as any unknown name is; the devkit reads names as raw bytes too
@@ -176,18 +189,30 @@ def _names(value: Any, n_hint: int | None, where: dict[str, str]) -> npt.NDArray
     raise InputError(f"expected class names as strings, got dtype {arr.dtype}", **where)
 
 
-def _numeric(value: Any, trailing: tuple[int, ...], n: int, where: dict[str, str]) -> np.ndarray:
-    """Check dtype and shape of one frame's field; returned as is (copied later, when concatenated)."""
+def _names_are_text(names: np.ndarray, offsets: np.ndarray, ids: Sequence[str], source: str) -> None:
+    """Refuse the class names of all frames (concatenated, frame after frame) if one holds a code point
+    above U+10FFFF, naming the first frame that does."""
+    if _is_text(names):
+        return
+    codes = np.ascontiguousarray(names).view(np.dtype(names.dtype.byteorder + "u4")).reshape(len(names), -1)
+    row = int(np.argmax((codes > _MAX_CODE_POINT).any(axis=1)))
+    frame = int(np.searchsorted(offsets, row, side="right")) - 1
+    text = "class names must be text; a name holds a code point above U+10FFFF"
+    raise InputError(text, source=source, frame=ids[frame], field="name")
+
+
+def _numeric(value: Any, trailing: tuple[int, ...], n: int, source: str, frame: str, name: str) -> np.ndarray:
+    """Check dtype and shape of one frame's field ``name``; returned as is (copied later, when concatenated)."""
     arr = value if isinstance(value, np.ndarray) else np.asarray(value)
     if arr.dtype.kind not in "iuf":
         if arr.size == 0 and arr.dtype.kind in "bOU":
             arr = np.zeros(0)
         else:
-            raise InputError(f"expected numbers, got dtype {arr.dtype}", **where)
+            raise InputError(f"expected numbers, got dtype {arr.dtype}", source=source, frame=frame, field=name)
     if arr.size == 0 and n == 0:
         return np.zeros((0, *trailing), dtype=np.float64)
     if arr.shape != (n, *trailing):
-        raise InputError(f"expected shape {(n, *trailing)}, got {arr.shape}", **where)
+        raise InputError(f"expected shape {(n, *trailing)}, got {arr.shape}", source=source, frame=frame, field=name)
     return arr
 
 
@@ -337,13 +362,12 @@ class Annotations:
             missing = [f for f in _REQUIRED[kind] if f not in fields]
             if missing:
                 raise InputError(f"missing field(s) {', '.join(missing)}", source=source, frame=fid, field=missing[0])
-            names = _names(fields["name"], None, {"source": source, "frame": fid, "field": "name"})
+            names = _names(fields["name"], source, fid)
             n = len(names)
             cols["name"].append(names)
             for f, trailing in _NUMERIC_FIELDS.items():
-                where = {"source": source, "frame": fid, "field": f}
                 if f in fields:
-                    cols[f].append(_numeric(fields[f], trailing, n, where))
+                    cols[f].append(_numeric(fields[f], trailing, n, source, fid, f))
                 elif f == "score":
                     cols[f].append(np.full(n, -1.0))
                 else:
@@ -352,8 +376,7 @@ class Annotations:
                         absent.setdefault(f, fid)
             if keep_lidar:
                 if fields.get("boxes_lidar") is not None:
-                    where = {"source": source, "frame": fid, "field": "boxes_lidar"}
-                    lidar.append(_numeric(fields["boxes_lidar"], (7,), n, where))
+                    lidar.append(_numeric(fields["boxes_lidar"], (7,), n, source, fid, "boxes_lidar"))
                 else:
                     lidar.append(np.full((n, 7), np.nan))
             ids.append(fid)
@@ -363,6 +386,7 @@ class Annotations:
         joined: dict[str, np.ndarray] = {
             "name": np.concatenate(cols["name"]) if cols["name"] else np.zeros(0, dtype="<U1")
         }
+        _names_are_text(joined["name"], offsets, ids, source)
         for f, trailing in _NUMERIC_FIELDS.items():
             # a fresh float64 array: inputs are never aliased or mutated
             arr = np.concatenate(cols[f], dtype=np.float64) if cols[f] else np.zeros((0, *trailing), dtype=np.float64)
