@@ -310,6 +310,18 @@ def test_numpy_strings_that_are_not_text_are_refused(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="class names must be text; a name holds a code point above") as err:
         load_detections(dump(tmp_path / "result.pkl", entries))
     assert (err.value.frame, err.value.field) == ("000002", "name")
+    # names are checked once for all frames: the first frame holding one is named, whatever the array's layout
+    for later in (bad, bad.byteswap().view(">U3")):
+        entries = results()
+        for k, names in ((1, later), (2, bad)):
+            entries[k]["name"] = names
+            entries[k]["score"] = np.float32([0.5])
+            for f in ("truncated", "occluded", "alpha", "rotation_y"):
+                entries[k][f] = np.zeros(1)
+            entries[k].update(bbox=np.zeros((1, 4)), dimensions=np.ones((1, 3)), location=np.zeros((1, 3)))
+        with pytest.raises(InputError, match="class names must be text") as err:
+            load_detections(dump(tmp_path / "result.pkl", entries))
+        assert (err.value.frame, err.value.field) == ("000001", "name")
     entries = results()
     entries[1]["frame_id"] = bad.byteswap().view(">U3")[0]  # a non-native byte order, too
     with pytest.raises(InputError, match=r"bad frame id <not text>: it is not text") as err:
