@@ -50,10 +50,10 @@ def sealed_document(doc: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _input(name: str, upload: FileIn) -> JobInput:
-    """An uploaded file as a job's input, kept as it is (read once, hashed)."""
+def _input(name: str, upload: FileIn, *, kept: bool = False) -> JobInput:
+    """An uploaded file as a job's input, as it is (read once, hashed); ``kept``: kept for good from the start."""
     received = receive_content(upload.file, upload.filename, name)
-    return JobInput(name, received.filename, received.sha256, received.content)
+    return JobInput(name, received.filename, received.sha256, received.content, kept=kept)
 
 
 class Evaluations:
@@ -111,7 +111,9 @@ class Evaluations:
             self.policy.may_evaluate_against(caller, gt_record)
         project = self._project_for(caller, project, gt_record)
         job_id = new_id()
-        inputs = [_input("predictions", predictions)]
+        # predictions evaluated against a registered ground truth are kept (frames are looked at later): written
+        # once, as the job's input; those against an uploaded one go with the job
+        inputs = [_input("predictions", predictions, kept=self.keep_predictions and gt_record is not None)]
         if gt_file is not None:
             inputs.append(_input("gt_file", gt_file))
         payload = {
@@ -172,7 +174,8 @@ class Evaluations:
             if gt_record is not None and gt_record.sealed:
                 doc = sealed_document(doc)
         if keep:
-            self.store.add_prediction_file(pred.sha256, pred_input.content)
+            if not pred_input.kept:  # accepted before files were kept at acceptance, or while they were not kept
+                self.store.add_prediction_file(pred.sha256, pred_input.content)
             self.predictions.put(pred.sha256, loaded.annotations)
         record = EvaluationRecord(
             id=payload["evaluation_id"],

@@ -199,7 +199,7 @@ class Submissions(Intervals):
             pred_size=upload.size,
             baseline=baseline,
         )
-        inputs = [JobInput("predictions", upload.filename, upload.sha256, upload.content)]
+        inputs = [JobInput("predictions", upload.filename, upload.sha256, upload.content, kept=True)]
         payload = {"submission_id": submission_id, "benchmark": name}
         action = "baseline.add" if baseline else "submission.add"
 
@@ -264,7 +264,8 @@ class Submissions(Intervals):
                 except (InputError, ArchiveError, InvalidSubmission):  # the file is refused: it never counted
                     self.store.delete_submission(sid)
                     raise
-                self.store.add_prediction_file(row.pred_sha256, stored.content)
+                if not stored.kept:  # accepted before files were kept at acceptance
+                    self.store.add_prediction_file(row.pred_sha256, stored.content)
             else:
                 dt = self._predictions(job, row, gt)  # a rescoring: the kept file
             values, resampled = self._scores(bench, record, gt, dt)

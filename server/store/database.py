@@ -296,7 +296,9 @@ jobs = Table(
 
 
 #: the files a job was accepted with (the predictions; a ground truth uploaded with the request), kept in the
-#: database so that a worker on any machine reads them, and deleted when the job ends
+#: database so that a worker on any machine reads them; the rows are deleted when the job ends. Predictions
+#: the service keeps for good are written once, to ``prediction_files``, when the job is accepted: their row
+#: here is ``kept`` and holds no content (it is read from there by its sha256)
 job_inputs = Table(
     "job_inputs",
     metadata,
@@ -304,7 +306,8 @@ job_inputs = Table(
     Column("name", String(32), primary_key=True),  # predictions | gt_file
     Column("filename", String(255), nullable=False),
     Column("sha256", String(64), nullable=False),
-    Column("content", LargeBinary, nullable=False),
+    Column("content", LargeBinary, nullable=False),  # empty when kept
+    Column("kept", Boolean, nullable=False, default=False),
 )
 
 
@@ -330,6 +333,7 @@ _ADDED_COLUMNS = {
     "ground_truths": {"project": "VARCHAR(64)", "sealed": "BOOLEAN NOT NULL DEFAULT FALSE"},
     "benchmarks": {"max_published": "INTEGER"},
     "submissions": {"public_result": "{json}", "baseline": "BOOLEAN NOT NULL DEFAULT FALSE"},
+    "job_inputs": {"kept": "BOOLEAN NOT NULL DEFAULT FALSE"},
 }
 
 #: the PostgreSQL advisory lock held while the schema is created or upgraded (any fixed 64-bit number)
@@ -473,7 +477,8 @@ def _file_storage(conn: Connection) -> None:
     it, which cost ~95 ms of the database's CPU for every val-sized result.pkl accepted. A job's inputs live until
     the job ends: they are stored as they are (``EXTERNAL``). The files kept for good (predictions, ground truths)
     are compressed with lz4 where the server has it (PostgreSQL 14 and later, built with it), several times
-    faster than pglz. Only new rows are written the new way; the changes are made once, by the first server."""
+    faster than pglz (predictions kept for good are written once, when their job is accepted). Only new rows are
+    written the new way; the changes are made once, by the first server."""
     columns = {"job_inputs": "e", "prediction_files": "l", "ground_truth_files": "l"}
     lz4 = int(conn.execute(text("SHOW server_version_num")).scalar_one()) >= 140000
     for table, want in columns.items():

@@ -6,12 +6,14 @@ from dataclasses import dataclass
 from datetime import datetime
 
 from sqlalchemy import delete, func, insert, select
-from sqlalchemy.engine import RowMapping
+from sqlalchemy.dialects.postgresql import insert as pg_insert
+from sqlalchemy.dialects.sqlite import insert as sqlite_insert
+from sqlalchemy.engine import Connection, RowMapping
 from sqlalchemy.exc import IntegrityError
 
 from .database import Area, ground_truth_files, ground_truths, prediction_files, retry_when_locked, utc
 
-__all__ = ["GroundTruthRecord", "GroundTruthStore"]
+__all__ = ["GroundTruthRecord", "GroundTruthStore", "keep_prediction_file"]
 
 
 @dataclass(frozen=True)
@@ -100,18 +102,23 @@ class GroundTruthStore(Area):
     @retry_when_locked
     def add_prediction_file(self, sha256: str, content: bytes) -> None:
         """Keep an uploaded predictions file (once per content)."""
-        try:
-            with self.engine.begin() as conn:
-                if (
-                    conn.execute(select(prediction_files.c.sha256).where(prediction_files.c.sha256 == sha256)).first()
-                    is None
-                ):
-                    conn.execute(insert(prediction_files).values(sha256=sha256, content=content))
-        except IntegrityError:  # the same file, kept concurrently by another request
-            pass
+        with self.engine.begin() as conn:
+            keep_prediction_file(conn, sha256, content)
 
     @retry_when_locked
     def prediction_content(self, sha256: str) -> bytes | None:
         with self.engine.connect() as conn:
             row = conn.execute(select(prediction_files.c.content).where(prediction_files.c.sha256 == sha256)).first()
         return None if row is None else bytes(row[0])
+
+
+def keep_prediction_file(conn: Connection, sha256: str, content: bytes) -> None:
+    """Keep a predictions file by its content within the caller's transaction: written unless it is there; a copy
+    kept at the same moment by another transaction is left as it is (the contents are the same)."""
+    if conn.execute(select(prediction_files.c.sha256).where(prediction_files.c.sha256 == sha256)).first() is not None:
+        return
+    row = {"sha256": sha256, "content": content}
+    if conn.dialect.name == "postgresql":
+        conn.execute(pg_insert(prediction_files).values(row).on_conflict_do_nothing())
+    else:
+        conn.execute(sqlite_insert(prediction_files).values(row).on_conflict_do_nothing())

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sqlalchemy import delete, func, insert, select
+from sqlalchemy import and_, case, delete, func, insert, select
 from sqlalchemy.engine import Connection
 
-from .database import Area, job_inputs, jobs, retry_when_locked
+from .database import Area, job_inputs, jobs, prediction_files, retry_when_locked
+from .ground_truth_store import keep_prediction_file
 
 __all__ = ["JobInput", "JobInputStore"]
 
@@ -18,6 +19,9 @@ class JobInput:
     filename: str
     sha256: str
     content: bytes
+    #: predictions the service keeps for good: written once, to the kept files, when the job is accepted (the
+    #: job's row refers to them by ``sha256``; nothing is copied or deleted when the job ends)
+    kept: bool = False
 
 
 class JobInputStore(Area):
@@ -28,33 +32,61 @@ class JobInputStore(Area):
 
     @staticmethod
     def add_job_inputs_in(conn: Connection, job_id: str, inputs: list[JobInput]) -> None:
-        """Within a transaction of the caller's (the one that records the job)."""
+        """Within a transaction of the caller's (the one that records the job). A ``kept`` input is written to
+        the kept predictions unless a file of its content is there already (then nothing is written again)."""
+        for i in inputs:
+            if i.kept:
+                keep_prediction_file(conn, i.sha256, i.content)
         conn.execute(
             insert(job_inputs),
             [
-                {"job_id": job_id, "name": i.name, "filename": i.filename, "sha256": i.sha256, "content": i.content}
+                {
+                    "job_id": job_id,
+                    "name": i.name,
+                    "filename": i.filename,
+                    "sha256": i.sha256,
+                    "content": b"" if i.kept else i.content,
+                    "kept": i.kept,
+                }
                 for i in inputs
             ],
         )
 
     @retry_when_locked
     def job_input(self, job_id: str, name: str) -> JobInput | None:
-        with self.engine.connect() as conn:
-            row = (
-                conn.execute(select(job_inputs).where(job_inputs.c.job_id == job_id, job_inputs.c.name == name))
-                .mappings()
-                .first()
+        """A job's input with its content (a kept one's read from the kept predictions)."""
+        query = (
+            select(job_inputs, prediction_files.c.content.label("kept_content"))
+            .select_from(
+                job_inputs.outerjoin(
+                    prediction_files, and_(job_inputs.c.kept, prediction_files.c.sha256 == job_inputs.c.sha256)
+                )
             )
-        if row is None:
+            .where(job_inputs.c.job_id == job_id, job_inputs.c.name == name)
+        )
+        with self.engine.connect() as conn:
+            row = conn.execute(query).mappings().first()
+        if row is None or (row["kept"] and row["kept_content"] is None):
             return None
-        return JobInput(row["name"], row["filename"], row["sha256"], bytes(row["content"]))
+        content = row["kept_content"] if row["kept"] else row["content"]
+        return JobInput(row["name"], row["filename"], row["sha256"], bytes(content), kept=bool(row["kept"]))
 
     @retry_when_locked
     def job_input_bytes(self) -> int:
         """Bytes of the inputs kept for the jobs queued or running."""
         active = select(jobs.c.id).where(jobs.c.state.in_(("queued", "running")))
-        query = select(func.coalesce(func.sum(func.length(job_inputs.c.content)), 0)).where(
-            job_inputs.c.job_id.in_(active)
+        size = case(
+            (job_inputs.c.kept, func.coalesce(func.length(prediction_files.c.content), 0)),
+            else_=func.length(job_inputs.c.content),
+        )
+        query = (
+            select(func.coalesce(func.sum(size), 0))
+            .select_from(
+                job_inputs.outerjoin(
+                    prediction_files, and_(job_inputs.c.kept, prediction_files.c.sha256 == job_inputs.c.sha256)
+                )
+            )
+            .where(job_inputs.c.job_id.in_(active))
         )
         with self.engine.connect() as conn:
             return int(conn.execute(query).scalar_one())

@@ -315,8 +315,9 @@ def test_a_file_its_scoring_job_cannot_read_is_refused_and_removed(world) -> Non
     service.workers.stop(5)
     try:
         job = ok(submit_now(c, alice), 202)
-        with service.store.engine.begin() as conn:  # the stored input no longer loads
-            conn.execute(update(job_inputs).where(job_inputs.c.job_id == job["id"]).values(content=b"not a pickle"))
+        with service.store.engine.begin() as conn:  # the job's input no longer loads (the kept file stays whole)
+            unreadable = update(job_inputs).where(job_inputs.c.job_id == job["id"])
+            conn.execute(unreadable.values(content=b"not a pickle", kept=False))
     finally:
         service.workers.start()
     ended = service.jobs.wait(job["id"], 120)

@@ -250,3 +250,79 @@ def test_past_the_waiting_requests_bound_a_request_is_answered_202_at_once(tmp_p
         assert response.status_code == 202, response.text
         ended = _until_ended(c, response.json()["id"])
         assert ended["state"] == "done"
+
+
+def test_kept_predictions_are_written_once_when_accepted_and_an_uploaded_ground_truth_s_go_with_their_job(
+    tmp_path,
+) -> None:
+    """Predictions the service keeps (evaluated against a registered ground truth) are written to the kept files
+    when the job is accepted, and the job's input refers to them: the job copies and deletes nothing of them,
+    an upload of the same file writes nothing again, and the admission counts their bytes while the job waits.
+    Predictions evaluated against an uploaded ground truth are the job's own, and go when it is done."""
+    import hashlib
+
+    from sqlalchemy import select
+
+    from kitti_eval_server.store.database import job_inputs, prediction_files
+
+    pred = golden_bytes("result.pkl")
+    sha = hashlib.sha256(pred).hexdigest()
+    with app_client(tmp_path / "data", ready=False, job_threads=0, keep_predictions=True) as c:
+        service = c.app.state.service
+        store = service.store
+
+        def inputs() -> list[tuple]:
+            query = select(job_inputs.c.job_id, job_inputs.c.name, job_inputs.c.kept, job_inputs.c.content)
+            with store.engine.connect() as conn:
+                return sorted((r[0], r[1], bool(r[2]), len(r[3])) for r in conn.execute(query))
+
+        def kept() -> list[str]:
+            with store.engine.connect() as conn:
+                return [r[0] for r in conn.execute(select(prediction_files.c.sha256))]
+
+        first, second = (upload(c, pred, params={"wait": "0"}).json()["id"] for _ in range(2))
+        assert kept() == [sha]  # once, however often it is uploaded
+        assert inputs() == sorted([(first, "predictions", True, 0), (second, "predictions", True, 0)])
+        assert store.job_input_bytes() == 2 * len(pred)
+        read = store.job_input(first, "predictions")
+        assert read is not None and read.kept and read.content == pred and read.sha256 == sha
+        gt_file = ("infos.pkl", golden_bytes("kitti_infos_val.pkl"))
+        own = upload(c, pred, gt=None, gt_file=gt_file, params={"wait": "0"}).json()["id"]
+        assert sorted(name for job, name, flag, _ in inputs() if job == own and not flag) == ["gt_file", "predictions"]
+        service.workers.threads = 1
+        service.workers.start()
+        for job_id in (first, second, own):
+            ended = service.jobs.wait(job_id, 120)
+            assert ended is not None and ended.state == "done", ended
+        assert inputs() == [] and kept() == [sha] and store.job_input_bytes() == 0
+        frames = c.get(f"/v1/evaluations/{first}/frames")  # the kept file is what the frames are read from
+        assert frames.status_code == 200, frames.text
+        assert store.prediction_content(sha) == pred
+
+
+def test_a_job_accepted_before_kept_inputs_runs_after_the_upgrade_and_keeps_its_predictions(tmp_path) -> None:
+    """A database from before: no ``kept`` column, a queued job's predictions in its own input row. The column is
+    added at start-up, and the job runs from its row and keeps the file as a job did then."""
+    import hashlib
+    import sqlite3
+
+    data = tmp_path / "data"
+    pred = golden_bytes("result.pkl")
+    with app_client(data, ready=False, job_threads=0, keep_predictions=True) as c:
+        job_id = upload(c, pred, params={"wait": "0"}).json()["id"]
+    db = sqlite3.connect(data / "kitti-eval.db")
+    db.execute(
+        "UPDATE job_inputs SET content = (SELECT content FROM prediction_files p WHERE p.sha256 = job_inputs.sha256)"
+    )
+    db.execute("DELETE FROM prediction_files")
+    db.execute("ALTER TABLE job_inputs DROP COLUMN kept")
+    db.commit()
+    db.close()
+    with app_client(data, ready=False, job_threads=1, keep_predictions=True) as c:
+        store = c.app.state.service.store
+        ended = c.app.state.service.jobs.wait(job_id, 120)
+        assert ended is not None and ended.state == "done", ended
+        assert store.prediction_content(hashlib.sha256(pred).hexdigest()) == pred
+        assert c.get(f"/v1/evaluations/{job_id}/frames").status_code == 200
+        again = upload(c, pred)  # a new acceptance keeps nothing twice
+        assert again.status_code == 201 and again.json()["ap"] == c.get(f"/v1/evaluations/{job_id}").json()["ap"]
