@@ -12,6 +12,11 @@ from .ground_truth_store import keep_prediction_file
 
 __all__ = ["JobInput", "JobInputStore"]
 
+#: the job inputs beside the kept predictions a ``kept`` one refers to
+_WITH_KEPT = job_inputs.outerjoin(
+    prediction_files, and_(job_inputs.c.kept, prediction_files.c.sha256 == job_inputs.c.sha256)
+)
+
 
 @dataclass(frozen=True)
 class JobInput:
@@ -57,11 +62,7 @@ class JobInputStore(Area):
         """A job's input with its content (a kept one's read from the kept predictions)."""
         query = (
             select(job_inputs, prediction_files.c.content.label("kept_content"))
-            .select_from(
-                job_inputs.outerjoin(
-                    prediction_files, and_(job_inputs.c.kept, prediction_files.c.sha256 == job_inputs.c.sha256)
-                )
-            )
+            .select_from(_WITH_KEPT)
             .where(job_inputs.c.job_id == job_id, job_inputs.c.name == name)
         )
         with self.engine.connect() as conn:
@@ -79,15 +80,7 @@ class JobInputStore(Area):
             (job_inputs.c.kept, func.coalesce(func.length(prediction_files.c.content), 0)),
             else_=func.length(job_inputs.c.content),
         )
-        query = (
-            select(func.coalesce(func.sum(size), 0))
-            .select_from(
-                job_inputs.outerjoin(
-                    prediction_files, and_(job_inputs.c.kept, prediction_files.c.sha256 == job_inputs.c.sha256)
-                )
-            )
-            .where(job_inputs.c.job_id.in_(active))
-        )
+        query = select(func.coalesce(func.sum(size), 0)).select_from(_WITH_KEPT).where(job_inputs.c.job_id.in_(active))
         with self.engine.connect() as conn:
             return int(conn.execute(query).scalar_one())
 
