@@ -215,6 +215,24 @@ def call(
     """Run BodyMiddleware(app) on one POST whose body arrives as ``messages`` (then nothing, ever), with bodies
     kept in memory up to ``memory_bytes``; the messages it sent back."""
     sent: list[dict] = []
+    middleware = BodyMiddleware(
+        app,
+        limit=limit,
+        timeout_s=timeout_s,
+        max_receiving=4,
+        retry_after_s=lambda: 2,
+        spool_dir=spool_dir,
+        memory_bytes=memory_bytes,
+    )
+    anyio.run(post, middleware, "/v1/evaluations", messages, sent)
+    assert middleware.receiving == 0
+    assert middleware.memory.held == 0  # every body gave its memory back
+    return sent
+
+
+async def post(app, path: str, messages: list[dict], sent: list[dict]) -> None:
+    """One chunked POST to ``path`` through ``app`` whose body arrives as ``messages`` (then nothing, ever); what
+    it sends back is appended to ``sent``."""
     pending = list(messages)
 
     async def receive() -> dict:
@@ -226,25 +244,8 @@ def call(
     async def send(message: dict) -> None:
         sent.append(message)
 
-    scope = {
-        "type": "http",
-        "method": "POST",
-        "path": "/v1/evaluations",
-        "headers": [(b"transfer-encoding", b"chunked")],
-    }
-    middleware = BodyMiddleware(
-        app,
-        limit=limit,
-        timeout_s=timeout_s,
-        max_receiving=4,
-        retry_after_s=lambda: 2,
-        spool_dir=spool_dir,
-        memory_bytes=memory_bytes,
-    )
-    anyio.run(middleware, scope, receive, send)
-    assert middleware.receiving == 0
-    assert middleware.memory.held == 0  # every body gave its memory back
-    return sent
+    scope = {"type": "http", "method": "POST", "path": path, "headers": [(b"transfer-encoding", b"chunked")]}
+    await app(scope, receive, send)
 
 
 def chunks_of(data: bytes, size: int = 64 * 1024) -> list[dict]:
@@ -353,19 +354,7 @@ def test_bodies_share_the_memory_budget_and_give_it_back(spools, tmp_path) -> No
     )
 
     def request(path: str, data: bytes):
-        pending = chunks_of(data)
-
-        async def receive() -> dict:
-            if pending:
-                return pending.pop(0)
-            await anyio.sleep_forever()
-            raise AssertionError("unreachable")
-
-        async def send(message: dict) -> None:
-            pass
-
-        scope = {"type": "http", "method": "POST", "path": path, "headers": [(b"transfer-encoding", b"chunked")]}
-        return middleware(scope, receive, send)
+        return post(middleware, path, chunks_of(data), [])
 
     async def both() -> None:
         async with anyio.create_task_group() as tg:
