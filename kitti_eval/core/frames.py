@@ -125,8 +125,12 @@ def _is_text(arr: np.ndarray) -> bool:
     SystemError."""
     if arr.dtype.kind != "U" or arr.size == 0 or arr.dtype.itemsize == 0:
         return True
-    codes = np.ascontiguousarray(arr).view(np.dtype(arr.dtype.byteorder + "u4"))
-    return int(codes.max()) <= _MAX_CODE_POINT
+    return int(_code_points(arr).max()) <= _MAX_CODE_POINT
+
+
+def _code_points(arr: np.ndarray) -> np.ndarray:
+    """The code points of a non-empty numpy str array, as it holds them: (len, characters) unsigned ints."""
+    return np.ascontiguousarray(arr).view(np.dtype(arr.dtype.byteorder + "u4")).reshape(len(arr), -1)
 
 
 def _is_text_scalar(value: np.str_) -> bool:
@@ -147,10 +151,7 @@ def shown_frame_id(value: object) -> str:
 def normalize_frame_id(value: object) -> str:
     """A frame's key: digits are zero-padded to six (``15``, ``'15'`` and ``'000015'`` are one frame)."""
     if type(value) is str:  # the common case, first
-        text = value.strip()
-        if not text:
-            raise ValueError("empty frame id")
-        return text.zfill(6) if text.isdigit() else text
+        return _frame_key(value)
     if isinstance(value, np.str_) and not _is_text_scalar(value):
         raise ValueError("it is not text (a code point above U+10FFFF)")
     if isinstance(value, (bool, np.bool_)):
@@ -162,11 +163,15 @@ def normalize_frame_id(value: object) -> str:
     if isinstance(value, bytes):
         value = value.decode("utf-8", "replace")
     if isinstance(value, (str, np.str_)):
-        text = str(value).strip()
-        if not text:
-            raise ValueError("empty frame id")
-        return text.zfill(6) if text.isdigit() else text
+        return _frame_key(str(value))
     raise TypeError(f"a frame id must be a string or an integer, got {type(value).__name__}")
+
+
+def _frame_key(text: str) -> str:
+    text = text.strip()
+    if not text:
+        raise ValueError("empty frame id")
+    return text.zfill(6) if text.isdigit() else text
 
 
 def _names(value: Any, source: str, frame: str) -> npt.NDArray[np.str_]:
@@ -194,8 +199,7 @@ def _names_are_text(names: np.ndarray, offsets: np.ndarray, ids: Sequence[str], 
     above U+10FFFF, naming the first frame that does."""
     if _is_text(names):
         return
-    codes = np.ascontiguousarray(names).view(np.dtype(names.dtype.byteorder + "u4")).reshape(len(names), -1)
-    row = int(np.argmax((codes > _MAX_CODE_POINT).any(axis=1)))
+    row = int(np.argmax((_code_points(names) > _MAX_CODE_POINT).any(axis=1)))
     frame = int(np.searchsorted(offsets, row, side="right")) - 1
     text = "class names must be text; a name holds a code point above U+10FFFF"
     raise InputError(text, source=source, frame=ids[frame], field="name")
