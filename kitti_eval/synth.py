@@ -36,7 +36,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .core.protocol import KITTI_CLASSES
-from .demo import DEMO_ARGS, demo_paths
+from .demo import DEMO_ARGS, DEMO_WEAKER_ARGS, demo_paths, demo_weaker_path
 from .io.calib import camera_to_lidar, rect_to_velo, wrap_angle
 
 __all__ = [
@@ -797,6 +797,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.demo:
         infos, results = generate(**DEMO_ARGS)
         gt_path, pred_path = demo_paths()
+        write_results(demo_weaker_path(), generate(**DEMO_WEAKER_ARGS)[1])  # the weaker model's, same ground truth
     else:
         infos, results = generate(
             args.frames,

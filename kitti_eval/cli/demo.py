@@ -19,18 +19,19 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--where",
         action="store_true",
-        help="print the demo's ground-truth and prediction paths (one a line) and exit",
+        help="print the demo's paths, one a line, and exit: its ground truth, its predictions and a weaker "
+        "model's predictions (for compare and gate --baseline)",
     )
     p.set_defaults(run=run)
     return p
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..demo import demo_paths
+    from ..demo import demo_paths, demo_weaker_path
 
     gt_path, pred_path = demo_paths()
     if args.where:
-        print(gt_path)
-        print(pred_path)
+        for path in (gt_path, pred_path, demo_weaker_path()):
+            print(path)
         return EXIT_OK
     return run_pair(gt_path, pred_path, args)

@@ -248,9 +248,10 @@ def test_a_mistyped_class_gets_a_suggestion(capsys):
 def test_demo_where_prints_one_path_a_line(capsys):
     code, out, _ = run(capsys, "demo", "--where")
     lines = out.splitlines()
-    assert code == 0 and len(lines) == 2
+    assert code == 0 and len(lines) == 3
     assert all(Path(p).is_file() for p in lines)
     assert Path(lines[0]).name.startswith("kitti_infos_val") and Path(lines[1]).name.startswith("result")
+    assert Path(lines[2]).name == "result_weaker.pkl.gz"  # the weaker model, for compare and baseline gates
 
 
 def test_a_tiny_negative_difference_prints_as_zero_not_minus_zero():
@@ -266,6 +267,7 @@ def test_a_tiny_negative_difference_prints_as_zero_not_minus_zero():
         seed=0,
         notes=(),
         errors_only=False,
+        names=("A", "B"),
     )
     table = render_comparison(cmp)  # type: ignore[arg-type]
     assert "-0.0000" not in table

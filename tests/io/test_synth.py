@@ -513,6 +513,25 @@ def test_bundled_demo_is_generate_200_seed_7() -> None:
     assert 11 < sum(len(r["score"]) for r in results) / 200 < 13
 
 
+def test_the_bundled_weaker_model_is_the_demo_blurred_and_scores_lower() -> None:
+    """The second demo prediction: generate(**DEMO_WEAKER_ARGS), the demo's own detector with its positions
+    blurred, on the same ground truth; its Car 3D AP is below the demo's, so comparisons and gates have a drop."""
+    from kitti_eval import evaluate, load_detections, load_ground_truth
+    from kitti_eval.demo import DEMO_WEAKER_ARGS, demo_weaker_path
+
+    assert DEMO_WEAKER_ARGS == {**synth.DEMO_ARGS, "location_noise": 0.1}
+    path = demo_weaker_path()
+    assert path.name == "result_weaker.pkl.gz" and path.parent == synth.demo_paths()[1].parent
+    assert path.stat().st_size < 512 * 1024
+    with gzip.open(path, "rb") as fh:
+        results = pickle.load(fh)
+    _assert_same(results, synth.generate(**DEMO_WEAKER_ARGS)[1], ulps=_DEMO_ULPS)
+    gt = load_ground_truth(synth.demo_paths()[0])
+    strong, weak = (evaluate(gt, load_detections(p)) for p in (synth.demo_paths()[1], path))
+    assert strong.get("Car", "3d", "moderate") == pytest.approx(60.33954716517563, abs=1e-9)
+    assert weak.get("Car", "3d", "moderate") == pytest.approx(45.86, abs=0.01)
+
+
 def test_demo_comparison_forgives_last_bits_only() -> None:
     """The tolerance of the demo check still catches a changed generator: a nudge of 1e-9 m fails."""
     infos, _ = synth.generate(3, seed=7)

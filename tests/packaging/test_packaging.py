@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from kitti_eval.demo import DEMO_FILES
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover - Python 3.10
@@ -130,7 +132,7 @@ def test_the_wheel_installs_kitti_eval_server_and_no_server(tmp_path: Path) -> N
         f"kitti_eval_server/web/templates/{t}" for t in templates
     }
     assert {"kitti_eval_server/web/static/app.css", "kitti_eval_server/web/static/app.js"} < names
-    assert {"kitti_eval/data/demo/kitti_infos_val.pkl.gz", "kitti_eval/data/demo/result.pkl.gz"} < names
+    assert {f"kitti_eval/data/demo/{name}" for name in DEMO_FILES} < names
     meta = zipfile.Path(wheel, "kitti_eval-0.1.0.dist-info/")
     assert (meta / "top_level.txt").read_text().split() == ["kitti_eval", "kitti_eval_server"]
     assert "kitti-eval = kitti_eval.cli:entry" in (meta / "entry_points.txt").read_text()
