@@ -6,7 +6,9 @@ decomposition (:mod:`kitti_eval.analysis.decomposition`: the AP points that type
 ``Class/metric/difficulty/type[/recall]``, e.g. ``Car/3d/moderate/localization <= 5``. A value that is
 ``null`` (not evaluated) fails any rule that reads it: a gate must never pass on a number that is not there.
 
-Rules come from flags or from a TOML file::
+Rules come from flags or from a TOML file (docs/cli/gates.md, "A rules file"; a test runs its example)::
+
+    require_classes = ["Car", "Pedestrian"]   # first: after [max_drop] it would be one of its limits
 
     [[floor]]
     value = "Car/3d/moderate"       # R40, strict
@@ -15,8 +17,6 @@ Rules come from flags or from a TOML file::
     [max_drop]
     all = 0.5                       # every value, against the baseline
     "Pedestrian/3d/moderate" = 1.0  # a per-value override
-
-    require_classes = ["Car", "Pedestrian"]
 """
 
 from __future__ import annotations
@@ -268,6 +268,13 @@ def rules_from_toml(path: str | Path) -> GateRules:
     for i, entry in enumerate(data.get("floor", [])):
         if not isinstance(entry, dict) or "value" not in entry or not ({"min", "max"} & set(entry)):
             raise ConfigError(f"{p}: floor #{i + 1} needs 'value' and 'min' (or 'max')")
+        if "require_classes" in entry:  # written after a [[floor]] header, TOML put it in that floor
+            raise ConfigError(
+                f"{p}: require_classes is inside floor #{i + 1}; write it before the first [table] header"
+            )
+        if set(entry) - {"value", "min", "max"}:
+            extra = sorted(set(entry) - {"value", "min", "max"})
+            raise ConfigError(f"{p}: floor #{i + 1} has unknown keys {extra}; expected value, min, max")
         key = ValueKey.parse(str(entry["value"]))
         if "min" in entry:
             floors.append(Floor(key, ">=", _number(entry["min"], p, f"floor #{i + 1} min")))
@@ -279,6 +286,10 @@ def rules_from_toml(path: str | Path) -> GateRules:
         md = {"all": md}
     if not isinstance(md, dict):
         raise ConfigError(f"{p}: max_drop must be a number or a table")
+    if "require_classes" in md:  # written after the [max_drop] header, TOML put it in that table
+        raise ConfigError(
+            f"{p}: require_classes is inside the [max_drop] table; write it before the first [table] header"
+        )
     for name, limit in md.items():
         value = _number(limit, p, f"max_drop {name}")
         if value < 0:
@@ -431,6 +442,8 @@ def _drop_check(
     if not ok and interval is not None and interval[1] >= 0:
         ok = True
         message = f"dropped {-delta:.4f} > {limit:g}, but not significantly (95% interval reaches {interval[1]:+.4f})"
+    elif not ok and interval is not None:  # the interval that made the drop count
+        message += f", significantly (95% interval of the change [{interval[0]:+.4f}, {interval[1]:+.4f}])"
     return Check(rule, str(key), ok, current=now, baseline=before, delta=delta, interval=interval, message=message)
 
 

@@ -24,6 +24,8 @@ class Comparison:
     seed: int | None
     #: the table shows the error types only (the JSON keeps every value)
     errors_only: bool = False
+    #: what the table heads A's and B's columns with (the command line: the files' names)
+    names: tuple[str, str] = ("A", "B")
 
     def rows(self) -> list[tuple[ValueKey, float | None, float | None, float | None, tuple[float, float] | None]]:
         """Every AP value, then (when both results hold an error decomposition) every error type's."""
@@ -92,8 +94,10 @@ def compare_documents(
     seed: int | None = None,
     *,
     errors_only: bool = False,
+    names: tuple[str, str] = ("A", "B"),
 ) -> Comparison:
-    return Comparison(a, b, dict(intervals or {}), resamples, seed, errors_only)
+    """``names``: the headers of A's and B's columns in the table and Markdown (default ``A`` and ``B``)."""
+    return Comparison(a, b, dict(intervals or {}), resamples, seed, errors_only, names)
 
 
 def render_comparison(cmp: Comparison, fmt: str = "table", *, every_value: bool = False) -> str:
@@ -118,8 +122,9 @@ def render_comparison(cmp: Comparison, fmt: str = "table", *, every_value: bool 
     def significant(iv: tuple[float, float] | None) -> str:
         return "*" if iv is not None and (iv[0] > 0 or iv[1] < 0) else ""
 
+    name_a, name_b = cmp.names
     if fmt == "markdown":
-        out = ["| value | A | B | B − A | 95% interval |", "|---|---:|---:|---:|---|"]
+        out = [f"| value | {name_a} | {name_b} | B − A | 95% interval |", "|---|---:|---:|---:|---|"]
         out += [
             f"| `{k}` | {num(a)} | {num(b)} | {num(d, True)}{significant(iv)} | {interval(iv)} |"
             for k, a, b, d, iv in rows
@@ -132,9 +137,11 @@ def render_comparison(cmp: Comparison, fmt: str = "table", *, every_value: bool 
         )
         return "\n".join(out) + "\n" + note + "".join(f"> note: {n}\n" for n in cmp.notes)
     width = max([34, *(len(str(r[0])) for r in rows)])
-    out = [f"{'value':<{width}} {'A':>9} {'B':>9} {'B - A':>10}  {'95% interval' if cmp.resamples else ''}"]
+    wa, wb = max(9, len(name_a)), max(9, len(name_b))
+    head = f"{'value':<{width}} {name_a:>{wa}} {name_b:>{wb}} {'B - A':>10}  {'95% interval' if cmp.resamples else ''}"
+    out = [head.rstrip()]
     out += [
-        f"{str(k):<{width}} {num(a):>9} {num(b):>9} {num(d, True) + significant(iv):>10}  {interval(iv)}"
+        f"{str(k):<{width}} {num(a):>{wa}} {num(b):>{wb}} {num(d, True) + significant(iv):>10}  {interval(iv)}".rstrip()
         for k, a, b, d, iv in rows
     ]
     if cmp.resamples:

@@ -32,7 +32,8 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "compare",
         help="per-value differences between two results, or many results ranked",
-        description="Per-value differences B - A between two results, with paired bootstrap intervals over "
+        description="Per-value differences B - A between two results (the table's columns headed by their file "
+        "names), with paired bootstrap intervals over "
         "frames when both are predictions (--gt) and --bootstrap N is given. With three results or more (or "
         "--pred, or --key): a table ranked by one key, with each result's 95% interval and rank range and "
         "whether its lead over the next is significant, from the same resamples for every result.",
@@ -137,13 +138,27 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"no error decomposition in {', '.join(lacking)}: save it with --errors")
     text = render_comparison(
         compare_documents(
-            doc_a, doc_b, intervals, args.bootstrap, args.seed if args.bootstrap else None, errors_only=args.errors
+            doc_a,
+            doc_b,
+            intervals,
+            args.bootstrap,
+            args.seed if args.bootstrap else None,
+            errors_only=args.errors,
+            names=_column_names(args.a, args.b),
         ),
         args.format,
         every_value=args.all,
     )
     emit(text, args.output)
     return EXIT_OK
+
+
+def _column_names(a: Path, b: Path) -> tuple[str, str]:
+    """The table's headers for A and B: the files' names, or the paths as given when the names are the same
+    (``run1/result.pkl`` and ``run2/result.pkl``)."""
+    if a.name != b.name:
+        return a.name, b.name
+    return str(a), str(b)
 
 
 def run_ranked(args: argparse.Namespace) -> int:

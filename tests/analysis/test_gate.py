@@ -97,7 +97,11 @@ def test_insignificant_drop_passes_with_a_note():
     base, now = doc({"Car/3d/moderate": 80.0}), doc({"Car/3d/moderate": 79.0})
     key = ValueKey.parse("Car/3d/moderate")
     rules = GateRules(max_drops=(MaxDrop(0.5, key),))
-    assert not run_gate(now, rules, base, intervals={key: (-2.1, -0.2)}).passed  # significant
+    significant = run_gate(now, rules, base, intervals={key: (-2.1, -0.2)})
+    assert not significant.passed  # the failure names the interval that made the drop count
+    expected = "dropped 1.0000 > 0.5, significantly (95% interval of the change [-2.1000, -0.2000])"
+    assert significant.checks[0].message == expected
+    assert run_gate(now, rules, base).checks[0].message == "dropped 1.0000 > 0.5"  # no bootstrap, no interval
     verdict = run_gate(now, rules, base, intervals={key: (-2.1, 0.3)})
     assert verdict.passed and "not significantly" in verdict.checks[0].message
 
@@ -117,6 +121,19 @@ def test_rules_from_toml(tmp_path):
         rules_from_toml(f)
     f.write_text("floor = [")
     with pytest.raises(ConfigError, match="not valid TOML"):
+        rules_from_toml(f)
+
+
+@pytest.mark.parametrize("table", ["[max_drop]\nall = 0.5", '[[floor]]\nvalue = "Car/3d/moderate"\nmin = 1'])
+def test_require_classes_after_a_table_is_named_not_lost(tmp_path, table):
+    """TOML puts a key written after a table's header into that table: a rules file that meant to require a class
+    would otherwise fail as a limit that is no number, or (after a floor) pass without requiring it."""
+    f = tmp_path / "gate.toml"
+    f.write_text(f'{table}\nrequire_classes = ["Car"]\n')
+    with pytest.raises(ConfigError, match="require_classes is inside .*; write it before the first"):
+        rules_from_toml(f)
+    f.write_text('[[floor]]\nvalue = "Car/3d/moderate"\nmin = 1\nmax_drop = 2\n')
+    with pytest.raises(ConfigError, match=r"floor #1 has unknown keys \['max_drop'\]"):
         rules_from_toml(f)
 
 
