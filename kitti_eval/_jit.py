@@ -41,6 +41,7 @@ _PACKAGE = Path(__file__).resolve().parent
 #: kernels every evaluation calls; if their cache index is there, the others of their group are too
 _EVAL_MARKERS = ("matching._pass2-*.nbi", "geometry._frame_overlaps_kernel-*.nbi")
 _LOAD_MARKERS = ("_pickle_scan.scan-*.nbi",)
+_DECOMPOSITION_MARKERS = ("decomposition._tp_error_events-*.nbi",)
 
 
 def _cache_places() -> list[tuple[Path, str]]:
@@ -80,6 +81,11 @@ def kernels_cached() -> bool:
 def loader_cached() -> bool:
     """True when the restricted unpickler's scan is in numba's cache."""
     return _cached(_LOAD_MARKERS)
+
+
+def decomposition_cached() -> bool:
+    """True when the error decomposition's kernels (kitti-eval errors) are in numba's cache."""
+    return _cached(_DECOMPOSITION_MARKERS)
 
 
 def cache_key() -> str:

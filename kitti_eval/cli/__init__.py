@@ -20,7 +20,7 @@ from typing import Any
 
 from ..errors import ConfigError, InputError, KittiEvalError
 from . import admin, compare, demo, describe, errors, evaluate, frames, gate, inspect, serve, validate, worker
-from .common import EXIT_INPUT, EXIT_USAGE, PROG, config, limits_from, say
+from .common import EXIT_INPUT, EXIT_USAGE, PROG, config, limits_from, say, say_defaults
 
 __all__ = ["main", "entry", "COMMANDS"]
 
@@ -51,6 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", metavar="COMMAND", title="commands (each has its own --help)")
     for add_parser in COMMANDS:
         add_parser(sub)
+    say_defaults(p)
     return p
 
 

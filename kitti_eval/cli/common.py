@@ -175,6 +175,23 @@ def add_slot_options(p: argparse.ArgumentParser, metrics: list[str]) -> None:
     p.add_argument("--set", dest="oset", default="strict", choices=list(THRESHOLD_SETS), help="IoU threshold set")
 
 
+def say_defaults(parser: argparse.ArgumentParser) -> None:
+    """Every option's help states its default (``frames --difficulty``: moderate), unless it already does: the
+    default is appended to the help of every option of ``parser`` and its subcommands that has one."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for subparser in dict.fromkeys(action.choices.values()):
+                say_defaults(subparser)
+        elif action.option_strings and action.help != argparse.SUPPRESS and has_default(action):
+            if "default" not in (action.help or ""):
+                action.help = f"{action.help} (default: %(default)s)" if action.help else "default: %(default)s"
+
+
+def has_default(action: argparse.Action) -> bool:
+    """Whether an option has a default worth stating (not unset, off or empty)."""
+    return action.default not in (None, False, [], "", argparse.SUPPRESS) and action.nargs != 0
+
+
 def config(args: argparse.Namespace):  # noqa: ANN201 - EvalConfig, imported lazily
     """The evaluation configuration of a command's options (see :func:`add_config_options`)."""
     from ..core.protocol import config_from_options, load_protocol_file
@@ -202,14 +219,17 @@ def say(msg: str) -> None:
     print(f"{PROG}: {msg}", file=sys.stderr)
 
 
-def start_warm_up() -> object | None:
+def start_warm_up(*, decomposition: bool = False) -> object | None:
     """On a first run, say that the kernels compile once, and compile the evaluation kernels in another
-    process while this one compiles the loader's (returns the process to wait for)."""
-    from .._jit import kernels_cached, loader_cached, warm_in_background
+    process while this one compiles the loader's (returns the process to wait for). ``decomposition``: the
+    command runs the error decomposition too, whose kernels compile on their first use."""
+    from .._jit import decomposition_cached, kernels_cached, loader_cached, warm_in_background
 
     eval_cold, load_cold = not kernels_cached(), not loader_cached()
     if eval_cold or load_cold:
         say("compiling the kernels once (about 7 s on two cores; later runs use numba's cache)")
+    if decomposition and not decomposition_cached():
+        say("compiling the error decomposition's kernels once (about 8.5 s on two cores; later runs use numba's cache)")
     return warm_in_background() if eval_cold else None
 
 

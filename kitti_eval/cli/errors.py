@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     from ..io.reading import read_pair
 
     cfg = config(args)
-    warmer = start_warm_up()
+    warmer = start_warm_up(decomposition=True)
     pair = read_pair(args.gt, args.pred)
     gt, dt, load_warnings = pair.gt, pair.dt, pair.warnings
     wait(warmer)

@@ -121,7 +121,7 @@ def run_pair(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
     from ..report.render import render
 
     cfg = config(args)
-    warmer = start_warm_up()
+    warmer = start_warm_up(decomposition=getattr(args, "errors", False))
     pair = read_pair(
         gt_path,
         pred_path,

@@ -180,6 +180,25 @@ def test_compile_notice_follows_numba_cache(monkeypatch, tmp_path):
     assert kernels_cached() is True
 
 
+def test_errors_says_its_kernels_compile_when_only_the_evaluations_are_cached(monkeypatch, tmp_path, capsys):
+    """A first kitti-eval errors after kitti-eval demo: the evaluation's kernels are cached, the decomposition's
+    compile for seconds, and the command says so on stderr instead of a silence."""
+    from kitti_eval.cli.common import start_warm_up
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    deep = tmp_path / "work" / "kitti_eval"
+    deep.mkdir(parents=True)
+    for marker in ("matching._pass2-400", "geometry._frame_overlaps_kernel-251", "_pickle_scan.scan-30"):
+        (deep / f"{marker}.py311.nbi").write_bytes(b"")
+    assert start_warm_up() is None and start_warm_up(decomposition=True) is None  # nothing to warm beside
+    err = capsys.readouterr().err
+    said = "compiling the error decomposition's kernels once (about 8.5 s on two cores; later runs use numba's cache)"
+    assert err == f"kitti-eval: {said}\n"
+    (deep / "decomposition._tp_error_events-195.py311.nbi").write_bytes(b"")
+    start_warm_up(decomposition=True)
+    assert capsys.readouterr().err == ""
+
+
 def test_distance_ranges_in_every_output(capsys):
     code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--ranges", "0,30,inf", "--format", "json")
     doc = json.loads(out)
@@ -305,3 +324,26 @@ def test_compare_errors_shows_which_error_types_changed(capsys, tmp_path):
     run(capsys, "--gt", GT, "--pred", PRED, "--format", "json", "-o", tmp_path / "plain.json")
     code, _, err = run(capsys, "compare", tmp_path / "plain.json", PRED, "--gt", GT, "--errors")
     assert code == 1 and "no error decomposition in" in err and "plain.json" in err
+
+
+def test_every_option_with_a_default_states_it_in_its_help(capsys):
+    """frames --help once left the default --difficulty to be guessed: every option of every command that has a
+    default now says it, and frames' reads as the command uses it."""
+    import argparse
+
+    from kitti_eval.cli import build_parser
+    from kitti_eval.cli.common import has_default
+
+    def unstated(parser: argparse.ArgumentParser, name: str):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub, subparser in action.choices.items():
+                    yield from unstated(subparser, f"{name} {sub}")
+            elif action.option_strings and has_default(action) and "default" not in (action.help or ""):
+                yield f"{name} {action.option_strings[-1]}"
+
+    assert list(unstated(build_parser(), "kitti-eval")) == []
+    assert main(["frames", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--difficulty {easy,moderate,hard} default: moderate" in text
+    assert "--set {strict,loose} IoU threshold set (default: strict)" in text
