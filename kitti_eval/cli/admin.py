@@ -2,7 +2,9 @@
 run on the server's machine against its database (the service's settings: ``KITTI_EVAL_DATA_DIR``,
 ``KITTI_EVAL_DATABASE_URL``, or ``--data-dir``/``--database-url``).
 
-Every change is recorded in the audit log as done by ``cli:<login name>``. ``token add`` prints the new
+Every run names its database on stderr, and refuses one that does not exist unless ``--create`` is given (a
+new database would hold none of the service's accounts). Every change is recorded in the audit log as done by
+``cli:<login name>``. ``token add`` prints the new
 token as the last line of stdout; it is shown this once and stored only as its sha256.
 
 Exit codes: 0 ok, 1 bad input (unknown user, taken name, unreadable file, no server extra), 2 usage.
@@ -33,6 +35,12 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("--data-dir", type=Path, help="KITTI_EVAL_DATA_DIR of the service")
     p.add_argument("--database-url", help="KITTI_EVAL_DATABASE_URL of the service")
+    p.add_argument(
+        "--create",
+        action="store_true",
+        help="make the database if there is none yet (without it, a missing database is an error: the settings "
+        "do not point at the service's)",
+    )
     what = p.add_subparsers(dest="admin_what", metavar="WHAT", required=True)
 
     user = what.add_parser("user", help="users").add_subparsers(dest="admin_action", metavar="ACTION", required=True)
@@ -164,8 +172,16 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     # whoever may open the service's database acts as an admin
     caller = Policy(AuthMode(settings.auth), admin_token=lambda: "").command_line(_login())
+    where = _database_name(settings.resolved_database_url)
+    _say(f"database {where}")  # every run names the database it reads and writes
     try:
-        if settings.database_url is None:  # SQLite in the data folder, which a first command creates
+        if not args.create and not _database_exists(settings.resolved_database_url, settings.database_busy_s):
+            _say(
+                f"error: no kitti-eval database at {where}: give the service's settings (KITTI_EVAL_DATA_DIR or "
+                "--data-dir, KITTI_EVAL_DATABASE_URL or --database-url), or --create to make a new one there"
+            )
+            return EXIT_INPUT
+        if settings.database_url is None:  # SQLite in the data folder, which --create makes
             settings.data_dir.mkdir(parents=True, exist_ok=True)
         if args.admin_what == "ground-truth":
             return _ground_truth(args, settings, caller)
@@ -190,6 +206,34 @@ def run(args: argparse.Namespace) -> int:
     except OSError as e:
         _say(f"error: {e.strerror or e}: {e.filename or ''}".rstrip(": "))
         return EXIT_INPUT
+
+
+def _database_name(url: str) -> str:
+    """The database as the messages name it: SQLite's file, or the URL without its password."""
+    from sqlalchemy.engine import make_url
+
+    parsed = make_url(url)
+    if parsed.get_backend_name() == "sqlite":
+        return str(parsed.database)
+    return parsed.render_as_string(hide_password=True)
+
+
+def _database_exists(url: str, busy_s: float) -> bool:
+    """Whether ``url`` holds a kitti-eval database (its SQLite file exists, or its tables do): the service makes
+    it at its first start, ``--create`` here."""
+    from sqlalchemy import inspect
+    from sqlalchemy.engine import make_url
+
+    from kitti_eval_server.store import Store
+
+    parsed = make_url(url)
+    if parsed.get_backend_name() == "sqlite":
+        return parsed.database is not None and Path(parsed.database).is_file()
+    store = Store(url, busy_s=busy_s)
+    try:
+        return bool(inspect(store.engine).has_table("audit"))
+    finally:
+        store.dispose()
 
 
 def _login() -> str:

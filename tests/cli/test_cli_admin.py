@@ -20,7 +20,7 @@ def admin(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("KITTI_EVAL_DATA_DIR", str(tmp_path / "data"))
 
     def run(*argv: str) -> tuple[int, str, str]:
-        code = main(["admin", *argv])
+        code = main(["admin", "--create", *argv])  # the first command makes the database
         out, err = capsys.readouterr()
         return code, out, err
 
@@ -92,6 +92,42 @@ def test_exit_codes(admin) -> None:
     assert admin("user", "frobnicate")[0] == 2
     assert admin("token", "add")[0] == 2
     assert admin()[0] == 2
+
+
+def test_a_missing_database_is_refused_unless_created(tmp_path, monkeypatch, capsys) -> None:
+    """Without the service's data folder in the settings, the command used to make an empty database under the
+    user's data folder and say `user frank`; the service then refused frank's tokens. Now every run names its
+    database, and a missing one is an error until --create."""
+    for key in ("KITTI_EVAL_DATABASE_URL", "KITTI_EVAL_AUTH"):
+        monkeypatch.delenv(key, raising=False)
+    monkeypatch.setenv("KITTI_EVAL_DATA_DIR", str(tmp_path / "data"))
+    db = tmp_path / "data" / "kitti-eval.db"
+    assert main(["admin", "user", "add", "frank"]) == 1
+    out, err = capsys.readouterr()
+    assert out == "" and not db.exists() and not (tmp_path / "data").exists()
+    assert err.splitlines() == [
+        f"kitti-eval admin: database {db}",
+        f"kitti-eval admin: error: no kitti-eval database at {db}: give the service's settings (KITTI_EVAL_DATA_DIR "
+        "or --data-dir, KITTI_EVAL_DATABASE_URL or --database-url), or --create to make a new one there",
+    ]
+    assert main(["admin", "--create", "user", "add", "frank"]) == 0
+    out, err = capsys.readouterr()
+    assert out == "user frank\n" and err == f"kitti-eval admin: database {db}\n" and db.is_file()
+    assert main(["admin", "user", "list"]) == 0  # there now: no --create needed
+    assert capsys.readouterr().out == "frank\tmember\t-\n"
+    other = tmp_path / "elsewhere"
+    assert main(["admin", "--data-dir", str(other), "user", "list"]) == 1
+    assert f"no kitti-eval database at {other / 'kitti-eval.db'}" in capsys.readouterr().err
+
+
+def test_the_database_is_named_without_its_password() -> None:
+    from kitti_eval.cli.admin import _database_name
+
+    assert (
+        _database_name("postgresql://kitti:s3cret@db.example:5432/kitti")
+        == "postgresql://kitti:***@db.example:5432/kitti"
+    )
+    assert _database_name("sqlite:////srv/kitti-eval/kitti-eval.db") == "/srv/kitti-eval/kitti-eval.db"
 
 
 def test_without_the_server_extra_a_clear_error() -> None:

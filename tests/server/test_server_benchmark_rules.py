@@ -146,7 +146,7 @@ def test_max_published_from_the_cli(tmp_path, monkeypatch, capsys) -> None:
         monkeypatch.delenv(key, raising=False)
     monkeypatch.setenv("KITTI_EVAL_DATA_DIR", str(tmp_path / "data"))
     gt = str(GOLDEN / "kitti_infos_val.pkl")
-    assert main(["admin", "ground-truth", "add", "test-set", gt, "--sealed"]) == 0
+    assert main(["admin", "--create", "ground-truth", "add", "test-set", gt, "--sealed"]) == 0
     assert main(["admin", "benchmark", "add", "b0", "--ground-truth", "test-set", "--max-published", "0"]) == 1
     assert "max_published" in capsys.readouterr().err
     assert main(["admin", "benchmark", "add", "kitti-3d", "--ground-truth", "test-set", "--max-published", "2"]) == 0
