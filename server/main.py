@@ -231,13 +231,19 @@ def serve(argv: Sequence[str] | None = None) -> int:
         help=f"KITTI_EVAL_DATA_DIR: database, ground truths, admin token, scratch space (default {default_data_dir()})",
     )
     parser.add_argument("--database-url", help="KITTI_EVAL_DATABASE_URL, e.g. postgresql://user:pw@host/db")
+    parser.add_argument(
+        "--auth",
+        choices=["open", "accounts"],
+        help="KITTI_EVAL_AUTH: open (default: no accounts, everyone sees everything) or accounts (every request "
+        "needs a token; users, projects and tokens come from kitti-eval admin)",
+    )
     parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     try:
         args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
     except SystemExit as e:
         return int(e.code) if isinstance(e.code, int) else 2
     overrides: dict[str, Any] = {
-        k: v for k, v in (("data_dir", args.data_dir), ("database_url", args.database_url)) if v
+        k: v for k, v in (("data_dir", args.data_dir), ("database_url", args.database_url), ("auth", args.auth)) if v
     }
     if "KITTI_EVAL_WORKER_PROCESSES" not in os.environ and "KITTI_EVAL_JOB_THREADS" not in os.environ:
         # one command uses the machine: a worker process a CPU (evaluations in parallel processes, not threads

@@ -17,6 +17,8 @@ from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any, TypeVar
 
+from sqlalchemy.engine import make_url
+
 from kitti_eval._jit import warm_up
 from kitti_eval.demo import demo_paths
 
@@ -177,6 +179,15 @@ class Service:
                 database_url=self.settings.resolved_database_url,
             )
             self.pool.start()
+        log.info(
+            "auth %s, database %s, %d worker process%s, %d job thread%s",
+            AuthMode(self.settings.auth).value,
+            make_url(self.settings.resolved_database_url).render_as_string(hide_password=True),
+            self.settings.worker_processes,
+            "es" * (self.settings.worker_processes != 1),
+            self.settings.job_threads,
+            "s" * (self.settings.job_threads != 1),
+        )
 
     def run_jobs(self) -> None:
         """Start as a worker process (``kitti-eval worker``): the scratch space, the tables, the kernels, then the

@@ -503,6 +503,41 @@ def test_serve_from_a_repository_leaves_nothing_in_it(tmp_path, monkeypatch, no_
     assert [app.state.service.data_dir for app in served[1:]] == [tmp_path / "flag", tmp_path / "env"]
 
 
+def test_serve_auth_chooses_the_mode_and_the_start_names_it(tmp_path, monkeypatch, no_settings, caplog) -> None:
+    """``kitti-eval serve --auth accounts`` (the mode was only a variable, named in prose): the option sets it,
+    and the log of the start says the mode, the database and the workers."""
+    import logging
+
+    import uvicorn
+    from fastapi.testclient import TestClient
+
+    from kitti_eval_server.main import serve
+
+    served = []
+    monkeypatch.setattr(uvicorn, "run", lambda app, **kw: served.append(app))
+    monkeypatch.setenv("KITTI_EVAL_WARMUP", "false")
+    monkeypatch.setenv("KITTI_EVAL_REGISTER_DEMO", "false")
+    monkeypatch.setenv("KITTI_EVAL_JOB_THREADS", "1")  # no worker processes in a test
+    assert serve(["--auth", "accounts", "--data-dir", str(tmp_path / "data")]) == 0
+    with caplog.at_level(logging.INFO, logger="kitti_eval.server"), TestClient(served[-1]) as c:
+        assert c.get("/v1/evaluations").status_code == 401  # accounts: a token is needed
+    db = (tmp_path / "data" / "kitti-eval.db").resolve()
+    started = [r.getMessage() for r in caplog.records if r.getMessage().startswith("auth ")]
+    assert started == [f"auth accounts, database sqlite:///{db}, 0 worker processes, 1 job thread"]
+    assert serve(["--auth", "open", "--data-dir", str(tmp_path / "open")]) == 0
+    with TestClient(served[-1]) as c:
+        assert c.get("/v1/evaluations").status_code == 200
+    assert serve(["--auth", "everyone"]) == 2  # a usage error
+
+
+def test_serve_help_names_the_auth_modes(capsys) -> None:
+    from kitti_eval_server.main import serve
+
+    assert serve(["--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--auth {open,accounts} KITTI_EVAL_AUTH: open (default" in text
+
+
 def test_module_app_is_built_lazily_from_the_environment(tmp_path, monkeypatch) -> None:
     import kitti_eval_server.main as main
 
