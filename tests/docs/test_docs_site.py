@@ -116,3 +116,28 @@ def test_the_layers_picture_names_folders_that_exist() -> None:
     assert {p.split("/")[1] for p in paths if p.startswith("kitti_eval/") and "." not in p} == {
         p.name for p in (ROOT / "kitti_eval").iterdir() if p.is_dir() and (p / "__init__.py").exists()
     }
+
+
+def _names_of_sections(page: Path) -> set[str]:
+    """A page's headings, and the bold words that open a paragraph (its sections without a heading)."""
+    prose = _FENCED.sub("", page.read_text(encoding="utf-8"))
+    names = {m.group(1).strip().lower() for m in re.finditer(r"^#{1,6} (.+)$", prose, re.M)}
+    return names | {m.group(1).strip().lower() for m in re.finditer(r"^\*\*([^*]+?)\.?\*\*", prose, re.M)}
+
+
+def test_pages_point_at_other_sections_by_links_not_by_name() -> None:
+    """A page that sends the reader to a section by its name ('see the README's "Hosting a benchmark"') is not
+    checked by anything, and pointed at sections the README no longer had; a link is checked by the strict build.
+    So no page of docs/ names a section of the README (not a page of the site), or quotes a section's name
+    outside a link."""
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    sections = set().union(*(_names_of_sections(p) for p in pages))
+    assert {"hosting a benchmark", "who may do what"} <= sections
+    by_name = []
+    for page in pages[1:]:
+        prose = _FENCED.sub("", page.read_text(encoding="utf-8"))
+        prose = re.sub(r"\[[^\]]*\]\([^)]*\)", "", re.sub(r"`[^`]*`", "", prose))  # code and links aside
+        for m in re.finditer(r"README's|\"([^\"\n]{3,80})\"", prose):
+            if m.group(1) is None or m.group(1).lower() in sections:
+                by_name.append(f"{page.relative_to(ROOT)}: {m.group(0)}")
+    assert by_name == []
