@@ -109,7 +109,8 @@ class Leaderboard(Intervals):
     def leaderboard_csv(self, board: Mapping[str, Any]) -> str:
         out = io.StringIO()
         writer = csv.writer(out, lineterminator="\n")
-        key_name = "key (" + " + ".join(board["key"]) + ")" if len(board["key"]) > 1 else board["key"][0]
+        # "key (...)" even for one value: the key is often one of the columns too, whose name would repeat
+        key_name = "key (" + " + ".join(board["key"]) + ")"
         writer.writerow(
             [
                 "rank",

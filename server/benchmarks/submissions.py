@@ -382,10 +382,21 @@ class Submissions(Intervals):
         records = self.store.list_submissions(name, participant=caller.name)
         count, days = bench.quota
         since = datetime.now(timezone.utc) - timedelta(days=days)
-        used = sum(1 for r in records if r.created_at > since and r.status != "failed" and not r.baseline)
+        counted = sorted(
+            r.created_at for r in records if r.created_at > since and r.status != "failed" and not r.baseline
+        )
+        used = len(counted)
+        # none left: the next is accepted when enough of the window's oldest have left it (the 429's retry_at)
+        next_at = (counted[used - count] + timedelta(days=days)).isoformat() if used >= count else None
         return {
             "items": [_submission_view(r, bench, full=False) for r in reversed(records)],
-            "quota": {"submissions": count, "days": days, "used": used, "left": max(0, count - used)},
+            "quota": {
+                "submissions": count,
+                "days": days,
+                "used": used,
+                "left": max(0, count - used),
+                "next_at": next_at,
+            },
             # an admin submits baselines: counted against no quota ("left" does not apply)
             "baselines": bool(caller.is_admin),
         }

@@ -164,6 +164,7 @@ def _benchmark_context(
         "key_short": _short_key(described["key"], board["columns"]),
         "number": number,
         "mine": mine,
+        "next_slot": full_time(mine["quota"]["next_at"]) if mine and mine["quota"]["next_at"] else None,
         "accounts": service.policy.accounts,
         "max_upload_bytes": service.settings.max_upload_bytes,
         "problems": None,

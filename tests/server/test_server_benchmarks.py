@@ -62,7 +62,13 @@ def test_an_invalid_submission_lists_the_validators_sentences_and_costs_nothing(
     assert body["error"]["problems"] == expected and len(expected) == 2
     assert "2 test frames are missing: 000000, 000001" in expected
     mine = ok(c.get("/v1/benchmarks/bench/submissions", headers=hosted.headers("alice")))
-    assert mine["items"] == [] and mine["quota"] == {"submissions": 3, "days": 1.0, "used": 0, "left": 3}
+    assert mine["items"] == [] and mine["quota"] == {
+        "submissions": 3,
+        "days": 1.0,
+        "used": 0,
+        "left": 3,
+        "next_at": None,
+    }
 
 
 def test_twenty_parallel_submissions_against_a_quota_of_three_admit_exactly_three(world) -> None:
@@ -83,6 +89,7 @@ def test_twenty_parallel_submissions_against_a_quota_of_three_admit_exactly_thre
     assert (retry_at - datetime.now(timezone.utc)).total_seconds() == pytest.approx(retry, abs=120)
     mine = ok(c.get("/v1/benchmarks/bench/submissions", headers=hosted.headers("alice")))
     assert len(mine["items"]) == 3 and mine["quota"]["left"] == 0
+    assert mine["quota"]["next_at"] == retry_at.isoformat()  # the list says when the 429s say
     # another participant has a quota of their own
     assert submit(c, hosted.headers("bob"), data).status_code == 201
 
@@ -121,7 +128,9 @@ def test_results_publishing_and_the_leaderboard(world) -> None:
     assert [e["method"] for e in by_method["entries"]] == ["B", "PointPillars-ish"]
     text = c.get("/v1/benchmarks/bench/leaderboard", params={"format": "csv"}).text
     rows = list(csv.reader(io.StringIO(text)))
-    assert rows[0][:7] == ["rank", "method", "participant", "affiliation", "link", "date", "Car/3d/moderate/R40/strict"]
+    header = ["rank", "method", "participant", "affiliation", "link", "date", "key (Car/3d/moderate/R40/strict)"]
+    assert rows[0][:7] == header and "Car/3d/moderate/R40/strict" in rows[0][7:]  # the key and its column
+    assert len(set(rows[0])) == len(rows[0])  # every column's name once
     assert rows[1][:3] == ["1", "PointPillars-ish", "alice"] and float(rows[1][6]) == expected
     # the page, without a token
     page = c.get("/benchmarks/bench")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import re
 import time
+from datetime import datetime
 from typing import Any
 
 import pytest
@@ -106,6 +107,29 @@ def test_a_participant_goes_from_the_list_to_a_published_entry_through_forms(wor
     assert ok(c.get("/v1/benchmarks/bench/leaderboard"))["entries"] == []
     assert 'id="publish-form"' in c.get(url).text
     c.cookies.clear()
+
+
+def test_with_no_submission_left_the_form_is_disabled_and_says_when_the_next_is_accepted(tmp_path) -> None:
+    """The Submit button stayed active at 0 left and the post got 429: now the form is disabled and names the
+    time the next submission is accepted (the time a 429 would give)."""
+    with app_client(tmp_path / "data", auth="accounts", auth_max_failures=1_000_000) as c:
+        hosted = host(c, benchmark={"quota": "1/1"})
+        csrf = sign_in(c, hosted.tokens["alice"])
+        page = c.get("/benchmarks/bench").text
+        assert 'id="next-slot"' not in page and re.search(r'<button type="submit" id="submit">', page)
+        assert form_submit(c, golden_bytes("result.pkl"), csrf=csrf).status_code == 303
+        page = c.get("/benchmarks/bench").text
+        assert "<strong>0</strong> of 1 submissions left" in page
+        assert re.search(r'<button type="submit" id="submit" disabled>', page)
+        assert re.search(r'<input type="file" name="predictions" id="predictions" required disabled>', page)
+        refused = submit(c, hosted.headers("alice"), golden_bytes("result.pkl"))
+        assert refused.status_code == 429
+        retry_at = datetime.fromisoformat(refused.json()["error"]["retry_at"])
+        slot = re.search(
+            r'id="next-slot">No submission left: the next one is accepted from\s+<strong>([^<]+)</strong>', page
+        )
+        assert slot and slot.group(1) == f"{retry_at:%Y-%m-%d %H:%M:%S} UTC"
+        c.cookies.clear()
 
 
 def test_a_refused_file_shows_the_validators_sentences_and_costs_nothing(world, tmp_path) -> None:
