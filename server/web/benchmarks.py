@@ -268,7 +268,9 @@ def _submission_context(
         "scores": scores,
         "key": scores and _key(scores, described["key"]),
         "key_label": _rules(described)["key"],
-        "comparison": comparison_rows(submission["comparison"]) if "comparison" in submission else None,
+        "comparison": comparison_rows(submission["comparison"], submission["id"])
+        if "comparison" in submission
+        else None,
         "may_select": not bench.is_closed(),
         "number": number,
         "submitted": full_time(submission["created_at"]),

@@ -166,9 +166,10 @@ def bootstrap_line(board: Mapping[str, Any]) -> str | None:
     return text
 
 
-def comparison_rows(comparison: Mapping[str, Any] | None) -> list[dict[str, Any]] | None:
+def comparison_rows(comparison: Mapping[str, Any] | None, own_id: str | None = None) -> list[dict[str, Any]] | None:
     """A submission's ``comparison`` as the page's rows: against the participant's previous best and against
-    the leader, each the difference of the key with its interval and whether it is told apart from zero."""
+    the leader, each the difference of the key with its interval and whether it is told apart from zero. When
+    the leader is the submission ``own_id`` itself, its row says so instead of comparing it with itself."""
     if comparison is None:
         return None
     rows: list[dict[str, Any]] = []
@@ -179,6 +180,9 @@ def comparison_rows(comparison: Mapping[str, Any] | None) -> list[dict[str, Any]
         found = comparison.get(name)
         if found is None:
             rows.append({"name": name, "label": label, "none": none})
+            continue
+        if name == "leader" and own_id is not None and found.get("id") == own_id:
+            rows.append({"name": name, "label": label, "none": None, "lead": "you lead the board", "id": own_id})
             continue
         interval = found.get("interval")
         difference = found.get("difference")
@@ -196,6 +200,7 @@ def comparison_rows(comparison: Mapping[str, Any] | None) -> list[dict[str, Any]
             "interval": interval_text(interval),
             "verdict": verdict,
             "none": None,
+            "lead": None,
         }
         rows.append(row)
     return rows

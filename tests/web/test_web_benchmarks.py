@@ -353,6 +353,26 @@ def test_intervals_show_computing_when_null_and_nothing_when_absent() -> None:
     assert pending is not None and pending[0]["interval"] == "computing" and pending[0]["verdict"] == "computing"
 
 
+def test_a_submission_that_leads_the_board_says_so_instead_of_comparing_with_itself(world) -> None:
+    """Its page said "leader: +0.00 [0.00, 0.00]": the leader was the submission itself."""
+    c, hosted = world
+    sid = ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 201)["id"]
+    publish = {"method": "Leader"}
+    ok(c.post(f"/v1/benchmarks/bench/submissions/{sid}/publish", json=publish, headers=hosted.headers("alice")))
+    api = ok(c.get(f"/v1/benchmarks/bench/submissions/{sid}", headers=hosted.headers("alice")))
+    assert api["comparison"]["leader"]["id"] == sid  # the API's comparison: itself, difference 0
+    sign_in(c, hosted.tokens["alice"])
+    page = c.get(f"/benchmarks/bench/submissions/{sid}").text
+    row = re.search(r'<tr data-against="leader">(.*?)</tr>', page, re.S)
+    assert row and 'id="you-lead"><strong>you lead the board</strong>' in row.group(1)
+    assert "+0.00" not in row.group(1) and "0.00, 0.00" not in row.group(1)
+    rows = comparison_rows(
+        {"previous_best": None, "leader": {"id": "x", "difference": 0.0, "interval": [0.0, 0.0]}}, "x"
+    )
+    assert rows is not None and rows[1]["lead"] == "you lead the board" and "difference" not in rows[1]
+    c.cookies.clear()
+
+
 def test_the_submission_page_shows_the_comparison_when_the_submission_has_one(world, monkeypatch) -> None:
     c, hosted = world
     sid = ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 201)["id"]
