@@ -107,14 +107,17 @@ def board_header(columns: Sequence[str]) -> dict[str, Any]:
 
 
 def _rank_range(entry: Mapping[str, Any]) -> str | None:
-    """``1–3`` (or ``2`` when it is one rank); "computing"; None when the board has no rank ranges."""
+    """``1–3`` (or ``2`` when it is one rank other than the entry's); "computing"; None when the board has no
+    rank ranges, or when the range is the entry's own rank alone (a lone ``1`` under rank 1 says nothing)."""
     if "rank_range" not in entry:
         return None
     value = entry["rank_range"]
     if value is None:
         return COMPUTING
     best, worst = value
-    return str(best) if best == worst else f"{best}–{worst}"
+    if best == worst:
+        return None if best == entry.get("rank") else str(best)
+    return f"{best}–{worst}"
 
 
 def board_entries(board: Mapping[str, Any]) -> list[dict[str, Any]]:

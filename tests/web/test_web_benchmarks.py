@@ -342,6 +342,11 @@ def test_intervals_show_computing_when_null_and_nothing_when_absent() -> None:
     assert (null["interval"], null["rank_range"], null["tie"]) == ("computing", "computing", False)
     baseline = board_entries({"entries": [{**entry, "rank": None, "baseline": True, "rank_range": [1, 2]}]})[0]
     assert baseline["rank"] == "" and baseline["rank_range"] is None  # a baseline has no rank
+    # a range that is the entry's own rank alone is not shown (a lone "1" under rank 1 read as a typo)
+    certain = board_entries({"entries": [{**entry, "interval": [78.0, 78.6], "rank_range": [1, 1]}]})[0]
+    assert certain["rank"] == "1" and certain["rank_range"] is None
+    assert board_entries({"entries": [{**entry, "rank": 2, "rank_range": [1, 1]}]})[0]["rank_range"] == "1"
+    assert board_entries({"entries": [{**entry, "rank_range": [1, 2]}]})[0]["rank_range"] == "1–2"
     assert bootstrap_line({"entries": []}) is None
     assert comparison_rows(None) is None
     rows = comparison_rows(
