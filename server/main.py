@@ -149,9 +149,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     door = Door(
         lambda: app.routes,
         {
-            "/openapi.json": Access.READER,
-            "/docs": Access.READER,
-            "/docs/oauth2-redirect": Access.READER,
+            # the API's description (routes and fields, no data) is public: the pages' "API" link reaches it
+            "/openapi.json": Access.PUBLIC,
+            "/docs": Access.PUBLIC,
+            "/docs/oauth2-redirect": Access.PUBLIC,
             "/static": Access.PUBLIC,
             "/static-offline-docs": Access.PUBLIC,
         },

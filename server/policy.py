@@ -127,7 +127,7 @@ class _GroundTruth(Protocol):
 #: the rules as one table: (route group, access, what a member may do there, what an admin may do there).
 #: The "Who may do what" table of docs/service/accounts.md is this one (tests/server/test_policy.py compares them).
 RULES: Sequence[tuple[str, Access, str, str]] = (
-    ("probes, sign-in page, static files", Access.PUBLIC, "yes", "yes"),
+    ("probes, sign-in page, static files, API docs", Access.PUBLIC, "yes", "yes"),
     ("public benchmarks: description, frame ids, board", Access.ANYONE, "yes (no token needed)", "yes"),
     ("private benchmarks: description, frame ids, board", Access.READER, "members of its project", "yes"),
     (

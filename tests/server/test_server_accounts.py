@@ -23,19 +23,20 @@ def service(tmp_path_factory):
         yield c, data, make_teams(c)
 
 
-def test_without_a_token_only_the_probes_static_files_and_sign_in_answer(service) -> None:
+def test_without_a_token_only_the_probes_static_files_sign_in_and_api_docs_answer(service) -> None:
     c, _, teams = service
     assert c.get("/healthz").status_code == 200
     assert c.get("/readyz").status_code == 200
     assert c.get("/static/app.css").status_code == 200
     assert c.get("/signin").status_code == 200
+    # the API's description (the pages link to it as "API"): routes and fields, none of anyone's data
+    assert c.get("/docs").status_code == 200 and "/v1/evaluations" in c.get("/openapi.json").json()["paths"]
     for method, path in (
         ("GET", "/v1/evaluations"),
         ("GET", f"/v1/evaluations/{teams.evaluations['gt-a']}"),
         ("GET", "/v1/ground-truths"),
         ("GET", "/v1/ground-truths/gt-a"),
         ("POST", "/v1/gates"),
-        ("GET", "/openapi.json"),
         ("GET", "/v1/admin/users"),
         ("GET", "/v1/no-such-route"),
     ):

@@ -358,6 +358,17 @@ def test_intervals_show_computing_when_null_and_nothing_when_absent() -> None:
     assert pending is not None and pending[0]["interval"] == "computing" and pending[0]["verdict"] == "computing"
 
 
+def test_the_api_link_of_a_public_page_reaches_the_api_docs_without_signing_in(world) -> None:
+    """The nav's "API" link led a visitor of a public board to the sign-in form (401)."""
+    c, _ = world
+    page = c.get("/benchmarks/bench")
+    assert page.status_code == 200
+    link = re.search(r'<a href="([^"]+)">API</a>', page.text)
+    assert link and link.group(1) == "/docs"
+    docs = c.get(link.group(1))
+    assert docs.status_code == 200 and 'action="/signin"' not in docs.text and "swagger" in docs.text.lower()
+
+
 def test_a_submission_that_leads_the_board_says_so_instead_of_comparing_with_itself(world) -> None:
     """Its page said "leader: +0.00 [0.00, 0.00]": the leader was the submission itself."""
     c, hosted = world
