@@ -17,8 +17,6 @@ from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any, TypeVar
 
-from sqlalchemy.engine import make_url
-
 from kitti_eval._jit import warm_up
 from kitti_eval.demo import demo_paths
 
@@ -182,7 +180,7 @@ class Service:
         log.info(
             "auth %s, database %s, %d worker process%s, %d job thread%s",
             AuthMode(self.settings.auth).value,
-            make_url(self.settings.resolved_database_url).render_as_string(hide_password=True),
+            self.settings.database_name,
             self.settings.worker_processes,
             "es" * (self.settings.worker_processes != 1),
             self.settings.job_threads,

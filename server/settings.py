@@ -211,6 +211,17 @@ class Settings(BaseSettings):
         return self.database_url or f"sqlite:///{self.data_dir.resolve() / 'kitti-eval.db'}"
 
     @property
+    def database_name(self) -> str:
+        """The database as the start's log and ``kitti-eval admin`` name it: SQLite's file, or the URL without
+        its password."""
+        from sqlalchemy.engine import make_url
+
+        url = make_url(self.resolved_database_url)
+        if url.get_backend_name() == "sqlite":
+            return str(url.database)
+        return url.render_as_string(hide_password=True)
+
+    @property
     def receiving_bodies(self) -> int:
         return self.max_receiving_bodies or max(64, 4 * self.max_concurrent_evals)
 

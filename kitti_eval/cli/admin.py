@@ -172,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     # whoever may open the service's database acts as an admin
     caller = Policy(AuthMode(settings.auth), admin_token=lambda: "").command_line(_login())
-    where = _database_name(settings.resolved_database_url)
+    where = settings.database_name
     _say(f"database {where}")  # every run names the database it reads and writes
     try:
         if not args.create and not _database_exists(settings.resolved_database_url, settings.database_busy_s):
@@ -206,16 +206,6 @@ def run(args: argparse.Namespace) -> int:
     except OSError as e:
         _say(f"error: {e.strerror or e}: {e.filename or ''}".rstrip(": "))
         return EXIT_INPUT
-
-
-def _database_name(url: str) -> str:
-    """The database as the messages name it: SQLite's file, or the URL without its password."""
-    from sqlalchemy.engine import make_url
-
-    parsed = make_url(url)
-    if parsed.get_backend_name() == "sqlite":
-        return str(parsed.database)
-    return parsed.render_as_string(hide_password=True)
 
 
 def _database_exists(url: str, busy_s: float) -> bool:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from server_accounts import bearer
@@ -121,13 +122,11 @@ def test_a_missing_database_is_refused_unless_created(tmp_path, monkeypatch, cap
 
 
 def test_the_database_is_named_without_its_password() -> None:
-    from kitti_eval.cli.admin import _database_name
+    from kitti_eval_server.settings import Settings
 
-    assert (
-        _database_name("postgresql://kitti:s3cret@db.example:5432/kitti")
-        == "postgresql://kitti:***@db.example:5432/kitti"
-    )
-    assert _database_name("sqlite:////srv/kitti-eval/kitti-eval.db") == "/srv/kitti-eval/kitti-eval.db"
+    named = Settings(database_url="postgresql://kitti:s3cret@db.example:5432/kitti").database_name
+    assert named == "postgresql+psycopg://kitti:***@db.example:5432/kitti"  # the driver the settings chose
+    assert Settings(data_dir=Path("/srv/kitti-eval")).database_name == "/srv/kitti-eval/kitti-eval.db"
 
 
 def test_without_the_server_extra_a_clear_error() -> None:

@@ -17,7 +17,7 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(shutil.which("bash") is None or shutil.which("curl") is None, reason="needs bash and curl"),
 ]
-ADMIN_BLOCK, PARTICIPANT_BLOCK = take("docs/service/benchmarks.md", "# Hosting a benchmark", 2)
+ADMIN_BLOCK, PARTICIPANT_BLOCK = take("docs/service/benchmarks.md", "then registers the test set sealed", 2)
 
 
 def test_the_benchmark_example_runs_as_written(tmp_path: Path) -> None:

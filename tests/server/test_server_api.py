@@ -523,7 +523,7 @@ def test_serve_auth_chooses_the_mode_and_the_start_names_it(tmp_path, monkeypatc
         assert c.get("/v1/evaluations").status_code == 401  # accounts: a token is needed
     db = (tmp_path / "data" / "kitti-eval.db").resolve()
     started = [r.getMessage() for r in caplog.records if r.getMessage().startswith("auth ")]
-    assert started == [f"auth accounts, database sqlite:///{db}, 0 worker processes, 1 job thread"]
+    assert started == [f"auth accounts, database {db}, 0 worker processes, 1 job thread"]
     assert serve(["--auth", "open", "--data-dir", str(tmp_path / "open")]) == 0
     with TestClient(served[-1]) as c:
         assert c.get("/v1/evaluations").status_code == 200
