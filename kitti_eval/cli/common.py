@@ -208,11 +208,17 @@ def config(args: argparse.Namespace):  # noqa: ANN201 - EvalConfig, imported laz
 
 
 def emit(text: str, output: Path | None) -> None:
-    """A command's output: to ``--output`` when given, else to stdout."""
+    """A command's output: to ``--output`` when given (and said on stderr), else to stdout."""
     if output:
         output.write_text(text, encoding="utf-8")
+        wrote(output)
     else:
         sys.stdout.write(text)
+
+
+def wrote(path: Path | str, what: str = "") -> None:
+    """Say on stderr where a command wrote a file (every command that writes one names it)."""
+    say(f"wrote {what + ' ' if what else ''}{path}")
 
 
 def say(msg: str) -> None:

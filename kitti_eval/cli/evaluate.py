@@ -22,6 +22,7 @@ from .common import (
     several_gt,
     start_warm_up,
     wait,
+    wrote,
 )
 
 
@@ -144,7 +145,7 @@ def run_pair(gt_path: Path, pred_path: Path, args: argparse.Namespace) -> int:
     if plot_dir:
         from ..report.plots import plot_pr_curves
 
-        plot_pr_curves(result, plot_dir)
+        wrote(plot_dir, f"{len(plot_pr_curves(result, plot_dir))} precision-recall PNGs to")
     text = render(result, args.format, include_curves=args.curves, extra=extra)
     if args.errors and args.format is not OutputFormat.JSON:
         text += "\n" + render_errors(decomposition, args.format.value)
@@ -220,9 +221,11 @@ def run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int:
     text = render_batch(checkpoints, fmt, keys=keys or None, best_by=best_by)
     if args.plot:
         plot_batch(checkpoints, args.plot, keys=keys or None)
+        wrote(args.plot)
     if args.plot_dir:
         from ..report.plots import plot_overlays
 
-        plot_overlays([(c.label, c.result) for c in checkpoints], args.plot_dir)
+        written = plot_overlays([(c.label, c.result) for c in checkpoints], args.plot_dir)
+        wrote(args.plot_dir, f"{len(written)} precision-recall PNGs to")
     emit(text, args.output)
     return EXIT_OK if len(checkpoints) == len(preds) else EXIT_INPUT

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigError
-from .common import EXIT_GATE, EXIT_OK, add_config_options, config, evaluate_doc, read_result_json
+from .common import EXIT_GATE, EXIT_OK, add_config_options, config, evaluate_doc, read_result_json, wrote
 
 
 def add_parser(sub: Any) -> argparse.ArgumentParser:
@@ -132,8 +132,10 @@ def run(args: argparse.Namespace) -> int:
     sys.stdout.write(render_verdict(verdict, show_passed=args.show_passed))
     if args.markdown:
         args.markdown.write_text(render_verdict_markdown(verdict), encoding="utf-8")
+        wrote(args.markdown)
     if args.junit:
         args.junit.write_text(render_junit(verdict), encoding="utf-8")
+        wrote(args.junit)
     return EXIT_OK if verdict.passed else EXIT_GATE
 
 

@@ -347,3 +347,19 @@ def test_every_option_with_a_default_states_it_in_its_help(capsys):
     text = " ".join(capsys.readouterr().out.split())
     assert "--difficulty {easy,moderate,hard} default: moderate" in text
     assert "--set {strict,loose} IoU threshold set (default: strict)" in text
+
+
+def test_every_file_a_command_writes_is_named_on_stderr(capsys, tmp_path):
+    """A command that writes a file says where, so the reader is not left to guess (or to look for it)."""
+    out = tmp_path / "result.json"
+    code, stdout, err = run(capsys, "--gt", GT, "--pred", PRED, "--format", "json", "--quiet", "--output", out)
+    assert code == 0 and stdout == "" and err == f"kitti-eval: wrote {out}\n" and json.loads(out.read_text())
+    frames = tmp_path / "frames.csv"
+    code, _, err = run(capsys, "frames", "--gt", GT, "--pred", PRED, "--format", "csv", "-o", frames)
+    assert code == 0 and f"kitti-eval: wrote {frames}\n" in err and frames.read_text().startswith("frame,tp,fp,fn")
+    junit, markdown = tmp_path / "gate.xml", tmp_path / "summary.md"
+    code, _, err = run(
+        capsys, "gate", "--result", out, "--min", "Car/3d/moderate >= 1", "--junit", junit, "--markdown", markdown
+    )
+    assert code == 0 and err.splitlines() == [f"kitti-eval: wrote {markdown}", f"kitti-eval: wrote {junit}"]
+    assert junit.is_file() and markdown.is_file()
