@@ -363,3 +363,20 @@ def test_every_file_a_command_writes_is_named_on_stderr(capsys, tmp_path):
     )
     assert code == 0 and err.splitlines() == [f"kitti-eval: wrote {markdown}", f"kitti-eval: wrote {junit}"]
     assert junit.is_file() and markdown.is_file()
+
+
+def test_compare_heads_its_columns_with_the_results_names(capsys, tmp_path):
+    """The columns were headed A and B; now by the files' names, or their paths where the names are the same."""
+    for run_dir in ("run1", "run2"):
+        (tmp_path / run_dir).mkdir()
+        assert (
+            run(capsys, "--gt", GT, "--pred", PRED, "--format", "json", "-o", tmp_path / run_dir / "result.json")[0]
+            == 0
+        )
+    (tmp_path / "run2" / "result.json").rename(tmp_path / "other.json")
+    code, out, _ = run(capsys, "compare", tmp_path / "run1" / "result.json", tmp_path / "other.json")
+    assert code == 0 and out.splitlines()[0].split()[:4] == ["value", "result.json", "other.json", "B"]
+    (tmp_path / "other.json").rename(tmp_path / "run2" / "result.json")
+    a, b = (str(tmp_path / d / "result.json") for d in ("run1", "run2"))
+    code, out, _ = run(capsys, "compare", a, b, "--format", "markdown")
+    assert code == 0 and out.splitlines()[0] == f"| value | {a} | {b} | B − A | 95% interval |"
