@@ -8,6 +8,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
+from doc_examples import take
 
 from kitti_eval.analysis.gate import (
     GateRules,
@@ -204,6 +205,9 @@ def test_cli_gate_usage_and_input_errors(capsys, tmp_path):
     assert run(capsys, "gate", "--result", tmp_path / "bad.json", "--max-drop", "1")[0] == 2  # no baseline
 
 
+(CI_JOB,) = take("docs/cli/gates.md", "A ready-to-copy job", lang="yaml")
+
+
 def test_readme_ci_example_runs_as_written(tmp_path):
     """The 'Evaluate and gate' step of the CI job in docs/cli/gates.md, run by bash on the bundled demo data."""
     import os
@@ -213,7 +217,8 @@ def test_readme_ci_example_runs_as_written(tmp_path):
     import sys
 
     readme = (Path(__file__).parents[2] / "docs" / "cli" / "gates.md").read_text()
-    block = re.search(r"- name: Evaluate and gate\n\s+run: \|\n((?:          .*\n)+)", readme)
+    assert CI_JOB.code in readme
+    block = re.search(r"- name: Evaluate and gate\n\s+run: \|\n((?:          .*\n)+)", CI_JOB.code)
     assert block, "the docs' CI example lost its 'Evaluate and gate' step"
     script = "set -euo pipefail\n" + "\n".join(line[10:] for line in block.group(1).splitlines())
     bash = shutil.which("bash")

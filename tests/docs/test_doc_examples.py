@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 from doc_examples import CHECKED, ROOT, TAKEN, Example, examples, pages, take, text
 
-from kitti_eval.demo import demo_paths
+from kitti_eval.demo import demo_paths, demo_weaker_path
 
 # ------------------------------------------------------------------------------------------- the examples here
 
@@ -46,18 +46,20 @@ PYTHON = [
 @pytest.fixture(scope="module")
 def demo_folder(tmp_path_factory) -> Path:
     """The demo's ground truth and predictions where the examples name them: kitti_infos_val.pkl and result.pkl,
-    and result.pkl as OpenPCDet's output folders hold it for two models and two epochs."""
+    and result.pkl as OpenPCDet's output folders hold it for two models and two epochs: the bundled weaker model's
+    for PointPillars and its 40th epoch, the demo's for the others."""
     folder = tmp_path_factory.mktemp("demo-folder")
     gt, pred = (gzip.decompress(p.read_bytes()) for p in demo_paths())
+    weaker = gzip.decompress(demo_weaker_path().read_bytes())
     (folder / "kitti_infos_val.pkl").write_bytes(gt)
-    results = ["result.pkl"] + [
-        f"output/kitti_models/{model}/default/eval/epoch_80/val/default/result.pkl"
-        for model in ("pointpillar", "pv_rcnn")
-    ]
-    results += [f"output/pointpillar/eval/epoch_{epoch}/val/default/result.pkl" for epoch in (40, 80)]
-    for name in results:
+    results = {"result.pkl": pred}
+    for model, data in (("pointpillar", weaker), ("pv_rcnn", pred)):
+        results[f"output/kitti_models/{model}/default/eval/epoch_80/val/default/result.pkl"] = data
+    for epoch, data in ((40, weaker), (80, pred)):
+        results[f"output/pointpillar/eval/epoch_{epoch}/val/default/result.pkl"] = data
+    for name, data in results.items():
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
-        (folder / name).write_bytes(pred)
+        (folder / name).write_bytes(data)
     return folder
 
 

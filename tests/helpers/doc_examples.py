@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-CHECKED = ("bash", "python", "toml")  # the languages whose every block must be run or say why not
+CHECKED = ("bash", "python", "toml", "yaml")  # the languages whose every block must be run or say why not
 
 _FENCE = re.compile(r"^```(?P<lang>[\w-]*)[^\n]*\n(?P<code>.*?)^```[ \t]*$", re.S | re.M)
 _NOT_RUN = re.compile(r"^<!-- not run: (?P<why>\S.*?) -->$")
