@@ -161,6 +161,7 @@ class LiveServer:
         via_serve: bool = False,
         python: Path | None = None,
         environ: dict[str, str] | None = None,
+        ready_path: str = "/readyz",
         **settings: Any,
     ) -> None:
         self.data_dir = data_dir
@@ -168,6 +169,8 @@ class LiveServer:
         # another installation's interpreter (then run outside the checkout), and variables of its own
         self.python = python
         self.environ = environ or {}
+        #: what says the server is up: /readyz, or /healthz for one that is never ready (no worker of its own)
+        self.ready_path = ready_path
         self.settings = {"admin_token": ADMIN_TOKEN, **settings}
         self.port = 0
         self.proc: subprocess.Popen[bytes] | None = None
@@ -204,7 +207,7 @@ class LiveServer:
                 if self.proc.poll() is not None:
                     raise RuntimeError(f"uvicorn exited with {self.proc.returncode}:\n{self.log()}")
                 try:
-                    if client.get("/readyz").status_code == 200:
+                    if client.get(self.ready_path).status_code == 200:
                         return self
                 except httpx.TransportError:
                     pass
