@@ -1,7 +1,7 @@
 """``kitti-eval``: the command line. Parses, loads, evaluates, prints; holds no evaluation logic.
 
-Exit codes: 0 success, 1 bad input (unreadable, unsafe or inconsistent files), 2 usage error,
-3 a gate rule failed (``kitti-eval gate``).
+Exit codes: 0 success, 1 bad input (unreadable, unsafe or inconsistent files), 2 usage error, 3 a gate rule
+failed (``gate``), 4 over a benchmark's quota (``submit``), 5 a service could not be reached (:mod:`.remote`).
 Data goes to stdout (or ``--output``); warnings and progress go to stderr.
 
 This module only builds the parser and dispatches. The main job (``--gt``/``--pred``, no command name) is
@@ -18,9 +18,12 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from ..errors import ConfigError, InputError, KittiEvalError
+from ..errors import ConfigError, InputError, KittiEvalError, ServiceError
 from . import admin, compare, demo, describe, errors, evaluate, frames, gate, inspect, serve, validate, worker
 from .common import EXIT_INPUT, EXIT_USAGE, PROG, config, limits_from, say
+from .login import add_parser as add_login_parser
+from .remote import report
+from .submit import add_parser as add_submit_parser
 
 __all__ = ["main", "entry", "COMMANDS"]
 
@@ -34,6 +37,8 @@ COMMANDS: tuple[Callable[[Any], object], ...] = (
     errors.add_parser,
     describe.add_parser,
     validate.add_parser,
+    add_submit_parser,
+    add_login_parser,
     serve.add_parser,
     worker.add_parser,
     admin.add_parser,
@@ -45,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Exact KITTI 3D object detection evaluation (2D, BEV, 3D, AOS; R11 and R40) on a CPU.",
-        epilog="Exit codes: 0 ok, 1 bad input, 2 usage error, 3 a gate rule failed ('kitti-eval gate').",
+        epilog="Exit codes: 0 ok, 1 bad input, 2 usage error, 3 a gate rule failed, 4 over a quota, 5 no service.",
     )
     evaluate.add_arguments(p)
     sub = p.add_subparsers(dest="command", metavar="COMMAND", title="commands (each has its own --help)")
@@ -74,6 +79,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as e:
         say(f"error: {e}")
         return EXIT_USAGE
+    except ServiceError as e:
+        return report(e)
     except InputError as e:
         say(f"error: {e}")
         return EXIT_INPUT

@@ -180,8 +180,9 @@ class LiveServer:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def start(self, timeout: float = READY_TIMEOUT_S) -> LiveServer:
-        self.port = free_port()
+    def start(self, timeout: float = READY_TIMEOUT_S, *, port: int | None = None) -> LiveServer:
+        """Starts it on ``port`` (default: a free one) and waits until it says it is up."""
+        self.port = port or free_port()
         env = {k: v for k, v in os.environ.items() if not k.startswith("KITTI_EVAL_")}
         env.update(self.environ)
         env["KITTI_EVAL_DATA_DIR"] = str(self.data_dir)
