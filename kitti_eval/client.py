@@ -437,6 +437,13 @@ class Client:
     def _get(self, path: str, **params: Any) -> Any:
         return self._request("GET", path, params={k: v for k, v in params.items() if v is not None}).json()
 
+    def _follow(self, location: object) -> Any:
+        """GET a place the service named (a job's ``result_location``): a path on this service only, so the token
+        is never sent to another host whatever an answer says."""
+        if not isinstance(location, str) or not location.startswith("/") or location.startswith("//"):
+            raise ServiceError(f"{self.service}: the answer names {location!r} as the result, not a path of its own")
+        return self._get(location)
+
     # -- jobs -------------------------------------------------------------------------------------------
     def job(self, job_id: str) -> Job:
         """An accepted evaluation's or submission's job as it is now."""
@@ -529,7 +536,7 @@ class Client:
         location = self._accepted(response, wait_s)
         if location is None:
             return Evaluation.from_body(response.json())
-        return Evaluation.from_body(self._get(location))
+        return Evaluation.from_body(self._follow(location))
 
     def evaluation(self, evaluation_id: str) -> Evaluation:
         return Evaluation.from_body(self._get(f"/v1/evaluations/{evaluation_id}"))

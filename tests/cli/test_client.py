@@ -194,3 +194,12 @@ def test_scores_as_table_and_markdown() -> None:
     md = render_submission(sub, "markdown", key=["Car/3d/moderate/R40/strict"])
     assert "| **key** (Car/3d/moderate/R40/strict) | **80.12** |" in md and "| Car/3d/hard/R40/strict |  |" in md
     assert json.loads(render_submission(sub, "json")) == {**view, "scored_on": "public"}
+
+
+def test_the_token_never_follows_an_answer_to_another_host(monkeypatch) -> None:
+    """A result's place is a path of the service's own: an absolute URL in an answer is refused, not fetched."""
+    done = {"id": "j1", "kind": "evaluation", "state": "done", "result_location": "http://elsewhere.test/steal"}
+    answers = _Answers([_status(202, {**_JOB, "kind": "evaluation"}), _status(200, done)])
+    with _client(answers, [], monkeypatch) as c, pytest.raises(ServiceError, match="not a path of its own"):
+        c.evaluate(GOLDEN / "result.pkl", "small")
+    assert {r.url.host for r in answers.requests} == {"service.test"} and len(answers.requests) == 2

@@ -234,8 +234,8 @@ def test_a_service_killed_while_receiving_and_after_accepting_counts_the_submiss
     servers = [LiveServer(data_dir, ready_path="/healthz", **no_worker).start()]
     with servers[0].client() as c:
         hosted = host(c)
-    events: list[str] = []
-    body_seen = [0]
+    events: list[str] = []  # what happened, in order
+    body_seen = [0]  # bytes of the submission's request forwarded on its connection
     lock = threading.Lock()
 
     def restart(**settings: Any) -> None:
@@ -253,6 +253,10 @@ def test_a_service_killed_while_receiving_and_after_accepting_counts_the_submiss
         events.append("killed after acceptance")
         restart(auth="accounts")
 
+    def restart_then_kill_after_acceptance() -> None:
+        restart(**no_worker, ready_path="/healthz")
+        kill_after_acceptance()
+
     def on_sent(chunk: bytes) -> None:
         with lock:
             if b"POST /v1/benchmarks/bench/submissions" in chunk:
@@ -260,15 +264,10 @@ def test_a_service_killed_while_receiving_and_after_accepting_counts_the_submiss
                 events.append(f"posting to server {len(servers)}")
             elif body_seen[0]:
                 body_seen[0] += len(chunk)
-            if events.count("killed while receiving") == 0 and body_seen[0] > 32 << 10:
+            if "killed while receiving" not in events and body_seen[0] > 32 << 10:
                 servers[-1].kill()
                 events.append("killed while receiving")
-                body_seen[0] = 0
-                threading.Thread(target=restart, kwargs={**no_worker, "ready_path": "/healthz"}).start()
-            elif events.count("killed while receiving") == 1 and "started 2" in events and body_seen[0] > 100 << 10:
-                if "watching" not in events:
-                    events.append("watching")
-                    threading.Thread(target=kill_after_acceptance).start()
+                threading.Thread(target=restart_then_kill_after_acceptance).start()
 
     proxy = _Proxy(lambda: servers[-1].port, on_sent)
     pred = tmp_path / "result.pkl"
@@ -284,6 +283,9 @@ def test_a_service_killed_while_receiving_and_after_accepting_counts_the_submiss
         assert code == 0, (events, err, servers[-1].log())
         assert events[:2] == ["posting to server 1", "killed while receiving"], events
         assert "killed after acceptance" in events and len(servers) == 3, events
+        # the same request sent again to each service started again: the accepted one, then the answered one
+        assert events.index("posting to server 2") < events.index("killed after acceptance"), events
+        assert "posting to server 3" in events, events
         view = json.loads(out)
         assert view["status"] == "scored"
         assert view["scores"] == _expected_scores(list(view["scores"]))
