@@ -39,6 +39,7 @@ def _cli(args: list[str], token: str | None, config_dir: Path) -> subprocess.Pop
         [sys.executable, "-m", "kitti_eval.cli", *args],
         cwd=ROOT,
         env=env,
+        stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -142,21 +143,38 @@ def test_a_refused_file_is_refused_here_with_the_validators_sentences_and_nothin
         assert _submission_jobs(server) == []
 
 
-def test_over_the_quota_exits_4_saying_when_the_next_one_is_accepted(tmp_path) -> None:
+def test_login_no_wait_and_the_quota(tmp_path) -> None:
+    """A wrong token is refused by ``login`` (exit 2, nothing saved); the right one is saved and sent by
+    ``submit`` without $KITTI_EVAL_TOKEN; ``--no-wait`` prints the accepted submission's id; past the quota,
+    exit 4 saying when the next submission is accepted, nothing counted."""
+    config = tmp_path / "config"
     with LiveServer(tmp_path / "data", auth="accounts") as server:
         with server.client() as c:
-            hosted = host(c, benchmark={"quota": "1/2"})
-            ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl"), name="bench"), 201)
+            hosted = host(c, benchmark={"quota": "2/2"})
+        login = ["login", "--service", server.url]
+        wrong = _cli(login, None, config)
+        code, _, err = _finish_with_input(wrong, "not-a-token\n")
+        assert code == 2 and "the token is not valid" in err
+        assert not (config / "services.json").exists()
+        code, _, err = _finish_with_input(_cli(login, None, config), hosted.tokens["alice"] + "\n")
+        assert code == 0 and f"saved in {config / 'services.json'}" in err
         pred = tmp_path / "result.pkl"
         pred.write_bytes(golden_bytes("result.pkl"))
-        code, out, err = _finish(
-            _cli(
-                ["submit", str(pred), "--benchmark", "bench", "--service", server.url], hosted.tokens["alice"], tmp_path
-            )
-        )
+        args = ["submit", str(pred), "--benchmark", "bench", "--service", server.url]
+        code, out, err = _finish(_cli([*args, "--no-wait"], None, config))  # the saved token
+        assert code == 0, err
+        assert out.strip() in {s["id"] for s in _mine(server, hosted.tokens["alice"])["items"]}
+        with server.client() as c:
+            ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl"), name="bench"), 201)
+        code, out, err = _finish(_cli(args, None, config))
         assert code == 4, err
-        assert "quota of 1 accepted submissions per 2 days is used" in err and "accepted from 20" in err
-        assert _mine(server, hosted.tokens["alice"])["quota"]["used"] == 1
+        assert "quota of 2 accepted submissions per 2 days is used" in err and "accepted from 20" in err
+        assert _mine(server, hosted.tokens["alice"])["quota"]["used"] == 2
+
+
+def _finish_with_input(proc: subprocess.Popen[str], text: str) -> tuple[int, str, str]:
+    out, err = proc.communicate(text, timeout=_TIMEOUT_S)
+    return proc.returncode, out, err
 
 
 def test_a_service_that_never_answers_exits_5_within_the_retry_time(tmp_path) -> None:
