@@ -348,6 +348,7 @@ class Client:
         self._http = httpx.Client(base_url=service, headers=headers, timeout=timeout_s, transport=transport)
 
     def close(self) -> None:
+        """Closes the connections (``with Client(...) as c:`` closes them on leaving)."""
         self._http.close()
 
     def __enter__(self) -> Client:
@@ -539,6 +540,7 @@ class Client:
         return Evaluation.from_body(self._follow(location))
 
     def evaluation(self, evaluation_id: str) -> Evaluation:
+        """One stored evaluation (yours, or your projects')."""
         return Evaluation.from_body(self._get(f"/v1/evaluations/{evaluation_id}"))
 
     def evaluations(
@@ -556,6 +558,7 @@ class Client:
         return list(self._get("/v1/benchmarks")["items"])
 
     def benchmark(self, name: str) -> dict[str, Any]:
+        """One benchmark and its rules: key, columns, quota, whether it is open, its board's part."""
         return dict(self._get(f"/v1/benchmarks/{name}"))
 
     def frames(self, benchmark: str) -> list[str]:
@@ -572,6 +575,7 @@ class Client:
         return dict(self._get(f"/v1/benchmarks/{benchmark}/leaderboard", sort=sort, order=order))
 
     def quota(self, benchmark: str) -> Quota:
+        """Your quota on the benchmark as it stands."""
         q = self._get(f"/v1/benchmarks/{benchmark}/submissions")["quota"]
         return Quota(int(q["submissions"]), float(q["days"]), int(q["used"]), int(q["left"]))
 
@@ -580,6 +584,7 @@ class Client:
         return [Submission.from_body(s) for s in self._get(f"/v1/benchmarks/{benchmark}/submissions")["items"]]
 
     def submission(self, benchmark: str, submission_id: str) -> Submission:
+        """One of your submissions, with its scores and aggregate result once scored."""
         return Submission.from_body(self._get(f"/v1/benchmarks/{benchmark}/submissions/{submission_id}"))
 
     def check_submission(self, predictions: str | os.PathLike[str], benchmark: str) -> None:
