@@ -19,6 +19,7 @@ that service (:func:`saved_token`).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -28,7 +29,7 @@ import uuid
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO, TypeVar
 
 from .errors import (
     ConfigError,
@@ -67,6 +68,7 @@ _AWAY = frozenset({408, 502, 503, 504})
 #: how long one POST asks the service to wait for its result before answering 202 with the job
 _POST_WAIT_S = 20.0
 _USER_AGENT = "kitti-eval-client"
+_T = TypeVar("_T")
 
 
 # ------------------------------------------------------------------------------------------ results
@@ -307,6 +309,24 @@ class _Counted:
         return self.raw.fileno()
 
 
+def _answered(method: Callable[..., _T]) -> Callable[..., _T]:
+    """A public method of :class:`Client` whose reading of an answer that is not the service's (not JSON, a field
+    missing, another document) raises :class:`~kitti_eval.errors.ServiceError` rather than a Python error."""
+
+    @functools.wraps(method)
+    def wrapper(self: Client, *args: Any, **kwargs: Any) -> _T:
+        try:
+            return method(self, *args, **kwargs)
+        except (KeyError, TypeError, ValueError, IndexError) as e:
+            raise ServiceError(
+                f"{self.service}: an answer this client cannot read ({type(e).__name__}: {e}); is it a kitti-eval "
+                "service of this version?",
+                code="unexpected_answer",
+            ) from None
+
+    return wrapper
+
+
 #: a request's multipart files: field -> (file name, path)
 _Files = Mapping[str, tuple[str, Path]]
 
@@ -446,10 +466,12 @@ class Client:
         return self._get(location)
 
     # -- jobs -------------------------------------------------------------------------------------------
+    @_answered
     def job(self, job_id: str) -> Job:
         """An accepted evaluation's or submission's job as it is now."""
         return Job.from_body(self._get(f"/v1/jobs/{job_id}"))
 
+    @_answered
     def wait_job(self, job_id: str, *, timeout_s: float = 3600.0, poll_s: float = 1.0) -> Job:
         """Polls the job until it is done, failed or cancelled; a job that failed raises its error."""
         deadline = time.monotonic() + timeout_s
@@ -487,6 +509,7 @@ class Client:
         return job.result_location
 
     # -- evaluations ------------------------------------------------------------------------------------
+    @_answered
     def evaluate(
         self,
         predictions: str | os.PathLike[str],
@@ -539,10 +562,12 @@ class Client:
             return Evaluation.from_body(response.json())
         return Evaluation.from_body(self._follow(location))
 
+    @_answered
     def evaluation(self, evaluation_id: str) -> Evaluation:
         """One stored evaluation (yours, or your projects')."""
         return Evaluation.from_body(self._get(f"/v1/evaluations/{evaluation_id}"))
 
+    @_answered
     def evaluations(
         self, *, gt: str | None = None, labels: Mapping[str, str] | None = None, limit: int = 50
     ) -> list[dict[str, Any]]:
@@ -553,14 +578,17 @@ class Client:
         return list(self._get("/v1/evaluations", **params)["items"])
 
     # -- benchmarks -------------------------------------------------------------------------------------
+    @_answered
     def benchmarks(self) -> list[dict[str, Any]]:
         """The benchmarks you may see, each with its rules."""
         return list(self._get("/v1/benchmarks")["items"])
 
+    @_answered
     def benchmark(self, name: str) -> dict[str, Any]:
         """One benchmark and its rules: key, columns, quota, whether it is open, its board's part."""
         return dict(self._get(f"/v1/benchmarks/{name}"))
 
+    @_answered
     def frames(self, benchmark: str) -> list[str]:
         """The benchmark's test frame ids (what a submission must hold)."""
         from .core.frames import normalize_frame_id
@@ -570,19 +598,23 @@ class Client:
             raise ServiceError(f"{self.service}: benchmark {benchmark} lists no test frames")
         return [normalize_frame_id(f) for f in frames]
 
+    @_answered
     def leaderboard(self, benchmark: str, *, sort: str | None = None, order: str | None = None) -> dict[str, Any]:
         """The board as the service shows it to you (entries, columns, the key, intervals)."""
         return dict(self._get(f"/v1/benchmarks/{benchmark}/leaderboard", sort=sort, order=order))
 
+    @_answered
     def quota(self, benchmark: str) -> Quota:
         """Your quota on the benchmark as it stands."""
         q = self._get(f"/v1/benchmarks/{benchmark}/submissions")["quota"]
         return Quota(int(q["submissions"]), float(q["days"]), int(q["used"]), int(q["left"]))
 
+    @_answered
     def submissions(self, benchmark: str) -> list[Submission]:
         """Your submissions to the benchmark, newest first."""
         return [Submission.from_body(s) for s in self._get(f"/v1/benchmarks/{benchmark}/submissions")["items"]]
 
+    @_answered
     def submission(self, benchmark: str, submission_id: str) -> Submission:
         """One of your submissions, with its scores and aggregate result once scored."""
         return Submission.from_body(self._get(f"/v1/benchmarks/{benchmark}/submissions/{submission_id}"))
@@ -601,6 +633,7 @@ class Client:
                 code="invalid_submission",
             )
 
+    @_answered
     def submit(
         self,
         predictions: str | os.PathLike[str],

@@ -203,3 +203,17 @@ def test_the_token_never_follows_an_answer_to_another_host(monkeypatch) -> None:
     with _client(answers, [], monkeypatch) as c, pytest.raises(ServiceError, match="not a path of its own"):
         c.evaluate(GOLDEN / "result.pkl", "small")
     assert {r.url.host for r in answers.requests} == {"service.test"} and len(answers.requests) == 2
+
+
+@pytest.mark.parametrize(
+    "answer",
+    [
+        lambda request: httpx.Response(200, text="<html>a proxy's page</html>"),
+        _status(200, {"something": "else"}),
+        _status(200, [1, 2, 3]),
+    ],
+)
+def test_an_answer_that_is_not_the_services_is_an_error_of_the_tree(monkeypatch, answer) -> None:
+    answers = _Answers([answer])
+    with _client(answers, [], monkeypatch) as c, pytest.raises(ServiceError, match="an answer this client cannot read"):
+        c.quota("b")
