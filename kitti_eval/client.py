@@ -56,6 +56,7 @@ __all__ = [
     "saved_token",
     "save_token",
     "token_for",
+    "new_key",
 ]
 
 #: the environment variable holding the token
@@ -527,9 +528,12 @@ class Client:
         labels: Mapping[str, str] | None = None,
         project: str | None = None,
         wait_s: float = 3600.0,
+        idempotency_key: str | None = None,
     ) -> Evaluation:
         """Evaluates ``predictions`` (a result.pkl, or a zip/tar of KITTI result txt files) against the ground
-        truth registered as ``gt``, with the options of ``kitti-eval --gt --pred``; stored with ``labels``."""
+        truth registered as ``gt``, with the options of ``kitti-eval --gt --pred``; stored with ``labels``.
+        ``idempotency_key``: the key sent with every try (default: a new UUID); the same key again (a CI job run
+        again) is answered with the evaluation it made."""
         path = Path(predictions)
         if not path.is_file():
             raise ConfigError(f"{path}: no such file (the service takes a result.pkl or a zip/tar of txt files)")
@@ -555,7 +559,7 @@ class Client:
             params={"wait": _POST_WAIT_S},
             data=fields,
             files={"predictions": (path.name, path)},
-            headers={"Idempotency-Key": str(uuid.uuid4())},
+            headers={"Idempotency-Key": idempotency_key or new_key()},
         )
         location = self._accepted(response, wait_s)
         if location is None:
@@ -642,11 +646,14 @@ class Client:
         wait: bool = True,
         wait_s: float = 3600.0,
         check: bool = True,
+        idempotency_key: str | None = None,
     ) -> Submission:
         """Submits ``predictions`` to the benchmark: checked here first (``check``: a refused file costs no
         quota and no upload), sent with an idempotency key of its own (sent again while the service is away, it
         counts once), and with ``wait``, followed until it is scored (:class:`Submission` with its scores).
-        Over the quota: :class:`~kitti_eval.errors.QuotaExceeded` (with when the next one is accepted)."""
+        Over the quota: :class:`~kitti_eval.errors.QuotaExceeded` (with when the next one is accepted).
+        ``idempotency_key``: the key sent with every try (default: a new UUID); sent again in another call (the
+        client itself restarted), it is answered with the submission it made, counted once."""
         path = Path(predictions)
         if not path.is_file():
             raise ConfigError(f"{path}: no such file (a submission is a result.pkl or a zip/tar of txt files)")
@@ -657,7 +664,7 @@ class Client:
             f"/v1/benchmarks/{benchmark}/submissions",
             params={"wait": _POST_WAIT_S if wait else 0},
             files={"predictions": (path.name, path)},
-            headers={"Idempotency-Key": str(uuid.uuid4())},
+            headers={"Idempotency-Key": idempotency_key or new_key()},
         )
         body = response.json()
         if response.status_code == 201:
@@ -668,6 +675,11 @@ class Client:
             return Submission(submission_id, benchmark, job.state, None, None, {"id": submission_id, "job": body})
         self.wait_job(job.id, timeout_s=wait_s)
         return self.submission(benchmark, submission_id)
+
+
+def new_key() -> str:
+    """A new idempotency key: a random UUID."""
+    return str(uuid.uuid4())
 
 
 def _flag(value: bool) -> str:

@@ -66,6 +66,13 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         metavar="S",
         help="longest wait for the scores once accepted (default: 3600)",
     )
+    p.add_argument(
+        "--idempotency-key",
+        metavar="KEY",
+        help="the key sent with the submission (1-255 visible ASCII characters): the same key again answers with "
+        "the submission it made, counted once; e.g. a CI run's id, so that the job run again does not submit twice "
+        "(default: a new random key each run)",
+    )
     p.add_argument("--output", "-o", type=Path, help="write the scores here instead of stdout (default: stdout)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar, no retry messages (default: off)")
     p.set_defaults(run=run)
@@ -77,8 +84,20 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"{args.file}: no such file")
     if not args.wait_for > 0:
         raise ConfigError("--wait-for must be > 0")
+    from ..client import new_key
+
+    key = args.idempotency_key or new_key()
     with client_of(args, progress=True) as client:
-        submission = client.submit(args.file, args.benchmark, wait=args.wait, wait_s=args.wait_for)
+        try:
+            submission = client.submit(
+                args.file, args.benchmark, wait=args.wait, wait_s=args.wait_for, idempotency_key=key
+            )
+        except KeyboardInterrupt:
+            say(
+                f"interrupted: the submission may have been accepted; the same command with --idempotency-key "
+                f"{key} answers with it instead of submitting again"
+            )
+            raise
         if not args.wait:
             if not args.quiet:
                 page = f"{args.service}/benchmarks/{args.benchmark}/submissions/{submission.id}"

@@ -146,7 +146,8 @@ def test_a_refused_file_is_refused_here_with_the_validators_sentences_and_nothin
 def test_login_no_wait_and_the_quota(tmp_path) -> None:
     """A wrong token is refused by ``login`` (exit 2, nothing saved); the right one is saved and sent by
     ``submit`` without $KITTI_EVAL_TOKEN; ``--no-wait`` prints the accepted submission's id; past the quota,
-    exit 4 saying when the next submission is accepted, nothing counted."""
+    exit 4 saying when the next submission is accepted, nothing counted; a run again with the first run's
+    ``--idempotency-key`` is answered with its submission."""
     config = tmp_path / "config"
     with LiveServer(tmp_path / "data", auth="accounts") as server:
         with server.client() as c:
@@ -161,14 +162,20 @@ def test_login_no_wait_and_the_quota(tmp_path) -> None:
         pred = tmp_path / "result.pkl"
         pred.write_bytes(golden_bytes("result.pkl"))
         args = ["submit", str(pred), "--benchmark", "bench", "--service", server.url]
-        code, out, err = _finish(_cli([*args, "--no-wait"], None, config))  # the saved token
+        keyed = [*args, "--idempotency-key", "ci-run-1234"]
+        code, out, err = _finish(_cli([*keyed, "--no-wait"], None, config))  # the saved token
         assert code == 0, err
-        assert out.strip() in {s["id"] for s in _mine(server, hosted.tokens["alice"])["items"]}
+        first = out.strip()
+        assert [s["id"] for s in _mine(server, hosted.tokens["alice"])["items"]] == [first]
         with server.client() as c:
             ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl"), name="bench"), 201)
         code, out, err = _finish(_cli(args, None, config))
         assert code == 4, err
         assert "quota of 2 accepted submissions per 2 days is used" in err and "accepted from 20" in err
+        # the first run's key again (its CI job run again): its own submission, scored, not refused nor counted
+        code, out, err = _finish(_cli([*keyed, "--format", "json"], None, config))
+        assert code == 0, err
+        assert json.loads(out)["id"] == first and json.loads(out)["status"] == "scored"
         assert _mine(server, hosted.tokens["alice"])["quota"]["used"] == 2
 
 
