@@ -24,6 +24,7 @@ import json
 import math
 import os
 import random
+import re
 import time
 import uuid
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -214,18 +215,29 @@ def _error_of(response: httpx.Response) -> dict[str, Any]:
     return error if isinstance(error, dict) else {}
 
 
+#: what a service's text may not hold when it is shown: control characters (a terminal's escape sequences)
+_CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f-\x9f]")
+_MAX_SHOWN = 2000
+
+
+def _shown(text: object) -> str:
+    """A service's text as it may be printed: control characters replaced, its length bounded."""
+    out = _CONTROL.sub("?", str(text))
+    return out if len(out) <= _MAX_SHOWN else out[:_MAX_SHOWN] + "..."
+
+
 def _refusal(response: httpx.Response) -> ServiceError:
     """The error of the one tree a refusal is."""
     error = _error_of(response)
-    code = str(error.get("code") or "")
-    message = str(error.get("message") or response.reason_phrase or f"HTTP {response.status_code}")
+    code = _shown(error.get("code") or "")
+    message = _shown(error.get("message") or response.reason_phrase or f"HTTP {response.status_code}")
     details = {k: v for k, v in error.items() if k not in ("code", "message")}
     kw: dict[str, Any] = {"status": response.status_code, "code": code or None, "details": details}
     if code == "quota_exceeded":
         return QuotaExceeded(message, **kw)
     if code == "invalid_submission":
         problems = details.get("problems")
-        return SubmissionRefused(message, [str(p) for p in problems] if isinstance(problems, list) else [], **kw)
+        return SubmissionRefused(message, [_shown(p) for p in problems] if isinstance(problems, list) else [], **kw)
     return ServiceError(message, **kw)
 
 
@@ -412,7 +424,7 @@ class Client:
                     if response.status_code in ok:
                         return response
                     raise _refusal(response)
-                reason = f"{response.status_code} {error.get('code') or response.reason_phrase}"
+                reason = f"{response.status_code} {_shown(error.get('code') or response.reason_phrase)}"
                 wait = _retry_after(response)
             delay = self.retries.delay(attempt, wait)
             waited = time.monotonic() - start
@@ -493,7 +505,7 @@ class Client:
         if job.state == "failed":
             error = job.error or {}
             raise ServiceError(
-                f"job {job_id} failed: {error.get('message', 'no reason given')}",
+                f"job {job_id} failed: {_shown(error.get('message', 'no reason given'))}",
                 status=error.get("status"),
                 code=error.get("code"),
                 details={"job_id": job_id},

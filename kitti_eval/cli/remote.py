@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..errors import ConfigError, QuotaExceeded, ServiceError, ServiceUnreachable, SubmissionRefused
@@ -145,6 +146,11 @@ def _evaluate(args: argparse.Namespace, gt: object, pred: object, *, curves: boo
             "max_frames": "--max-frames",
         },
     )
+    if Path(str(gt)).exists():
+        raise ConfigError(
+            f"--gt {gt}: with --service, --gt names a ground truth registered on the service (GET "
+            "/v1/ground-truths lists them), not a file here"
+        )
     with client_of(args, progress=True) as client:
         return client.evaluate(
             str(pred),

@@ -217,3 +217,20 @@ def test_an_answer_that_is_not_the_services_is_an_error_of_the_tree(monkeypatch,
     answers = _Answers([answer])
     with _client(answers, [], monkeypatch) as c, pytest.raises(ServiceError, match="an answer this client cannot read"):
         c.quota("b")
+
+
+def test_a_services_text_is_shown_without_its_control_characters(monkeypatch) -> None:
+    """A hostile service's message cannot drive the terminal (escape sequences) nor flood it."""
+    message = "no\x1b[2J\x1b]0;owned\x07 way" + "x" * 5000
+    answers = _Answers([_status(404, {"error": {"code": "not_found\x1b[31m", "message": message}})])
+    with _client(answers, [], monkeypatch) as c, pytest.raises(ServiceError) as e:
+        c.benchmark("b")
+    assert e.value.message.startswith("no?[2J?]0;owned? way") and len(e.value.message) == 2003
+    assert e.value.code == "not_found?[31m"
+
+
+def test_service_takes_the_name_of_a_registered_ground_truth_not_a_file(capsys) -> None:
+    pred = str(GOLDEN / "result.pkl")
+    code = main(["--service", "http://127.0.0.1:9", "--gt", str(GOLDEN / "kitti_infos_val.pkl"), "--pred", pred])
+    assert code == 2
+    assert "with --service, --gt names a ground truth registered on the service" in capsys.readouterr().err
