@@ -19,6 +19,7 @@ that service (:func:`saved_token`).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import math
@@ -75,6 +76,16 @@ _T = TypeVar("_T")
 
 # ------------------------------------------------------------------------------------------ results
 
+_ID = re.compile(r"^[A-Za-z0-9_-]{1,128}$")
+
+
+def _id(value: object) -> str:
+    """An id the service gave, as it may go into a path and a sentence (else the answer is not the service's)."""
+    text = str(value)
+    if not _ID.match(text):
+        raise ValueError(f"not an id: {_shown(text)[:80]!r}")
+    return text
+
 
 @dataclass(frozen=True)
 class Evaluation:
@@ -88,7 +99,7 @@ class Evaluation:
     @classmethod
     def from_body(cls, body: Mapping[str, Any]) -> Evaluation:
         doc = {k: v for k, v in body.items() if k not in ("id", "evaluation")}
-        return cls(id=str(body["id"]), document=doc, meta=dict(body.get("evaluation") or {}))
+        return cls(id=_id(body["id"]), document=doc, meta=dict(body.get("evaluation") or {}))
 
     def result(self) -> EvalResult:
         """The document as the library's result (without curves)."""
@@ -121,9 +132,9 @@ class Job:
     @classmethod
     def from_body(cls, body: Mapping[str, Any]) -> Job:
         return cls(
-            id=str(body["id"]),
-            kind=str(body.get("kind", "")),
-            state=str(body["state"]),
+            id=_id(body["id"]),
+            kind=_shown(body.get("kind", "")),
+            state=_shown(body["state"]),
             position=body.get("position"),
             attempts=int(body.get("attempts") or 0),
             result_location=body.get("result_location"),
@@ -151,9 +162,9 @@ class Submission:
     @classmethod
     def from_body(cls, body: Mapping[str, Any]) -> Submission:
         return cls(
-            id=str(body["id"]),
-            benchmark=str(body.get("benchmark", "")),
-            status=str(body.get("status", "")),
+            id=_id(body["id"]),
+            benchmark=_shown(body.get("benchmark", "")),
+            status=_shown(body.get("status", "")),
             scores=body.get("scores"),
             scored_on=body.get("scored_on"),
             view=dict(body),
@@ -439,23 +450,18 @@ class Client:
             time.sleep(delay)
             attempt += 1
 
-    def _opened(self, files: _Files | None) -> Any:
+    @contextlib.contextmanager
+    def _opened(self, files: _Files | None) -> Iterator[dict[str, Any] | None]:
         """The files of one try, opened afresh (a try that failed half-way leaves its file read half-way)."""
-        import contextlib
-
-        @contextlib.contextmanager
-        def opened() -> Iterator[dict[str, Any] | None]:
-            if not files:
-                yield None
-                return
-            with contextlib.ExitStack() as stack:
-                out: dict[str, Any] = {}
-                for name, (filename, path) in files.items():
-                    raw = stack.enter_context(open(path, "rb"))  # noqa: SIM115 - closed by the stack
-                    out[name] = (filename, self._with_progress(raw, filename, stack), "application/octet-stream")
-                yield out
-
-        return opened()
+        if not files:
+            yield None
+            return
+        with contextlib.ExitStack() as stack:
+            out: dict[str, Any] = {}
+            for name, (filename, path) in files.items():
+                raw = stack.enter_context(open(path, "rb"))  # noqa: SIM115 - closed by the stack
+                out[name] = (filename, self._with_progress(raw, filename, stack), "application/octet-stream")
+            yield out
 
     def _with_progress(self, raw: BinaryIO, filename: str, stack: Any) -> Any:
         if not self.progress:
@@ -518,7 +524,7 @@ class Client:
         """The result's place of an accepted request: at once (201), or once its job has ended (202)."""
         if response.status_code == 201:
             return None
-        job = self.wait_job(str(response.json()["id"]), timeout_s=wait_s)
+        job = self.wait_job(_id(response.json()["id"]), timeout_s=wait_s)
         return job.result_location
 
     # -- evaluations ------------------------------------------------------------------------------------
@@ -682,7 +688,7 @@ class Client:
         if response.status_code == 201:
             return Submission.from_body(body)
         job = Job.from_body(body)
-        submission_id = str(body.get("submission") or job.id)
+        submission_id = _id(body.get("submission") or job.id)
         if not wait:
             return Submission(submission_id, benchmark, job.state, None, None, {"id": submission_id, "job": body})
         self.wait_job(job.id, timeout_s=wait_s)

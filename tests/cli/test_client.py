@@ -234,3 +234,10 @@ def test_service_takes_the_name_of_a_registered_ground_truth_not_a_file(capsys) 
     code = main(["--service", "http://127.0.0.1:9", "--gt", str(GOLDEN / "kitti_infos_val.pkl"), "--pred", pred])
     assert code == 2
     assert "with --service, --gt names a ground truth registered on the service" in capsys.readouterr().err
+
+
+def test_an_id_from_an_answer_goes_into_no_path_unless_it_is_an_id(monkeypatch) -> None:
+    answers = _Answers([_status(202, {**_JOB, "id": "../../admin/users"})])
+    with _client(answers, [], monkeypatch) as c, pytest.raises(ServiceError, match="cannot read"):
+        c.submit(GOLDEN / "result.pkl", "b", check=False)
+    assert len(answers.requests) == 1
