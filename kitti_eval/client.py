@@ -351,6 +351,21 @@ def _answered(method: Callable[..., _T]) -> Callable[..., _T]:
     return wrapper
 
 
+@contextlib.contextmanager
+def _tar_of_txt(folder: Path) -> Iterator[BinaryIO]:
+    """A folder of KITTI txt files (the local reader's layout) as the service takes it: a tar.gz of its txt
+    files, in a temporary file."""
+    import tarfile
+    import tempfile
+
+    with tempfile.TemporaryFile() as raw:
+        with tarfile.open(fileobj=raw, mode="w:gz", compresslevel=1) as tar:
+            for path in sorted(folder.glob("*.txt")):
+                tar.add(path, arcname=path.name, recursive=False)
+        raw.seek(0)
+        yield raw
+
+
 #: a request's multipart files: field -> (file name, path)
 _Files = Mapping[str, tuple[str, Path]]
 
@@ -459,7 +474,10 @@ class Client:
         with contextlib.ExitStack() as stack:
             out: dict[str, Any] = {}
             for name, (filename, path) in files.items():
-                raw = stack.enter_context(open(path, "rb"))  # noqa: SIM115 - closed by the stack
+                if path.is_dir():
+                    raw, filename = stack.enter_context(_tar_of_txt(path)), f"{path.name}.tar.gz"
+                else:
+                    raw = stack.enter_context(open(path, "rb"))  # noqa: SIM115 - closed by the stack
                 out[name] = (filename, self._with_progress(raw, filename, stack), "application/octet-stream")
             yield out
 
@@ -553,8 +571,8 @@ class Client:
         ``idempotency_key``: the key sent with every try (default: a new UUID); the same key again (a CI job run
         again) is answered with the evaluation it made."""
         path = Path(predictions)
-        if not path.is_file():
-            raise ConfigError(f"{path}: no such file (the service takes a result.pkl or a zip/tar of txt files)")
+        if not path.exists():
+            raise ConfigError(f"{path}: no such file (a result.pkl, a zip/tar of txt files, or a folder of them)")
         fields: dict[str, Any] = {"gt": gt, "coco": _flag(coco), "lidar_only": _flag(lidar_only)}
         fields.update(curves=_flag(curves), errors=_flag(errors))
         if protocol:
@@ -673,8 +691,8 @@ class Client:
         ``idempotency_key``: the key sent with every try (default: a new UUID); sent again in another call (the
         client itself restarted), it is answered with the submission it made, counted once."""
         path = Path(predictions)
-        if not path.is_file():
-            raise ConfigError(f"{path}: no such file (a submission is a result.pkl or a zip/tar of txt files)")
+        if not path.exists():
+            raise ConfigError(f"{path}: no such file (a result.pkl, a zip/tar of txt files, or a folder of them)")
         if check:
             self.check_submission(path, benchmark)
         response = self._request(

@@ -42,7 +42,12 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         "is scored; prints the scores the service shows you.",
         epilog=_EPILOG,
     )
-    p.add_argument("file", type=Path, help="a zip or tar of KITTI result txt files (one a test frame), or a result.pkl")
+    p.add_argument(
+        "file",
+        type=Path,
+        help="a zip or tar of KITTI result txt files (one a test frame), a folder of them (sent as a tar.gz), or a "
+        "result.pkl",
+    )
     p.add_argument(
         "--benchmark", required=True, metavar="NAME", help="the benchmark's name (its page: /benchmarks/NAME)"
     )
@@ -80,8 +85,8 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not args.file.is_file():
-        raise ConfigError(f"{args.file}: no such file")
+    if not args.file.exists():
+        raise ConfigError(f"{args.file}: no such file or folder")
     if not args.wait_for > 0:
         raise ConfigError("--wait-for must be > 0")
     from ..client import new_key

@@ -356,8 +356,16 @@ def test_service_prints_the_document_a_local_run_prints(open_service, tmp_path, 
         assert json.loads(there)["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"] > 0
 
 
-def test_service_evaluation_of_txt_files_with_curves_and_errors(open_service, tmp_path) -> None:
+@pytest.mark.parametrize("layout", ["archive", "folder"])
+def test_service_evaluation_of_txt_files_with_curves_and_errors(open_service, tmp_path, layout) -> None:
+    """A tar of txt files, or the folder of them (which the client sends as a tar)."""
     pred = GOLDEN / "pred.tar.gz"
+    if layout == "folder":
+        pred = tmp_path / "txt"
+        pred.mkdir()
+        for name, data in golden_txt("pred.tar.gz").items():
+            (pred / Path(name).name).write_bytes(data)
+        assert len(list(pred.glob("*.txt"))) > 10
     flags = ["--format", "json", "--curves", "--errors"]
     here = json.loads(_main(["--gt", str(GOLDEN / "kitti_infos_val.pkl"), "--pred", str(pred), *flags], tmp_path / "a"))
     there = json.loads(
