@@ -2,7 +2,17 @@
 
 from __future__ import annotations
 
-__all__ = ["KittiEvalError", "InputError", "UnsafePickleError", "UnknownFormatError", "ConfigError"]
+__all__ = [
+    "KittiEvalError",
+    "InputError",
+    "UnsafePickleError",
+    "UnknownFormatError",
+    "ConfigError",
+    "ServiceError",
+    "ServiceUnreachable",
+    "QuotaExceeded",
+    "SubmissionRefused",
+]
 
 
 class KittiEvalError(Exception):
@@ -39,3 +49,55 @@ class UnknownFormatError(InputError):
 
 class ConfigError(KittiEvalError):
     """An evaluation option (class, threshold, protocol) is invalid."""
+
+
+class ServiceError(KittiEvalError):
+    """A service refused a request (:mod:`kitti_eval.client`): its status, error code and message, and the
+    details its error response added (``frame`` and ``field`` of an input error, for one)."""
+
+    def __init__(
+        self, message: str, *, status: int | None = None, code: str | None = None, details: dict | None = None
+    ) -> None:
+        super().__init__(message)
+        self.message = message
+        self.status = status
+        self.code = code
+        self.details = dict(details or {})
+
+    @property
+    def refused_input(self) -> bool:
+        """Whether the files sent were refused (unreadable, unsafe, breaking the rules), not the request."""
+        return self.code in _INPUT_CODES
+
+
+#: the error codes of the service's 422 that are about the files sent
+_INPUT_CODES = frozenset(
+    {"invalid_input", "unsafe_pickle", "invalid_archive", "unknown_format", "invalid_submission", "payload_too_large"}
+)
+
+
+class ServiceUnreachable(ServiceError):
+    """The service did not answer (or answered only that it is away: 502, 503, 504) within the client's retry
+    time."""
+
+
+class QuotaExceeded(ServiceError):
+    """A benchmark's quota is used; ``retry_at`` (ISO 8601, UTC) is when the next submission is accepted."""
+
+    @property
+    def retry_at(self) -> str | None:
+        value = self.details.get("retry_at")
+        return str(value) if value is not None else None
+
+
+class SubmissionRefused(ServiceError):
+    """A submission breaks the benchmark's rules; ``problems`` are the sentences ``kitti-eval validate`` prints
+    (found before sending it, or by the service)."""
+
+    def __init__(self, message: str, problems: list[str], **kw: object) -> None:
+        super().__init__(message, **kw)  # type: ignore[arg-type]
+        self.problems = list(problems)
+
+    @property
+    def refused_input(self) -> bool:
+        return True

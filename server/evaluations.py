@@ -25,9 +25,10 @@ from .catalog import GroundTruthCatalog
 from .errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, clip, echo
 from .evaluator import EvalOptions, evaluate_document, summarize
 from .ground_truths import GroundTruthCache
+from .idempotency import EVALUATIONS, Idempotency, RequestKey, fingerprint
 from .jobs import JobQueue
 from .policy import Caller, Policy
-from .store import EvaluationRecord, GroundTruthRecord, JobInput, JobRecord, Store, new_id
+from .store import EvaluationRecord, GroundTruthRecord, IdempotencyRecord, JobInput, JobRecord, KeyTaken, Store, new_id
 from .uploads import FileIn, Limits, load_upload, receive_content, stored_upload
 
 __all__ = ["Evaluations", "FileIn", "sealed_document", "MAX_INSPECTED"]
@@ -71,6 +72,7 @@ class Evaluations:
         jobs: JobQueue,
         *,
         keep_predictions: bool,
+        idempotency: Idempotency | None = None,
     ) -> None:
         self.store = store
         self.ground_truths = ground_truths
@@ -81,6 +83,7 @@ class Evaluations:
         self.scratch = scratch
         self.jobs = jobs
         self.keep_predictions = keep_predictions
+        self.idempotency = idempotency or Idempotency(store, jobs)
 
     def accept(
         self,
@@ -92,14 +95,16 @@ class Evaluations:
         caller: Caller,
         project: str | None = None,
         *,
-        enqueue: Callable[[str, dict[str, Any], list[JobInput]], JobRecord],
+        enqueue: Callable[[str, dict[str, Any], list[JobInput], IdempotencyRecord | None], JobRecord],
+        idempotency_key: str | None = None,
     ) -> JobRecord:
         """Check what can be checked before the evaluation (the options, the ground truth and the caller's right
         to it, the project), and enqueue the job with the uploaded files as its inputs (``enqueue(job_id,
         payload, inputs)``, one transaction; a worker runs it with :meth:`execute`). In accounts mode the
         evaluation belongs to ``project`` (default: the ground truth's, else the caller's only one), which must
         be the caller's. A benchmark's test set is refused to all but admins (whose evaluations against it are
-        audited)."""
+        audited). ``idempotency_key``: the request's (:mod:`kitti_eval_server.idempotency`): the job an earlier
+        request with the same key made is answered instead of a new one."""
         if (gt_name is None) == (gt_file is None):
             raise BadRequest(
                 "give the ground truth either by name (form field 'gt', e.g. 'demo'; GET "
@@ -124,8 +129,28 @@ class Evaluations:
             "labels": dict(labels),
             "project": project,
         }
+        key = None
+        if idempotency_key is not None:
+            key = RequestKey(
+                caller.name,
+                EVALUATIONS,
+                idempotency_key,
+                fingerprint(
+                    files=[(i.name, i.sha256) for i in inputs],
+                    gt=gt_name,
+                    options=payload["options"],
+                    labels=payload["labels"],
+                    project=project,
+                ),
+            )
+            if (earlier := self.idempotency.earlier(key)) is not None:
+                return earlier
         self.jobs.admit(caller.name if self.policy.accounts else None, sum(len(i.content) for i in inputs))
-        job = enqueue(job_id, payload, inputs)  # the job and its inputs: one transaction
+        try:  # the job, its inputs and its key: one transaction
+            job = enqueue(job_id, payload, inputs, None if key is None else self.idempotency.record(key, job_id))
+        except KeyTaken as e:  # a copy of this request was recorded first (nothing of this one is kept)
+            assert key is not None
+            return self.idempotency.taken(key, e)
         if gt_record is not None and self.policy.is_test_set(gt_record):
             self.audit.record(caller, "evaluation.test_set", f"{job_id} on {gt_record.name}")
         return job

@@ -38,7 +38,7 @@ from sqlalchemy.engine import Connection
 from sqlalchemy.exc import IntegrityError
 
 from .errors import QueueFull, TooManyQueued
-from .store import JobInput, JobRecord, Store, WorkerRecord, new_id
+from .store import IdempotencyRecord, JobInput, JobRecord, Store, WorkerRecord, new_id
 from .store.job_store import ENDED_STATES, JOB_STATES
 
 __all__ = ["JobQueue", "QueueLimits", "JobRecord", "WorkerRecord", "JOB_KINDS", "JOB_STATES", "ENDED_STATES", "now_utc"]
@@ -192,12 +192,18 @@ class JobQueue:
         group: str | None = None,
         job_id: str | None = None,
         inputs: builtins.list[JobInput] | None = None,
+        key: IdempotencyRecord | None = None,
     ) -> JobRecord:
         """Record a queued job (committed when this returns), with its uploaded ``inputs`` in the same
         transaction. ``job_id``: the id to give it (a new one when None); when a job already has it, that job
-        is returned as it is (enqueueing the same job again, as a retried request does, records it once)."""
+        is returned as it is (enqueueing the same job again, as a retried request does, records it once).
+        ``key``: the request's idempotency key, recorded in the same transaction (with ``inputs`` only);
+        :class:`~kitti_eval_server.store.KeyTaken`, and nothing recorded, when a request recorded it first."""
         record = self._new(kind, payload, owner, group, job_id, self._now())
-        added = self.store.add_job_with_inputs(record, inputs) if inputs else self.store.add_job(record)
+        if inputs:
+            added = self.store.add_job_with_inputs(record, inputs, key)
+        else:
+            added = self.store.add_job(record)
         if added:
             return record
         existing = self.store.get_job(record.id)

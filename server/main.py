@@ -26,6 +26,7 @@ from kitti_eval.core.matching import available_cpus
 
 from .auth import CALLER_KEY, AuthMiddleware, Door
 from .errors import ApiError, StartupRefused, install_error_handlers
+from .idempotency import parse_key
 from .middleware import (
     PART_MEMORY_BYTES,
     AdmissionMiddleware,
@@ -177,12 +178,13 @@ def _submission_refused(service: Service) -> BeforeBodyCheck:
     """A submission's refusal before its file: as the route's access would admit the caller (a writer), then
     :meth:`Submissions.refused_now <kitti_eval_server.benchmarks.submissions.Submissions.refused_now>`."""
 
-    def check(caller: Caller, params: dict[str, str], size: int) -> ApiError | None:
+    def check(caller: Caller, params: dict[str, str], size: int, key: str | None) -> ApiError | None:
         try:
             admitted = service.policy.admit(Access.WRITER, caller, method="POST", bearer=None, csrf=None)
+            idempotency_key = parse_key(key)
         except ApiError:
             return None  # the route refuses it, as always
-        return service.benchmarks.refused_now(params["name"], admitted, size)
+        return service.benchmarks.refused_now(params["name"], admitted, size, idempotency_key)
 
     return check
 

@@ -304,8 +304,8 @@ class BodyMiddleware:
 
 
 #: what a request would be refused with now, known before its body: (caller, path parameters, declared body
-#: size) -> the error, or None to let the request go on
-BeforeBodyCheck = Callable[[Any, dict[str, str], int], "ApiError | None"]
+#: size, its Idempotency-Key header) -> the error, or None to let the request go on
+BeforeBodyCheck = Callable[[Any, dict[str, str], int, "str | None"], "ApiError | None"]
 
 
 class RefuseBeforeBody:
@@ -361,7 +361,9 @@ class RefuseBeforeBody:
             found = pattern.match(scope.get("path", "")) if method == wanted else None
             if found is not None:
                 declared = _content_length(scope) or 0
-                return await anyio.to_thread.run_sync(check, caller, found.groupdict(), declared)
+                raw_key = _header(scope, b"idempotency-key")
+                key = raw_key.decode("latin-1") if raw_key is not None else None
+                return await anyio.to_thread.run_sync(check, caller, found.groupdict(), declared, key)
         return None
 
 

@@ -28,6 +28,7 @@ from .catalog import GroundTruthCatalog
 from .errors import StartupRefused
 from .evaluations import Evaluations, sealed_document
 from .ground_truths import GroundTruthCache, GroundTruths
+from .idempotency import Idempotency
 from .job_admin import JobAdmin
 from .jobs import JobQueue, JobRecord, QueueLimits
 from .observability import AdmissionState
@@ -35,7 +36,7 @@ from .policy import AuthMode, Policy
 from .runner import Runner, release_memory
 from .scratch import ScratchSpace
 from .settings import Settings
-from .store import JobInput, Store
+from .store import IdempotencyRecord, JobInput, Store
 from .uploads import FileIn, Limits, receive_upload
 from .worker_pool import WorkerPool
 from .workers import Workers, await_outcome
@@ -101,6 +102,8 @@ class Service:
                 retry_after_s=settings.retry_after_s,
             ),
         )
+        #: the requests' idempotency keys (evaluations and submissions)
+        self.idempotency = Idempotency(self.store, self.jobs, settings.idempotency_key_hours)
         self.evaluations = Evaluations(
             self.store,
             self.catalog,
@@ -111,6 +114,7 @@ class Service:
             self.runner.scratch,
             self.jobs,
             keep_predictions=settings.keep_predictions,
+            idempotency=self.idempotency,
         )
         self.warm = threading.Event()
         self.warmup_error: str | None = None
@@ -149,6 +153,7 @@ class Service:
             draining=self.draining.is_set,
             jobs=self.jobs,
             wake=lambda n: self.workers.wake(n),
+            idempotency=self.idempotency,
         )
 
     # -- lifecycle ---------------------------------------------------------------------------------------
@@ -214,11 +219,15 @@ class Service:
         record, write = self.evaluations.execute(job.id, job.payload)
         return record.id, write
 
-    def enqueue_evaluation(self, caller: Any) -> Callable[[str, dict[str, Any], list[JobInput]], JobRecord]:
+    def enqueue_evaluation(
+        self, caller: Any
+    ) -> Callable[[str, dict[str, Any], list[JobInput], IdempotencyRecord | None], JobRecord]:
         """How an accepted evaluation of ``caller``'s is queued (and the idle workers of this process woken)."""
 
-        def enqueue(job_id: str, payload: dict[str, Any], inputs: list[JobInput]) -> JobRecord:
-            job = self.jobs.enqueue("evaluation", payload, owner=caller.name, job_id=job_id, inputs=inputs)
+        def enqueue(
+            job_id: str, payload: dict[str, Any], inputs: list[JobInput], key: IdempotencyRecord | None
+        ) -> JobRecord:
+            job = self.jobs.enqueue("evaluation", payload, owner=caller.name, job_id=job_id, inputs=inputs, key=key)
             self.workers.wake()
             return job
 

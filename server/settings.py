@@ -118,6 +118,11 @@ class Settings(BaseSettings):
     """Request bodies received at the same time; past that the service answers 503 with Retry-After. Unset:
     64, or four times ``max_concurrent_evals`` when that is more."""
 
+    idempotency_key_hours: Annotated[float, Field(gt=0)] = 24.0
+    """How long an ``Idempotency-Key`` sent with an evaluation or a submission is kept: sent again within it, with
+    the same request, it is answered with the first request's job (the same id, no second record or quota count);
+    after it, the key is a new one."""
+
     admin_token: SecretStr | None = None
     """Bearer token for registering and deleting ground truths. Unset: one is generated on first start and
     kept in ``<data_dir>/admin-token`` (readable by the server's user only); replicas sharing a database must

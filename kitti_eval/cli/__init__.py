@@ -1,7 +1,7 @@
 """``kitti-eval``: the command line. Parses, loads, evaluates, prints; holds no evaluation logic.
 
-Exit codes: 0 success, 1 bad input (unreadable, unsafe or inconsistent files), 2 usage error,
-3 a gate rule failed (``kitti-eval gate``).
+Exit codes: 0 success, 1 bad input (unreadable, unsafe or inconsistent files), 2 usage error, 3 a gate rule
+failed (``gate``), 4 over a benchmark's quota (``submit``), 5 a service could not be reached (:mod:`.remote`).
 Data goes to stdout (or ``--output``); warnings and progress go to stderr.
 
 This module only builds the parser and dispatches. The main job (``--gt``/``--pred``, no command name) is
@@ -18,25 +18,32 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from ..errors import ConfigError, InputError, KittiEvalError
-from . import admin, compare, demo, describe, errors, evaluate, frames, gate, inspect, serve, validate, worker
+from ..errors import ConfigError, KittiEvalError, ServiceError
+from . import (
+    admin,
+    compare,
+    demo,
+    describe,
+    errors,
+    evaluate,
+    frames,
+    gate,
+    inspect,
+    login,
+    serve,
+    submit,
+    validate,
+    worker,
+)
 from .common import EXIT_INPUT, EXIT_USAGE, PROG, config, limits_from, say, say_defaults
+from .remote import report
 
 __all__ = ["main", "entry", "COMMANDS"]
 
 #: every command's ``add_parser(sub)``, in the order ``kitti-eval --help`` lists them
-COMMANDS: tuple[Callable[[Any], object], ...] = (
-    demo.add_parser,
-    gate.add_parser,
-    compare.add_parser,
-    frames.add_parser,
-    inspect.add_parser,
-    errors.add_parser,
-    describe.add_parser,
-    validate.add_parser,
-    serve.add_parser,
-    worker.add_parser,
-    admin.add_parser,
+COMMANDS: tuple[Callable[[Any], object], ...] = tuple(
+    cmd.add_parser
+    for cmd in (demo, gate, compare, frames, inspect, errors, describe, validate, submit, login, serve, worker, admin)
 )
 
 
@@ -45,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Exact KITTI 3D object detection evaluation (2D, BEV, 3D, AOS; R11 and R40) on a CPU.",
-        epilog="Exit codes: 0 ok, 1 bad input, 2 usage error, 3 a gate rule failed ('kitti-eval gate').",
+        epilog="Exit codes: 0 ok, 1 bad input, 2 usage error, 3 a gate rule failed, 4 over a quota, 5 no service.",
     )
     evaluate.add_arguments(p)
     sub = p.add_subparsers(dest="command", metavar="COMMAND", title="commands (each has its own --help)")
@@ -75,10 +82,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as e:
         say(f"error: {e}")
         return EXIT_USAGE
-    except InputError as e:
-        say(f"error: {e}")
-        return EXIT_INPUT
-    except KittiEvalError as e:
+    except ServiceError as e:
+        return report(e)
+    except KittiEvalError as e:  # InputError and the rest of the tree: bad input
         say(f"error: {e}")
         return EXIT_INPUT
     except OSError as e:

@@ -16,6 +16,8 @@ from ..report.render import OutputFormat
 
 PROG = "kitti-eval"
 EXIT_OK, EXIT_INPUT, EXIT_USAGE, EXIT_GATE = 0, 1, 2, 3
+#: a service's client (kitti-eval submit, --service): over a benchmark's quota; the service could not be reached
+EXIT_QUOTA, EXIT_UNREACHABLE = 4, 5
 
 
 def _iou_argument(text: str) -> str:

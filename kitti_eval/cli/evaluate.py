@@ -94,12 +94,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="save precision-recall curves as PNGs (per class and metric; with several --pred, one "
         "overlay per class of the moderate 3D curves); needs matplotlib",
     )
+    from .remote import add_service_arguments
+
+    add_service_arguments(p)
 
 
 def run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """The main job: one pair, many checkpoints, or a sharded set, as the options say."""
     if args.gt is None or not args.pred:
         parser.error("the following arguments are required: --gt, --pred (or a command)")
+    if args.service:
+        from .remote import run_evaluation
+
+        return run_evaluation(args)
     from ..analysis.batch import expand_predictions
 
     if args.sharded or args.cluster:

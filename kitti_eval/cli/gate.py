@@ -58,7 +58,19 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     )
     rules.add_argument("--rules", type=Path, help="rules from a TOML file (floor, max_drop, require_classes)")
     p.add_argument(
-        "--baseline", type=Path, help="the result to compare with: a JSON result, or predictions evaluated against --gt"
+        "--baseline",
+        type=Path,
+        help="the result to compare with: a JSON result, or predictions evaluated against --gt; with --service, "
+        "a stored evaluation's id (default: none)",
+    )
+    from .remote import add_service_arguments
+
+    add_service_arguments(p)
+    p.add_argument(
+        "--baseline-label",
+        metavar="KEY=VALUE",
+        help="with --service: the baseline is the newest evaluation with this label (branch=main) against the "
+        "same ground truth, from the service's history (default: none)",
     )
     sig = p.add_argument_group("significance")
     sig.add_argument(
@@ -91,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
         args.floors,
         args.max_drop,
         args.require_class,
-        baseline=bool(args.baseline),
+        baseline=bool(args.baseline or args.baseline_label),
         also=rules_from_toml(args.rules) if args.rules else None,
     )
     if args.result and (args.gt or args.pred):
@@ -100,7 +112,13 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("give the result to gate: --result R.json, or --gt and --pred")
 
     intervals = None
-    if args.sharded:
+    if args.service:
+        from .remote import run_gate as evaluated_there
+
+        current, baseline = evaluated_there(args, errors=rules.needs_errors)
+    elif args.baseline_label:
+        raise ConfigError("--baseline-label reads a service's history: add --service")
+    elif args.sharded:
         current, baseline, intervals = _sharded(args, rules.needs_errors)
     elif args.significant:
         if not (args.gt and args.pred and args.baseline) or args.baseline.suffix.lower() == ".json":

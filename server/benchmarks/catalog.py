@@ -17,6 +17,7 @@ from ..audit import Audit
 from ..errors import BadRequest, Conflict, NotFound, echo
 from ..evaluator import EvalOptions
 from ..ground_truths import GroundTruths
+from ..idempotency import Idempotency
 from ..jobs import JobQueue
 from ..policy import Caller, Policy
 from ..store import BenchmarkRecord, GroundTruthRecord, Store
@@ -45,9 +46,10 @@ class BenchmarkCatalog:
         draining: Callable[[], bool] = lambda: False,
         jobs: JobQueue | None = None,
         wake: Callable[[int], None] = lambda n: None,
+        idempotency: Idempotency | None = None,
     ) -> None:
         """``jobs``: the queue submissions' scorings and rescorings go through; ``wake(n)``: n jobs were queued
-        (idle workers of this process look at once)."""
+        (idle workers of this process look at once); ``idempotency``: the submissions' idempotency keys."""
         self.store = store
         self.ground_truths = ground_truths
         self.policy = policy
@@ -57,6 +59,7 @@ class BenchmarkCatalog:
         self.draining = draining
         self.jobs = jobs or JobQueue(store)
         self.wake = wake
+        self.idempotency = idempotency or Idempotency(store, self.jobs)
 
     # -- seeing -------------------------------------------------------------------------------------------
     def _get(self, name: str) -> Benchmark:

@@ -17,11 +17,13 @@ from kitti_eval.io.submission import SubmissionRules, validate_annotations, vali
 from ..errors import ApiError, ArchiveError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
 from ..evaluations import sealed_document
 from ..evaluator import evaluate_document, evaluate_document_resampled
+from ..idempotency import RequestKey, fingerprint, submissions_scope
 from ..jobs import JobRecord
 from ..policy import Caller
 from ..store import (
     GroundTruthRecord,
     JobInput,
+    KeyTaken,
     PublishRefused,
     QuotaRefused,
     ResampledKey,
@@ -164,11 +166,15 @@ class Submissions(Intervals):
         return self.jobs.counts(group=name, kind="rescore")
 
     # -- participants -------------------------------------------------------------------------------------
-    def submit(self, name: str, predictions: FileIn, caller: Caller) -> JobRecord:
+    def submit(
+        self, name: str, predictions: FileIn, caller: Caller, *, idempotency_key: str | None = None
+    ) -> JobRecord:
         """Count against the quota and accept (one transaction; the acceptance time is the submission's), keep
         the upload as the job's input and queue its scoring: the job, whose id is the submission's. Never waits
         for an evaluator, and reads nothing of the file: its scoring job checks it as ``kitti-eval validate``
-        does on the read it scores (see :meth:`score_job`)."""
+        does on the read it scores (see :meth:`score_job`). ``idempotency_key``: the request's
+        (:mod:`kitti_eval_server.idempotency`): the submission an earlier request with the same key and file made
+        is answered instead of a new one, counted once."""
         if self.draining():
             raise NotReady("the service is shutting down; submit again in a moment")
         if not self.policy.accounts:
@@ -176,13 +182,18 @@ class Submissions(Intervals):
         if not self.policy.is_participant(caller):
             raise Forbidden("a participant submits with their own token (kitti-eval admin token add USER)")
         bench = self.get(name, caller)
+        upload = receive_content(predictions.file, predictions.filename, "predictions")
+        key = None
+        if idempotency_key is not None:
+            key = RequestKey(caller.name, submissions_scope(name), idempotency_key, fingerprint(file=upload.sha256))
+            if (earlier := self.idempotency.earlier(key)) is not None:
+                return earlier  # accepted before (and counted then), whatever has changed since
         baseline = caller.is_admin  # an admin's submission is a baseline: under no quota, never ranked
         if baseline and bench.is_closed():
             raise Conflict(f"the benchmark {name!r} is closed: its board is frozen")
         if not baseline and not bench.is_open():
             raise Conflict(f"the benchmark {name!r} is not open for submissions")
         self._ground_truth_record(bench)  # registered, and sealed if it is to be
-        upload = receive_content(predictions.file, predictions.filename, "predictions")
         self.jobs.admit(caller.name, upload.size)
         count, days = bench.quota
         now = datetime.now(timezone.utc)
@@ -211,21 +222,32 @@ class Submissions(Intervals):
         try:
             limit = None if baseline else count
             self.store.accept_submission(
-                accepted, limit=limit, window_start=now - window, window=window, then=with_its_job
+                accepted,
+                limit=limit,
+                window_start=now - window,
+                window=window,
+                then=with_its_job,
+                key=None if key is None else self.idempotency.record(key, submission_id),
             )
         except QuotaRefused as e:
             raise QuotaExceeded.of(count, days, e.retry_at) from None
+        except KeyTaken as e:  # a copy of this request was accepted first: its submission, counted once
+            assert key is not None
+            return self.idempotency.taken(key, e)
         job = self.jobs.get(submission_id)
         assert job is not None
         self.wake(1)
         return job
 
-    def refused_now(self, name: str, caller: Caller, size: int) -> ApiError | None:
+    def refused_now(self, name: str, caller: Caller, size: int, idempotency_key: str | None = None) -> ApiError | None:
         """What a participant's submission of ``size`` bytes to ``name`` would be refused with now, found before
         its file is received: a used quota (429 ``quota_exceeded``) or a full queue (:meth:`JobQueue.admit
         <kitti_eval_server.jobs.JobQueue.admit>`). None when it may be accepted, or for any other answer: the
-        route decides those, and the transaction that accepts counts the quota again."""
+        route decides those, and the transaction that accepts counts the quota again. A request sent again with
+        an idempotency key already recorded is not refused here: the route answers it with its first job."""
         if not self.policy.accounts or caller.is_admin or not self.policy.is_participant(caller):
+            return None
+        if self.idempotency.known(caller.name, submissions_scope(name), idempotency_key):
             return None
         try:
             bench = self.get(name, caller)

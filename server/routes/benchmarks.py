@@ -6,12 +6,13 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 import anyio.to_thread
-from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Header, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, Field
 
 from ..benchmarks import DEFAULT_KEY, Benchmarks
 from ..deps import AdminCaller, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
 from ..policy import Caller
 from ..schemas import ErrorResponse
 from ..service import FileIn
@@ -175,7 +176,12 @@ def disqualify(name: str, submission_id: str, benchmarks: BenchmarksDep, caller:
     summary="Submit predictions on the test set",
     responses={
         202: {"description": "accepted (counted against the quota), not scored yet: the job to poll (Location)"},
-        422: {"model": ErrorResponse, "description": "the submission breaks the rules (not counted)"},
+        400: {"model": ErrorResponse, "description": "the Idempotency-Key is not 1-255 visible ASCII characters"},
+        422: {
+            "model": ErrorResponse,
+            "description": "the submission breaks the rules (not counted); an Idempotency-Key sent before with "
+            "another file (idempotency_key_reused)",
+        },
         429: {"model": ErrorResponse, "description": "the quota is used; see Retry-After"},
     },
 )
@@ -196,11 +202,16 @@ async def submit(
             "it is scored by then, else 202 with the job to poll (GET its Location); 0 answers at once",
         ),
     ] = None,
+    idempotency_key: Annotated[
+        str | None, Header(alias="Idempotency-Key", description=IDEMPOTENCY_DESCRIPTION, max_length=1000)
+    ] = None,
 ) -> JSONResponse:
     """Checked, counted against the quota and accepted at once (the acceptance time is the submission's); its
     scoring is a job, run by the next free worker."""
+    key = parse_key(idempotency_key)
     file = FileIn(predictions.file, predictions.filename)
-    job = await service.accept(lambda: benchmarks.submit(name, file, caller))  # refusals: 422 problems, 429 retry_at
+    # refusals: 422 problems, 429 retry_at
+    job = await service.accept(lambda: benchmarks.submit(name, file, caller, idempotency_key=key))
     ended = await service.outcome(job.id, wait)
     if ended.state != "done":
         return await still_pending(service.jobs, ended)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 import anyio.to_thread
-from fastapi import APIRouter, File, Form, Query, UploadFile
+from fastapi import APIRouter, File, Form, Header, Query, UploadFile
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 
 from kitti_eval.core.result import EvalResult
@@ -15,6 +15,7 @@ from ..compare import compare, render_comparison_markdown
 from ..deps import FormatDep, ReaderCaller, ServiceDep, WriterCaller
 from ..errors import BadRequest
 from ..evaluator import EvalOptions, parse_labels
+from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
 from ..schemas import (
     Comparison,
     ErrorResponse,
@@ -29,7 +30,11 @@ from .jobs import still_pending
 
 _errors: dict[int | str, dict[str, Any]] = {
     404: {"model": ErrorResponse, "description": "unknown evaluation or ground truth"},
-    422: {"model": ErrorResponse, "description": "invalid request, input (names frame and field) or unsafe pickle"},
+    422: {
+        "model": ErrorResponse,
+        "description": "invalid request, input (names frame and field) or unsafe pickle; an Idempotency-Key sent "
+        "before with another request (idempotency_key_reused)",
+    },
 }
 router = APIRouter(prefix="/v1/evaluations", tags=["evaluations"], responses=_errors)
 
@@ -56,6 +61,7 @@ def _respond(record: EvaluationRecord, fmt: OutputFormat, status: int = 200) -> 
     summary="Evaluate uploaded predictions",
     responses={
         201: {"content": _TEXT_RESPONSES, "description": "the evaluation, stored"},
+        400: {"model": ErrorResponse, "description": "the Idempotency-Key is not 1-255 visible ASCII characters"},
         408: {"model": ErrorResponse, "description": "the upload took longer than KITTI_EVAL_BODY_TIMEOUT_S to arrive"},
         413: {"model": ErrorResponse, "description": "the upload is larger than KITTI_EVAL_MAX_UPLOAD_MB"},
         503: {
@@ -120,9 +126,13 @@ async def create_evaluation(
             "when it is done by then, else 202 with the job to poll (GET its Location); 0 answers at once",
         ),
     ] = None,
+    idempotency_key: Annotated[
+        str | None, Header(alias="Idempotency-Key", description=IDEMPOTENCY_DESCRIPTION, max_length=1000)
+    ] = None,
 ) -> Response:
     """Evaluate `predictions` against a ground truth and store the result with the inputs' sha256 and the
     labels. The JSON is the document `kitti-eval --format json` prints, plus `id` and `evaluation`."""
+    key = parse_key(idempotency_key)
     labels = parse_labels({"model": model, "commit": commit, "epoch": epoch}, label or [])
     options = EvalOptions(
         protocol=protocol,
@@ -146,6 +156,7 @@ async def create_evaluation(
             caller,
             project or None,
             enqueue=service.enqueue_evaluation(caller),
+            idempotency_key=key,
         )
     )
     ended = await service.outcome(job.id, wait)

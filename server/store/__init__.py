@@ -1,10 +1,10 @@
 """The database, by area: :mod:`.database` holds what they share (the tables, the engine, the schema, the
 retry of a call that found SQLite locked); :mod:`.ground_truth_store`, :mod:`.evaluation_store`,
-:mod:`.account_store`, :mod:`.benchmark_store`, :mod:`.job_store`, :mod:`.job_input_store` and :mod:`.worker_store`
-each define an area's records (frozen dataclasses) and a class of its reads and writes. :class:`Store` is all of
-them over one :class:`Database`, as the
-service and the command line use it. (The modules are named after their classes, not their tables: a submodule named
-``ground_truths`` would replace the table of that name among the package's attributes when imported.)
+:mod:`.account_store`, :mod:`.benchmark_store`, :mod:`.job_store`, :mod:`.job_input_store`, :mod:`.worker_store`
+and :mod:`.idempotency_store` each define an area's records (frozen dataclasses) and a class of its reads and
+writes. :class:`Store` is all of them over one :class:`Database`, as the service and the command line use it.
+(The modules are named after their classes, not their tables: a submodule named ``ground_truths`` would replace
+the table of that name among the package's attributes when imported.)
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from .database import (
 )
 from .evaluation_store import EvaluationRecord, EvaluationStore
 from .ground_truth_store import GroundTruthRecord, GroundTruthStore
+from .idempotency_store import IdempotencyRecord, IdempotencyStore, KeyTaken
 from .job_input_store import JobInput, JobInputStore
 from .job_store import JobRecord, JobStore
 from .worker_store import WorkerRecord, WorkerStore
@@ -56,6 +57,9 @@ __all__ = [
     "BenchmarkStore",
     "JobStore",
     "WorkerStore",
+    "IdempotencyStore",
+    "IdempotencyRecord",
+    "KeyTaken",
     "GroundTruthRecord",
     "EvaluationRecord",
     "UserRecord",
@@ -89,7 +93,16 @@ __all__ = [
 ]
 
 
-class Store(GroundTruthStore, EvaluationStore, AccountStore, BenchmarkStore, JobStore, JobInputStore, WorkerStore):
+class Store(
+    GroundTruthStore,
+    EvaluationStore,
+    AccountStore,
+    BenchmarkStore,
+    JobStore,
+    JobInputStore,
+    WorkerStore,
+    IdempotencyStore,
+):
     """Every area of the database on one :class:`Database` (SQLite or PostgreSQL)."""
 
     def __init__(self, url: str, *, busy_s: float = 10.0) -> None:
@@ -101,10 +114,15 @@ class Store(GroundTruthStore, EvaluationStore, AccountStore, BenchmarkStore, Job
         return self.db.busy_s
 
     @retry_when_locked
-    def add_job_with_inputs(self, record: JobRecord, inputs: list[JobInput]) -> bool:
+    def add_job_with_inputs(
+        self, record: JobRecord, inputs: list[JobInput], key: IdempotencyRecord | None = None
+    ) -> bool:
         """The job and its uploaded files in one transaction (one commit: a job is never without its input);
-        False, and nothing added, when the job's id is taken."""
+        False, and nothing added, when the job's id is taken. ``key``: the request's idempotency key, recorded in
+        the same transaction (:class:`KeyTaken` when another request recorded it first: nothing is added)."""
         with self._writing() as conn:
+            if key is not None:
+                self.add_idempotency_key_in(conn, key)
             if not self.add_job_in(conn, record):
                 return False
             self.add_job_inputs_in(conn, record.id, inputs)

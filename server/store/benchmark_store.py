@@ -21,6 +21,7 @@ from .database import (
     submissions,
     utc,
 )
+from .idempotency_store import IdempotencyRecord, IdempotencyStore
 
 __all__ = ["BenchmarkRecord", "SubmissionRecord", "ResampledKey", "QuotaRefused", "PublishRefused", "BenchmarkStore"]
 
@@ -178,21 +179,28 @@ class BenchmarkStore(Area):
         window_start: datetime,
         window: timedelta,
         then: Callable[[Connection], object] | None = None,
+        key: IdempotencyRecord | None = None,
     ) -> None:
         """Insert the submission if its participant has fewer than ``limit`` submissions in this benchmark
         since ``window_start``; else raise :class:`QuotaRefused` (``limit`` None: an admin's baseline, inserted
         uncounted). Counting and inserting are one transaction
         holding the (benchmark, participant) pair's lock, so concurrent submissions, from any number of
         servers on the database, are counted one after another and none is admitted over the limit. ``then``
-        writes what goes with the submission in the same transaction."""
+        writes what goes with the submission in the same transaction. ``key``: the request's idempotency key,
+        recorded first (:class:`KeyTaken`, nothing written, when a copy of the request recorded it: the copy is
+        not counted again)."""
         count_query = _quota_count(record.benchmark, record.participant, window_start)
         if limit is None:
             with self.engine.begin() as conn:
+                if key is not None:
+                    IdempotencyStore.add_idempotency_key_in(conn, key)
                 conn.execute(insert(submissions).values(**record.__dict__))
                 if then is not None:
                     then(conn)
             return
         with self._holding(record.benchmark, record.participant) as conn:
+            if key is not None:
+                IdempotencyStore.add_idempotency_key_in(conn, key)
             used, oldest = conn.execute(count_query).one()
             if used >= limit:
                 raise QuotaRefused(utc(oldest) + window, used)

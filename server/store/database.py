@@ -74,6 +74,7 @@ __all__ = [
     "jobs",
     "job_inputs",
     "job_workers",
+    "idempotency_keys",
 ]
 
 metadata = MetaData()
@@ -323,6 +324,24 @@ job_workers = Table(
     Column("started_at", DateTime(timezone=True), nullable=False),
     Column("seen_at", DateTime(timezone=True), nullable=False),
     Index("ix_job_workers_seen", "seen_at"),
+)
+
+
+#: the Idempotency-Key of a request that made a job (an evaluation, a submission): the same caller sending the
+#: same key to the same place again gets that job back instead of a second one, while the key has not expired.
+#: ``fingerprint`` is the sha256 of what the request sent (its files and fields), so that a key sent again with
+#: another request is refused; written in the transaction that records the job
+idempotency_keys = Table(
+    "idempotency_keys",
+    metadata,
+    Column("owner", String(64), primary_key=True),  # the caller's name
+    Column("scope", String(128), primary_key=True),  # where it was sent: "POST /v1/evaluations", ...
+    Column("key", String(255), primary_key=True),
+    Column("fingerprint", String(64), nullable=False),
+    Column("job_id", String(32), nullable=False),
+    Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("expires_at", DateTime(timezone=True), nullable=False),
+    Index("ix_idempotency_keys_expires", "expires_at"),
 )
 
 

@@ -26,6 +26,7 @@ from kitti_eval.errors import KittiEvalError
 from ..benchmarks import Benchmarks, InvalidSubmission, render_markdown
 from ..deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..errors import ApiError, BadRequest, NotFound, clip, fault_of
+from ..idempotency import FORM_FIELD, new_form_key, parse_key
 from ..policy import Caller
 from ..service import FileIn, Service
 from ..workers import JobFailed
@@ -167,6 +168,7 @@ def _benchmark_context(
         "next_slot": full_time(mine["quota"]["next_at"]) if mine and mine["quota"]["next_at"] else None,
         "accounts": service.policy.accounts,
         "max_upload_bytes": service.settings.max_upload_bytes,
+        "idempotency_key": new_form_key(),
         "problems": None,
         "error": None,
     }
@@ -207,7 +209,9 @@ async def submit_form(request: Request, service: ServiceDep, caller: WriterCalle
             if not isinstance(predictions, UploadFile) or not predictions.filename:
                 raise BadRequest("choose a predictions file (a zip or tar of KITTI result txt files, or a result.pkl)")
             file = FileIn(predictions.file, predictions.filename)
-            job = await service.accept(lambda: benchmarks.submit(name, file, caller))
+            key = form.get(FORM_FIELD)
+            key = parse_key(key) if isinstance(key, str) and key else None  # the form's: sent again, one submission
+            job = await service.accept(lambda: benchmarks.submit(name, file, caller, idempotency_key=key))
         try:
             await service.outcome(job.id, FORM_WAIT_S)  # the file's check runs in its job: a refusal shows here
         except JobFailed:

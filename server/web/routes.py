@@ -44,6 +44,7 @@ from ..errors import (
     library_error_status,
 )
 from ..evaluator import ERRORS_SET, EvalOptions, parse_labels
+from ..idempotency import FORM_FIELD, new_form_key, parse_key
 from ..jobs import JobRecord
 from ..policy import Caller
 from ..routes.frames import MAX_SCORE
@@ -262,6 +263,7 @@ def _home(
         history=_history(service, caller),
         summary_classes=_SUMMARY_CLASSES,
         max_upload_bytes=service.settings.max_upload_bytes,
+        idempotency_key=new_form_key(),
     )
 
 
@@ -293,6 +295,7 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
                 protocol=values.get("protocol", "official"), curves=True, errors=values.get("errors") == "true"
             )
             upload = FileIn(predictions.file, predictions.filename)
+            key = parse_key(values.get(FORM_FIELD) or None)  # the form's own: sent again, one evaluation
             job = await service.accept(
                 lambda: service.evaluations.accept(
                     upload,
@@ -303,6 +306,7 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
                     caller,
                     values.get("project") or None,
                     enqueue=service.enqueue_evaluation(caller),
+                    idempotency_key=key,
                 )
             )
         await service.outcome(job.id, min(service.settings.wait_s, FORM_WAIT_S))  # else its page follows it

@@ -23,6 +23,8 @@ COMMAND_NAMES = [
     "errors",
     "describe",
     "validate",
+    "submit",
+    "login",
     "serve",
     "worker",
     "admin",
@@ -43,7 +45,8 @@ def test_every_command_is_a_module_holding_its_parser_and_its_handler() -> None:
         assert module.add_parser in cli.COMMANDS
         if name != "serve":  # serve's arguments go to the service's own parser, unparsed
             assert parser.get_default("run") is module.run
-    assert {p.stem for p in CLI.glob("*.py")} == {*COMMAND_NAMES, "__init__", "__main__", "common", "evaluate"}
+    shared = {"__init__", "__main__", "common", "evaluate", "remote"}  # remote: what the client commands share
+    assert {p.stem for p in CLI.glob("*.py")} == {*COMMAND_NAMES, *shared}
 
 
 def test_the_entry_module_only_builds_and_dispatches() -> None:

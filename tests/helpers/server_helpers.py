@@ -161,6 +161,7 @@ class LiveServer:
         via_serve: bool = False,
         python: Path | None = None,
         environ: dict[str, str] | None = None,
+        ready_path: str = "/readyz",
         **settings: Any,
     ) -> None:
         self.data_dir = data_dir
@@ -168,6 +169,8 @@ class LiveServer:
         # another installation's interpreter (then run outside the checkout), and variables of its own
         self.python = python
         self.environ = environ or {}
+        #: what says the server is up: /readyz, or /healthz for one that is never ready (no worker of its own)
+        self.ready_path = ready_path
         self.settings = {"admin_token": ADMIN_TOKEN, **settings}
         self.port = 0
         self.proc: subprocess.Popen[bytes] | None = None
@@ -177,8 +180,9 @@ class LiveServer:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def start(self, timeout: float = READY_TIMEOUT_S) -> LiveServer:
-        self.port = free_port()
+    def start(self, timeout: float = READY_TIMEOUT_S, *, port: int | None = None) -> LiveServer:
+        """Starts it on ``port`` (default: a free one) and waits until it says it is up."""
+        self.port = port or free_port()
         env = {k: v for k, v in os.environ.items() if not k.startswith("KITTI_EVAL_")}
         env.update(self.environ)
         env["KITTI_EVAL_DATA_DIR"] = str(self.data_dir)
@@ -204,7 +208,7 @@ class LiveServer:
                 if self.proc.poll() is not None:
                     raise RuntimeError(f"uvicorn exited with {self.proc.returncode}:\n{self.log()}")
                 try:
-                    if client.get("/readyz").status_code == 200:
+                    if client.get(self.ready_path).status_code == 200:
                         return self
                 except httpx.TransportError:
                     pass
