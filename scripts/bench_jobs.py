@@ -236,6 +236,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--processes", type=int, default=2, help="worker processes of the third configuration")
     p.add_argument("--kind", choices=["uploads", "submissions", "both"], default="both")
     p.add_argument("--skip-threads", action="store_true", help="leave out the two-threads configuration")
+    p.add_argument("--skip-workers", action="store_true", help="leave out the kitti-eval worker configuration")
     args = p.parse_args(argv)
     gt, pred = generated(args.dets_per_frame)
     print(f"{os.cpu_count()} cores; {len(pred) / 1e6:.1f} MB result.pkl, 3769 frames")
@@ -249,8 +250,9 @@ def main(argv: list[str] | None = None) -> int:
         if not args.skip_threads:
             label = "2 worker threads, no process"
             _run(label, kind, threads, gt, pred, args.uploads, args.clients, library=library)
-        label = f"{args.processes} kitti-eval worker procs"
-        _run(label, kind, none, gt, pred, args.uploads, args.clients, workers=args.processes, library=library)
+        if not args.skip_workers:
+            label = f"{args.processes} kitti-eval worker procs"
+            _run(label, kind, none, gt, pred, args.uploads, args.clients, workers=args.processes, library=library)
     return 0
 
 
