@@ -10,8 +10,9 @@ own rate measured in the same run.
 * acceptance: how long ``POST /v1/evaluations?wait=0`` takes to answer 202 while the workers are busy (median
   and 95th percentile): accepting never waits for a free evaluator;
 * the in-process rate: one process a CPU, each with the ground truth loaded, loading the same result.pkl from
-  disk and evaluating it again and again (what the library does for an upload); each service figure is also
-  given as a share of it.
+  disk and evaluating it again and again (what the library does for an upload), measured just before and just
+  after each configuration (the machine's other load varies); each service figure is also given as a share of
+  their mean.
 
 ``python scripts/bench_jobs.py [--uploads 40] [--clients 4] [--processes 2] [--kind uploads|submissions|both]
 [--dets-per-frame 40.1]`` (``--dets-per-frame 10``: the 6.6 MB file of earlier figures).
@@ -166,7 +167,7 @@ def _run(
     clients: int,
     *,
     workers: int = 0,
-    library: float | None = None,
+    library: Callable[[], float] | None = None,
 ) -> None:
     """``kind``: uploads (``POST /v1/evaluations``) or benchmark submissions, ``uploads`` of them from ``clients``
     clients at once; ``workers``: a ``kitti-eval worker --processes N`` beside the service, on its SQLite
@@ -174,6 +175,7 @@ def _run(
     running is); then the clock runs from the first request to the last job done (the jobs' counts, one request
     every 0.1 s)."""
     env = {**env, "KITTI_EVAL_AUTH": "accounts" if kind == "submissions" else "open"}
+    before = library() if library else None  # the library's rate just before and just after: others' load varies
     with tempfile.TemporaryDirectory() as tmp:
         port = _free_port()
         data = Path(tmp) / "data"
@@ -221,7 +223,11 @@ def _run(
             for w in worker:
                 _stop(w)
     p95 = latencies[max(0, int(round(0.95 * len(latencies))) - 1)]
-    share = f" ({uploads / wall / library:.2f}x in-process)" if library else ""
+    share = ""
+    if library and before:
+        after = library()
+        rate = (before + after) / 2
+        share = f" ({uploads / wall / rate:.2f}x in-process: {before:.2f} before, {after:.2f} after)"
     print(
         f"{label:<28} {kind:<11} {uploads} in {wall:5.1f} s: {uploads / wall:4.2f} a second{share}; "
         f"acceptance median {statistics.median(latencies) * 1000:5.0f} ms, p95 {p95 * 1000:5.0f} ms"
@@ -240,8 +246,10 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     gt, pred = generated(args.dets_per_frame)
     print(f"{os.cpu_count()} cores; {len(pred) / 1e6:.1f} MB result.pkl, 3769 frames")
-    library = in_process_rate(gt, pred)
-    print(f"{'in-process (the library)':<28} {library:4.2f} evaluations a second (load + evaluate, a process a CPU)")
+
+    def library() -> float:
+        return in_process_rate(gt, pred, seconds=15)
+
     kinds = ["uploads", "submissions"] if args.kind == "both" else [args.kind]
     threads = {"KITTI_EVAL_WORKER_PROCESSES": "0", "KITTI_EVAL_JOB_THREADS": "2"}
     none = {"KITTI_EVAL_WORKER_PROCESSES": "0", "KITTI_EVAL_JOB_THREADS": "0"}
