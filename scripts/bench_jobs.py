@@ -1,14 +1,22 @@
 """Evaluations as jobs, measured on this machine: a real ``kitti-eval serve`` on a KITTI-val-sized generated set
-(3769 frames), uploads from several clients at once.
+(3769 frames; a 22 MB result.pkl of about 151,000 detections, as a real detector's above OpenPCDet's 0.1 score
+threshold, like the golden ``kitti_val_scale`` case), uploads from several clients at once, beside the library's
+own rate measured in the same run.
 
 * throughput: evaluations finished per second, from the first acceptance to the last result, of uploads
   (``POST /v1/evaluations``) and of benchmark submissions (accounts mode, a participant a client), for the default
   ``kitti-eval serve`` (a worker process of its own a CPU), for one whose web process runs the jobs on two
   threads, and for one with no worker of its own beside ``kitti-eval worker --processes N`` (``--processes``);
 * acceptance: how long ``POST /v1/evaluations?wait=0`` takes to answer 202 while the workers are busy (median
-  and 95th percentile): accepting never waits for a free evaluator.
+  and 95th percentile): accepting never waits for a free evaluator;
+* the in-process rate: one process a CPU, each with the ground truth loaded, loading the same result.pkl from
+  disk and evaluating it again and again (what the library does for an upload), measured just before and just
+  after each configuration (the machine's other load varies); each service figure is also given as a share of
+  their mean, and the CPU the service's processes used an upload beside the library's CPU an evaluation (a
+  figure others' load changes far less than the rates).
 
-``python scripts/bench_jobs.py [--uploads 40] [--clients 8] [--processes 2] [--kind uploads|submissions|both]``.
+``python scripts/bench_jobs.py [--uploads 40] [--clients 4] [--processes 2] [--kind uploads|submissions|both]
+[--dets-per-frame 40.1]`` (``--dets-per-frame 10``: the 6.6 MB file of earlier figures).
 Prints the figures; exits 0.
 Everything runs on loopback in a temporary folder and stops by itself.
 """
@@ -33,6 +41,66 @@ import httpx
 from kitti_eval.synth import generate
 
 ADMIN = "bench-admin-token"
+
+
+def generated(dets_per_frame: float) -> tuple[bytes, bytes]:
+    """The ground truth (infos) and result pickles of the generated 3769-frame set."""
+    infos, results = generate(3769, seed=0, dets_per_frame=dets_per_frame)
+    return pickle.dumps(infos, protocol=4), pickle.dumps(results, protocol=4)
+
+
+def _library_evaluations(gt_path: str, pred_path: str, seconds: float) -> tuple[int, float, float]:
+    """In one process: the ground truth loaded once (and the kernels warmed by a first evaluation), then the
+    result.pkl loaded and evaluated again and again for ``seconds``: (evaluations, seconds taken, CPU seconds)."""
+    from kitti_eval import evaluate, load_detections, load_ground_truth
+
+    gt = load_ground_truth(gt_path)
+    evaluate(gt, load_detections(pred_path))
+    count, started, cpu = 0, time.perf_counter(), time.process_time()
+    while time.perf_counter() - started < seconds:
+        evaluate(gt, load_detections(pred_path))
+        count += 1
+    return count, time.perf_counter() - started, time.process_time() - cpu
+
+
+def in_process(gt: bytes, pred: bytes, seconds: float = 20.0) -> tuple[float, float]:
+    """The library itself, one process a CPU, each loading and evaluating the file: (evaluations a second, CPU
+    seconds an evaluation)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    cpus = os.cpu_count() or 1
+    with tempfile.TemporaryDirectory() as tmp:
+        gt_path, pred_path = Path(tmp) / "kitti_infos_val.pkl", Path(tmp) / "result.pkl"
+        gt_path.write_bytes(gt)
+        pred_path.write_bytes(pred)
+        with ProcessPoolExecutor(cpus) as pool:
+            runs = list(
+                pool.map(_library_evaluations, [str(gt_path)] * cpus, [str(pred_path)] * cpus, [seconds] * cpus)
+            )
+    return sum(n / took for n, took, _ in runs), sum(cpu for _, _, cpu in runs) / max(1, sum(n for n, _, _ in runs))
+
+
+def in_process_rate(gt: bytes, pred: bytes, seconds: float = 20.0) -> float:
+    """Evaluations a second of the library itself, one process a CPU (each loading and evaluating the file)."""
+    return in_process(gt, pred, seconds)[0]
+
+
+def _cpu_of(pids: list[int]) -> float | None:
+    """CPU seconds used so far by the processes and all their descendants (Linux's /proc; None elsewhere)."""
+    total, seen, todo = 0.0, set(), list(pids)
+    try:
+        while todo:
+            pid = todo.pop()
+            if pid in seen:
+                continue
+            seen.add(pid)
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+            for children in Path(f"/proc/{pid}/task").glob("*/children"):
+                todo += [int(c) for c in children.read_text().split()]
+    except (OSError, ValueError, IndexError):
+        return None
+    return total
 
 
 def _free_port() -> int:
@@ -124,13 +192,16 @@ def _run(
     clients: int,
     *,
     workers: int = 0,
+    library: Callable[[], tuple[float, float]] | None = None,
 ) -> None:
     """``kind``: uploads (``POST /v1/evaluations``) or benchmark submissions, ``uploads`` of them from ``clients``
     clients at once; ``workers``: a ``kitti-eval worker --processes N`` beside the service, on its SQLite
     database. An evaluation for each worker process first, sent at once, to warm them (as a service that has been
     running is); then the clock runs from the first request to the last job done (the jobs' counts, one request
-    every 0.1 s)."""
+    every 0.25 s), and the CPU the service's processes use meanwhile is counted (the web process, its worker
+    processes, ``kitti-eval worker``)."""
     env = {**env, "KITTI_EVAL_AUTH": "accounts" if kind == "submissions" else "open"}
+    before = library() if library else None  # the library's rate just before and just after: others' load varies
     with tempfile.TemporaryDirectory() as tmp:
         port = _free_port()
         data = Path(tmp) / "data"
@@ -159,6 +230,7 @@ def _run(
                     _send(c, request, headers[i % clients]).raise_for_status()
                 while done() < warm:
                     time.sleep(0.1)
+                cpu_before = _cpu_of([proc.pid, *(w.pid for w in worker)])
 
                 def accept(i: int) -> float:
                     with httpx.Client(base_url=base, timeout=600) as own:
@@ -171,39 +243,58 @@ def _run(
                 with ThreadPoolExecutor(clients) as pool:
                     latencies = sorted(pool.map(accept, range(uploads)))
                 while done() < uploads + warm:
-                    time.sleep(0.1)
+                    time.sleep(0.25)
                 wall = time.perf_counter() - started
+                cpu_after = _cpu_of([proc.pid, *(w.pid for w in worker)])
         finally:
             _stop(proc)
             for w in worker:
                 _stop(w)
     p95 = latencies[max(0, int(round(0.95 * len(latencies))) - 1)]
+    share = cpu = ""
+    if library and before:
+        after = library()
+        rate = (before[0] + after[0]) / 2
+        share = f" ({uploads / wall / rate:.2f}x in-process: {before[0]:.2f} before, {after[0]:.2f} after)"
+        if cpu_before is not None and cpu_after is not None:
+            service_cpu, library_cpu = (cpu_after - cpu_before) / uploads, (before[1] + after[1]) / 2
+            cpu = (
+                f"; CPU an upload {service_cpu * 1000:.0f} ms, the library's {library_cpu * 1000:.0f} ms "
+                f"({library_cpu / service_cpu:.2f}x)"
+            )
     print(
-        f"{label:<28} {kind:<11} {uploads} in {wall:5.1f} s: {uploads / wall:4.2f} a second; "
-        f"acceptance median {statistics.median(latencies) * 1000:5.0f} ms, p95 {p95 * 1000:5.0f} ms"
+        f"{label:<28} {kind:<11} {uploads} in {wall:5.1f} s: {uploads / wall:4.2f} a second{share}; "
+        f"acceptance median {statistics.median(latencies) * 1000:5.0f} ms, p95 {p95 * 1000:5.0f} ms{cpu}"
     )
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--uploads", type=int, default=40)
-    p.add_argument("--clients", type=int, default=8)
+    p.add_argument("--clients", type=int, default=4)
+    p.add_argument("--dets-per-frame", type=float, default=40.1, help="10: the 6.6 MB result.pkl of earlier runs")
     p.add_argument("--processes", type=int, default=2, help="worker processes of the third configuration")
     p.add_argument("--kind", choices=["uploads", "submissions", "both"], default="both")
     p.add_argument("--skip-threads", action="store_true", help="leave out the two-threads configuration")
+    p.add_argument("--skip-workers", action="store_true", help="leave out the kitti-eval worker configuration")
     args = p.parse_args(argv)
-    infos, results = generate(3769, seed=0)
-    gt, pred = pickle.dumps(infos, protocol=4), pickle.dumps(results, protocol=4)
+    gt, pred = generated(args.dets_per_frame)
     print(f"{os.cpu_count()} cores; {len(pred) / 1e6:.1f} MB result.pkl, 3769 frames")
+
+    def library() -> tuple[float, float]:
+        return in_process(gt, pred, seconds=15)
+
     kinds = ["uploads", "submissions"] if args.kind == "both" else [args.kind]
     threads = {"KITTI_EVAL_WORKER_PROCESSES": "0", "KITTI_EVAL_JOB_THREADS": "2"}
     none = {"KITTI_EVAL_WORKER_PROCESSES": "0", "KITTI_EVAL_JOB_THREADS": "0"}
     for kind in kinds:
-        _run("kitti-eval serve (default)", kind, {}, gt, pred, args.uploads, args.clients)
+        _run("kitti-eval serve (default)", kind, {}, gt, pred, args.uploads, args.clients, library=library)
         if not args.skip_threads:
-            _run("2 worker threads, no process", kind, threads, gt, pred, args.uploads, args.clients)
-        label = f"{args.processes} kitti-eval worker procs"
-        _run(label, kind, none, gt, pred, args.uploads, args.clients, workers=args.processes)
+            label = "2 worker threads, no process"
+            _run(label, kind, threads, gt, pred, args.uploads, args.clients, library=library)
+        if not args.skip_workers:
+            label = f"{args.processes} kitti-eval worker procs"
+            _run(label, kind, none, gt, pred, args.uploads, args.clients, workers=args.processes, library=library)
     return 0
 
 

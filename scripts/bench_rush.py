@@ -1,22 +1,24 @@
-"""A deadline rush on a hosted benchmark, measured on this machine: 200 submissions from 50 participants sent
-within 10 seconds to a benchmark with a quota of 3 a day, on a KITTI-val-sized sealed test set (3769 frames).
-Each submission is sent at a planned moment, one in each twentieth of a second taken in a random order, whether
-or not the earlier ones have been answered (an open loop: a slow service does not slow the senders down, so
-its delays are all counted). What it checks and prints:
+"""A deadline rush on a hosted benchmark, measured on this machine: 200 submissions from 50 participants sent at
+the same moment to a benchmark with a quota of 3 a day, on a KITTI-val-sized sealed test set (3769 frames; a
+22 MB result.pkl of about 151,000 detections, as a real detector's). With ``--spread S`` each submission is sent
+at a planned moment within S seconds instead, one in each S/200 taken in a random order; either way whether or
+not the earlier ones have been answered (an open loop: a slow service does not slow the senders down, so its
+delays are all counted). What it checks and prints:
 
 * every answer is 202 (accepted, ``?wait=0``) or 429 (the quota): exactly 150 and 50, and no 503;
-* how long acceptance took to answer, from the planned moment (median, 95th percentile: the target is 2 s);
+* how long acceptance took to answer, from the planned moment (median, 95th percentile; spread over a window,
+  the target is 2 s);
 * that all 150 accepted are scored, none lost and none twice (one scored submission and one finished job
-  each, no job attempted more than once), and how long the scoring of them all took (evaluations a second).
+  each, no job attempted more than once), and how long the scoring of them all took (evaluations a second),
+  beside the library's own rate measured in the same run (``bench_jobs.in_process_rate``).
 
 Two configurations: the default ``kitti-eval serve`` on SQLite (its own workers), and, with ``--postgres``,
 3 replicas of ``kitti-eval serve`` without workers of their own and 2 ``kitti-eval worker`` processes on a
 throwaway PostgreSQL cluster (Debian's ``postgresql`` binaries), the participants' requests spread over the
 replicas.
 
-``python scripts/bench_rush.py [--participants 50] [--each 4] [--window 10] [--postgres]`` (``--window 0``: all
-at once). Prints the figures; exits 1 when
-a check fails. Everything runs on loopback in temporary folders and stops by itself.
+``python scripts/bench_rush.py [--participants 50] [--each 4] [--spread 0] [--postgres] [--dets-per-frame 40.1]``.
+Prints the figures; exits 1 when a check fails. Everything runs on loopback in temporary folders and stops by itself.
 """
 
 from __future__ import annotations
@@ -24,7 +26,6 @@ from __future__ import annotations
 import argparse
 import glob
 import os
-import pickle
 import pwd
 import random
 import shutil
@@ -40,9 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-from bench_jobs import _encode, _free_port, _stop  # this folder's: the same port, stop and encoding
-
-from kitti_eval.synth import generate
+from bench_jobs import _encode, _free_port, _stop, generated, in_process_rate  # this folder's
 
 ADMIN = "bench-admin-token"
 QUOTA = 3
@@ -203,7 +202,16 @@ def _jobs(url: str) -> list[dict[str, Any]]:
                 return out
 
 
-def _run(label: str, urls: list[str], gt: bytes, pred: bytes, participants: int, each: int, window_s: float) -> bool:
+def _run(
+    label: str,
+    urls: list[str],
+    gt: bytes,
+    pred: bytes,
+    participants: int,
+    each: int,
+    window_s: float,
+    library: float,
+) -> bool:
     tokens = _host(urls[0], gt, participants)
     for url in urls:
         _ready(url)
@@ -219,13 +227,12 @@ def _run(label: str, urls: list[str], gt: bytes, pred: bytes, participants: int,
     jobs = [j for j in _jobs(urls[0]) if j["kind"] == "submission"]
     attempts = Counter(j["attempts"] for j in jobs)
     per_user = Counter(r["participant"] for r in rows)
-    checks = {
+    checks: dict[str, bool] = {
         f"{participants * QUOTA} accepted, {participants * (each - QUOTA)} refused 429, no 503": (
             statuses[202] == participants * QUOTA
             and statuses[429] == participants * (each - QUOTA)
             and sum(statuses.values()) == participants * each
         ),
-        "acceptance answered within 2 s at the 95th percentile": p95 <= 2.0,
         "every accepted one scored, each once": (
             len(scored) == len(accepted) == len(rows)
             and {r["id"] for r in scored} == set(accepted)
@@ -236,15 +243,19 @@ def _run(label: str, urls: list[str], gt: bytes, pred: bytes, participants: int,
             len(jobs) == len(accepted) and all(j["state"] == "done" for j in jobs) and set(attempts) <= {1}
         ),
     }
+    if window_s:  # spread over a window, the acceptance is answered within 2 s (all at once: printed only)
+        checks["acceptance answered within 2 s at the 95th percentile"] = p95 <= 2.0
     print(f"\n{label}")
-    print(f"  {len(answers)} submissions sent within {window_s:g} s: {dict(sorted(statuses.items()))}")
+    when = f"within {window_s:g} s" if window_s else "at the same moment"
+    print(f"  {len(answers)} submissions sent {when}: {dict(sorted(statuses.items()))}")
     print(
         f"  acceptance, from the planned moment: median {statistics.median(latencies) * 1000:.0f} ms, "
         f"p95 {p95 * 1000:.0f} ms, max {latencies[-1] * 1000:.0f} ms"
     )
     print(
         f"  {len(scored)} scored {scoring:.1f} s after the last answer, {total:.1f} s after the first request: "
-        f"{len(scored) / total:.2f} evaluations a second; job attempts {dict(attempts)}"
+        f"{len(scored) / total:.2f} evaluations a second ({len(scored) / total / library:.2f}x in-process); "
+        f"job attempts {dict(attempts)}"
     )
     for name, ok in checks.items():
         print(f"  [{'ok' if ok else 'FAILED'}] {name}")
@@ -255,21 +266,29 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--participants", type=int, default=50)
     p.add_argument("--each", type=int, default=4, help="submissions each participant sends (the quota is 3)")
-    p.add_argument("--frames", type=int, default=3769)
-    p.add_argument("--window", type=float, default=10.0, help="seconds within which all are sent (0: all at once)")
+    p.add_argument("--dets-per-frame", type=float, default=40.1, help="10: the 6.6 MB result.pkl of earlier runs")
+    p.add_argument("--spread", type=float, default=0.0, help="seconds over which they are sent (0: all at once)")
     p.add_argument("--postgres", action="store_true", help="also 3 replicas and 2 workers on PostgreSQL")
     p.add_argument("--skip-sqlite", action="store_true")
     args = p.parse_args(argv)
-    infos, results = generate(args.frames, seed=0)
-    gt, pred = pickle.dumps(infos, protocol=4), pickle.dumps(results, protocol=4)
-    print(f"{os.cpu_count()} cores; a {len(pred) / 1e6:.1f} MB result.pkl of {args.frames} frames")
+    gt, pred = generated(args.dets_per_frame)
+    print(f"{os.cpu_count()} cores; a {len(pred) / 1e6:.1f} MB result.pkl of 3769 frames")
+    library = in_process_rate(gt, pred)
+    print(f"in-process (the library): {library:.2f} evaluations a second (load + evaluate, a process a CPU)")
     ok = True
     if not args.skip_sqlite:
         with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:
             proc, url = _serve(Path(tmp) / "data", {})
             stack.callback(_stop, proc)
             ok &= _run(
-                "kitti-eval serve (SQLite, its own workers)", [url], gt, pred, args.participants, args.each, args.window
+                "kitti-eval serve (SQLite, its own workers)",
+                [url],
+                gt,
+                pred,
+                args.participants,
+                args.each,
+                args.spread,
+                library,
             )
     if args.postgres:
         with tempfile.TemporaryDirectory() as tmp, _Postgres() as pg, ExitStack() as stack:
@@ -282,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
             worker = [sys.executable, "-m", "kitti_eval.cli", "worker", "--database-url", pg.url, "--processes", "2"]
             stack.callback(_stop, _start(worker, {}, Path(tmp) / "worker.log"))
             label = "3 replicas of kitti-eval serve, 2 kitti-eval worker processes, PostgreSQL"
-            ok &= _run(label, urls, gt, pred, args.participants, args.each, args.window)
+            ok &= _run(label, urls, gt, pred, args.participants, args.each, args.spread, library)
     return 0 if ok else 1
 
 

@@ -30,6 +30,7 @@ from .idempotency import parse_key
 from .middleware import (
     PART_MEMORY_BYTES,
     AdmissionMiddleware,
+    BeforeBody,
     BeforeBodyCheck,
     BodyMiddleware,
     RefuseBeforeBody,
@@ -127,6 +128,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # spooled file's size (MultiPartParser.spool_max_size, 1 MB by default) every val-sized upload would be
     # written to a temporary file and read back once more
     MultiPartParser.spool_max_size = PART_MEMORY_BYTES
+    # before the body: a submission the quota or the queue refuses now is answered without its file, when it
+    # arrives and again when its turn to send its file comes
+    before_body = BeforeBody(
+        [("POST", "/v1/benchmarks/{name}/submissions", _submission_refused(service))],
+        caller_key=CALLER_KEY,
+        limit=settings.max_upload_bytes,
+        timeout_s=settings.body_timeout_s,
+    )
     app.add_middleware(
         BodyMiddleware,
         limit=settings.max_upload_bytes,
@@ -136,15 +145,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         spool_dir=service.data_dir / "tmp",
         memory_bytes=settings.body_memory_bytes,
         state=service.admission,
+        wait_s=settings.receive_wait_s,
+        before_body=before_body,
     )
-    # before the body: a submission the quota or the queue refuses now is answered without its file
-    app.add_middleware(
-        RefuseBeforeBody,
-        routes=[("POST", "/v1/benchmarks/{name}/submissions", _submission_refused(service))],
-        caller_key=CALLER_KEY,
-        limit=settings.max_upload_bytes,
-        timeout_s=settings.body_timeout_s,
-    )
+    app.add_middleware(RefuseBeforeBody, before_body=before_body)
     # the door: each route's declared access before its body is read (a request without a valid token sends
     # no body anyone reads); what FastAPI and Starlette add themselves is declared here, where it is added
     door = Door(

@@ -8,7 +8,11 @@ refused without needing the body: a benchmark submission past its quota, or whil
 evaluation place while it sends:
 
 * a declared ``Content-Length`` over the upload cap is refused with 413 before anything is read;
-* at most ``max_receiving`` bodies are received at once; past that, 503 with Retry-After;
+* at most ``max_receiving`` bodies are received at once; a request past that waits its turn, its body unread
+  (and no ``100 Continue`` sent to a client that asked for one: uvicorn sends it at the first read), for up to
+  ``wait_s``, and only past that is it answered 503 ``busy`` with Retry-After. A benchmark submission over its
+  quota is answered by :class:`RefuseBeforeBody` (outside) before it waits, and checked again when its turn
+  comes, before its body is read;
 * a body must arrive in full within ``timeout_s``, or it is answered 408 and its connection closed;
 * a body that grows past the cap (chunked, or a lying header) is not read further, and the app is called
   with a ``receive`` that raises :class:`BodyTooLarge`, so the JSON API and the web page answer that 413 as
@@ -50,6 +54,7 @@ __all__ = [
     "AdmissionMiddleware",
     "BodyTooLarge",
     "BeforeBodyCheck",
+    "BeforeBody",
     "MEMORY_BYTES",
     "PART_MEMORY_BYTES",
 ]
@@ -228,6 +233,8 @@ class BodyMiddleware:
         spool_dir: Path | None = None,
         memory_bytes: int = MEMORY_BYTES,
         state: AdmissionState | None = None,
+        wait_s: float = 300.0,
+        before_body: BeforeBody | None = None,
     ) -> None:
         self.app = app
         self.limit = limit
@@ -237,6 +244,10 @@ class BodyMiddleware:
         self.retry_after_s = retry_after_s
         self.spool_dir = spool_dir
         self.state = state or AdmissionState()
+        self.wait_s = wait_s
+        #: the refusals known before a body, asked again when a waiting request's turn comes
+        self.before_body = before_body
+        self._turns: anyio.Semaphore | None = None
 
     @property
     def receiving(self) -> int:
@@ -260,11 +271,33 @@ class BodyMiddleware:
                 send, 413, error_body("payload_too_large", _too_large_message(self.limit)), {"connection": "close"}
             )
             return
-        if self.receiving >= self.max_receiving:
-            retry = self.retry_after_s()
-            message = f"too many request bodies are being received ({self.receiving}); retry in {retry} s"
-            await _send_json(send, 503, error_body("busy", message), {"retry-after": str(retry), "connection": "close"})
-            return
+        if self._turns is None:
+            self._turns = anyio.Semaphore(self.max_receiving)
+        waited = self._turns.value == 0
+        if waited:
+            self.state.body_waiting += 1
+            try:
+                with anyio.move_on_after(self.wait_s):
+                    await self._turns.acquire()
+                    waited = False
+            finally:
+                self.state.body_waiting -= 1
+            if waited:  # still no turn after wait_s
+                retry = self.retry_after_s()
+                message = (
+                    f"too many request bodies are being received ({self.receiving}) for {self.wait_s:g} s "
+                    f"(KITTI_EVAL_RECEIVE_WAIT_S); retry in {retry} s"
+                )
+                headers = {"retry-after": str(retry), "connection": "close"}
+                await _send_json(send, 503, error_body("busy", message), headers)
+                return
+            refused = await self.before_body.refusal(scope) if self.before_body is not None else None
+            if refused is not None:  # e.g. the quota was used meanwhile: answered before the body, as outside
+                self._turns.release()
+                await self.before_body.answer(refused, scope, receive, send)  # type: ignore[union-attr]
+                return
+        else:
+            await self._turns.acquire()
         body = _Body(self.spool_dir, self.memory)
         try:
             self.receiving += 1
@@ -286,6 +319,7 @@ class BodyMiddleware:
                 return
             finally:
                 self.receiving -= 1
+                self._turns.release()
             if outcome == "complete":
                 await self.app(scope, body.replay(receive), send)
             elif outcome == "too_large":
@@ -308,51 +342,28 @@ class BodyMiddleware:
 BeforeBodyCheck = Callable[[Any, dict[str, str], int, "str | None"], "ApiError | None"]
 
 
-class RefuseBeforeBody:
-    """Answer at once a request whose refusal needs no body: a benchmark submission past its participant's
-    quota, or while the job queue is full, is refused the same way once its file has arrived, so nothing of the
-    file is kept, parsed or stored. ``routes``: (method, path as the route declares it, check); a check runs on a
-    thread (it asks the database) for a caller the door resolved from a bearer token, and says None for anything
-    it does not know (the route then answers as always).
-
-    A client waiting for ``100 Continue`` (``Expect: 100-continue``, as curl sends with a large file) is answered
-    before it sends the body, and its connection closed; another's body is read and dropped first, so that it
-    reads its answer on a connection that stays usable (answering mid-body and closing would reset the
-    connection under a client still sending)."""
+class BeforeBody:
+    """The refusals that need no body: ``routes`` are (method, path as the route declares it, check); a check runs on
+    a thread (it asks the database) for a caller the door resolved from a bearer token, and says None for anything
+    it does not know (the route then answers as always). Asked by :class:`RefuseBeforeBody` when a request arrives,
+    and by :class:`BodyMiddleware` again when a request that waited for its turn to send its body gets it."""
 
     def __init__(
         self,
-        app: ASGIApp,
-        *,
         routes: Sequence[tuple[str, str, BeforeBodyCheck]],
+        *,
         caller_key: str,
         limit: int,
         timeout_s: float,
     ) -> None:
-        self.app = app
         self.routes = [(method.upper(), compile_path(path)[0], check) for method, path, check in routes]
         self.caller_key = caller_key
         self.limit = limit
         self.timeout_s = timeout_s
 
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        error = await self._refusal(scope) if scope["type"] == "http" else None
-        if error is None:
-            await self.app(scope, receive, send)
-            return
-        headers = dict(error.headers)
-        body = error_body(error.code, error.message, **getattr(error, "details", {}))
-        if (_header(scope, b"expect") or b"").lower() == b"100-continue":
-            await _send_json(send, error.status_code, body, {**headers, "connection": "close"})
-            return
-        outcome = await _read_body(receive, None, self.limit, self.timeout_s)
-        if outcome == "gone":
-            return
-        if outcome != "complete":
-            headers["connection"] = "close"
-        await _send_json(send, error.status_code, body, headers)
-
-    async def _refusal(self, scope: Scope) -> ApiError | None:
+    async def refusal(self, scope: Scope) -> ApiError | None:
+        if scope["type"] != "http":
+            return None
         caller = scope.get(self.caller_key)
         if caller is None or getattr(caller, "session", False):
             return None
@@ -365,6 +376,40 @@ class RefuseBeforeBody:
                 key = raw_key.decode("latin-1") if raw_key is not None else None
                 return await anyio.to_thread.run_sync(check, caller, found.groupdict(), declared, key)
         return None
+
+    async def answer(self, error: ApiError, scope: Scope, receive: Receive, send: Send) -> None:
+        """Answer the refusal. A client waiting for ``100 Continue`` (``Expect: 100-continue``, as curl sends with a
+        large file) is answered before it sends the body, and its connection closed; another's body is read and
+        dropped first, so that it reads its answer on a connection that stays usable (answering mid-body and
+        closing would reset the connection under a client still sending)."""
+        headers = dict(error.headers)
+        body = error_body(error.code, error.message, **getattr(error, "details", {}))
+        if (_header(scope, b"expect") or b"").lower() == b"100-continue":
+            await _send_json(send, error.status_code, body, {**headers, "connection": "close"})
+            return
+        outcome = await _read_body(receive, None, self.limit, self.timeout_s)
+        if outcome == "gone":
+            return
+        if outcome != "complete":
+            headers["connection"] = "close"
+        await _send_json(send, error.status_code, body, headers)
+
+
+class RefuseBeforeBody:
+    """Answer at once a request whose refusal needs no body (:class:`BeforeBody`): a benchmark submission past its
+    participant's quota, or while the job queue is full, is refused the same way once its file has arrived, so
+    nothing of the file is kept, parsed or stored, and it does not wait for a turn to send it."""
+
+    def __init__(self, app: ASGIApp, *, before_body: BeforeBody) -> None:
+        self.app = app
+        self.before_body = before_body
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        error = await self.before_body.refusal(scope)
+        if error is None:
+            await self.app(scope, receive, send)
+            return
+        await self.before_body.answer(error, scope, receive, send)
 
 
 class AdmissionMiddleware:

@@ -215,6 +215,7 @@ class _StateCollector(Collector):
             ("evaluations_running", "Evaluations running on worker threads", s.admission.running),
             ("requests_waiting", "Requests waiting for their job to end (wait)", s.admission.waiting),
             ("bodies_receiving", "Request bodies being received", s.admission.receiving),
+            ("bodies_waiting", "Requests waiting for their turn to send their body", s.admission.body_waiting),
             ("ground_truth_cache_entries", "Ground-truth sets held in memory", len(cache)),
             ("ground_truth_cache_bytes", "Bytes of the ground-truth sets held in memory", cache.nbytes),
             ("kernels_warm", "1 once every kernel is compiled or loaded", float(s.warm.is_set())),
@@ -262,6 +263,8 @@ class AdmissionState:
     in_flight: int = 0
     running: int = 0
     receiving: int = 0
+    #: requests waiting for their turn to send their body (past ``max_receiving_bodies``)
+    body_waiting: int = 0
     #: requests waiting for their job's outcome
     waiting: int = 0
 

@@ -115,8 +115,12 @@ class Settings(BaseSettings):
     its request is stored (KITTI val's result.pkl is 6.6 MB); a larger one goes to a temporary file."""
 
     max_receiving_bodies: Annotated[int | None, Field(gt=0)] = None
-    """Request bodies received at the same time; past that the service answers 503 with Retry-After. Unset:
-    64, or four times ``max_concurrent_evals`` when that is more."""
+    """Request bodies received at the same time; a request past that waits its turn, its body unread, for up to
+    ``receive_wait_s``. Unset: 64, or four times ``max_concurrent_evals`` when that is more."""
+
+    receive_wait_s: Annotated[float, Field(ge=0)] = 300.0
+    """How long a request waits for its turn to send its body (past ``max_receiving_bodies``) before it is answered
+    503 ``busy`` with Retry-After. A benchmark submission over its quota never waits: it is answered at once."""
 
     idempotency_key_hours: Annotated[float, Field(gt=0)] = 24.0
     """How long an ``Idempotency-Key`` sent with an evaluation or a submission is kept: sent again within it, with

@@ -376,9 +376,16 @@ def new_id() -> str:
     return uuid.uuid4().hex
 
 
+#: SQLite's page size for a new database: the uploaded files it keeps (a val-sized result.pkl is 6-22 MB) are
+#: chains of overflow pages, and at 64 KB a 22 MB file is written with half the CPU of the 4 KB default (~40 ms
+#: instead of ~85 ms). A database made with other pages keeps them (SQLite changes them only on a VACUUM)
+SQLITE_PAGE_SIZE = 65536
+
+
 def _sqlite_pragmas(busy_ms: int) -> Callable[[Any, Any], None]:
     def on_connect(dbapi_connection: Any, _record: Any) -> None:
         cursor = dbapi_connection.cursor()
+        cursor.execute(f"PRAGMA page_size={SQLITE_PAGE_SIZE}")  # before WAL: only an empty database takes it
         cursor.execute("PRAGMA journal_mode=WAL")
         cursor.execute("PRAGMA synchronous=FULL")  # WAL + FULL: a committed row survives a crash and power loss
         cursor.execute("PRAGMA foreign_keys=ON")

@@ -144,31 +144,43 @@ def answered(sock: socket.socket) -> bool:
     return bool(select.select([sock], [], [], 0)[0])
 
 
-def test_bodies_received_at_once_are_bounded_and_a_gone_client_frees_its_place(live) -> None:
-    import httpx
+def read_head(sock: socket.socket, timeout: float) -> bytes:
+    """What the server sent until the end of a response's head (or ``timeout``)."""
+    sock.settimeout(timeout)
+    data = b""
+    while b"\r\n\r\n" not in data:
+        chunk = sock.recv(4096)
+        if not chunk:
+            break
+        data += chunk
+    return data
 
+
+def test_a_request_past_the_receiving_bodies_waits_its_turn_unread(live) -> None:
+    """With every receiving place held, another upload is not refused: it waits, no 100 Continue is sent to it (its
+    body is not read), and when a place frees (a client gone mid-body) it is read and answered 201."""
     held = [open_upload(live.port) for _ in range(RECEIVING)]
+    waiting = None
     try:
         time.sleep(0.3)
-        assert not any(answered(s) for s in held)  # past the 10 evaluation places: all are being received
-        with httpx.Client(base_url=live.url, timeout=10) as client:
-            busy = client.post("/v1/evaluations", data={"gt": "demo"}, files={"predictions": ("r.pkl", b"x")})
-        assert busy.status_code == 503, busy.text
-        assert busy.headers["retry-after"] == "2"
-        assert busy.json()["error"]["code"] == "busy"
-        assert "request bodies are being received (12)" in busy.json()["error"]["message"]
         assert not any(answered(s) for s in held)
-        for sock in held:  # gone mid-body: their places are free again
-            sock.close()
-        held = []
-        time.sleep(0.3)
-        held = [open_upload(live.port) for _ in range(RECEIVING - 1)]
-        with httpx.Client(base_url=live.url, timeout=30) as client:
-            ok = client.post("/v1/evaluations", data={"gt": "demo"}, files={"predictions": ("r.pkl.gz", DEMO_PRED)})
-        assert ok.status_code == 201, ok.text
+        body, ctype = multipart("demo", DEMO_PRED)
+        waiting = socket.create_connection(("127.0.0.1", live.port), timeout=15)
+        head = (
+            f"POST /v1/evaluations HTTP/1.1\r\nHost: 127.0.0.1:{live.port}\r\nContent-Type: {ctype}\r\n"
+            f"Content-Length: {len(body)}\r\nExpect: 100-continue\r\n\r\n"
+        )
+        waiting.sendall(head.encode())
+        time.sleep(1.5)
+        assert not answered(waiting)  # neither refused nor told to send its body
+        held.pop().close()  # gone mid-body: its place is the waiting request's
+        assert read_head(waiting, 10).startswith(b"HTTP/1.1 100 Continue")
+        waiting.sendall(body)
+        response = read_head(waiting, 60)
+        assert response.startswith(b"HTTP/1.1 201"), response
         assert not any(answered(s) for s in held)
     finally:
-        for sock in held:
+        for sock in [*held, *([waiting] if waiting else [])]:
             sock.close()
 
 
@@ -367,3 +379,104 @@ def test_bodies_share_the_memory_budget_and_give_it_back(spools, tmp_path) -> No
     assert held_while_first_ran == [3 * MB]  # the first in memory
     assert len(spools) == 1 and spools[0].closed  # the second in a file: 3 + 2 MB would pass the 4 MB budget
     assert middleware.memory.held == 0
+
+
+def test_a_request_waits_for_its_turn_as_long_as_the_setting_says_then_busy() -> None:
+    """One receiving place, held by a body that never ends: the next request waits ``wait_s`` without a byte of it
+    read, then is answered 503 busy naming the setting."""
+    sent: list[dict] = []
+    read: list[int] = []
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+
+    middleware = BodyMiddleware(
+        Recorder(), limit=MB, timeout_s=30, max_receiving=1, retry_after_s=lambda: 3, wait_s=0.5
+    )
+
+    async def counted(messages: list[dict]):
+        async def receive() -> dict:
+            read.append(1)
+            if messages:
+                return messages.pop(0)
+            await anyio.sleep_forever()
+            raise AssertionError("unreachable")
+
+        return receive
+
+    async def main() -> None:
+        scope = {"type": "http", "method": "POST", "path": "/x", "headers": [(b"content-length", b"10")]}
+        hold = [{"type": "http.request", "body": b"12345", "more_body": True}]
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(middleware, scope, await counted(hold), send)
+            await anyio.sleep(0.05)
+            assert middleware.receiving == 1
+            started = time.monotonic()
+            before = len(read)
+            await middleware(scope, await counted([{"type": "http.request", "body": b"x" * 10}]), send)
+            assert 0.45 < time.monotonic() - started < 2 and len(read) == before  # waited, nothing read
+            tg.cancel_scope.cancel()
+
+    anyio.run(main)
+    assert sent[0]["status"] == 503
+    error = json.loads(sent[1]["body"])["error"]
+    assert error["code"] == "busy" and "KITTI_EVAL_RECEIVE_WAIT_S" in error["message"]
+    assert (b"retry-after", b"3") in sent[0]["headers"]
+
+
+def test_a_waiting_request_is_asked_the_refusals_before_its_body_again_when_its_turn_comes() -> None:
+    """A submission that waited for its turn is checked again (the quota may have been used meanwhile) before its
+    body is read: refused, it is answered without a byte of its body read, and its place goes to the next."""
+    from kitti_eval_server.errors import ApiError
+    from kitti_eval_server.middleware import BeforeBody
+
+    class Used(ApiError):
+        status_code = 429
+        code = "quota_exceeded"
+
+    asked: list[str] = []
+
+    def check(caller, params, size, key) -> ApiError | None:
+        asked.append(params["name"])
+        return Used("the quota is used")  # used meanwhile (the first request did not wait: not asked here)
+
+    before_body = BeforeBody([("POST", "/b/{name}", check)], caller_key="caller", limit=MB, timeout_s=5)
+    app = Recorder()
+    middleware = BodyMiddleware(
+        app, limit=MB, timeout_s=30, max_receiving=1, retry_after_s=lambda: 3, before_body=before_body
+    )
+    sent: list[dict] = []
+    read: list[int] = []
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+
+    def receiving(stream):
+        async def receive() -> dict:
+            read.append(1)
+            return await stream.receive()
+
+        return receive
+
+    async def main() -> None:
+        head = [(b"content-length", b"5"), (b"expect", b"100-continue")]
+        scope = {"type": "http", "method": "POST", "path": "/b/bench", "headers": head, "caller": object()}
+        first_in, first = anyio.create_memory_object_stream[dict](10)
+        second_in, second = anyio.create_memory_object_stream[dict](10)
+        await first_in.send({"type": "http.request", "body": b"12", "more_body": True})
+        await second_in.send({"type": "http.request", "body": b"12345"})
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(middleware, scope, receiving(first), send)
+            await anyio.sleep(0.05)
+            tg.start_soon(middleware, scope, receiving(second), send)
+            await anyio.sleep(0.05)
+            assert middleware.state.body_waiting == 1 and len(read) == 2  # the first's chunk, and its wait for more
+            await first_in.send({"type": "http.request", "body": b"345"})  # the first ends: the second's turn
+            await anyio.sleep(0.2)
+            tg.cancel_scope.cancel()
+
+    anyio.run(main)
+    assert app.body == b"12345" and asked == ["bench"]  # the first was read; the check ran for the waiting one
+    statuses = [m["status"] for m in sent if m["type"] == "http.response.start"]
+    assert statuses == [200, 429]
+    assert len(read) == 2  # the first's two reads; nothing of the second
