@@ -229,6 +229,43 @@ def cookie(scope: Scope, name: str) -> str | None:
     return morsel.value if morsel is not None and morsel.value else None
 
 
+_DEFAULT_PORTS = {"http": "80", "https": "443"}
+
+
+def _origin_of(scheme: str, host: str) -> tuple[str, str]:
+    """(scheme, host[:port] without the scheme's default port), lower case."""
+    scheme, host = scheme.lower(), host.strip().lower()
+    default = _DEFAULT_PORTS.get(scheme)
+    if default and host.endswith(":" + default):
+        host = host[: -len(default) - 1]
+    return scheme, host
+
+
+def cross_site(scope: Scope) -> str | None:
+    """Why a change sent by a browser came from another origin than the service's own, or None. A browser
+    says where a request comes from (``Sec-Fetch-Site``, ``Origin``); a client that says neither (curl, a
+    script) is not a browser carrying someone's cookie. The service's own origin is the request's ``Host``
+    (another port of the same host is another origin); its scheme is compared when the service itself is
+    reached over HTTPS (behind a proxy that ends TLS it sees http where the browser says https)."""
+    site = _header(scope, b"sec-fetch-site")
+    if site is not None and site.strip().lower() not in ("same-origin", "none"):
+        return f"the browser says it comes from another site (Sec-Fetch-Site: {site.strip()[:40]})"
+    origin = _header(scope, b"origin")
+    if origin is None:
+        return None
+    host = _header(scope, b"host") or ""
+    scheme, _, rest = origin.strip().partition("://")
+    if not rest or origin.strip() == "null":
+        return "the browser sent no usable Origin"
+    sent_scheme, sent_host = _origin_of(scheme, rest.rstrip("/"))
+    own_scheme, own_host = _origin_of(str(scope.get("scheme", "http")), host)
+    if sent_host != _origin_of(sent_scheme, host)[1] and sent_host != own_host:
+        return "it comes from another origin"
+    if own_scheme == "https" and sent_scheme != "https":
+        return "it comes from another origin"
+    return None
+
+
 class AuthMiddleware:
     """Refuse what the route's declared access refuses before the body is read: a route that declares none
     (both modes), and in accounts mode a request without a valid token (401/429) where one is needed, or a
@@ -264,6 +301,12 @@ class AuthMiddleware:
         if served and access is None:
             await self._refuse(scope, receive, send, Forbidden("this route declares no access rule: refused"))
             return
+        if method not in SAFE_METHODS and bearer(scope) is None:
+            why = cross_site(scope)
+            if why is not None:  # a page elsewhere posting with the visitor's cookie: sign-in or a session's change
+                elsewhere = Forbidden(f"a change from another site is refused: {why}")
+                await self._refuse(scope, receive, send, elsewhere)
+                return
         if (not served and not is_api(path)) or access is Access.PUBLIC or not self.policy.accounts:
             # a page no route serves: the router's 404 (a browser's /favicon.ico gets no sign-in page, whose new
             # CSRF cookie would spoil the form it is showing); open mode: the route's dependency decides

@@ -26,6 +26,7 @@ from kitti_eval.core.matching import available_cpus
 
 from .auth import CALLER_KEY, AuthMiddleware, Door
 from .errors import ApiError, StartupRefused, install_error_handlers
+from .headers import SecurityHeaders
 from .middleware import (
     PART_MEMORY_BYTES,
     AdmissionMiddleware,
@@ -167,8 +168,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         retry_after_s=lambda: settings.retry_after_s,
     )
     app.add_middleware(_PlainStartupRefusal)
-    # outermost: every request gets its id, its log line and its metrics, whoever answers it
+    # every request gets its id, its log line and its metrics, whoever answers it
     app.add_middleware(RequestMiddleware, metrics=app_metrics, log_json=lambda: log_json)
+    app.add_middleware(SecurityHeaders)  # on every response, a refusal's and a failure's too
     return app
 
 

@@ -19,9 +19,12 @@ apply. The table "Who may do what" of docs/service/accounts.md is checked agains
 
 from __future__ import annotations
 
+import hashlib
 import hmac
+import secrets
+import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from enum import Enum
 from typing import Protocol
 
@@ -46,6 +49,8 @@ ALL_SCOPES = frozenset({READ, WRITE})
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 #: a script using a web session's cookie sends the session's CSRF token in this header (forms: field ``csrf``)
 CSRF_HEADER = "x-csrf-token"
+#: how long a sign-in form's CSRF token is valid
+SIGNIN_CSRF_S = 3600
 
 
 class AuthMode(str, Enum):
@@ -75,13 +80,14 @@ class Access(str, Enum):
 
 @dataclass(frozen=True)
 class Caller:
-    """Who sends a request, what they may do, and where from (for the audit log)."""
+    """Who sends a request, what they may do, and where from (for the audit log). Made without saying
+    otherwise, a caller is nobody: no project, no scope, not signed in, not an admin."""
 
     name: str
     is_admin: bool = False
     #: the projects whose evaluations and ground truths the caller sees; None: every project
-    projects: frozenset[str] | None = None
-    scopes: frozenset[str] = field(default=ALL_SCOPES)
+    projects: frozenset[str] | None = frozenset()
+    scopes: frozenset[str] = frozenset()
     token_id: str | None = None
     #: signed in through the web page (a session cookie): changes need the session's ``csrf``
     session: bool = False
@@ -89,7 +95,7 @@ class Caller:
     #: the client's address (or ``cli``, ``local``), as the audit log names it
     client: str = "local"
     #: False for a reader without a token (accounts mode)
-    signed_in: bool = True
+    signed_in: bool = False
 
     @property
     def actor(self) -> str:
@@ -128,7 +134,12 @@ class _GroundTruth(Protocol):
 #: The "Who may do what" table of docs/service/accounts.md is this one (tests/server/test_policy.py compares them).
 RULES: Sequence[tuple[str, Access, str, str]] = (
     ("probes, sign-in page, static files", Access.PUBLIC, "yes", "yes"),
-    ("public benchmarks: description, frame ids, board", Access.ANYONE, "yes (no token needed)", "yes"),
+    (
+        "public benchmarks: description, frame ids, board",
+        Access.ANYONE,
+        "yes (no token needed); the test set's name: members of its project",
+        "yes",
+    ),
     ("private benchmarks: description, frame ids, board", Access.READER, "members of its project", "yes"),
     (
         "evaluations: list, read, compare, gates",
@@ -140,8 +151,18 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
     ("frames of an evaluation", Access.READER, "their projects', never of a sealed ground truth", "never sealed"),
     ("ground truths: list, read", Access.READER, "their projects' and shared", "all"),
     ("ground truths: register, delete", Access.ADMIN, "no", "yes"),
-    ("benchmark submissions: submit", Access.WRITER, "within the quota, while open", "as baselines (below)"),
-    ("own submissions: scores", Access.READER, "public part until the reveal, then all", "all (submissions/all)"),
+    (
+        "benchmark submissions: submit",
+        Access.WRITER,
+        "members of its project (every account when it is open to all), within the quota, while open",
+        "as baselines (below)",
+    ),
+    (
+        "own submissions: scores",
+        Access.READER,
+        "the public part's AP until the reveal, then all; never a count of the test set",
+        "all (submissions/all)",
+    ),
     ("own submissions: publish, withdraw", Access.WRITER, "until the benchmark closes", "their baselines"),
     (
         "benchmark baselines: submit, publish, withdraw",
@@ -166,8 +187,8 @@ class Policy:
         mode: AuthMode,
         *,
         admin_token: Callable[[], str],
+        test_sets: Callable[[], Mapping[str, Sequence[str]]],
         metrics_token: Callable[[], str | None] = lambda: None,
-        test_sets: Callable[[], Mapping[str, Sequence[str]]] = dict,
     ) -> None:
         self.mode = mode
         self._admin_token = admin_token
@@ -181,18 +202,21 @@ class Policy:
     # -- callers -----------------------------------------------------------------------------------------
     def everyone(self, client: str = "local") -> Caller:
         """Open mode's caller: sees and changes everything but the admin actions."""
-        return Caller("anyone", client=client)
+        return Caller("anyone", projects=None, scopes=ALL_SCOPES, client=client, signed_in=True)
 
     def anonymous(self, client: str = "local") -> Caller:
         """Accounts mode, no token: sees public benchmarks only."""
-        return Caller("anonymous", projects=frozenset(), scopes=frozenset(), client=client, signed_in=False)
+        return Caller("anonymous", client=client)
 
-    def admin_token_caller(self, client: str = "local") -> Caller:
-        return Caller("admin-token", is_admin=True, client=client)
+    @staticmethod
+    def admin_token_caller(client: str = "local") -> Caller:
+        """Whoever presents the admin token: an admin of every project."""
+        return Caller("admin-token", is_admin=True, projects=None, scopes=ALL_SCOPES, client=client, signed_in=True)
 
-    def command_line(self, login: str) -> Caller:
+    @staticmethod
+    def command_line(login: str) -> Caller:
         """``kitti-eval admin``: whoever may open the service's database acts as an admin."""
-        return Caller(f"cli:{login}", is_admin=True, client="cli")
+        return Caller(f"cli:{login}", is_admin=True, projects=None, scopes=ALL_SCOPES, client="cli", signed_in=True)
 
     def own_metrics_token(self) -> bool:
         """Whether ``/metrics`` has a token of its own (a scraper's, not an account's)."""
@@ -223,7 +247,7 @@ class Policy:
                     )
                 if not hmac.compare_digest(bearer.encode(), own.encode()):
                     raise Forbidden("the metrics token is not valid")
-                return Caller("metrics-scraper", projects=frozenset(), scopes=frozenset({READ}), client=caller.client)
+                return Caller("metrics-scraper", scopes=frozenset({READ}), client=caller.client, signed_in=True)
             access = Access.READER
         if access is Access.ADMIN and not self.accounts:
             if caller.is_admin:
@@ -242,6 +266,29 @@ class Policy:
         if method.upper() not in SAFE_METHODS:
             self.check_csrf(caller, csrf, header=header)  # whatever the route: a session's change carries it
         return caller
+
+    # -- the sign-in form's CSRF token -------------------------------------------------------------------------
+    def _signin_mac(self, issued: str) -> str:
+        key = hashlib.sha256(b"kitti-eval sign-in form:" + self._admin_token().encode()).digest()
+        return hmac.new(key, issued.encode(), hashlib.sha256).hexdigest()
+
+    def issue_signin_csrf(self, now: float | None = None) -> str:
+        """A CSRF token for the sign-in form (there is no session yet): issued and signed by the service (with a
+        key derived from the admin token, the same in every process and replica), valid for
+        :data:`SIGNIN_CSRF_S` seconds."""
+        issued = f"{int((time.time() if now is None else now) + SIGNIN_CSRF_S)}.{secrets.token_urlsafe(16)}"
+        return f"{issued}.{self._signin_mac(issued)}"
+
+    def check_signin_csrf(self, sent: object, cookie: str | None, now: float | None = None) -> None:
+        """The sign-in form's token: the one the form's page set in its cookie, issued by this service and not
+        expired. A pair the client made up, however alike, is refused."""
+        if not (isinstance(sent, str) and cookie and hmac.compare_digest(sent.encode(), cookie.encode())):
+            raise Forbidden("the sign-in form is stale or came from another site; try again")
+        issued, _, mac = sent.rpartition(".")
+        expires, _, _ = issued.partition(".")
+        fresh = expires.isdigit() and int(expires) > (time.time() if now is None else now)
+        if not (issued and fresh and hmac.compare_digest(mac.encode(), self._signin_mac(issued).encode())):
+            raise Forbidden("the sign-in form is stale or came from another site; try again")
 
     def check_csrf(self, caller: Caller, sent: str | None, *, header: bool = False) -> None:
         """A web session's change carries the session's CSRF token (a form's ``csrf`` field, a script's
@@ -320,6 +367,27 @@ class Policy:
         if not caller.signed_in:
             return False
         return project is None or self.sees_project(caller, project)
+
+    def names_test_set(self, caller: Caller, *, project: str | None) -> bool:
+        """Whether the caller reads the name of a benchmark's test set: those who see the ground truth itself
+        (admins, the members of its project, every signed-in account when it is shared). An anonymous visitor
+        of a public benchmark, or another project's member, never learns that it exists."""
+        if caller.is_admin:
+            return True
+        return caller.signed_in and (project is None or self.sees_project(caller, project))
+
+    def may_take_part(self, caller: Caller, *, project: str | None, open_to_all: bool) -> bool:
+        """Who may submit to a benchmark they see: a participant (:meth:`is_participant`) who is a member of the
+        test set's project (every signed-in account when the test set is shared), or any participant when the
+        benchmark is open to all. Reading a public benchmark is not taking part in it. An admin submits
+        baselines to every benchmark."""
+        if not self.is_participant(caller):
+            return False
+        return caller.is_admin or open_to_all or project is None or self.sees_project(caller, project)
+
+    def administers(self, caller: Caller) -> bool:
+        """An admin: sees every project's records and the benchmarks' jobs, submits baselines."""
+        return caller.is_admin
 
     def is_participant(self, caller: Caller) -> bool:
         """Who may submit: a signed-in user's own token (not the admin token, not open mode's everyone). An

@@ -6,9 +6,7 @@ The pages read the same records the JSON API serves and render them with Jinja2;
 
 from __future__ import annotations
 
-import hmac
 import math
-import secrets
 from collections.abc import Callable, Mapping, Sequence
 from functools import partial
 from pathlib import Path
@@ -36,7 +34,6 @@ from ..errors import (
     MAX_ECHO_CHARS,
     ApiError,
     BadRequest,
-    Forbidden,
     NotFound,
     clip,
     echo,
@@ -45,7 +42,7 @@ from ..errors import (
 )
 from ..evaluator import ERRORS_SET, EvalOptions, parse_labels
 from ..jobs import JobRecord
-from ..policy import Caller
+from ..policy import SIGNIN_CSRF_S, Caller, Policy
 from ..routes.frames import MAX_SCORE
 from ..schemas import iso
 from ..service import FileIn, Service
@@ -133,10 +130,17 @@ async def sign_in_page(scope: Scope, status: int = 200, error: str | None = None
     """The sign-in form (also the answer to a page requested without a valid session): a fresh CSRF token
     in the form and in a cookie, which the form's POST must send back alike."""
     request = Request(scope)
-    csrf = secrets.token_urlsafe(24)
+    policy: Policy = request.app.state.policy
+    csrf = policy.issue_signin_csrf()
     response = _render(request, "signin.html", status, status=status, error=error, csrf=csrf, caller=None)
     response.set_cookie(
-        CSRF_COOKIE, csrf, max_age=3600, path="/signin", httponly=True, samesite="strict", secure=_secure(scope)
+        CSRF_COOKIE,
+        csrf,
+        max_age=SIGNIN_CSRF_S,
+        path="/signin",
+        httponly=True,
+        samesite="strict",
+        secure=_secure(scope),
     )
     return response
 
@@ -160,9 +164,7 @@ async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -
         async with request.form(max_files=0, max_fields=4) as form:
             token = form.get("token")
             sent_csrf = form.get("csrf")
-        expected = request.cookies.get(CSRF_COOKIE)
-        if not (isinstance(sent_csrf, str) and expected and hmac.compare_digest(sent_csrf, expected)):
-            raise Forbidden("the sign-in form is stale or came from another site; try again")
+        service.policy.check_signin_csrf(sent_csrf, request.cookies.get(CSRF_COOKIE))
         if not isinstance(token, str) or not token.strip():
             raise BadRequest("paste your token (kitti-eval admin token add prints one)")
         try:
