@@ -23,6 +23,9 @@ __all__ = [
     "SUBMISSION_FIELDS",
     "OWN_SUBMISSION_FIELDS",
     "RESULT_FIELDS",
+    "BOARD_FIELDS",
+    "ENTRY_FIELDS",
+    "pick",
     "benchmark_view",
     "submission_view",
     "result_view",
@@ -80,6 +83,25 @@ SUBMISSION_FIELDS = (
 #: one of the caller's submissions, read alone: with its result (``comparison`` is added by the caller's view)
 OWN_SUBMISSION_FIELDS = (*SUBMISSION_FIELDS, "result")
 
+#: a leaderboard, as everyone who sees the benchmark reads it, and each of its entries (a published submission)
+BOARD_FIELDS = ("benchmark", "title", "board", "key", "columns", "sort", "order", "entries", "bootstrap")
+ENTRY_FIELDS = (
+    "id",
+    "method",
+    "participant",
+    "affiliation",
+    "link",
+    "anonymous",
+    "date",
+    "key",
+    "columns",
+    "baseline",
+    "rank",
+    "interval",
+    "rank_range",
+    "differs_from_next",
+)
+
 #: a participant's result: the evaluation's settings (the benchmark's, not the data's), the AP values of the part
 #: the board shows, and the facts of their own file over the whole file
 RESULT_FIELDS = (
@@ -97,7 +119,7 @@ RESULT_FIELDS = (
 )
 
 
-def _pick(values: Mapping[str, Any], fields: tuple[str, ...]) -> dict[str, Any]:
+def pick(values: Mapping[str, Any], fields: tuple[str, ...]) -> dict[str, Any]:
     return {f: values[f] for f in fields if f in values}
 
 
@@ -127,7 +149,7 @@ def benchmark_view(bench: Benchmark, *, names_test_set: bool) -> dict[str, Any]:
         "board": bench.phase,
         "max_published": bench.max_published,
     }
-    return _pick(values, TEST_SET_FIELDS if names_test_set else BENCHMARK_FIELDS)
+    return pick(values, TEST_SET_FIELDS if names_test_set else BENCHMARK_FIELDS)
 
 
 def result_view(record: SubmissionRecord, bench: Benchmark, *, everything: bool = False) -> dict[str, Any] | None:
@@ -143,8 +165,8 @@ def result_view(record: SubmissionRecord, bench: Benchmark, *, everything: bool 
     shown = record.public_result if bench.phase == "public" else whole
     if shown is None:
         return None
-    values = {**_pick(whole, RESULT_FIELDS), "ap": shown.get("ap")}
-    return _pick(values, RESULT_FIELDS)
+    values = {**pick(whole, RESULT_FIELDS), "ap": shown.get("ap")}
+    return pick(values, RESULT_FIELDS)
 
 
 def submission_view(
@@ -182,6 +204,6 @@ def submission_view(
         "parts": None if public_only or bench.phase == "all" else {p: scores.get(p) for p in ("public", "private")},
     }
     if not full:
-        return _pick(values, SUBMISSION_FIELDS)
+        return pick(values, SUBMISSION_FIELDS)
     values["result"] = result_view(record, bench, everything=everything)
-    return _pick(values, OWN_SUBMISSION_FIELDS)
+    return pick(values, OWN_SUBMISSION_FIELDS)
