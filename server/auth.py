@@ -307,7 +307,7 @@ class AuthMiddleware:
                 elsewhere = Forbidden(f"a change from another site is refused: {why}")
                 await self._refuse(scope, receive, send, elsewhere)
                 return
-        if (not served and not is_api(path)) or access is Access.PUBLIC or not self.policy.accounts:
+        if (not served and not is_api(path)) or access is Access.PUBLIC or not self.policy.has_accounts():
             # a page no route serves: the router's 404 (a browser's /favicon.ico gets no sign-in page, whose new
             # CSRF cookie would spoil the form it is showing); open mode: the route's dependency decides
             await self.app(scope, receive, send)

@@ -10,6 +10,11 @@ Two things live here and nowhere else:
   benchmarks, submissions and their scores, admin actions. The services ask it; every service method that
   shows or changes something takes the caller as a required argument, so no call can forget to ask.
 
+Nothing outside this module (and :mod:`kitti_eval_server.accounts`, which makes callers from their records)
+reads a caller's rights or the mode: the service asks the policy a question (:meth:`Policy.may_take_part`,
+:meth:`Policy.is_baseline`, :meth:`Policy.default_project`, ...; a test walks the sources). A :class:`Caller`
+made without saying otherwise is nobody, and a :class:`Policy` is never made without its test sets.
+
 A :class:`Caller` is made by the policy alone (:meth:`Policy.everyone`, :meth:`Policy.anonymous`, or
 :meth:`kitti_eval_server.accounts.Accounts.resolve` for a token), and the routes receive it from their access
 dependency. ``KITTI_EVAL_AUTH`` is an :class:`AuthMode`: in ``open`` mode everyone is :meth:`Policy.everyone`
@@ -28,7 +33,7 @@ from dataclasses import dataclass, replace
 from enum import Enum
 from typing import Protocol
 
-from .errors import Forbidden, NotFound, Sealed, Unauthorized, echo
+from .errors import BadRequest, Forbidden, NotFound, Sealed, Unauthorized, echo
 
 __all__ = [
     "Access",
@@ -198,6 +203,67 @@ class Policy:
     @property
     def accounts(self) -> bool:
         return self.mode is AuthMode.ACCOUNTS
+
+    # -- questions the rest of the service asks (nothing outside this module and accounts.py reads a caller's
+    # rights or the mode) -----------------------------------------------------------------------------------
+    def has_accounts(self) -> bool:
+        """Whether callers sign in (accounts mode): there is a sign-in page, sessions, submissions."""
+        return self.accounts
+
+    def without_token(self, client: str) -> Caller:
+        """The caller a request without a token is: open mode's everyone, accounts mode's anonymous reader."""
+        return self.anonymous(client) if self.accounts else self.everyone(client)
+
+    def job_owner(self, caller: Caller) -> str | None:
+        """Whose share of the queue an accepted job counts against: the caller's in accounts mode, nobody's in
+        open mode (everyone is the same caller there)."""
+        return caller.name if self.accounts else None
+
+    def is_signed_in(self, caller: Caller) -> bool:
+        """Whether the caller has anything of their own to list (a reader without a token has not)."""
+        return caller.signed_in
+
+    def audits_refusal(self, caller: Caller) -> bool:
+        """Whether a refused use of the caller's rights goes to the audit log: a signed-in account's."""
+        return self.accounts and caller.signed_in
+
+    def checks_csrf(self, caller: Caller) -> bool:
+        """Whether the caller's changes carry a CSRF token: a web session's (its cookie goes along by itself)."""
+        return caller.session
+
+    def may_open_session(self, caller: Caller) -> bool:
+        """A web session is a user's: the admin token (no user) cannot sign in to the pages."""
+        return caller.token_id is not None
+
+    def is_baseline(self, caller: Caller) -> bool:
+        """An admin's submission is a baseline: under no quota, on the board without a rank."""
+        return caller.is_admin
+
+    def counts_quota(self, caller: Caller) -> bool:
+        """Whether the caller's submissions are counted against a benchmark's quota: a participant's, not an
+        admin's baselines."""
+        return self.is_participant(caller) and not caller.is_admin
+
+    def projects_of(self, caller: Caller, every: Callable[[], Sequence[str]]) -> list[str]:
+        """The projects the caller's uploads may go to: theirs (``every()`` for an admin); none in open mode."""
+        if not self.accounts:
+            return []
+        return list(every()) if caller.projects is None else sorted(caller.projects)
+
+    def default_project(self, caller: Caller, exists: Callable[[str], bool], wanted: str | None) -> str | None:
+        """The project a new evaluation of the caller goes to when its ground truth has none: ``wanted`` if it
+        is one of theirs (404 as a missing one otherwise), their only project, or None in open mode; 400 when
+        they have several and named none."""
+        if not self.accounts:
+            return None
+        if wanted:
+            if not self.sees_project(caller, wanted) or not exists(wanted):
+                raise NotFound(f"no project of yours named {echo(wanted)}")
+            return wanted
+        if caller.projects is not None and len(caller.projects) == 1:
+            return next(iter(caller.projects))
+        mine = ", ".join(sorted(caller.projects)) if caller.projects is not None else "any project"
+        raise BadRequest(f"name the project of the evaluation (form field 'project'): {mine or 'you have none'}")
 
     # -- callers -----------------------------------------------------------------------------------------
     def everyone(self, client: str = "local") -> Caller:

@@ -134,7 +134,7 @@ class Submissions(Intervals):
         does on the read it scores (see :meth:`score_job`)."""
         if self.draining():
             raise NotReady("the service is shutting down; submit again in a moment")
-        if not self.policy.accounts:
+        if not self.policy.has_accounts():
             raise Forbidden("benchmarks take submissions in accounts mode (KITTI_EVAL_AUTH=accounts)")
         if not self.policy.is_participant(caller):
             raise Forbidden("a participant submits with their own token (kitti-eval admin token add USER)")
@@ -144,7 +144,7 @@ class Submissions(Intervals):
                 f"the benchmark {name!r} takes part from the members of project {bench.project!r}: reading it is "
                 "not taking part in it"
             )
-        baseline = caller.is_admin  # an admin's submission is a baseline: under no quota, never ranked
+        baseline = self.policy.is_baseline(caller)  # under no quota, never ranked
         if baseline and bench.is_closed():
             raise Conflict(f"the benchmark {name!r} is closed: its board is frozen")
         if not baseline and not bench.is_open():
@@ -193,7 +193,7 @@ class Submissions(Intervals):
         its file is received: a used quota (429 ``quota_exceeded``) or a full queue (:meth:`JobQueue.admit
         <kitti_eval_server.jobs.JobQueue.admit>`). None when it may be accepted, or for any other answer: the
         route decides those, and the transaction that accepts counts the quota again."""
-        if not self.policy.accounts or caller.is_admin or not self.policy.is_participant(caller):
+        if not self.policy.counts_quota(caller):
             return None
         try:
             bench = self.get(name, caller)
@@ -355,7 +355,7 @@ class Submissions(Intervals):
             "items": [submission_view(r, bench, full=False) for r in reversed(records)],
             "quota": {"submissions": count, "days": days, "used": used, "left": max(0, count - used)},
             # an admin submits baselines: counted against no quota ("left" does not apply)
-            "baselines": bool(caller.is_admin),
+            "baselines": self.policy.is_baseline(caller),
         }
 
     def publish(

@@ -166,7 +166,7 @@ def _benchmark_context(
         "key_short": _short_key(described["key"], board["columns"]),
         "number": number,
         "mine": mine,
-        "accounts": service.policy.accounts,
+        "accounts": service.policy.has_accounts(),
         "max_upload_bytes": service.settings.max_upload_bytes,
         "problems": None,
         "error": None,

@@ -147,7 +147,7 @@ async def sign_in_page(scope: Scope, status: int = 200, error: str | None = None
 
 @router.get("/signin")
 async def sign_in_form(request: Request, service: ServiceDep, caller: PublicCaller) -> Response:
-    if not service.policy.accounts:
+    if not service.policy.has_accounts():
         return RedirectResponse("/", status_code=303)
     return await sign_in_page(request.scope)
 
@@ -156,7 +156,7 @@ async def sign_in_form(request: Request, service: ServiceDep, caller: PublicCall
 async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -> Response:
     """Check the token once, open a session (its own token, in an HttpOnly SameSite=Strict cookie) and go
     to the evaluations. The form carries its own CSRF token (a cookie sent alike: there is no session yet)."""
-    if not service.policy.accounts:
+    if not service.policy.has_accounts():
         return RedirectResponse("/", status_code=303)
     client = caller.client
     try:
@@ -173,7 +173,7 @@ async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -
             service.limiter.fail(client)
             await anyio.to_thread.run_sync(partial(service.accounts.refused, e, client=client, target="/signin"))
             raise
-        if signed.token_id is None:
+        if not service.policy.may_open_session(signed):
             raise BadRequest("the admin token cannot sign in to the pages; sign in with a user's token")
         session = await anyio.to_thread.run_sync(
             lambda: service.accounts.open_session(signed.at(client), service.settings.session_hours)
@@ -203,7 +203,7 @@ async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -
 async def sign_out(request: Request, service: ServiceDep, caller: ReaderCaller) -> Response:
     """End the session (its token is revoked) and clear the cookie (the session's CSRF token checked by the
     policy, as for every change)."""
-    if not service.policy.accounts:
+    if not service.policy.has_accounts():
         return RedirectResponse("/", status_code=303)
     await anyio.to_thread.run_sync(lambda: service.accounts.close_session(caller))
     response = RedirectResponse("/signin", status_code=303)
@@ -269,9 +269,7 @@ def _home(
 
 def _projects(service: Service, caller: Caller) -> list[str]:
     """The projects an upload from the form may go to (accounts mode): the caller's, every one for admins."""
-    if not service.policy.accounts:
-        return []
-    return service.accounts.projects() if caller.projects is None else sorted(caller.projects)
+    return service.policy.projects_of(caller, service.accounts.projects)
 
 
 @router.get("/")
