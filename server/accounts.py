@@ -21,7 +21,7 @@ from datetime import datetime, timedelta, timezone
 
 from .audit import Audit
 from .errors import BadRequest, Conflict, NotFound, Unauthorized, echo
-from .policy import ALL_SCOPES, READ, WRITE, Caller, Policy
+from .policy import ALL_SCOPES, BUILT_IN_CALLERS, READ, WRITE, Caller, Policy
 from .store import Store, TokenRecord, UserRecord
 
 __all__ = [
@@ -156,6 +156,11 @@ class Accounts:
 
     def add_user(self, name: str, *, is_admin: bool, caller: Caller) -> UserRecord:
         self.check_name(name, "user")
+        if name.lower() in BUILT_IN_CALLERS:
+            raise BadRequest(
+                f"the user name {name!r} is reserved: the service names its own callers so "
+                f"({', '.join(sorted(BUILT_IN_CALLERS))})"
+            )
         if not self.store.add_user(name, is_admin):
             raise Conflict(f"a user named {name!r} exists")
         self.audit.record(caller, "user.add", name, detail="admin" if is_admin else "")

@@ -233,7 +233,10 @@ class Evaluations:
         """The job of an accepted evaluation not stored yet (queued, running, failed or cancelled) and its place
         in the queue, if the caller may see it (its owner's, and the admins')."""
         job = self.jobs.get(evaluation_id)
-        if job is None or job.kind != "evaluation" or not self.policy.sees_job(caller, job.owner):
+        if job is None or job.kind != "evaluation":
+            return None
+        project = job.payload.get("project")
+        if not self.policy.sees_job(caller, job.owner, project=str(project) if project else None):
             return None
         return job, self.jobs.position(job.id)
 

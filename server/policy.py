@@ -46,6 +46,7 @@ __all__ = [
     "ALL_SCOPES",
     "SAFE_METHODS",
     "CSRF_HEADER",
+    "BUILT_IN_CALLERS",
 ]
 
 READ = "read"
@@ -54,6 +55,9 @@ ALL_SCOPES = frozenset({READ, WRITE})
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 #: a script using a web session's cookie sends the session's CSRF token in this header (forms: field ``csrf``)
 CSRF_HEADER = "x-csrf-token"
+#: the names of the callers the service makes itself (no user may take one: the audit log, a job's owner and a
+#: submission's participant name callers by these)
+BUILT_IN_CALLERS = frozenset({"admin-token", "anyone", "anonymous", "metrics-scraper"})
 #: how long a sign-in form's CSRF token is valid
 SIGNIN_CSRF_S = 3600
 
@@ -464,9 +468,13 @@ class Policy:
         """A submission is its participant's: only they read its scores, publish or withdraw it."""
         return caller.signed_in and caller.token_id is not None and caller.name == participant
 
-    def sees_job(self, caller: Caller, owner: str) -> bool:
-        """A job is its owner's (who uploaded or submitted), and every admin's."""
-        return caller.is_admin or (caller.signed_in and caller.name == owner)
+    def sees_job(self, caller: Caller, owner: str, *, project: str | None = None) -> bool:
+        """A job is its owner's (who uploaded or submitted) while they still see what it is for (``project``: an
+        evaluation's project, a benchmark's test set's; a member removed from it no longer does), and every
+        admin's."""
+        if caller.is_admin:
+            return True
+        return caller.signed_in and caller.name == owner and (project is None or self.sees_project(caller, project))
 
     def require_admin(self, caller: Caller) -> None:
         """For what a route already declared ADMIN and a domain method checks again (the command line's

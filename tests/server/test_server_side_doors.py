@@ -246,3 +246,27 @@ def test_a_public_benchmark_takes_part_from_its_projects_members_unless_it_is_op
     }
     ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)
     assert submit(c, teams.headers("carol"), data, name="bench-open").status_code in (201, 202)
+
+
+# -- smaller: the built-in callers' names, a removed member's jobs ---------------------------------------------
+
+
+def test_no_user_takes_a_built_in_callers_name(tmp_path) -> None:
+    with app_client(tmp_path / "data", auth="accounts", auth_max_failures=1_000_000) as c:
+        for name in ("admin-token", "anyone", "Anonymous", "metrics-scraper"):
+            r = c.post("/v1/admin/users", json={"name": name}, headers=ADMIN)
+            assert r.status_code == 422 and "reserved" in r.text, (name, r.text)
+        ok(c.post("/v1/admin/users", json={"name": "anyone-else"}, headers=ADMIN), 201)
+
+
+def test_a_removed_members_jobs_follow_their_current_rights(teams_world) -> None:
+    c, teams = teams_world
+    alice = teams.headers("alice")
+    sid = submit(c, alice, golden_bytes("result.pkl"), name="bench-a").json()["id"]
+    evaluation = teams.evaluations["gt-a"]
+    assert c.get(f"/v1/jobs/{sid}", headers=alice).status_code == 200
+    assert c.get(f"/v1/jobs/{evaluation}", headers=alice).status_code == 200
+    assert c.delete("/v1/admin/members/alice/team-a", headers=ADMIN).status_code == 204
+    for job_id in (sid, evaluation):
+        r = c.get(f"/v1/jobs/{job_id}", headers=alice)
+        assert r.status_code == 404 and "bench-a" not in r.text
