@@ -76,6 +76,11 @@ class BenchmarkCatalog:
             raise NotFound(f"no benchmark named {echo(name)}")
         return bench
 
+    def project_of(self, name: str) -> str | None:
+        """The project of the benchmark's test set (None: shared, or no such benchmark)."""
+        record = self.store.get_benchmark(name)
+        return record.project if record is not None else None
+
     def describe(self, bench: Benchmark, caller: Caller, *, rescoring: bool = False) -> dict[str, Any]:
         """The benchmark as the caller reads it (:func:`.views.benchmark_view`): its test set's name only for
         those the policy lets read it; ``rescoring``: for an admin, the rescoring jobs by state too."""

@@ -38,8 +38,7 @@ def _project_of(service: Service, record: JobRecord | None) -> str | None:
     if record.kind == "evaluation":
         project = record.payload.get("project")
         return str(project) if project else None
-    bench = service.store.get_benchmark(record.group) if record.group else None
-    return bench.project if bench is not None else None
+    return service.benchmarks.project_of(record.group) if record.group else None
 
 
 @router.get("/{job_id}", summary="An accepted evaluation's job: its state, and its evaluation once done")
