@@ -40,6 +40,10 @@ __all__ = [
     "CALLER_KEY",
     "SESSION_COOKIE",
     "CSRF_COOKIE",
+    "HOST_PREFIX",
+    "over_https",
+    "session_cookie",
+    "signin_cookie",
     "access_of",
     "client_of",
     "flat_routes",
@@ -50,6 +54,28 @@ CALLER_KEY = "kitti_eval.caller"
 SESSION_COOKIE = "kitti_eval_session"
 #: the sign-in form's CSRF token (before there is a session)
 CSRF_COOKIE = "kitti_eval_signin"
+#: behind HTTPS the cookies' names carry this prefix: the browser then takes them only from this very origin
+#: over a secure connection, for the whole site (Secure, Path=/, no Domain), so a page on another port or a
+#: sibling subdomain cannot plant or shadow them
+HOST_PREFIX = "__Host-"
+
+
+def over_https(scope: Scope) -> bool:
+    """Whether the request came over HTTPS (behind a proxy that ends TLS: with uvicorn's ``--proxy-headers``)."""
+    return scope.get("scheme") == "https"
+
+
+def session_cookie(scope: Scope) -> str:
+    """The session cookie's name for this request: ``__Host-kitti_eval_session`` over HTTPS."""
+    return HOST_PREFIX + SESSION_COOKIE if over_https(scope) else SESSION_COOKIE
+
+
+def signin_cookie(scope: Scope) -> tuple[str, str]:
+    """The sign-in form's CSRF cookie: its name and path (over HTTPS ``__Host-kitti_eval_signin`` on ``/``, as
+    the prefix requires; else limited to ``/signin``)."""
+    return (HOST_PREFIX + CSRF_COOKIE, "/") if over_https(scope) else (CSRF_COOKIE, "/signin")
+
+
 #: clients whose failures are remembered at once (the oldest are forgotten first)
 _MAX_CLIENTS = 10_000
 
@@ -319,7 +345,7 @@ class AuthMiddleware:
         token = bearer(scope)
         via_cookie = False
         if token is None:
-            token = cookie(scope, SESSION_COOKIE)
+            token = cookie(scope, session_cookie(scope))
             via_cookie = token is not None
         if token is None and access is Access.ANYONE and method in ("GET", "HEAD"):
             await self.app(scope, receive, send)  # an anonymous reader: the route shows public things only
@@ -378,6 +404,8 @@ class AuthMiddleware:
             response = await self.sign_in_page(scope, error.status_code, None if quiet else error.message)
             response.headers.update(error.headers)
         if clear_cookie:
-            response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
+            response.delete_cookie(
+                session_cookie(scope), path="/", httponly=True, samesite="strict", secure=over_https(scope)
+            )
         response.headers["connection"] = "close"  # the body, if any, is not read
         await response(scope, receive, send)

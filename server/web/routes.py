@@ -27,7 +27,7 @@ from kitti_eval.core.protocol import ALL_METRICS, KNOWN_CLASSES, PROTOCOLS
 from kitti_eval.errors import KittiEvalError
 
 from ..accounts import TokenRefused
-from ..auth import CALLER_KEY, CSRF_COOKIE, SESSION_COOKIE
+from ..auth import CALLER_KEY, over_https, session_cookie, signin_cookie
 from ..compare import compare
 from ..deps import FORM_MAX_FIELDS, PublicCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..errors import (
@@ -122,10 +122,6 @@ def _render(request: Request, template: str, status_code: int = 200, /, **contex
 # ----------------------------------------------------------------------------------------------- sign in
 
 
-def _secure(scope: Scope) -> bool:
-    return scope.get("scheme") == "https"
-
-
 async def sign_in_page(scope: Scope, status: int = 200, error: str | None = None) -> Response:
     """The sign-in form (also the answer to a page requested without a valid session): a fresh CSRF token
     in the form and in a cookie, which the form's POST must send back alike."""
@@ -133,14 +129,9 @@ async def sign_in_page(scope: Scope, status: int = 200, error: str | None = None
     policy: Policy = request.app.state.policy
     csrf = policy.issue_signin_csrf()
     response = _render(request, "signin.html", status, status=status, error=error, csrf=csrf, caller=None)
+    name, path = signin_cookie(scope)
     response.set_cookie(
-        CSRF_COOKIE,
-        csrf,
-        max_age=SIGNIN_CSRF_S,
-        path="/signin",
-        httponly=True,
-        samesite="strict",
-        secure=_secure(scope),
+        name, csrf, max_age=SIGNIN_CSRF_S, path=path, httponly=True, samesite="strict", secure=over_https(scope)
     )
     return response
 
@@ -164,7 +155,7 @@ async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -
         async with request.form(max_files=0, max_fields=4) as form:
             token = form.get("token")
             sent_csrf = form.get("csrf")
-        service.policy.check_signin_csrf(sent_csrf, request.cookies.get(CSRF_COOKIE))
+        service.policy.check_signin_csrf(sent_csrf, request.cookies.get(signin_cookie(request.scope)[0]))
         if not isinstance(token, str) or not token.strip():
             raise BadRequest("paste your token (kitti-eval admin token add prints one)")
         try:
@@ -187,15 +178,16 @@ async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -
         return response
     response = RedirectResponse("/", status_code=303)
     response.set_cookie(
-        SESSION_COOKIE,
+        session_cookie(request.scope),
         session,
         max_age=int(service.settings.session_hours * 3600),
         path="/",
         httponly=True,
         samesite="strict",
-        secure=_secure(request.scope),
+        secure=over_https(request.scope),
     )
-    response.delete_cookie(CSRF_COOKIE, path="/signin")
+    name, path = signin_cookie(request.scope)
+    response.delete_cookie(name, path=path, secure=over_https(request.scope))
     return response
 
 
@@ -207,7 +199,9 @@ async def sign_out(request: Request, service: ServiceDep, caller: ReaderCaller) 
         return RedirectResponse("/", status_code=303)
     await anyio.to_thread.run_sync(lambda: service.accounts.close_session(caller))
     response = RedirectResponse("/signin", status_code=303)
-    response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
+    response.delete_cookie(
+        session_cookie(request.scope), path="/", httponly=True, samesite="strict", secure=over_https(request.scope)
+    )
     return response
 
 

@@ -14,6 +14,7 @@ import pytest
 from server_accounts import make_teams
 from server_benchmarks import host, ok, submit
 from server_helpers import ADMIN, app_client, golden_bytes
+from starlette.testclient import TestClient
 
 from kitti_eval_server.auth import CSRF_COOKIE
 from kitti_eval_server.benchmarks.rules import part_frames
@@ -270,3 +271,26 @@ def test_a_removed_members_jobs_follow_their_current_rights(teams_world) -> None
     for job_id in (sid, evaluation):
         r = c.get(f"/v1/jobs/{job_id}", headers=alice)
         assert r.status_code == 404 and "bench-a" not in r.text
+
+
+def test_behind_https_the_cookies_are_host_prefixed(tmp_path) -> None:
+    """Over HTTPS the session and sign-in cookies are ``__Host-`` cookies (Secure, Path=/, no Domain): a page on
+    another port or a sibling subdomain cannot plant one, and a cookie without the prefix is not a session."""
+    with app_client(tmp_path / "data", auth="accounts", auth_max_failures=1_000_000) as plain:
+        hosted = host(plain)
+        c = TestClient(plain.app, base_url="https://testserver")
+        form = c.get("/signin")
+        assert form.headers["set-cookie"].startswith("__Host-kitti_eval_signin=")
+        assert "Path=/;" in form.headers["set-cookie"] and "Secure" in form.headers["set-cookie"]
+        r = c.post(
+            "/signin", data={"token": hosted.tokens["bob"], "csrf": _hidden_csrf(form.text)}, follow_redirects=False
+        )
+        assert r.status_code == 303, r.text[:300]
+        session = next(v for k, v in r.headers.multi_items() if k == "set-cookie" and "session" in v)
+        assert session.startswith("__Host-kitti_eval_session=") and "Secure" in session and "Path=/;" in session
+        assert '<span class="who" id="who">bob</span>' in c.get("/").text
+        value = c.cookies.get("__Host-kitti_eval_session")
+        c.cookies.clear()
+        c.cookies.set("kitti_eval_session", value)  # the same session under the name a plain-http page could set
+        page = c.get("/")
+        assert page.status_code == 401 and 'action="/signin"' in page.text and 'id="who"' not in page.text
