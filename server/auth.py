@@ -47,6 +47,7 @@ __all__ = [
     "access_of",
     "client_of",
     "flat_routes",
+    "check_token",
 ]
 
 #: the caller the door resolved from a token (accounts mode)
@@ -292,6 +293,19 @@ def cross_site(scope: Scope) -> str | None:
     return None
 
 
+async def check_token(
+    accounts: Accounts, limiter: FailureLimiter, token: str, *, client: str, target: str, session: bool = False
+) -> Caller:
+    """The door's check of a token (or a session, ``session``), also the sign-in form's: the caller it stands
+    for; a refused token counts against the client's failures and goes to the audit log (TokenRefused)."""
+    try:
+        return await anyio.to_thread.run_sync(lambda: accounts.resolve(token, session=session))
+    except TokenRefused as e:
+        limiter.fail(client)
+        await anyio.to_thread.run_sync(partial(accounts.refused, e, client=client, target=target))
+        raise
+
+
 class AuthMiddleware:
     """Refuse what the route's declared access refuses before the body is read: a route that declares none
     (both modes), and in accounts mode a request without a valid token (401/429) where one is needed, or a
@@ -369,12 +383,10 @@ class AuthMiddleware:
             return
         try:
             try:
-                caller: Caller = await anyio.to_thread.run_sync(
-                    lambda: self.accounts.resolve(token, session=via_cookie)
+                caller = await check_token(
+                    self.accounts, self.limiter, token, client=client, target=path, session=via_cookie
                 )
             except TokenRefused as e:
-                self.limiter.fail(client)
-                await anyio.to_thread.run_sync(partial(self.accounts.refused, e, client=client, target=path))
                 await self._refuse(scope, receive, send, e, clear_cookie=via_cookie)
                 return
         except Exception as e:  # the token could not be looked up: the database is down or locked

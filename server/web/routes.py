@@ -26,8 +26,7 @@ from kitti_eval.analysis.decomposition import AOS_TYPES, ERROR_TYPES, TP_ERRORS
 from kitti_eval.core.protocol import ALL_METRICS, KNOWN_CLASSES, PROTOCOLS
 from kitti_eval.errors import KittiEvalError
 
-from ..accounts import TokenRefused
-from ..auth import CALLER_KEY, over_https, session_cookie, signin_cookie
+from ..auth import CALLER_KEY, check_token, over_https, session_cookie, signin_cookie
 from ..compare import compare
 from ..deps import FORM_MAX_FIELDS, PublicCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..errors import (
@@ -145,8 +144,10 @@ async def sign_in_form(request: Request, service: ServiceDep, caller: PublicCall
 
 @router.post("/signin")
 async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -> Response:
-    """Check the token once, open a session (its own token, in an HttpOnly SameSite=Strict cookie) and go
-    to the evaluations. The form carries its own CSRF token (a cookie sent alike: there is no session yet)."""
+    """Check the token once, as the door checks one (:func:`~kitti_eval_server.auth.check_token`: the same
+    failure limit and audit), open a session (its own token, in an HttpOnly SameSite=Strict cookie) and go to
+    the evaluations. The form carries its own CSRF token, signed by the service (a cookie sent alike: there is
+    no session yet); the door has already refused a post from another origin."""
     if not service.policy.has_accounts():
         return RedirectResponse("/", status_code=303)
     client = caller.client
@@ -158,12 +159,7 @@ async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -
         service.policy.check_signin_csrf(sent_csrf, request.cookies.get(signin_cookie(request.scope)[0]))
         if not isinstance(token, str) or not token.strip():
             raise BadRequest("paste your token (kitti-eval admin token add prints one)")
-        try:
-            signed = await anyio.to_thread.run_sync(lambda: service.accounts.resolve(token.strip()))
-        except TokenRefused as e:
-            service.limiter.fail(client)
-            await anyio.to_thread.run_sync(partial(service.accounts.refused, e, client=client, target="/signin"))
-            raise
+        signed = await check_token(service.accounts, service.limiter, token.strip(), client=client, target="/signin")
         if not service.policy.may_open_session(signed):
             raise BadRequest("the admin token cannot sign in to the pages; sign in with a user's token")
         session = await anyio.to_thread.run_sync(
