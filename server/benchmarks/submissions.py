@@ -141,7 +141,7 @@ class Submissions(Intervals):
         bench = self.get(name, caller)
         if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
             raise Forbidden(
-                f"the benchmark {name!r} takes part from the members of project {bench.project!r}: reading it is "
+                f"the benchmark {name!r} takes part from the members of its test set's project: reading it is "
                 "not taking part in it"
             )
         baseline = self.policy.is_baseline(caller)  # under no quota, never ranked
