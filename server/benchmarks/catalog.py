@@ -152,15 +152,6 @@ class BenchmarkCatalog:
                 f"the ground truth {ground_truth!r} is not sealed; a benchmark's test set is registered "
                 "with sealed=true"
             )
-        others = [b.name for b in self.using_ground_truth(record.name)]
-        if others and not share_test_set:
-            named = ", ".join(repr(b) for b in others)
-            raise Conflict(
-                f"the ground truth {record.name!r} is already the test set of benchmark {named}: a second "
-                "benchmark on it gives every participant a second quota and a second public part of the same "
-                "labels; register another test set, or say share_test_set=true (--share-test-set) to take it "
-                "anyway"
-            )
         options = EvalOptions(protocol=protocol, classes=classes, threshold_sets=threshold_sets)
         config = options.config()  # the library's checks of the options
         class_names, sets = list(config.classes), list(config.threshold_sets)
@@ -178,6 +169,15 @@ class BenchmarkCatalog:
             )
         if len(description) > 20000 or len(title or "") > 200:
             raise BadRequest("a title is at most 200 characters, a description at most 20000")
+        others = [b.name for b in self.using_ground_truth(record.name)]
+        if others and not share_test_set:
+            named = ", ".join(repr(b) for b in others)
+            raise Conflict(
+                f"the ground truth {record.name!r} is already the test set of benchmark {named}: a second "
+                "benchmark on it gives every participant a second quota and a second public part of the same "
+                "labels; register another test set, or say share_test_set=true (--share-test-set) to take it "
+                "anyway"
+            )
         opens = parse_time(opens_at, "opens") or datetime.now(timezone.utc)
         closes = parse_time(closes_at, "closes")
         if closes is not None and closes <= opens:
