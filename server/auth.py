@@ -164,6 +164,14 @@ def client_of(scope: Scope) -> str:
     return str(first) if first is not None else peer
 
 
+def _from_trusted_proxy(scope: Scope) -> bool:
+    """Whether the socket peer is one of ``KITTI_EVAL_TRUSTED_PROXIES``."""
+    client = scope.get("client")
+    app = scope.get("app")
+    trusted: tuple[Network, ...] = getattr(getattr(app, "state", None), "trusted_proxies", None) or ()
+    return client is not None and _is_trusted(_address(str(client[0])), trusted)
+
+
 def _address(text: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address | None:
     try:
         address = ipaddress.ip_address(text)
@@ -272,21 +280,25 @@ def cross_site(scope: Scope) -> str | None:
     """Why a change sent by a browser came from another origin than the service's own, or None. A browser
     says where a request comes from (``Sec-Fetch-Site``, ``Origin``); a client that says neither (curl, a
     script) is not a browser carrying someone's cookie. The service's own origin is the request's ``Host``
-    (another port of the same host is another origin); its scheme is compared when the service itself is
-    reached over HTTPS (behind a proxy that ends TLS it sees http where the browser says https)."""
+    (another port of the same host is another origin), or the ``X-Forwarded-Host`` a trusted proxy
+    (``KITTI_EVAL_TRUSTED_PROXIES``) passes on; its scheme is compared when the service itself is reached over
+    HTTPS (behind a proxy that ends TLS it sees http where the browser says https)."""
     site = _header(scope, b"sec-fetch-site")
     if site is not None and site.strip().lower() not in ("same-origin", "none"):
         return f"the browser says it comes from another site (Sec-Fetch-Site: {site.strip()[:40]})"
     origin = _header(scope, b"origin")
     if origin is None:
         return None
-    host = _header(scope, b"host") or ""
     scheme, _, rest = origin.strip().partition("://")
     if not rest or origin.strip() == "null":
         return "the browser sent no usable Origin"
     sent_scheme, sent_host = _origin_of(scheme, rest.rstrip("/"))
-    own_scheme, own_host = _origin_of(str(scope.get("scheme", "http")), host)
-    if sent_host != _origin_of(sent_scheme, host)[1] and sent_host != own_host:
+    own_scheme = str(scope.get("scheme", "http"))
+    hosts = [_header(scope, b"host") or ""]
+    if _from_trusted_proxy(scope):  # a proxy that passes the browser's host on says so
+        hosts += [h.split(",")[0].strip() for h in _headers(scope, b"x-forwarded-host")[:1]]
+    own = {_origin_of(s, h)[1] for h in hosts for s in (own_scheme, sent_scheme)}
+    if sent_host not in own:
         return "it comes from another origin"
     if own_scheme == "https" and sent_scheme != "https":
         return "it comes from another origin"

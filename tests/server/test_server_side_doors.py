@@ -7,6 +7,8 @@ from __future__ import annotations
 import pickle
 import re
 from datetime import timedelta
+from ipaddress import ip_network
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -16,7 +18,7 @@ from server_benchmarks import host, ok, submit
 from server_helpers import ADMIN, app_client, golden_bytes
 from starlette.testclient import TestClient
 
-from kitti_eval_server.auth import CSRF_COOKIE
+from kitti_eval_server.auth import CSRF_COOKIE, cross_site
 from kitti_eval_server.benchmarks.rules import part_frames
 
 
@@ -294,3 +296,29 @@ def test_behind_https_the_cookies_are_host_prefixed(tmp_path) -> None:
         c.cookies.set("kitti_eval_session", value)  # the same session under the name a plain-http page could set
         page = c.get("/")
         assert page.status_code == 401 and 'action="/signin"' in page.text and 'id="who"' not in page.text
+
+
+def _scope(*headers: tuple[str, str], peer: str = "10.0.0.2", scheme: str = "http") -> dict[str, Any]:
+    state = SimpleNamespace(trusted_proxies=(ip_network("10.0.0.0/8"),))
+    return {
+        "type": "http",
+        "scheme": scheme,
+        "client": (peer, 1234),
+        "app": SimpleNamespace(state=state),
+        "headers": [(k.lower().encode(), v.encode()) for k, v in headers],
+    }
+
+
+def test_the_services_own_origin_behind_a_proxy() -> None:
+    """Behind a proxy that rewrites Host (nginx's default) the browser's host comes in X-Forwarded-Host, taken
+    from a trusted proxy only; a proxy that ends TLS shows http where the browser says https."""
+    browser = ("Origin", "https://bench.example.org")
+    assert cross_site(_scope(browser, ("Host", "127.0.0.1:8000"), ("X-Forwarded-Host", "bench.example.org"))) is None
+    untrusted = _scope(browser, ("Host", "127.0.0.1:8000"), ("X-Forwarded-Host", "bench.example.org"), peer="8.8.8.8")
+    assert cross_site(untrusted) is not None
+    assert cross_site(_scope(browser, ("Host", "bench.example.org"))) is None
+    assert cross_site(_scope(browser, ("Host", "bench.example.org:443"))) is None
+    assert cross_site(_scope(("Origin", "https://bench.example.org:8443"), ("Host", "bench.example.org"))) is not None
+    assert cross_site(_scope(("Origin", "http://bench.example.org"), ("Host", "bench.example.org"), scheme="https"))
+    assert cross_site(_scope(("Host", "bench.example.org"))) is None  # no browser: curl, a script
+    assert cross_site(_scope(("Sec-Fetch-Site", "same-site"), ("Host", "bench.example.org"))) is not None
