@@ -21,7 +21,7 @@ from datetime import datetime, timedelta, timezone
 
 from .audit import Audit
 from .errors import BadRequest, Conflict, NotFound, Unauthorized, echo
-from .policy import ALL_SCOPES, READ, WRITE, Caller
+from .policy import ALL_SCOPES, BUILT_IN_CALLERS, READ, WRITE, Caller, Policy
 from .store import Store, TokenRecord, UserRecord
 
 __all__ = [
@@ -105,7 +105,7 @@ class Accounts:
         if not session:
             admin = self._admin_token()
             if admin and hmac.compare_digest(presented_digest, digest(admin)):
-                return Caller("admin-token", is_admin=True)  # the admin token stands for an admin
+                return Policy.admin_token_caller()  # the admin token stands for an admin
         token_id = split_token(presented)
         record = self.store.get_token(token_id) if token_id is not None else None
         matches = hmac.compare_digest(presented_digest, record.secret_sha256 if record else _DUMMY_DIGEST)
@@ -130,6 +130,7 @@ class Accounts:
             token_id=record.id,
             session=session,
             csrf=csrf_token(presented) if session else None,
+            signed_in=True,
         )
 
     @staticmethod
@@ -155,6 +156,11 @@ class Accounts:
 
     def add_user(self, name: str, *, is_admin: bool, caller: Caller) -> UserRecord:
         self.check_name(name, "user")
+        if name.lower() in BUILT_IN_CALLERS:
+            raise BadRequest(
+                f"the user name {name!r} is reserved: the service names its own callers so "
+                f"({', '.join(sorted(BUILT_IN_CALLERS))})"
+            )
         if not self.store.add_user(name, is_admin):
             raise Conflict(f"a user named {name!r} exists")
         self.audit.record(caller, "user.add", name, detail="admin" if is_admin else "")

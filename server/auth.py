@@ -40,9 +40,14 @@ __all__ = [
     "CALLER_KEY",
     "SESSION_COOKIE",
     "CSRF_COOKIE",
+    "HOST_PREFIX",
+    "over_https",
+    "session_cookie",
+    "signin_cookie",
     "access_of",
     "client_of",
     "flat_routes",
+    "check_token",
 ]
 
 #: the caller the door resolved from a token (accounts mode)
@@ -50,6 +55,28 @@ CALLER_KEY = "kitti_eval.caller"
 SESSION_COOKIE = "kitti_eval_session"
 #: the sign-in form's CSRF token (before there is a session)
 CSRF_COOKIE = "kitti_eval_signin"
+#: behind HTTPS the cookies' names carry this prefix: the browser then takes them only from this very origin
+#: over a secure connection, for the whole site (Secure, Path=/, no Domain), so a page on another port or a
+#: sibling subdomain cannot plant or shadow them
+HOST_PREFIX = "__Host-"
+
+
+def over_https(scope: Scope) -> bool:
+    """Whether the request came over HTTPS (behind a proxy that ends TLS: with uvicorn's ``--proxy-headers``)."""
+    return scope.get("scheme") == "https"
+
+
+def session_cookie(scope: Scope) -> str:
+    """The session cookie's name for this request: ``__Host-kitti_eval_session`` over HTTPS."""
+    return HOST_PREFIX + SESSION_COOKIE if over_https(scope) else SESSION_COOKIE
+
+
+def signin_cookie(scope: Scope) -> tuple[str, str]:
+    """The sign-in form's CSRF cookie: its name and path (over HTTPS ``__Host-kitti_eval_signin`` on ``/``, as
+    the prefix requires; else limited to ``/signin``)."""
+    return (HOST_PREFIX + CSRF_COOKIE, "/") if over_https(scope) else (CSRF_COOKIE, "/signin")
+
+
 #: clients whose failures are remembered at once (the oldest are forgotten first)
 _MAX_CLIENTS = 10_000
 
@@ -135,6 +162,14 @@ def client_of(scope: Scope) -> str:
             return str(address)
     first = _address(hops[0]) if hops else None
     return str(first) if first is not None else peer
+
+
+def _from_trusted_proxy(scope: Scope) -> bool:
+    """Whether the socket peer is one of ``KITTI_EVAL_TRUSTED_PROXIES``."""
+    client = scope.get("client")
+    app = scope.get("app")
+    trusted: tuple[Network, ...] = getattr(getattr(app, "state", None), "trusted_proxies", None) or ()
+    return client is not None and _is_trusted(_address(str(client[0])), trusted)
 
 
 def _address(text: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address | None:
@@ -229,6 +264,60 @@ def cookie(scope: Scope, name: str) -> str | None:
     return morsel.value if morsel is not None and morsel.value else None
 
 
+_DEFAULT_PORTS = {"http": "80", "https": "443"}
+
+
+def _origin_of(scheme: str, host: str) -> tuple[str, str]:
+    """(scheme, host[:port] without the scheme's default port), lower case."""
+    scheme, host = scheme.lower(), host.strip().lower()
+    default = _DEFAULT_PORTS.get(scheme)
+    if default and host.endswith(":" + default):
+        host = host[: -len(default) - 1]
+    return scheme, host
+
+
+def cross_site(scope: Scope) -> str | None:
+    """Why a change sent by a browser came from another origin than the service's own, or None. A browser
+    says where a request comes from (``Sec-Fetch-Site``, ``Origin``); a client that says neither (curl, a
+    script) is not a browser carrying someone's cookie. The service's own origin is the request's ``Host``
+    (another port of the same host is another origin), or the ``X-Forwarded-Host`` a trusted proxy
+    (``KITTI_EVAL_TRUSTED_PROXIES``) passes on; its scheme is compared when the service itself is reached over
+    HTTPS (behind a proxy that ends TLS it sees http where the browser says https)."""
+    site = _header(scope, b"sec-fetch-site")
+    if site is not None and site.strip().lower() not in ("same-origin", "none"):
+        return f"the browser says it comes from another site (Sec-Fetch-Site: {site.strip()[:40]})"
+    origin = _header(scope, b"origin")
+    if origin is None:
+        return None
+    scheme, _, rest = origin.strip().partition("://")
+    if not rest or origin.strip() == "null":
+        return "the browser sent no usable Origin"
+    sent_scheme, sent_host = _origin_of(scheme, rest.rstrip("/"))
+    own_scheme = str(scope.get("scheme", "http"))
+    hosts = [_header(scope, b"host") or ""]
+    if _from_trusted_proxy(scope):  # a proxy that passes the browser's host on says so
+        hosts += [h.split(",")[0].strip() for h in _headers(scope, b"x-forwarded-host")[:1]]
+    own = {_origin_of(s, h)[1] for h in hosts for s in (own_scheme, sent_scheme)}
+    if sent_host not in own:
+        return "it comes from another origin"
+    if own_scheme == "https" and sent_scheme != "https":
+        return "it comes from another origin"
+    return None
+
+
+async def check_token(
+    accounts: Accounts, limiter: FailureLimiter, token: str, *, client: str, target: str, session: bool = False
+) -> Caller:
+    """The door's check of a token (or a session, ``session``), also the sign-in form's: the caller it stands
+    for; a refused token counts against the client's failures and goes to the audit log (TokenRefused)."""
+    try:
+        return await anyio.to_thread.run_sync(lambda: accounts.resolve(token, session=session))
+    except TokenRefused as e:
+        limiter.fail(client)
+        await anyio.to_thread.run_sync(partial(accounts.refused, e, client=client, target=target))
+        raise
+
+
 class AuthMiddleware:
     """Refuse what the route's declared access refuses before the body is read: a route that declares none
     (both modes), and in accounts mode a request without a valid token (401/429) where one is needed, or a
@@ -264,7 +353,13 @@ class AuthMiddleware:
         if served and access is None:
             await self._refuse(scope, receive, send, Forbidden("this route declares no access rule: refused"))
             return
-        if (not served and not is_api(path)) or access is Access.PUBLIC or not self.policy.accounts:
+        if method not in SAFE_METHODS and bearer(scope) is None:
+            why = cross_site(scope)
+            if why is not None:  # a page elsewhere posting with the visitor's cookie: sign-in or a session's change
+                elsewhere = Forbidden(f"a change from another site is refused: {why}")
+                await self._refuse(scope, receive, send, elsewhere)
+                return
+        if (not served and not is_api(path)) or access is Access.PUBLIC or not self.policy.has_accounts():
             # a page no route serves: the router's 404 (a browser's /favicon.ico gets no sign-in page, whose new
             # CSRF cookie would spoil the form it is showing); open mode: the route's dependency decides
             await self.app(scope, receive, send)
@@ -276,7 +371,7 @@ class AuthMiddleware:
         token = bearer(scope)
         via_cookie = False
         if token is None:
-            token = cookie(scope, SESSION_COOKIE)
+            token = cookie(scope, session_cookie(scope))
             via_cookie = token is not None
         if token is None and access is Access.ANYONE and method in ("GET", "HEAD"):
             await self.app(scope, receive, send)  # an anonymous reader: the route shows public things only
@@ -300,12 +395,10 @@ class AuthMiddleware:
             return
         try:
             try:
-                caller: Caller = await anyio.to_thread.run_sync(
-                    lambda: self.accounts.resolve(token, session=via_cookie)
+                caller = await check_token(
+                    self.accounts, self.limiter, token, client=client, target=path, session=via_cookie
                 )
             except TokenRefused as e:
-                self.limiter.fail(client)
-                await anyio.to_thread.run_sync(partial(self.accounts.refused, e, client=client, target=path))
                 await self._refuse(scope, receive, send, e, clear_cookie=via_cookie)
                 return
         except Exception as e:  # the token could not be looked up: the database is down or locked
@@ -335,6 +428,8 @@ class AuthMiddleware:
             response = await self.sign_in_page(scope, error.status_code, None if quiet else error.message)
             response.headers.update(error.headers)
         if clear_cookie:
-            response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
+            response.delete_cookie(
+                session_cookie(scope), path="/", httponly=True, samesite="strict", secure=over_https(scope)
+            )
         response.headers["connection"] = "close"  # the body, if any, is not read
         await response(scope, receive, send)

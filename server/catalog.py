@@ -48,7 +48,7 @@ class GroundTruthCatalog:
         return record
 
     def listed(self, caller: Caller) -> list[GroundTruthRecord]:
-        if not caller.signed_in:
+        if not self.policy.is_signed_in(caller):
             return []
         return self.store.list_ground_truths(projects=self.policy.project_filter(caller))
 

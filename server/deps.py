@@ -62,10 +62,10 @@ _FORMS = ("application/x-www-form-urlencoded", "multipart/form-data")
 FORM_MAX_FIELDS = 16
 
 
-async def _csrf_sent(request: Request, caller: Caller) -> tuple[str | None, bool]:
+async def _csrf_sent(request: Request, policy: Policy, caller: Caller) -> tuple[str | None, bool]:
     """The CSRF token a web session's change carries: the X-CSRF-Token header, else a form's ``csrf`` field
     (read once here; the route's own ``request.form()`` gets the same parsed form)."""
-    if not caller.session or request.method.upper() in SAFE_METHODS:
+    if not policy.checks_csrf(caller) or request.method.upper() in SAFE_METHODS:
         return None, False
     sent = request.headers.get(CSRF_HEADER)
     if sent is not None:
@@ -89,8 +89,8 @@ def _decider(access: Access) -> Callable[..., Awaitable[Caller]]:
         client = client_of(request.scope)
         caller: Caller | None = request.scope.get(CALLER_KEY)
         if caller is None:
-            caller = policy.anonymous(client) if policy.accounts else policy.everyone(client)
-        csrf, in_header = await _csrf_sent(request, caller)
+            caller = policy.without_token(client)
+        csrf, in_header = await _csrf_sent(request, policy, caller)
         try:
             admitted = policy.admit(
                 access,
@@ -101,7 +101,7 @@ def _decider(access: Access) -> Callable[..., Awaitable[Caller]]:
                 header=in_header,
             )
         except Forbidden as e:
-            if caller.signed_in and policy.accounts:
+            if policy.audits_refusal(caller):
                 service = get_service(request)
                 await anyio.to_thread.run_sync(
                     partial(service.audit.refused_use, caller, f"{request.method} {request.url.path}", e.message)

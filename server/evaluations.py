@@ -145,7 +145,7 @@ class Evaluations:
             )
             if (earlier := self.idempotency.earlier(key)) is not None:
                 return earlier
-        self.jobs.admit(caller.name if self.policy.accounts else None, sum(len(i.content) for i in inputs))
+        self.jobs.admit(self.policy.job_owner(caller), sum(len(i.content) for i in inputs))
         try:  # the job, its inputs and its key: one transaction
             job = enqueue(job_id, payload, inputs, None if key is None else self.idempotency.record(key, job_id))
         except KeyTaken as e:  # a copy of this request was recorded first (nothing of this one is kept)
@@ -243,30 +243,25 @@ class Evaluations:
         return None
 
     def _project_for(self, caller: Caller, wanted: str | None, gt_record: GroundTruthRecord | None) -> str | None:
-        """The project a new evaluation belongs to (None in open mode)."""
-        if not self.policy.accounts:
-            return None
-        if gt_record is not None and gt_record.project is not None:
+        """The project a new evaluation belongs to (None in open mode): its ground truth's, else the one the
+        policy gives the caller (:meth:`Policy.default_project`)."""
+        if gt_record is not None and gt_record.project is not None and self.policy.has_accounts():
             if wanted and wanted != gt_record.project:
                 raise BadRequest(
                     f"the ground truth {gt_record.name!r} belongs to project {gt_record.project!r}, "
                     f"not {echo(wanted)}; evaluations against it belong to its project"
                 )
             return gt_record.project
-        if wanted:
-            if not self.policy.sees_project(caller, wanted) or not self.store.project_exists(wanted):
-                raise NotFound(f"no project of yours named {echo(wanted)}")
-            return wanted
-        if caller.projects is not None and len(caller.projects) == 1:
-            return next(iter(caller.projects))
-        mine = ", ".join(sorted(caller.projects)) if caller.projects is not None else "any project"
-        raise BadRequest(f"name the project of the evaluation (form field 'project'): {mine or 'you have none'}")
+        return self.policy.default_project(caller, self.store.project_exists, wanted)
 
     def job_of(self, evaluation_id: str, caller: Caller) -> tuple[JobRecord, int | None] | None:
         """The job of an accepted evaluation not stored yet (queued, running, failed or cancelled) and its place
         in the queue, if the caller may see it (its owner's, and the admins')."""
         job = self.jobs.get(evaluation_id)
-        if job is None or job.kind != "evaluation" or not self.policy.sees_job(caller, job.owner):
+        if job is None or job.kind != "evaluation":
+            return None
+        project = job.payload.get("project")
+        if not self.policy.sees_job(caller, job.owner, project=str(project) if project else None):
             return None
         return job, self.jobs.position(job.id)
 
@@ -291,7 +286,7 @@ class Evaluations:
         limit: int = 50,
         offset: int = 0,
     ) -> list[EvaluationRecord]:
-        if not caller.signed_in:
+        if not self.policy.is_signed_in(caller):
             return []
         return self.store.list_evaluations(
             gt_name=gt_name,

@@ -9,12 +9,14 @@ import argparse
 import logging
 import os
 import sys
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
+from functools import cache
 from typing import Any
 
 import anyio.to_thread
 from fastapi import FastAPI
+from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from pydantic import ValidationError
@@ -24,8 +26,9 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from kitti_eval import __version__
 from kitti_eval.core.matching import available_cpus
 
-from .auth import CALLER_KEY, AuthMiddleware, Door
+from .auth import CALLER_KEY, AuthMiddleware, Door, access_of, flat_routes
 from .errors import ApiError, StartupRefused, install_error_handlers
+from .headers import SecurityHeaders
 from .idempotency import parse_key
 from .middleware import (
     PART_MEMORY_BYTES,
@@ -131,7 +134,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # before the body: a submission the quota or the queue refuses now is answered without its file, when it
     # arrives and again when its turn to send its file comes
     before_body = BeforeBody(
-        [("POST", "/v1/benchmarks/{name}/submissions", _submission_refused(service))],
+        [("POST", SUBMISSIONS, _submission_refused(service, cache(lambda: _declared(app, "POST", SUBMISSIONS))))],
         caller_key=CALLER_KEY,
         limit=settings.max_upload_bytes,
         timeout_s=settings.body_timeout_s,
@@ -173,18 +176,32 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         retry_after_s=lambda: settings.retry_after_s,
     )
     app.add_middleware(_PlainStartupRefusal)
-    # outermost: every request gets its id, its log line and its metrics, whoever answers it
+    # every request gets its id, its log line and its metrics, whoever answers it
     app.add_middleware(RequestMiddleware, metrics=app_metrics, log_json=lambda: log_json)
+    app.add_middleware(SecurityHeaders)  # on every response, a refusal's and a failure's too
     return app
 
 
-def _submission_refused(service: Service) -> BeforeBodyCheck:
-    """A submission's refusal before its file: as the route's access would admit the caller (a writer), then
+#: the route whose refusals (a used quota, a full queue) are answered before its file
+SUBMISSIONS = "/v1/benchmarks/{name}/submissions"
+
+
+def _declared(app: FastAPI, method: str, path: str) -> Access:
+    """The access the route serving ``method path`` declared (its access dependency)."""
+    for route in flat_routes(app.routes):
+        if isinstance(route, APIRoute) and route.path == path and method in (route.methods or ()):
+            (access,) = access_of(route.dependant)
+            return access
+    raise RuntimeError(f"no route serves {method} {path}")
+
+
+def _submission_refused(service: Service, access: Callable[[], Access]) -> BeforeBodyCheck:
+    """A submission's refusal before its file: as the route's declared ``access`` would admit the caller, then
     :meth:`Submissions.refused_now <kitti_eval_server.benchmarks.submissions.Submissions.refused_now>`."""
 
     def check(caller: Caller, params: dict[str, str], size: int, key: str | None) -> ApiError | None:
         try:
-            admitted = service.policy.admit(Access.WRITER, caller, method="POST", bearer=None, csrf=None)
+            admitted = service.policy.admit(access(), caller, method="POST", bearer=None, csrf=None)
             idempotency_key = parse_key(key)
         except ApiError:
             return None  # the route refuses it, as always

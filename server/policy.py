@@ -10,6 +10,11 @@ Two things live here and nowhere else:
   benchmarks, submissions and their scores, admin actions. The services ask it; every service method that
   shows or changes something takes the caller as a required argument, so no call can forget to ask.
 
+Nothing outside this module (and :mod:`kitti_eval_server.accounts`, which makes callers from their records)
+reads a caller's rights or the mode: the service asks the policy a question (:meth:`Policy.may_take_part`,
+:meth:`Policy.is_baseline`, :meth:`Policy.default_project`, ...; a test walks the sources). A :class:`Caller`
+made without saying otherwise is nobody, and a :class:`Policy` is never made without its test sets.
+
 A :class:`Caller` is made by the policy alone (:meth:`Policy.everyone`, :meth:`Policy.anonymous`, or
 :meth:`kitti_eval_server.accounts.Accounts.resolve` for a token), and the routes receive it from their access
 dependency. ``KITTI_EVAL_AUTH`` is an :class:`AuthMode`: in ``open`` mode everyone is :meth:`Policy.everyone`
@@ -19,13 +24,16 @@ apply. The table "Who may do what" of docs/service/accounts.md is checked agains
 
 from __future__ import annotations
 
+import hashlib
 import hmac
+import secrets
+import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from enum import Enum
 from typing import Protocol
 
-from .errors import Forbidden, NotFound, Sealed, Unauthorized, echo
+from .errors import BadRequest, Forbidden, NotFound, Sealed, Unauthorized, echo
 
 __all__ = [
     "Access",
@@ -38,6 +46,7 @@ __all__ = [
     "ALL_SCOPES",
     "SAFE_METHODS",
     "CSRF_HEADER",
+    "BUILT_IN_CALLERS",
 ]
 
 READ = "read"
@@ -46,6 +55,11 @@ ALL_SCOPES = frozenset({READ, WRITE})
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 #: a script using a web session's cookie sends the session's CSRF token in this header (forms: field ``csrf``)
 CSRF_HEADER = "x-csrf-token"
+#: the names of the callers the service makes itself (no user may take one: the audit log, a job's owner and a
+#: submission's participant name callers by these)
+BUILT_IN_CALLERS = frozenset({"admin-token", "anyone", "anonymous", "metrics-scraper"})
+#: how long a sign-in form's CSRF token is valid
+SIGNIN_CSRF_S = 3600
 
 
 class AuthMode(str, Enum):
@@ -75,13 +89,14 @@ class Access(str, Enum):
 
 @dataclass(frozen=True)
 class Caller:
-    """Who sends a request, what they may do, and where from (for the audit log)."""
+    """Who sends a request, what they may do, and where from (for the audit log). Made without saying
+    otherwise, a caller is nobody: no project, no scope, not signed in, not an admin."""
 
     name: str
     is_admin: bool = False
     #: the projects whose evaluations and ground truths the caller sees; None: every project
-    projects: frozenset[str] | None = None
-    scopes: frozenset[str] = field(default=ALL_SCOPES)
+    projects: frozenset[str] | None = frozenset()
+    scopes: frozenset[str] = frozenset()
     token_id: str | None = None
     #: signed in through the web page (a session cookie): changes need the session's ``csrf``
     session: bool = False
@@ -89,7 +104,7 @@ class Caller:
     #: the client's address (or ``cli``, ``local``), as the audit log names it
     client: str = "local"
     #: False for a reader without a token (accounts mode)
-    signed_in: bool = True
+    signed_in: bool = False
 
     @property
     def actor(self) -> str:
@@ -128,7 +143,12 @@ class _GroundTruth(Protocol):
 #: The "Who may do what" table of docs/service/accounts.md is this one (tests/server/test_policy.py compares them).
 RULES: Sequence[tuple[str, Access, str, str]] = (
     ("probes, sign-in page, static files, API docs", Access.PUBLIC, "yes", "yes"),
-    ("public benchmarks: description, frame ids, board", Access.ANYONE, "yes (no token needed)", "yes"),
+    (
+        "public benchmarks: description, frame ids, board",
+        Access.ANYONE,
+        "yes (no token needed); the test set's name: members of its project",
+        "yes",
+    ),
     ("private benchmarks: description, frame ids, board", Access.READER, "members of its project", "yes"),
     (
         "evaluations: list, read, compare, gates",
@@ -140,8 +160,18 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
     ("frames of an evaluation", Access.READER, "their projects', never of a sealed ground truth", "never sealed"),
     ("ground truths: list, read", Access.READER, "their projects' and shared", "all"),
     ("ground truths: register, delete", Access.ADMIN, "no", "yes"),
-    ("benchmark submissions: submit", Access.WRITER, "within the quota, while open", "as baselines (below)"),
-    ("own submissions: scores", Access.READER, "public part until the reveal, then all", "all (submissions/all)"),
+    (
+        "benchmark submissions: submit",
+        Access.WRITER,
+        "members of its project (every account when it is open to all), within the quota, while open",
+        "as baselines (below)",
+    ),
+    (
+        "own submissions: scores",
+        Access.READER,
+        "the public part's AP until the reveal, then all; never a count of the test set",
+        "all (submissions/all)",
+    ),
     ("own submissions: publish, withdraw", Access.WRITER, "until the benchmark closes", "their baselines"),
     (
         "benchmark baselines: submit, publish, withdraw",
@@ -166,8 +196,8 @@ class Policy:
         mode: AuthMode,
         *,
         admin_token: Callable[[], str],
+        test_sets: Callable[[], Mapping[str, Sequence[str]]],
         metrics_token: Callable[[], str | None] = lambda: None,
-        test_sets: Callable[[], Mapping[str, Sequence[str]]] = dict,
     ) -> None:
         self.mode = mode
         self._admin_token = admin_token
@@ -178,21 +208,85 @@ class Policy:
     def accounts(self) -> bool:
         return self.mode is AuthMode.ACCOUNTS
 
+    # -- questions the rest of the service asks (nothing outside this module and accounts.py reads a caller's
+    # rights or the mode) -----------------------------------------------------------------------------------
+    def has_accounts(self) -> bool:
+        """Whether callers sign in (accounts mode): there is a sign-in page, sessions, submissions."""
+        return self.accounts
+
+    def without_token(self, client: str) -> Caller:
+        """The caller a request without a token is: open mode's everyone, accounts mode's anonymous reader."""
+        return self.anonymous(client) if self.accounts else self.everyone(client)
+
+    def job_owner(self, caller: Caller) -> str | None:
+        """Whose share of the queue an accepted job counts against: the caller's in accounts mode, nobody's in
+        open mode (everyone is the same caller there)."""
+        return caller.name if self.accounts else None
+
+    def is_signed_in(self, caller: Caller) -> bool:
+        """Whether the caller has anything of their own to list (a reader without a token has not)."""
+        return caller.signed_in
+
+    def audits_refusal(self, caller: Caller) -> bool:
+        """Whether a refused use of the caller's rights goes to the audit log: a signed-in account's."""
+        return self.accounts and caller.signed_in
+
+    def checks_csrf(self, caller: Caller) -> bool:
+        """Whether the caller's changes carry a CSRF token: a web session's (its cookie goes along by itself)."""
+        return caller.session
+
+    def may_open_session(self, caller: Caller) -> bool:
+        """A web session is a user's: the admin token (no user) cannot sign in to the pages."""
+        return caller.token_id is not None
+
+    def is_baseline(self, caller: Caller) -> bool:
+        """An admin's submission is a baseline: under no quota, on the board without a rank."""
+        return caller.is_admin
+
+    def counts_quota(self, caller: Caller) -> bool:
+        """Whether the caller's submissions are counted against a benchmark's quota: a participant's, not an
+        admin's baselines."""
+        return self.is_participant(caller) and not caller.is_admin
+
+    def projects_of(self, caller: Caller, every: Callable[[], Sequence[str]]) -> list[str]:
+        """The projects the caller's uploads may go to: theirs (``every()`` for an admin); none in open mode."""
+        if not self.accounts:
+            return []
+        return list(every()) if caller.projects is None else sorted(caller.projects)
+
+    def default_project(self, caller: Caller, exists: Callable[[str], bool], wanted: str | None) -> str | None:
+        """The project a new evaluation of the caller goes to when its ground truth has none: ``wanted`` if it
+        is one of theirs (404 as a missing one otherwise), their only project, or None in open mode; 400 when
+        they have several and named none."""
+        if not self.accounts:
+            return None
+        if wanted:
+            if not self.sees_project(caller, wanted) or not exists(wanted):
+                raise NotFound(f"no project of yours named {echo(wanted)}")
+            return wanted
+        if caller.projects is not None and len(caller.projects) == 1:
+            return next(iter(caller.projects))
+        mine = ", ".join(sorted(caller.projects)) if caller.projects is not None else "any project"
+        raise BadRequest(f"name the project of the evaluation (form field 'project'): {mine or 'you have none'}")
+
     # -- callers -----------------------------------------------------------------------------------------
     def everyone(self, client: str = "local") -> Caller:
         """Open mode's caller: sees and changes everything but the admin actions."""
-        return Caller("anyone", client=client)
+        return Caller("anyone", projects=None, scopes=ALL_SCOPES, client=client, signed_in=True)
 
     def anonymous(self, client: str = "local") -> Caller:
         """Accounts mode, no token: sees public benchmarks only."""
-        return Caller("anonymous", projects=frozenset(), scopes=frozenset(), client=client, signed_in=False)
+        return Caller("anonymous", client=client)
 
-    def admin_token_caller(self, client: str = "local") -> Caller:
-        return Caller("admin-token", is_admin=True, client=client)
+    @staticmethod
+    def admin_token_caller(client: str = "local") -> Caller:
+        """Whoever presents the admin token: an admin of every project."""
+        return Caller("admin-token", is_admin=True, projects=None, scopes=ALL_SCOPES, client=client, signed_in=True)
 
-    def command_line(self, login: str) -> Caller:
+    @staticmethod
+    def command_line(login: str) -> Caller:
         """``kitti-eval admin``: whoever may open the service's database acts as an admin."""
-        return Caller(f"cli:{login}", is_admin=True, client="cli")
+        return Caller(f"cli:{login}", is_admin=True, projects=None, scopes=ALL_SCOPES, client="cli", signed_in=True)
 
     def own_metrics_token(self) -> bool:
         """Whether ``/metrics`` has a token of its own (a scraper's, not an account's)."""
@@ -223,7 +317,7 @@ class Policy:
                     )
                 if not hmac.compare_digest(bearer.encode(), own.encode()):
                     raise Forbidden("the metrics token is not valid")
-                return Caller("metrics-scraper", projects=frozenset(), scopes=frozenset({READ}), client=caller.client)
+                return Caller("metrics-scraper", scopes=frozenset({READ}), client=caller.client, signed_in=True)
             access = Access.READER
         if access is Access.ADMIN and not self.accounts:
             if caller.is_admin:
@@ -242,6 +336,29 @@ class Policy:
         if method.upper() not in SAFE_METHODS:
             self.check_csrf(caller, csrf, header=header)  # whatever the route: a session's change carries it
         return caller
+
+    # -- the sign-in form's CSRF token -------------------------------------------------------------------------
+    def _signin_mac(self, issued: str) -> str:
+        key = hashlib.sha256(b"kitti-eval sign-in form:" + self._admin_token().encode()).digest()
+        return hmac.new(key, issued.encode(), hashlib.sha256).hexdigest()
+
+    def issue_signin_csrf(self, now: float | None = None) -> str:
+        """A CSRF token for the sign-in form (there is no session yet): issued and signed by the service (with a
+        key derived from the admin token, the same in every process and replica), valid for
+        :data:`SIGNIN_CSRF_S` seconds."""
+        issued = f"{int((time.time() if now is None else now) + SIGNIN_CSRF_S)}.{secrets.token_urlsafe(16)}"
+        return f"{issued}.{self._signin_mac(issued)}"
+
+    def check_signin_csrf(self, sent: object, cookie: str | None, now: float | None = None) -> None:
+        """The sign-in form's token: the one the form's page set in its cookie, issued by this service and not
+        expired. A pair the client made up, however alike, is refused."""
+        if not (isinstance(sent, str) and cookie and hmac.compare_digest(sent.encode(), cookie.encode())):
+            raise Forbidden("the sign-in form is stale or came from another site; try again")
+        issued, _, mac = sent.rpartition(".")
+        expires, _, _ = issued.partition(".")
+        fresh = expires.isdigit() and int(expires) > (time.time() if now is None else now)
+        if not (issued and fresh and hmac.compare_digest(mac.encode(), self._signin_mac(issued).encode())):
+            raise Forbidden("the sign-in form is stale or came from another site; try again")
 
     def check_csrf(self, caller: Caller, sent: str | None, *, header: bool = False) -> None:
         """A web session's change carries the session's CSRF token (a form's ``csrf`` field, a script's
@@ -321,6 +438,27 @@ class Policy:
             return False
         return project is None or self.sees_project(caller, project)
 
+    def names_test_set(self, caller: Caller, *, project: str | None) -> bool:
+        """Whether the caller reads the name of a benchmark's test set: those who see the ground truth itself
+        (admins, the members of its project, every signed-in account when it is shared). An anonymous visitor
+        of a public benchmark, or another project's member, never learns that it exists."""
+        if caller.is_admin:
+            return True
+        return caller.signed_in and (project is None or self.sees_project(caller, project))
+
+    def may_take_part(self, caller: Caller, *, project: str | None, open_to_all: bool) -> bool:
+        """Who may submit to a benchmark they see: a participant (:meth:`is_participant`) who is a member of the
+        test set's project (every signed-in account when the test set is shared), or any participant when the
+        benchmark is open to all. Reading a public benchmark is not taking part in it. An admin submits
+        baselines to every benchmark."""
+        if not self.is_participant(caller):
+            return False
+        return caller.is_admin or open_to_all or project is None or self.sees_project(caller, project)
+
+    def administers(self, caller: Caller) -> bool:
+        """An admin: sees every project's records and the benchmarks' jobs, submits baselines."""
+        return caller.is_admin
+
     def is_participant(self, caller: Caller) -> bool:
         """Who may submit: a signed-in user's own token (not the admin token, not open mode's everyone). An
         admin's submission is a baseline: counted against no quota, shown on the board without a rank."""
@@ -330,9 +468,13 @@ class Policy:
         """A submission is its participant's: only they read its scores, publish or withdraw it."""
         return caller.signed_in and caller.token_id is not None and caller.name == participant
 
-    def sees_job(self, caller: Caller, owner: str) -> bool:
-        """A job is its owner's (who uploaded or submitted), and every admin's."""
-        return caller.is_admin or (caller.signed_in and caller.name == owner)
+    def sees_job(self, caller: Caller, owner: str, *, project: str | None = None) -> bool:
+        """A job is its owner's (who uploaded or submitted) while they still see what it is for (``project``: an
+        evaluation's project, a benchmark's test set's; a member removed from it no longer does), and every
+        admin's."""
+        if caller.is_admin:
+            return True
+        return caller.signed_in and caller.name == owner and (project is None or self.sees_project(caller, project))
 
     def require_admin(self, caller: Caller) -> None:
         """For what a route already declared ADMIN and a domain method checks again (the command line's

@@ -204,7 +204,7 @@ class Service:
     def _check_open_mode(self) -> None:
         """Open mode serves every project's work to anyone: not on a database whose accounts say otherwise,
         unless ``allow_open_with_accounts``."""
-        if self.policy.accounts or self.settings.allow_open_with_accounts:
+        if self.policy.has_accounts() or self.settings.allow_open_with_accounts:
             return
         users, tokens = self.accounts.holders()
         if users or tokens:

@@ -339,8 +339,26 @@ async def await_job(queue: JobQueue, job_id: str, timeout_s: float) -> JobRecord
         delay = min(0.25, delay * 1.5)
 
 
+#: a job, as its owner (or an admin) reads it
+JOB_FIELDS = (
+    "id",
+    "kind",
+    "state",
+    "position",
+    "attempts",
+    "accepted_at",
+    "started_at",
+    "finished_at",
+    "location",
+    "evaluation",
+    "submission",
+    "result_location",
+    "error",
+)
+
+
 def job_view(record: JobRecord, position: int | None) -> dict[str, Any]:
-    """A job as its owner (or an admin) sees it."""
+    """A job as its owner (or an admin) sees it (:data:`JOB_FIELDS`)."""
     out: dict[str, Any] = {
         "id": record.id,
         "kind": record.kind,
@@ -362,7 +380,7 @@ def job_view(record: JobRecord, position: int | None) -> dict[str, Any]:
     if record.state == "failed":
         failure = JobFailed(record.error)
         out["error"] = {"status": failure.status_code, "code": failure.code, "message": failure.message}
-    return out
+    return {k: out[k] for k in JOB_FIELDS if k in out}
 
 
 def admin_job_view(record: JobRecord) -> dict[str, Any]:

@@ -91,6 +91,17 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     b.add_argument("--quota", default="3/1", metavar="N/DAYS", help="accepted submissions per participant (3/1)")
     b.add_argument("--public", action="store_true", help="the board and page are readable without a token")
     b.add_argument(
+        "--open-to-all",
+        action="store_true",
+        help="every account may take part (default: the members of the test set's project)",
+    )
+    b.add_argument(
+        "--share-test-set",
+        action="store_true",
+        help="the test set is already another benchmark's: take it anyway (a second quota and public part on "
+        "the same labels)",
+    )
+    b.add_argument(
         "--key",
         action="append",
         metavar="COLUMN",
@@ -156,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
         from kitti_eval_server.accounts import Accounts
         from kitti_eval_server.audit import Audit
         from kitti_eval_server.errors import ApiError
-        from kitti_eval_server.policy import AuthMode, Policy
+        from kitti_eval_server.policy import Policy
         from kitti_eval_server.settings import Settings
         from kitti_eval_server.store import Store
     except ImportError as e:
@@ -171,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
         _say(f"error: invalid settings:\n{e}")
         return EXIT_USAGE
     # whoever may open the service's database acts as an admin
-    caller = Policy(AuthMode(settings.auth), admin_token=lambda: "").command_line(_login())
+    caller = Policy.command_line(_login())
     where = settings.database_name
     _say(f"database {where}")  # every run names the database it reads and writes
     try:
@@ -341,6 +352,8 @@ def _benchmark(args: argparse.Namespace, settings: Any, caller: Any) -> int:
                 closes_at=args.closes,
                 split_percent=args.split_percent,
                 max_published=args.max_published,
+                open_to_all=args.open_to_all,
+                share_test_set=args.share_test_set,
                 caller=caller,
             )
             n, days = bench.quota

@@ -1,11 +1,13 @@
 """Hosted benchmarks: a sealed ground truth, participants' submissions under a quota, and a leaderboard.
 
 Who takes part: a benchmark is seen by everyone who sees its ground truth (the members of the ground truth's
-project, every signed-in account when the ground truth is shared) and, when it is public, its leaderboard by
-anyone, without a token. Whoever sees a benchmark may submit to it with a token that may write (accounts mode
-only: a participant is an account). Admins create, close, reopen, reveal and rescore benchmarks, list every
-submission and disqualify entries; what an admin submits is a baseline (counted against no quota, accepted
-until the close, on the board in its place by the key without a rank of its own).
+project, every signed-in account when the ground truth is shared) and, when it is public, by anyone, without a
+token (but its test set's name, :mod:`.views`). Those who see its ground truth may submit to it with a token
+that may write, and every signed-in account when it is open to all (accounts mode only: a participant is an
+account). A test set is one benchmark's unless the admin says it is shared. Admins create, close, reopen,
+reveal and rescore benchmarks, list every submission and disqualify entries; what an admin submits is a
+baseline (counted against no quota, accepted until the close, on the board in its place by the key without a
+rank of its own).
 
 A submission is checked first with :func:`kitti_eval.io.submission.validate_submission` against the test frame
 ids (the sentences ``kitti-eval validate`` prints; a refused submission costs nothing), then counted against
@@ -31,7 +33,8 @@ them, and a participant's submission is compared with their previous best and th
 
 The modules: :mod:`.rules` (a benchmark's definition and rules), :mod:`.catalog` (seeing benchmarks, the
 admins' actions on them), :mod:`.intervals` (the resampled keys: computed, kept, compared),
-:mod:`.submissions` (accepting, scoring, publishing), :mod:`.leaderboard` (ranking, CSV) and
+:mod:`.submissions` (accepting, scoring, publishing), :mod:`.leaderboard` (ranking, CSV), :mod:`.views` (what
+a caller is shown, from allow-lists) and
 :mod:`.markdown` (the description as HTML).
 """
 

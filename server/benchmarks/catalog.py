@@ -8,6 +8,7 @@ from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any
 
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import THRESHOLD_SETS
@@ -23,6 +24,7 @@ from ..policy import Caller, Policy
 from ..store import BenchmarkRecord, GroundTruthRecord, Store
 from ..uploads import Limits
 from .rules import DEFAULT_KEY, DIFFICULTIES, Benchmark, parse_column, parse_quota, parse_time
+from .views import benchmark_view
 
 __all__ = ["BenchmarkCatalog"]
 
@@ -77,6 +79,19 @@ class BenchmarkCatalog:
             raise NotFound(f"no benchmark named {echo(name)}")
         return bench
 
+    def project_of(self, name: str) -> str | None:
+        """The project of the benchmark's test set (None: shared, or no such benchmark)."""
+        record = self.store.get_benchmark(name)
+        return record.project if record is not None else None
+
+    def describe(self, bench: Benchmark, caller: Caller, *, rescoring: bool = False) -> dict[str, Any]:
+        """The benchmark as the caller reads it (:func:`.views.benchmark_view`): its test set's name only for
+        those the policy lets read it; ``rescoring``: for an admin, the rescoring jobs by state too."""
+        out = benchmark_view(bench, names_test_set=self.policy.names_test_set(caller, project=bench.project))
+        if rescoring and self.policy.administers(caller):
+            out["rescoring"] = self.jobs.counts(group=bench.name, kind="rescore")
+        return out
+
     def visible(self, caller: Caller) -> list[Benchmark]:
         found = [Benchmark.from_record(r) for r in self.store.list_benchmarks()]
         return [b for b in found if self.sees(caller, b)]
@@ -125,8 +140,13 @@ class BenchmarkCatalog:
         closes_at: str | datetime | None = None,
         split_percent: float | None = None,
         max_published: int | None = None,
+        open_to_all: bool = False,
+        share_test_set: bool = False,
         caller: Caller,
     ) -> Benchmark:
+        """``open_to_all``: every signed-in account may take part (else the members of the test set's project);
+        ``share_test_set``: the test set may already be another benchmark's (refused otherwise: each benchmark
+        gives a participant a quota and a public part of its own on the same labels)."""
         self.policy.require_admin(caller)
         Accounts.check_name(name, "benchmark")
         record = self.ground_truths.record(ground_truth)
@@ -152,6 +172,15 @@ class BenchmarkCatalog:
             )
         if len(description) > 20000 or len(title or "") > 200:
             raise BadRequest("a title is at most 200 characters, a description at most 20000")
+        others = [b.name for b in self.using_ground_truth(record.name)]
+        if others and not share_test_set:
+            named = ", ".join(repr(b) for b in others)
+            raise Conflict(
+                f"the ground truth {record.name!r} is already the test set of benchmark {named}: a second "
+                "benchmark on it gives every participant a second quota and a second public part of the same "
+                "labels; register another test set, or say share_test_set=true (--share-test-set) to take it "
+                "anyway"
+            )
         opens = parse_time(opens_at, "opens") or datetime.now(timezone.utc)
         closes = parse_time(closes_at, "closes")
         if closes is not None and closes <= opens:
@@ -170,6 +199,7 @@ class BenchmarkCatalog:
                 "columns": cols,
                 "quota": [count, days],
                 "split_percent": split_percent,
+                "open_to_all": bool(open_to_all),
             },
             split_seed=secrets.token_hex(16) if split_percent is not None else None,
             public=public,
@@ -182,7 +212,8 @@ class BenchmarkCatalog:
         )
         if not self.store.add_benchmark(bench):
             raise Conflict(f"a benchmark named {name!r} exists")
-        self.audit.record(caller, "benchmark.add", name, detail=record.name)
+        detail = record.name + (f", shared with {', '.join(others)}" if others else "")
+        self.audit.record(caller, "benchmark.add", name, detail=detail)
         return self._get(name)
 
     def set_state(self, name: str, *, caller: Caller, **values: bool) -> Benchmark:

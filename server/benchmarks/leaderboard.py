@@ -14,6 +14,7 @@ from kitti_eval.analysis.ranking import standings
 from ..errors import BadRequest
 from ..policy import Caller
 from .intervals import Intervals, ranked_rows, rounded
+from .views import BOARD_FIELDS, ENTRY_FIELDS, pick
 
 __all__ = ["Leaderboard"]
 
@@ -46,22 +47,27 @@ class Leaderboard(Intervals):
             scores = (row.scores or {}).get(phase) or {}
             place = standing.get(row.id)
             entries.append(
-                {
-                    "id": row.id,
-                    "method": row.method,
-                    "participant": None if row.anonymous else row.participant,
-                    "affiliation": None if row.anonymous else row.affiliation,
-                    "link": None if row.anonymous else row.link,
-                    "anonymous": bool(row.anonymous),
-                    "date": row.created_at.isoformat(),
-                    "key": key,
-                    "columns": {c: scores.get(c) for c in bench.columns},
-                    "baseline": bool(row.baseline),
-                    "rank": None if row.baseline else rank_of[row.id],
-                    "interval": rounded(place.interval) if place else None,
-                    "rank_range": list(place.rank_range) if place and place.rank_range and not row.baseline else None,
-                    "differs_from_next": place.differs_from_next if place and not row.baseline else None,
-                }
+                pick(
+                    {
+                        "id": row.id,
+                        "method": row.method,
+                        "participant": None if row.anonymous else row.participant,
+                        "affiliation": None if row.anonymous else row.affiliation,
+                        "link": None if row.anonymous else row.link,
+                        "anonymous": bool(row.anonymous),
+                        "date": row.created_at.isoformat(),
+                        "key": key,
+                        "columns": {c: scores.get(c) for c in bench.columns},
+                        "baseline": bool(row.baseline),
+                        "rank": None if row.baseline else rank_of[row.id],
+                        "interval": rounded(place.interval) if place else None,
+                        "rank_range": list(place.rank_range)
+                        if place and place.rank_range and not row.baseline
+                        else None,
+                        "differs_from_next": place.differs_from_next if place and not row.baseline else None,
+                    },
+                    ENTRY_FIELDS,
+                )
             )
         pending = sum(1 for row, key in ranked if key is not None and row.id not in values)
         sort = sort or "key"
@@ -73,7 +79,7 @@ class Leaderboard(Intervals):
         rows = entries
         if sort not in ("key", "rank") or order != "desc" or sort == "rank":
             rows = self._sorted(entries, sort, order)
-        return {
+        board = {
             "benchmark": bench.name,
             "title": bench.title,
             "board": phase,
@@ -84,6 +90,7 @@ class Leaderboard(Intervals):
             "entries": rows,
             "bootstrap": {**self.bootstrap_of(bench), "pending": pending},
         }
+        return pick(board, BOARD_FIELDS)
 
     @staticmethod
     def _sorted(entries: list[dict[str, Any]], sort: str, order: str) -> list[dict[str, Any]]:

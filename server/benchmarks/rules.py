@@ -131,6 +131,11 @@ class Benchmark(BenchmarkRecord):
         return int(self.config["quota"][0]), float(self.config["quota"][1])
 
     @property
+    def open_to_all(self) -> bool:
+        """Every signed-in account may take part, not only the members of its test set's project."""
+        return bool(self.config.get("open_to_all", False))
+
+    @property
     def split_percent(self) -> float | None:
         value = self.config.get("split_percent")
         return None if value is None else float(value)
@@ -160,28 +165,3 @@ class Benchmark(BenchmarkRecord):
         return EvalOptions(
             protocol=self.config["protocol"], classes=self.config["classes"], threshold_sets=self.config["sets"]
         )
-
-    def describe(self) -> dict[str, Any]:
-        """What anyone who sees the benchmark may read (never the split's seed)."""
-        n, days = self.quota
-        return {
-            "name": self.name,
-            "title": self.title,
-            "description": self.description,
-            "ground_truth": self.gt_name,
-            "protocol": self.config["protocol"],
-            "classes": self.config["classes"].split(","),
-            "threshold_sets": self.config["sets"].split(","),
-            "key": self.key,
-            "columns": self.columns,
-            "quota": {"submissions": n, "days": days},
-            "public": self.public,
-            "opens_at": self.opens_at.isoformat(),
-            "closes_at": self.closes_at.isoformat() if self.closes_at else None,
-            "open": self.is_open(),
-            "closed": self.closed,
-            "split_percent": self.split_percent,
-            "revealed": self.revealed,
-            "board": self.phase,
-            "max_published": self.max_published,
-        }

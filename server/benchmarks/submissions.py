@@ -44,6 +44,7 @@ from ..uploads import (
 from ..workers import JobFailed, error_of
 from .intervals import Intervals
 from .rules import Benchmark, part_frames, scores_of
+from .views import submission_view
 
 __all__ = ["Submissions", "QuotaExceeded", "InvalidSubmission"]
 
@@ -82,44 +83,6 @@ class InvalidSubmission(ApiError):
         self.details = {"problems": problems}
 
 
-def _submission_view(
-    record: SubmissionRecord, bench: Benchmark, *, full: bool, everything: bool = False
-) -> dict[str, Any]:
-    """A submission as its participant sees it (``full``: with its aggregate document), or as an admin's list
-    does (``everything``). While a benchmark with a public/private split is not revealed, its participant
-    sees the scores on the public part only (what the board shows) and the document on that part (None for
-    a submission scored before that document was kept); after the reveal, and always in an admin's list,
-    the scores on the whole test set and on each part (``parts``). Without a split the whole set is the
-    public part."""
-    scores = record.scores or {}
-    public_only = bench.phase == "public" and not everything
-    shown = "public" if public_only else "all"
-    out = {
-        "id": record.id,
-        "benchmark": record.benchmark,
-        "participant": record.participant,
-        "created_at": record.created_at.isoformat(),
-        "status": record.status,
-        "filename": record.pred_filename,
-        "sha256": record.pred_sha256,
-        "size": record.pred_size,
-        "published": bool(record.published),
-        "method": record.method,
-        "anonymous": bool(record.anonymous),
-        "affiliation": record.affiliation,
-        "link": record.link,
-        "disqualified": bool(record.disqualified),
-        "baseline": bool(record.baseline),
-        "scored_at": record.scored_at.isoformat() if record.scored_at else None,
-        "scored_on": shown,
-        "scores": scores.get(shown),
-        "parts": None if public_only or bench.phase == "all" else {p: scores.get(p) for p in ("public", "private")},
-    }
-    if full:
-        out["result"] = record.public_result if public_only else record.result
-    return out
-
-
 class Submissions(Intervals):
     """A benchmark's submissions: the participants' side and the admins'."""
 
@@ -127,7 +90,7 @@ class Submissions(Intervals):
     def all_submissions(self, name: str, caller: Caller) -> list[dict[str, Any]]:
         self.policy.require_admin(caller)
         bench = self._get(name)
-        return [_submission_view(r, bench, full=False, everything=True) for r in self.store.list_submissions(name)]
+        return [submission_view(r, bench, full=False, everything=True) for r in self.store.list_submissions(name)]
 
     def disqualify(self, name: str, submission_id: str, *, caller: Caller) -> dict[str, Any]:
         self.policy.require_admin(caller)
@@ -139,7 +102,7 @@ class Submissions(Intervals):
         self.audit.record(caller, "submission.disqualify", submission_id)
         again = self.store.get_submission(submission_id)
         assert again is not None
-        return _submission_view(again, bench, full=False, everything=True)
+        return submission_view(again, bench, full=False, everything=True)
 
     def rescore(self, name: str, *, caller: Caller) -> dict[str, Any]:
         """Queue one job per stored submission that evaluates it again against the ground truth as registered
@@ -177,18 +140,23 @@ class Submissions(Intervals):
         is answered instead of a new one, counted once."""
         if self.draining():
             raise NotReady("the service is shutting down; submit again in a moment")
-        if not self.policy.accounts:
+        if not self.policy.has_accounts():
             raise Forbidden("benchmarks take submissions in accounts mode (KITTI_EVAL_AUTH=accounts)")
         if not self.policy.is_participant(caller):
             raise Forbidden("a participant submits with their own token (kitti-eval admin token add USER)")
         bench = self.get(name, caller)
+        if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
+            raise Forbidden(
+                f"the benchmark {name!r} takes part from the members of its test set's project: reading it is "
+                "not taking part in it"
+            )
         upload = receive_content(predictions.file, predictions.filename, "predictions")
         key = None
         if idempotency_key is not None:
             key = RequestKey(caller.name, submissions_scope(name), idempotency_key, fingerprint(file=upload.sha256))
             if (earlier := self.idempotency.earlier(key)) is not None:
                 return earlier  # accepted before (and counted then), whatever has changed since
-        baseline = caller.is_admin  # an admin's submission is a baseline: under no quota, never ranked
+        baseline = self.policy.is_baseline(caller)  # under no quota, never ranked
         if baseline and bench.is_closed():
             raise Conflict(f"the benchmark {name!r} is closed: its board is frozen")
         if not baseline and not bench.is_open():
@@ -245,7 +213,7 @@ class Submissions(Intervals):
         <kitti_eval_server.jobs.JobQueue.admit>`). None when it may be accepted, or for any other answer: the
         route decides those, and the transaction that accepts counts the quota again. A request sent again with
         an idempotency key already recorded is not refused here: the route answers it with its first job."""
-        if not self.policy.accounts or caller.is_admin or not self.policy.is_participant(caller):
+        if not self.policy.counts_quota(caller):
             return None
         if self.idempotency.known(caller.name, submissions_scope(name), idempotency_key):
             return None
@@ -292,9 +260,9 @@ class Submissions(Intervals):
                 dt = self._predictions(job, row, gt)  # a rescoring: the kept file
             values, resampled = self._scores(bench, record, gt, dt)
         except BaseException as e:
-            _, retry = error_of(e)
+            body, retry = error_of(e)
             if not retry or job.attempts >= job.max_attempts:
-                self.store.update_submission(sid, status="failed")
+                self.store.update_submission(sid, status="failed", failure=str(body["message"])[:500])
             raise
 
         def write(conn: Any) -> None:
@@ -395,7 +363,7 @@ class Submissions(Intervals):
         their best earlier submission and the leader, on the part the board shows)."""
         record = self._own(name, submission_id, caller)
         bench = self._get(name)
-        out = _submission_view(record, bench, full=True)
+        out = submission_view(record, bench, full=True)
         out["comparison"] = self.comparison(bench, record)
         return out
 
@@ -411,7 +379,7 @@ class Submissions(Intervals):
         # none left: the next is accepted when enough of the window's oldest have left it (the 429's retry_at)
         next_at = (counted[used - count] + timedelta(days=days)).isoformat() if used >= count else None
         return {
-            "items": [_submission_view(r, bench, full=False) for r in reversed(records)],
+            "items": [submission_view(r, bench, full=False) for r in reversed(records)],
             "quota": {
                 "submissions": count,
                 "days": days,
@@ -420,7 +388,7 @@ class Submissions(Intervals):
                 "next_at": next_at,
             },
             # an admin submits baselines: counted against no quota ("left" does not apply)
-            "baselines": bool(caller.is_admin),
+            "baselines": self.policy.is_baseline(caller),
         }
 
     def publish(

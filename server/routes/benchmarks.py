@@ -55,6 +55,12 @@ class BenchmarkIn(BaseModel):
     )
     quota: str = Field("3/1", max_length=100, description="N/DAYS: accepted submissions per participant")
     public: bool = False
+    open_to_all: bool = Field(
+        False, description="every signed-in account may take part (else the members of the test set's project)"
+    )
+    share_test_set: bool = Field(
+        False, description="the test set is already another benchmark's: take it for this one too (see the docs)"
+    )
     opens_at: str | None = Field(None, max_length=100)
     closes_at: str | None = Field(None, max_length=100)
     split_percent: float | None = Field(None, description="the public part of the test frames, in percent")
@@ -88,22 +94,21 @@ def create(body: BenchmarkIn, benchmarks: BenchmarksDep, caller: AdminCaller) ->
         closes_at=body.closes_at,
         split_percent=body.split_percent,
         max_published=body.max_published,
+        open_to_all=body.open_to_all,
+        share_test_set=body.share_test_set,
         caller=caller,
     )
-    return bench.describe()
+    return benchmarks.describe(bench, caller)
 
 
 @router.get("", summary="Benchmarks you can see")
 def list_benchmarks(benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
-    return {"items": [b.describe() for b in benchmarks.visible(caller)]}
+    return {"items": [benchmarks.describe(b, caller) for b in benchmarks.visible(caller)]}
 
 
 @router.get("/{name}", summary="One benchmark (admins: with the rescoring jobs by state)")
 def get_benchmark(name: str, benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
-    out = benchmarks.get(name, caller).describe()
-    if caller.is_admin:
-        out["rescoring"] = benchmarks.rescoring(name)
-    return out
+    return benchmarks.describe(benchmarks.get(name, caller), caller, rescoring=True)
 
 
 @router.get("/{name}/frames", summary="The test frame ids (for kitti-eval validate --benchmark)")
@@ -132,7 +137,7 @@ def leaderboard(
 
 
 def _admin_state(name: str, benchmarks: Benchmarks, caller: Caller, **values: bool) -> dict[str, Any]:
-    return benchmarks.set_state(name, caller=caller, **values).describe()
+    return benchmarks.describe(benchmarks.set_state(name, caller=caller, **values), caller)
 
 
 @router.post("/{name}/close", summary="Close a benchmark to submissions (admins)")

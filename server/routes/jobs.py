@@ -13,6 +13,7 @@ from ..deps import ReaderCaller, ServiceDep
 from ..errors import NotFound, echo
 from ..jobs import JobQueue, JobRecord
 from ..schemas import ErrorResponse
+from ..service import Service
 from ..workers import job_view
 
 router = APIRouter(
@@ -30,10 +31,21 @@ async def still_pending(queue: JobQueue, record: JobRecord) -> JSONResponse:
     return JSONResponse(job_view(record, position), status_code=202, headers=headers)
 
 
+def _project_of(service: Service, record: JobRecord | None) -> str | None:
+    """The project a job is for: an evaluation's, or the test set's of the benchmark a submission is to."""
+    if record is None:
+        return None
+    if record.kind == "evaluation":
+        project = record.payload.get("project")
+        return str(project) if project else None
+    return service.benchmarks.project_of(record.group) if record.group else None
+
+
 @router.get("/{job_id}", summary="An accepted evaluation's job: its state, and its evaluation once done")
 async def get_job(job_id: str, service: ServiceDep, caller: ReaderCaller) -> dict[str, Any]:
     record = await anyio.to_thread.run_sync(service.jobs.get, job_id)
-    if record is None or not service.policy.sees_job(caller, record.owner):
+    project = await anyio.to_thread.run_sync(_project_of, service, record)
+    if record is None or not service.policy.sees_job(caller, record.owner, project=project):
         raise NotFound(f"no job with id {echo(job_id)}")
     position = await anyio.to_thread.run_sync(service.jobs.position, job_id)
     return job_view(record, position)

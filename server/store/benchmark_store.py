@@ -88,6 +88,7 @@ class SubmissionRecord:
     published_at: datetime | None = None
     disqualified: bool = False
     baseline: bool = False  # an admin's: on the board as a reference, not ranked, under no quota
+    failure: str | None = None  # why a failed submission failed
 
 
 @dataclass(frozen=True)

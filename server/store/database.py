@@ -242,6 +242,8 @@ submissions = Table(
     Column("disqualified", Boolean, nullable=False),
     #: an admin's submission: shown on the board as a reference, not ranked, counted against no quota
     Column("baseline", Boolean, nullable=False, default=False),
+    #: why a failed submission failed (its file refused, its scoring cancelled or given up on)
+    Column("failure", String(500), nullable=True),
     Index("ix_submissions_quota", "benchmark", "participant", "created_at"),
 )
 
@@ -351,7 +353,11 @@ _ADDED_COLUMNS = {
     "evaluations": {"options": "{json}", "project": "VARCHAR(64)"},
     "ground_truths": {"project": "VARCHAR(64)", "sealed": "BOOLEAN NOT NULL DEFAULT FALSE"},
     "benchmarks": {"max_published": "INTEGER"},
-    "submissions": {"public_result": "{json}", "baseline": "BOOLEAN NOT NULL DEFAULT FALSE"},
+    "submissions": {
+        "public_result": "{json}",
+        "baseline": "BOOLEAN NOT NULL DEFAULT FALSE",
+        "failure": "VARCHAR(500)",
+    },
     "job_inputs": {"kept": "BOOLEAN NOT NULL DEFAULT FALSE"},
 }
 

@@ -17,7 +17,7 @@ from typing import Any
 from sqlalchemy import Update, and_, case, func, insert, or_, select, update
 from sqlalchemy.engine import Connection, RowMapping
 
-from .database import Area, dated, jobs, retry_when_locked, utc
+from .database import Area, dated, jobs, retry_when_locked, submissions, utc
 
 __all__ = ["JobRecord", "JobStore", "JOB_STATES", "ENDED_STATES"]
 
@@ -54,6 +54,20 @@ class _NotHeld(Exception):
 
 def lost_message(attempts: int) -> str:
     return f"the worker was lost {attempts} time{'' if attempts == 1 else 's'}"
+
+
+#: why a submission whose scoring an admin cancelled failed
+CANCELLED_MESSAGE = "its scoring was cancelled by an admin before it ended"
+
+
+def _fail_submission_in(conn: Connection, job: JobRecord, reason: str) -> None:
+    """A submission's scoring job that ends without a score (cancelled, given up on) fails the submission with
+    ``reason`` in the transaction that ends the job: a failed submission does not count against the quota."""
+    if job.kind != "submission":
+        return
+    sid = str(job.payload.get("submission_id") or job.id)
+    still = and_(submissions.c.id == sid, submissions.c.status == "accepted")
+    conn.execute(update(submissions).where(still).values(status="failed", failure=reason[:500]))
 
 
 class JobStore(Area):
@@ -117,6 +131,7 @@ class JobStore(Area):
                 if job.state == "running" and job.attempts >= job.max_attempts:
                     ended = dict(state="failed", lease_until=None, finished_at=now, error=lost_message(job.attempts))
                     conn.execute(update(jobs).where(jobs.c.id == job.id).values(**ended))
+                    _fail_submission_in(conn, job, lost_message(job.attempts))
                     lost.append(job.id)
                     continue
                 taken = dict(
@@ -205,6 +220,7 @@ class JobStore(Area):
                 return job
             values = dict(state="cancelled", lease_until=None, finished_at=finished_at)
             conn.execute(update(jobs).where(jobs.c.id == job_id).values(**values))
+            _fail_submission_in(conn, job, CANCELLED_MESSAGE)
         return JobRecord(**{**job.__dict__, **values})
 
     @retry_when_locked

@@ -111,7 +111,7 @@ def benchmarks_page(request: Request, service: ServiceDep, caller: AnyoneCaller)
     benchmarks = _benchmarks(request)
     rows = []
     for bench in benchmarks.visible(caller):
-        described = bench.describe()
+        described = benchmarks.describe(bench, caller)
         mine = benchmarks.mine(bench.name, caller) if _participant(service, caller) else None
         rows.append({"bench": described, "rules": _rules(described), "mine": mine})
     return _render(request, "benchmarks.html", rows=rows, participant=_participant(service, caller))
@@ -132,7 +132,9 @@ def _state(service: Service, submission: Mapping[str, Any]) -> dict[str, Any]:
         return {"name": "scored", "text": "scored", "done": True}
     job = service.jobs.get(submission["id"])
     if submission["status"] == "failed" or (job is not None and job.state in ("failed", "cancelled")):
-        reason = JobFailed(job.error).message if job is not None and job.error else "the evaluation failed"
+        reason = submission.get("reason") or (
+            JobFailed(job.error).message if job is not None and job.error else "the evaluation failed"
+        )
         return {"name": "failed", "text": "failed", "reason": clip(reason), "done": True}
     if job is not None and job.state == "running":
         return {"name": "running", "text": "being scored", "done": False}
@@ -146,7 +148,7 @@ def _benchmark_context(
     benchmarks = _benchmarks(request)
     bench = benchmarks.get(name, caller)
     board = benchmarks.leaderboard(name, caller, sort=sort, order=order)
-    described = bench.describe()
+    described = benchmarks.describe(bench, caller)
     mine = None
     if _participant(service, caller):
         mine = benchmarks.mine(name, caller)
@@ -166,7 +168,7 @@ def _benchmark_context(
         "number": number,
         "mine": mine,
         "next_slot": full_time(mine["quota"]["next_at"]) if mine and mine["quota"]["next_at"] else None,
-        "accounts": service.policy.accounts,
+        "accounts": service.policy.has_accounts(),
         "max_upload_bytes": service.settings.max_upload_bytes,
         "idempotency_key": new_form_key(),
         "problems": None,
@@ -258,7 +260,7 @@ def _submission_context(
     benchmarks = _benchmarks(request)
     submission = benchmarks.submission(name, submission_id, caller)
     bench = benchmarks.get(name, caller)
-    described = bench.describe()
+    described = benchmarks.describe(bench, caller)
     state = _state(service, submission)
     columns = described["columns"]
     scores = submission.get("scores") or {}

@@ -6,9 +6,7 @@ The pages read the same records the JSON API serves and render them with Jinja2;
 
 from __future__ import annotations
 
-import hmac
 import math
-import secrets
 from collections.abc import Callable, Mapping, Sequence
 from functools import partial
 from pathlib import Path
@@ -28,15 +26,13 @@ from kitti_eval.analysis.decomposition import AOS_TYPES, ERROR_TYPES, TP_ERRORS
 from kitti_eval.core.protocol import ALL_METRICS, KNOWN_CLASSES, PROTOCOLS
 from kitti_eval.errors import KittiEvalError
 
-from ..accounts import TokenRefused
-from ..auth import CALLER_KEY, CSRF_COOKIE, SESSION_COOKIE
+from ..auth import CALLER_KEY, check_token, over_https, session_cookie, signin_cookie
 from ..compare import compare
 from ..deps import FORM_MAX_FIELDS, PublicCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..errors import (
     MAX_ECHO_CHARS,
     ApiError,
     BadRequest,
-    Forbidden,
     NotFound,
     clip,
     echo,
@@ -46,7 +42,7 @@ from ..errors import (
 from ..evaluator import ERRORS_SET, EvalOptions, parse_labels
 from ..idempotency import FORM_FIELD, new_form_key, parse_key
 from ..jobs import JobRecord
-from ..policy import Caller
+from ..policy import SIGNIN_CSRF_S, Caller, Policy
 from ..routes.frames import MAX_SCORE
 from ..schemas import iso
 from ..service import FileIn, Service
@@ -126,34 +122,34 @@ def _render(request: Request, template: str, status_code: int = 200, /, **contex
 # ----------------------------------------------------------------------------------------------- sign in
 
 
-def _secure(scope: Scope) -> bool:
-    return scope.get("scheme") == "https"
-
-
 async def sign_in_page(scope: Scope, status: int = 200, error: str | None = None) -> Response:
     """The sign-in form (also the answer to a page requested without a valid session): a fresh CSRF token
     in the form and in a cookie, which the form's POST must send back alike."""
     request = Request(scope)
-    csrf = secrets.token_urlsafe(24)
+    policy: Policy = request.app.state.policy
+    csrf = policy.issue_signin_csrf()
     response = _render(request, "signin.html", status, status=status, error=error, csrf=csrf, caller=None)
+    name, path = signin_cookie(scope)
     response.set_cookie(
-        CSRF_COOKIE, csrf, max_age=3600, path="/signin", httponly=True, samesite="strict", secure=_secure(scope)
+        name, csrf, max_age=SIGNIN_CSRF_S, path=path, httponly=True, samesite="strict", secure=over_https(scope)
     )
     return response
 
 
 @router.get("/signin")
 async def sign_in_form(request: Request, service: ServiceDep, caller: PublicCaller) -> Response:
-    if not service.policy.accounts:
+    if not service.policy.has_accounts():
         return RedirectResponse("/", status_code=303)
     return await sign_in_page(request.scope)
 
 
 @router.post("/signin")
 async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -> Response:
-    """Check the token once, open a session (its own token, in an HttpOnly SameSite=Strict cookie) and go
-    to the evaluations. The form carries its own CSRF token (a cookie sent alike: there is no session yet)."""
-    if not service.policy.accounts:
+    """Check the token once, as the door checks one (:func:`~kitti_eval_server.auth.check_token`: the same
+    failure limit and audit), open a session (its own token, in an HttpOnly SameSite=Strict cookie) and go to
+    the evaluations. The form carries its own CSRF token, signed by the service (a cookie sent alike: there is
+    no session yet); the door has already refused a post from another origin."""
+    if not service.policy.has_accounts():
         return RedirectResponse("/", status_code=303)
     client = caller.client
     try:
@@ -161,18 +157,11 @@ async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -
         async with request.form(max_files=0, max_fields=4) as form:
             token = form.get("token")
             sent_csrf = form.get("csrf")
-        expected = request.cookies.get(CSRF_COOKIE)
-        if not (isinstance(sent_csrf, str) and expected and hmac.compare_digest(sent_csrf, expected)):
-            raise Forbidden("the sign-in form is stale or came from another site; try again")
+        service.policy.check_signin_csrf(sent_csrf, request.cookies.get(signin_cookie(request.scope)[0]))
         if not isinstance(token, str) or not token.strip():
             raise BadRequest("paste your token (kitti-eval admin token add prints one)")
-        try:
-            signed = await anyio.to_thread.run_sync(lambda: service.accounts.resolve(token.strip()))
-        except TokenRefused as e:
-            service.limiter.fail(client)
-            await anyio.to_thread.run_sync(partial(service.accounts.refused, e, client=client, target="/signin"))
-            raise
-        if signed.token_id is None:
+        signed = await check_token(service.accounts, service.limiter, token.strip(), client=client, target="/signin")
+        if not service.policy.may_open_session(signed):
             raise BadRequest("the admin token cannot sign in to the pages; sign in with a user's token")
         session = await anyio.to_thread.run_sync(
             lambda: service.accounts.open_session(signed.at(client), service.settings.session_hours)
@@ -186,15 +175,16 @@ async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -
         return response
     response = RedirectResponse("/", status_code=303)
     response.set_cookie(
-        SESSION_COOKIE,
+        session_cookie(request.scope),
         session,
         max_age=int(service.settings.session_hours * 3600),
         path="/",
         httponly=True,
         samesite="strict",
-        secure=_secure(request.scope),
+        secure=over_https(request.scope),
     )
-    response.delete_cookie(CSRF_COOKIE, path="/signin")
+    name, path = signin_cookie(request.scope)
+    response.delete_cookie(name, path=path, secure=over_https(request.scope))
     return response
 
 
@@ -202,11 +192,13 @@ async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -
 async def sign_out(request: Request, service: ServiceDep, caller: ReaderCaller) -> Response:
     """End the session (its token is revoked) and clear the cookie (the session's CSRF token checked by the
     policy, as for every change)."""
-    if not service.policy.accounts:
+    if not service.policy.has_accounts():
         return RedirectResponse("/", status_code=303)
     await anyio.to_thread.run_sync(lambda: service.accounts.close_session(caller))
     response = RedirectResponse("/signin", status_code=303)
-    response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
+    response.delete_cookie(
+        session_cookie(request.scope), path="/", httponly=True, samesite="strict", secure=over_https(request.scope)
+    )
     return response
 
 
@@ -269,9 +261,7 @@ def _home(
 
 def _projects(service: Service, caller: Caller) -> list[str]:
     """The projects an upload from the form may go to (accounts mode): the caller's, every one for admins."""
-    if not service.policy.accounts:
-        return []
-    return service.accounts.projects() if caller.projects is None else sorted(caller.projects)
+    return service.policy.projects_of(caller, service.accounts.projects)
 
 
 @router.get("/")

@@ -152,12 +152,15 @@ def test_benchmarks_from_the_cli(admin, tmp_path) -> None:
     assert code == 1 and "N/DAYS" in err
     code, _, err = admin("benchmark", "add", "b2", "--ground-truth", "test-set", "--key", "Car/4d/moderate")
     assert code == 1 and "metric" in err
+    code, _, err = admin("benchmark", "add", "b3", "--ground-truth", "test-set")
+    assert code == 1 and "already the test set of benchmark 'b1'" in err and "--share-test-set" in err
     code, out, _ = admin(
         "benchmark",
         "add",
         "kitti-3d",
         "--ground-truth",
         "test-set",
+        "--share-test-set",
         "--quota",
         "2/7",
         "--public",

@@ -22,8 +22,9 @@ from server_helpers import ADMIN, app_client
 
 import kitti_eval_server
 from kitti_eval_server.deps import PublicCaller
+from kitti_eval_server.errors import Forbidden, Unauthorized
 from kitti_eval_server.main import create_app
-from kitti_eval_server.policy import RULES, Access
+from kitti_eval_server.policy import RULES, Access, AuthMode, Caller, Policy
 from kitti_eval_server.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -121,6 +122,50 @@ def test_callers_are_made_by_the_policy_alone() -> None:
                 if isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", "")) == "Caller":
                     found.append(f"{path.relative_to(ROOT)}:{node.lineno}")
     assert found == []
+
+
+#: what a caller may do and the mode the service runs in: read only by the policy (and the accounts, which make
+#: callers from their records)
+_RIGHTS = frozenset({"is_admin", "projects", "scopes", "signed_in", "session", "token_id", "can_write"})
+
+
+def test_nothing_but_the_policy_reads_a_callers_rights_or_the_mode() -> None:
+    """Outside server/policy.py and server/accounts.py no code reads a Caller's rights (is_admin, projects,
+    scopes, signed_in, session, token_id, can_write) or the policy's mode: it asks the policy a question."""
+    allowed = {ROOT / "server" / "policy.py", ROOT / "server" / "accounts.py"}
+    found = []
+    for folder in (ROOT / "server", ROOT / "kitti_eval"):
+        for path in folder.rglob("*.py"):
+            if path in allowed:
+                continue
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if not isinstance(node, ast.Attribute):
+                    continue
+                owner = node.value
+                named = owner.id if isinstance(owner, ast.Name) else getattr(owner, "attr", "")
+                if (node.attr in _RIGHTS and named in ("caller", "signed", "admitted")) or (
+                    node.attr in ("accounts", "mode") and named == "policy"
+                ):
+                    found.append(f"{path.relative_to(ROOT)}:{node.lineno} {named}.{node.attr}")
+    assert found == []
+
+
+def test_a_caller_made_without_saying_otherwise_is_nobody_and_a_policy_needs_its_test_sets() -> None:
+    nobody = Caller("x")
+    assert (nobody.is_admin, nobody.projects, nobody.scopes, nobody.signed_in) == (
+        False,
+        frozenset(),
+        frozenset(),
+        False,
+    )
+    policy = Policy(AuthMode.ACCOUNTS, admin_token=lambda: "t", test_sets=lambda: {"gt": ["b"]})
+    assert not policy.sees_project(nobody, "p") and not policy.is_participant(nobody)
+    with pytest.raises(Unauthorized):
+        policy.admit(Access.READER, nobody, method="GET", bearer=None, csrf=None)
+    with pytest.raises(Forbidden):  # signed in, and no scope it was not given
+        policy.admit(Access.WRITER, Caller("y", signed_in=True), method="POST", bearer=None, csrf=None)
+    with pytest.raises(TypeError):
+        Policy(AuthMode.ACCOUNTS, admin_token=lambda: "t")  # type: ignore[call-arg]
 
 
 def test_the_readme_table_is_the_policy() -> None:

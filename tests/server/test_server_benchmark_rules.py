@@ -17,6 +17,7 @@ from sqlalchemy import update
 from kitti_eval.cli import main
 from kitti_eval.io.loaders import load_detections, load_ground_truth
 from kitti_eval_server.benchmarks import in_public_part
+from kitti_eval_server.benchmarks.views import RESULT_FIELDS
 from kitti_eval_server.evaluator import EvalOptions, evaluate_document
 from kitti_eval_server.store import ground_truths
 
@@ -48,7 +49,7 @@ def test_reveal_while_open_is_refused_and_a_passed_closes_at_is_a_close(client) 
     c = client
     host(c, benchmark={"split_percent": 50})
     assert_error(c.post("/v1/benchmarks/bench/reveal", headers=ADMIN), 409, "closed")
-    body = {"name": "ended", "ground_truth": "test-set", "split_percent": 50}
+    body = {"name": "ended", "ground_truth": "test-set", "split_percent": 50, "share_test_set": True}
     body |= {"opens_at": _at(-timedelta(days=2)), "closes_at": _at(-timedelta(days=1))}
     ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)
     assert ok(c.post("/v1/benchmarks/ended/reveal", headers=ADMIN))["board"] == "private"  # no explicit close needed
@@ -121,12 +122,15 @@ def test_a_participant_publishes_at_most_max_published_entries(client) -> None:
     ok(_publish(c, hosted, "bob", bob))  # a cap per participant
     methods = sorted(e["method"] for e in ok(c.get("/v1/benchmarks/bench/leaderboard"))["entries"])
     assert methods == ["m", "m", "renamed"]
-    body = {"name": "b2", "ground_truth": "test-set", "max_published": 0}
+    body = {"name": "b2", "ground_truth": "test-set", "max_published": 0, "share_test_set": True}
     assert_error(c.post("/v1/benchmarks", json=body, headers=ADMIN), 422)
     assert (
-        ok(c.post("/v1/benchmarks", json={"name": "b3", "ground_truth": "test-set"}, headers=ADMIN), 201)[
-            "max_published"
-        ]
+        ok(
+            c.post(
+                "/v1/benchmarks", json={"name": "b3", "ground_truth": "test-set", "share_test_set": True}, headers=ADMIN
+            ),
+            201,
+        )["max_published"]
         is None
     )
 
@@ -176,7 +180,7 @@ def test_a_database_from_before_max_published_public_result_and_baselines_is_upg
         assert [(e["id"], e["rank"], e["baseline"]) for e in entries] == [(sid, 1, False)]  # an old row: no baseline
         baseline = ok(submit(c, hosted.headers("root"), golden_bytes("result.pkl")), 201)
         assert baseline["baseline"] is True
-        body = {"name": "capped", "ground_truth": "test-set", "max_published": 1}
+        body = {"name": "capped", "ground_truth": "test-set", "max_published": 1, "share_test_set": True}
         assert ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)["max_published"] == 1
 
 
@@ -214,7 +218,7 @@ def test_participants_see_the_public_part_until_the_reveal(client) -> None:
         assert seen["parts"] is None
     for seen in (made, one):  # the aggregate document is the public part's
         assert _ap(seen["result"]) == pytest.approx(want["public"], abs=1e-4)
-        assert seen["result"]["frames_without_predictions"] == []
+        assert set(seen["result"]) == set(RESULT_FIELDS) and seen["result"]["frames"] == 50
     for text in (str(want["all"]), str(want["private"])):
         assert text not in json.dumps([made, one, listed])
     # an admin's list holds everything
@@ -286,7 +290,8 @@ def test_a_test_set_that_is_not_sealed_is_refused_where_submissions_are_scored(c
 def test_the_benchmarks_using_a_ground_truth(client) -> None:
     c = client
     host(c)
-    ok(c.post("/v1/benchmarks", json={"name": "again", "ground_truth": "test-set"}, headers=ADMIN), 201)
+    body = {"name": "again", "ground_truth": "test-set", "share_test_set": True}
+    ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)
     benchmarks = c.app.state.benchmarks
     assert [b.name for b in benchmarks.using_ground_truth("test-set")] == ["again", "bench"]
     assert benchmarks.using_ground_truth("demo") == []

@@ -246,7 +246,12 @@ def test_an_admins_baseline_is_on_the_board_without_a_rank_and_under_no_quota(tm
         # a closed benchmark takes no baseline either; one that has not opened yet takes baselines only
         ok(c.post("/v1/benchmarks/bench/close", headers=ADMIN))
         assert submit(c, root, golden_bytes("result.pkl")).status_code == 409
-        body = {"name": "later", "ground_truth": "test-set", "opens_at": "2099-01-01T00:00:00+00:00"}
+        body = {
+            "name": "later",
+            "ground_truth": "test-set",
+            "opens_at": "2099-01-01T00:00:00+00:00",
+            "share_test_set": True,
+        }
         ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)
         assert ok(submit(c, root, golden_bytes("result.pkl"), name="later"), 201)["baseline"] is True
         assert submit(c, hosted.headers("alice"), golden_bytes("result.pkl"), name="later").status_code == 409
