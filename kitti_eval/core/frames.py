@@ -250,9 +250,10 @@ def _numeric_column(col: list[Any], counts: np.ndarray, trailing: tuple[int, ...
     if set(map(type, col)) != {np.ndarray} or any(dt.kind not in _NUMBERS for dt in set(map(_dtype, col))):
         return None
     boxed = counts > 0
-    if _sizes(col)[~boxed].any():
-        return None
-    parts = list(itertools.compress(col, boxed.tolist()))
+    flags = boxed.tolist()
+    if any(a.size for a in itertools.compress(col, [not b for b in flags])):
+        return None  # boxes in a frame without names
+    parts = list(itertools.compress(col, flags))
     if not parts:
         return np.zeros((0, *trailing), dtype=np.float64)
     try:
@@ -282,22 +283,16 @@ class _Columns:
         cls,
         kind: Kind,
         frames: list[tuple[object, Mapping[str, Any]]],
+        ids: tuple[str, ...],
         *,
         keep_lidar: bool,
-        known_frames: Collection[str] | None,
     ) -> _Columns | None:
-        """The columns of frames that hold what readers usually give (plain dicts of numpy arrays, names as
-        1-D str arrays, every optional field in all frames or in none), one concatenation per field; None for
-        anything else, and for anything :meth:`frame_by_frame` would refuse (which then says why)."""
-        raw_ids = [f for f, _ in frames]
+        """The columns of frames (with their ids, normalised and checked) that hold what readers usually give
+        (plain dicts of numpy arrays, names as 1-D str arrays, every optional field in all frames or in none),
+        one concatenation per field; None for anything else, and for anything :meth:`frame_by_frame` would
+        refuse (which then says why)."""
         fields = [d for _, d in frames]
-        try:
-            ids = tuple(map(normalize_frame_id, raw_ids))
-        except (TypeError, ValueError):
-            return None
-        if len(set(ids)) != len(ids) or set(map(type, fields)) - {dict}:
-            return None
-        if known_frames is not None and not all(map(known_frames.__contains__, ids)):
+        if set(map(type, fields)) - {dict}:
             return None
         try:
             names = [d["name"] for d in fields]
@@ -316,20 +311,19 @@ class _Columns:
         absent: dict[str, str] = {}
         n = int(offsets[-1])
         for f, trailing in _NUMERIC_FIELDS.items():
-            held = sum(f in d for d in fields)
-            if held == len(fields):
-                arr = _numeric_column([d[f] for d in fields], counts, trailing)
-                if arr is None:
-                    return None
-                numeric[f] = arr
-            elif held:
-                return None  # in some frames only: filled frame by frame
-            elif f in _REQUIRED[kind]:
-                return None
-            else:
+            try:
+                col = [d[f] for d in fields]
+            except KeyError:
+                if f in _REQUIRED[kind] or any(f in d for d in fields):
+                    return None  # missing, or in some frames only: filled frame by frame
                 numeric[f] = np.full((n, *trailing), -1.0 if f == "score" else IMAGE_FIELDS[kind].get(f, 0.0))
                 if f in IMAGE_FIELDS[kind] and ids:
                     absent[f] = ids[0]
+                continue
+            arr = _numeric_column(col, counts, trailing)
+            if arr is None:
+                return None
+            numeric[f] = arr
         lidar = None
         if keep_lidar:
             boxes = [d.get("boxes_lidar") for d in fields]
@@ -537,15 +531,26 @@ class Annotations:
         """
         if kind not in _REQUIRED:
             raise ValueError(f"kind must be 'ground_truth' or 'detections', got {kind!r}")
-        # the frames up to one past the limit (a reader may parse each frame as it is asked for one)
+        # the frames, each frame id checked as it comes: a reader is never asked for the frame after one that
+        # is refused by its id (a bad or repeated id, one past the limit, one the ground truth does not have)
         taken: list[tuple[object, Mapping[str, Any]]] = []
+        ids: list[str] = []
+        seen: set[str] = set()
         error: BaseException | None = None
         try:
-            taken.extend(frames if max_frames is None else itertools.islice(frames, max_frames + 1))
+            for pair in frames:
+                taken.append(pair)
+                fid = normalize_frame_id(pair[0])
+                if fid in seen or (max_frames is not None and len(ids) >= max_frames):
+                    break
+                if known_frames is not None and fid not in known_frames:
+                    break
+                seen.add(fid)
+                ids.append(fid)
         except Exception as e:  # noqa: BLE001 - raised again below, where the frame-by-frame reading meets it
             error = e
-        if error is None and (max_frames is None or len(taken) <= max_frames):
-            whole = _Columns.of(kind, taken, keep_lidar=keep_lidar, known_frames=known_frames)
+        if error is None and len(ids) == len(taken):
+            whole = _Columns.of(kind, taken, tuple(ids), keep_lidar=keep_lidar)
             if whole is not None:
                 return cls._checked(kind, source, whole)
         # anything the columns do not take as they are: frame by frame, in the order the frames come (the same

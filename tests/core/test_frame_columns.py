@@ -87,7 +87,8 @@ def _outcome(build: Callable[[], Annotations]) -> Annotations | tuple[str, str |
 @pytest.mark.parametrize("keep_lidar", [False, True])
 def test_usual_frames_are_read_as_whole_columns_into_the_same_arrays(kind: str, keep_lidar: bool) -> None:
     frames = _frames(kind)
-    assert _Columns.of(kind, frames, keep_lidar=keep_lidar, known_frames=None) is not None  # type: ignore[arg-type]
+    ids = tuple(f"{i:06d}" for i in range(len(frames)))
+    assert _Columns.of(kind, frames, ids, keep_lidar=keep_lidar) is not None  # type: ignore[arg-type]
     got = Annotations.from_frames(kind, "src", iter(frames), keep_lidar=keep_lidar)  # type: ignore[arg-type]
     want = _one_by_one(kind, frames, keep_lidar=keep_lidar)
     _assert_same(got, want)
