@@ -154,8 +154,10 @@ def shown_frame_id(value: object) -> str:
 
 def normalize_frame_id(value: object) -> str:
     """A frame's key: digits are zero-padded to six (``15``, ``'15'`` and ``'000015'`` are one frame)."""
-    if type(value) is str:  # the common case, first
+    if type(value) is str:  # the common cases, first
         return _frame_key(value)
+    if type(value) is int and value >= 0:
+        return f"{value:06d}"
     if isinstance(value, np.str_) and not _is_text_scalar(value):
         raise ValueError("it is not text (a code point above U+10FFFF)")
     if isinstance(value, (bool, np.bool_)):

@@ -95,7 +95,7 @@ def camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str,
     both: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     seen_both = 0
     for fid, fields in frames:
-        if not isinstance(fields, Mapping) or "boxes_lidar" not in fields:
+        if (type(fields) is not dict and not isinstance(fields, Mapping)) or "boxes_lidar" not in fields:
             yield fid, fields
             continue
         has_camera = fields.keys() >= _CAMERA_SET

@@ -226,3 +226,14 @@ def test_the_columns_are_fresh_arrays() -> None:
     got = Annotations.from_frames("detections", "src", frames)
     got.bbox[:] = -5
     assert not np.shares_memory(got.bbox, frames[0][1]["bbox"]) and (frames[0][1]["bbox"] != -5).all()
+
+
+def test_frame_ids_of_every_accepted_type_are_one_key() -> None:
+    from kitti_eval.core.frames import normalize_frame_id
+
+    for value in (15, np.int64(15), np.uint8(15), "15", " 000015 ", np.str_("15"), b"15"):
+        assert normalize_frame_id(value) == "000015"
+    assert normalize_frame_id(1234567) == "1234567" and normalize_frame_id("a7") == "a7"
+    for value, error in ((-1, ValueError), (np.int64(-1), ValueError), (True, TypeError), (1.0, TypeError)):
+        with pytest.raises(error):
+            normalize_frame_id(value)
