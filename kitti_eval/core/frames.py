@@ -338,7 +338,7 @@ class _Columns:
                 return None
             else:
                 lidar = np.full((n, 7), np.nan)
-        if not boxed.all():  # as frame by frame, where a frame without boxes has no names of type <U1
+        if not boxed.all():  # as frame by frame, where a frame without boxes adds an empty <U1 array (dtypes join)
             named.append(np.zeros(0, dtype="<U1"))
         name = np.concatenate(named) if named else np.zeros(0, dtype="<U1")
         return cls(ids, offsets, name, numeric, absent, lidar)
