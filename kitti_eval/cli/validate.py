@@ -11,8 +11,6 @@ import json
 import os
 import re
 import sys
-import urllib.error
-import urllib.request
 from pathlib import Path
 from typing import Any
 
@@ -82,6 +80,9 @@ def run(args: argparse.Namespace) -> int:
 def fetch_frames(url: str, token: str | None = None) -> list[str]:
     """The test frame ids of the benchmark at ``url`` (``http(s)://HOST/benchmarks/NAME``, or its API path
     ``/v1/benchmarks/NAME``), from the service's ``GET /v1/benchmarks/NAME/frames``."""
+    import urllib.error  # here: every other command would import the HTTP client (and ssl) for nothing
+    import urllib.request
+
     from ..core.frames import normalize_frame_id
     from ..errors import ConfigError, InputError
 

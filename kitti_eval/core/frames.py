@@ -2,7 +2,9 @@
 
 Every loader ends here: it hands :meth:`Annotations.from_frames` a list of ``(frame_id, fields)`` pairs,
 and gets back flat float64 arrays with frame offsets (CSR layout), or an :class:`InputError` that names
-the frame and the field. Nothing downstream re-checks the data.
+the frame and the field. Nothing downstream re-checks the data. The frames readers usually give (plain dicts
+of numpy arrays) are taken as whole columns, one concatenation per field and every check over all frames at
+once; anything else is checked frame by frame, and a refusal is always the one the first bad frame gets.
 
 Coordinate frame: KITTI rectified camera (x right, y down, z forward). ``location`` is the bottom centre
 of the box (the box spans ``y - h`` .. ``y``); ``dimensions`` are **(l, h, w)** in metres, the order all
@@ -12,7 +14,9 @@ the camera y axis; ``bbox`` is the 2D image box (x1, y1, x2, y2) in pixels.
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterable, Mapping, Sequence
+import itertools
+import operator
+from collections.abc import Collection, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any, Literal
@@ -150,8 +154,10 @@ def shown_frame_id(value: object) -> str:
 
 def normalize_frame_id(value: object) -> str:
     """A frame's key: digits are zero-padded to six (``15``, ``'15'`` and ``'000015'`` are one frame)."""
-    if type(value) is str:  # the common case, first
+    if type(value) is str:  # the common cases, first
         return _frame_key(value)
+    if type(value) is int and value >= 0:
+        return f"{value:06d}"
     if isinstance(value, np.str_) and not _is_text_scalar(value):
         raise ValueError("it is not text (a code point above U+10FFFF)")
     if isinstance(value, (bool, np.bool_)):
@@ -218,6 +224,194 @@ def _numeric(value: Any, trailing: tuple[int, ...], n: int, source: str, frame: 
     if arr.shape != (n, *trailing):
         raise InputError(f"expected shape {(n, *trailing)}, got {arr.shape}", source=source, frame=frame, field=name)
     return arr
+
+
+def _replay(frames: list[tuple[object, Mapping[str, Any]]], error: BaseException | None) -> Iterator[Any]:
+    """The frames already taken from a reader, then the error the reader raised after them (if it did)."""
+    yield from frames
+    if error is not None:
+        raise error
+
+
+_NUMBERS = frozenset("iuf")
+_size = operator.attrgetter("size")
+_dtype = operator.attrgetter("dtype")
+_ndim = operator.attrgetter("ndim")
+
+
+def _sizes(col: list[Any]) -> np.ndarray:
+    return np.fromiter(map(_size, col), np.int64, len(col))
+
+
+def _numeric_column(col: list[Any], counts: np.ndarray, trailing: tuple[int, ...]) -> np.ndarray | None:
+    """One field of all frames as one fresh float64 array, when every frame's value is what the frame-by-frame
+    check (:func:`_numeric`) takes as it is: a numeric array of shape ``(n, *trailing)`` (anything empty in a
+    frame without boxes). None when it is not (that check then names the frame and the field)."""
+    if not col:
+        return np.zeros((0, *trailing), dtype=np.float64)
+    if set(map(type, col)) != {np.ndarray} or any(dt.kind not in _NUMBERS for dt in set(map(_dtype, col))):
+        return None
+    boxed = counts > 0
+    flags = boxed.tolist()
+    if any(a.size for a in itertools.compress(col, [not b for b in flags])):
+        return None  # boxes in a frame without names
+    parts = list(itertools.compress(col, flags))
+    if not parts:
+        return np.zeros((0, *trailing), dtype=np.float64)
+    try:
+        lengths = np.fromiter(map(len, parts), np.int64, len(parts))
+        if not np.array_equal(lengths, counts[boxed]):
+            return None
+        # a fresh float64 array: inputs are never aliased or mutated
+        arr = np.concatenate(parts, dtype=np.float64)
+    except (TypeError, ValueError):  # a 0-d value, or values of different dimensions
+        return None
+    return arr if arr.shape == (int(lengths.sum()), *trailing) else None
+
+
+@dataclass(frozen=True)
+class _Columns:
+    """The frames' fields concatenated (before the checks over whole columns)."""
+
+    ids: tuple[str, ...]
+    offsets: npt.NDArray[np.int64]
+    name: np.ndarray
+    numeric: dict[str, np.ndarray]
+    absent: dict[str, str]
+    lidar: np.ndarray | None
+
+    @classmethod
+    def of(
+        cls,
+        kind: Kind,
+        frames: list[tuple[object, Mapping[str, Any]]],
+        ids: tuple[str, ...],
+        *,
+        keep_lidar: bool,
+    ) -> _Columns | None:
+        """The columns of frames (with their ids, normalised and checked) that hold what readers usually give
+        (plain dicts of numpy arrays, names as 1-D str arrays, every optional field in all frames or in none),
+        one concatenation per field; None for anything else, and for anything :meth:`frame_by_frame` would
+        refuse (which then says why)."""
+        fields = [d for _, d in frames]
+        if set(map(type, fields)) - {dict}:
+            return None
+        try:
+            names = [d["name"] for d in fields]
+        except KeyError:
+            return None
+        if set(map(type, names)) - {np.ndarray}:
+            return None
+        counts = _sizes(names)
+        boxed = counts > 0
+        named = list(itertools.compress(names, boxed.tolist()))
+        if set(map(_ndim, named)) - {1} or any(dt.kind != "U" or not dt.isnative for dt in set(map(_dtype, named))):
+            return None
+        offsets = np.zeros(len(fields) + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        numeric: dict[str, np.ndarray] = {}
+        absent: dict[str, str] = {}
+        n = int(offsets[-1])
+        for f, trailing in _NUMERIC_FIELDS.items():
+            try:
+                col = [d[f] for d in fields]
+            except KeyError:
+                if f in _REQUIRED[kind] or any(f in d for d in fields):
+                    return None  # missing, or in some frames only: filled frame by frame
+                numeric[f] = np.full((n, *trailing), -1.0 if f == "score" else IMAGE_FIELDS[kind].get(f, 0.0))
+                if f in IMAGE_FIELDS[kind] and ids:
+                    absent[f] = ids[0]
+                continue
+            arr = _numeric_column(col, counts, trailing)
+            if arr is None:
+                return None
+            numeric[f] = arr
+        lidar = None
+        if keep_lidar:
+            boxes = [d.get("boxes_lidar") for d in fields]
+            given = sum(b is not None for b in boxes)
+            if given == len(boxes):
+                lidar = _numeric_column(boxes, counts, (7,))
+                if lidar is None:
+                    return None
+            elif given:
+                return None
+            else:
+                lidar = np.full((n, 7), np.nan)
+        if not boxed.all():  # as frame by frame, where a frame without boxes adds an empty <U1 array (dtypes join)
+            named.append(np.zeros(0, dtype="<U1"))
+        name = np.concatenate(named) if named else np.zeros(0, dtype="<U1")
+        return cls(ids, offsets, name, numeric, absent, lidar)
+
+    @classmethod
+    def frame_by_frame(
+        cls,
+        kind: Kind,
+        source: str,
+        frames: Iterable[tuple[object, Mapping[str, Any]]],
+        keep_lidar: bool,
+        max_frames: int | None,
+        known_frames: Collection[str] | None,
+    ) -> _Columns:
+        """The columns of any frames :meth:`Annotations.from_frames` takes, each frame checked as it comes."""
+        ids: list[str] = []
+        seen: dict[str, int] = {}
+        cols: dict[str, list[np.ndarray]] = {f: [] for f in ("name", *_NUMERIC_FIELDS)}
+        counts: list[int] = []
+        absent: dict[str, str] = {}
+        lidar: list[np.ndarray] = []
+        for pos, (raw_id, fields) in enumerate(frames):
+            try:
+                fid = normalize_frame_id(raw_id)
+            except (TypeError, ValueError) as e:
+                raise InputError(
+                    f"bad frame id {shown_frame_id(raw_id)}: {e}", source=source, frame=f"#{pos}", field="frame_id"
+                ) from None
+            if fid in seen:
+                raise InputError(f"frame appears twice (entries #{seen[fid]} and #{pos})", source=source, frame=fid)
+            if max_frames is not None and pos >= max_frames:
+                raise InputError(
+                    f"more than the limit of {max_frames} frames (KITTI_EVAL_MAX_FRAMES)", source=source, frame=fid
+                )
+            if known_frames is not None and fid not in known_frames:
+                raise InputError("predictions for a frame that is not in the ground truth", source=source, frame=fid)
+            seen[fid] = pos
+            if not isinstance(fields, Mapping):
+                raise InputError(f"expected a dict of arrays, got {type(fields).__name__}", source=source, frame=fid)
+            missing = [f for f in _REQUIRED[kind] if f not in fields]
+            if missing:
+                raise InputError(f"missing field(s) {', '.join(missing)}", source=source, frame=fid, field=missing[0])
+            names = _names(fields["name"], source, fid)
+            n = len(names)
+            cols["name"].append(names)
+            for f, trailing in _NUMERIC_FIELDS.items():
+                if f in fields:
+                    cols[f].append(_numeric(fields[f], trailing, n, source, fid, f))
+                elif f == "score":
+                    cols[f].append(np.full(n, -1.0))
+                else:
+                    cols[f].append(np.full((n, *trailing), IMAGE_FIELDS[kind].get(f, 0.0)))
+                    if f in IMAGE_FIELDS[kind]:
+                        absent.setdefault(f, fid)
+            if keep_lidar:
+                if fields.get("boxes_lidar") is not None:
+                    lidar.append(_numeric(fields["boxes_lidar"], (7,), n, source, fid, "boxes_lidar"))
+                else:
+                    lidar.append(np.full((n, 7), np.nan))
+            ids.append(fid)
+            counts.append(n)
+        offsets = np.zeros(len(counts) + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        name = np.concatenate(cols["name"]) if cols["name"] else np.zeros(0, dtype="<U1")
+        # fresh float64 arrays: inputs are never aliased or mutated
+        numeric = {
+            f: np.concatenate(cols[f], dtype=np.float64) if cols[f] else np.zeros((0, *trailing), dtype=np.float64)
+            for f, trailing in _NUMERIC_FIELDS.items()
+        }
+        kept = None
+        if keep_lidar:
+            kept = np.concatenate(lidar, dtype=np.float64) if lidar else np.zeros((0, 7), dtype=np.float64)
+        return cls(tuple(ids), offsets, name, numeric, absent, kept)
 
 
 @dataclass(frozen=True, eq=False)
@@ -339,93 +533,73 @@ class Annotations:
         """
         if kind not in _REQUIRED:
             raise ValueError(f"kind must be 'ground_truth' or 'detections', got {kind!r}")
+        # the frames, each frame id checked as it comes: a reader is never asked for the frame after one that
+        # is refused by its id (a bad or repeated id, one past the limit, one the ground truth does not have)
+        taken: list[tuple[object, Mapping[str, Any]]] = []
         ids: list[str] = []
-        seen: dict[str, int] = {}
-        cols: dict[str, list[np.ndarray]] = {f: [] for f in ("name", *_NUMERIC_FIELDS)}
-        counts: list[int] = []
-        absent: dict[str, str] = {}
-        lidar: list[np.ndarray] = []
-        for pos, (raw_id, fields) in enumerate(frames):
-            try:
-                fid = normalize_frame_id(raw_id)
-            except (TypeError, ValueError) as e:
-                raise InputError(
-                    f"bad frame id {shown_frame_id(raw_id)}: {e}", source=source, frame=f"#{pos}", field="frame_id"
-                ) from None
-            if fid in seen:
-                raise InputError(f"frame appears twice (entries #{seen[fid]} and #{pos})", source=source, frame=fid)
-            if max_frames is not None and pos >= max_frames:
-                raise InputError(
-                    f"more than the limit of {max_frames} frames (KITTI_EVAL_MAX_FRAMES)", source=source, frame=fid
-                )
-            if known_frames is not None and fid not in known_frames:
-                raise InputError("predictions for a frame that is not in the ground truth", source=source, frame=fid)
-            seen[fid] = pos
-            if not isinstance(fields, Mapping):
-                raise InputError(f"expected a dict of arrays, got {type(fields).__name__}", source=source, frame=fid)
-            missing = [f for f in _REQUIRED[kind] if f not in fields]
-            if missing:
-                raise InputError(f"missing field(s) {', '.join(missing)}", source=source, frame=fid, field=missing[0])
-            names = _names(fields["name"], source, fid)
-            n = len(names)
-            cols["name"].append(names)
-            for f, trailing in _NUMERIC_FIELDS.items():
-                if f in fields:
-                    cols[f].append(_numeric(fields[f], trailing, n, source, fid, f))
-                elif f == "score":
-                    cols[f].append(np.full(n, -1.0))
-                else:
-                    cols[f].append(np.full((n, *trailing), IMAGE_FIELDS[kind].get(f, 0.0)))
-                    if f in IMAGE_FIELDS[kind]:
-                        absent.setdefault(f, fid)
-            if keep_lidar:
-                if fields.get("boxes_lidar") is not None:
-                    lidar.append(_numeric(fields["boxes_lidar"], (7,), n, source, fid, "boxes_lidar"))
-                else:
-                    lidar.append(np.full((n, 7), np.nan))
-            ids.append(fid)
-            counts.append(n)
-        offsets = np.zeros(len(counts) + 1, dtype=np.int64)
-        np.cumsum(counts, out=offsets[1:])
-        joined: dict[str, np.ndarray] = {
-            "name": np.concatenate(cols["name"]) if cols["name"] else np.zeros(0, dtype="<U1")
-        }
-        _names_are_text(joined["name"], offsets, ids, source)
-        for f, trailing in _NUMERIC_FIELDS.items():
-            # a fresh float64 array: inputs are never aliased or mutated
-            arr = np.concatenate(cols[f], dtype=np.float64) if cols[f] else np.zeros((0, *trailing), dtype=np.float64)
+        seen: set[str] = set()
+        error: BaseException | None = None
+        try:
+            for pair in frames:
+                taken.append(pair)
+                fid = normalize_frame_id(pair[0])
+                if fid in seen or (max_frames is not None and len(ids) >= max_frames):
+                    break
+                if known_frames is not None and fid not in known_frames:
+                    break
+                seen.add(fid)
+                ids.append(fid)
+        except Exception as e:  # noqa: BLE001 - raised again below, where the frame-by-frame reading meets it
+            error = e
+        if error is None and len(ids) == len(taken):
+            whole = _Columns.of(kind, taken, tuple(ids), keep_lidar=keep_lidar)
+            if whole is not None:
+                return cls._checked(kind, source, whole)
+        # anything the columns do not take as they are: frame by frame, in the order the frames come (the same
+        # refusal as ever for the same input, the reader's own included)
+        rest = _replay(taken, error)
+        return cls._checked(
+            kind,
+            source,
+            _Columns.frame_by_frame(kind, source, rest, keep_lidar, max_frames, known_frames),
+        )
+
+    @classmethod
+    def _checked(cls, kind: Kind, source: str, c: _Columns) -> Annotations:
+        """The checks over whole columns (names are text, numbers finite), then the container."""
+        _names_are_text(c.name, c.offsets, c.ids, source)
+        for f in _NUMERIC_FIELDS:
+            arr = c.numeric[f]
             finite = np.isfinite(arr)
             if not finite.all():
                 row = int(np.argwhere(~finite)[0][0])
-                frame = int(np.searchsorted(offsets, row, side="right")) - 1
+                frame = int(np.searchsorted(c.offsets, row, side="right")) - 1
                 raise InputError(
-                    f"non-finite value {arr.reshape(len(arr), -1)[row].tolist()} in box {row - int(offsets[frame])}",
+                    f"non-finite value {arr.reshape(len(arr), -1)[row].tolist()} in box {row - int(c.offsets[frame])}",
                     source=source,
-                    frame=ids[frame],
+                    frame=c.ids[frame],
                     field=f,
                 )
-            joined[f] = arr
-        kept = None
-        if keep_lidar:
-            kept = np.concatenate(lidar, dtype=np.float64) if lidar else np.zeros((0, 7), dtype=np.float64)
-            bad = np.isinf(kept).any(axis=1)
+        if c.lidar is not None:
+            bad = np.isinf(c.lidar).any(axis=1)
             if bad.any():
                 row = int(np.argmax(bad))
-                frame = int(np.searchsorted(offsets, row, side="right")) - 1
+                frame = int(np.searchsorted(c.offsets, row, side="right")) - 1
                 raise InputError(
-                    f"non-finite value in box {row - int(offsets[frame])}",
+                    f"non-finite value in box {row - int(c.offsets[frame])}",
                     source=source,
-                    frame=ids[frame],
+                    frame=c.ids[frame],
                     field="boxes_lidar",
                 )
         return cls(
             kind=kind,
             source=source,
-            frame_ids=tuple(ids),
-            offsets=offsets,
-            missing_fields=absent,
-            boxes_lidar=kept,
-            **joined,
+            frame_ids=c.ids,
+            offsets=c.offsets,
+            name=c.name,
+            missing_fields=c.absent,
+            boxes_lidar=c.lidar,
+            **c.numeric,
         )
 
     def aligned_to(self, frame_ids: Sequence[str], *, reference: str = "ground truth") -> tuple[Annotations, list[str]]:

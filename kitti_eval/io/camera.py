@@ -18,6 +18,7 @@ from .formats.openpcdet import entry_frame_id
 __all__ = ["calibs_from_object", "camera_fields"]
 
 _CAMERA_FIELDS = ("location", "dimensions", "rotation_y")
+_CAMERA_SET = frozenset(_CAMERA_FIELDS)
 
 
 class _LazyCalibs(Mapping[str, Any]):
@@ -94,10 +95,10 @@ def camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str,
     both: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     seen_both = 0
     for fid, fields in frames:
-        if not isinstance(fields, Mapping) or "boxes_lidar" not in fields:
+        if (type(fields) is not dict and not isinstance(fields, Mapping)) or "boxes_lidar" not in fields:
             yield fid, fields
             continue
-        has_camera = all(k in fields for k in _CAMERA_FIELDS)
+        has_camera = fields.keys() >= _CAMERA_SET
         if has_camera:
             seen_both += 1
         calib = None

@@ -99,6 +99,8 @@ _ID_TYPES = (str, int, bytes, np.str_, np.integer)
 
 def frame_id(value: object, what: str, source: str, frame: str) -> object:
     """A raw frame id of an accepted type (0-d arrays unwrapped); the rest is from_frames' job."""
+    if type(value) is str:  # what most files hold, first
+        return value
     if isinstance(value, np.ndarray) and value.ndim == 0:
         value = value[()]
     if not isinstance(value, _ID_TYPES) or isinstance(value, (bool, np.bool_)):
