@@ -206,10 +206,15 @@ def start_warm_up() -> object | None:
     """On a first run, say that the kernels compile once, and compile the evaluation kernels in another
     process while this one compiles the loader's (returns the process to wait for)."""
     from .._jit import kernels_cached, loader_cached, warm_in_background
+    from ..core.kernel_cache import route_warnings, writable_cache
 
+    route_warnings(lambda message: say(f"warning: {message}"))
     eval_cold, load_cold = not kernels_cached(), not loader_cached()
-    if eval_cold or load_cold:
-        say("compiling the kernels once (about 7 s on two cores; later runs use numba's cache)")
+    if not (eval_cold or load_cold):
+        return None
+    if writable_cache() is None:  # nowhere to keep them: compiled here, in memory (the warning says so)
+        return None
+    say("compiling the kernels once (about 7 s on two cores; later runs use numba's cache)")
     return warm_in_background() if eval_cold else None
 
 
