@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import os
 import secrets
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -286,15 +287,23 @@ class Service:
 
     def _no_worker(self) -> str | None:
         """Why no accepted evaluation would run (None: a worker can run it): no worker thread in this process,
-        no worker process of its own alive, and no worker process seen on the database within a minute."""
-        if self.workers.threads > 0 or (self.pool is not None and self.pool.alive > 0):
+        and no worker process seen on the database within a minute. A worker process records itself there once
+        its kernels are warm and it takes jobs: while this service's own are still starting, it is not ready."""
+        if self.workers.threads > 0:
             return None
         try:
-            if self.jobs.workers_seen(self.WORKERS_SEEN_S):
-                return None
+            seen = self.jobs.workers_seen(self.WORKERS_SEEN_S)
         except Exception as e:  # noqa: BLE001 - the ping answered: a failure here is a passing one
             log.warning("could not read the worker processes: %s", e)
             return "the database is unavailable"
+        if self.pool is not None:
+            host, own = socket.gethostname(), set(self.pool.pids)
+            if any(w.host == host and w.pid in own for w in seen):
+                return None
+            if self.pool.alive > 0:
+                return "the worker processes are starting (warming the evaluation kernels)"
+        if seen:
+            return None
         return (
             "no worker runs evaluations: KITTI_EVAL_JOB_THREADS is 0, KITTI_EVAL_WORKER_PROCESSES is 0, and no "
             f"'kitti-eval worker' was seen on the database in the last {self.WORKERS_SEEN_S:g} s"

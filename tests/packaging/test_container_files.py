@@ -78,3 +78,46 @@ def test_compose_runs_the_service_on_a_healthy_postgresql() -> None:
     named = {volume.split(":")[0] for s in (db, service) for volume in s["volumes"]}
     assert named == set(compose["volumes"]) == {"pgdata", "kitti-eval-data"}
     assert [v.split(":")[1] for v in service["volumes"]] == ["/data"]  # the image's VOLUME
+
+
+def test_the_cpus_are_those_of_the_containers_limit(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``docker run --cpus``, a Kubernetes CPU limit: a quota of the cgroup, not fewer CPUs to run on. The
+    worker processes of ``kitti-eval serve`` (one a CPU) and the matching threads follow it, rounded up."""
+    from kitti_eval.core import matching
+
+    v2 = tmp_path / "v2"
+    v2.mkdir()
+    (v2 / "cpu.max").write_text("150000 100000\n")
+    assert matching.cgroup_cpu_quota(str(v2)) == 1.5
+    (v2 / "cpu.max").write_text("max 100000\n")
+    assert matching.cgroup_cpu_quota(str(v2)) is None
+    v1 = tmp_path / "v1"
+    (v1 / "cpu").mkdir(parents=True)
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("300000\n")
+    (v1 / "cpu" / "cpu.cfs_period_us").write_text("100000\n")
+    assert matching.cgroup_cpu_quota(str(v1)) == 3.0
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("-1\n")
+    assert matching.cgroup_cpu_quota(str(v1)) is None
+    assert matching.cgroup_cpu_quota(str(tmp_path / "none")) is None
+
+    monkeypatch.setattr(matching.os, "sched_getaffinity", lambda pid: set(range(8)))
+    for quota, cpus in [(None, 8), (1.5, 2), (0.25, 1), (3.0, 3), (16.0, 8)]:
+        monkeypatch.setattr(matching, "cgroup_cpu_quota", lambda quota=quota: quota)
+        assert matching.available_cpus() == cpus, quota
+
+
+def test_serve_leaves_the_access_log_and_the_forwarded_headers_to_the_service(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One log line a request (the service's), and X-Forwarded-For believed only as KITTI_EVAL_TRUSTED_PROXIES
+    says: uvicorn's own access log and proxy headers (which trust 127.0.0.1 by default) are off."""
+    uvicorn = pytest.importorskip("uvicorn")
+    from kitti_eval_server import main as server_main
+
+    calls: list[dict[str, Any]] = []
+    monkeypatch.setattr(uvicorn, "run", lambda app, **kw: calls.append(kw))
+    monkeypatch.delenv("KITTI_EVAL_WORKER_PROCESSES", raising=False)
+    monkeypatch.delenv("KITTI_EVAL_JOB_THREADS", raising=False)
+    assert server_main.serve(["--data-dir", str(tmp_path), "--host", "0.0.0.0"]) == 0
+    (kw,) = calls
+    assert kw["access_log"] is False and kw["proxy_headers"] is False and kw["host"] == "0.0.0.0"

@@ -355,3 +355,41 @@ def test_no_worker_no_readiness(service_client: Any) -> None:
         service.jobs.worker_gone("elsewhere:1")
         service.jobs.worker_gone("other:2")
         assert client.get("/readyz").status_code == 503
+
+
+def test_own_worker_processes_count_for_the_readiness_once_they_take_jobs(service_client: Any) -> None:
+    """A worker process of the service's own pool that is running but has not yet recorded itself on the database
+    (it records itself once its kernels are warm and it takes jobs) does not make the service ready; its row
+    does, and so does another machine's worker while no process of the pool is running."""
+    import socket
+    import time
+    from datetime import datetime, timezone
+
+    class Pool:  # what the readiness reads of a WorkerPool: its processes' ids, how many are running
+        pids = [4_000_001]
+        alive = 1
+
+    with service_client(job_threads=0, ready=False) as client:
+        service = client.app.state.service
+        deadline = time.monotonic() + 120
+        while not service.warm.is_set():
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        service.pool = Pool()
+        try:
+            now = datetime.now(timezone.utc)
+            r = client.get("/readyz")
+            assert r.status_code == 503 and "worker processes are starting" in r.json()["error"]["message"], r.text
+            service.jobs.worker_beat("elsewhere:7", host="elsewhere", pid=4_000_001, threads=1, started_at=now)
+            assert client.get("/readyz").status_code == 503  # the same pid on another machine is not the pool's
+            name = f"{socket.gethostname()}:4000001"
+            service.jobs.worker_beat(name, host=socket.gethostname(), pid=4_000_001, threads=1, started_at=now)
+            assert client.get("/readyz").status_code == 200
+            service.jobs.worker_gone(name)
+            Pool.alive = 0  # the pool's processes died: another machine's worker runs the jobs meanwhile
+            assert client.get("/readyz").status_code == 200
+            service.jobs.worker_gone("elsewhere:7")
+            r = client.get("/readyz")
+            assert r.status_code == 503 and "no worker runs evaluations" in r.json()["error"]["message"], r.text
+        finally:
+            service.pool = None
