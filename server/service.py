@@ -18,6 +18,9 @@ from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any, TypeVar
 
+import sqlalchemy.engine
+import sqlalchemy.exc
+
 from kitti_eval._jit import warm_up
 from kitti_eval.demo import demo_paths
 
@@ -159,7 +162,19 @@ class Service:
         self.runner.open()
         self.scratch_space.open()  # and removes what processes killed meanwhile left
         log.info("data folder %s", self.data_dir)
-        self.store.create_schema()
+        try:
+            self.store.create_schema()
+        except sqlalchemy.exc.OperationalError as e:  # not reached, or refused: said in one line, not a traceback
+            url = self.settings.resolved_database_url
+            where = sqlalchemy.engine.make_url(url).render_as_string(hide_password=True)
+            reason = (str(e.orig or e).strip() or type(e).__name__).splitlines()[0]
+            hint = ""
+            if url.partition("://")[2].count("@") > 1:
+                hint = (
+                    " (a password holding @, /, # or : must be percent-encoded in KITTI_EVAL_DATABASE_URL, or left "
+                    "out of it and given as PGPASSWORD)"
+                )
+            raise StartupRefused(f"cannot use the database {where}: {reason}{hint}") from None
         self._check_open_mode()
         self.admin_token = self._admin_token()
         if self.settings.register_demo:

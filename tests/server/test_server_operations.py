@@ -393,3 +393,24 @@ def test_own_worker_processes_count_for_the_readiness_once_they_take_jobs(servic
             assert r.status_code == 503 and "no worker runs evaluations" in r.json()["error"]["message"], r.text
         finally:
             service.pool = None
+
+
+def test_a_database_the_service_cannot_use_refuses_the_start_in_one_line(tmp_path: Any) -> None:
+    """Not reached, refused, or a URL whose password holds an '@': one line naming the database (without its
+    password) and the driver's reason, not a traceback; a password with URL characters gets a hint."""
+    from server_helpers import app_client, free_port
+
+    from kitti_eval_server.errors import StartupRefused
+
+    port = free_port()  # nothing listens there
+    for url, hinted in [
+        (f"postgresql://kitti:secret@127.0.0.1:{port}/kitti", False),
+        (f"postgresql://kitti:ab@c/d#e@127.0.0.1:{port}/kitti", True),
+    ]:
+        with pytest.raises(StartupRefused) as refused, app_client(tmp_path / "data", warmup=False, database_url=url):
+            pass
+        message = refused.value.message
+        assert message.startswith("cannot use the database postgresql+psycopg://kitti:***@"), message
+        assert "secret" not in message and "ab@c" not in message and "\n" not in message
+        assert ("given as PGPASSWORD" in message) == hinted, message
+        assert hinted or "refused" in message.lower(), message  # the driver's reason
