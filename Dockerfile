@@ -37,7 +37,7 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 
 # /data: the user kitti's, and writable by the root group, which OpenShift's random uids belong to (a setgid
 # folder: what is made in it stays the group's)
-RUN useradd --system --uid 10001 --gid 0 --home-dir /nonexistent --no-create-home --shell /usr/sbin/nologin kitti \
+RUN useradd --uid 10001 --gid 0 --home-dir /nonexistent --no-create-home --shell /usr/sbin/nologin kitti \
  && mkdir -p /data \
  && chown 10001:0 /data \
  && chmod 2775 /data
