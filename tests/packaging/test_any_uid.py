@@ -165,7 +165,7 @@ def test_serve_and_an_upload_as_another_user_with_nowhere_to_cache(
     assert proc.returncode in (0, -15), text[-4000:]  # uvicorn ends by SIGTERM again once it has shut down
     assert "Application shutdown complete" in text
     lines = [json.loads(line) for line in text.splitlines() if line.startswith("{")]
-    warned = [line for line in lines if WARNING in line["message"]]
+    warned = [line for line in lines if WARNING in line.get("message", "")]
     # the web process and each worker process (one a CPU) say it once, in the service's log
     assert len(warned) == 1 + available_cpus() and all(w["level"] == "warning" for w in warned), warned
     assert "Traceback" not in text and "cannot cache function" not in text
