@@ -204,7 +204,9 @@ def say(msg: str) -> None:
 
 def start_warm_up() -> object | None:
     """On a first run, say that the kernels compile once, and compile the evaluation kernels in another
-    process while this one compiles the loader's (returns the process to wait for)."""
+    process while this one compiles the loader's (returns the process to wait for). Where numba's cache has
+    no writable place, nothing is started (what another process compiled would not be kept): the kernels are
+    compiled here, in memory, and the one warning saying so is this command's ``kitti-eval: warning:`` line."""
     from .._jit import kernels_cached, loader_cached, warm_in_background
     from ..core.kernel_cache import route_warnings, writable_cache
 
