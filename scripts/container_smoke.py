@@ -5,6 +5,7 @@
     python scripts/container_smoke.py --no-build --image kitti-eval:latest
     python scripts/container_smoke.py --build-network host --network host   # Docker without a bridge
     python scripts/container_smoke.py --database-url postgresql://user:pw@host:5432/empty_db
+    python scripts/container_smoke.py --user 12345:0 --read-only     # as a cluster runs it (see below)
 
 It starts a container on a fresh volume, waits for ``/readyz``, uploads the bundled demo predictions
 against the ``demo`` ground truth and checks the numbers against ``kitti-eval demo --format json`` (run in
@@ -12,6 +13,15 @@ the container, and on this machine too when kitti-eval is installed here), resta
 reads the evaluation back by its id, checks that the service does not run as root, runs ``kitti-eval
 demo`` in the container, and waits for Docker to report the image's HEALTHCHECK healthy (the first probe
 runs 30 s after the start). Every check is printed; the exit status is 0 only if all passed.
+
+``--user UID:GID`` runs the container as another user (Kubernetes' ``runAsUser``, OpenShift's random uids, which
+belong to the root group: ``/data`` is writable by it), and ``--read-only`` on a read-only root filesystem with
+a tmpfs on ``/tmp`` (``readOnlyRootFilesystem``), with every capability dropped and no privilege escalation: the
+security settings of the Kubernetes example (docs/service/container.md). Either way the service must start,
+compile nothing (no warning about numba's cache in its log) and pass every check.
+
+The log is checked too: the service's worker processes started, one JSON line a request (no uvicorn access
+line), and no kernel compiled for want of a cache.
 
 On ``--network host`` there is no port mapping, so the image's command (port 8000) is replaced by
 ``kitti-eval serve`` on the chosen port and its HEALTHCHECK (which probes port 8000) is not run.
@@ -38,6 +48,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 DEMO_PREDICTIONS = ROOT / "kitti_eval" / "data" / "demo" / "result.pkl.gz"
 #: the parts of the JSON document that are the evaluation's numbers and what they were computed on
+#: ``--read-only``: the flags of Kubernetes' readOnlyRootFilesystem (and an emptyDir on /tmp), capabilities
+#: drop [ALL] and allowPrivilegeEscalation false (docs/service/container.md's manifests; the tests compare them)
+READ_ONLY = ["--read-only", "--tmpfs", "/tmp", "--cap-drop", "ALL", "--security-opt", "no-new-privileges"]
 COMPARED = ("protocol", "classes", "threshold_sets", "overlaps", "ap", "num_gt", "num_det", "frames", "coco")
 
 
@@ -122,6 +135,30 @@ def wait_healthy(container: str, timeout: float) -> str:
         time.sleep(1)
 
 
+def check_log(log: str) -> None:
+    """What the service's log must and must not say: its worker processes started, one JSON line a request
+    (uvicorn's access lines are off), no kernel compiled for want of a writable cache."""
+    lines = [line for line in log.splitlines() if line.strip()]
+    records = []
+    for line in lines:
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            pass
+    started = [r for r in records if "worker processes of" in str(r.get("message", ""))]
+    check(bool(started), "the service started its worker processes", "no 'started N worker processes' line")
+    say(f"      {started[0]['message']}")
+    requests = [r for r in records if r.get("logger") == "kitti_eval.server.access"]
+    uvicorn_access = [line for line in lines if '"GET /readyz HTTP' in line or '"POST /v1/evaluations HTTP' in line]
+    check(
+        bool(requests) and not uvicorn_access,
+        f"one JSON log line a request ({len(requests)} lines of the service's access log, none of uvicorn's)",
+        "; ".join(uvicorn_access[:2]),
+    )
+    compiled = [line for line in lines if "NUMBA_CACHE_DIR" in line or "cannot cache function" in line]
+    check(not compiled, "nothing compiled at start (the kernels came with the package)", "; ".join(compiled[:1]))
+
+
 def same_numbers(got: dict[str, object], expected: dict[str, object], what: str) -> None:
     differing = [key for key in COMPARED if got.get(key) != expected.get(key)]
     check(not differing, what, f"these differ: {', '.join(differing)}")
@@ -157,6 +194,10 @@ def smoke(args: argparse.Namespace) -> dict[str, str]:
     name = f"kitti-eval-smoke-{uuid.uuid4().hex[:8]}"
     volume = name
     run = ["run", "-d", "--name", name, "-v", f"{volume}:/data"]
+    if args.user:
+        run += ["--user", args.user]
+    if args.read_only:
+        run += READ_ONLY
     if args.database_url:
         run += ["-e", f"KITTI_EVAL_DATABASE_URL={args.database_url}"]
     if args.network == "host":
@@ -174,7 +215,7 @@ def smoke(args: argparse.Namespace) -> dict[str, str]:
         check(True, f"/readyz answers 200 {figures['docker run to /readyz 200']} after docker run")
 
         body, content_type = multipart({"gt": "demo", "model": "container-smoke"}, {"predictions": DEMO_PREDICTIONS})
-        start = time.monotonic()
+        start = time.monotonic()  # the first upload once /readyz said 200: its worker processes are up
         status, raw = http("POST", f"{base}/v1/evaluations", body, {"Content-Type": content_type})
         figures["first upload"] = f"{time.monotonic() - start:.2f} s"
         check(
@@ -216,6 +257,18 @@ def smoke(args: argparse.Namespace) -> dict[str, str]:
 
         uid = docker("exec", name, "id", "-u").stdout.strip()
         check(uid.isdigit() and int(uid) != 0, f"commands in the container run as a user other than root (uid {uid})")
+        if args.user:
+            wanted = args.user.split(":")[0]
+            check(uid == wanted, f"the container runs as the uid it was given ({wanted})", f"id -u says {uid}")
+        if args.read_only:
+            probe = docker("exec", "--user", "0", name, "touch", "/opt/kitti-eval/probe", check_rc=False)
+            check(
+                probe.returncode != 0 and "Read-only file system" in probe.stderr,
+                "the root filesystem is read-only (even root's touch in /opt/kitti-eval fails)",
+                f"exit {probe.returncode}: {probe.stderr.strip()[-300:]}",
+            )
+        logged = docker("logs", name)
+        check_log(logged.stdout + logged.stderr)
         status_lines = docker("exec", name, "cat", "/proc/1/status").stdout.splitlines()
         uids = next((line.split()[1:] for line in status_lines if line.startswith("Uid:")), [])
         check(
@@ -266,6 +319,12 @@ def main(argv: list[str] | None = None) -> int:
         default="",
         help="KITTI_EVAL_DATABASE_URL for the container (default: its SQLite database in the volume); "
         "an empty PostgreSQL database, as the container reaches it",
+    )
+    parser.add_argument("--user", default="", help="docker run's --user, e.g. 12345:0 (default: the image's)")
+    parser.add_argument(
+        "--read-only",
+        action="store_true",
+        help="a read-only root filesystem with a tmpfs on /tmp, no capabilities, no privilege escalation",
     )
     parser.add_argument("--ready-timeout", type=float, default=180, help="seconds to wait for /readyz")
     parser.add_argument("--keep", action="store_true", help="leave the container and its volume")

@@ -280,7 +280,9 @@ def serve(argv: Sequence[str] | None = None) -> int:
         return 2
     app = create_app(settings)
     log.setLevel(args.log_level.upper())
-    # the service writes its own access log (one line a request, with its id): uvicorn's would repeat it
+    # the service writes its own access log (one line a request, with its id): uvicorn's would repeat it. Which
+    # proxy's X-Forwarded-For is believed is KITTI_EVAL_TRUSTED_PROXIES' alone: uvicorn's own proxy headers
+    # (on by default, trusting 127.0.0.1 or FORWARDED_ALLOW_IPS) would rewrite the client's address before it
     try:
         uvicorn.run(
             app,
@@ -288,6 +290,7 @@ def serve(argv: Sequence[str] | None = None) -> int:
             port=args.port,
             log_level=args.log_level,
             access_log=False,
+            proxy_headers=False,
             timeout_graceful_shutdown=10,
         )
     except SystemExit:  # uvicorn's exit when the startup failed

@@ -36,6 +36,8 @@ from prometheus_client.multiprocess import MultiProcessCollector
 from prometheus_client.registry import Collector
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from kitti_eval.core.kernel_cache import route_warnings
+
 from .errors import INTERNAL_ERROR_MESSAGE, error_body
 
 __all__ = [
@@ -522,6 +524,8 @@ def configure_logging(log_format: str) -> bool:
     unless the embedding application configured logging itself. Returns whether the lines are JSON."""
     as_json = wants_json(log_format)
     logger = logging.getLogger("kitti_eval.server")
+    # kernels compiled in memory for want of a writable numba cache: said once, in the service's log
+    route_warnings(lambda message: logger.warning("%s", message))
     if logging.getLogger().handlers or any(not getattr(h, "_kitti_eval", False) for h in logger.handlers):
         return as_json
     for h in list(logger.handlers):

@@ -10,12 +10,16 @@ from __future__ import annotations
 import logging
 import os
 import secrets
+import socket
 import threading
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any, TypeVar
+
+import sqlalchemy.engine
+import sqlalchemy.exc
 
 from kitti_eval._jit import warm_up
 from kitti_eval.demo import demo_paths
@@ -163,7 +167,19 @@ class Service:
         self.runner.open()
         self.scratch_space.open()  # and removes what processes killed meanwhile left
         log.info("data folder %s", self.data_dir)
-        self.store.create_schema()
+        try:
+            self.store.create_schema()
+        except sqlalchemy.exc.OperationalError as e:  # not reached, or refused: said in one line, not a traceback
+            url = self.settings.resolved_database_url
+            where = sqlalchemy.engine.make_url(url).render_as_string(hide_password=True)
+            reason = (str(e.orig or e).strip() or type(e).__name__).splitlines()[0]
+            hint = ""
+            if url.partition("://")[2].count("@") > 1:
+                hint = (
+                    " (a password holding @, /, # or : must be percent-encoded in KITTI_EVAL_DATABASE_URL, or left "
+                    "out of it and given as PGPASSWORD)"
+                )
+            raise StartupRefused(f"cannot use the database {where}: {reason}{hint}") from None
         self._check_open_mode()
         self.admin_token = self._admin_token()
         if self.settings.register_demo:
@@ -304,15 +320,23 @@ class Service:
 
     def _no_worker(self) -> str | None:
         """Why no accepted evaluation would run (None: a worker can run it): no worker thread in this process,
-        no worker process of its own alive, and no worker process seen on the database within a minute."""
-        if self.workers.threads > 0 or (self.pool is not None and self.pool.alive > 0):
+        and no worker process seen on the database within a minute. A worker process records itself there once
+        its kernels are warm and it takes jobs: while this service's own are still starting, it is not ready."""
+        if self.workers.threads > 0:
             return None
         try:
-            if self.jobs.workers_seen(self.WORKERS_SEEN_S):
-                return None
+            seen = self.jobs.workers_seen(self.WORKERS_SEEN_S)
         except Exception as e:  # noqa: BLE001 - the ping answered: a failure here is a passing one
             log.warning("could not read the worker processes: %s", e)
             return "the database is unavailable"
+        if self.pool is not None:
+            host, own = socket.gethostname(), set(self.pool.pids)
+            if any(w.host == host and w.pid in own for w in seen):
+                return None
+            if self.pool.alive > 0:
+                return "the worker processes are starting (warming the evaluation kernels)"
+        if seen:
+            return None
         return (
             "no worker runs evaluations: KITTI_EVAL_JOB_THREADS is 0, KITTI_EVAL_WORKER_PROCESSES is 0, and no "
             f"'kitti-eval worker' was seen on the database in the last {self.WORKERS_SEEN_S:g} s"

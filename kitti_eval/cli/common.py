@@ -230,10 +230,16 @@ def say(msg: str) -> None:
 def start_warm_up(*, decomposition: bool = False) -> object | None:
     """On a first run, say that the kernels compile once, and compile the evaluation kernels in another
     process while this one compiles the loader's (returns the process to wait for). ``decomposition``: the
-    command runs the error decomposition too, whose kernels compile on their first use."""
+    command runs the error decomposition too, whose kernels compile on their first use. Where numba's cache has
+    no writable place, nothing is started (what another process compiled would not be kept): the kernels are
+    compiled here, in memory, and the one warning saying so is this command's ``kitti-eval: warning:`` line."""
     from .._jit import decomposition_cached, kernels_cached, loader_cached, warm_in_background
+    from ..core.kernel_cache import route_warnings, writable_cache
 
+    route_warnings(lambda message: say(f"warning: {message}"))
     eval_cold, load_cold = not kernels_cached(), not loader_cached()
+    if writable_cache() is None:  # nowhere to keep them: compiled here, in memory (the warning says so)
+        return None
     if eval_cold or load_cold:
         say("compiling the kernels once (about 7 s on two cores; later runs use numba's cache)")
     if decomposition and not decomposition_cached():

@@ -31,6 +31,14 @@ the kernel, reads the shipped index under the generic target's key. Generic code
 target (x86-64 code without AVX runs on any x86-64), and it is numba's own loader that links it in. The
 shipped index carries the same content stamp as any other, so an edited installation never loads them, and
 it is only read: a read-only site-packages or a ``NUMBA_CACHE_DIR`` elsewhere changes nothing.
+
+Where numba finds no writable place at all (no ``NUMBA_CACHE_DIR``, a read-only installation, no writable
+home: another uid in a container, a read-only root filesystem, a shared installation on a cluster), numba
+itself refuses to decorate a ``cache=True`` function (``RuntimeError: cannot cache function ...: no locator
+available``). A kernel of this package then gets a read-only place instead (:class:`ReadOnlyLocator`: the
+module's ``__pycache__``, as numba's in-tree cache, read but never written): it loads what is there or what
+the wheel ships, and what it has to compile stays in memory for the process, with one
+:class:`KernelCacheWarning` saying how to keep it (``NUMBA_CACHE_DIR``).
 """
 
 from __future__ import annotations
@@ -41,6 +49,7 @@ import inspect
 import json
 import os
 import sys
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cache
@@ -54,14 +63,18 @@ from numba.core.dispatcher import Dispatcher
 __all__ = [
     "SHIPPED_ROOT",
     "KernelCache",
+    "KernelCacheWarning",
     "KernelLocator",
+    "ReadOnlyLocator",
     "ShippedKernels",
     "kernel_modules",
     "kernel_stamp",
     "njit",
     "python_tag",
     "read_manifest",
+    "route_warnings",
     "shipped_kernels",
+    "writable_cache",
 ]
 
 #: the folder of this package (``kitti_eval/``): the locator answers for the files below it
@@ -193,8 +206,86 @@ def _impl_class() -> Any:
     return getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl")  # noqa: B009
 
 
+class KernelCacheWarning(RuntimeWarning):
+    """The kernels are compiled in memory only: no place for numba's cache is writable."""
+
+
+def _no_place_message() -> str:
+    custom = os.environ.get("NUMBA_CACHE_DIR")
+    tried = f"NUMBA_CACHE_DIR={custom}" if custom else "NUMBA_CACHE_DIR is unset"
+    return (
+        f"numba's cache has no writable place ({tried}; {PACKAGE_ROOT}'s __pycache__ and the user's cache folder "
+        "are not writable): the kernels are compiled in memory by every process that uses them (about 7 s of CPU "
+        "each); set NUMBA_CACHE_DIR to a writable folder to keep them"
+    )
+
+
+_warned = False
+
+
+def _warn_in_memory() -> None:
+    """One :class:`KernelCacheWarning` a process, on the first kernel compiled with nowhere to keep it."""
+    global _warned
+    if not _warned:
+        _warned = True
+        warnings.warn(_no_place_message(), KernelCacheWarning, stacklevel=2)
+
+
+def route_warnings(show: Callable[[str], None]) -> None:
+    """Have :class:`KernelCacheWarning` said by ``show`` (the CLI's stderr line, the service's log) instead of
+    Python's ``file:line: Warning`` print; every other warning is shown as before."""
+    previous = warnings.showwarning
+    if getattr(previous, "_kitti_eval_route", None) is not None:
+        previous = previous._kitti_eval_route  # type: ignore[attr-defined]
+
+    def showwarning(message: Any, category: type[Warning], *args: Any, **kwargs: Any) -> None:
+        if issubclass(category, KernelCacheWarning):
+            show(str(message))
+        else:
+            previous(message, category, *args, **kwargs)
+
+    showwarning._kitti_eval_route = previous  # type: ignore[attr-defined]
+    warnings.showwarning = showwarning
+
+
+class ReadOnlyLocator(caching._CacheLocator):
+    """numba's in-tree place (the module's ``__pycache__``), read and never written: the place of a kernel of
+    this package when numba finds no writable one. Cache files there (an installation warmed before it was
+    made read-only) load; a compiled kernel is not saved (:meth:`KernelCache._save_overload`)."""
+
+    def __init__(self, py_func: Any, py_file: str) -> None:
+        self._py_file = py_file
+        self._lineno = py_func.__code__.co_firstlineno  # numba's disambiguator: the same cache file names
+        self._cache_path = os.path.join(os.path.dirname(py_file), "__pycache__")
+
+    def ensure_cache_path(self) -> None:
+        raise OSError(f"{self._cache_path}: numba's cache is only read here")
+
+    def get_cache_path(self) -> str:
+        return self._cache_path
+
+    def get_source_stamp(self) -> tuple[str, str]:
+        return kernel_stamp(self._py_file)
+
+    def get_disambiguator(self) -> str:
+        return str(self._lineno)
+
+    @classmethod
+    def from_function(cls, py_func: Any, py_file: str) -> ReadOnlyLocator:
+        return cls(py_func, py_file)
+
+
+def writable_cache(py_file: str | os.PathLike[str] | None = None) -> str | None:
+    """The folder numba saves this package's kernels (those of ``py_file``, default the matching kernels' module)
+    in, or None when no place is writable and they are compiled in memory only."""
+    py_file = str(py_file or PACKAGE_ROOT / "core" / "matching.py")
+    locator = KernelLocator.from_function(writable_cache, py_file)
+    return None if locator is None or locator.read_only else locator.get_cache_path()
+
+
 class KernelLocator(caching._CacheLocator):
-    """numba's own locator for a kernel of this package, with the stamp of :func:`kernel_stamp`."""
+    """numba's own locator for a kernel of this package, with the stamp of :func:`kernel_stamp`; where numba's
+    locators find no writable place, a :class:`ReadOnlyLocator`."""
 
     def __init__(self, inner: Any, py_file: str) -> None:
         self._inner = inner
@@ -203,6 +294,11 @@ class KernelLocator(caching._CacheLocator):
     @property
     def py_file(self) -> str:
         return self._py_file
+
+    @property
+    def read_only(self) -> bool:
+        """True when nothing compiled is saved (no writable place)."""
+        return isinstance(self._inner, ReadOnlyLocator)
 
     def ensure_cache_path(self) -> None:
         self._inner.ensure_cache_path()
@@ -220,17 +316,17 @@ class KernelLocator(caching._CacheLocator):
     def from_function(cls, py_func: Any, py_file: str) -> KernelLocator | None:
         if not _is_ours(py_file):
             return None
+        try:
+            kernel_stamp(py_file)
+        except (OSError, SyntaxError, ValueError):
+            return None  # sources not readable as files: numba's own stamp
         for other in _impl_class()._locator_classes:
             if other is cls:
                 continue
             inner = other.from_function(py_func, py_file)
             if inner is not None:
-                try:
-                    kernel_stamp(py_file)
-                except (OSError, SyntaxError, ValueError):
-                    return None  # sources not readable as files: numba's own stamp
                 return cls(inner, py_file)
-        return None
+        return cls(ReadOnlyLocator.from_function(py_func, py_file), py_file)
 
 
 def python_tag() -> str:
@@ -310,6 +406,14 @@ class KernelCache(caching.FunctionCache):
         own_key = self._index_key(sig, codegen)
         found = index.load((own_key[0], shipped.target, *own_key[2:]))
         return None if found is None else self._impl.rebuild(target_context, found)
+
+    def _save_overload(self, sig: Any, data: Any) -> None:
+        locator = self._impl.locator
+        if isinstance(locator, KernelLocator) and locator.read_only:
+            if self._enabled and self._impl.check_cachable(data):
+                _warn_in_memory()
+            return
+        super()._save_overload(sig, data)
 
 
 def njit(*args: Any, **options: Any) -> Any:

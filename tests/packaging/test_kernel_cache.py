@@ -308,3 +308,62 @@ def test_shipped_kernels_are_used_only_for_their_numba_python_and_a_portable_tar
     assert not x86.usable_on(("aarch64-unknown-linux-gnu", "neoverse-n1", ""))
     host_specific = kernel_cache.ShippedKernels(shipped_root, "", "", ("x86_64-unknown-linux-gnu", "znver4", ""), 1)
     assert not host_specific.usable_on(("x86_64-unknown-linux-gnu", "skylake", ""))
+
+
+# -- nowhere writable: another uid, a read-only installation, no home (tests/packaging/test_any_uid.py runs it) --
+
+
+@pytest.fixture
+def nowhere_writable(shipped_root: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """numba finds no writable place (its locators all refuse); the read-only place is an empty folder of this
+    test's. Returns that folder."""
+    read_only = shipped_root.parent / "read-only"
+    read_only.mkdir()
+    monkeypatch.setattr(kernel_cache._impl_class(), "_locator_classes", [kernel_cache.KernelLocator])
+    monkeypatch.setattr(kernel_cache.ReadOnlyLocator, "get_cache_path", lambda self: str(read_only))
+    monkeypatch.setattr(kernel_cache, "_warned", False)
+    return read_only
+
+
+@pytest.mark.skipif(_DISABLE_JIT, reason="NUMBA_DISABLE_JIT: nothing is compiled")
+def test_with_nowhere_writable_a_kernel_loads_the_shipped_one_or_compiles_in_memory(
+    nowhere_writable: Path, shipped_root: Path
+) -> None:
+    import warnings
+
+    import numpy as np
+
+    from kitti_eval.core import geometry
+
+    shipped, other = geometry._iou_2d_kernel, geometry._frame_overlaps_kernel
+    _ship(shipped_root, shipped)
+    assert kernel_cache.writable_cache() is None
+    fresh = _fresh(shipped)
+    assert fresh._cache._impl.locator.read_only
+    with warnings.catch_warnings(record=True) as caught, _Compiles() as compiled:
+        warnings.simplefilter("always")
+        fresh.compile(shipped.signatures[0])
+    assert compiled == [] and caught == []  # the shipped code: nothing compiled, nothing to say
+    a = np.array([[0.0, 0.0, 10.0, 10.0], [5.0, 5.0, 20.0, 20.0]])
+    assert np.array_equal(fresh(a, a, True), shipped(a, a, True))
+    with warnings.catch_warnings(record=True) as caught, _Compiles() as compiled:
+        warnings.simplefilter("always")
+        for _ in range(2):  # a second dispatcher of it, as a second kernel: compiled again, said once
+            _fresh(other).compile(other.signatures[0])
+    assert compiled == ["_frame_overlaps_kernel", "_frame_overlaps_kernel"]
+    assert [w.category for w in caught] == [kernel_cache.KernelCacheWarning]
+    assert "NUMBA_CACHE_DIR" in str(caught[0].message) and "compiled in memory" in str(caught[0].message)
+    assert list(nowhere_writable.iterdir()) == [] and not (shipped_root.parent / "numba-cache").exists()
+
+
+def test_kernel_cache_warnings_go_where_the_application_says(monkeypatch: pytest.MonkeyPatch) -> None:
+    import warnings
+
+    passed_on: list[type[Warning]] = []
+    monkeypatch.setattr(warnings, "showwarning", lambda message, category, *rest, **kw: passed_on.append(category))
+    said: list[str] = []
+    kernel_cache.route_warnings(said.append)
+    kernel_cache.route_warnings(said.append)  # routed again (the CLI's command and the service in one process)
+    warnings.showwarning("in memory", kernel_cache.KernelCacheWarning, "x.py", 1)
+    warnings.showwarning("other", UserWarning, "x.py", 1)
+    assert said == ["in memory"] and passed_on == [UserWarning]

@@ -355,3 +355,62 @@ def test_no_worker_no_readiness(service_client: Any) -> None:
         service.jobs.worker_gone("elsewhere:1")
         service.jobs.worker_gone("other:2")
         assert client.get("/readyz").status_code == 503
+
+
+def test_own_worker_processes_count_for_the_readiness_once_they_take_jobs(service_client: Any) -> None:
+    """A worker process of the service's own pool that is running but has not yet recorded itself on the database
+    (it records itself once its kernels are warm and it takes jobs) does not make the service ready; its row
+    does, and so does another machine's worker while no process of the pool is running."""
+    import socket
+    import time
+    from datetime import datetime, timezone
+
+    class Pool:  # what the readiness reads of a WorkerPool: its processes' ids, how many are running
+        pids = [4_000_001]
+        alive = 1
+
+    with service_client(job_threads=0, ready=False) as client:
+        service = client.app.state.service
+        deadline = time.monotonic() + 120
+        while not service.warm.is_set():
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        service.pool = Pool()
+        try:
+            now = datetime.now(timezone.utc)
+            r = client.get("/readyz")
+            assert r.status_code == 503 and "worker processes are starting" in r.json()["error"]["message"], r.text
+            service.jobs.worker_beat("elsewhere:7", host="elsewhere", pid=4_000_001, threads=1, started_at=now)
+            assert client.get("/readyz").status_code == 503  # the same pid on another machine is not the pool's
+            name = f"{socket.gethostname()}:4000001"
+            service.jobs.worker_beat(name, host=socket.gethostname(), pid=4_000_001, threads=1, started_at=now)
+            assert client.get("/readyz").status_code == 200
+            service.jobs.worker_gone(name)
+            Pool.alive = 0  # the pool's processes died: another machine's worker runs the jobs meanwhile
+            assert client.get("/readyz").status_code == 200
+            service.jobs.worker_gone("elsewhere:7")
+            r = client.get("/readyz")
+            assert r.status_code == 503 and "no worker runs evaluations" in r.json()["error"]["message"], r.text
+        finally:
+            service.pool = None
+
+
+def test_a_database_the_service_cannot_use_refuses_the_start_in_one_line(tmp_path: Any) -> None:
+    """Not reached, refused, or a URL whose password holds an '@': one line naming the database (without its
+    password) and the driver's reason, not a traceback; a password with URL characters gets a hint."""
+    from server_helpers import app_client, free_port
+
+    from kitti_eval_server.errors import StartupRefused
+
+    port = free_port()  # nothing listens there
+    for url, hinted in [
+        (f"postgresql://kitti:secret@127.0.0.1:{port}/kitti", False),
+        (f"postgresql://kitti:ab@c/d#e@127.0.0.1:{port}/kitti", True),
+    ]:
+        with pytest.raises(StartupRefused) as refused, app_client(tmp_path / "data", warmup=False, database_url=url):
+            pass
+        message = refused.value.message
+        assert message.startswith("cannot use the database postgresql+psycopg://kitti:***@"), message
+        assert "secret" not in message and "ab@c" not in message and "\n" not in message
+        assert ("given as PGPASSWORD" in message) == hinted, message
+        assert hinted or "refused" in message.lower(), message  # the driver's reason
