@@ -32,6 +32,13 @@ log = logging.getLogger("kitti_eval.server")
 
 #: what a worker process runs (``python -m``)
 CHILD_MODULE = "kitti_eval_server.worker_process"
+#: how it is started: as ``python -m CHILD_MODULE`` would, but without the working folder first on the import path
+#: (``-m`` puts it there: a service started inside another checkout would run that checkout's code in its
+#: workers, not the installed one it runs itself)
+_START = (
+    "import runpy, sys; sys.path[:] = [p for p in sys.path if p not in ('', '.')]; "
+    f"runpy.run_module({CHILD_MODULE!r}, run_name='__main__', alter_sys=True)"
+)
 #: a process that died sooner than this after its start counts as failing (its next start waits longer)
 _QUICK_DEATH_S = 60.0
 _LONGEST_PAUSE_S = 60.0
@@ -81,8 +88,8 @@ class WorkerPool:
     def _command(self) -> list[str]:
         return [
             sys.executable,
-            "-m",
-            CHILD_MODULE,
+            "-c",
+            _START,
             "--work-dir",
             str(self.work_dir),
             "--threads",

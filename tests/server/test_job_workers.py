@@ -26,6 +26,7 @@ from server_helpers import ROOT, app_client, register, upload
 from kitti_eval.synth import generate
 from kitti_eval_server.jobs import JobQueue
 from kitti_eval_server.store import Store
+from kitti_eval_server.worker_pool import WorkerPool
 from kitti_eval_server.workers import Workers
 
 
@@ -308,3 +309,19 @@ def test_serve_starts_its_own_worker_processes_and_drains_them(tmp_path) -> None
     assert not any(_alive(pid) for pid in pids)
     assert JobQueue(store).workers_seen(3600) == []  # each process removed its row as it stopped
     store.dispose()
+
+
+def test_a_worker_process_runs_the_installed_service_whatever_folder_it_starts_in(tmp_path: Path) -> None:
+    """``python -m`` puts the working folder first on the import path: started inside another checkout, a worker
+    would run that checkout's service, not the one the web process runs. The pool's command does not."""
+    other = tmp_path / "kitti_eval_server"
+    other.mkdir()
+    marker = tmp_path / "the-other-checkout-ran"
+    for name in ("__init__.py", "worker_process.py"):
+        (other / name).write_text(f"open({str(marker)!r}, 'w').close()\n")
+    pool = WorkerPool(1, threads=1, grace_s=1.0, work_dir=tmp_path / "work", database_url="sqlite://")
+    command = [*pool._command()[:3], "--help"]  # the interpreter and how it starts the module, then --help
+    run = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert "One worker process of kitti-eval." in run.stdout
+    assert not marker.exists()
