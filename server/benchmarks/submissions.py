@@ -146,10 +146,7 @@ class Submissions(Intervals):
             raise Forbidden("a participant submits with their own token (kitti-eval admin token add USER)")
         bench = self.get(name, caller)
         if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
-            raise Forbidden(
-                f"the benchmark {name!r} takes part from the members of its test set's project: reading it is "
-                "not taking part in it"
-            )
+            raise _not_taking_part(name)
         upload = receive_content(predictions.file, predictions.filename, "predictions")
         key = None
         if idempotency_key is not None:
@@ -209,16 +206,19 @@ class Submissions(Intervals):
 
     def refused_now(self, name: str, caller: Caller, size: int, idempotency_key: str | None = None) -> ApiError | None:
         """What a participant's submission of ``size`` bytes to ``name`` would be refused with now, found before
-        its file is received: a used quota (429 ``quota_exceeded``) or a full queue (:meth:`JobQueue.admit
-        <kitti_eval_server.jobs.JobQueue.admit>`). None when it may be accepted, or for any other answer: the
-        route decides those, and the transaction that accepts counts the quota again. A request sent again with
-        an idempotency key already recorded is not refused here: the route answers it with its first job."""
+        its file is received: a caller who reads the benchmark but does not take part in it (403), a used quota
+        (429 ``quota_exceeded``) or a full queue (:meth:`JobQueue.admit <kitti_eval_server.jobs.JobQueue.admit>`).
+        None when it may be accepted, or for any other answer: the route decides those, and the transaction that
+        accepts counts the quota again. A request sent again with an idempotency key already recorded is not
+        refused here: the route answers it with its first job."""
         if not self.policy.counts_quota(caller):
             return None
         if self.idempotency.known(caller.name, submissions_scope(name), idempotency_key):
             return None
         try:
             bench = self.get(name, caller)
+            if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
+                return _not_taking_part(name)
             if not bench.is_open():
                 return None
             self.jobs.admit(caller.name, size)
@@ -452,3 +452,11 @@ class Submissions(Intervals):
                 "the ones ranked on the private part)"
             )
         return bench
+
+
+def _not_taking_part(name: str) -> Forbidden:
+    """The refusal of a submission from a caller who may read the benchmark but not take part in it."""
+    return Forbidden(
+        f"the benchmark {name!r} takes part from the members of its test set's project: reading it is not taking "
+        "part in it"
+    )

@@ -25,6 +25,16 @@ def live(tmp_path_factory):
             first = ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 201)
             ro = ok(c.post("/v1/admin/tokens", json={"user": "alice", "read_only": True}, headers=ADMIN), 201)
             hosted.tokens["alice-ro"] = ro["token"]
+            # a public benchmark on a test set of a project the user "outsider" is not a member of
+            ok(c.post("/v1/admin/projects", json={"name": "team"}, headers=ADMIN), 201)
+            ok(c.post("/v1/admin/users", json={"name": "outsider"}, headers=ADMIN), 201)
+            token = ok(c.post("/v1/admin/tokens", json={"user": "outsider"}, headers=ADMIN), 201)
+            hosted.tokens["outsider"] = token["token"]
+            form = {"name": "team-set", "project": "team", "sealed": "true"}
+            files = {"file": ("kitti_infos_val.pkl", golden_bytes("kitti_infos_val.pkl"))}
+            ok(c.post("/v1/ground-truths", data=form, files=files, headers=ADMIN), 201)
+            body = {"name": "team-bench", "ground_truth": "team-set", "quota": "3/1", "public": True}
+            ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)
         yield s, hosted, first
 
 
@@ -36,9 +46,9 @@ def _multipart(content: bytes) -> bytes:
     return head + content + f"\r\n--{BOUNDARY}--\r\n".encode()
 
 
-def _head(token: str, length: int, *, expect: bool) -> bytes:
+def _head(token: str, length: int, *, expect: bool, path: str = PATH) -> bytes:
     lines = [
-        f"POST {PATH}?wait=0 HTTP/1.1",
+        f"POST {path}?wait=0 HTTP/1.1",
         "Host: 127.0.0.1",
         f"Authorization: Bearer {token}",
         f"Content-Type: multipart/form-data; boundary={BOUNDARY}",
@@ -119,3 +129,20 @@ def test_whom_the_route_refuses_otherwise_is_answered_by_the_route(live) -> None
         status, _, raw = _response(sock)
         assert status == 202 and json.loads(raw)["state"] in ("queued", "running", "done"), raw[:300]
     assert [s["id"] for s in _submissions(server, hosted.headers("bob"))] == [json.loads(raw)["id"]]
+
+
+def test_who_reads_a_public_benchmark_but_does_not_take_part_is_refused_without_sending_its_file(live) -> None:
+    """A member of another project reads a public benchmark but does not take part in it: told 403 before the file
+    is asked for, as the quota is, in the route's words (the project is not named)."""
+    server, hosted, _ = live
+    body = _multipart(bytes(50 << 20))  # never sent
+    path = "/v1/benchmarks/team-bench/submissions"
+    with socket.create_connection(("127.0.0.1", server.port), timeout=30) as sock:
+        sock.sendall(_head(hosted.tokens["outsider"], len(body), expect=True, path=path))
+        status, headers, raw = _response(sock)
+        assert status == 403  # not "100 Continue"
+        message = json.loads(raw)["error"]["message"]
+        assert "takes part from the members of its test set's project" in message and "team" not in message.split()
+        assert headers["connection"] == "close"
+    with httpx.Client(base_url=server.url, timeout=120) as c:
+        assert ok(c.get(path, headers=hosted.headers("outsider")))["items"] == []
