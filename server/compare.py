@@ -31,6 +31,13 @@ def _name(record: EvaluationRecord) -> str:
     return f"{label} ({', '.join(extra)})" if extra else label
 
 
+def _column_names(base: EvaluationRecord, other: EvaluationRecord) -> tuple[str, str]:
+    """The comparison's column headers, as ``kitti-eval compare`` heads them with the files' names: each
+    evaluation's name, with its id's first characters when the two names are the same."""
+    a, b = _name(base), _name(other)
+    return (f"{a} {base.id[:8]}", f"{b} {other.id[:8]}") if a == b else (a, b)
+
+
 def compare(base: EvaluationRecord, other: EvaluationRecord) -> dict[str, Any]:
     """The comparison document ``kitti-eval compare --format json`` prints for the two results (A = base,
     B = other), plus ``base`` and ``other``: the records' ids, dates, ground truths and labels."""
@@ -44,6 +51,7 @@ def compare(base: EvaluationRecord, other: EvaluationRecord) -> dict[str, Any]:
 def render_comparison_markdown(base: EvaluationRecord, other: EvaluationRecord) -> str:
     """``kitti-eval compare --format markdown`` of the two, under a title naming them (for a PR comment)."""
     assert base.result is not None and other.result is not None
-    table = render_comparison(compare_documents(base.result, other.result), "markdown")
+    comparison = compare_documents(base.result, other.result, names=_column_names(base, other))
+    table = render_comparison(comparison, "markdown")
     gt_note = f"> note: {_OTHER_GROUND_TRUTH}\n" if base.gt_sha256 != other.gt_sha256 else ""
     return f"## KITTI evaluation: {_name(base)} → {_name(other)}\n\n{table}{gt_note}"
