@@ -3,7 +3,8 @@
 
 A test is slow when
 
-* it is marked ``slow`` by hand (a long computation: a statistical check, a large set);
+* it is marked ``slow`` by hand (a long computation: a statistical check, a large set; or processes the
+  library starts itself, which the rules do not follow: a local Dask cluster);
 * its module is a sweep (``test_*_sweep.py``: every route against every caller, hundreds of cases); or
 * it starts a process: its code, or any code of the suite it reaches by name (the fixtures it asks for, the
   helpers and classes they call, transitively), uses ``subprocess``, ``multiprocessing``, a process pool, a
