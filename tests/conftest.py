@@ -4,7 +4,9 @@ The tests are grouped by layer, a folder each, and each folder's tests carry its
 ``core`` (kernels, curves, the protocol's scenarios: a seconds-long loop), ``io``, ``analysis``, ``cli``,
 ``compat``, ``server`` (the service, its jobs and databases: processes), ``web`` (pages, some in Chromium),
 ``docs`` (the README's and the pages' examples), ``packaging`` (wheels, containers, CI). ``pytest tests/core``
-or ``pytest -m core`` runs one; ``helpers/`` holds what they share (on the path by pyproject's ``pythonpath``)."""
+or ``pytest -m core`` runs one; ``helpers/`` holds what they share (on the path by pyproject's ``pythonpath``).
+Every test is also marked ``slow`` or not by the rules of ``helpers/slow_tests.py``: ``-m "not slow"`` is the
+quick command, ``-m slow`` the rest."""
 
 from __future__ import annotations
 
@@ -46,15 +48,38 @@ FOLDERS = ("core", "io", "analysis", "cli", "compat", "server", "web", "docs", "
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    from slow_tests import why_slow
+
     for item in items:
         folder = item.path.parent.name
         if folder in FOLDERS:
             item.add_marker(getattr(pytest.mark, folder))
+        if item.get_closest_marker("slow") is None and why_slow(item) is not None:
+            item.add_marker(pytest.mark.slow)  # the rules of tests/helpers/slow_tests.py
+
+
+#: a quick test that takes longer than this is named at the end of the quick command's run
+QUICK_TEST_S = 10.0
+
+
+def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:
+    """After the quick command (-m "not slow"), name the tests that took long without being slow by the rules
+    (a long computation in-process): mark them slow if they take as long on an idle machine."""
+    if config.option.markexpr.replace(" ", "") != "notslow":
+        return
+    reports = [r for key in ("passed", "failed") for r in terminalreporter.stats.get(key, []) if r.when == "call"]
+    long = sorted(((r.duration, r.nodeid) for r in reports if r.duration > QUICK_TEST_S), reverse=True)
+    if long:
+        terminalreporter.section(f"quick tests that took over {QUICK_TEST_S:.0f} s")
+        for duration, nodeid in long:
+            terminalreporter.write_line(f"{duration:6.1f} s  {nodeid}")
 
 
 def pytest_configure(config: pytest.Config) -> None:
     for folder in FOLDERS:
         config.addinivalue_line("markers", f"{folder}: the tests of tests/{folder}/ (a marker a folder)")
     config.addinivalue_line(
-        "markers", "slow: kills or starts server processes, or builds the wheel (seconds each); -m 'not slow' skips"
+        "markers",
+        "slow: starts a process, sweeps, or computes long (tests/helpers/slow_tests.py marks them); "
+        "-m 'not slow' is the quick command",
     )

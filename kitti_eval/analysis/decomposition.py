@@ -4,7 +4,7 @@
 (bbox, bev, 3d; AOS on the bbox matching), difficulty and IoU threshold ``t`` (the strict set by default),
 every detection and ground-truth box gets at most one error type, read off the devkit's **pass 1** with
 every detection taking part (each ground-truth box in file order takes the unassigned detection of
-highest score with overlap > t; :func:`kitti_eval.core.matching._frame_pass1`): the score-first matching
+highest score with overlap > t; :func:`kitti_eval.core.matching.frame_pass1`): the score-first matching
 that chooses the score thresholds, and TIDE's own ("taken by a higher-scoring detection"). The
 protocol's ignore rules stay as they are: ground truth of a neighbour class or outside the difficulty
 (ignored, code 1) counts as C's own for overlaps but is never missed; a detection under the difficulty's
@@ -88,17 +88,17 @@ from ..core.matching import (
     MatchingInputs,
     MatchJob,
     PRCounts,
-    _best_overlaps,
-    _candidates,
-    _frame_pass1,
-    _frame_pass2,
-    _rank_descending,
-    _widest,
+    best_overlaps,
     checked_inputs,
     checked_layout,
     default_workers,
+    find_candidates,
     frame_events_many,
+    frame_pass1,
+    frame_pass2,
+    rank_descending,
     score_thresholds,
+    widest_step,
 )
 from ..core.protocol import (
     DEFAULT_OSET,
@@ -155,11 +155,11 @@ def _group_maxima(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each detection's largest overlap with the ground truth of each group of ``groups`` (G, M) and the
     row of that box (the first in file order on ties; -1 and 0.0 without an overlap > 0): the matching's
-    :func:`kitti_eval.core.matching._best_overlaps`, with the rows."""
+    :func:`kitti_eval.core.matching.best_overlaps`, with the rows."""
     n_dt = dt_offsets[dt_offsets.shape[0] - 1]
     best = np.zeros((groups.shape[0], n_dt), dtype=np.float64)
     arg = np.full((groups.shape[0], n_dt), -1, dtype=np.int64)
-    _best_overlaps(pair_offsets, ov, gt_offsets, dt_offsets, groups, best, arg)
+    best_overlaps(pair_offsets, ov, gt_offsets, dt_offsets, groups, best, arg)
     return best, arg
 
 
@@ -168,11 +168,11 @@ def _pass1_taken(c: Candidates, min_overlap: float, n_dt: int) -> np.ndarray:
     """Pass 1 on every frame of ``c`` (built with each box's row as its alpha): the ground-truth row each
     detection was taken by, -1 if none."""
     out = np.full(n_dt, -1, dtype=np.int64)
-    widest = _widest(c.d_ptr)
+    widest = widest_step(c.d_ptr)
     assigned = np.empty(widest, dtype=np.int64)
     scratch = np.empty(widest, dtype=np.float64)
     for f in range(c.valid.shape[0]):
-        _frame_pass1(c, f, min_overlap, scratch, assigned)
+        frame_pass1(c, f, min_overlap, scratch, assigned)
         ga, d0 = c.g_ptr[f], c.d_ptr[f]
         for a in range(c.d_ptr[f + 1] - d0):
             if assigned[a] >= 0:
@@ -199,7 +199,7 @@ def _tp_error_events(
     """Pass 2's true positives as step functions of the score threshold (as ``_events`` in matching), with
     their summed errors: when the threshold falls to ``ev_score``, (tp, translation, scale, orientation)
     change by ``ev_delta``. ``c`` is built with each box's row as its alpha."""
-    widest = _widest(c.d_ptr)
+    widest = widest_step(c.d_ptr)
     taken = np.empty(widest, dtype=np.int64)
     below = np.empty(widest, dtype=np.bool_)
     ranked = np.empty(widest, dtype=np.float64)
@@ -211,14 +211,14 @@ def _tp_error_events(
     now = np.zeros(4, dtype=np.float64)
     for f in range(c.valid.shape[0]):
         ga, d0, m = c.g_ptr[f], c.d_ptr[f], c.d_ptr[f + 1] - c.d_ptr[f]
-        _rank_descending(c.d_score[d0 : d0 + m], ranked)
+        rank_descending(c.d_score[d0 : d0 + m], ranked)
         prev[:] = 0.0
         a = 0
         while a < m:
             level = ranked[a]
             while a < m and ranked[a] >= level:
                 a += 1
-            _frame_pass2(c, f, min_overlap, level, False, taken, below)
+            frame_pass2(c, f, min_overlap, level, False, taken, below)
             now[:] = 0.0
             for b in range(m):
                 i = taken[b]
@@ -260,7 +260,7 @@ def group_maxima(
 
 
 def _index_candidates(m: MatchingInputs, min_overlap: float) -> Candidates:
-    """The candidates (:func:`kitti_eval.core.matching._candidates`) of the one matching of ``m`` (checked
+    """The candidates (:func:`kitti_eval.core.matching.find_candidates`) of the one matching of ``m`` (checked
     inputs) with each box's row in place of its alpha, so that what a kernel reads off them can be mapped back
     to the boxes."""
     ov, ignored_gt, ignored_det = m.overlaps[0], m.ignored_gt[0], m.ignored_det[0]
@@ -275,58 +275,33 @@ def _index_candidates(m: MatchingInputs, min_overlap: float) -> Candidates:
         np.arange(n_gt, dtype=np.float64),
         np.arange(n_dt, dtype=np.float64),
     )
-    return _candidates(frames, ov, ignored_gt, ignored_det, m.dontcare, best[0], best[1], float(min_overlap))
+    return find_candidates(frames, ov, ignored_gt, ignored_det, m.dontcare, best[0], best[1], float(min_overlap))
 
 
-def _one_matching(
-    pair_offsets: npt.ArrayLike,
-    overlaps: npt.ArrayLike,
-    gt_offsets: npt.ArrayLike,
-    dt_offsets: npt.ArrayLike,
-    ignored_gt: npt.ArrayLike,
-    ignored_det: npt.ArrayLike,
-    dontcare: npt.ArrayLike | None,
-    score: npt.ArrayLike,
-) -> MatchingInputs:
-    """The checked inputs of one matching (one row of ignore codes; no orientation)."""
-    ig, idet = np.asarray(ignored_gt)[None], np.asarray(ignored_det)[None]
-    return checked_inputs(MatchingInputs(pair_offsets, [overlaps], gt_offsets, dt_offsets, ig, idet, dontcare, score))
+def _one_matching(inputs: MatchingInputs) -> MatchingInputs:
+    """The checked inputs of one matching: one overlap array, one row of ignore codes (``ignored_gt`` (M,),
+    ``ignored_det`` (N,), or (1, M) and (1, N)); no orientation."""
+    return checked_inputs(inputs.one_matching()._replace(gt_alpha=None, dt_alpha=None))
 
 
-def pass1_taken(
-    pair_offsets: npt.ArrayLike,
-    overlaps: npt.ArrayLike,
-    gt_offsets: npt.ArrayLike,
-    dt_offsets: npt.ArrayLike,
-    ignored_gt: npt.ArrayLike,
-    ignored_det: npt.ArrayLike,
-    dontcare: npt.ArrayLike | None,
-    score: npt.ArrayLike,
-    min_overlap: float,
-) -> npt.NDArray[np.int64]:
+def pass1_taken(inputs: MatchingInputs, min_overlap: float) -> npt.NDArray[np.int64]:
     """(N,) the ground-truth row that took each detection in the devkit's pass 1 (every detection taking
-    part), -1 if none. Arguments as :func:`kitti_eval.core.matching.pr_counts` (one matching)."""
-    m = _one_matching(pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score)
+    part), -1 if none. ``inputs``: one matching's, as :func:`kitti_eval.core.matching.pr_counts` takes them."""
+    m = _one_matching(inputs)
     return _pass1_taken(_index_candidates(m, min_overlap), float(min_overlap), int(m.dt_offsets[-1]))
 
 
 def tp_error_sums(
-    pair_offsets: npt.ArrayLike,
-    overlaps: npt.ArrayLike,
-    gt_offsets: npt.ArrayLike,
-    dt_offsets: npt.ArrayLike,
-    ignored_gt: npt.ArrayLike,
-    ignored_det: npt.ArrayLike,
-    dontcare: npt.ArrayLike | None,
-    score: npt.ArrayLike,
+    inputs: MatchingInputs,
     dt_boxes: npt.ArrayLike,
     gt_boxes: npt.ArrayLike,
     min_overlap: float,
     thresholds: npt.ArrayLike,
 ) -> npt.NDArray[np.float64]:
     """(T, 4): at each score threshold, pass 2's true positives and their summed translation, scale and
-    orientation errors (see the module docstring). Boxes are (x, y, z, l, h, w, ry) rows."""
-    m = _one_matching(pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score)
+    orientation errors (see the module docstring). ``inputs``: one matching's, as
+    :func:`kitti_eval.core.matching.pr_counts` takes them; boxes are (x, y, z, l, h, w, ry) rows."""
+    m = _one_matching(inputs)
     db = kernel_input(dt_boxes, np.float64)
     gb = kernel_input(gt_boxes, np.float64)
     if db.shape != (m.ignored_det.shape[1], 7) or gb.shape != (m.ignored_gt.shape[1], 7):
@@ -568,20 +543,10 @@ def _events_of(s: _Shared, j: _Job, fix: _Fix, frames: np.ndarray) -> FrameEvent
         ov[_ranges(base, base + n_gt)] = 0.0
         ov[base + fix.target[moved] - s.gt_offsets[f]] = 1.0
     job = MatchJob(0, 0, j.job.min_overlap, j.job.compute_aos, j.job.dontcare)
-    (events,) = frame_events_many(
-        po,
-        [ov],
-        go,
-        do,
-        ig[None],
-        idet[None],
-        s.dontcare[gt_rows],
-        s.score[dt_rows],
-        s.gt_alpha[gt_rows],
-        alpha,
-        [job],
-        workers=1,
+    inputs = MatchingInputs(
+        po, [ov], go, do, ig[None], idet[None], s.dontcare[gt_rows], s.score[dt_rows], s.gt_alpha[gt_rows], alpha
     )
+    (events,) = frame_events_many(inputs, [job], workers=1)
     return events
 
 
@@ -663,20 +628,8 @@ def _slot_errors(s: _Shared, j: _Job, orig: FrameEvents, lab: _Labels, with_aos:
 def _tp_errors(s: _Shared, j: _Job, orig: FrameEvents, dt_boxes: np.ndarray, gt_boxes: np.ndarray) -> TPErrors:
     n_valid = int(orig.valid.sum())
     thresholds = score_thresholds(orig.tp_score, n_valid)
-    sums = tp_error_sums(
-        s.pair_offsets,
-        j.ov,
-        s.gt_offsets,
-        s.dt_offsets,
-        j.ig,
-        j.idet,
-        j.dc,
-        s.score,
-        dt_boxes,
-        gt_boxes,
-        j.job.min_overlap,
-        thresholds,
-    )
+    inputs = MatchingInputs(s.pair_offsets, [j.ov], s.gt_offsets, s.dt_offsets, j.ig, j.idet, j.dc, s.score)
+    sums = tp_error_sums(inputs, dt_boxes, gt_boxes, j.job.min_overlap, thresholds)
     n_thr = len(thresholds)
     curves: dict[str, list[float | None]] = {}
     means: dict[str, float | None] = {}
@@ -780,7 +733,7 @@ def decompose_plan(plan: Plan, *, oset: str = DEFAULT_OSET, workers: int | None 
             np.arange(gt.num_boxes, dtype=np.float64),
             np.arange(dt.num_boxes, dtype=np.float64),
         )
-        c = _candidates(frames, ov, ig, idet, dc, best[0], best[2], float(job.min_overlap))
+        c = find_candidates(frames, ov, ig, idet, dc, best[0], best[2], float(job.min_overlap))
         taken = _pass1_taken(c, float(job.min_overlap), dt.num_boxes)
         return _Job(
             job, ov, ig, idet, dc, taken, best[0], arg[0], best[1], kin_best(job.overlap), best[2], is_dontcare_det

@@ -238,7 +238,7 @@ class Plan:
     def counts(self, jobs: Sequence[MatchJob] | None = None, *, workers: int | None = None) -> list[PRCounts]:
         """The TP/FP/FN counts of ``jobs`` (default: every job of the plan) at their score thresholds."""
         jobs = self.jobs if jobs is None else jobs
-        return pr_counts_many(*self._matching_inputs(), jobs, workers=workers) if jobs else []
+        return pr_counts_many(self._matching_inputs(), jobs, workers=workers) if jobs else []
 
     def first_passes(self, *, workers: int | None = None) -> list[tuple[np.ndarray, int]]:
         """Per job: pass 1's true-positive scores and the valid ground truth (phase 1 over a part of a set)."""
@@ -253,7 +253,7 @@ class Plan:
     def events(self, jobs: Sequence[MatchJob] | None = None, *, workers: int | None = None) -> list[FrameEvents]:
         """Each frame's share of ``jobs``' counts as step functions of the score threshold (default: every job)."""
         jobs = self.jobs if jobs is None else jobs
-        return frame_events_many(*self._matching_inputs(), jobs, workers=workers) if jobs else []
+        return frame_events_many(self._matching_inputs(), jobs, workers=workers) if jobs else []
 
 
 def plan_evaluation(

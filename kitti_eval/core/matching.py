@@ -19,6 +19,12 @@ Ignore codes (computed by :mod:`kitti_eval.core.evaluation` from the protocol; n
 
 The matching in a frame depends only on *which* detections are above the threshold, so each frame is
 matched once per distinct set of above-threshold detections rather than once per threshold.
+
+The public wrappers (:func:`pr_counts`, :func:`pr_counts_many`, :func:`frame_events_many`, ...) take the
+frames' arrays as one :class:`MatchingInputs` and check them; the kernels under them take the checked arrays
+one by one. The kernels that :mod:`kitti_eval.analysis.decomposition` reuses have public names
+(:func:`find_candidates`, :func:`frame_pass1`, :func:`frame_pass2`, :func:`best_overlaps`,
+:func:`rank_descending`, :func:`widest_step`) and validate nothing.
 """
 
 from __future__ import annotations
@@ -58,6 +64,17 @@ __all__ = [
     "MatchingInputs",
     "checked_inputs",
     "checked_layout",
+    # the kernels the error decomposition (kitti_eval.analysis.decomposition) builds on: checked arrays in
+    # (checked_inputs), nothing validated
+    "Frames",
+    "Candidates",
+    "best_overlaps",
+    "find_candidates",
+    "frame_pass1",
+    "frame_pass2",
+    "rank_descending",
+    "widest_step",
+    "threshold_step",
 ]
 
 _NO_DETECTION = -10000000.0
@@ -108,7 +125,7 @@ def _first_at_or_below(thresholds: np.ndarray, value: float) -> int:
 
 
 @njit(cache=True, nogil=True)
-def _rank_descending(values: np.ndarray, out: np.ndarray) -> None:
+def rank_descending(values: np.ndarray, out: np.ndarray) -> None:
     """``out[:len(values)]`` = values sorted descending (insertion sort: a frame has a handful)."""
     for a in range(values.shape[0]):
         s = values[a]
@@ -120,7 +137,7 @@ def _rank_descending(values: np.ndarray, out: np.ndarray) -> None:
 
 
 @njit(cache=True, nogil=True)
-def _best_overlaps(
+def best_overlaps(
     pair_offsets: np.ndarray,
     ov: np.ndarray,
     gt_offsets: np.ndarray,
@@ -163,7 +180,7 @@ class Frames(NamedTuple):
 
 
 class Candidates(NamedTuple):
-    """One matching's rows, compacted per frame to those that can play a part (made by :func:`_candidates`).
+    """One matching's rows, compacted per frame to those that can play a part (made by :func:`find_candidates`).
 
     Per frame and in file order: the ground truth taking part (``g_code``: 0 valid, 1 ignored; ``g_alpha``;
     CSR pointer ``g_ptr``); the detections overlapping one of those above the threshold, the only ones
@@ -190,7 +207,7 @@ class Candidates(NamedTuple):
 
 
 @njit(cache=True, nogil=True)
-def _candidates(
+def find_candidates(
     fr: Frames,
     ov: np.ndarray,
     ignored_gt: np.ndarray,
@@ -316,7 +333,7 @@ def _frame_rows(c: Candidates, f: int) -> tuple[int, int, int, int, int, int]:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _frame_pass1(c: Candidates, f: int, min_overlap: float, tp_scores: np.ndarray, assigned: np.ndarray) -> int:
+def frame_pass1(c: Candidates, f: int, min_overlap: float, tp_scores: np.ndarray, assigned: np.ndarray) -> int:
     """Pass 1 on frame ``f``: each ground-truth box in file order takes the unassigned detection of highest
     score with overlap > ``min_overlap``. Writes the scores of the valid matches (true positives) to
     ``tp_scores`` and returns how many. ``assigned`` (out, int64, one per detection of the frame): the
@@ -342,7 +359,7 @@ def _frame_pass1(c: Candidates, f: int, min_overlap: float, tp_scores: np.ndarra
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _frame_pass2(
+def frame_pass2(
     c: Candidates, f: int, min_overlap: float, thresh: float, compute_aos: bool, taken: np.ndarray, below: np.ndarray
 ) -> tuple[int, int, int, float]:
     """Pass 2 on frame ``f`` at score threshold ``thresh``: detections below it take no part; each
@@ -400,7 +417,7 @@ def _frame_pass2(
 
 
 @njit(cache=True, nogil=True)
-def _widest(ptr: np.ndarray) -> int:
+def widest_step(ptr: np.ndarray) -> int:
     """The largest step of a CSR pointer (at least 1)."""
     out = 1
     for f in range(ptr.shape[0] - 1):
@@ -411,12 +428,12 @@ def _widest(ptr: np.ndarray) -> int:
 @njit(cache=True, nogil=True)
 def _pass1(c: Candidates, min_overlap: float) -> tuple[np.ndarray, np.ndarray]:
     """The scores of pass 1's true positives over every frame, in frame order, and the frame of each."""
-    assigned = np.empty(_widest(c.d_ptr), dtype=np.int64)
+    assigned = np.empty(widest_step(c.d_ptr), dtype=np.int64)
     tp_scores = np.empty(c.d_ptr[c.d_ptr.shape[0] - 1], dtype=np.float64)
     tp_frames = np.empty(tp_scores.shape[0], dtype=np.int64)
     n_tp = 0
     for f in range(c.valid.shape[0]):
-        k = _frame_pass1(c, f, min_overlap, tp_scores[n_tp:], assigned)
+        k = frame_pass1(c, f, min_overlap, tp_scores[n_tp:], assigned)
         tp_frames[n_tp : n_tp + k] = f
         n_tp += k
     return tp_scores[:n_tp], tp_frames[:n_tp]
@@ -430,7 +447,7 @@ def _pass2(c: Candidates, thresholds: np.ndarray, min_overlap: float, compute_ao
     matched once per such step; the change is recorded there and summed over the thresholds at the end.
     """
     n_thr = thresholds.shape[0]
-    widest = _widest(c.d_ptr)
+    widest = widest_step(c.d_ptr)
     taken = np.empty(widest, dtype=np.int64)
     below = np.empty(widest, dtype=np.bool_)
     ranked = np.empty(widest, dtype=np.float64)
@@ -438,7 +455,7 @@ def _pass2(c: Candidates, thresholds: np.ndarray, min_overlap: float, compute_ao
     for f in range(c.valid.shape[0]):
         delta[0, 2] += c.valid[f]  # above every detection's score, every valid box is missed
         d0, m = c.d_ptr[f], c.d_ptr[f + 1] - c.d_ptr[f]
-        _rank_descending(c.d_score[d0 : d0 + m], ranked)
+        rank_descending(c.d_score[d0 : d0 + m], ranked)
         prev_tp, prev_fp, prev_fn, prev_sim = 0.0, 0.0, float(c.valid[f]), 0.0
         a = 0
         while a < m:
@@ -447,7 +464,7 @@ def _pass2(c: Candidates, thresholds: np.ndarray, min_overlap: float, compute_ao
                 break  # this and the remaining detections never reach a threshold
             while a < m and ranked[a] >= thresholds[t]:
                 a += 1
-            tp, fp, fn, sim = _frame_pass2(c, f, min_overlap, thresholds[t], compute_aos, taken, below)
+            tp, fp, fn, sim = frame_pass2(c, f, min_overlap, thresholds[t], compute_aos, taken, below)
             delta[t, 0] += tp - prev_tp
             delta[t, 1] += fp - prev_fp
             delta[t, 2] += fn - prev_fn
@@ -471,7 +488,7 @@ def _events(c: Candidates, min_overlap: float, compute_aos: bool):  # noqa: ANN2
     frame counts (0, 0, valid, 0)). The counts at threshold t of any weighting of the frames are the
     weighted sums of the events with score >= t.
     """
-    widest = _widest(c.d_ptr)
+    widest = widest_step(c.d_ptr)
     taken = np.empty(widest, dtype=np.int64)
     below = np.empty(widest, dtype=np.bool_)
     ranked = np.empty(widest, dtype=np.float64)
@@ -482,14 +499,14 @@ def _events(c: Candidates, min_overlap: float, compute_aos: bool):  # noqa: ANN2
     n_ev = 0
     for f in range(c.valid.shape[0]):
         d0, m = c.d_ptr[f], c.d_ptr[f + 1] - c.d_ptr[f]
-        _rank_descending(c.d_score[d0 : d0 + m], ranked)
+        rank_descending(c.d_score[d0 : d0 + m], ranked)
         prev_tp, prev_fp, prev_fn, prev_sim = 0.0, 0.0, float(c.valid[f]), 0.0
         a = 0
         while a < m:
             level = ranked[a]
             while a < m and ranked[a] >= level:
                 a += 1
-            tp, fp, fn, sim = _frame_pass2(c, f, min_overlap, level, compute_aos, taken, below)
+            tp, fp, fn, sim = frame_pass2(c, f, min_overlap, level, compute_aos, taken, below)
             ev_score[n_ev] = level
             ev_frame[n_ev] = f
             ev_delta[n_ev, 0] = tp - prev_tp
@@ -515,11 +532,11 @@ GT_MATCHED, GT_MISSED, GT_IGNORED, GT_ABSORBED, GT_OTHER_CLASS = range(len(GT_LA
 
 @njit(cache=True, nogil=True)
 def _frame_taken(c: Candidates, min_overlap: float, thresh: float) -> np.ndarray:
-    """Pass 2 on the one frame of ``c``: what each of its detections took (see :func:`_frame_pass2`)."""
+    """Pass 2 on the one frame of ``c``: what each of its detections took (see :func:`frame_pass2`)."""
     n = max(c.d_ptr[1], 1)
     taken = np.empty(n, dtype=np.int64)
     below = np.empty(n, dtype=np.bool_)
-    _frame_pass2(c, 0, min_overlap, thresh, False, taken, below)
+    frame_pass2(c, 0, min_overlap, thresh, False, taken, below)
     return taken[: c.d_ptr[1]]
 
 
@@ -593,14 +610,14 @@ def label_frame(
 def _labels(
     ov: np.ndarray, ig: np.ndarray, idet: np.ndarray, dc: np.ndarray, score: np.ndarray, min_overlap: float, thr: float
 ) -> FrameLabels:
-    """The frame compacted as for an evaluation, pass 2 (:func:`_frame_pass2`, the one the AP counts come
+    """The frame compacted as for an evaluation, pass 2 (:func:`frame_pass2`, the one the AP counts come
     from), and each box's label read off what every detection took."""
     nd, ng = ov.shape
     part, dcs = np.flatnonzero(ig != OTHER_CLASS), np.flatnonzero(dc)
     best_gt = ov[:, part].max(axis=1, initial=0.0)
     best_dc = ov[:, dcs].max(axis=1, initial=0.0)
     frames = Frames(np.array([0, nd * ng]), np.array([0, ng]), np.array([0, nd]), score, np.zeros(ng), np.zeros(nd))
-    c = _candidates(frames, ov.reshape(-1), ig, idet, dc, best_gt, best_dc, min_overlap)
+    c = find_candidates(frames, ov.reshape(-1), ig, idet, dc, best_gt, best_dc, min_overlap)
     taken = _frame_taken(c, min_overlap, thr)
     cand = np.flatnonzero((idet != OTHER_CLASS) & (best_gt > min_overlap))
     det_label = np.full(nd, DET_FP, dtype=np.int8)
@@ -672,63 +689,35 @@ def score_thresholds(scores: npt.ArrayLike, num_gt: int, n_sample_pts: int = 41)
     return _score_thresholds(-np.sort(-s), int(num_gt), int(n_sample_pts))
 
 
-def pr_counts(
-    pair_offsets: npt.NDArray[np.int64],
-    overlaps: npt.NDArray[np.float64],
-    gt_offsets: npt.NDArray[np.int64],
-    dt_offsets: npt.NDArray[np.int64],
-    ignored_gt: npt.NDArray[np.int8],
-    ignored_det: npt.NDArray[np.int8],
-    dontcare: npt.NDArray[np.bool_] | None,
-    score: npt.NDArray[np.float64],
-    gt_alpha: npt.NDArray[np.float64],
-    dt_alpha: npt.NDArray[np.float64],
-    min_overlap: float,
-    compute_aos: bool,
-    n_sample_pts: int = 41,
-) -> PRCounts:
-    """Match every frame and count TP/FP/FN (and orientation similarity) at each score threshold.
+def pr_counts(inputs: MatchingInputs, min_overlap: float, compute_aos: bool, n_sample_pts: int = 41) -> PRCounts:
+    """Match every frame and count TP/FP/FN (and orientation similarity) at each score threshold: one matching.
 
     Parameters
     ----------
-    pair_offsets : (F + 1,) int64, start of each frame's (detection x ground truth) block in ``overlaps``
-    overlaps : (P,) float64; pair (det j, gt i) of frame f at ``pair_offsets[f] + j * n_gt_f + i``
-        (frame-local j, i); for DontCare ground truth it is the fraction of the detection covered
-    gt_offsets : (F + 1,) int64 ; dt_offsets : (F + 1,) int64
-    ignored_gt : (M,) int8 in {0, 1, -1} ; ignored_det : (N,) int8 in {0, 1, -1}
-    dontcare : (M,) bool, ground-truth rows that suppress false positives, or None for no suppression
-    score : (N,) detection scores ; gt_alpha : (M,) ; dt_alpha : (N,)
+    inputs : the frames' arrays (:class:`MatchingInputs`) with one overlap array and one row of ignore codes,
+        ``ignored_gt`` (M,) and ``ignored_det`` (N,) (or (1, M) and (1, N)); ``dontcare`` None for no
+        suppression of false positives
     min_overlap : a match needs overlap strictly above this
     compute_aos : also sum orientation similarity
     """
-    n_gt = int(np.asarray(gt_offsets)[-1])
-    use_dc = dontcare is not None
-    dc = dontcare if dontcare is not None else np.zeros(n_gt, dtype=np.bool_)
-    (counts,) = pr_counts_many(
-        pair_offsets,
-        [overlaps],
-        gt_offsets,
-        dt_offsets,
-        np.asarray(ignored_gt)[None],
-        np.asarray(ignored_det)[None],
-        dc,
-        score,
-        gt_alpha,
-        dt_alpha,
-        [MatchJob(0, 0, float(min_overlap), bool(compute_aos), use_dc)],
-        n_sample_pts,
-    )
+    job = MatchJob(0, 0, float(min_overlap), bool(compute_aos), inputs.dontcare is not None)
+    (counts,) = pr_counts_many(inputs.one_matching(), [job], n_sample_pts)
     return counts
 
 
 class MatchingInputs(NamedTuple):
-    """The arrays every matching over one set of frames shares: the arguments of :func:`pr_counts_many` before
-    ``jobs``, in the layout of :func:`pr_counts`. :func:`checked_inputs` makes them the kernels' arrays (the
-    kernels take them one by one, unpacked).
+    """The arrays every matching over one set of frames shares, what :func:`pr_counts_many`,
+    :func:`frame_events_many`, :func:`first_passes` and :func:`second_passes` take before the jobs.
+    :func:`checked_inputs` makes them the kernels' arrays (the kernels take them one by one, unpacked).
 
-    ``overlaps``: one to three (P,) arrays (bbox, BEV, 3D); ``ignored_gt`` (K, M) and ``ignored_det`` (K, N):
-    one row of ignore codes per (class, difficulty); ``dontcare`` (M,), None for no DontCare rows;
-    ``gt_alpha`` (M,) and ``dt_alpha`` (N,), None where no orientation is used (zeros).
+    ``pair_offsets`` (F + 1,) int64: the start of each frame's (detection x ground truth) block in each
+    overlap array; ``overlaps``: one to three (P,) float64 arrays (bbox, BEV, 3D), pair (det j, gt i) of
+    frame f at ``pair_offsets[f] + j * n_gt_f + i`` (frame-local j, i), for DontCare ground truth the
+    fraction of the detection covered; ``gt_offsets`` and ``dt_offsets`` (F + 1,) int64; ``ignored_gt``
+    (K, M) and ``ignored_det`` (K, N) int8 in {0, 1, -1}: one row of ignore codes per (class, difficulty)
+    (see the module docstring); ``dontcare`` (M,) bool, the ground-truth rows that suppress false positives,
+    None for none; ``score`` (N,) the detections' scores; ``gt_alpha`` (M,) and ``dt_alpha`` (N,), None
+    where no orientation is used (zeros).
     """
 
     # array-likes as given; numpy arrays once checked (Any: a NamedTuple cannot be generic on Python 3.10)
@@ -742,6 +731,16 @@ class MatchingInputs(NamedTuple):
     score: Any
     gt_alpha: Any = None
     dt_alpha: Any = None
+
+    def one_matching(self) -> MatchingInputs:
+        """These inputs as one matching's: one overlap array and one row of ignore codes, ``ignored_gt`` (M,)
+        and ``ignored_det`` (N,) rows made (1, M) and (1, N) (ValueError for more than one overlap array)."""
+        if len(self.overlaps) != 1:
+            raise ValueError(f"Expected one `overlaps` array for one matching, got {len(self.overlaps)}")
+        ig, idet = np.asarray(self.ignored_gt), np.asarray(self.ignored_det)
+        return self._replace(
+            ignored_gt=ig[None] if ig.ndim == 1 else ig, ignored_det=idet[None] if idet.ndim == 1 else idet
+        )
 
 
 def checked_layout(
@@ -844,7 +843,7 @@ class _Prepared:
             dc, dc_best = self.dc, self.best[job.overlap, -1]
         else:
             dc, dc_best = np.zeros_like(self.dc), np.zeros(self.best.shape[2])
-        return _candidates(
+        return find_candidates(
             self.frames,
             self.ov3[job.overlap],
             self.ig[job.codes],
@@ -871,7 +870,7 @@ class _Prepared:
         return out
 
 
-#: ``arg`` of :func:`_best_overlaps` when only the overlaps are wanted
+#: ``arg`` of :func:`best_overlaps` when only the overlaps are wanted
 _NO_ARG = np.zeros((0, 0), dtype=np.int64)
 
 
@@ -905,42 +904,24 @@ def _prepare(inputs: MatchingInputs, jobs: Sequence[MatchJob], workers: int | No
     prep = _Prepared(frames, ov3, ig, idet, dc, best, job_group, hands)
 
     def fill_best(m: int) -> None:
-        _best_overlaps(pair_offsets, ov3[m], gt_offsets, dt_offsets, groups, best[m], _NO_ARG)
+        best_overlaps(pair_offsets, ov3[m], gt_offsets, dt_offsets, groups, best[m], _NO_ARG)
 
     prep.pool_map(fill_best, metrics_used)  # the kernels release the GIL: plain threads run them in parallel
     return prep
 
 
 def pr_counts_many(
-    pair_offsets: npt.NDArray[np.int64],
-    overlaps: Sequence[npt.NDArray[np.float64]],
-    gt_offsets: npt.NDArray[np.int64],
-    dt_offsets: npt.NDArray[np.int64],
-    ignored_gt: npt.NDArray[np.int8],
-    ignored_det: npt.NDArray[np.int8],
-    dontcare: npt.NDArray[np.bool_],
-    score: npt.NDArray[np.float64],
-    gt_alpha: npt.NDArray[np.float64],
-    dt_alpha: npt.NDArray[np.float64],
-    jobs: Sequence[MatchJob],
-    n_sample_pts: int = 41,
-    *,
-    workers: int | None = None,
+    inputs: MatchingInputs, jobs: Sequence[MatchJob], n_sample_pts: int = 41, *, workers: int | None = None
 ) -> list[PRCounts]:
     """Run many independent matchings over the same frames, in parallel across jobs.
 
     Parameters
     ----------
-    overlaps : one to three (P,) arrays in the layout of :func:`pr_counts`, e.g. bbox, bev, 3d
-    ignored_gt : (K, M) int8, one row of ignore codes per (class, difficulty)
-    ignored_det : (K, N) int8, the matching rows for detections
-    dontcare : (M,) bool, DontCare ground-truth rows (used by jobs with ``dontcare`` set)
+    inputs : the frames' arrays (:class:`MatchingInputs`): one to three overlap arrays, one row of ignore
+        codes per (class, difficulty), the DontCare rows (used by jobs with ``dontcare`` set)
     jobs : what to match; see :class:`MatchJob`
     workers : threads to spread the jobs over (default :func:`default_workers`)
     """
-    inputs = MatchingInputs(
-        pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score, gt_alpha, dt_alpha
-    )
     p = _prepare(inputs, jobs, workers)
 
     def count(k: int) -> PRCounts:
@@ -954,7 +935,7 @@ def pr_counts_many(
 def first_passes(
     inputs: MatchingInputs, jobs: Sequence[MatchJob], *, workers: int | None = None
 ) -> list[tuple[np.ndarray, int]]:
-    """Phase 1 of :func:`pr_counts_many` alone (``inputs``: its arguments before ``jobs``): per job, the
+    """Phase 1 of :func:`pr_counts_many` alone: per job, the
     scores of pass 1's true positives and the number of valid ground-truth boxes. Over parts of a set,
     these are what the whole set's score thresholds come from (:func:`score_thresholds` of the concatenated
     scores and the summed counts)."""
@@ -1021,24 +1002,9 @@ class FrameEvents:
 
 
 def frame_events_many(
-    pair_offsets: npt.NDArray[np.int64],
-    overlaps: Sequence[npt.NDArray[np.float64]],
-    gt_offsets: npt.NDArray[np.int64],
-    dt_offsets: npt.NDArray[np.int64],
-    ignored_gt: npt.NDArray[np.int8],
-    ignored_det: npt.NDArray[np.int8],
-    dontcare: npt.NDArray[np.bool_],
-    score: npt.NDArray[np.float64],
-    gt_alpha: npt.NDArray[np.float64],
-    dt_alpha: npt.NDArray[np.float64],
-    jobs: Sequence[MatchJob],
-    *,
-    workers: int | None = None,
+    inputs: MatchingInputs, jobs: Sequence[MatchJob], *, workers: int | None = None
 ) -> list[FrameEvents]:
     """Per-frame step functions for the same jobs as :func:`pr_counts_many` (arguments alike)."""
-    inputs = MatchingInputs(
-        pair_offsets, overlaps, gt_offsets, dt_offsets, ignored_gt, ignored_det, dontcare, score, gt_alpha, dt_alpha
-    )
     p = _prepare(inputs, jobs, workers)
 
     def run(k: int) -> FrameEvents:

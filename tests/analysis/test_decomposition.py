@@ -33,6 +33,7 @@ from kitti_eval.analysis.decomposition import (
 )
 from kitti_eval.core.evaluation import evaluate
 from kitti_eval.core.frames import Annotations
+from kitti_eval.core.matching import MatchingInputs
 from kitti_eval.core.protocol import EvalConfig
 from kitti_eval.demo import demo_paths
 from kitti_eval.synth import generate
@@ -308,7 +309,7 @@ def maxima_twin(frames):
 
 def pass1_library(frames, t):
     po, ov, go, do, ig, idet, dc, score, *_ = flatten(frames)
-    return pass1_taken(po, ov, go, do, ig, idet, dc, score, t).tolist()
+    return pass1_taken(MatchingInputs(po, [ov], go, do, ig, idet, dc, score), t).tolist()
 
 
 def pass1_twin(frames, t):
@@ -325,7 +326,8 @@ def _boxes(rng, n):
 
 def tp_library(frames, t, thresholds, dt_boxes, gt_boxes):
     po, ov, go, do, ig, idet, dc, score, *_ = flatten(frames)
-    return tp_error_sums(po, ov, go, do, ig, idet, dc, score, dt_boxes, gt_boxes, t, thresholds).tolist()
+    inputs = MatchingInputs(po, [ov], go, do, ig, idet, dc, score)
+    return tp_error_sums(inputs, dt_boxes, gt_boxes, t, thresholds).tolist()
 
 
 def tp_twin(frames, t, thresholds, dt_boxes, gt_boxes):

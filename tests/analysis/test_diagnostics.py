@@ -12,7 +12,7 @@ from builders import annotations, box, hits, one_car_per_frame
 from kitti_eval.analysis.diagnostics import frame_stats, render_frames
 from kitti_eval.cli import main
 from kitti_eval.core.evaluation import plan_evaluation
-from kitti_eval.core.matching import pr_counts_many
+from kitti_eval.core.matching import MatchingInputs, pr_counts_many
 from kitti_eval.core.protocol import Difficulty, EvalConfig, Metric
 from kitti_eval.io.loaders import load_detections, load_ground_truth
 
@@ -33,7 +33,7 @@ def test_frame_counts_add_up_to_the_ap_counts_at_each_threshold(cls, metric, dif
         if c == cls and d is Difficulty[difficulty.upper()] and m is Metric(metric) and s == "strict"
     ]
     fo = plan.overlaps
-    (counts,) = pr_counts_many(
+    inputs = MatchingInputs(
         fo.pair_offsets,
         (fo.bbox, fo.bev, fo.d3),
         plan.gt.offsets,
@@ -44,8 +44,8 @@ def test_frame_counts_add_up_to_the_ap_counts_at_each_threshold(cls, metric, dif
         plan.dt.score,
         plan.gt.alpha,
         plan.dt.alpha,
-        [plan.jobs[job]],
     )
+    (counts,) = pr_counts_many(inputs, [plan.jobs[job]])
     assert len(counts.thresholds) >= 3
     for k, t in enumerate(counts.thresholds):
         s = frame_stats(gt, dt, config, cls=cls, metric=metric, difficulty=difficulty, score_threshold=t)

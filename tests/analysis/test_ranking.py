@@ -94,6 +94,7 @@ def _binomial_band(n: int, p: float, outside: float) -> tuple[int, int]:
     return lo, hi
 
 
+@pytest.mark.slow  # 300 replicates of two draws, each ranked under 500 resamples: a minute
 def test_the_interval_of_two_draws_of_one_detector_covers_zero_about_95_percent_of_the_time() -> None:
     """300 replicates, each a new 200-frame set with two detection sets drawn from the same detector (the
     synthetic generator's, other detector seeds): the true difference of their expected AP is 0, and a

@@ -153,6 +153,7 @@ def test_one_file_of_each_is_the_plain_evaluation(tmp_path: Path) -> None:
     assert_same(evaluate_sharded([gt], [pred], config), evaluate(load_ground_truth(gt), load_detections(pred), config))
 
 
+@pytest.mark.slow  # a local Dask cluster's processes
 def test_the_cli_evaluates_shards_in_this_process_and_on_a_local_dask_cluster(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from naive_matching import pr_counts_naive, thresholds_naive
 
-from kitti_eval.core.matching import pr_counts, score_thresholds
+from kitti_eval.core.matching import MatchingInputs, pr_counts, score_thresholds
 
 
 def random_frames(rng, n_frames, max_gt=6, max_dt=12):
@@ -57,13 +57,18 @@ def flatten(frames):
     )
 
 
+def matching_inputs(frames):
+    """The frames' arrays as one matching's inputs (one overlap array, one row of ignore codes)."""
+    po, ov, go, do, *rest = flatten(frames)
+    return MatchingInputs(po, [ov], go, do, *rest)
+
+
 @pytest.mark.parametrize("seed", range(12))
 @pytest.mark.parametrize("compute_aos", [False, True])
 def test_kernel_equals_literal_twin(seed, compute_aos):
     rng = np.random.default_rng(seed)
     frames = random_frames(rng, int(rng.integers(1, 60)))
-    args = flatten(frames)
-    got = pr_counts(*args, 0.7 if seed % 2 else 0.5, compute_aos)
+    got = pr_counts(matching_inputs(frames), 0.7 if seed % 2 else 0.5, compute_aos)
     thresholds, pr, n_gt = pr_counts_naive(frames, 0.7 if seed % 2 else 0.5, compute_aos)
     assert got.num_valid_gt == n_gt
     np.testing.assert_array_equal(got.thresholds, thresholds)
@@ -77,12 +82,11 @@ def test_kernel_equals_literal_twin(seed, compute_aos):
 def test_no_suppression_without_dontcare_rows():
     rng = np.random.default_rng(3)
     frames = random_frames(rng, 30)
-    args = list(flatten(frames))
-    with_dc = pr_counts(*args, 0.5, False)
-    args[6] = None
+    inputs = matching_inputs(frames)
+    with_dc = pr_counts(inputs, 0.5, False)
     for f in frames:
         f["dc"] = np.zeros_like(f["dc"])
-    without = pr_counts(*args, 0.5, False)
+    without = pr_counts(inputs._replace(dontcare=None), 0.5, False)
     expected = np.array(pr_counts_naive(frames, 0.5, False)[1]).reshape(-1, 4)
     np.testing.assert_array_equal(without.fp, expected[:, 1])
     assert (without.fp >= with_dc.fp).all()
@@ -108,17 +112,9 @@ def test_recall_steps_for_many_hits_give_41_thresholds():
 
 def test_empty_inputs():
     z = np.zeros(0)
+    e8 = np.zeros(0, np.int8)
     got = pr_counts(
-        np.zeros(2, np.int64),
-        z,
-        np.zeros(2, np.int64),
-        np.zeros(2, np.int64),
-        np.zeros(0, np.int8),
-        np.zeros(0, np.int8),
-        None,
-        z,
-        z,
-        z,
+        MatchingInputs(np.zeros(2, np.int64), [z], np.zeros(2, np.int64), np.zeros(2, np.int64), e8, e8, None, z, z, z),
         0.7,
         True,
     )
@@ -127,18 +123,21 @@ def test_empty_inputs():
 
 def test_shape_mismatch_is_rejected():
     z = np.zeros(0)
+    e8 = np.zeros(0, np.int8)
     with pytest.raises(ValueError, match="same shape"):
         pr_counts(
-            np.zeros(3, np.int64),
-            z,
-            np.zeros(2, np.int64),
-            np.zeros(2, np.int64),
-            np.zeros(0, np.int8),
-            np.zeros(0, np.int8),
-            None,
-            z,
-            z,
-            z,
+            MatchingInputs(
+                np.zeros(3, np.int64), [z], np.zeros(2, np.int64), np.zeros(2, np.int64), e8, e8, None, z, z, z
+            ),
             0.7,
             False,
         )
+
+
+def test_one_matching_takes_one_overlap_array():
+    """pr_counts is one matching: a second overlap array would be one it cannot choose between."""
+    inputs = matching_inputs(random_frames(np.random.default_rng(5), 4))
+    with pytest.raises(ValueError, match="one `overlaps` array"):
+        pr_counts(inputs._replace(overlaps=[inputs.overlaps[0]] * 2), 0.5, False)
+    rows = inputs._replace(ignored_gt=inputs.ignored_gt[None], ignored_det=inputs.ignored_det[None])
+    np.testing.assert_array_equal(pr_counts(rows, 0.5, True).tp, pr_counts(inputs, 0.5, True).tp)

@@ -173,12 +173,18 @@ def test_the_finder_sees_every_block() -> None:
 
 
 def test_the_quick_start_is_what_ci_runs() -> None:
-    """The README's two commands are run by .ci/run, not by a test: the same commands, on the same extra."""
+    """The README's two commands are run by .ci/run, not by a test: the same commands, on the same extra. Its
+    test command is the quick one (-m "not slow"); .ci/run runs the slow tests after it, so between the two
+    commands it runs every test, once."""
     (quick,) = [e for e in examples("README.md") if e.lang == "bash"][:1]
     assert quick.not_run is not None and ".ci/run" in quick.not_run
     commands = [line.split("#")[0].strip() for line in quick.code.splitlines()]
-    assert commands == ['pip install -e ".[test]" && kitti-eval demo', "python -m pytest -q"]
+    assert commands == ['pip install -e ".[test]" && kitti-eval demo', 'python -m pytest -q -m "not slow"']
     ci = (ROOT / ".ci" / "run").read_text()
     assert 'pip install --quiet -e ".[test]"' in ci
-    assert "\npython -m pytest -q\n" in ci and "\nkitti-eval demo > /dev/null\n" in ci
+    assert '\npython -m pytest -q -m "not slow"\n' in ci and "\nkitti-eval demo > /dev/null\n" in ci
+    assert "\npython -m pytest -q -m slow\n" in ci  # the rest: together every test
+    runs = [line for line in ci.splitlines() if "pytest" in line and not line.lstrip().startswith("#")]
+    assert runs == ['python -m pytest -q -m "not slow"', "python -m pytest -q -m slow"]
+    assert "python -m pytest -q -m slow" in text("README.md")  # the README names the second command too
     assert [e.code for e in examples("docs/index.md")][:1] == [quick.code]  # the site's home says the same

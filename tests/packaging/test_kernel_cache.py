@@ -46,7 +46,7 @@ with compilations() as compiled:
 print(json.dumps({"package": kitti_eval.__file__, "document": document, "compiled": compiled}))
 """
 
-# one comparison of pass 1 of the matching (`_frame_pass1`, inlined into matching's `_pass1` and into the
+# one comparison of pass 1 of the matching (`frame_pass1`, inlined into matching's `_pass1` and into the
 # decomposition's `_pass1_taken`)
 _RULE = "c.sub[o0 + a * width + i] > min_overlap and c.d_score[d0 + a] > best"
 _EDITED = "c.sub[o0 + a * width + i] > min_overlap + 0.2 and c.d_score[d0 + a] > best"
@@ -177,7 +177,7 @@ def test_the_package_kernels_are_located_by_the_kernel_locator_and_others_are_no
 
     from kitti_eval.core import matching
 
-    ours = FunctionCache(matching._frame_pass1.py_func)
+    ours = FunctionCache(matching.frame_pass1.py_func)
     assert isinstance(ours._impl.locator, kernel_cache.KernelLocator)
     assert ours._impl.locator.get_source_stamp() == kernel_cache.kernel_stamp(matching.__file__)
 
