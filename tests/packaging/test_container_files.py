@@ -13,11 +13,15 @@ from types import ModuleType
 from typing import Any
 
 import pytest
+from doc_examples import take
 
 from kitti_eval.cli import main as cli_main
 from kitti_eval.demo import demo_paths
 
 ROOT = Path(__file__).resolve().parents[2]
+
+#: the docs' Kubernetes manifests (taken when the module is collected: the docs-examples test sees them run)
+(KUBERNETES,) = take("docs/service/container.md", "## Kubernetes", lang="yaml")
 
 
 def _smoke() -> ModuleType:
@@ -110,10 +114,7 @@ def test_the_kubernetes_example_is_what_the_smoke_script_runs() -> None:
     ``docker run``: the same uid and group, a read-only root with a writable /tmp, no capability, no privilege
     escalation; and every container runs the image as it is checked (its command, or the worker's)."""
     yaml = pytest.importorskip("yaml")
-    from doc_examples import take
-
-    (manifests,) = take("docs/service/container.md", "## Kubernetes", lang="yaml")
-    documents = list(yaml.safe_load_all(manifests.code))
+    documents = list(yaml.safe_load_all(KUBERNETES.code))
     deployments = [d for d in documents if d["kind"] == "Deployment"]
     assert {d["metadata"]["name"] for d in deployments} == {"kitti-eval-web", "kitti-eval-worker"}
     read_only = smoke.READ_ONLY

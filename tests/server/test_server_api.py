@@ -493,6 +493,9 @@ def test_serve_from_a_repository_leaves_nothing_in_it(tmp_path, monkeypatch, no_
     monkeypatch.setattr(platformdirs, "user_data_dir", lambda name, **kw: str(tmp_path / "user" / name))
     monkeypatch.setenv("KITTI_EVAL_WARMUP", "false")
     monkeypatch.setenv("KITTI_EVAL_REGISTER_DEMO", "false")
+    # jobs on a thread of this process: where the files go does not depend on worker processes, and the service is
+    # ready at once (with worker processes it is ready once one of them takes jobs)
+    monkeypatch.setenv("KITTI_EVAL_WORKER_PROCESSES", "0")
     assert serve([]) == 0
     with TestClient(served[-1]) as c:
         assert c.get("/readyz").status_code == 200
