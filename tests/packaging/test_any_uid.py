@@ -89,6 +89,10 @@ def read_only_install() -> Iterator[tuple[str, dict[str, str], Path]]:
         python = _interpreter(env, folder)
         if python is None:
             pytest.skip(f"no Python {sys.version_info[0]}.{sys.version_info[1]} that uid {UID} can run")
+        deps = _as_nobody([python, "-c", "import numba, numpy, fastapi"], env, folder, stderr=subprocess.PIPE)
+        _, why = deps.communicate(timeout=120)
+        if deps.returncode != 0:  # this installation's site-packages lie in a folder that uid 65534 cannot read
+            pytest.skip(f"uid {UID} cannot import this installation's dependencies: {why.strip()[-300:]}")
         yield python, env, folder
     finally:
         shutil.rmtree(folder, ignore_errors=True)
