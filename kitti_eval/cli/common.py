@@ -238,11 +238,14 @@ def start_warm_up(*, decomposition: bool = False) -> object | None:
 
     route_warnings(lambda message: say(f"warning: {message}"))
     eval_cold, load_cold = not kernels_cached(), not loader_cached()
+    decomposition_cold = decomposition and not decomposition_cached()
+    if not (eval_cold or load_cold or decomposition_cold):
+        return None  # a warm run: no look for a writable cache folder
     if writable_cache() is None:  # nowhere to keep them: compiled here, in memory (the warning says so)
         return None
     if eval_cold or load_cold:
         say("compiling the kernels once (about 7 s on two cores; later runs use numba's cache)")
-    if decomposition and not decomposition_cached():
+    if decomposition_cold:
         say("compiling the error decomposition's kernels once (about 8.5 s on two cores; later runs use numba's cache)")
     return warm_in_background() if eval_cold else None
 
