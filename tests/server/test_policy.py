@@ -13,6 +13,7 @@ import importlib
 import inspect
 import pkgutil
 import re
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -109,18 +110,25 @@ def test_no_method_of_the_service_defaults_its_caller() -> None:
     assert checked >= 15 and defaulted == []
 
 
+def _outside_the_policy() -> Iterator[tuple[Path, ast.AST]]:
+    """Every module of the service and the library but server/policy.py and server/accounts.py: its path and
+    each node of its syntax tree."""
+    allowed = {ROOT / "server" / "policy.py", ROOT / "server" / "accounts.py"}
+    for folder in (ROOT / "server", ROOT / "kitti_eval"):
+        for path in folder.rglob("*.py"):
+            if path not in allowed:
+                for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                    yield path, node
+
+
 def test_callers_are_made_by_the_policy_alone() -> None:
     """No module of the service or the command line builds a Caller itself (the policy's constructors, and the
     accounts resolving a token, are the only places)."""
-    allowed = {ROOT / "server" / "policy.py", ROOT / "server" / "accounts.py"}
-    found = []
-    for folder in (ROOT / "server", ROOT / "kitti_eval"):
-        for path in folder.rglob("*.py"):
-            if path in allowed:
-                continue
-            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-                if isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", "")) == "Caller":
-                    found.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    found = [
+        f"{path.relative_to(ROOT)}:{node.lineno}"
+        for path, node in _outside_the_policy()
+        if isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", "")) == "Caller"
+    ]
     assert found == []
 
 
@@ -132,21 +140,16 @@ _RIGHTS = frozenset({"is_admin", "projects", "scopes", "signed_in", "session", "
 def test_nothing_but_the_policy_reads_a_callers_rights_or_the_mode() -> None:
     """Outside server/policy.py and server/accounts.py no code reads a Caller's rights (is_admin, projects,
     scopes, signed_in, session, token_id, can_write) or the policy's mode: it asks the policy a question."""
-    allowed = {ROOT / "server" / "policy.py", ROOT / "server" / "accounts.py"}
     found = []
-    for folder in (ROOT / "server", ROOT / "kitti_eval"):
-        for path in folder.rglob("*.py"):
-            if path in allowed:
-                continue
-            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-                if not isinstance(node, ast.Attribute):
-                    continue
-                owner = node.value
-                named = owner.id if isinstance(owner, ast.Name) else getattr(owner, "attr", "")
-                if (node.attr in _RIGHTS and named in ("caller", "signed", "admitted")) or (
-                    node.attr in ("accounts", "mode") and named == "policy"
-                ):
-                    found.append(f"{path.relative_to(ROOT)}:{node.lineno} {named}.{node.attr}")
+    for path, node in _outside_the_policy():
+        if not isinstance(node, ast.Attribute):
+            continue
+        owner = node.value
+        named = owner.id if isinstance(owner, ast.Name) else getattr(owner, "attr", "")
+        if (node.attr in _RIGHTS and named in ("caller", "signed", "admitted")) or (
+            node.attr in ("accounts", "mode") and named == "policy"
+        ):
+            found.append(f"{path.relative_to(ROOT)}:{node.lineno} {named}.{node.attr}")
     assert found == []
 
 

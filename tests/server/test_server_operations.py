@@ -329,10 +329,7 @@ def test_no_worker_no_readiness(service_client: Any) -> None:
 
     with service_client(job_threads=0, ready=False) as client:
         service = client.app.state.service
-        deadline = time.monotonic() + 120
-        while not service.warm.is_set():
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
+        assert service.warm.wait(timeout=120)
         r = client.get("/readyz")
         assert r.status_code == 503 and "no worker runs evaluations" in r.json()["error"]["message"], r.text
         assert upload(client, golden_bytes("result.pkl"), params={"wait": "0"}).status_code == 202
@@ -362,7 +359,6 @@ def test_own_worker_processes_count_for_the_readiness_once_they_take_jobs(servic
     (it records itself once its kernels are warm and it takes jobs) does not make the service ready; its row
     does, and so does another machine's worker while no process of the pool is running."""
     import socket
-    import time
     from datetime import datetime, timezone
 
     class Pool:  # what the readiness reads of a WorkerPool: its processes' ids, how many are running
@@ -371,10 +367,7 @@ def test_own_worker_processes_count_for_the_readiness_once_they_take_jobs(servic
 
     with service_client(job_threads=0, ready=False) as client:
         service = client.app.state.service
-        deadline = time.monotonic() + 120
-        while not service.warm.is_set():
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
+        assert service.warm.wait(timeout=120)
         service.pool = Pool()
         try:
             now = datetime.now(timezone.utc)
