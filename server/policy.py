@@ -468,13 +468,14 @@ class Policy:
         """A submission is its participant's: only they read its scores, publish or withdraw it."""
         return caller.signed_in and caller.token_id is not None and caller.name == participant
 
-    def sees_job(self, caller: Caller, owner: str, *, project: str | None = None) -> bool:
+    def sees_job(self, caller: Caller, owner: str, *, project: str | None = None, open_to_all: bool = False) -> bool:
         """A job is its owner's (who uploaded or submitted) while they still see what it is for (``project``: an
-        evaluation's project, a benchmark's test set's; a member removed from it no longer does), and every
-        admin's."""
+        evaluation's project, a benchmark's test set's; a member removed from it no longer does, but anyone still
+        takes part in a benchmark ``open_to_all``), and every admin's."""
         if caller.is_admin:
             return True
-        return caller.signed_in and caller.name == owner and (project is None or self.sees_project(caller, project))
+        sees = project is None or open_to_all or self.sees_project(caller, project)
+        return caller.signed_in and caller.name == owner and sees
 
     def require_admin(self, caller: Caller) -> None:
         """For what a route already declared ADMIN and a domain method checks again (the command line's

@@ -79,10 +79,15 @@ class BenchmarkCatalog:
             raise NotFound(f"no benchmark named {echo(name)}")
         return bench
 
-    def project_of(self, name: str) -> str | None:
-        """The project of the benchmark's test set (None: shared, or no such benchmark)."""
+    def taking_part(self, name: str) -> tuple[str | None, bool]:
+        """Who takes part in the benchmark, for :meth:`Policy.may_take_part
+        <kitti_eval_server.policy.Policy.may_take_part>`: its test set's project (None: shared, or no such
+        benchmark) and whether it is open to all."""
         record = self.store.get_benchmark(name)
-        return record.project if record is not None else None
+        if record is None:
+            return None, False
+        bench = Benchmark.from_record(record)
+        return bench.project, bench.open_to_all
 
     def describe(self, bench: Benchmark, caller: Caller, *, rescoring: bool = False) -> dict[str, Any]:
         """The benchmark as the caller reads it (:func:`.views.benchmark_view`): its test set's name only for

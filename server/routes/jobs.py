@@ -12,6 +12,7 @@ from fastapi.responses import JSONResponse
 from ..deps import ReaderCaller, ServiceDep
 from ..errors import NotFound, echo
 from ..jobs import JobQueue, JobRecord
+from ..policy import Caller
 from ..schemas import ErrorResponse
 from ..service import Service
 from ..workers import job_view
@@ -31,21 +32,20 @@ async def still_pending(queue: JobQueue, record: JobRecord) -> JSONResponse:
     return JSONResponse(job_view(record, position), status_code=202, headers=headers)
 
 
-def _project_of(service: Service, record: JobRecord | None) -> str | None:
-    """The project a job is for: an evaluation's, or the test set's of the benchmark a submission is to."""
-    if record is None:
-        return None
+def _sees(service: Service, caller: Caller, record: JobRecord) -> bool:
+    """Whether the caller sees the job: an evaluation's while they see its project, a submission's while they
+    still take part in its benchmark (:meth:`Policy.sees_job <kitti_eval_server.policy.Policy.sees_job>`)."""
     if record.kind == "evaluation":
         project = record.payload.get("project")
-        return str(project) if project else None
-    return service.benchmarks.project_of(record.group) if record.group else None
+        return service.policy.sees_job(caller, record.owner, project=str(project) if project else None)
+    project, open_to_all = service.benchmarks.taking_part(record.group) if record.group else (None, False)
+    return service.policy.sees_job(caller, record.owner, project=project, open_to_all=open_to_all)
 
 
 @router.get("/{job_id}", summary="An accepted evaluation's job: its state, and its evaluation once done")
 async def get_job(job_id: str, service: ServiceDep, caller: ReaderCaller) -> dict[str, Any]:
     record = await anyio.to_thread.run_sync(service.jobs.get, job_id)
-    project = await anyio.to_thread.run_sync(_project_of, service, record)
-    if record is None or not service.policy.sees_job(caller, record.owner, project=project):
+    if record is None or not await anyio.to_thread.run_sync(_sees, service, caller, record):
         raise NotFound(f"no job with id {echo(job_id)}")
     position = await anyio.to_thread.run_sync(service.jobs.position, job_id)
     return job_view(record, position)

@@ -248,7 +248,10 @@ def test_a_public_benchmark_takes_part_from_its_projects_members_unless_it_is_op
         "share_test_set": True,
     }
     ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)
-    assert submit(c, teams.headers("carol"), data, name="bench-open").status_code in (201, 202)
+    r = submit(c, teams.headers("carol"), data, name="bench-open")
+    assert r.status_code in (201, 202)
+    # and follows its job where the answer points, although she is no member of the test set's project
+    assert ok(c.get(f"/v1/jobs/{r.json()['id']}", headers=teams.headers("carol")))["id"] == r.json()["id"]
 
 
 # -- smaller: the built-in callers' names, a removed member's jobs ---------------------------------------------
