@@ -273,16 +273,26 @@ class BodyMiddleware:
             return
         if self._turns is None:
             self._turns = anyio.Semaphore(self.max_receiving)
-        waited = self._turns.value == 0
+        body = _Body(self.spool_dir, self.memory)
+        try:  # the body's memory and file are given back whichever way the request ends
+            await self._receive_and_run(self._turns, body, scope, receive, send)
+        finally:
+            body.close()
+
+    async def _receive_and_run(
+        self, turns: anyio.Semaphore, body: _Body, scope: Scope, receive: Receive, send: Send
+    ) -> None:
+        """Wait for a turn to receive (bounded by ``wait_s``), ask a waiting request's refusals again, receive the
+        body, give the turn back, then run the app on it."""
+        waited = turns.value == 0
         if waited:
             self.state.body_waiting += 1
             try:
-                with anyio.move_on_after(self.wait_s):
-                    await self._turns.acquire()
-                    waited = False
+                with anyio.move_on_after(self.wait_s) as waiting:
+                    await turns.acquire()
             finally:
                 self.state.body_waiting -= 1
-            if waited:  # still no turn after wait_s
+            if waiting.cancelled_caught:  # still no turn after wait_s
                 retry = self.retry_after_s()
                 message = (
                     f"too many request bodies are being received ({self.receiving}) for {self.wait_s:g} s "
@@ -291,47 +301,46 @@ class BodyMiddleware:
                 headers = {"retry-after": str(retry), "connection": "close"}
                 await _send_json(send, 503, error_body("busy", message), headers)
                 return
-            refused = await self.before_body.refusal(scope) if self.before_body is not None else None
-            if refused is not None:  # e.g. the quota was used meanwhile: answered before the body, as outside
-                self._turns.release()
-                await self.before_body.answer(refused, scope, receive, send)  # type: ignore[union-attr]
-                return
         else:
-            await self._turns.acquire()
-        body = _Body(self.spool_dir, self.memory)
-        try:
-            self.receiving += 1
-            try:
-                outcome = await _read_body(receive, body.add, self.limit, self.timeout_s)
-                if outcome == "complete":
-                    await body.finish()
-            except OSError as e:  # the spool's disk is full: 507, and the partial file goes with body.close()
-                fault = fault_of(e, self.retry_after_s())
-                if fault is None:
-                    raise
-                body.close()
-                await _send_json(
-                    send,
-                    fault.status_code,
-                    error_body(fault.code, fault.message),
-                    {**fault.headers, "connection": "close"},
-                )
-                return
-            finally:
-                self.receiving -= 1
-                self._turns.release()
-            if outcome == "complete":
-                await self.app(scope, body.replay(receive), send)
-            elif outcome == "too_large":
-                body.close()
-                await self.app(scope, self._too_large, send)
-            elif outcome == "late":
-                body.close()
-                message = f"the request body did not arrive within {self.timeout_s:g} s (KITTI_EVAL_BODY_TIMEOUT_S)"
-                await _send_json(send, 408, error_body("request_timeout", message), {"connection": "close"})
-            # "gone": the client disconnected; there is no one to answer
+            await turns.acquire()
+        try:  # the turn is given back once, whatever happens before the body is read or while it is
+            # after a wait, the refusals known before a body are asked again (e.g. the quota was used meanwhile)
+            refused = await self.before_body.refusal(scope) if waited and self.before_body is not None else None
+            if refused is None:
+                self.receiving += 1
+                try:
+                    outcome = await _read_body(receive, body.add, self.limit, self.timeout_s)
+                    if outcome == "complete":
+                        await body.finish()
+                except OSError as e:  # the spool's disk is full: 507, and the partial file goes with body.close()
+                    fault = fault_of(e, self.retry_after_s())
+                    if fault is None:
+                        raise
+                    body.close()
+                    await _send_json(
+                        send,
+                        fault.status_code,
+                        error_body(fault.code, fault.message),
+                        {**fault.headers, "connection": "close"},
+                    )
+                    return
+                finally:
+                    self.receiving -= 1
         finally:
+            turns.release()
+        if refused is not None:  # answered before the body, as outside
+            await self.before_body.answer(refused, scope, receive, send)  # type: ignore[union-attr]
+            return
+        if outcome == "complete":
+            await self.app(scope, body.replay(receive), send)
+        elif outcome == "too_large":
             body.close()
+            await self.app(scope, self._too_large, send)
+        elif outcome == "late":
+            body.close()
+            message = f"the request body did not arrive within {self.timeout_s:g} s (KITTI_EVAL_BODY_TIMEOUT_S)"
+            await _send_json(send, 408, error_body("request_timeout", message), {"connection": "close"})
+        # "gone": the client disconnected; there is no one to answer
 
     async def _too_large(self) -> Message:
         raise BodyTooLarge(self.limit)

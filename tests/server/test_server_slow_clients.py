@@ -480,3 +480,49 @@ def test_a_waiting_request_is_asked_the_refusals_before_its_body_again_when_its_
     statuses = [m["status"] for m in sent if m["type"] == "http.response.start"]
     assert statuses == [200, 429]
     assert len(read) == 2  # the first's two reads; nothing of the second
+
+
+def test_a_turn_is_given_back_when_the_check_of_a_waiting_request_fails() -> None:
+    """The check asked when a waiting request's turn comes reads the database: if it fails, the request fails, and
+    its turn goes to the next one (kept, every later request would wait for a turn that never comes back)."""
+    from kitti_eval_server.middleware import BeforeBody
+
+    def check(caller, params, size, key):
+        raise RuntimeError("the database is away")
+
+    before_body = BeforeBody([("POST", "/b/{name}", check)], caller_key="caller", limit=MB, timeout_s=5)
+    middleware = BodyMiddleware(
+        Recorder(), limit=MB, timeout_s=30, max_receiving=1, retry_after_s=lambda: 3, before_body=before_body
+    )
+    failed: list[BaseException] = []
+
+    async def send(message: dict) -> None:
+        pass
+
+    async def main() -> None:
+        scope = {"type": "http", "method": "POST", "path": "/b/bench", "headers": [(b"content-length", b"5")]}
+        scope["caller"] = object()
+        first_in, first = anyio.create_memory_object_stream[dict](10)
+        second_in, second = anyio.create_memory_object_stream[dict](10)
+        await first_in.send({"type": "http.request", "body": b"12", "more_body": True})
+
+        async def waiting() -> None:
+            try:
+                await middleware(scope, second.receive, send)
+            except RuntimeError as e:
+                failed.append(e)
+
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(middleware, scope, first.receive, send)
+            await anyio.sleep(0.05)
+            tg.start_soon(waiting)
+            await anyio.sleep(0.05)
+            assert middleware.state.body_waiting == 1
+            await first_in.send({"type": "http.request", "body": b"345"})  # the first ends: the second's turn
+            await anyio.sleep(0.2)
+            tg.cancel_scope.cancel()
+
+    anyio.run(main)
+    assert [str(e) for e in failed] == ["the database is away"]
+    assert middleware._turns is not None and middleware._turns.value == 1  # given back: the next one may send
+    assert middleware.receiving == 0 and middleware.memory.held == 0
