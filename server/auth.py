@@ -62,8 +62,13 @@ HOST_PREFIX = "__Host-"
 
 
 def over_https(scope: Scope) -> bool:
-    """Whether the request came over HTTPS (behind a proxy that ends TLS: with uvicorn's ``--proxy-headers``)."""
-    return scope.get("scheme") == "https"
+    """Whether the request came over HTTPS: to the service itself, or to a trusted proxy
+    (``KITTI_EVAL_TRUSTED_PROXIES``) that ends TLS and says so in ``X-Forwarded-Proto``, as it says whose request it
+    passes on in ``X-Forwarded-For``."""
+    if scope.get("scheme") == "https":
+        return True
+    forwarded = _headers(scope, b"x-forwarded-proto")[:1]
+    return bool(forwarded) and forwarded[0].split(",")[0].strip().lower() == "https" and _from_trusted_proxy(scope)
 
 
 def session_cookie(scope: Scope) -> str:
@@ -149,10 +154,9 @@ def client_of(scope: Scope) -> str:
     The failure limit, the audit log and the log lines all name this address."""
     client = scope.get("client")
     peer = str(client[0]) if client else "unknown"
-    app = scope.get("app")
-    trusted: tuple[Network, ...] = getattr(getattr(app, "state", None), "trusted_proxies", None) or ()
-    if not trusted or not _is_trusted(_address(peer), trusted):
+    if not _from_trusted_proxy(scope):
         return peer
+    trusted = _trusted(scope)
     hops = [hop.strip() for value in _headers(scope, b"x-forwarded-for") for hop in value.split(",")]
     for hop in reversed(hops):
         address = _address(hop)
@@ -167,9 +171,12 @@ def client_of(scope: Scope) -> str:
 def _from_trusted_proxy(scope: Scope) -> bool:
     """Whether the socket peer is one of ``KITTI_EVAL_TRUSTED_PROXIES``."""
     client = scope.get("client")
-    app = scope.get("app")
-    trusted: tuple[Network, ...] = getattr(getattr(app, "state", None), "trusted_proxies", None) or ()
-    return client is not None and _is_trusted(_address(str(client[0])), trusted)
+    return client is not None and _is_trusted(_address(str(client[0])), _trusted(scope))
+
+
+def _trusted(scope: Scope) -> tuple[Network, ...]:
+    """The trusted proxies: ``app.state.trusted_proxies`` (set by ``create_app``)."""
+    return getattr(getattr(scope.get("app"), "state", None), "trusted_proxies", None) or ()
 
 
 def _address(text: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address | None:
@@ -281,8 +288,9 @@ def cross_site(scope: Scope) -> str | None:
     says where a request comes from (``Sec-Fetch-Site``, ``Origin``); a client that says neither (curl, a
     script) is not a browser carrying someone's cookie. The service's own origin is the request's ``Host``
     (another port of the same host is another origin), or the ``X-Forwarded-Host`` a trusted proxy
-    (``KITTI_EVAL_TRUSTED_PROXIES``) passes on; its scheme is compared when the service itself is reached over
-    HTTPS (behind a proxy that ends TLS it sees http where the browser says https)."""
+    (``KITTI_EVAL_TRUSTED_PROXIES``) passes on; its scheme is compared when the request came over HTTPS
+    (:func:`over_https`; behind a proxy that ends TLS and does not say so, it sees http where the browser says
+    https)."""
     site = _header(scope, b"sec-fetch-site")
     if site is not None and site.strip().lower() not in ("same-origin", "none"):
         return f"the browser says it comes from another site (Sec-Fetch-Site: {site.strip()[:40]})"
@@ -293,7 +301,7 @@ def cross_site(scope: Scope) -> str | None:
     if not rest or origin.strip() == "null":
         return "the browser sent no usable Origin"
     sent_scheme, sent_host = _origin_of(scheme, rest.rstrip("/"))
-    own_scheme = str(scope.get("scheme", "http"))
+    own_scheme = "https" if over_https(scope) else "http"
     hosts = [_header(scope, b"host") or ""]
     if _from_trusted_proxy(scope):  # a proxy that passes the browser's host on says so
         hosts += [h.split(",")[0].strip() for h in _headers(scope, b"x-forwarded-host")[:1]]

@@ -18,7 +18,7 @@ from server_benchmarks import host, ok, submit
 from server_helpers import ADMIN, app_client, golden_bytes
 from starlette.testclient import TestClient
 
-from kitti_eval_server.auth import CSRF_COOKIE, cross_site
+from kitti_eval_server.auth import CSRF_COOKIE, cross_site, over_https
 from kitti_eval_server.benchmarks.rules import part_frames
 
 
@@ -325,3 +325,8 @@ def test_the_services_own_origin_behind_a_proxy() -> None:
     assert cross_site(_scope(("Origin", "http://bench.example.org"), ("Host", "bench.example.org"), scheme="https"))
     assert cross_site(_scope(("Host", "bench.example.org"))) is None  # no browser: curl, a script
     assert cross_site(_scope(("Sec-Fetch-Site", "same-site"), ("Host", "bench.example.org"))) is not None
+    # a trusted proxy that ends TLS says so: the request came over HTTPS (Secure, __Host- cookies; http refused)
+    https = ("X-Forwarded-Proto", "https")
+    assert over_https(_scope(https)) and not over_https(_scope(https, peer="8.8.8.8")) and not over_https(_scope())
+    assert cross_site(_scope(("Origin", "http://bench.example.org"), ("Host", "bench.example.org"), https))
+    assert cross_site(_scope(browser, ("Host", "bench.example.org"), https)) is None
