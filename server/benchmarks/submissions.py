@@ -147,18 +147,20 @@ class Submissions(Intervals):
         bench = self.get(name, caller)
         if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
             raise _not_taking_part(name)
-        upload = receive_content(predictions.file, predictions.filename, "predictions")
-        key = None
-        if idempotency_key is not None:
+        upload = key = None
+        if idempotency_key is not None:  # a retry is answered first, whatever has changed since: the file's hash
+            upload = receive_content(predictions.file, predictions.filename, "predictions")
             key = RequestKey(caller.name, submissions_scope(name), idempotency_key, fingerprint(file=upload.sha256))
             if (earlier := self.idempotency.earlier(key)) is not None:
-                return earlier  # accepted before (and counted then), whatever has changed since
+                return earlier  # accepted before (and counted then)
         baseline = self.policy.is_baseline(caller)  # under no quota, never ranked
         if baseline and bench.is_closed():
             raise Conflict(f"the benchmark {name!r} is closed: its board is frozen")
         if not baseline and not bench.is_open():
             raise Conflict(f"the benchmark {name!r} is not open for submissions")
         self._ground_truth_record(bench)  # registered, and sealed if it is to be
+        if upload is None:  # read (and hashed) only once the cheap refusals are past
+            upload = receive_content(predictions.file, predictions.filename, "predictions")
         self.jobs.admit(caller.name, upload.size)
         count, days = bench.quota
         now = datetime.now(timezone.utc)

@@ -191,8 +191,8 @@ class BenchmarkStore(Area):
         recorded first (:class:`KeyTaken`, nothing written, when a copy of the request recorded it: the copy is
         not counted again)."""
         count_query = _quota_count(record.benchmark, record.participant, window_start)
-        if limit is None:
-            with self.engine.begin() as conn:
+        if limit is None:  # on SQLite the write lock from the start, as the key's record needs
+            with self._writing() as conn:
                 if key is not None:
                     IdempotencyStore.add_idempotency_key_in(conn, key)
                 conn.execute(insert(submissions).values(**record.__dict__))
