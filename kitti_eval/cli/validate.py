@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import sys
 from pathlib import Path
@@ -83,6 +82,7 @@ def fetch_frames(url: str, token: str | None = None) -> list[str]:
     import urllib.error  # here: every other command would import the HTTP client (and ssl) for nothing
     import urllib.request
 
+    from ..client import token_for  # the standard library only: the HTTP client it uses is loaded when it sends
     from ..core.frames import normalize_frame_id
     from ..errors import ConfigError, InputError
 
@@ -91,7 +91,7 @@ def fetch_frames(url: str, token: str | None = None) -> list[str]:
         raise ConfigError(f"--benchmark: expected http(s)://HOST/benchmarks/NAME, got {url!r}")
     base, name = found.groups()
     request = urllib.request.Request(f"{base}/v1/benchmarks/{name}/frames", headers={"Accept": "application/json"})
-    token = token or os.environ.get("KITTI_EVAL_TOKEN")
+    token = token_for(base, token)  # --token, else $KITTI_EVAL_TOKEN, else the one kitti-eval login saved
     if token:
         request.add_header("Authorization", f"Bearer {token}")
     try:
