@@ -132,7 +132,8 @@ def test_the_wheel_installs_kitti_eval_server_and_no_server(tmp_path: Path) -> N
         f"kitti_eval_server/web/templates/{t}" for t in templates
     }
     assert {"kitti_eval_server/web/static/app.css", "kitti_eval_server/web/static/app.js"} < names
-    assert {f"kitti_eval/data/demo/{name}" for name in DEMO_FILES} < names
+    shipped = {"kitti_infos_val.pkl.gz", "result.pkl.gz", "result_weaker.pkl.gz"}  # the names the docs give
+    assert set(DEMO_FILES) == shipped and {f"kitti_eval/data/demo/{name}" for name in shipped} < names
     meta = zipfile.Path(wheel, "kitti_eval-0.1.0.dist-info/")
     assert (meta / "top_level.txt").read_text().split() == ["kitti_eval", "kitti_eval_server"]
     assert "kitti-eval = kitti_eval.cli:entry" in (meta / "entry_points.txt").read_text()

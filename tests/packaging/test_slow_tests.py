@@ -4,6 +4,7 @@ stays quick. New tests are classified by these rules alone, so they are what kee
 
 from __future__ import annotations
 
+import inspect
 import subprocess
 
 import server_helpers
@@ -52,7 +53,7 @@ SAMPLES = {
 HELPERS = {
     "live server": getattr(server_helpers, "LiveServer").start,  # noqa: B009 - not a name, for the same reason
     "database": getattr(server_postgres, "PostgresCluster").start,  # noqa: B009
-    "in-process service": getattr(server_helpers, "app_client"),  # noqa: B009
+    "in-process service": getattr(server_helpers, "app_client").__wrapped__,  # noqa: B009 - the function itself
 }
 
 
@@ -70,6 +71,7 @@ def test_code_that_starts_nothing_stays_quick() -> None:
     assert not starts_a_process(SAMPLES["in process"])
     assert not starts_a_process(HELPERS["in-process service"])  # the service in-process, as most server tests use
     assert not starts_a_process(print)  # not the suite's code: not followed
+    assert inspect.getsourcefile(HELPERS["in-process service"]) == server_helpers.__file__  # followed, not contextlib
 
 
 def test_the_suites_process_helpers_are_recognised() -> None:

@@ -219,6 +219,7 @@ def test_participants_see_the_public_part_until_the_reveal(client) -> None:
     for seen in (made, one):  # the aggregate document is the public part's
         assert _ap(seen["result"]) == pytest.approx(want["public"], abs=1e-4)
         assert set(seen["result"]) == set(RESULT_FIELDS) and seen["result"]["frames"] == 50
+        assert not {"num_gt", "frames_without_predictions", "curves", "warnings"} & set(seen["result"])
     for text in (str(want["all"]), str(want["private"])):
         assert text not in json.dumps([made, one, listed])
     # an admin's list holds everything

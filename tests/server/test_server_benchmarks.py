@@ -104,6 +104,7 @@ def test_results_publishing_and_the_leaderboard(world) -> None:
     assert a["scores"]["Car/3d/moderate/R40/strict"] == expected
     assert a["result"]["ap"]["strict"]["R40"]["Car"]["3d"]["moderate"] == pytest.approx(expected, abs=1e-4)
     assert set(a["result"]) == set(RESULT_FIELDS)  # no per-frame detail, no count of the sealed set's objects
+    assert not {"num_gt", "frames_without_predictions", "curves", "warnings"} & set(a["result"])
     # nobody sees another participant's submission; the board shows only published entries
     assert c.get(f"/v1/benchmarks/bench/submissions/{a['id']}", headers=bob).status_code == 404
     assert ok(c.get("/v1/benchmarks/bench/leaderboard"))["entries"] == []
