@@ -379,9 +379,11 @@ class Policy:
     def sees_ground_truth(self, caller: Caller, record: _GroundTruth) -> bool:
         """Shared ground truths (no project: the demo, those registered in open mode) are every signed-in
         caller's."""
-        if not caller.signed_in:
-            return False
-        return record.project is None or self.sees_project(caller, record.project)
+        return self._sees_ground_truths_of(caller, record.project)
+
+    def _sees_ground_truths_of(self, caller: Caller, project: str | None) -> bool:
+        """Whether the caller sees the ground truths of ``project`` (None: the shared ones)."""
+        return caller.signed_in and (project is None or self.sees_project(caller, project))
 
     def sees_evaluation(self, caller: Caller, record: _Evaluation) -> bool:
         """Their projects' evaluations; none against a benchmark's test set but an admin's (one made before the
@@ -442,9 +444,7 @@ class Policy:
         """Whether the caller reads the name of a benchmark's test set: those who see the ground truth itself
         (admins, the members of its project, every signed-in account when it is shared). An anonymous visitor
         of a public benchmark, or another project's member, never learns that it exists."""
-        if caller.is_admin:
-            return True
-        return caller.signed_in and (project is None or self.sees_project(caller, project))
+        return caller.is_admin or self._sees_ground_truths_of(caller, project)
 
     def may_take_part(self, caller: Caller, *, project: str | None, open_to_all: bool) -> bool:
         """Who may submit to a benchmark they see: a participant (:meth:`is_participant`) who is a member of the

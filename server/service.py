@@ -171,7 +171,7 @@ class Service:
             self.store.create_schema()
         except sqlalchemy.exc.OperationalError as e:  # not reached, or refused: said in one line, not a traceback
             url = self.settings.resolved_database_url
-            where = sqlalchemy.engine.make_url(url).render_as_string(hide_password=True)
+            where = self.settings.database_name
             reason = (str(e.orig or e).strip() or type(e).__name__).splitlines()[0]
             hint = ""
             if url.partition("://")[2].count("@") > 1:
