@@ -128,6 +128,14 @@ class _Evaluation(Protocol):
     def gt_name(self) -> str | None: ...
 
 
+class _User(Protocol):
+    @property
+    def is_admin(self) -> bool: ...
+
+    @property
+    def projects(self) -> tuple[str, ...]: ...
+
+
 class _GroundTruth(Protocol):
     @property
     def name(self) -> str: ...
@@ -178,6 +186,13 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
         Access.WRITER,
         "no",
         "under no quota, shown unranked, until the close",
+    ),
+    ("benchmark teams: list", Access.READER, "who may take part in it", "yes"),
+    (
+        "benchmark teams: make one",
+        Access.WRITER,
+        "who may take part, with others who may (one team each a benchmark, at most its team size)",
+        "no (admins submit baselines)",
     ),
     ("benchmarks: create, close, reopen, reveal, rescore, disqualify", Access.ADMIN, "no", "yes"),
     ("accounts: users, projects, members, tokens, audit log", Access.ADMIN, "no", "yes"),
@@ -454,6 +469,19 @@ class Policy:
         if not self.is_participant(caller):
             return False
         return caller.is_admin or open_to_all or project is None or self.sees_project(caller, project)
+
+    def may_join_team(self, user: _User | None, *, project: str | None, open_to_all: bool) -> bool:
+        """Whom a participant may name in their team: an account that is not an admin's (an admin submits
+        baselines) and that may take part in the benchmark (a member of its test set's project, any account
+        when the test set is shared or the benchmark is open to all)."""
+        if user is None or user.is_admin:
+            return False
+        return open_to_all or project is None or project in user.projects
+
+    def sees_teams(self, caller: Caller, *, project: str | None, open_to_all: bool) -> bool:
+        """A benchmark's teams and their members are seen by those who may take part in it, and by admins (the
+        board names the team of each published entry that is not anonymous)."""
+        return caller.is_admin or self.may_take_part(caller, project=project, open_to_all=open_to_all)
 
     def administers(self, caller: Caller) -> bool:
         """An admin: sees every project's records and the benchmarks' jobs, submits baselines."""

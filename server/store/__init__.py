@@ -45,6 +45,7 @@ from .ground_truth_store import GroundTruthRecord, GroundTruthStore
 from .idempotency_store import IdempotencyRecord, IdempotencyStore, KeyTaken
 from .job_input_store import JobInput, JobInputStore
 from .job_store import JobRecord, JobStore
+from .team_store import TeamRecord, TeamStore
 from .worker_store import WorkerRecord, WorkerStore
 
 __all__ = [
@@ -57,6 +58,8 @@ __all__ = [
     "BenchmarkStore",
     "JobStore",
     "WorkerStore",
+    "TeamStore",
+    "TeamRecord",
     "IdempotencyStore",
     "IdempotencyRecord",
     "KeyTaken",
