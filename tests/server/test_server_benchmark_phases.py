@@ -10,52 +10,18 @@ from datetime import datetime, timedelta, timezone
 
 import pytest
 import tomllib
-from server_benchmarks import Hosted, bearer, ok
-from server_helpers import ADMIN, app_client, golden_bytes
+from server_benchmarks import bearer, ok
+from server_helpers import app_client, golden_bytes
+from server_phases import HOST, TWO_PHASES, phased_world
 
 from kitti_eval_server.benchmarks.benchmark_file import apply_benchmark_file, export_benchmark_file
 from kitti_eval_server.errors import BadRequest
-from kitti_eval_server.policy import Policy
-
-#: the file of the issue that asked for phases and teams, as a host would write it
-TWO_PHASES = """\
-name = "kitti-phases"
-title = "KITTI 3D, two phases"
-public = true
-key = ["Car/3d/moderate/R40/strict"]
-team_size = 3
-
-[[phases]]
-name = "dev"
-ground_truth = "dev_gt"
-quota = "5/1"
-
-[[phases]]
-name = "test"
-ground_truth = "test_gt"
-quota = "2/1"
-split_percent = 50
-"""
-
-HOST = Policy.command_line("host")
-
-
-def _world(c, users=("alice", "bob", "carol")) -> Hosted:
-    hosted = Hosted()
-    for user in users:
-        ok(c.post("/v1/admin/users", json={"name": user}, headers=ADMIN), 201)
-        hosted.tokens[user] = ok(c.post("/v1/admin/tokens", json={"user": user}, headers=ADMIN), 201)["token"]
-    data = golden_bytes("kitti_infos_val.pkl")
-    for name, sealed in (("dev_gt", "false"), ("test_gt", "true"), ("other_gt", "true")):
-        files = {"file": ("kitti_infos_val.pkl", data)}
-        ok(c.post("/v1/ground-truths", data={"name": name, "sealed": sealed}, files=files, headers=ADMIN), 201)
-    return hosted
 
 
 @pytest.fixture()
 def world(tmp_path):
     with app_client(tmp_path / "data", auth="accounts", auth_max_failures=1_000_000) as c:
-        hosted = _world(c)
+        hosted = phased_world(c)
         apply_benchmark_file(c.app.state.benchmarks, TWO_PHASES, caller=HOST, source="kitti-phases.toml")
         yield c, hosted
 
