@@ -58,7 +58,7 @@ from ..errors import BadRequest, NotFound, echo
 from ..policy import Caller
 from .catalog import scoring_options
 from .phases import MAX_BENCHMARK_NAME, PhaseOf, check_phase_name, phase_list, phase_row
-from .rules import DEFAULT_KEY, Benchmark, parse_quota, parse_time
+from .rules import DEFAULT_KEY, MAIN_PHASE, Benchmark, parse_quota, parse_time
 
 if TYPE_CHECKING:
     from .catalog import BenchmarkCatalog
@@ -453,14 +453,17 @@ def _changes(
     for column in ("title", "description", "public", "opens_at", "closes_at", "max_published"):
         if getattr(bench, column) != wanted[column]:
             row[column] = wanted[column]
+    # what a row made with ``benchmark add`` holds without saying it: one phase, ``main``, no teams, none late
+    unsaid = {"open_to_all": False, "team_size": 1, "late_submissions": False, "phase": MAIN_PHASE}
     for k in ("quota", "open_to_all", "team_size", "late_submissions", "phase"):
-        now = config.get(k)
+        now = config.get(k, unsaid.get(k))
         if k == "quota":
             now = [int(now[0]), float(now[1])] if now else None
-        if now != wanted[k] and not (k == "team_size" and now is None and wanted[k] == 1):
+        if now != wanted[k]:
             config[k] = wanted[k]
-    if p.index == 0 and config.get("phases") != [list(x) for x in order]:
-        config["phases"] = [list(x) for x in order]
+    phases = [list(x) for x in order]
+    if p.index == 0 and config.get("phases", [[config.get("phase", MAIN_PHASE), bench.name]]) != phases:
+        config["phases"] = phases
     record = catalog.ground_truths.record(p.ground_truth)
     scoring_changed = _scoring_of(bench) != spec.scoring
     split_changed = bench.split_percent != p.split_percent

@@ -10,7 +10,7 @@ from datetime import datetime, timedelta, timezone
 
 import pytest
 import tomllib
-from server_benchmarks import bearer, ok
+from server_benchmarks import bearer, host, ok
 from server_helpers import app_client, golden_bytes
 from server_phases import HOST, TWO_PHASES, phased_world
 
@@ -199,3 +199,42 @@ def test_the_routes_without_a_phase_address_the_current_phase(world) -> None:
     own = ok(c.get(f"/v1/benchmarks/kitti-phases/submissions/{sid}", headers=bearer(alice)))
     assert own["phase"] == "dev" and own["status"] == "scored"
     assert "gt_count" in str(own["result"]) or own["result"]["ap"]  # open labels: the whole document
+
+
+def test_a_benchmark_made_with_add_is_one_phase_whose_file_applies_unchanged(tmp_path) -> None:
+    with app_client(tmp_path / "data", auth="accounts", auth_max_failures=1_000_000) as c:
+        hosted = host(c, benchmark={"quota": "2/1", "split_percent": 30})
+        bench = ok(c.get("/v1/benchmarks/bench"))
+        assert bench["phase"] == "main" and [p["name"] for p in bench["phases"]] == ["main"]
+        exported = export_benchmark_file(c.app.state.benchmarks, "bench", caller=HOST)
+        doc = tomllib.loads(exported)
+        assert [(p["name"], p["ground_truth"], p["quota"], p["split_percent"]) for p in doc["phases"]] == [
+            ("main", "test-set", "2/1", 30)
+        ]
+        assert not apply_benchmark_file(c.app.state.benchmarks, exported, caller=HOST).changed
+        assert ok(c.get("/v1/benchmarks/bench/phases/main/leaderboard"))["board"] == "public"
+        assert _submit(c, hosted.tokens["alice"], "/v1/benchmarks/bench/phases/main/submissions").status_code == 202
+
+
+def test_late_submissions_are_scored_after_the_close_and_never_ranked(world) -> None:
+    c, hosted = world
+    alice = hosted.tokens["alice"]
+    closed = datetime.now(timezone.utc) - timedelta(seconds=1)
+    window = f"opens_at = {(closed - timedelta(days=1)).isoformat()}\ncloses_at = {closed.isoformat()}"
+    text = TWO_PHASES.replace('quota = "2/1"', f'quota = "2/1"\n{window}')
+    apply_benchmark_file(c.app.state.benchmarks, text, caller=HOST)
+    refused = _submit(c, alice)
+    assert refused.status_code == 409 and "not open for submissions" in refused.json()["error"]["message"]
+    apply_benchmark_file(c.app.state.benchmarks, text + "late_submissions = true\n", caller=HOST)
+    late = _submit(c, alice)
+    assert late.status_code == 202
+    sid = late.json()["id"]
+    assert c.app.state.service.jobs.wait(sid, 120).state == "done"
+    own = ok(c.get(f"/v1/benchmarks/kitti-phases/submissions/{sid}", headers=bearer(alice)))
+    assert own["phase"] == "test" and own["status"] == "scored" and own["scores"]["Car/3d/moderate/R40/strict"] > 0
+    publish = c.post(
+        f"/v1/benchmarks/kitti-phases/submissions/{sid}/publish", json={"method": "Late"}, headers=bearer(alice)
+    )
+    assert publish.status_code == 409  # never on the board
+    assert ok(c.get("/v1/benchmarks/kitti-phases/phases/test/leaderboard"))["entries"] == []
+    assert ok(c.get("/v1/benchmarks/kitti-phases/phases/test/submissions", headers=bearer(alice)))["quota"]["used"] == 1
