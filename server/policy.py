@@ -189,9 +189,10 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
     ),
     ("benchmark teams: list", Access.READER, "who may take part in it", "yes"),
     (
-        "benchmark teams: make one",
+        "benchmark teams: make one, join one",
         Access.WRITER,
-        "who may take part, with others who may (one team each a benchmark, at most its team size)",
+        "who may take part: makes one inviting others who may, joins one that invited them (one team each a "
+        "benchmark, at most its team size)",
         "no (admins submit baselines)",
     ),
     ("benchmarks: create, close, reopen, reveal, rescore, disqualify", Access.ADMIN, "no", "yes"),

@@ -27,6 +27,7 @@ __all__ = [
     "ENTRY_FIELDS",
     "PHASE_FIELDS",
     "TEAM_FIELDS",
+    "OWN_TEAM_FIELDS",
     "pick",
     "benchmark_view",
     "submission_view",
@@ -80,8 +81,9 @@ PHASE_FIELDS = (
     "board",
     "max_published",
 )
-#: a team, as those who see its benchmark read it
+#: a team, as those who see its benchmark's teams read it; and as its members read it, with whom it invited
 TEAM_FIELDS = ("benchmark", "name", "members", "created_at")
+OWN_TEAM_FIELDS = (*TEAM_FIELDS, "invited")
 
 #: a submission in its participant's list (and the admins')
 SUBMISSION_FIELDS = (

@@ -42,7 +42,7 @@ BenchmarksDep = Annotated[Benchmarks, Depends(_benchmarks)]
 
 class TeamIn(BaseModel):
     name: str = Field(max_length=1000)
-    members: list[str] = Field(default_factory=list, max_length=100, description="the others in the team")
+    members: list[str] = Field(default_factory=list, max_length=100, description="the others invited to join it")
 
 
 @router.get("/{name}/phases", summary="The benchmark's phases, the current one marked")
@@ -111,8 +111,14 @@ def teams(name: str, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[st
     return Teams(benchmarks).list(name, caller)
 
 
-@router.post("/{name}/teams", status_code=201, summary="Make a team with others who take part")
+@router.post("/{name}/teams", status_code=201, summary="Make a team and invite others who take part")
 def make_team(name: str, body: TeamIn, benchmarks: BenchmarksDep, caller: WriterCaller) -> dict[str, Any]:
-    """The caller is in the team too; one team per participant per benchmark; the quota of each phase is the
-    team's from then on (what its members submitted alone before counts against it)."""
+    """The caller is the team's first member; those named in ``members`` are invited and join when they accept
+    (``POST .../teams/TEAM/join``); one team per participant per benchmark; the quota of each phase is the team's
+    (what a member submitted alone before joining counts against it)."""
     return Teams(benchmarks).create(name, body.name, body.members, caller)
+
+
+@router.post("/{name}/teams/{team}/join", summary="Join a team that invited you")
+def join_team(name: str, team: str, benchmarks: BenchmarksDep, caller: WriterCaller) -> dict[str, Any]:
+    return Teams(benchmarks).join(name, team, caller)

@@ -423,13 +423,25 @@ _TEAM_FIELDS = 3
 
 @router.post("/benchmarks/{name}/teams")
 async def team_form(request: Request, service: ServiceDep, caller: WriterCaller, name: str) -> Response:
-    """Make a team (its name, the others' names separated by commas); then the benchmark's page at the team."""
+    """Make a team (its name, the names of those it invites separated by commas); then the benchmark's page at the
+    team."""
     benchmarks = _benchmarks(request)
     try:
         async with request.form(max_files=0, max_fields=_TEAM_FIELDS) as form:
             values = {k: v for k, v in form.items() if isinstance(v, str)}
         members = [m.strip() for m in values.get("members", "").split(",") if m.strip()]
         await anyio.to_thread.run_sync(lambda: Teams(benchmarks).create(name, values.get("name", ""), members, caller))
+    except ApiError as e:
+        return await anyio.to_thread.run_sync(partial(_team_refused, request, service, caller, name, e))
+    return RedirectResponse(f"/benchmarks/{quote(name)}#team", status_code=303)
+
+
+@router.post("/benchmarks/{name}/teams/{team}/join")
+async def join_form(request: Request, service: ServiceDep, caller: WriterCaller, name: str, team: str) -> Response:
+    """Join a team that invited the caller; then the benchmark's page at the team."""
+    benchmarks = _benchmarks(request)
+    try:
+        await anyio.to_thread.run_sync(lambda: Teams(benchmarks).join(name, team, caller))
     except ApiError as e:
         return await anyio.to_thread.run_sync(partial(_team_refused, request, service, caller, name, e))
     return RedirectResponse(f"/benchmarks/{quote(name)}#team", status_code=303)

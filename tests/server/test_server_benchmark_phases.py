@@ -11,7 +11,7 @@ from datetime import datetime, timedelta, timezone
 import pytest
 import tomllib
 from server_benchmarks import bearer, host, ok
-from server_helpers import app_client, golden_bytes
+from server_helpers import ADMIN, app_client, golden_bytes
 from server_phases import HOST, TWO_PHASES, phased_world
 
 from kitti_eval_server.benchmarks.benchmark_file import apply_benchmark_file, export_benchmark_file
@@ -31,11 +31,15 @@ def _submit(c, token: str, path: str = "/v1/benchmarks/kitti-phases/phases/test/
     return c.post(path, params={"wait": 0}, files=files, headers=bearer(token))
 
 
-def _team(c, token: str, name: str, *members: str):
-    answer = c.post(
-        "/v1/benchmarks/kitti-phases/teams", json={"name": name, "members": list(members)}, headers=bearer(token)
-    )
-    return ok(answer, 201)
+def _team(c, hosted, maker: str, name: str, *members: str):
+    """``maker`` makes the team ``name`` inviting ``members``, who join it."""
+    body = {"name": name, "members": list(members)}
+    ok(c.post("/v1/benchmarks/kitti-phases/teams", json=body, headers=bearer(hosted.tokens[maker])), 201)
+    team = None
+    for member in members:
+        joined = c.post(f"/v1/benchmarks/kitti-phases/teams/{name}/join", headers=bearer(hosted.tokens[member]))
+        team = ok(joined)
+    return team
 
 
 def _refusal(text: str, c) -> str:
@@ -118,7 +122,7 @@ def test_a_test_set_already_used_is_refused_and_nothing_is_written(world) -> Non
 def test_a_team_of_two_shares_the_test_phase_quota_and_another_keeps_their_own(world) -> None:
     c, hosted = world
     alice, bob, carol = (hosted.tokens[u] for u in ("alice", "bob", "carol"))
-    team = _team(c, alice, "Two", "bob")
+    team = _team(c, hosted, "alice", "Two", "bob")
     assert team["members"] == ["alice", "bob"] and team["benchmark"] == "kitti-phases"
     assert _submit(c, alice).status_code == 202
     assert _submit(c, bob).status_code == 202
@@ -141,38 +145,72 @@ def test_a_team_of_two_shares_the_test_phase_quota_and_another_keeps_their_own(w
 def test_parallel_submissions_of_a_teams_members_admit_exactly_the_quota(world) -> None:
     c, hosted = world
     alice, bob = hosted.tokens["alice"], hosted.tokens["bob"]
-    _team(c, alice, "Two", "bob")
+    _team(c, hosted, "alice", "Two", "bob")
     with ThreadPoolExecutor(12) as pool:
         answers = list(pool.map(lambda i: _submit(c, alice if i % 2 else bob), range(12)))
-    statuses = sorted(r.status_code for r in answers)
-    assert statuses == [202] * 2 + [429] * 10, [r.text[:200] for r in answers]
+    # accepted: 202 (or 201 when its scoring ended before the answer); refused: 429
+    statuses = sorted(201 if r.status_code == 202 else r.status_code for r in answers)
+    assert statuses == [201] * 2 + [429] * 10, [r.text[:200] for r in answers]
 
 
 def test_a_member_who_submitted_alone_brings_no_extra_quota(world) -> None:
     c, hosted = world
     alice, bob = hosted.tokens["alice"], hosted.tokens["bob"]
     assert _submit(c, bob).status_code == 202  # alone, before the team
-    _team(c, alice, "Two", "bob")
+    _team(c, hosted, "alice", "Two", "bob")
     assert _submit(c, alice).status_code == 202
     assert _submit(c, alice).status_code == 429
 
 
-def test_teams_are_one_per_participant_within_the_size_of_people_who_take_part(world) -> None:
+def test_a_team_is_joined_by_those_it_invited_one_team_each_within_its_size(world) -> None:
     c, hosted = world
     alice, bob, carol = (hosted.tokens[u] for u in ("alice", "bob", "carol"))
     url = "/v1/benchmarks/kitti-phases/teams"
-    ok(c.post(url, json={"name": "Two", "members": ["bob"]}, headers=bearer(alice)), 201)
-    taken = c.post(url, json={"name": "Three", "members": ["bob"]}, headers=bearer(carol))
-    assert taken.status_code == 409 and "bob already in a team" in taken.json()["error"]["message"]
+    made = ok(c.post(url, json={"name": "Two", "members": ["bob"]}, headers=bearer(alice)), 201)
+    assert made["members"] == ["alice"] and made["invited"] == ["bob"]  # an invitation binds nobody
     big = c.post(url, json={"name": "Big", "members": ["x1", "x2", "x3"]}, headers=bearer(carol))
     assert big.status_code == 422 and "at most 3 members" in big.json()["error"]["message"]
+    assert _submit(c, bob).status_code == 202 and _submit(c, alice).status_code == 202
+    assert _submit(c, alice).status_code == 202  # until bob joins, alice's quota is her own
+    ok(c.post(url, json={"name": "Three", "members": ["bob"]}, headers=bearer(carol)), 201)
+    assert ok(c.get(url, headers=bearer(bob)))["invitations"] == ["Three", "Two"]
+    assert c.post(f"{url}/Two/join", headers=bearer(carol)).status_code == 404  # not invited there
+    joined = ok(c.post(f"{url}/Two/join", headers=bearer(bob)))
+    assert joined["members"] == ["alice", "bob"] and joined["invited"] == []
+    again = c.post(f"{url}/Three/join", headers=bearer(bob))  # his other invitations were dropped
+    assert again.status_code == 404
+    assert _submit(c, bob).status_code == 429  # the team's quota of 2: alice's two and bob's one count
+    in_one = c.post(url, json={"name": "Other", "members": []}, headers=bearer(alice))
+    assert in_one.status_code == 409 and "you are in a team" in in_one.json()["error"]["message"]
     ghost = c.post(url, json={"name": "Ghost", "members": ["nobody"]}, headers=bearer(carol))
-    assert ghost.status_code == 422 and "'nobody' may not take part" in ghost.json()["error"]["message"]
-    assert c.post(url, json={"name": "Two", "members": []}, headers=bearer(carol)).status_code == 409
+    assert ghost.status_code == 409  # carol is in Three already
     listed = ok(c.get(url, headers=bearer(carol)))
-    assert [(t["name"], t["members"]) for t in listed["items"]] == [("Two", ["alice", "bob"])]
-    assert listed["mine"] is None and ok(c.get(url, headers=bearer(bob)))["mine"]["name"] == "Two"
+    assert [(t["name"], t["members"]) for t in listed["items"]] == [("Three", ["carol"]), ("Two", ["alice", "bob"])]
+    assert "invited" not in listed["items"][0] and listed["mine"]["invited"] == []
     assert c.get(url).status_code == 401  # an anonymous reader of the public benchmark sees no teams
+
+
+def test_whom_a_team_invites_takes_part_and_a_full_team_takes_no_one(tmp_path) -> None:
+    with app_client(tmp_path / "data", auth="accounts", auth_max_failures=1_000_000) as c:
+        hosted = phased_world(c, users=("alice", "bob", "carol", "dave"))
+        apply_benchmark_file(c.app.state.benchmarks, TWO_PHASES.replace("team_size = 3", "team_size = 2"), caller=HOST)
+        url = "/v1/benchmarks/kitti-phases/teams"
+        ghost = c.post(url, json={"name": "Ghost", "members": ["nobody"]}, headers=hosted.headers("alice"))
+        assert ghost.status_code == 422 and "'nobody' may not take part" in ghost.json()["error"]["message"]
+        ok(c.post(url, json={"name": "Pair", "members": ["bob"]}, headers=hosted.headers("alice")), 201)
+        ok(c.post("/v1/admin/users", json={"name": "boss", "admin": True}, headers=ADMIN), 201)
+        boss = ok(c.post("/v1/admin/tokens", json={"user": "boss"}, headers=ADMIN), 201)["token"]
+        admin = c.post(url, json={"name": "Admins", "members": []}, headers=bearer(boss))
+        assert admin.status_code == 403  # an admin submits baselines, in no team
+        too_many = c.post(url, json={"name": "Trio", "members": ["bob", "dave"]}, headers=hosted.headers("carol"))
+        assert too_many.status_code == 422 and "at most 2 members" in too_many.json()["error"]["message"]
+        # the file's team size shrinks below a team's members and invitations: no one joins a full team
+        ok(c.post(f"{url}/Pair/join", headers=hosted.headers("bob")))
+        ok(c.post(url, json={"name": "Duo", "members": ["dave"]}, headers=hosted.headers("carol")), 201)
+        apply_benchmark_file(c.app.state.benchmarks, TWO_PHASES.replace("team_size = 3", "team_size = 1"), caller=HOST)
+        assert c.post(f"{url}/Duo/join", headers=hosted.headers("dave")).status_code == 409  # takes no teams now
+        apply_benchmark_file(c.app.state.benchmarks, TWO_PHASES.replace("team_size = 3", "team_size = 2"), caller=HOST)
+        assert ok(c.post(f"{url}/Duo/join", headers=hosted.headers("dave")))["members"] == ["carol", "dave"]
 
 
 def test_the_routes_without_a_phase_address_the_current_phase(world) -> None:

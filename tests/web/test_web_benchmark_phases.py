@@ -61,6 +61,16 @@ def test_a_participant_makes_a_team_and_submits_to_the_test_phase_through_the_pa
     )
     assert made.status_code == 303 and made.headers["location"] == "/benchmarks/kitti-phases#team"
     page = c.get("/benchmarks/kitti-phases").text
+    assert re.search(r'id="team-name">You are in <strong>Two</strong>: alice\.', page)
+    assert re.search(r'id="team-invited">Invited, not joined yet: bob\.', page)
+    # bob, signed in, finds the invitation and joins through the page
+    bob_csrf = _session(c, hosted.tokens["bob"])
+    assert 'data-team="Two">Join Two</button>' in c.get("/benchmarks/kitti-phases").text
+    joined = c.post("/benchmarks/kitti-phases/teams/Two/join", data={"csrf": bob_csrf}, follow_redirects=False)
+    assert joined.status_code == 303 and joined.headers["location"] == "/benchmarks/kitti-phases#team"
+    assert c.post("/benchmarks/kitti-phases/teams/Two/join", data={"csrf": bob_csrf}).status_code == 404
+    csrf = _session(c, hosted.tokens["alice"])
+    page = c.get("/benchmarks/kitti-phases").text
     assert re.search(r'id="team-name">You are in <strong>Two</strong>: alice, bob\.', page)
     files = {"predictions": ("result.pkl", golden_bytes("result.pkl"), "application/octet-stream")}
     sent = c.post(

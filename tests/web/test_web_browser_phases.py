@@ -36,6 +36,14 @@ def live(tmp_path_factory):
         yield server, hosted
 
 
+def _sign_in(driver, server, token: str) -> None:
+    driver.delete_all_cookies()
+    driver.get(server.url + "/signin")
+    driver.find_element(By.ID, "token").send_keys(token)
+    driver.find_element(By.ID, "sign-in").click()
+    wait(driver).until(ec.presence_of_element_located((By.ID, "sign-out")))
+
+
 def _phase_items(driver) -> list[str]:
     return [li.get_attribute("id") for li in driver.find_elements(By.CSS_SELECTOR, "#phases li")]
 
@@ -50,11 +58,7 @@ def _submit_file(driver) -> str:
 
 def test_a_participant_goes_through_a_team_and_both_phases_in_the_browser(live, browser) -> None:  # noqa: F811
     server, hosted = live
-    browser.delete_all_cookies()
-    browser.get(server.url + "/signin")
-    browser.find_element(By.ID, "token").send_keys(hosted.tokens["alice"])
-    browser.find_element(By.ID, "sign-in").click()
-    wait(browser).until(ec.presence_of_element_located((By.ID, "sign-out")))
+    _sign_in(browser, server, hosted.tokens["alice"])
     browser.find_element(By.LINK_TEXT, "Benchmarks").click()
     wait(browser).until(ec.presence_of_element_located((By.ID, "benchmarks")))
     browser.find_element(By.LINK_TEXT, "KITTI 3D, two phases").click()
@@ -68,8 +72,18 @@ def test_a_participant_goes_through_a_team_and_both_phases_in_the_browser(live, 
     browser.find_element(By.ID, "team-members").send_keys("bob")
     browser.find_element(By.ID, "make-team").click()
     wait(browser).until(ec.presence_of_element_located((By.ID, "team-name")))
-    assert browser.find_element(By.ID, "team-name").text.startswith("You are in Two: alice, bob.")
+    assert browser.find_element(By.ID, "team-name").text.startswith("You are in Two: alice.")
+    assert browser.find_element(By.ID, "team-invited").text == "Invited, not joined yet: bob."
     shoot_widths(browser, "phases-team")
+    _sign_in(browser, server, hosted.tokens["bob"])  # bob finds the invitation and accepts it
+    browser.get(server.url + "/benchmarks/kitti-phases")
+    shoot_widths(browser, "phases-invitation")
+    browser.find_element(By.CSS_SELECTOR, 'button.join-team[data-team="Two"]').click()
+    wait(browser).until(ec.presence_of_element_located((By.ID, "team-name")))
+    assert browser.find_element(By.ID, "team-name").text.startswith("You are in Two: alice, bob.")
+    _sign_in(browser, server, hosted.tokens["alice"])
+    browser.get(server.url + "/benchmarks/kitti-phases")
+    assert browser.find_element(By.ID, "team-name").text.startswith("You are in Two: alice, bob.")
 
     dev = _submit_file(browser)
     shoot_widths(browser, "phases-dev-submission")
