@@ -34,8 +34,9 @@ them, and a participant's submission is compared with their previous best and th
 The modules: :mod:`.rules` (a benchmark's definition and rules), :mod:`.catalog` (seeing benchmarks, the
 admins' actions on them), :mod:`.intervals` (the resampled keys: computed, kept, compared),
 :mod:`.submissions` (accepting, scoring, publishing), :mod:`.leaderboard` (ranking, CSV), :mod:`.views` (what
-a caller is shown, from allow-lists) and
-:mod:`.markdown` (the description as HTML).
+a caller is shown, from allow-lists), :mod:`.markdown` (the description as HTML), :mod:`.phases` (a benchmark's
+phases, each a benchmark row of its own, and which one a route addresses), :mod:`.teams` (teams, and the team's
+quota) and :mod:`.benchmark_file` (a benchmark defined by a TOML file: applied, exported).
 """
 
 from __future__ import annotations
