@@ -383,6 +383,16 @@ def apply_benchmark_file(catalog: BenchmarkCatalog, text: str, *, caller: Caller
     stored = phase_list(first) if first is not None else []
     order = tuple((p.name, phase_row(spec.name, p.name, first=p.index == 0)) for p in spec.phases)
     named = {p.name for p in spec.phases}
+    row_in_file = dict(order)
+    for phase, row in stored:
+        if phase in row_in_file and row_in_file[phase] != row:
+            index = next(p.index for p in spec.phases if p.name == phase)
+            raise r.refuse(
+                f"the phase {phase!r} was {'the first' if row == spec.name else 'a later'} phase of {spec.name!r}: "
+                "the first phase is the benchmark's own and stays first",
+                "name",
+                index,
+            )
     for phase, row in stored[1:]:
         if phase not in named and catalog.store.get_benchmark(row) is not None:
             raise r.refuse(

@@ -111,6 +111,16 @@ def test_a_file_that_contradicts_itself_or_the_service_is_refused_at_its_line(wo
     assert message.startswith(f"b.toml, line {line}: ") and says in message, message
 
 
+def test_the_first_phase_stays_first(world) -> None:
+    c, _ = world
+    dev = 'name = "dev"\nground_truth = "dev_gt"\nquota = "5/1"\n'
+    test = 'name = "test"\nground_truth = "test_gt"\nquota = "2/1"\nsplit_percent = 50\n'
+    swapped = TWO_PHASES.replace(dev, "@@").replace(test, dev).replace("@@", test)
+    assert swapped.index('name = "test"') < swapped.index('name = "dev"')
+    message = _refusal(swapped, c)
+    assert message.startswith("b.toml, line 14: the phase 'dev' was the first phase of 'kitti-phases'"), message
+
+
 def test_a_test_set_already_used_is_refused_and_nothing_is_written(world) -> None:
     c, _ = world
     other = TWO_PHASES.replace("kitti-phases", "second").replace('"dev_gt"', '"other_gt"')
