@@ -36,7 +36,10 @@ def _store(store: Store) -> TeamStore:
 
 def quota_team(store: Store, bench: Benchmark, participant: str) -> tuple[str, list[str]] | None:
     """The lock name and members of the participant's team in the benchmark ``bench`` is a phase of (None: not
-    in a team): whose submissions count together against the phase's quota."""
+    in a team; a benchmark whose team size is 1 takes no teams): whose submissions count together against the
+    phase's quota."""
+    if bench.team_size < 2:
+        return None
     team = _store(store).team_of(bench.shown_name, participant)
     if team is None:
         return None
@@ -44,7 +47,9 @@ def quota_team(store: Store, bench: Benchmark, participant: str) -> tuple[str, l
 
 
 def team_names(store: Store, bench: Benchmark) -> dict[str, str]:
-    """Participant -> their team's name, in the benchmark ``bench`` is a phase of."""
+    """Participant -> their team's name, in the benchmark ``bench`` is a phase of (none when it takes no teams)."""
+    if bench.team_size < 2:
+        return {}
     return {m: t.name for t in _store(store).teams(bench.shown_name) for m in t.members}
 
 
