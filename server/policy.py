@@ -180,6 +180,12 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
         "the public part's AP until the reveal, then all; never a count of the test set",
         "all (submissions/all)",
     ),
+    (
+        "own submissions: frames (TP, FP, FN per frame)",
+        Access.READER,
+        "in a phase on open labels only, never on a sealed test set",
+        "their baselines', on open labels",
+    ),
     ("own submissions: publish, withdraw", Access.WRITER, "until the benchmark closes", "their baselines"),
     (
         "benchmark baselines: submit, publish, withdraw",
@@ -444,6 +450,15 @@ class Policy:
             raise Sealed(
                 f"the ground truth {record.name!r} of evaluation {evaluation_id} is sealed: only aggregate "
                 "results (AP, curves, error totals) are available, no per-frame view"
+            )
+
+    def require_open_labels(self, *, open_labels: bool, what: str) -> None:
+        """A submission's frames are shown to its participant in a phase on open labels only: a sealed test
+        set's per-frame view never leaves the service."""
+        if not open_labels:
+            raise Sealed(
+                f"the {what} is on a sealed test set: only aggregate results are shown, no per-frame view "
+                "(a phase on open labels shows its participants their frames)"
             )
 
     # -- benchmarks --------------------------------------------------------------------------------------

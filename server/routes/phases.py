@@ -11,6 +11,7 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
 from ..benchmarks import Benchmarks
+from ..benchmarks.open_labels import submission_frames as frames_of
 from ..benchmarks.phases import phase_views, row_of
 from ..benchmarks.teams import Teams
 from ..deps import AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
@@ -18,6 +19,8 @@ from ..errors import NotFound, echo
 from ..idempotency import IDEMPOTENCY_DESCRIPTION
 from ..schemas import ErrorResponse
 from . import benchmarks as single
+from .frames import MAX_SCORE, MAX_WORST, ClassQ, DifficultyQ, MetricQ, SetQ
+from .phase_names import SubmissionPhase
 
 __all__ = ["router"]
 
@@ -104,6 +107,42 @@ async def phase_submit(
 @router.get("/{name}/phases/{phase}/submissions", summary="Your submissions to a phase and its quota")
 def phase_submissions(name: str, phase: str, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[str, Any]:
     return benchmarks.mine(row_of(benchmarks, name, phase, caller), caller)
+
+
+@router.get(
+    "/{name}/submissions/{submission_id}/frames",
+    summary="TP, FP and FN per frame of one of your submissions, in a phase on open labels",
+)
+async def submission_frames(
+    name: SubmissionPhase,
+    submission_id: str,
+    benchmarks: BenchmarksDep,
+    service: ServiceDep,
+    caller: ReaderCaller,
+    cls: ClassQ = "Car",
+    metric: MetricQ = "3d",
+    difficulty: DifficultyQ = "moderate",
+    oset: SetQ = "strict",
+    worst: Annotated[int | None, Query(ge=1, le=MAX_WORST, description="only the N frames with most errors")] = 20,
+    score_threshold: Annotated[
+        float, Query(ge=-MAX_SCORE, le=MAX_SCORE, allow_inf_nan=False, description="count detections scoring this")
+    ] = 0.0,
+) -> dict[str, Any]:
+    """As `GET /v1/evaluations/{id}/frames` for an evaluation; a sealed phase's frames are refused (403 `sealed`)."""
+    return await service.run(
+        lambda: frames_of(
+            benchmarks,
+            name,
+            submission_id,
+            caller,
+            cls=cls,
+            metric=metric,
+            difficulty=difficulty,
+            oset=oset,
+            worst=worst,
+            score_threshold=score_threshold,
+        )
+    )
 
 
 @router.get("/{name}/teams", summary="The benchmark's teams (for those who take part in it) and yours")

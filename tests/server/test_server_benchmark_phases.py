@@ -286,3 +286,31 @@ def test_late_submissions_are_scored_after_the_close_and_never_ranked(world) -> 
     assert publish.status_code == 409  # never on the board
     assert ok(c.get("/v1/benchmarks/kitti-phases/phases/test/leaderboard"))["entries"] == []
     assert ok(c.get("/v1/benchmarks/kitti-phases/phases/test/submissions", headers=bearer(alice)))["quota"]["used"] == 1
+
+
+def test_a_phase_on_open_labels_shows_its_participant_their_frames_and_a_sealed_one_does_not(world) -> None:
+    from server_helpers import GOLDEN
+
+    from kitti_eval.analysis.diagnostics import frame_stats, frames_document
+    from kitti_eval.io.loaders import load_detections, load_ground_truth
+    from kitti_eval_server.evaluator import EvalOptions
+
+    c, hosted = world
+    alice, bob = hosted.tokens["alice"], hosted.tokens["bob"]
+    dev = _submit(c, alice, "/v1/benchmarks/kitti-phases/phases/dev/submissions").json()["id"]
+    test = _submit(c, alice).json()["id"]
+    for sid in (dev, test):
+        assert c.app.state.service.jobs.wait(sid, 120).state == "done"
+    frames = ok(
+        c.get(
+            f"/v1/benchmarks/kitti-phases/submissions/{dev}/frames",
+            params={"class": "Car", "worst": 5},
+            headers=bearer(alice),
+        )
+    )
+    gt, dt = load_ground_truth(GOLDEN / "kitti_infos_val.pkl"), load_detections(GOLDEN / "result.pkl")
+    expected = frames_document(frame_stats(gt, dt, EvalOptions().config(), cls="Car"), worst=5)
+    assert frames["frames"] == expected["frames"] and len(frames["frames"]) == 5 and frames["submission"] == dev
+    sealed = c.get(f"/v1/benchmarks/kitti-phases/submissions/{test}/frames", headers=bearer(alice))
+    assert sealed.status_code == 403 and sealed.json()["error"]["code"] == "sealed"
+    assert c.get(f"/v1/benchmarks/kitti-phases/submissions/{dev}/frames", headers=bearer(bob)).status_code == 404
