@@ -369,7 +369,7 @@ def _benchmark(args: argparse.Namespace, settings: Any, caller: Any) -> int:
         elif action == "list":
             for b in benchmarks.visible(caller):
                 state = "open" if b.is_open() else "closed"
-                print(f"{b.name}\t{b.gt_name}\t{state}\t{'public' if b.public else '-'}\t{b.title}")
+                print(f"{b.shown_name}\t{b.gt_name}\t{state}\t{'public' if b.public else '-'}\t{b.title}")
         elif action in ("close", "reopen", "reveal"):
             values = {"close": {"closed": True}, "reopen": {"closed": False}, "reveal": {"revealed": True}}[action]
             bench = benchmarks.set_state(args.name, caller=caller, **values)

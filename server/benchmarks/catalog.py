@@ -23,7 +23,7 @@ from ..jobs import JobQueue
 from ..policy import Caller, Policy
 from ..store import BenchmarkRecord, GroundTruthRecord, Store
 from ..uploads import Limits
-from .phases import PhaseOf, phase_views
+from .phases import PhaseOf, current_phase_of, phase_views
 from .rules import DEFAULT_KEY, DIFFICULTIES, Benchmark, parse_column, parse_quota, parse_time
 from .views import benchmark_view
 
@@ -125,8 +125,11 @@ class BenchmarkCatalog:
         return out
 
     def visible(self, caller: Caller) -> list[Benchmark]:
+        """The benchmarks the caller sees, by name, each in its current phase."""
         found = [Benchmark.from_record(r) for r in self.store.list_benchmarks()]
-        return [b for b in found if self.sees(caller, b) and not b.is_later_phase]  # a benchmark, not each phase
+        firsts = [b for b in found if self.sees(caller, b) and not b.is_later_phase]  # a benchmark, not each phase
+        current = [current_phase_of(self, b) for b in firsts]  # each in its current phase
+        return [c if self.sees(caller, c) else b for b, c in zip(firsts, current)]
 
     def frame_ids(self, name: str, caller: Caller) -> list[str]:
         """The test frame ids (public, as KITTI's: the labels are what is sealed)."""

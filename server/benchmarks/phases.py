@@ -35,6 +35,7 @@ __all__ = [
     "phase_row",
     "check_phase_name",
     "current_row",
+    "current_phase_of",
     "row_of",
     "submission_row",
     "phase_views",
@@ -130,6 +131,14 @@ def submission_row(catalog: BenchmarkCatalog, name: str, submission_id: str) -> 
     if record is not None and record.benchmark.split(PHASE_SEPARATOR, 1)[0] == name:
         return record.benchmark
     return current_row(catalog, name)
+
+
+def current_phase_of(catalog: BenchmarkCatalog, first: Benchmark) -> Benchmark:
+    """The current phase of the benchmark whose first row is ``first`` (``first`` itself for one phase)."""
+    if not first.config.get("phases"):
+        return first
+    rows = _rows(catalog, first.name)
+    return _current(rows, datetime.now(timezone.utc)) if rows else first
 
 
 def row_of(catalog: BenchmarkCatalog, name: str, phase: str, caller: Caller) -> str:

@@ -238,6 +238,7 @@ def test_the_routes_without_a_phase_address_the_current_phase(world) -> None:
     )
     apply_benchmark_file(c.app.state.benchmarks, text, caller=HOST)
     assert ok(c.get("/v1/benchmarks/kitti-phases"))["phase"] == "test"
+    assert [(b["name"], b["phase"]) for b in ok(c.get("/v1/benchmarks"))["items"]] == [("kitti-phases", "test")]
     assert _submit(c, alice, "/v1/benchmarks/kitti-phases/submissions").status_code == 202
     test = ok(c.get("/v1/benchmarks/kitti-phases/submissions", headers=bearer(alice)))
     assert [s["phase"] for s in test["items"]] == ["test"] and test["quota"]["used"] == 1

@@ -61,6 +61,7 @@ def test_a_participant_goes_through_a_team_and_both_phases_in_the_browser(live, 
     _sign_in(browser, server, hosted.tokens["alice"])
     browser.find_element(By.LINK_TEXT, "Benchmarks").click()
     wait(browser).until(ec.presence_of_element_located((By.ID, "benchmarks")))
+    shoot_widths(browser, "phases-list")
     browser.find_element(By.LINK_TEXT, "KITTI 3D, two phases").click()
     wait(browser).until(ec.presence_of_element_located((By.ID, "phases")))
     assert _phase_items(browser) == ["phase-dev", "phase-test"]
