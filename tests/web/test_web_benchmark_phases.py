@@ -47,6 +47,8 @@ def test_the_page_shows_the_phases_the_current_first_and_each_board(world) -> No
     assert _phases(test.text) == [("dev", True, False), ("test", False, True)]
     assert "Leaderboard: test phase" in test.text and "/v1/benchmarks/kitti-phases/phases/test/leaderboard" in test.text
     assert c.get("/benchmarks/kitti-phases", params={"phase": "nope"}).status_code == 404
+    listed = c.get("/benchmarks").text
+    assert '<dd class="phase-now">dev (of dev, test); teams of up to 3</dd>' in listed
 
 
 def test_a_participant_makes_a_team_and_submits_to_the_test_phase_through_the_page(world) -> None:
