@@ -114,7 +114,7 @@ def _score(client: Any, service: Any, participant: dict[str, str], ids: list[str
     """Run the scorings one after another in this process, timing their resampling; publish; read the board."""
     import kitti_eval.analysis.ranking as ranking
     import kitti_eval_server.benchmarks.intervals as intervals
-    from kitti_eval_server.workers import Workers
+    from kitti_eval_server.jobs.workers import Workers
 
     resampling, draws = _Clock(), _Clock()
     ranking.resampled_key = resampling.around(ranking.resampled_key)
@@ -149,8 +149,8 @@ def _backfill(client: Any, service: Any) -> dict[str, float]:
     """Drop the kept values (a database from before they were kept), let the board queue their jobs, run them."""
     from sqlalchemy import delete
 
+    from kitti_eval_server.jobs.workers import Workers
     from kitti_eval_server.store.database import submission_resamples
-    from kitti_eval_server.workers import Workers
 
     with service.store.engine.begin() as conn:
         conn.execute(delete(submission_resamples))

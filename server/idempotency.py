@@ -24,7 +24,7 @@ from datetime import datetime, timedelta
 from typing import Any
 
 from .errors import ApiError, echo
-from .jobs import JobQueue, JobRecord, now_utc
+from .jobs.queue import JobQueue, JobRecord, now_utc
 from .store import IdempotencyRecord, KeyTaken, Store
 
 __all__ = [

@@ -24,26 +24,26 @@ import sqlalchemy.exc
 from kitti_eval._jit import warm_up
 from kitti_eval.demo import demo_paths
 
-from .accounts import Accounts
-from .audit import Audit
-from .auth import FailureLimiter
+from .access.accounts import Accounts
+from .access.audit import Audit
+from .access.auth import FailureLimiter
+from .access.policy import AuthMode, Policy
 from .benchmarks import Benchmarks
-from .catalog import GroundTruthCatalog
 from .errors import StartupRefused
-from .evaluations import Evaluations, sealed_document
-from .ground_truths import GroundTruthCache, GroundTruths
+from .evaluations.evaluations import Evaluations, sealed_document
+from .evaluations.uploads import FileIn, Limits, receive_upload
+from .ground_truths.cache import GroundTruthCache, GroundTruths
+from .ground_truths.catalog import GroundTruthCatalog
 from .idempotency import Idempotency
-from .job_admin import JobAdmin
-from .jobs import JobQueue, JobRecord, QueueLimits
+from .jobs.admin import JobAdmin
+from .jobs.pool import WorkerPool
+from .jobs.queue import JobQueue, JobRecord, QueueLimits
+from .jobs.runner import Runner, release_memory
+from .jobs.scratch import ScratchSpace
+from .jobs.workers import Workers, await_outcome
 from .observability import AdmissionState
-from .policy import AuthMode, Policy
-from .runner import Runner, release_memory
-from .scratch import ScratchSpace
 from .settings import Settings
 from .store import IdempotencyRecord, JobInput, Store
-from .uploads import FileIn, Limits, receive_upload
-from .worker_pool import WorkerPool
-from .workers import Workers, await_outcome
 
 __all__ = ["Service", "FileIn", "DEMO_NAME", "sealed_document", "release_memory"]
 
@@ -357,7 +357,7 @@ class Service:
             self.admission.waiting -= 1
 
     async def run(self, func: Callable[..., T], *args: Any) -> T:
-        """Blocking work on the runner's threads (:meth:`Runner.run <kitti_eval_server.runner.Runner.run>`)."""
+        """Blocking work on the runner's threads (:meth:`Runner.run <kitti_eval_server.jobs.runner.Runner.run>`)."""
         return await self.runner.run(func, *args)
 
     async def accept(self, func: Callable[[], T]) -> T:

@@ -164,10 +164,10 @@ def run(args: argparse.Namespace) -> int:
         from pydantic import ValidationError
         from sqlalchemy.exc import SQLAlchemyError
 
-        from kitti_eval_server.accounts import Accounts
-        from kitti_eval_server.audit import Audit
+        from kitti_eval_server.access.accounts import Accounts
+        from kitti_eval_server.access.audit import Audit
+        from kitti_eval_server.access.policy import Policy
         from kitti_eval_server.errors import ApiError
-        from kitti_eval_server.policy import Policy
         from kitti_eval_server.settings import Settings
         from kitti_eval_server.store import Store
     except ImportError as e:
@@ -304,7 +304,7 @@ def _run_jobs(service: Any, job_ids: list[str]) -> list[Any]:
     """Run the queued rescoring jobs, and the jobs of the board's intervals they queue, in this process until none
     is left (a service's workers on the same database may take some of ``job_ids`` meanwhile: those are waited
     for); the jobs ``job_ids`` as they ended."""
-    from kitti_eval_server.workers import Workers, worker_name
+    from kitti_eval_server.jobs.workers import Workers, worker_name
 
     workers = Workers(service.jobs, service.workers.handlers, threads=0)
     name = worker_name(0) + ":admin"
@@ -389,7 +389,7 @@ def _benchmark(args: argparse.Namespace, settings: Any, caller: Any) -> int:
 
 
 def _jobs(args: argparse.Namespace, settings: Any, caller: Any) -> int:
-    from kitti_eval_server.workers import JobFailed
+    from kitti_eval_server.jobs.workers import JobFailed
 
     with _offline_service(settings) as service:
         admin = service.job_admin

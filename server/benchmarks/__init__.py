@@ -12,7 +12,7 @@ rank of its own).
 A submission is checked first with :func:`kitti_eval.io.submission.validate_submission` against the test frame
 ids (the sentences ``kitti-eval validate`` prints; a refused submission costs nothing), then counted against
 the quota and accepted in one transaction (``BenchmarkStore.accept_submission``; the acceptance time is the
-submission's), then scored on the sealed set by a job (:mod:`kitti_eval_server.jobs`: a worker of this or
+submission's), then scored on the sealed set by a job (:mod:`kitti_eval_server.jobs.queue`: a worker of this or
 another process; rescoring queues one job per submission). Its participant sees its aggregate result (on the
 public part only while a benchmark with a split is not revealed); nobody else sees it until it is
 published. What is published is frozen when the benchmark closes, and a benchmark may cap the entries a

@@ -13,16 +13,16 @@ from typing import Any
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import THRESHOLD_SETS
 
-from ..accounts import Accounts
-from ..audit import Audit
+from ..access.accounts import Accounts
+from ..access.audit import Audit
+from ..access.policy import Caller, Policy
 from ..errors import BadRequest, Conflict, NotFound, echo
-from ..evaluator import EvalOptions
-from ..ground_truths import GroundTruths
+from ..evaluations.evaluator import EvalOptions
+from ..evaluations.uploads import Limits
+from ..ground_truths.cache import GroundTruths
 from ..idempotency import Idempotency
-from ..jobs import JobQueue
-from ..policy import Caller, Policy
+from ..jobs.queue import JobQueue
 from ..store import BenchmarkRecord, GroundTruthRecord, Store
-from ..uploads import Limits
 from .rules import DEFAULT_KEY, DIFFICULTIES, Benchmark, parse_column, parse_quota, parse_time
 from .views import benchmark_view
 
@@ -81,7 +81,7 @@ class BenchmarkCatalog:
 
     def taking_part(self, name: str) -> tuple[str | None, bool]:
         """Who takes part in the benchmark, for :meth:`Policy.may_take_part
-        <kitti_eval_server.policy.Policy.may_take_part>`: its test set's project (None: shared, or no such
+        <kitti_eval_server.access.policy.Policy.may_take_part>`: its test set's project (None: shared, or no such
         benchmark) and whether it is open to all."""
         record = self.store.get_benchmark(name)
         if record is None:

@@ -38,9 +38,9 @@ from kitti_eval.core.evaluation import plan_evaluation
 from kitti_eval.core.frames import Annotations
 
 from ..errors import Conflict
-from ..jobs import JobRecord
+from ..evaluations.uploads import load_upload, stored_upload
+from ..jobs.queue import JobRecord
 from ..store import ResampledKey, SubmissionRecord
-from ..uploads import load_upload, stored_upload
 from .catalog import BenchmarkCatalog
 from .rules import Benchmark, key_value, part_frames
 

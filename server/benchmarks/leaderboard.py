@@ -11,8 +11,8 @@ from typing import Any
 
 from kitti_eval.analysis.ranking import standings
 
+from ..access.policy import Caller
 from ..errors import BadRequest
-from ..policy import Caller
 from .intervals import Intervals, ranked_rows, rounded
 from .views import BOARD_FIELDS, ENTRY_FIELDS, pick
 

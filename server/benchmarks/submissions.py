@@ -14,23 +14,11 @@ from kitti_eval.core.frames import Annotations
 from kitti_eval.errors import InputError
 from kitti_eval.io.submission import SubmissionRules, validate_annotations, validate_txt_folder
 
+from ..access.policy import Caller
 from ..errors import ApiError, ArchiveError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
-from ..evaluations import sealed_document
-from ..evaluator import evaluate_document, evaluate_document_resampled
-from ..idempotency import RequestKey, fingerprint, submissions_scope
-from ..jobs import JobRecord
-from ..policy import Caller
-from ..store import (
-    GroundTruthRecord,
-    JobInput,
-    KeyTaken,
-    PublishRefused,
-    QuotaRefused,
-    ResampledKey,
-    SubmissionRecord,
-    new_id,
-)
-from ..uploads import (
+from ..evaluations.evaluations import sealed_document
+from ..evaluations.evaluator import evaluate_document, evaluate_document_resampled
+from ..evaluations.uploads import (
     FileIn,
     InputFormat,
     Upload,
@@ -41,7 +29,19 @@ from ..uploads import (
     sniff,
     stored_upload,
 )
-from ..workers import JobFailed, error_of
+from ..idempotency import RequestKey, fingerprint, submissions_scope
+from ..jobs.queue import JobRecord
+from ..jobs.workers import JobFailed, error_of
+from ..store import (
+    GroundTruthRecord,
+    JobInput,
+    KeyTaken,
+    PublishRefused,
+    QuotaRefused,
+    ResampledKey,
+    SubmissionRecord,
+    new_id,
+)
 from .intervals import Intervals
 from .rules import Benchmark, part_frames, scores_of
 from .views import submission_view
@@ -209,7 +209,7 @@ class Submissions(Intervals):
     def refused_now(self, name: str, caller: Caller, size: int, idempotency_key: str | None = None) -> ApiError | None:
         """What a participant's submission of ``size`` bytes to ``name`` would be refused with now, found before
         its file is received: a caller who reads the benchmark but does not take part in it (403), a used quota
-        (429 ``quota_exceeded``) or a full queue (:meth:`JobQueue.admit <kitti_eval_server.jobs.JobQueue.admit>`).
+        (429 ``quota_exceeded``) or a full queue (:meth:`JobQueue.admit <kitti_eval_server.jobs.queue.JobQueue.admit>`).
         None when it may be accepted, or for any other answer: the route decides those, and the transaction that
         accepts counts the quota again. A request sent again with an idempotency key already recorded is not
         refused here: the route answers it with its first job."""

@@ -10,10 +10,10 @@ from fastapi import APIRouter, Depends, File, Header, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, Field
 
+from ..access.deps import AdminCaller, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.policy import Caller
 from ..benchmarks import DEFAULT_KEY, Benchmarks
-from ..deps import AdminCaller, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
-from ..policy import Caller
 from ..schemas import ErrorResponse
 from ..service import FileIn
 from .jobs import still_pending

@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query
 
-from ..deps import ReaderCaller, ServiceDep
+from ..access.deps import ReaderCaller, ServiceDep
 from ..schemas import ErrorResponse
 
 router = APIRouter(

@@ -273,7 +273,7 @@ quota_locks = Table(
 )
 
 #: the queue of work: every evaluation, submission and rescoring, recorded when its input is stored and taken by
-#: a worker (of this process or another) with a lease; see kitti_eval_server.jobs for the rules
+#: a worker (of this process or another) with a lease; see kitti_eval_server.jobs.queue for the rules
 jobs = Table(
     "jobs",
     metadata,

@@ -23,13 +23,13 @@ from starlette.exceptions import HTTPException
 
 from kitti_eval.errors import KittiEvalError
 
+from ..access.deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.policy import Caller
 from ..benchmarks import Benchmarks, InvalidSubmission, render_markdown
-from ..deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..errors import ApiError, BadRequest, NotFound, clip, fault_of
 from ..idempotency import FORM_FIELD, new_form_key, parse_key
-from ..policy import Caller
+from ..jobs.workers import JobFailed
 from ..service import FileIn, Service
-from ..workers import JobFailed
 from .boards import board_entries, board_header, bootstrap_line, column_label, comparison_rows, full_time, number
 from .routes import _render, _status, queued_text
 

@@ -24,10 +24,10 @@ import pytest
 from server_helpers import ROOT, app_client, register, upload
 
 from kitti_eval.synth import generate
-from kitti_eval_server.jobs import JobQueue
+from kitti_eval_server.jobs.pool import WorkerPool
+from kitti_eval_server.jobs.queue import JobQueue
+from kitti_eval_server.jobs.workers import Workers
 from kitti_eval_server.store import Store
-from kitti_eval_server.worker_pool import WorkerPool
-from kitti_eval_server.workers import Workers
 
 
 def _queue(tmp_path: Path, **kwargs: Any) -> JobQueue:
@@ -315,9 +315,9 @@ def test_a_worker_process_runs_the_installed_service_whatever_folder_it_starts_i
     """``python -m`` puts the working folder first on the import path: started inside another checkout, a worker
     would run that checkout's service, not the one the web process runs. The pool's command does not."""
     other = tmp_path / "kitti_eval_server"
-    other.mkdir()
+    (other / "jobs").mkdir(parents=True)
     marker = tmp_path / "the-other-checkout-ran"
-    for name in ("__init__.py", "worker_process.py"):
+    for name in ("__init__.py", "jobs/__init__.py", "jobs/process.py"):
         (other / name).write_text(f"open({str(marker)!r}, 'w').close()\n")
     pool = WorkerPool(1, threads=1, grace_s=1.0, work_dir=tmp_path / "work", database_url="sqlite://")
     command = [*pool._command()[:3], "--help"]  # the interpreter and how it starts the module, then --help

@@ -325,7 +325,7 @@ def test_no_worker_no_readiness(service_client: Any) -> None:
     import time
     from datetime import datetime, timedelta, timezone
 
-    from kitti_eval_server.jobs import JobQueue
+    from kitti_eval_server.jobs.queue import JobQueue
 
     with service_client(job_threads=0, ready=False) as client:
         service = client.app.state.service

@@ -11,8 +11,8 @@ from server_accounts import add_token, make_teams
 from server_helpers import ADMIN, ADMIN_TOKEN, app_client, golden_bytes
 from sqlalchemy import update
 
-from kitti_eval_server.accounts import csrf_token, split_token
-from kitti_eval_server.auth import CSRF_COOKIE, SESSION_COOKIE
+from kitti_eval_server.access.accounts import csrf_token, split_token
+from kitti_eval_server.access.auth import CSRF_COOKIE, SESSION_COOKIE
 from kitti_eval_server.store import tokens
 
 
