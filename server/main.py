@@ -205,7 +205,7 @@ def _submission_refused(service: Service, access: Callable[[], Access]) -> Befor
             idempotency_key = parse_key(key)
         except ApiError:
             return None  # the route refuses it, as always
-        return service.benchmarks.refused_now(params["name"], admitted, size, idempotency_key)
+        return service.benchmarks.submissions.refused_now(params["name"], admitted, size, idempotency_key)
 
     return check
 

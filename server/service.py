@@ -60,7 +60,7 @@ class Service:
         self.settings = settings
         self.data_dir = settings.data_dir.resolve()
         self.store = Store(settings.resolved_database_url, busy_s=settings.database_busy_s)
-        self.audit = Audit(self.store)
+        self.audit = Audit(self.store.account_store)
         self.admin_token = ""
         self.policy = Policy(
             AuthMode(settings.auth),
@@ -68,7 +68,7 @@ class Service:
             metrics_token=lambda: settings.metrics_token.get_secret_value() if settings.metrics_token else None,
             test_sets=self._test_sets,
         )
-        self.accounts = Accounts(self.store, self.audit, lambda: self.admin_token)
+        self.accounts = Accounts(self.store.account_store, self.audit, lambda: self.admin_token)
         self.limiter = FailureLimiter(settings.auth_max_failures, settings.auth_failure_window_s)
         self.limits = Limits(max_unpacked_bytes=settings.max_unpacked_bytes, max_members=settings.max_archive_members)
         self.scratch_space = ScratchSpace(self.data_dir)
@@ -76,7 +76,8 @@ class Service:
         self.admission = AdmissionState()
         self.runner = Runner(settings.max_concurrent_evals, self.admission, self.scratch_space)
         self.ground_truths = GroundTruths(
-            self.store,
+            self.store.ground_truth_store,
+            self.store.benchmark_store,
             self.data_dir / "ground-truths",
             GroundTruthCache(settings.gt_cache_entries, settings.gt_cache_bytes),
             self.limits,
@@ -85,7 +86,7 @@ class Service:
         #: the ground truths as callers see them (the policy's rules and the audit over ``ground_truths``)
         self.catalog = GroundTruthCatalog(
             self.ground_truths,
-            self.store,
+            self.store.ground_truth_store,
             self.policy,
             self.audit,
             self.runner.scratch,
@@ -95,7 +96,7 @@ class Service:
             settings.pred_cache_entries, settings.gt_cache_bytes, what="predictions", setting="KITTI_EVAL_GT_CACHE_MB"
         )
         #: every accepted evaluation is a job; workers of this process run them (and any ``kitti-eval worker``)
-        self.jobs = JobQueue(
+        self.jobs = JobQueue.of(
             self.store,
             lease_s=settings.job_lease_s,
             max_attempts=settings.job_max_attempts,
@@ -107,9 +108,12 @@ class Service:
             ),
         )
         #: the requests' idempotency keys (evaluations and submissions)
-        self.idempotency = Idempotency(self.store, self.jobs, settings.idempotency_key_hours)
+        self.idempotency = Idempotency(self.store.idempotency_store, self.jobs, settings.idempotency_key_hours)
         self.evaluations = Evaluations(
-            self.store,
+            self.store.evaluation_store,
+            self.store.ground_truth_store,
+            self.store.job_input_store,
+            self.store.account_store,
             self.catalog,
             self.predictions,
             self.policy,
@@ -130,9 +134,9 @@ class Service:
             self.jobs,
             {
                 "evaluation": self._run_evaluation,
-                "submission": lambda job: self.benchmarks.score_job(job),
-                "rescore": lambda job: self.benchmarks.score_job(job),
-                "intervals": lambda job: self.benchmarks.intervals_job(job),
+                "submission": lambda job: self.benchmarks.scoring.score_job(job),
+                "rescore": lambda job: self.benchmarks.scoring.score_job(job),
+                "intervals": lambda job: self.benchmarks.intervals.intervals_job(job),
             },
             threads=settings.job_threads,
             admission=self.admission,
@@ -147,17 +151,17 @@ class Service:
         )
         #: worker processes of the service's own (KITTI_EVAL_WORKER_PROCESSES), started and stopped with it
         self.pool: WorkerPool | None = None
-        self.benchmarks = Benchmarks(
+        self.benchmarks = Benchmarks.assemble(
             self.store,
             self.ground_truths,
             self.policy,
             self.audit,
             self.runner.scratch,
             self.limits,
-            draining=self.draining.is_set,
             jobs=self.jobs,
-            wake=lambda n: self.workers.wake(n),
             idempotency=self.idempotency,
+            draining=self.draining.is_set,
+            wake=lambda n: self.workers.wake(n),
         )
 
     # -- lifecycle ---------------------------------------------------------------------------------------
@@ -275,7 +279,7 @@ class Service:
         return token
 
     def _register_demo(self) -> None:
-        if self.store.get_ground_truth(DEMO_NAME) is not None:
+        if self.store.ground_truth_store.get_ground_truth(DEMO_NAME) is not None:
             return
         gt_path, _ = demo_paths()
         with open(gt_path, "rb") as fh, self.scratch() as scratch:
@@ -283,7 +287,7 @@ class Service:
             try:
                 self.ground_truths.register(DEMO_NAME, upload, scratch)
             except Exception as e:  # noqa: BLE001 - another worker may have registered it meanwhile
-                if self.store.get_ground_truth(DEMO_NAME) is None:
+                if self.store.ground_truth_store.get_ground_truth(DEMO_NAME) is None:
                     raise
                 log.debug("demo ground truth registered concurrently: %s", e)
         log.info("registered the bundled demo ground truth as %r", DEMO_NAME)
@@ -371,6 +375,6 @@ class Service:
     def _test_sets(self) -> dict[str, list[str]]:
         """Ground truth name -> the benchmarks whose test set it is (for the policy)."""
         found: dict[str, list[str]] = {}
-        for bench in self.store.list_benchmarks():
+        for bench in self.store.benchmark_store.list_benchmarks():
             found.setdefault(bench.gt_name, []).append(bench.name)
         return found

@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterable
 from datetime import datetime, timedelta, timezone
 
 from ..errors import BadRequest, Conflict, NotFound, Unauthorized, echo
-from ..store import Store, TokenRecord, UserRecord
+from ..store import AccountStore, TokenRecord, UserRecord
 from .audit import Audit
 from .policy import ALL_SCOPES, BUILT_IN_CALLERS, READ, WRITE, Caller, Policy
 
@@ -91,8 +91,8 @@ class Accounts:
 
     Every method that changes something takes the caller who acts and records it in the audit log."""
 
-    def __init__(self, store: Store, audit: Audit, admin_token: Callable[[], str]) -> None:
-        self.store = store
+    def __init__(self, account_store: AccountStore, audit: Audit, admin_token: Callable[[], str]) -> None:
+        self.account_store = account_store
         self.audit = audit
         self._admin_token = admin_token
 
@@ -107,7 +107,7 @@ class Accounts:
             if admin and hmac.compare_digest(presented_digest, digest(admin)):
                 return Policy.admin_token_caller()  # the admin token stands for an admin
         token_id = split_token(presented)
-        record = self.store.get_token(token_id) if token_id is not None else None
+        record = self.account_store.get_token(token_id) if token_id is not None else None
         matches = hmac.compare_digest(presented_digest, record.secret_sha256 if record else _DUMMY_DIGEST)
         if record is None or not matches:
             raise TokenRefused("unknown token" if record is None else "wrong secret", token_id)
@@ -115,11 +115,11 @@ class Accounts:
             raise TokenRefused(f"a {record.kind} used as a {'session' if session else 'token'}", token_id)
         problem = self._problem(record)
         if problem is None and record.parent is not None:
-            parent = self.store.get_token(record.parent)
+            parent = self.account_store.get_token(record.parent)
             problem = "its token is gone" if parent is None else self._problem(parent, "its token ")
         if problem is not None:
             raise TokenRefused(problem, token_id)
-        user = self.store.get_user(record.user_name)
+        user = self.account_store.get_user(record.user_name)
         if user is None:
             raise TokenRefused("its user is gone", token_id)
         return Caller(
@@ -161,40 +161,40 @@ class Accounts:
                 f"the user name {name!r} is reserved: the service names its own callers so "
                 f"({', '.join(sorted(BUILT_IN_CALLERS))})"
             )
-        if not self.store.add_user(name, is_admin):
+        if not self.account_store.add_user(name, is_admin):
             raise Conflict(f"a user named {name!r} exists")
         self.audit.record(caller, "user.add", name, detail="admin" if is_admin else "")
-        user = self.store.get_user(name)
+        user = self.account_store.get_user(name)
         assert user is not None
         return user
 
     def user(self, name: str) -> UserRecord:
-        user = self.store.get_user(name)
+        user = self.account_store.get_user(name)
         if user is None:
             raise NotFound(f"no user named {echo(name)}")
         return user
 
     def add_project(self, name: str, *, caller: Caller) -> str:
         self.check_name(name, "project")
-        if not self.store.add_project(name):
+        if not self.account_store.add_project(name):
             raise Conflict(f"a project named {name!r} exists")
         self.audit.record(caller, "project.add", name)
         return name
 
     def check_project(self, name: str) -> str:
-        if not self.store.project_exists(name):
+        if not self.account_store.project_exists(name):
             raise NotFound(f"no project named {echo(name)}")
         return name
 
     def add_member(self, user: str, project: str, *, caller: Caller) -> None:
         self.user(user)
         self.check_project(project)
-        if not self.store.add_membership(user, project):
+        if not self.account_store.add_membership(user, project):
             raise Conflict(f"{user!r} is a member of {project!r} already")
         self.audit.record(caller, "member.add", f"{user} -> {project}")
 
     def remove_member(self, user: str, project: str, *, caller: Caller) -> None:
-        if not self.store.remove_membership(user, project):
+        if not self.account_store.remove_membership(user, project):
             raise NotFound(f"{echo(user)} is not a member of {echo(project)}")
         self.audit.record(caller, "member.remove", f"{user} -> {project}")
 
@@ -235,45 +235,45 @@ class Accounts:
             expires_at=now + lifetime if lifetime else None,
             revoked_at=None,
         )
-        self.store.add_token(record)
+        self.account_store.add_token(record)
         return record, token
 
     def revoke_token(self, token_id: str, *, caller: Caller) -> None:
-        record = self.store.get_token(token_id)
-        if record is None or record.kind != "token" or not self.store.revoke_token(token_id):
+        record = self.account_store.get_token(token_id)
+        if record is None or record.kind != "token" or not self.account_store.revoke_token(token_id):
             raise NotFound(f"no token with id {echo(token_id)}")
         self.audit.record(caller, "token.revoke", f"{record.user_name} ({token_id})")
 
     def open_session(self, caller: Caller, hours: float) -> str:
         """A web session for a caller signed in with a token: the session's own token, for the cookie."""
         assert caller.token_id is not None
-        parent = self.store.get_token(caller.token_id)
+        parent = self.account_store.get_token(caller.token_id)
         assert parent is not None
         lifetime = timedelta(hours=hours)
         if parent.expires_at is not None:
             lifetime = min(lifetime, parent.expires_at - datetime.now(timezone.utc))
         record, token = self._new(caller.name, "session", parent.id, caller.scopes, lifetime)
         # ended sessions are of no use after a day (their audit rows stay): they do not pile up
-        self.store.purge_sessions(datetime.now(timezone.utc) - timedelta(days=1))
+        self.account_store.purge_sessions(datetime.now(timezone.utc) - timedelta(days=1))
         self.audit.record(caller, "session.open", f"session {record.id}")
         return token
 
     def close_session(self, caller: Caller) -> None:
         if caller.session and caller.token_id is not None:
-            self.store.revoke_token(caller.token_id)
+            self.account_store.revoke_token(caller.token_id)
             self.audit.record(caller, "session.close", f"session {caller.token_id}")
 
     def holders(self) -> tuple[int, int]:
         """How many users, and tokens not revoked (web sessions included), the database holds."""
-        tokens = [t for t in self.store.list_tokens() if t.revoked_at is None]
-        return len(self.store.list_users()), len(tokens)
+        tokens = [t for t in self.account_store.list_tokens() if t.revoked_at is None]
+        return len(self.account_store.list_users()), len(tokens)
 
     # -- listing (admins) --------------------------------------------------------------------------------
     def users(self) -> list[UserRecord]:
-        return self.store.list_users()
+        return self.account_store.list_users()
 
     def projects(self) -> list[str]:
-        return self.store.list_projects()
+        return self.account_store.list_projects()
 
     def tokens(self, user: str | None = None) -> list[TokenRecord]:
-        return self.store.list_tokens(user)
+        return self.account_store.list_tokens(user)

@@ -29,8 +29,9 @@ class _AuditStore(Protocol):
 
 
 class Audit:
-    def __init__(self, store: _AuditStore) -> None:
-        self._store = store
+    def __init__(self, account_store: _AuditStore) -> None:
+        """``account_store``: where the rows are written (the accounts' area of the store)."""
+        self.account_store = account_store
 
     def record(self, caller: Caller, action: str, target: str, *, outcome: str = "ok", detail: str = "") -> None:
         """``caller`` did ``action`` on ``target``."""
@@ -52,7 +53,7 @@ class Audit:
         self._write(actor, "token.refused", target, "refused", client, reason)
 
     def entries(self, *, limit: int = 100, offset: int = 0) -> list[AuditRecord]:
-        return self._store.list_audit(limit=limit, offset=offset)
+        return self.account_store.list_audit(limit=limit, offset=offset)
 
     def _write(
         self, actor: str, action: str, target: str, outcome: str, client: str, detail: str, conn: Any = None
@@ -61,6 +62,6 @@ class Audit:
         log.info("audit: %s %s %s (%s) from %s %s", actor, action, target, outcome, client, detail)
         row = {"actor": actor, "action": action, "target": target, "outcome": outcome, "client": client}
         if conn is None:
-            self._store.add_audit(**row, detail=detail)
+            self.account_store.add_audit(**row, detail=detail)
         else:
-            self._store.add_audit_in(conn, **row, detail=detail)
+            self.account_store.add_audit_in(conn, **row, detail=detail)

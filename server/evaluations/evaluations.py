@@ -27,7 +27,19 @@ from ..ground_truths.cache import GroundTruthCache
 from ..ground_truths.catalog import GroundTruthCatalog
 from ..idempotency import EVALUATIONS, Idempotency, RequestKey, fingerprint
 from ..jobs.queue import JobQueue
-from ..store import EvaluationRecord, GroundTruthRecord, IdempotencyRecord, JobInput, JobRecord, KeyTaken, Store, new_id
+from ..store import (
+    AccountStore,
+    EvaluationRecord,
+    EvaluationStore,
+    GroundTruthRecord,
+    GroundTruthStore,
+    IdempotencyRecord,
+    JobInput,
+    JobInputStore,
+    JobRecord,
+    KeyTaken,
+    new_id,
+)
 from .evaluator import EvalOptions, evaluate_document, summarize
 from .uploads import FileIn, Limits, load_upload, receive_content, stored_upload
 
@@ -62,7 +74,10 @@ class Evaluations:
 
     def __init__(
         self,
-        store: Store,
+        evaluation_store: EvaluationStore,
+        ground_truth_store: GroundTruthStore,
+        job_input_store: JobInputStore,
+        account_store: AccountStore,
         ground_truths: GroundTruthCatalog,
         predictions: GroundTruthCache,
         policy: Policy,
@@ -74,7 +89,10 @@ class Evaluations:
         keep_predictions: bool,
         idempotency: Idempotency | None = None,
     ) -> None:
-        self.store = store
+        self.evaluation_store = evaluation_store
+        self.ground_truth_store = ground_truth_store
+        self.job_input_store = job_input_store
+        self.account_store = account_store  # whether a project exists
         self.ground_truths = ground_truths
         self.predictions = predictions
         self.policy = policy
@@ -83,7 +101,7 @@ class Evaluations:
         self.scratch = scratch
         self.jobs = jobs
         self.keep_predictions = keep_predictions
-        self.idempotency = idempotency or Idempotency(store, jobs)
+        self.idempotency = idempotency or Idempotency(jobs.idempotency_store, jobs)
 
     def accept(
         self,
@@ -163,13 +181,13 @@ class Evaluations:
         options = EvalOptions.from_dict(payload["options"])
         config = options.config()
         gt_name: str | None = payload["gt_name"]
-        pred_input = self.store.job_input(job_id, "predictions")
+        pred_input = self.job_input_store.job_input(job_id, "predictions")
         if pred_input is None:
             raise Conflict(f"the inputs of evaluation {job_id} are gone (it has run already)")
         with self.scratch() as scratch:
             gt_record = None
             if gt_name is not None:
-                gt_record = self.store.get_ground_truth(gt_name)
+                gt_record = self.ground_truth_store.get_ground_truth(gt_name)
                 if gt_record is None or gt_record.sha256 != payload["gt_sha256"]:
                     raise Conflict(
                         f"the ground truth {gt_name!r} was deleted or replaced after the evaluation was accepted; "
@@ -178,7 +196,7 @@ class Evaluations:
                 gt = self.ground_truths.files.load(gt_record)
                 gt_sha256 = gt_record.sha256
             else:
-                gt_input = self.store.job_input(job_id, "gt_file")
+                gt_input = self.job_input_store.job_input(job_id, "gt_file")
                 assert gt_input is not None
                 gt_upload = stored_upload(gt_input.content, gt_input.filename, gt_input.sha256)
                 gt = load_upload(gt_upload, "ground_truth", scratch / "gt", self.limits).annotations
@@ -200,7 +218,7 @@ class Evaluations:
                 doc = sealed_document(doc)
         if keep:
             if not pred_input.kept:  # accepted before files were kept at acceptance, or while they were not kept
-                self.store.add_prediction_file(pred.sha256, pred_input.content)
+                self.ground_truth_store.add_prediction_file(pred.sha256, pred_input.content)
             self.predictions.put(pred.sha256, loaded.annotations)
         record = EvaluationRecord(
             id=payload["evaluation_id"],
@@ -228,8 +246,8 @@ class Evaluations:
         )
 
         def write(conn: Any) -> None:
-            self.store.add_evaluation_in(conn, record)
-            self.store.delete_job_inputs_in(conn, job_id)
+            self.evaluation_store.add_evaluation_in(conn, record)
+            self.job_input_store.delete_job_inputs_in(conn, job_id)
 
         return record, write
 
@@ -238,7 +256,7 @@ class Evaluations:
         second run would store it twice); and its inputs must still be kept (they go when it is done)."""
         if job.state == "done":
             return f"job {job.id} is done and its evaluation is stored: upload the predictions again for a new one"
-        if self.store.job_input(job.id, "predictions") is None:
+        if self.job_input_store.job_input(job.id, "predictions") is None:
             return f"the inputs of job {job.id} are gone: upload the predictions again"
         return None
 
@@ -252,7 +270,7 @@ class Evaluations:
                     f"not {echo(wanted)}; evaluations against it belong to its project"
                 )
             return gt_record.project
-        return self.policy.default_project(caller, self.store.project_exists, wanted)
+        return self.policy.default_project(caller, self.account_store.project_exists, wanted)
 
     def job_of(self, evaluation_id: str, caller: Caller) -> tuple[JobRecord, int | None] | None:
         """The job of an accepted evaluation not stored yet (queued, running, failed or cancelled) and its place
@@ -269,10 +287,10 @@ class Evaluations:
         """The evaluation, if the caller may see it; another project's is as absent as a missing one, and takes
         as long to refuse (one small read of its project, before anything else is loaded)."""
         if self.policy.project_filter(caller) is not None:
-            exists, project = self.store.evaluation_project(evaluation_id)
+            exists, project = self.evaluation_store.evaluation_project(evaluation_id)
             if not exists or not self.policy.sees_project(caller, project):
                 raise NotFound(f"no evaluation with id {echo(evaluation_id)}")
-        record = self.store.get_evaluation(evaluation_id)
+        record = self.evaluation_store.get_evaluation(evaluation_id)
         self.policy.require_evaluation(caller, record, evaluation_id)
         assert record is not None
         return record
@@ -288,7 +306,7 @@ class Evaluations:
     ) -> list[EvaluationRecord]:
         if not self.policy.is_signed_in(caller):
             return []
-        return self.store.list_evaluations(
+        return self.evaluation_store.list_evaluations(
             gt_name=gt_name,
             labels=labels,
             limit=limit,
@@ -310,7 +328,7 @@ class Evaluations:
                 f"evaluation {record.id} was stored without its options; upload the predictions again "
                 "to look at its frames"
             )
-        gt_record = self.store.get_ground_truth(record.gt_name)
+        gt_record = self.ground_truth_store.get_ground_truth(record.gt_name)
         if gt_record is not None:
             self.policy.require_frames(gt_record, record.id)
         if gt_record is None or gt_record.sha256 != record.gt_sha256:
@@ -324,7 +342,7 @@ class Evaluations:
         gt = self.ground_truths.files.load(gt_record)
 
         def load_kept() -> Annotations:
-            content = self.store.prediction_content(record.pred_sha256)
+            content = self.ground_truth_store.prediction_content(record.pred_sha256)
             if content is None:
                 raise Conflict(
                     f"the predictions of evaluation {record.id} were not kept "

@@ -29,7 +29,7 @@ from kitti_eval.io.loaders import load_ground_truth
 
 from ..errors import ApiError, BadRequest, Conflict, NotFound, echo
 from ..evaluations.uploads import InputFormat, Limits, Upload, extract_txt_folder, load_upload, stored_upload
-from ..store import GroundTruthRecord, Store
+from ..store import BenchmarkStore, GroundTruthRecord, GroundTruthStore
 
 __all__ = ["GroundTruths", "GroundTruthCache", "NAME_PATTERN", "annotations_nbytes", "display_name"]
 
@@ -133,13 +133,15 @@ class GroundTruths:
 
     def __init__(
         self,
-        store: Store,
+        ground_truth_store: GroundTruthStore,
+        benchmark_store: BenchmarkStore,
         root: Path,
         cache: GroundTruthCache,
         limits: Limits,
         scratch: Callable[[], AbstractContextManager[Path]],
     ) -> None:
-        self.store = store
+        self.ground_truth_store = ground_truth_store
+        self.benchmark_store = benchmark_store  # a ground truth a benchmark uses is not deleted
         self.root = root
         self.cache = cache
         self.limits = limits
@@ -159,7 +161,7 @@ class GroundTruths:
     ) -> GroundTruthRecord:
         """Validate ``upload`` as ground truth (by loading it), keep it, and record it under ``name``."""
         self.check_name(name)
-        if self.store.get_ground_truth(name) is not None:
+        if self.ground_truth_store.get_ground_truth(name) is not None:
             raise Conflict(f"a ground truth named {name!r} exists; delete it first or pick another name")
         if not sealed:
             self._check_not_a_test_set(name)
@@ -179,7 +181,7 @@ class GroundTruths:
             project=project,
             sealed=sealed,
         )
-        if not self.store.add_ground_truth(record, content):
+        if not self.ground_truth_store.add_ground_truth(record, content):
             raise Conflict(f"a ground truth named {name!r} exists; delete it first or pick another name")
         try:
             self._keep_local(record, content, loaded.folder)
@@ -192,7 +194,7 @@ class GroundTruths:
 
     def _check_not_a_test_set(self, name: str) -> None:
         """A benchmark's test set stays sealed: its name is registered again (a corrected set) sealed only."""
-        users = self.store.benchmarks_using(name)
+        users = self.benchmark_store.benchmarks_using(name)
         if users:
             named = ", ".join(repr(b.name) for b in users)
             raise Conflict(
@@ -230,7 +232,7 @@ class GroundTruths:
         target = self.root.parent / record.storage
         if target.exists():
             return target
-        content = self.store.ground_truth_content(record.sha256)
+        content = self.ground_truth_store.ground_truth_content(record.sha256)
         if content is None:
             raise GroundTruthUnavailable(
                 f"ground truth {record.name!r} has no stored file; an admin should register it again"
@@ -245,7 +247,7 @@ class GroundTruths:
             return self._keep_local(record, content, folder)
 
     def record(self, name: str) -> GroundTruthRecord:
-        record = self.store.get_ground_truth(name)
+        record = self.ground_truth_store.get_ground_truth(name)
         if record is None:
             raise NotFound(f"no ground truth named {echo(name)}; GET /v1/ground-truths lists them")
         return record
@@ -270,7 +272,7 @@ class GroundTruths:
         return dataclasses.replace(loaded, source=display_name(record.name))
 
     def delete(self, name: str) -> GroundTruthRecord:
-        record, shared = self.store.delete_ground_truth(name)
+        record, shared = self.ground_truth_store.delete_ground_truth(name)
         if record is None:
             raise NotFound(f"no ground truth named {echo(name)}")
         if not shared:

@@ -12,7 +12,7 @@ from ..access.audit import Audit
 from ..access.policy import Caller, Policy
 from ..errors import NotFound
 from ..evaluations.uploads import FileIn, receive_upload
-from ..store import GroundTruthRecord, Store
+from ..store import GroundTruthRecord, GroundTruthStore
 from .cache import GroundTruths
 
 __all__ = ["GroundTruthCatalog"]
@@ -22,14 +22,14 @@ class GroundTruthCatalog:
     def __init__(
         self,
         files: GroundTruths,
-        store: Store,
+        ground_truth_store: GroundTruthStore,
         policy: Policy,
         audit: Audit,
         scratch: Callable[[], AbstractContextManager[Path]],
         check_project: Callable[[str], str],
     ) -> None:
         self.files = files
-        self.store = store
+        self.ground_truth_store = ground_truth_store
         self.policy = policy
         self.audit = audit
         self.scratch = scratch
@@ -50,7 +50,7 @@ class GroundTruthCatalog:
     def listed(self, caller: Caller) -> list[GroundTruthRecord]:
         if not self.policy.is_signed_in(caller):
             return []
-        return self.store.list_ground_truths(projects=self.policy.project_filter(caller))
+        return self.ground_truth_store.list_ground_truths(projects=self.policy.project_filter(caller))
 
     def to_evaluate(self, caller: Caller) -> list[GroundTruthRecord]:
         """The ground truths the caller may evaluate against (what the upload form offers): those they see,

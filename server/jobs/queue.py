@@ -38,7 +38,19 @@ from sqlalchemy.engine import Connection
 from sqlalchemy.exc import IntegrityError
 
 from ..errors import QueueFull, TooManyQueued
-from ..store import IdempotencyRecord, JobInput, JobRecord, Store, WorkerRecord, new_id
+from ..store import (
+    IdempotencyRecord,
+    IdempotencyStore,
+    JobInput,
+    JobInputStore,
+    JobRecord,
+    JobStore,
+    Store,
+    WorkerRecord,
+    WorkerStore,
+    new_id,
+    retry_when_locked,
+)
 from ..store.job_store import ENDED_STATES, JOB_STATES
 
 __all__ = ["JobQueue", "QueueLimits", "JobRecord", "WorkerRecord", "JOB_KINDS", "JOB_STATES", "ENDED_STATES", "now_utc"]
@@ -108,7 +120,10 @@ class JobQueue:
 
     def __init__(
         self,
-        store: Store,
+        job_store: JobStore,
+        job_input_store: JobInputStore,
+        worker_store: WorkerStore,
+        idempotency_store: IdempotencyStore,
         *,
         lease_s: float = 30.0,
         max_attempts: int = 3,
@@ -120,11 +135,20 @@ class JobQueue:
         :meth:`admit` lets in; ``clock``: the current time (timezone-aware)."""
         if lease_s <= 0 or max_attempts < 1:
             raise ValueError("lease_s must be positive and max_attempts at least 1")
-        self.store = store
+        self.job_store = job_store
+        self.job_input_store = job_input_store
+        self.worker_store = worker_store
+        self.idempotency_store = idempotency_store
+        self.db = job_store.db  # one database: a job, its inputs and its key are written in one transaction
         self.lease_s = lease_s
         self.max_attempts = max_attempts
         self.limits = limits or QueueLimits()
         self.clock = clock
+
+    @classmethod
+    def of(cls, store: Store, **options: Any) -> JobQueue:
+        """A queue on the areas of ``store`` it uses (``options``: those of the constructor)."""
+        return cls(store.job_store, store.job_input_store, store.worker_store, store.idempotency_store, **options)
 
     def admit(self, owner: str | None, size: int) -> None:
         """Refuse a new job of ``owner``'s (None: nobody's in particular, as in open mode) with ``size`` bytes
@@ -134,7 +158,7 @@ class JobQueue:
         is stored; requests accepted at the same moment may each pass it (the limits are exceeded by at most
         those)."""
         lim = self.limits
-        total, mine = self.store.active_jobs(owner or "")
+        total, mine = self.job_store.active_jobs(owner or "")
         if total >= lim.jobs:
             raise QueueFull(
                 f"the queue holds {total} jobs, as many as it keeps (KITTI_EVAL_MAX_QUEUED_JOBS); retry in "
@@ -147,7 +171,7 @@ class JobQueue:
                 f"(KITTI_EVAL_MAX_QUEUED_PER_CALLER); retry when one has ended",
                 lim.retry_after_s,
             )
-        held = self.store.job_input_bytes()
+        held = self.job_input_store.job_input_bytes()
         if held + size > lim.input_bytes:
             raise QueueFull(
                 f"the queue's inputs take {held / (1 << 20):.0f} MB, as much as it keeps "
@@ -201,22 +225,38 @@ class JobQueue:
         :class:`~kitti_eval_server.store.KeyTaken`, and nothing recorded, when a request recorded it first."""
         record = self._new(kind, payload, owner, group, job_id, self._now())
         if inputs:
-            added = self.store.add_job_with_inputs(record, inputs, key)
+            added = self._add_with_inputs(record, inputs, key)
         else:
-            added = self.store.add_job(record)
+            added = self.job_store.add_job(record)
         if added:
             return record
-        existing = self.store.get_job(record.id)
+        existing = self.job_store.get_job(record.id)
         if existing is None:  # deleted in between: only a database changed by hand gets here
             raise RuntimeError(f"job {record.id} could neither be added nor read")
         return existing
+
+    @retry_when_locked
+    def _add_with_inputs(
+        self, record: JobRecord, inputs: builtins.list[JobInput], key: IdempotencyRecord | None
+    ) -> bool:
+        """The job and its uploaded files in one transaction (one commit: a job is never without its input);
+        False, and nothing added, when the job's id is taken. ``key``: the request's idempotency key, recorded in
+        the same transaction (:class:`~kitti_eval_server.store.KeyTaken` when another request recorded it first:
+        nothing is added)."""
+        with self.db.writing() as conn:
+            if key is not None:
+                self.idempotency_store.add_idempotency_key_in(conn, key)
+            if not self.job_store.add_job_in(conn, record):
+                return False
+            self.job_input_store.add_job_inputs_in(conn, record.id, inputs)
+            return True
 
     def enqueue_in(
         self, conn: Connection, kind: str, payload: dict, *, owner: str, group: str | None = None, job_id: str
     ) -> bool:
         """Record a queued job within the caller's transaction (committed with it: the end of the job that
         queues it). False when a job already has ``job_id`` (then nothing is added)."""
-        return self.store.add_job_in(conn, self._new(kind, payload, owner, group, job_id, self._now()))
+        return self.job_store.add_job_in(conn, self._new(kind, payload, owner, group, job_id, self._now()))
 
     def enqueue_many(
         self, kind: str, payloads: builtins.list[dict], *, owner: str, group: str | None = None
@@ -229,7 +269,7 @@ class JobQueue:
             for i, payload in enumerate(payloads)
         ]
         try:
-            self.store.add_jobs(records)
+            self.job_store.add_jobs(records)
         except IntegrityError as e:  # a new id taken: 128 random bits make this a broken generator, not bad luck
             raise RuntimeError("a new job id was taken") from e
         return records
@@ -246,14 +286,14 @@ class JobQueue:
         LOCKED`` (concurrent claims take the next rows), on SQLite the claim holds the write lock from its
         start (``BEGIN IMMEDIATE``: claims run one after another)."""
         now = self._now()
-        job, lost = self.store.claim_job(worker, now=now, lease_until=self._lease_from(now), kinds=kinds)
+        job, lost = self.job_store.claim_job(worker, now=now, lease_until=self._lease_from(now), kinds=kinds)
         _ENDINGS.ended(lost)
         return job
 
     def heartbeat(self, job_id: str, worker: str) -> bool:
         """Extend the job's lease by ``lease_s`` from now. False when the job is no longer ``worker``'s (taken
         over after its lease ran out, cancelled, ended): the worker should stop working on it."""
-        return self.store.extend_lease(job_id, worker, self._lease_from(self._now()))
+        return self.job_store.extend_lease(job_id, worker, self._lease_from(self._now()))
 
     def finish(
         self, job_id: str, worker: str, result_id: str, *, within: Callable[[Connection], None] | None = None
@@ -264,7 +304,7 @@ class JobQueue:
         result and the job's end are committed together or not at all. False when the job is no longer this
         worker's: then nothing is written (``within`` is not called, or its writes are rolled back). An
         exception of ``within`` rolls everything back and propagates (the job stays running, its worker's)."""
-        finished = self.store.complete_job(job_id, worker, result_id, self._now(), within)
+        finished = self.job_store.complete_job(job_id, worker, result_id, self._now(), within)
         if finished:
             _ENDINGS.ended([job_id])
         return finished
@@ -274,7 +314,7 @@ class JobQueue:
         queued again, its worker and lease cleared (``error`` kept as the last one, until it ends); else it is
         failed, with ``error`` and ``finished_at``. False (nothing changed) when the job is no longer
         ``worker``'s."""
-        job = self.store.fail_job(job_id, worker, error, self._now(), retry=retry)
+        job = self.job_store.fail_job(job_id, worker, error, self._now(), retry=retry)
         if job is not None and job.state == "failed":
             _ENDINGS.ended([job_id])
         return job is not None
@@ -282,13 +322,13 @@ class JobQueue:
     def release(self, job_id: str, worker: str) -> bool:
         """Give the job back, queued, without counting the attempt (a worker that is draining). False when it
         is no longer ``worker``'s."""
-        return self.store.release_job(job_id, worker)
+        return self.job_store.release_job(job_id, worker)
 
     def cancel(self, job_id: str) -> JobRecord | None:
         """A queued or running job becomes cancelled (a running one's worker learns it at its next heartbeat,
         finish or fail, which answer False). The job as it is then (an ended job is left as it is: its state
         says whether it was cancelled); None when there is no such job."""
-        job = self.store.cancel_job(job_id, self._now())
+        job = self.job_store.cancel_job(job_id, self._now())
         if job is not None and job.state == "cancelled":
             _ENDINGS.ended([job_id])
         return job
@@ -297,15 +337,15 @@ class JobQueue:
         """An ended job (failed, cancelled or done) is queued again as new: at the end of the queue (accepted
         now), no attempt used, its worker, result and error cleared. A queued or running job is left as it is.
         The job as it is then; None when there is no such job."""
-        return self.store.requeue_job(job_id, self._now())
+        return self.job_store.requeue_job(job_id, self._now())
 
     def get(self, job_id: str) -> JobRecord | None:
-        return self.store.get_job(job_id)
+        return self.job_store.get_job(job_id)
 
     def position(self, job_id: str) -> int | None:
         """The job's place among the queued jobs, 1 for the next to be claimed (None when it is not queued).
         Jobs whose worker was lost are not counted, though a claim takes them first when they are older."""
-        before = self.store.queued_before(job_id)
+        before = self.job_store.queued_before(job_id)
         return None if before is None else before + 1
 
     def list(
@@ -319,15 +359,15 @@ class JobQueue:
         offset: int = 0,
     ) -> builtins.list[JobRecord]:
         """Newest first (by ``accepted_at``); each filter given narrows the list."""
-        return self.store.list_jobs(state=state, kind=kind, owner=owner, group=group, limit=limit, offset=offset)
+        return self.job_store.list_jobs(state=state, kind=kind, owner=owner, group=group, limit=limit, offset=offset)
 
     def counts(self, *, owner: str | None = None, group: str | None = None, kind: str | None = None) -> dict[str, int]:
         """Jobs by state (every state a key, 0 when none), of ``owner``, ``group`` and ``kind`` when given."""
-        return self.store.count_jobs(owner=owner, group=group, kind=kind)
+        return self.job_store.count_jobs(owner=owner, group=group, kind=kind)
 
     def oldest_queued_age_s(self) -> float | None:
         """Seconds since the oldest queued job was accepted (None when none is queued)."""
-        oldest = self.store.oldest_queued_at()
+        oldest = self.job_store.oldest_queued_at()
         return None if oldest is None else max(0.0, (self._now() - oldest).total_seconds())
 
     # -- the processes that run jobs ------------------------------------------------------------------------
@@ -338,15 +378,15 @@ class JobQueue:
         """The process ``name`` (``host:pid``), running ``threads`` workers since ``started_at``, is alive now."""
         now = self._now()
         record = WorkerRecord(name, host, pid, threads, started_at, now)
-        self.store.beat_worker(record, forget_before=now - timedelta(seconds=self.FORGET_WORKERS_S))
+        self.worker_store.beat_worker(record, forget_before=now - timedelta(seconds=self.FORGET_WORKERS_S))
 
     def worker_gone(self, name: str) -> None:
         """The process ``name`` stopped (its row is removed)."""
-        self.store.forget_worker(name)
+        self.worker_store.forget_worker(name)
 
     def workers_seen(self, within_s: float) -> builtins.list[WorkerRecord]:
         """The processes that beat within the last ``within_s`` seconds."""
-        return self.store.workers_seen(self._now() - timedelta(seconds=within_s))
+        return self.worker_store.workers_seen(self._now() - timedelta(seconds=within_s))
 
     def wait(self, job_id: str, timeout_s: float, *, poll_s: float = 0.05) -> JobRecord | None:
         """Block until the job is done, failed or cancelled, or ``timeout_s`` has passed; the job as it is then

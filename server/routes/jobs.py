@@ -38,7 +38,7 @@ def _sees(service: Service, caller: Caller, record: JobRecord) -> bool:
     if record.kind == "evaluation":
         project = record.payload.get("project")
         return service.policy.sees_job(caller, record.owner, project=str(project) if project else None)
-    project, open_to_all = service.benchmarks.taking_part(record.group) if record.group else (None, False)
+    project, open_to_all = service.benchmarks.catalog.taking_part(record.group) if record.group else (None, False)
     return service.policy.sees_job(caller, record.owner, project=project, open_to_all=open_to_all)
 
 

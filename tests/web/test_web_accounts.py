@@ -162,8 +162,8 @@ def test_ended_sessions_do_not_pile_up(service) -> None:
     with store.engine.begin() as conn:  # it ended two days ago
         conn.execute(update(tokens).where(tokens.c.id == old).values(expires_at=two_days_ago))
     assert c.get("/").status_code == 401
-    assert store.get_token(old) is not None
+    assert store.account_store.get_token(old) is not None
     assert sign_in(c, teams.tokens["bob"]).status_code == 303  # the next sign-in clears it away
-    assert store.get_token(old) is None
-    assert store.get_token(teams.token_ids["bob"]) is not None  # tokens are never purged
+    assert store.account_store.get_token(old) is None
+    assert store.account_store.get_token(teams.token_ids["bob"]) is not None  # tokens are never purged
     c.cookies.clear()

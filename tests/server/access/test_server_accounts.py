@@ -235,7 +235,7 @@ def test_too_many_refused_tokens_from_one_client_get_429(tmp_path) -> None:
         r = c.get("/v1/evaluations", headers=ADMIN)  # even a good token waits: the client is not trusted now
         assert r.status_code == 429 and 1 <= int(r.headers["retry-after"]) <= 61
         assert c.get("/healthz").status_code == 200
-        audit = c.app.state.service.store.list_audit(limit=100)
+        audit = c.app.state.service.store.account_store.list_audit(limit=100)
         assert sum(r.action == "token.refused" for r in audit) == 5  # the 429s are not even looked at
 
 

@@ -97,17 +97,25 @@ def snapshot(store: Store, *, skip_project: str | None = None) -> dict[str, Any]
     projects, memberships and tokens, benchmarks and their submissions."""
     return {
         "evaluations": sorted(
-            (r.id, r.project, r.gt_name) for r in store.list_evaluations(limit=100_000) if r.project != skip_project
+            (r.id, r.project, r.gt_name)
+            for r in store.evaluation_store.list_evaluations(limit=100_000)
+            if r.project != skip_project
         ),
-        "ground_truths": [(g.name, g.sha256, g.project, g.sealed) for g in store.list_ground_truths()],
-        "users": [(u.name, u.is_admin, u.projects) for u in store.list_users()],
-        "projects": store.list_projects(),
-        "tokens": [(t.id, t.user_name, t.scopes, t.revoked_at is None, t.expires_at) for t in store.list_tokens()],
-        "benchmarks": [(b.name, b.gt_name, b.closed, b.revealed, b.public) for b in store.list_benchmarks()],
+        "ground_truths": [
+            (g.name, g.sha256, g.project, g.sealed) for g in store.ground_truth_store.list_ground_truths()
+        ],
+        "users": [(u.name, u.is_admin, u.projects) for u in store.account_store.list_users()],
+        "projects": store.account_store.list_projects(),
+        "tokens": [
+            (t.id, t.user_name, t.scopes, t.revoked_at is None, t.expires_at) for t in store.account_store.list_tokens()
+        ],
+        "benchmarks": [
+            (b.name, b.gt_name, b.closed, b.revealed, b.public) for b in store.benchmark_store.list_benchmarks()
+        ],
         "submissions": [
             (x.id, x.participant, x.status, x.published, x.disqualified, x.method)
-            for b in store.list_benchmarks()
-            for x in store.list_submissions(b.name)
+            for b in store.benchmark_store.list_benchmarks()
+            for x in store.benchmark_store.list_submissions(b.name)
         ],
     }
 

@@ -91,7 +91,7 @@ def test_where_a_participants_detections_fall_does_not_show_which_frames_are_pub
     the participant's views of the two submissions are the same (a count over the public part told them apart,
     and 2^k detections in frame k read the whole split back)."""
     c, hosted = split_world
-    bench = c.app.state.service.store.get_benchmark("bench")
+    bench = c.app.state.service.store.benchmark_store.get_benchmark("bench")
     frames = [a["frame_id"] for a in pickle.loads(golden_bytes("result.pkl"))]
     parts = part_frames(bench.split_seed, frames, 50)
     views = []
@@ -130,14 +130,16 @@ def test_a_submission_whose_job_is_given_up_on_is_failed_and_frees_its_slot(tmp_
         alice = hosted.headers("alice")
         sid = submit_queued(c, alice).json()["id"]
         store = c.app.state.service.store
-        job = store.get_job(sid)
+        job = store.job_store.get_job(sid)
         now = job.accepted_at
         for attempt in range(job.max_attempts):  # a worker takes it and is lost, every time
-            claimed, _ = store.claim_job(f"w{attempt}", now=now, lease_until=now + timedelta(seconds=1), kinds=None)
+            claimed, _ = store.job_store.claim_job(
+                f"w{attempt}", now=now, lease_until=now + timedelta(seconds=1), kinds=None
+            )
             assert claimed is not None and claimed.id == sid
             now += timedelta(seconds=2)
-        claimed, lost = store.claim_job("w-last", now=now, lease_until=now + timedelta(seconds=1), kinds=None)
-        assert claimed is None and lost == [sid] and store.get_job(sid).state == "failed"
+        claimed, lost = store.job_store.claim_job("w-last", now=now, lease_until=now + timedelta(seconds=1), kinds=None)
+        assert claimed is None and lost == [sid] and store.job_store.get_job(sid).state == "failed"
         mine = ok(c.get("/v1/benchmarks/bench/submissions", headers=alice))
         assert mine["quota"]["left"] == 1
         item = mine["items"][0]

@@ -114,7 +114,7 @@ def test_two_submissions_differing_in_the_private_part_look_alike_until_the_reve
     the private part."""
     with app_client(tmp_path / "data", auth="accounts", auth_max_failures=10**6) as c:
         hosted = host(c, benchmark={"split_percent": 50})
-        seed = c.app.state.service.store.get_benchmark("bench").split_seed
+        seed = c.app.state.service.store.benchmark_store.get_benchmark("bench").split_seed
         annos = pickle.loads(golden_bytes("result.pkl"))  # the test's own golden file
         private = set(part_frames(seed, [a["frame_id"] for a in annos], 50)["private"])
         for anno in annos:  # the same boxes, 30 cm off, in every private frame: the private part's AP drops

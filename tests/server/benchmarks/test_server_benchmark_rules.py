@@ -101,7 +101,9 @@ def test_a_passed_closes_at_freezes_the_selection_too(client) -> None:
     hosted = host(c)
     sid = ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 201)["id"]
     ok(_publish(c, hosted, "alice", sid))
-    c.app.state.service.store.update_benchmark("bench", closes_at=datetime.now(timezone.utc) - timedelta(seconds=1))
+    c.app.state.service.store.benchmark_store.update_benchmark(
+        "bench", closes_at=datetime.now(timezone.utc) - timedelta(seconds=1)
+    )
     assert_error(_withdraw(c, hosted, "alice", sid), 409, "closed")
     assert [e["id"] for e in ok(c.get("/v1/benchmarks/bench/leaderboard"))["entries"]] == [sid]
 
@@ -209,7 +211,7 @@ def test_participants_see_the_public_part_until_the_reveal(client) -> None:
     hosted = host(c, benchmark={"split_percent": 50})
     alice = hosted.headers("alice")
     made = ok(submit(c, alice, golden_bytes("result.pkl")), 201)
-    want = _fresh(c.app.state.service.store.get_benchmark("bench").split_seed)
+    want = _fresh(c.app.state.service.store.benchmark_store.get_benchmark("bench").split_seed)
     assert len(set(want.values())) == 3  # the three scores are told apart
     one = ok(c.get(f"/v1/benchmarks/bench/submissions/{made['id']}", headers=alice))
     (listed,) = ok(c.get("/v1/benchmarks/bench/submissions", headers=alice))["items"]
@@ -241,7 +243,7 @@ def test_a_submission_scored_before_the_public_document_was_kept_shows_no_result
     c = client
     hosted = host(c, benchmark={"split_percent": 50})
     made = ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 201)
-    c.app.state.service.store.update_submission(made["id"], public_result=None)
+    c.app.state.service.store.benchmark_store.update_submission(made["id"], public_result=None)
     one = ok(c.get(f"/v1/benchmarks/bench/submissions/{made['id']}", headers=hosted.headers("alice")))
     assert one["result"] is None and one["scores"] == made["scores"]
 
@@ -294,6 +296,9 @@ def test_the_benchmarks_using_a_ground_truth(client) -> None:
     body = {"name": "again", "ground_truth": "test-set", "share_test_set": True}
     ok(c.post("/v1/benchmarks", json=body, headers=ADMIN), 201)
     benchmarks = c.app.state.benchmarks
-    assert [b.name for b in benchmarks.using_ground_truth("test-set")] == ["again", "bench"]
-    assert benchmarks.using_ground_truth("demo") == []
-    assert [b.name for b in c.app.state.service.store.benchmarks_using("test-set")] == ["again", "bench"]
+    assert [b.name for b in benchmarks.catalog.using_ground_truth("test-set")] == ["again", "bench"]
+    assert benchmarks.catalog.using_ground_truth("demo") == []
+    assert [b.name for b in c.app.state.service.store.benchmark_store.benchmarks_using("test-set")] == [
+        "again",
+        "bench",
+    ]

@@ -221,7 +221,7 @@ def test_the_public_part_is_drawn_from_a_secret_seed_and_the_private_board_follo
             )
         )
         store = c.app.state.service.store
-        seed = store.get_benchmark("bench").split_seed
+        seed = store.benchmark_store.get_benchmark("bench").split_seed
         assert seed and seed not in c.get("/v1/benchmarks/bench/leaderboard").text
         gt = load_ground_truth(GOLDEN / "kitti_infos_val.pkl")
         dt = load_detections(GOLDEN / "result.pkl")
@@ -303,7 +303,7 @@ def test_a_submission_whose_scoring_fails_is_failed_and_not_counted(world, monke
     def refuse(*args, **kwargs):  # the file passed its check; its scoring fails on the input
         raise InputError("boxes with a negative size", frame="000007", field="dimensions")
 
-    monkeypatch.setattr(service.benchmarks, "_scores", refuse)
+    monkeypatch.setattr(service.benchmarks.scoring, "_scores", refuse)
     job = ok(submit_now(c, alice), 202)
     ended = service.jobs.wait(job["id"], 120)
     assert ended is not None and ended.state == "failed"
@@ -376,8 +376,8 @@ def _verdicts(c, tmp_path, name: str, data: bytes) -> tuple[object, object]:
     from kitti_eval_server.benchmarks import InvalidSubmission
 
     service = c.app.state.service
-    bench = service.benchmarks._get("bench")
-    _, gt = service.benchmarks._ground_truth(bench)
+    bench = service.benchmarks.catalog.named("bench")
+    _, gt = service.benchmarks.catalog.ground_truth_of(bench)
     path = tmp_path / name
     path.write_bytes(data)
     try:
@@ -386,7 +386,7 @@ def _verdicts(c, tmp_path, name: str, data: bytes) -> tuple[object, object]:
     except Exception as e:  # noqa: BLE001 - the class is the verdict
         cli = f"{type(e).__name__}: {str(e).replace(str(path), name)}"
     try:
-        dt = service.benchmarks._checked(receive_upload(io.BytesIO(data), name, "predictions"), gt)
+        dt = service.benchmarks.scoring._checked(receive_upload(io.BytesIO(data), name, "predictions"), gt)
         job: object = "valid"
         assert set(dt.frame_ids) == set(gt.frame_ids)  # what is scored is every test frame
     except InvalidSubmission as e:

@@ -214,7 +214,7 @@ def test_null_while_computed_then_computed_for_entries_that_lack_them(tmp_path, 
             assert [e["key"] for e in board["entries"]] == [e["key"] for e in before["entries"]]
             queued = []
             for sub in subs:  # the board queued the job of each, once
-                row = service.store.get_submission(sub["id"])
+                row = service.store.benchmark_store.get_submission(sub["id"])
                 queued.append(service.jobs.get(intervals_job_id(row.id, row.scored_at, board_seed("bench"), 1000)))
             assert [j.state for j in queued] == ["queued", "queued"]
             ok(c.get("/v1/benchmarks/bench/leaderboard"))
@@ -234,7 +234,7 @@ def test_null_while_computed_then_computed_for_entries_that_lack_them(tmp_path, 
             kept = conn.execute(select(submission_resamples.c.submission_id, submission_resamples.c.scored_at)).all()
         assert sorted(sid for sid, _ in kept) == sorted(s["id"] for s in subs)
         for sid, scored_at in kept:
-            row = service.store.get_submission(sid)
+            row = service.store.benchmark_store.get_submission(sid)
             assert row.scored_at is not None and scored_at.replace(tzinfo=None) == row.scored_at.replace(tzinfo=None)
             assert row.scored_at.isoformat() != next(s for s in subs if s["id"] == sid)["scored_at"]
 
@@ -253,7 +253,7 @@ def test_the_public_part_until_the_reveal_then_the_private_one(tmp_path, files) 
         a = _enter(c, hosted, "alice", files["a"], "A")
         w = _enter(c, hosted, "bob", files["worse"], "W")
         seed = board_seed("bench")
-        split_seed = c.app.state.service.store.get_benchmark("bench").split_seed
+        split_seed = c.app.state.service.store.benchmark_store.get_benchmark("bench").split_seed
         assert split_seed == SPLIT_SEED
         gt = load_ground_truth(files["gt"])
         parts = part_frames(split_seed, gt.frame_ids, 50)

@@ -98,7 +98,7 @@ def clock() -> Clock:
 
 @pytest.fixture
 def queue(store: Store, clock: Clock) -> JobQueue:
-    return JobQueue(store, lease_s=30.0, max_attempts=3, clock=clock)
+    return JobQueue.of(store, lease_s=30.0, max_attempts=3, clock=clock)
 
 
 def writes_output(job_id: str, worker: str):
@@ -250,7 +250,7 @@ def test_a_heartbeat_keeps_the_job(queue: JobQueue, clock: Clock) -> None:
 
 
 def test_a_job_whose_worker_is_lost_max_attempts_times_fails(store: Store, clock: Clock) -> None:
-    queue = JobQueue(store, lease_s=10, max_attempts=2, clock=clock)
+    queue = JobQueue.of(store, lease_s=10, max_attempts=2, clock=clock)
     lost = queue.enqueue("evaluation", {}, owner="alice")
     clock.advance(1)
     later = queue.enqueue("evaluation", {}, owner="alice")
@@ -275,7 +275,7 @@ def test_a_job_whose_worker_is_lost_max_attempts_times_fails(store: Store, clock
     assert queue.heartbeat(lost.id, "w2") is False
     assert queue.counts() == {"queued": 0, "running": 1, "done": 0, "failed": 1, "cancelled": 0}
     # with nothing else to take, the claim still fails the lost one and answers None
-    one = JobQueue(store, lease_s=10, max_attempts=1, clock=clock)
+    one = JobQueue.of(store, lease_s=10, max_attempts=1, clock=clock)
     alone = one.enqueue("rescore", {}, owner="root")
     taken = queue.claim("w4", kinds=["rescore"])
     assert taken is not None and taken.id == alone.id
@@ -289,7 +289,7 @@ def test_a_job_whose_worker_is_lost_max_attempts_times_fails(store: Store, clock
 
 
 def test_a_failure_with_retry_queues_the_job_again_until_its_attempts_are_used(store: Store, clock: Clock) -> None:
-    queue = JobQueue(store, max_attempts=2, clock=clock)
+    queue = JobQueue.of(store, max_attempts=2, clock=clock)
     job = queue.enqueue("submission", {}, owner="alice")
     queue.claim("w1")
     clock.advance(1)
@@ -362,7 +362,7 @@ def test_cancelling_a_queued_or_running_job(queue: JobQueue, store: Store, clock
 
 
 def test_rerunning_an_ended_job_queues_it_as_new(store: Store, clock: Clock) -> None:
-    queue = JobQueue(store, max_attempts=1, clock=clock)
+    queue = JobQueue.of(store, max_attempts=1, clock=clock)
     failed = queue.enqueue("rescore", {"s": 1}, owner="root", group="bench")
     clock.advance(1)
     done = queue.enqueue("rescore", {"s": 2}, owner="root", group="bench")
@@ -456,9 +456,9 @@ def test_jobs_are_listed_newest_first(queue: JobQueue, clock: Clock) -> None:
 
 
 def test_wait_wakes_at_once_for_a_job_finished_in_this_process(store: Store) -> None:
-    queue = JobQueue(store)
+    queue = JobQueue.of(store)
     job = queue.enqueue("evaluation", {}, owner="alice")
-    other = JobQueue(store)  # another queue of the process (the executor's, say)
+    other = JobQueue.of(store)  # another queue of the process (the executor's, say)
     other.claim("w1")
 
     def finish_soon() -> None:
@@ -481,13 +481,13 @@ def test_wait_wakes_at_once_for_a_job_finished_in_this_process(store: Store) -> 
 
 
 def test_wait_reads_the_database_for_a_job_ended_elsewhere(store: Store) -> None:
-    queue = JobQueue(store)
+    queue = JobQueue.of(store)
     job = queue.enqueue("evaluation", {}, owner="alice")
     queue.claim("w1")
 
     def finish_elsewhere() -> None:  # as another process would: through the store, with no wake-up here
         time.sleep(0.3)
-        store.complete_job(job.id, "w1", "r1", datetime.now(timezone.utc))
+        store.job_store.complete_job(job.id, "w1", "r1", datetime.now(timezone.utc))
 
     threading.Thread(target=finish_elsewhere).start()
     started = time.monotonic()
@@ -519,7 +519,7 @@ def test_an_existing_database_gets_the_jobs_table(tmp_path: Path) -> None:
     found = inspect(store.engine)
     assert {c["name"] for c in found.get_columns("jobs")} == {c.name for c in jobs.columns}
     assert {i["name"] for i in found.get_indexes("jobs")} == {"ix_jobs_claim", "ix_jobs_owner", "ix_jobs_group"}
-    queue = JobQueue(store)
+    queue = JobQueue.of(store)
     job = queue.enqueue("evaluation", {}, owner="alice")
     claimed = queue.claim("w1")
     assert claimed is not None and claimed.id == job.id and queue.get(job.id) == claimed
@@ -533,7 +533,7 @@ def claim_until_empty(url: str, worker: str, start: Any, results: Any) -> None:
     """A worker process: claim and finish (writing its output in the same transaction) until nothing is left;
     puts (worker, the ids claimed, the answers of finish, seconds from the start to the end) on ``results``."""
     store = Store(url)
-    queue = JobQueue(store)
+    queue = JobQueue.of(store)
     claimed, finished = [], []
     start.wait()
     began = time.monotonic()
@@ -546,7 +546,7 @@ def claim_until_empty(url: str, worker: str, start: Any, results: Any) -> None:
 
 def race(url: str, store: Store, processes: int, count: int) -> dict[str, list[str]]:
     """``count`` jobs, ``processes`` workers: every job claimed once and finished once, by whoever claimed it."""
-    queue = JobQueue(store)
+    queue = JobQueue.of(store)
     ids = [j.id for j in queue.enqueue_many("evaluation", [{"n": n} for n in range(count)], owner="alice")]
     spawn = multiprocessing.get_context("spawn")
     start, results = spawn.Barrier(processes), spawn.Queue()

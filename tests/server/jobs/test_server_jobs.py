@@ -283,8 +283,8 @@ def test_kept_predictions_are_written_once_when_accepted_and_an_uploaded_ground_
         first, second = (upload(c, pred, params={"wait": "0"}).json()["id"] for _ in range(2))
         assert kept() == [sha]  # once, however often it is uploaded
         assert inputs() == sorted([(first, "predictions", True, 0), (second, "predictions", True, 0)])
-        assert store.job_input_bytes() == 2 * len(pred)
-        read = store.job_input(first, "predictions")
+        assert store.job_input_store.job_input_bytes() == 2 * len(pred)
+        read = store.job_input_store.job_input(first, "predictions")
         assert read is not None and read.kept and read.content == pred and read.sha256 == sha
         gt_file = ("infos.pkl", golden_bytes("kitti_infos_val.pkl"))
         own = upload(c, pred, gt=None, gt_file=gt_file, params={"wait": "0"}).json()["id"]
@@ -294,10 +294,10 @@ def test_kept_predictions_are_written_once_when_accepted_and_an_uploaded_ground_
         for job_id in (first, second, own):
             ended = service.jobs.wait(job_id, 120)
             assert ended is not None and ended.state == "done", ended
-        assert inputs() == [] and kept() == [sha] and store.job_input_bytes() == 0
+        assert inputs() == [] and kept() == [sha] and store.job_input_store.job_input_bytes() == 0
         frames = c.get(f"/v1/evaluations/{first}/frames")  # the kept file is what the frames are read from
         assert frames.status_code == 200, frames.text
-        assert store.prediction_content(sha) == pred
+        assert store.ground_truth_store.prediction_content(sha) == pred
 
 
 def test_a_job_accepted_before_kept_inputs_runs_after_the_upgrade_and_keeps_its_predictions(tmp_path) -> None:
@@ -322,7 +322,7 @@ def test_a_job_accepted_before_kept_inputs_runs_after_the_upgrade_and_keeps_its_
         store = c.app.state.service.store
         ended = c.app.state.service.jobs.wait(job_id, 120)
         assert ended is not None and ended.state == "done", ended
-        assert store.prediction_content(hashlib.sha256(pred).hexdigest()) == pred
+        assert store.ground_truth_store.prediction_content(hashlib.sha256(pred).hexdigest()) == pred
         assert c.get(f"/v1/evaluations/{job_id}/frames").status_code == 200
         again = upload(c, pred)  # a new acceptance keeps nothing twice
         assert again.status_code == 201 and again.json()["ap"] == c.get(f"/v1/evaluations/{job_id}").json()["ap"]
