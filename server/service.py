@@ -8,9 +8,6 @@ blocking work on worker threads. The routes call the parts; no part reaches into
 from __future__ import annotations
 
 import logging
-import os
-import secrets
-import socket
 import threading
 import time
 from collections.abc import Callable
@@ -24,19 +21,19 @@ import sqlalchemy.exc
 from kitti_eval._jit import warm_up
 from kitti_eval.demo import demo_paths
 
-from .access.accounts import Accounts
+from .access.accounts import Accounts, admin_token
 from .access.audit import Audit
 from .access.auth import FailureLimiter
 from .access.policy import AuthMode, Policy
 from .benchmarks import Benchmarks
 from .errors import StartupRefused
-from .evaluations.evaluations import Evaluations, sealed_document
-from .evaluations.uploads import FileIn, Limits, receive_upload
+from .evaluations.evaluations import EvaluationFrames, Evaluations, sealed_document
+from .evaluations.uploads import FileIn, Limits
 from .ground_truths.cache import GroundTruthCache, GroundTruths
 from .ground_truths.catalog import GroundTruthCatalog
 from .idempotency import Idempotency
 from .jobs.admin import JobAdmin
-from .jobs.pool import WorkerPool
+from .jobs.pool import WorkerPool, why_no_worker
 from .jobs.queue import JobQueue, JobRecord, QueueLimits
 from .jobs.runner import Runner, release_memory
 from .jobs.scratch import ScratchSpace
@@ -124,6 +121,16 @@ class Service:
             keep_predictions=settings.keep_predictions,
             idempotency=self.idempotency,
         )
+        #: the frames of stored evaluations (counts, labelled boxes)
+        self.evaluation_frames = EvaluationFrames(
+            self.evaluations,
+            self.store.ground_truth_store,
+            self.catalog,
+            self.predictions,
+            self.policy,
+            self.limits,
+            self.runner.scratch,
+        )
         self.warm = threading.Event()
         self.warmup_error: str | None = None
         #: set on SIGTERM: not ready, no new evaluations, the admitted ones finish (see server.shutdown)
@@ -185,9 +192,10 @@ class Service:
                 )
             raise StartupRefused(f"cannot use the database {where}: {reason}{hint}") from None
         self._check_open_mode()
-        self.admin_token = self._admin_token()
+        self.admin_token = admin_token(self.settings, self.data_dir)
         if self.settings.register_demo:
-            self._register_demo()
+            with self.scratch() as scratch:
+                self.ground_truths.register_bundled(DEMO_NAME, demo_paths()[0], scratch)
         if self.settings.warmup:
             threading.Thread(target=self._warm_up, name="kitti-eval-warmup", daemon=True).start()
         else:
@@ -264,34 +272,6 @@ class Service:
         self.store.dispose()
         self.scratch_space.close()
 
-    def _admin_token(self) -> str:
-        if self.settings.admin_token is not None:
-            return self.settings.admin_token.get_secret_value()
-        path = self.data_dir / "admin-token"
-        try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        except FileExistsError:
-            return path.read_text().strip()
-        token = secrets.token_urlsafe(32)
-        with os.fdopen(fd, "w") as fh:
-            fh.write(token + "\n")
-        log.warning("generated an admin token in %s (set KITTI_EVAL_ADMIN_TOKEN to choose one)", path)
-        return token
-
-    def _register_demo(self) -> None:
-        if self.store.ground_truth_store.get_ground_truth(DEMO_NAME) is not None:
-            return
-        gt_path, _ = demo_paths()
-        with open(gt_path, "rb") as fh, self.scratch() as scratch:
-            upload = receive_upload(fh, gt_path.name, gt_path.name)
-            try:
-                self.ground_truths.register(DEMO_NAME, upload, scratch)
-            except Exception as e:  # noqa: BLE001 - another worker may have registered it meanwhile
-                if self.store.ground_truth_store.get_ground_truth(DEMO_NAME) is None:
-                    raise
-                log.debug("demo ground truth registered concurrently: %s", e)
-        log.info("registered the bundled demo ground truth as %r", DEMO_NAME)
-
     def _warm_up(self) -> None:
         """Compile (or load) every kernel before requests need them: the same ones the CLI and library use."""
         started = time.perf_counter()
@@ -319,32 +299,9 @@ class Service:
             return "the database is unavailable"
         return self._no_worker()
 
-    #: a worker process not seen on the database for this long does not count for the readiness
-    WORKERS_SEEN_S = 60.0
-
     def _no_worker(self) -> str | None:
-        """Why no accepted evaluation would run (None: a worker can run it): no worker thread in this process,
-        and no worker process seen on the database within a minute. A worker process records itself there once
-        its kernels are warm and it takes jobs: while this service's own are still starting, it is not ready."""
-        if self.workers.threads > 0:
-            return None
-        try:
-            seen = self.jobs.workers_seen(self.WORKERS_SEEN_S)
-        except Exception as e:  # noqa: BLE001 - the ping answered: a failure here is a passing one
-            log.warning("could not read the worker processes: %s", e)
-            return "the database is unavailable"
-        if self.pool is not None:
-            host, own = socket.gethostname(), set(self.pool.pids)
-            if any(w.host == host and w.pid in own for w in seen):
-                return None
-            if self.pool.alive > 0:
-                return "the worker processes are starting (warming the evaluation kernels)"
-        if seen:
-            return None
-        return (
-            "no worker runs evaluations: KITTI_EVAL_JOB_THREADS is 0, KITTI_EVAL_WORKER_PROCESSES is 0, and no "
-            f"'kitti-eval worker' was seen on the database in the last {self.WORKERS_SEEN_S:g} s"
-        )
+        """Why no accepted evaluation would run (None: a worker can run it): :func:`why_no_worker`."""
+        return why_no_worker(self.workers.threads, self.jobs, self.pool)
 
     # -- the runner ----------------------------------------------------------------------------------------
     async def outcome(self, job_id: str, wait_s: float | None = None) -> JobRecord:

@@ -14,17 +14,24 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import logging
+import os
 import re
 import secrets
 from collections.abc import Callable, Iterable
 from datetime import datetime, timedelta, timezone
+from pathlib import Path
 
 from ..errors import BadRequest, Conflict, NotFound, Unauthorized, echo
+from ..settings import Settings
 from ..store import AccountStore, TokenRecord, UserRecord
 from .audit import Audit
 from .policy import ALL_SCOPES, BUILT_IN_CALLERS, READ, WRITE, Caller, Policy
 
+log = logging.getLogger("kitti_eval.server")
+
 __all__ = [
+    "admin_token",
     "Accounts",
     "Caller",
     "READ",
@@ -277,3 +284,20 @@ class Accounts:
 
     def tokens(self, user: str | None = None) -> list[TokenRecord]:
         return self.account_store.list_tokens(user)
+
+
+def admin_token(settings: Settings, data_dir: Path) -> str:
+    """The admin token: ``KITTI_EVAL_ADMIN_TOKEN``, else the one in ``data_dir/admin-token`` (made there, readable by
+    its owner only, by the first process that finds none)."""
+    if settings.admin_token is not None:
+        return settings.admin_token.get_secret_value()
+    path = data_dir / "admin-token"
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        return path.read_text().strip()
+    token = secrets.token_urlsafe(32)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(token + "\n")
+    log.warning("generated an admin token in %s (set KITTI_EVAL_ADMIN_TOKEN to choose one)", path)
+    return token

@@ -43,7 +43,7 @@ from ..store import (
 from .evaluator import EvalOptions, evaluate_document, summarize
 from .uploads import FileIn, Limits, load_upload, receive_content, stored_upload
 
-__all__ = ["Evaluations", "FileIn", "sealed_document", "MAX_INSPECTED"]
+__all__ = ["Evaluations", "EvaluationFrames", "FileIn", "sealed_document", "MAX_INSPECTED"]
 
 log = logging.getLogger("kitti_eval.server")
 
@@ -315,7 +315,31 @@ class Evaluations:
             hidden_gt_names=self.policy.hidden_ground_truths(caller),
         )
 
-    # -- frames ------------------------------------------------------------------------------------------
+
+class EvaluationFrames:
+    """The frames of stored evaluations, as callers see them: each frame's counts and labelled boxes, from the
+    kept ground truth and predictions."""
+
+    def __init__(
+        self,
+        evaluations: Evaluations,
+        ground_truth_store: GroundTruthStore,
+        ground_truths: GroundTruthCatalog,
+        predictions: GroundTruthCache,
+        policy: Policy,
+        limits: Limits,
+        scratch: Callable[[], AbstractContextManager[Path]],
+    ) -> None:
+        """``evaluations``: the stored evaluations as callers see them; ``predictions``: the bounded cache of the
+        kept predictions loaded."""
+        self.evaluations = evaluations
+        self.ground_truth_store = ground_truth_store
+        self.ground_truths = ground_truths
+        self.predictions = predictions
+        self.policy = policy
+        self.limits = limits
+        self.scratch = scratch
+
     def _kept_inputs(self, record: EvaluationRecord) -> tuple[Annotations, Annotations, EvalConfig]:
         """The ground truth, predictions and options of a stored evaluation, for looking at its frames."""
         if record.gt_name is None:
@@ -370,7 +394,7 @@ class Evaluations:
         :func:`kitti_eval.analysis.diagnostics.frames_document`."""
         if worst is not None and worst < 1:
             raise BadRequest("worst must be at least 1")
-        record = self.get(evaluation_id, caller)
+        record = self.evaluations.get(evaluation_id, caller)
         gt, dt, config = self._kept_inputs(record)
         stats = frame_stats(
             gt, dt, config, cls=cls, metric=metric, difficulty=difficulty, oset=oset, score_threshold=score_threshold
@@ -398,7 +422,7 @@ class Evaluations:
             raise BadRequest("name at least one evaluation")
         if len(ids) > MAX_INSPECTED:
             raise BadRequest(f"at most {MAX_INSPECTED} evaluations in one frame view")
-        records = [self.get(i, caller) for i in ids]
+        records = [self.evaluations.get(i, caller) for i in ids]
         if len({r.gt_sha256 for r in records}) > 1:
             raise Conflict(
                 "these evaluations used different ground truths; a frame view compares evaluations against the same one"

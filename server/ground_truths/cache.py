@@ -28,7 +28,15 @@ from kitti_eval.errors import KittiEvalError
 from kitti_eval.io.loaders import load_ground_truth
 
 from ..errors import ApiError, BadRequest, Conflict, NotFound, echo
-from ..evaluations.uploads import InputFormat, Limits, Upload, extract_txt_folder, load_upload, stored_upload
+from ..evaluations.uploads import (
+    InputFormat,
+    Limits,
+    Upload,
+    extract_txt_folder,
+    load_upload,
+    receive_upload,
+    stored_upload,
+)
 from ..store import BenchmarkStore, GroundTruthRecord, GroundTruthStore
 
 __all__ = ["GroundTruths", "GroundTruthCache", "NAME_PATTERN", "annotations_nbytes", "display_name"]
@@ -155,6 +163,20 @@ class GroundTruths:
                 "starting with a letter or digit"
             )
         return name
+
+    def register_bundled(self, name: str, path: Path, scratch: Path) -> None:
+        """Register the file at ``path`` (one this package ships: the demo's) as ``name`` unless one is registered
+        under that name (by this process before, or by another meanwhile)."""
+        if self.ground_truth_store.get_ground_truth(name) is not None:
+            return
+        with open(path, "rb") as fh:
+            try:
+                self.register(name, receive_upload(fh, path.name, path.name), scratch)
+            except Exception as e:  # noqa: BLE001 - another worker may have registered it meanwhile
+                if self.ground_truth_store.get_ground_truth(name) is None:
+                    raise
+                log.debug("%s registered concurrently: %s", name, e)
+        log.info("registered the bundled ground truth %s as %r", path.name, name)
 
     def register(
         self, name: str, upload: Upload, scratch: Path, *, project: str | None = None, sealed: bool = False

@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -25,6 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from kitti_eval.core.matching import available_cpus
+
+from .queue import JobQueue
 
 __all__ = ["WorkerPool", "CHILD_MODULE"]
 
@@ -190,3 +193,35 @@ class WorkerPool:
         """The exit codes of the processes that ended while the pool ran (those it started again after)."""
         with self._lock:
             return [code for slot in self._slots for code in slot.exits]
+
+
+#: a worker process not seen on the database for this long does not count for the readiness
+WORKERS_SEEN_S = 60.0
+
+
+def why_no_worker(
+    threads: int, jobs: JobQueue, pool: WorkerPool | None, within_s: float = WORKERS_SEEN_S
+) -> str | None:
+    """Why no accepted evaluation would run (None: a worker can run it): no worker thread in this process
+    (``threads``), and no worker process seen on the database within ``within_s``. A worker process records
+    itself there once its kernels are warm and it takes jobs: while the service's own (``pool``) are still
+    starting, it is not ready."""
+    if threads > 0:
+        return None
+    try:
+        seen = jobs.workers_seen(within_s)
+    except Exception as e:  # noqa: BLE001 - the ping answered: a failure here is a passing one
+        log.warning("could not read the worker processes: %s", e)
+        return "the database is unavailable"
+    if pool is not None:
+        host, own = socket.gethostname(), set(pool.pids)
+        if any(w.host == host and w.pid in own for w in seen):
+            return None
+        if pool.alive > 0:
+            return "the worker processes are starting (warming the evaluation kernels)"
+    if seen:
+        return None
+    return (
+        "no worker runs evaluations: KITTI_EVAL_JOB_THREADS is 0, KITTI_EVAL_WORKER_PROCESSES is 0, and no "
+        f"'kitti-eval worker' was seen on the database in the last {within_s:g} s"
+    )

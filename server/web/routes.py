@@ -435,7 +435,7 @@ async def _worst_frames(
     try:
         found = await service.run(
             partial(
-                service.evaluations.frames,
+                service.evaluation_frames.frames,
                 record.id,
                 cls=choice["cls"],
                 metric=choice["metric"],
@@ -658,7 +658,7 @@ async def frame_page(
             raise BadRequest("name at least one evaluation: /frames/<frame>?e=<evaluation id>")
         data = await service.run(
             partial(
-                service.evaluations.inspect,
+                service.evaluation_frames.inspect,
                 ids,
                 frame_id,
                 cls=cls,

@@ -280,7 +280,8 @@ def _spied_methods(service) -> list[tuple[object, str]]:
     found = []
     hosted = service.benchmarks
     benchmarks = (hosted.catalog, hosted.submissions, hosted.scoring, hosted.board, hosted.intervals)
-    for part in (service.evaluations, service.catalog, *benchmarks, service.accounts, service.job_admin):
+    parts = (service.evaluations, service.evaluation_frames, service.catalog, *benchmarks, service.accounts)
+    for part in (*parts, service.job_admin):
         for name, fn in inspect.getmembers(type(part), inspect.isfunction):
             if not name.startswith("_") and "caller" in inspect.signature(fn).parameters:
                 found.append((part, name))
