@@ -168,10 +168,10 @@ def run(args: argparse.Namespace) -> int:
         from pydantic import ValidationError
         from sqlalchemy.exc import SQLAlchemyError
 
-        from kitti_eval_server.accounts import Accounts
-        from kitti_eval_server.audit import Audit
+        from kitti_eval_server.access.accounts import Accounts
+        from kitti_eval_server.access.audit import Audit
+        from kitti_eval_server.access.policy import Policy
         from kitti_eval_server.errors import ApiError
-        from kitti_eval_server.policy import Policy
         from kitti_eval_server.settings import Settings
         from kitti_eval_server.store import Store
     except ImportError as e:
@@ -207,8 +207,8 @@ def run(args: argparse.Namespace) -> int:
         store = Store(settings.resolved_database_url, busy_s=settings.database_busy_s)
         try:
             store.create_schema()
-            audit = Audit(store)
-            return _account_command(args, store, Accounts(store, audit, lambda: ""), caller)
+            audit = Audit(store.account_store)
+            return _account_command(args, store, Accounts(store.account_store, audit, lambda: ""), caller)
         finally:
             store.dispose()
     except (ApiError, KittiEvalError) as e:
@@ -254,12 +254,12 @@ def _account_command(args: argparse.Namespace, store: Any, accounts: Any, caller
         user = accounts.add_user(args.name, is_admin=args.admin, caller=caller)
         print(f"user {user.name}{' (admin)' if user.is_admin else ''}")
     elif what == "user":
-        for user in store.list_users():
+        for user in store.account_store.list_users():
             print(f"{user.name}\t{'admin' if user.is_admin else 'member'}\t{','.join(user.projects) or '-'}")
     elif what == "project" and action == "add":
         print(f"project {accounts.add_project(args.name, caller=caller)}")
     elif what == "project":
-        for name in store.list_projects():
+        for name in store.account_store.list_projects():
             print(name)
     elif what == "member" and action == "add":
         accounts.add_member(args.user, args.project, caller=caller)
@@ -278,7 +278,7 @@ def _account_command(args: argparse.Namespace, store: Any, accounts: Any, caller
         accounts.revoke_token(args.token_id, caller=caller)
         print(f"token {args.token_id} revoked")
     elif what == "token":
-        for t in store.list_tokens(args.user):
+        for t in store.account_store.list_tokens(args.user):
             state = "revoked" if t.revoked_at else f"expires {t.expires_at.isoformat()}" if t.expires_at else "active"
             print(f"{t.id}\t{t.user_name}\t{t.scopes}\t{state}")
     elif what == "audit":
@@ -308,7 +308,7 @@ def _run_jobs(service: Any, job_ids: list[str]) -> list[Any]:
     """Run the queued rescoring jobs, and the jobs of the board's intervals they queue, in this process until none
     is left (a service's workers on the same database may take some of ``job_ids`` meanwhile: those are waited
     for); the jobs ``job_ids`` as they ended."""
-    from kitti_eval_server.workers import Workers, worker_name
+    from kitti_eval_server.jobs.workers import Workers, worker_name
 
     workers = Workers(service.jobs, service.workers.handlers, threads=0)
     name = worker_name(0) + ":admin"
@@ -340,7 +340,7 @@ def _benchmark(args: argparse.Namespace, settings: Any, caller: Any) -> int:
             description = args.description
             if description.startswith("@"):
                 description = Path(description[1:]).read_text(encoding="utf-8")
-            bench = benchmarks.create(
+            bench = benchmarks.catalog.create(
                 args.name,
                 ground_truth=args.ground_truth,
                 title=args.title,
@@ -367,38 +367,40 @@ def _benchmark(args: argparse.Namespace, settings: Any, caller: Any) -> int:
                 f"days{cap}, {'public' if bench.public else 'not public'}"
             )
         elif action == "list":
-            for b in benchmarks.visible(caller):
+            for b in benchmarks.catalog.visible(caller):
                 state = "open" if b.is_open() else "closed"
                 print(f"{b.shown_name}\t{b.gt_name}\t{state}\t{'public' if b.public else '-'}\t{b.title}")
         elif action in ("close", "reopen", "reveal"):
             values = {"close": {"closed": True}, "reopen": {"closed": False}, "reveal": {"revealed": True}}[action]
-            bench = benchmarks.set_state(args.name, caller=caller, **values)
+            bench = benchmarks.catalog.set_state(args.name, caller=caller, **values)
             print(f"benchmark {bench.name}: {'open' if bench.is_open() else 'closed'}, board {bench.phase}")
         elif action == "rescore":
-            queued = benchmarks.rescore(args.name, caller=caller)
+            queued = benchmarks.submissions.rescore(args.name, caller=caller)
             ended = _run_jobs(service, queued["jobs"])
             done = sum(1 for j in ended if j is not None and j.state == "done")
             print(f"benchmark {args.name}: {done} submissions rescored, {len(ended) - done} failed")
         elif action == "submissions":
-            for s in benchmarks.all_submissions(args.name, caller):
+            for s in benchmarks.submissions.all_submissions(args.name, caller):
                 flags = ",".join(k for k in ("published", "disqualified") if s[k]) or "-"
                 print(f"{s['id']}\t{s['participant']}\t{s['created_at']}\t{s['status']}\t{flags}\t{s['method'] or '-'}")
         elif action == "disqualify":
-            benchmarks.disqualify(args.name, args.submission, caller=caller)
+            benchmarks.submissions.disqualify(args.name, args.submission, caller=caller)
             print(f"submission {args.submission} disqualified")
         elif action == "apply":
             from kitti_eval_server.benchmarks.benchmark_file import apply_benchmark_file
 
-            applied = apply_benchmark_file(benchmarks, _read_text(args.file), caller=caller, source=str(args.file))
+            applied = apply_benchmark_file(
+                benchmarks.catalog, _read_text(args.file), caller=caller, source=str(args.file)
+            )
             print(f"benchmark {applied.name}: " + ("; ".join(applied.lines)))
         elif action == "export" and args.file is not None:
             from kitti_eval_server.benchmarks.benchmark_file import export_benchmark_file
 
-            args.file.write_text(export_benchmark_file(benchmarks, args.name, caller=caller), encoding="utf-8")
+            args.file.write_text(export_benchmark_file(benchmarks.catalog, args.name, caller=caller), encoding="utf-8")
             print(f"benchmark {args.name}: written to {args.file}")
         elif action == "export":
-            board = benchmarks.leaderboard(args.name, caller)
-            sys.stdout.write(benchmarks.leaderboard_csv(board))
+            board = benchmarks.board.leaderboard(args.name, caller)
+            sys.stdout.write(benchmarks.board.leaderboard_csv(board))
     return EXIT_OK
 
 
@@ -413,7 +415,7 @@ def _read_text(path: Path) -> str:
 
 
 def _jobs(args: argparse.Namespace, settings: Any, caller: Any) -> int:
-    from kitti_eval_server.workers import JobFailed
+    from kitti_eval_server.jobs.workers import JobFailed
 
     with _offline_service(settings) as service:
         admin = service.job_admin

@@ -53,7 +53,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        from kitti_eval_server.worker_process import run_pool
+        from kitti_eval_server.jobs.process import run_pool
     except ImportError as e:
         raise ConfigError(f"the workers need the server extra: pip install 'kitti-eval[server]' ({e})") from None
     return run_pool(

@@ -53,9 +53,9 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
-from ..accounts import Accounts
+from ..access.accounts import Accounts
+from ..access.policy import Caller
 from ..errors import BadRequest, NotFound, echo
-from ..policy import Caller
 from .catalog import scoring_options
 from .phases import MAX_BENCHMARK_NAME, PhaseOf, check_phase_name, phase_list, phase_row
 from .rules import DEFAULT_KEY, MAIN_PHASE, Benchmark, parse_quota, parse_time
@@ -318,7 +318,7 @@ def _check_against_service(catalog: BenchmarkCatalog, spec: _Spec, r: _Reader) -
     asked, or are another benchmark's test set; two phases on one ground truth."""
     seen: dict[str, str] = {}
     own_rows = {phase_row(spec.name, p.name, first=p.index == 0) for p in spec.phases}
-    first = catalog.store.get_benchmark(spec.name)
+    first = catalog.benchmark_store.get_benchmark(spec.name)
     if first is not None:
         own_rows |= {row for _, row in phase_list(first)}
     for p in spec.phases:
@@ -379,7 +379,7 @@ def apply_benchmark_file(catalog: BenchmarkCatalog, text: str, *, caller: Caller
     catalog.policy.require_admin(caller)
     spec, r = _parse(text, source)
     _check_against_service(catalog, spec, r)
-    first = catalog.store.get_benchmark(spec.name)
+    first = catalog.benchmark_store.get_benchmark(spec.name)
     stored = phase_list(first) if first is not None else []
     order = tuple((p.name, phase_row(spec.name, p.name, first=p.index == 0)) for p in spec.phases)
     named = {p.name for p in spec.phases}
@@ -394,11 +394,11 @@ def apply_benchmark_file(catalog: BenchmarkCatalog, text: str, *, caller: Caller
                 index,
             )
     for phase, row in stored[1:]:
-        if phase not in named and catalog.store.get_benchmark(row) is not None:
+        if phase not in named and catalog.benchmark_store.get_benchmark(row) is not None:
             raise r.refuse(
                 f"the phase {phase!r} of {spec.name!r} is not in the file: a phase is never removed (close it instead)"
             )
-    rows = {p.name: catalog.store.get_benchmark(row) for p, (_, row) in zip(spec.phases, order)}
+    rows = {p.name: catalog.benchmark_store.get_benchmark(row) for p, (_, row) in zip(spec.phases, order)}
     plans: list[tuple[_Phase, str, dict[str, Any]]] = []
     for p, (_, row) in zip(spec.phases, order):
         record = rows[p.name]
@@ -439,7 +439,7 @@ def apply_benchmark_file(catalog: BenchmarkCatalog, text: str, *, caller: Caller
             )
             lines.append(f"phase {p.name}: created")
         elif changes:
-            catalog.store.update_benchmark(row, **changes)
+            catalog.benchmark_store.update_benchmark(row, **changes)
             detail = ", ".join(sorted(changes))
             catalog.audit.record(caller, "benchmark.apply", row, detail=detail)
             lines.append(f"phase {p.name}: changed {detail}")
@@ -480,7 +480,7 @@ def _changes(
     gt_changed = bench.gt_name != p.ground_truth
     if scoring_changed or split_changed or gt_changed:
         what = "its ground truth" if gt_changed else "its split" if split_changed else "its scoring"
-        if catalog.store.list_submissions(bench.name):
+        if catalog.benchmark_store.list_submissions(bench.name):
             key = "ground_truth" if gt_changed else "split_percent" if split_changed else "key"
             raise r.refuse(
                 f"the phase {p.name!r} has submissions: {what} no longer changes (they were scored on it)", key, p.index
@@ -505,7 +505,7 @@ def _changes(
 def export_benchmark_file(catalog: BenchmarkCatalog, name: str, *, caller: Caller) -> str:
     """The file that defines the benchmark ``name`` as it is now (applying it changes nothing)."""
     catalog.policy.require_admin(caller)
-    first = catalog.store.get_benchmark(name)
+    first = catalog.benchmark_store.get_benchmark(name)
     if first is None or Benchmark.from_record(first).is_later_phase:
         raise NotFound(f"no benchmark named {echo(name)}")
     bench = Benchmark.from_record(first)
@@ -523,7 +523,7 @@ def export_benchmark_file(catalog: BenchmarkCatalog, name: str, *, caller: Calle
     doc["team_size"] = bench.team_size
     phases = []
     for phase, row in phase_list(first):
-        record = first if row == first.name else catalog.store.get_benchmark(row)
+        record = first if row == first.name else catalog.benchmark_store.get_benchmark(row)
         if record is None:
             continue
         b = Benchmark.from_record(record)

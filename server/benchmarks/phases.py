@@ -20,8 +20,8 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any
 
+from ..access.policy import Caller
 from ..errors import BadRequest, NotFound, echo
-from ..policy import Caller
 from ..store import BenchmarkRecord
 from .rules import MAIN_PHASE, PHASE_SEPARATOR, Benchmark
 from .views import PHASE_FIELDS, pick
@@ -94,12 +94,12 @@ def phase_list(first: BenchmarkRecord) -> list[tuple[str, str]]:
 
 
 def _rows(catalog: BenchmarkCatalog, name: str) -> list[Benchmark]:
-    first = catalog.store.get_benchmark(name)
+    first = catalog.benchmark_store.get_benchmark(name)
     if first is None:
         return []
     rows = []
     for _, row in phase_list(first):
-        record = first if row == first.name else catalog.store.get_benchmark(row)
+        record = first if row == first.name else catalog.benchmark_store.get_benchmark(row)
         if record is not None:
             rows.append(Benchmark.from_record(record))
     return rows
@@ -127,7 +127,7 @@ def current_row(catalog: BenchmarkCatalog, name: str) -> str:
 def submission_row(catalog: BenchmarkCatalog, name: str, submission_id: str) -> str:
     """The row of the phase a submission of the benchmark ``name`` is in (else its current phase's: whoever
     asks, the route's own refusal follows for a submission that is not theirs or not there)."""
-    record = catalog.store.get_submission(submission_id)
+    record = catalog.benchmark_store.get_submission(submission_id)
     if record is not None and record.benchmark.split(PHASE_SEPARATOR, 1)[0] == name:
         return record.benchmark
     return current_row(catalog, name)

@@ -15,9 +15,9 @@ from collections.abc import Sequence
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any
 
+from ..access.policy import Caller, may_join_team, sees_teams
 from ..errors import BadRequest, Conflict, Forbidden, NotFound, echo
-from ..policy import Caller
-from ..store import Store
+from ..store import AccountStore, BenchmarkStore
 from ..store.team_store import TeamRecord, TeamRefused, TeamStore
 from .rules import Benchmark
 from .views import OWN_TEAM_FIELDS, TEAM_FIELDS, pick
@@ -30,11 +30,12 @@ __all__ = ["Teams", "quota_team", "team_names", "team_view"]
 _TEAM_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9 ._-]{0,47}$")
 
 
-def _store(store: Store) -> TeamStore:
-    return TeamStore(store.db)
+def _store(area: BenchmarkStore) -> TeamStore:
+    """The teams' area on the database of ``area`` (the benchmarks', which submissions and boards are given)."""
+    return TeamStore(area.db)
 
 
-def quota_team(store: Store, bench: Benchmark, participant: str) -> tuple[str, list[str]] | None:
+def quota_team(store: BenchmarkStore, bench: Benchmark, participant: str) -> tuple[str, list[str]] | None:
     """The lock name and members of the participant's team in the benchmark ``bench`` is a phase of (None: not
     in a team; a benchmark whose team size is 1 takes no teams): whose submissions count together against the
     phase's quota."""
@@ -46,7 +47,7 @@ def quota_team(store: Store, bench: Benchmark, participant: str) -> tuple[str, l
     return f"team~{team.name}", list(team.members)
 
 
-def team_names(store: Store, bench: Benchmark) -> dict[str, str]:
+def team_names(store: BenchmarkStore, bench: Benchmark) -> dict[str, str]:
     """Participant -> their team's name, in the benchmark ``bench`` is a phase of (none when it takes no teams)."""
     if bench.team_size < 2:
         return {}
@@ -69,8 +70,11 @@ def team_view(team: TeamRecord, *, own: bool = False) -> dict[str, Any]:
 class Teams:
     """Making and listing a benchmark's teams, as the policy says."""
 
-    def __init__(self, catalog: BenchmarkCatalog) -> None:
+    def __init__(self, catalog: BenchmarkCatalog, team_store: TeamStore, account_store: AccountStore) -> None:
+        """``account_store``: who may be invited (an account that may take part)."""
         self.catalog = catalog
+        self.team_store = team_store
+        self.account_store = account_store
 
     def _benchmark(self, name: str, caller: Caller) -> Benchmark:
         bench = self.catalog.get(name, caller)  # 404 for one the caller does not see
@@ -82,9 +86,9 @@ class Teams:
         """The benchmark's teams (for those who may take part in it, and admins), and the caller's own."""
         bench = self._benchmark(name, caller)
         policy = self.catalog.policy
-        if not policy.sees_teams(caller, project=bench.project, open_to_all=bench.open_to_all):
+        if not sees_teams(policy, caller, project=bench.project, open_to_all=bench.open_to_all):
             raise Forbidden(f"the teams of {name!r} are seen by those who take part in it")
-        store = _store(self.catalog.store)
+        store = self.team_store
         found = store.teams(bench.name)
         participant = policy.is_participant(caller)
         mine = next((t for t in found if caller.name in t.members), None) if participant else None
@@ -114,9 +118,8 @@ class Teams:
         take part), who join when they accept (:meth:`join`). Refused when the benchmark takes no teams, the team
         would be larger than its team size, one invited may not take part, or the caller is in a team of the
         benchmark already."""
-        policy = self.catalog.policy
         bench = self._taking_part(name, caller, "makes a team")
-        if _store(self.catalog.store).team_of(bench.name, caller.name) is not None:  # said first; the insert checks
+        if self.team_store.team_of(bench.name, caller.name) is not None:  # said first; the insert checks
             raise Conflict(f"one team per participant per benchmark: you are in a team of {name!r}")
         team = team.strip()
         if not _TEAM_NAME.fullmatch(team):
@@ -128,10 +131,10 @@ class Teams:
         if len(everyone) > bench.team_size:
             raise BadRequest(f"a team of {name!r} has at most {bench.team_size} members, its maker included")
         for member in everyone[1:]:
-            user = self.catalog.store.get_user(member)
-            if not policy.may_join_team(user, project=bench.project, open_to_all=bench.open_to_all):
+            user = self.account_store.get_user(member)
+            if not may_join_team(user, project=bench.project, open_to_all=bench.open_to_all):
                 raise BadRequest(f"{echo(member)} may not take part in {name!r}: a team is made of its participants")
-        store = _store(self.catalog.store)
+        store = self.team_store
         try:
             store.add_team(bench.name, team, caller.name, everyone[1:], datetime.now(timezone.utc))
         except TeamRefused as e:
@@ -148,7 +151,7 @@ class Teams:
         submitted alone in the quota's window, counts against the team's quota. Refused when they were not
         invited (404, as a team that does not exist), are in a team of the benchmark, or the team is full."""
         bench = self._taking_part(name, caller, "joins a team")
-        store = _store(self.catalog.store)
+        store = self.team_store
         try:
             store.join_team(bench.name, team, caller.name, bench.team_size, datetime.now(timezone.utc))
         except TeamRefused as e:

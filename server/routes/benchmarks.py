@@ -10,11 +10,11 @@ from fastapi import APIRouter, Depends, File, Header, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, Field
 
+from ..access.deps import AdminCaller, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.policy import Caller
 from ..benchmarks import DEFAULT_KEY, Benchmarks
 from ..benchmarks.rules import PHASE_SEPARATOR
-from ..deps import AdminCaller, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
-from ..policy import Caller
 from ..schemas import ErrorResponse
 from ..service import FileIn
 from .jobs import still_pending
@@ -80,7 +80,7 @@ class PublishIn(BaseModel):
 
 @router.post("", status_code=201, summary="Create a benchmark on a sealed ground truth (admins)")
 def create(body: BenchmarkIn, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
-    bench = benchmarks.create(
+    bench = benchmarks.catalog.create(
         body.name,
         ground_truth=body.ground_truth,
         title=body.title,
@@ -100,24 +100,24 @@ def create(body: BenchmarkIn, benchmarks: BenchmarksDep, caller: AdminCaller) ->
         share_test_set=body.share_test_set,
         caller=caller,
     )
-    return benchmarks.describe(bench, caller)
+    return benchmarks.catalog.describe(bench, caller)
 
 
 @router.get("", summary="Benchmarks you can see")
 def list_benchmarks(benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
-    return {"items": [benchmarks.describe(b, caller) for b in benchmarks.visible(caller)]}
+    return {"items": [benchmarks.catalog.describe(b, caller) for b in benchmarks.catalog.visible(caller)]}
 
 
 @router.get("/{name}", summary="One benchmark (admins: with the rescoring jobs by state)")
 def get_benchmark(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
-    return benchmarks.describe(benchmarks.get(name, caller), caller, rescoring=True)
+    return benchmarks.catalog.describe(benchmarks.catalog.get(name, caller), caller, rescoring=True)
 
 
 @router.get("/{name}/frames", summary="The test frame ids (for kitti-eval validate --benchmark)")
 async def frame_ids(
     name: CurrentPhase, benchmarks: BenchmarksDep, service: ServiceDep, caller: AnyoneCaller
 ) -> dict[str, Any]:
-    frames = await service.run(benchmarks.frame_ids, name, caller)
+    frames = await service.run(benchmarks.catalog.frame_ids, name, caller)
     return {"benchmark": name.split(PHASE_SEPARATOR, 1)[0], "frames": frames}
 
 
@@ -130,10 +130,10 @@ def leaderboard(
     order: Annotated[Literal["asc", "desc"] | None, Query()] = None,
     format: Annotated[Literal["json", "csv"], Query()] = "json",
 ) -> Response:
-    board = benchmarks.leaderboard(name, caller, sort=sort, order=order)
+    board = benchmarks.board.leaderboard(name, caller, sort=sort, order=order)
     if format == "csv":
         return PlainTextResponse(
-            benchmarks.leaderboard_csv(board),
+            benchmarks.board.leaderboard_csv(board),
             media_type="text/csv; charset=utf-8",
             headers={"Content-Disposition": f'attachment; filename="{board["benchmark"]}-leaderboard.csv"'},
         )
@@ -141,7 +141,7 @@ def leaderboard(
 
 
 def _admin_state(name: str, benchmarks: Benchmarks, caller: Caller, **values: bool) -> dict[str, Any]:
-    return benchmarks.describe(benchmarks.set_state(name, caller=caller, **values), caller)
+    return benchmarks.catalog.describe(benchmarks.catalog.set_state(name, caller=caller, **values), caller)
 
 
 @router.post("/{name}/close", summary="Close a benchmark to submissions (admins)")
@@ -166,19 +166,19 @@ def reveal(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -
 )
 async def rescore(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
     """Returns at once with the jobs queued; `GET /v1/benchmarks/{name}` shows their progress (`rescoring`)."""
-    return await anyio.to_thread.run_sync(lambda: benchmarks.rescore(name, caller=caller))
+    return await anyio.to_thread.run_sync(lambda: benchmarks.submissions.rescore(name, caller=caller))
 
 
 @router.get("/{name}/submissions/all", summary="Every submission, published or not (admins)")
 def all_submissions(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
-    return {"items": benchmarks.all_submissions(name, caller)}
+    return {"items": benchmarks.submissions.all_submissions(name, caller)}
 
 
 @router.post("/{name}/submissions/{submission_id}/disqualify", summary="Hide an entry, keeping it (admins)")
 def disqualify(
     name: SubmissionPhase, submission_id: str, benchmarks: BenchmarksDep, caller: AdminCaller
 ) -> dict[str, Any]:
-    return benchmarks.disqualify(name, submission_id, caller=caller)
+    return benchmarks.submissions.disqualify(name, submission_id, caller=caller)
 
 
 @router.post(
@@ -222,32 +222,32 @@ async def submit(
     key = parse_key(idempotency_key)
     file = FileIn(predictions.file, predictions.filename)
     # refusals: 422 problems, 429 retry_at
-    job = await service.accept(lambda: benchmarks.submit(name, file, caller, idempotency_key=key))
+    job = await service.accept(lambda: benchmarks.submissions.submit(name, file, caller, idempotency_key=key))
     ended = await service.outcome(job.id, wait)
     if ended.state != "done":
         return await still_pending(service.jobs, ended)
-    body = await anyio.to_thread.run_sync(benchmarks.submission, name, job.id, caller)
+    body = await anyio.to_thread.run_sync(benchmarks.submissions.submission, name, job.id, caller)
     where = f"/v1/benchmarks/{body['benchmark']}/submissions/{job.id}"  # the benchmark's name, whatever the phase
     return JSONResponse(body, status_code=201, headers={"Location": where})
 
 
 @router.get("/{name}/submissions", summary="Your submissions and your quota")
 def my_submissions(name: CurrentPhase, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[str, Any]:
-    return benchmarks.mine(name, caller)
+    return benchmarks.submissions.mine(name, caller)
 
 
 @router.get("/{name}/submissions/{submission_id}", summary="One of your submissions, with its full result")
 def my_submission(
     name: SubmissionPhase, submission_id: str, benchmarks: BenchmarksDep, caller: ReaderCaller
 ) -> dict[str, Any]:
-    return benchmarks.submission(name, submission_id, caller)
+    return benchmarks.submissions.submission(name, submission_id, caller)
 
 
 @router.post("/{name}/submissions/{submission_id}/publish", summary="Show one of your submissions on the board")
 def publish(
     name: SubmissionPhase, submission_id: str, body: PublishIn, benchmarks: BenchmarksDep, caller: WriterCaller
 ) -> dict[str, Any]:
-    return benchmarks.publish(
+    return benchmarks.submissions.publish(
         name,
         submission_id,
         caller,
@@ -262,4 +262,4 @@ def publish(
 def withdraw(
     name: SubmissionPhase, submission_id: str, benchmarks: BenchmarksDep, caller: WriterCaller
 ) -> dict[str, Any]:
-    return benchmarks.withdraw(name, submission_id, caller)
+    return benchmarks.submissions.withdraw(name, submission_id, caller)

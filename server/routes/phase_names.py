@@ -21,13 +21,13 @@ def _benchmarks(request: Request) -> Benchmarks:
 
 def current_phase(name: str, request: Request) -> str:
     """The row of the benchmark's current phase (the benchmark's own for one made with ``benchmark add``)."""
-    return current_row(_benchmarks(request), name)
+    return current_row(_benchmarks(request).catalog, name)
 
 
 def submission_phase(name: str, submission_id: str, request: Request) -> str:
     """The row of the phase a submission of the benchmark is in (else the current phase's: the route's own
     refusal follows)."""
-    return submission_row(_benchmarks(request), name, submission_id)
+    return submission_row(_benchmarks(request).catalog, name, submission_id)
 
 
 #: a benchmark's name in a route without a phase: the row of its current phase

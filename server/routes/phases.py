@@ -10,11 +10,10 @@ from fastapi import APIRouter, Depends, File, Header, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
+from ..access.deps import AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..benchmarks import Benchmarks
 from ..benchmarks.open_labels import submission_frames as frames_of
 from ..benchmarks.phases import phase_views, row_of
-from ..benchmarks.teams import Teams
-from ..deps import AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..errors import NotFound, echo
 from ..idempotency import IDEMPOTENCY_DESCRIPTION
 from ..schemas import ErrorResponse
@@ -50,16 +49,16 @@ class TeamIn(BaseModel):
 
 @router.get("/{name}/phases", summary="The benchmark's phases, the current one marked")
 def phases(name: str, benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
-    bench = benchmarks.get(name, caller)
+    bench = benchmarks.catalog.get(name, caller)
     if bench.is_later_phase:
         raise NotFound(f"no benchmark named {echo(name)}")
-    return {"benchmark": bench.shown_name, "items": phase_views(benchmarks, bench, caller)}
+    return {"benchmark": bench.shown_name, "items": phase_views(benchmarks.catalog, bench, caller)}
 
 
 @router.get("/{name}/phases/{phase}", summary="One phase of the benchmark")
 def phase(name: str, phase: str, benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
-    row = row_of(benchmarks, name, phase, caller)
-    return benchmarks.describe(benchmarks.get(row, caller), caller, rescoring=True)
+    row = row_of(benchmarks.catalog, name, phase, caller)
+    return benchmarks.catalog.describe(benchmarks.catalog.get(row, caller), caller, rescoring=True)
 
 
 @router.get("/{name}/phases/{phase}/leaderboard", summary="A phase's leaderboard (JSON, or CSV with format=csv)")
@@ -72,7 +71,7 @@ def phase_leaderboard(
     order: Annotated[Literal["asc", "desc"] | None, Query()] = None,
     format: Annotated[Literal["json", "csv"], Query()] = "json",
 ) -> Response:
-    row = row_of(benchmarks, name, phase, caller)
+    row = row_of(benchmarks.catalog, name, phase, caller)
     return single.leaderboard(row, benchmarks, caller, sort=sort, order=order, format=format)
 
 
@@ -100,13 +99,13 @@ async def phase_submit(
         str | None, Header(alias="Idempotency-Key", description=IDEMPOTENCY_DESCRIPTION, max_length=1000)
     ] = None,
 ) -> JSONResponse:
-    row = row_of(benchmarks, name, phase, caller)
+    row = row_of(benchmarks.catalog, name, phase, caller)
     return await single.submit(row, benchmarks, service, caller, predictions, wait, idempotency_key)
 
 
 @router.get("/{name}/phases/{phase}/submissions", summary="Your submissions to a phase and its quota")
 def phase_submissions(name: str, phase: str, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[str, Any]:
-    return benchmarks.mine(row_of(benchmarks, name, phase, caller), caller)
+    return benchmarks.submissions.mine(row_of(benchmarks.catalog, name, phase, caller), caller)
 
 
 @router.get(
@@ -147,7 +146,7 @@ async def submission_frames(
 
 @router.get("/{name}/teams", summary="The benchmark's teams (for those who take part in it) and yours")
 def teams(name: str, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[str, Any]:
-    return Teams(benchmarks).list(name, caller)
+    return benchmarks.teams.list(name, caller)
 
 
 @router.post("/{name}/teams", status_code=201, summary="Make a team and invite others who take part")
@@ -155,9 +154,9 @@ def make_team(name: str, body: TeamIn, benchmarks: BenchmarksDep, caller: Writer
     """The caller is the team's first member; those named in ``members`` are invited and join when they accept
     (``POST .../teams/TEAM/join``); one team per participant per benchmark; the quota of each phase is the team's
     (what a member submitted alone before joining counts against it)."""
-    return Teams(benchmarks).create(name, body.name, body.members, caller)
+    return benchmarks.teams.create(name, body.name, body.members, caller)
 
 
 @router.post("/{name}/teams/{team}/join", summary="Join a team that invited you")
 def join_team(name: str, team: str, benchmarks: BenchmarksDep, caller: WriterCaller) -> dict[str, Any]:
-    return Teams(benchmarks).join(name, team, caller)
+    return benchmarks.teams.join(name, team, caller)

@@ -23,17 +23,16 @@ from starlette.exceptions import HTTPException
 
 from kitti_eval.errors import KittiEvalError
 
+from ..access.deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.policy import Caller
 from ..benchmarks import Benchmarks, InvalidSubmission, render_markdown
 from ..benchmarks.phases import current_row, row_of
 from ..benchmarks.rules import PHASE_SEPARATOR
-from ..benchmarks.teams import Teams
-from ..deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..errors import ApiError, BadRequest, NotFound, clip, fault_of
 from ..idempotency import FORM_FIELD, new_form_key, parse_key
-from ..policy import Caller
+from ..jobs.workers import JobFailed
 from ..routes.phase_names import SubmissionPhase
 from ..service import FileIn, Service
-from ..workers import JobFailed
 from .boards import board_entries, board_header, bootstrap_line, column_label, comparison_rows, full_time, number
 from .routes import _render, _status, queued_text
 
@@ -114,9 +113,9 @@ def benchmarks_page(request: Request, service: ServiceDep, caller: AnyoneCaller)
     """The benchmarks the caller sees, with their rules and, for a participant, the submissions left."""
     benchmarks = _benchmarks(request)
     rows = []
-    for bench in benchmarks.visible(caller):
-        described = benchmarks.describe(bench, caller)
-        mine = benchmarks.mine(bench.name, caller) if _participant(service, caller) else None
+    for bench in benchmarks.catalog.visible(caller):
+        described = benchmarks.catalog.describe(bench, caller)
+        mine = benchmarks.submissions.mine(bench.name, caller) if _participant(service, caller) else None
         rows.append({"bench": described, "rules": _rules(described), "mine": mine})
     return _render(request, "benchmarks.html", rows=rows, participant=_participant(service, caller))
 
@@ -150,17 +149,17 @@ def _benchmark_context(
     request: Request, service: Service, caller: Caller, name: str, sort: str | None, order: str | None
 ) -> dict[str, Any]:
     benchmarks = _benchmarks(request)
-    bench = benchmarks.get(name, caller)
-    board = benchmarks.leaderboard(name, caller, sort=sort, order=order)
-    described = benchmarks.describe(bench, caller)
+    bench = benchmarks.catalog.get(name, caller)
+    board = benchmarks.board.leaderboard(name, caller, sort=sort, order=order)
+    described = benchmarks.catalog.describe(bench, caller)
     mine = None
     if _participant(service, caller):
-        mine = benchmarks.mine(name, caller)
+        mine = benchmarks.submissions.mine(name, caller)
         mine["items"] = _states(service, mine["items"], described["key"])
     phases = sorted(described["phases"], key=lambda p: not p["current"])  # the current one first
     teams = None
     if described["team_size"] > 1 and _participant(service, caller) and not service.policy.administers(caller):
-        teams = Teams(benchmarks).list(bench.shown_name, caller)
+        teams = benchmarks.teams.list(bench.shown_name, caller)
     return {
         "phases": [{**p, "rules": _rules({**p, "key": described["key"]})} for p in phases] if len(phases) > 1 else [],
         "teams": teams,
@@ -197,7 +196,7 @@ def _short_key(key: list[str], columns: list[str]) -> str:
 def _phase_row(request: Request, caller: Caller, name: str, phase: str | None) -> str:
     """The row of the phase a page shows: the one named (``?phase=``), else the current one."""
     benchmarks = _benchmarks(request)
-    return row_of(benchmarks, name, phase, caller) if phase else current_row(benchmarks, name)
+    return row_of(benchmarks.catalog, name, phase, caller) if phase else current_row(benchmarks.catalog, name)
 
 
 PhaseQuery = Annotated[str | None, Query(max_length=40, description="a phase of the benchmark (default: the current)")]
@@ -237,7 +236,7 @@ async def submit_form(
             file = FileIn(predictions.file, predictions.filename)
             key = form.get(FORM_FIELD)
             key = parse_key(key) if isinstance(key, str) and key else None  # the form's: sent again, one submission
-            job = await service.accept(lambda: benchmarks.submit(name, file, caller, idempotency_key=key))
+            job = await service.accept(lambda: benchmarks.submissions.submit(name, file, caller, idempotency_key=key))
         try:
             await service.outcome(job.id, FORM_WAIT_S)  # the file's check runs in its job: a refusal shows here
         except JobFailed:
@@ -282,9 +281,9 @@ def _submission_context(
     request: Request, service: Service, caller: Caller, name: str, submission_id: str
 ) -> dict[str, Any]:
     benchmarks = _benchmarks(request)
-    submission = benchmarks.submission(name, submission_id, caller)
-    bench = benchmarks.get(name, caller)
-    described = benchmarks.describe(bench, caller)
+    submission = benchmarks.submissions.submission(name, submission_id, caller)
+    bench = benchmarks.catalog.get(name, caller)
+    described = benchmarks.catalog.describe(bench, caller)
     state = _state(service, submission)
     columns = described["columns"]
     scores = submission.get("scores") or {}
@@ -335,7 +334,7 @@ def submission_page(
 def _refused_job(service: Service, caller: Caller, submission_id: str) -> ApiError | None:
     """Why the caller's submission was refused by its scoring job's check of the file, if it was: the
     validator's sentences as on the form, or the reader's refusal."""
-    failed = service.benchmarks.refusal(submission_id, caller)
+    failed = service.benchmarks.scoring.refusal(submission_id, caller)
     return None if failed is None else _as_refusal(failed)
 
 
@@ -350,7 +349,7 @@ async def publish_form(
         async with request.form(max_files=0, max_fields=_PUBLISH_FIELDS) as form:
             values = {k: v for k, v in form.items() if isinstance(v, str)}
         await anyio.to_thread.run_sync(
-            lambda: benchmarks.publish(
+            lambda: benchmarks.submissions.publish(
                 name,
                 submission_id,
                 caller,
@@ -378,7 +377,7 @@ async def withdraw_form(
     """Take one of the caller's entries off the board; then the submission's page again."""
     benchmarks = _benchmarks(request)
     try:
-        await anyio.to_thread.run_sync(lambda: benchmarks.withdraw(name, submission_id, caller))
+        await anyio.to_thread.run_sync(lambda: benchmarks.submissions.withdraw(name, submission_id, caller))
     except ApiError as e:
         return await anyio.to_thread.run_sync(
             partial(_submission_refused, request, service, caller, name, submission_id, e, {})
@@ -413,7 +412,7 @@ def _shown(row: str) -> str:
 
 def _page_of(benchmarks: Benchmarks, row: str, caller: Caller) -> str:
     """The page of the phase ``row`` is (of a benchmark with phases: ``?phase=``)."""
-    bench = benchmarks.get(row, caller)
+    bench = benchmarks.catalog.get(row, caller)
     phased = bench.is_later_phase or bool(bench.config.get("phases"))
     return f"/benchmarks/{quote(bench.shown_name)}" + (f"?phase={quote(bench.phase_name)}" if phased else "")
 
@@ -430,7 +429,7 @@ async def team_form(request: Request, service: ServiceDep, caller: WriterCaller,
         async with request.form(max_files=0, max_fields=_TEAM_FIELDS) as form:
             values = {k: v for k, v in form.items() if isinstance(v, str)}
         members = [m.strip() for m in values.get("members", "").split(",") if m.strip()]
-        await anyio.to_thread.run_sync(lambda: Teams(benchmarks).create(name, values.get("name", ""), members, caller))
+        await anyio.to_thread.run_sync(lambda: benchmarks.teams.create(name, values.get("name", ""), members, caller))
     except ApiError as e:
         return await anyio.to_thread.run_sync(partial(_team_refused, request, service, caller, name, e))
     return RedirectResponse(f"/benchmarks/{quote(name)}#team", status_code=303)
@@ -441,7 +440,7 @@ async def join_form(request: Request, service: ServiceDep, caller: WriterCaller,
     """Join a team that invited the caller; then the benchmark's page at the team."""
     benchmarks = _benchmarks(request)
     try:
-        await anyio.to_thread.run_sync(lambda: Teams(benchmarks).join(name, team, caller))
+        await anyio.to_thread.run_sync(lambda: benchmarks.teams.join(name, team, caller))
     except ApiError as e:
         return await anyio.to_thread.run_sync(partial(_team_refused, request, service, caller, name, e))
     return RedirectResponse(f"/benchmarks/{quote(name)}#team", status_code=303)
@@ -449,7 +448,9 @@ async def join_form(request: Request, service: ServiceDep, caller: WriterCaller,
 
 def _team_refused(request: Request, service: Service, caller: Caller, name: str, failure: ApiError) -> Response:
     try:
-        context = _benchmark_context(request, service, caller, current_row(_benchmarks(request), name), None, None)
+        context = _benchmark_context(
+            request, service, caller, current_row(_benchmarks(request).catalog, name), None, None
+        )
     except ApiError as e:
         return _error(request, e)
     context["team_error"] = _message(failure)

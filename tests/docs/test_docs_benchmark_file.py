@@ -31,7 +31,7 @@ def _register(c) -> None:
 def test_the_pages_file_applies_as_written_twice_and_exports_itself(tmp_path) -> None:
     with app_client(tmp_path / "data", auth="accounts") as c:
         _register(c)
-        benchmarks = c.app.state.benchmarks
+        benchmarks = c.app.state.benchmarks.catalog
         made = apply_benchmark_file(benchmarks, FILE.code, caller=HOST, source="kitti-phases.toml")
         assert made.lines == ("phase dev: created", "phase test: created")
         again = apply_benchmark_file(benchmarks, FILE.code, caller=HOST, source="kitti-phases.toml")
@@ -57,7 +57,7 @@ def test_the_refusal_the_page_quotes_is_the_services(tmp_path) -> None:
         _register(c)
         ok(c.post("/v1/benchmarks", json={"name": "kitti-3d", "ground_truth": "kitti-sealed"}, headers=ADMIN), 201)
         with pytest.raises(BadRequest) as refused:
-            apply_benchmark_file(c.app.state.benchmarks, FILE.code, caller=HOST, source="kitti-phases.toml")
+            apply_benchmark_file(c.app.state.benchmarks.catalog, FILE.code, caller=HOST, source="kitti-phases.toml")
     said = refused.value.message
     quoted = "kitti-phases.toml, line 24: the ground truth 'kitti-sealed' is already the test set of kitti-3d: "
     assert said.startswith(quoted) and f"`kitti-eval admin: error: {quoted}...`" in PAGE.read_text()

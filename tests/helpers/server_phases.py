@@ -9,7 +9,7 @@ from typing import Any
 from server_benchmarks import Hosted, ok
 from server_helpers import ADMIN, golden_bytes
 
-from kitti_eval_server.policy import Policy
+from kitti_eval_server.access.policy import Policy
 
 __all__ = ["TWO_PHASES", "HOST", "phased_world"]
 

@@ -591,7 +591,7 @@ def _same_file_cases(tmp_path: Path) -> dict[str, tuple[str, bytes]]:
 def test_a_file_loads_the_same_way_through_the_cli_and_the_service(tmp_path: Path, case: str) -> None:
     """The CLI's loader and the service's upload path decide what a file is by the same test of its content,
     whatever its name: the same boxes, or the same refusal."""
-    from kitti_eval_server.uploads import Limits, load_upload, receive_upload
+    from kitti_eval_server.evaluations.uploads import Limits, load_upload, receive_upload
 
     name, data = _same_file_cases(tmp_path)[case]
     path = tmp_path / "in" / name

@@ -19,7 +19,7 @@ from kitti_eval_server.benchmarks.benchmark_file import apply_benchmark_file
 def world(tmp_path):
     with app_client(tmp_path / "data", auth="accounts", auth_max_failures=1_000_000) as c:
         hosted = phased_world(c)
-        apply_benchmark_file(c.app.state.benchmarks, TWO_PHASES, caller=HOST)
+        apply_benchmark_file(c.app.state.benchmarks.catalog, TWO_PHASES, caller=HOST)
         yield c, hosted
 
 
