@@ -1,0 +1,190 @@
+"""Detections read straight from a checked pickle's bytes (kitti_eval.io.pickle_columns) are the detections the
+objects give: the same arrays (values, dtypes, shapes), the same warnings; and whatever that reader leaves
+(another layout, a refused frame or value) is read from the objects, with the same refusal as ever."""
+
+from __future__ import annotations
+
+import io
+import pickle
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+import pytest
+
+from kitti_eval.core.frames import Annotations
+from kitti_eval.errors import InputError
+from kitti_eval.io.calib import Calib
+from kitti_eval.io.pickle_columns import read_detections
+from kitti_eval.io.reading import LoadOptions, read_object, read_pickle
+from kitti_eval.io.safe_pickle import check_pickle, load_pickle
+from kitti_eval.synth import generate
+
+FIELDS = ("name", "truncated", "occluded", "alpha", "bbox", "dimensions", "location", "rotation_y", "score")
+
+
+def _results(frames: int = 12, seed: int = 3, **kwargs: Any) -> list[dict[str, Any]]:
+    return generate(frames, seed=seed, **kwargs)[1]
+
+
+def _outcome(read: Any) -> tuple[str, Any, Any]:
+    try:
+        loaded = read()
+    except InputError as e:
+        return "refused", type(e).__name__, str(e)
+    return "read", loaded.annotations, loaded.warnings
+
+
+def _both(obj: object, protocol: int = 4, **options: Any) -> tuple[tuple[str, Any, Any], tuple[str, Any, Any], bool]:
+    """(the read from the bytes, the read from the objects, whether the bytes' reader took it)."""
+    data = pickle.dumps(obj, protocol=protocol)
+    opts = LoadOptions(**options)
+    fast = _outcome(lambda: read_pickle(io.BytesIO(data), "detections", "r.pkl", opts))
+    lim = opts.with_limits()  # as read_annotations read a pickle before: load_pickle with the limits, read_object
+    slow = _outcome(
+        lambda: read_object(
+            load_pickle(io.BytesIO(data), source="r.pkl", max_bytes=lim.max_bytes, max_entries=lim.max_frames),
+            "detections",
+            "r.pkl",
+            lim,
+        )
+    )
+    took = read_detections(
+        check_pickle(io.BytesIO(data), source="r.pkl"),
+        max_frames=lim.max_frames or 0,
+        keep_lidar=opts.keep_lidar,
+        known_frames=opts.known_frames,
+        calibs=opts.calibs,
+        warnings=[],
+    )
+    return fast, slow, took is not None
+
+
+def _same(a: Annotations, b: Annotations) -> None:
+    assert a.frame_ids == b.frame_ids and a.kind == b.kind and a.source == b.source
+    assert dict(a.missing_fields) == dict(b.missing_fields)
+    for f in ("offsets", *FIELDS, "boxes_lidar"):
+        x, y = getattr(a, f), getattr(b, f)
+        if y is None:
+            assert x is None, f
+            continue
+        assert (x.dtype, x.shape, x.flags.writeable) == (y.dtype, y.shape, y.flags.writeable), f
+        # bit for bit: both are the same float32 or float64 inputs converted to float64 once
+        assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), f
+
+
+def _assert_parity(obj: object, *, taken: bool, protocol: int = 4, **options: Any) -> tuple[str, Any, Any]:
+    fast, slow, took = _both(obj, protocol, **options)
+    assert took is taken
+    assert fast[0] == slow[0]
+    if fast[0] == "read":
+        _same(fast[1], slow[1])
+        assert fast[2] == slow[2]
+    else:
+        assert fast[1:] == slow[1:]
+    return fast
+
+
+# ---------------------------------------------------------------------------------- read from the bytes
+
+
+@pytest.mark.parametrize("protocol", [2, 3, 4])
+@pytest.mark.parametrize("numpy_ids", [True, False])
+def test_a_result_pkl_read_from_its_bytes_is_the_one_read_from_its_objects(protocol, numpy_ids):
+    results = _results(40, empty_pred_frac=0.2, numpy_frame_ids=numpy_ids)
+    assert any(len(r["name"]) == 0 for r in results) and any(len(r["name"]) for r in results)
+    # protocol 2 writes array bytes as latin-1 text: taken only where that text is the bytes themselves
+    fast = _assert_parity(results, taken=protocol > 2, protocol=protocol)
+    assert fast[1].num_frames == 40 and fast[1].num_boxes == sum(len(r["name"]) for r in results)
+
+
+def test_the_fields_and_ids_of_other_shapes_and_dtypes_it_takes():
+    results = _results(9)
+    for i, r in enumerate(results):
+        r["frame_id"] = [i, np.int64(i), f"{i:06d}"][i % 3]  # ints, numpy ints and str, as one frame each
+        if i % 2:
+            for f in ("bbox", "location", "score"):
+                r[f] = r[f].astype(np.float64)  # float32 and float64 frames in one column
+        r["truncated"] = np.zeros(len(r["name"]), np.int16)
+        r["name"] = r["name"].astype(f"<U{12 + i}")  # names of many widths
+    results[4] = {k: np.zeros((0, 4) if k == "bbox" else 0) for k in (*FIELDS, "boxes_lidar")} | {"frame_id": "4"}
+    fast = _assert_parity(results, taken=True, keep_lidar=True)
+    assert fast[1].name.dtype == np.dtype("<U20") and fast[1].frame_ids[4] == "000004"
+    assert not np.isnan(fast[1].boxes_lidar).any()
+
+
+def test_fields_no_frame_has_are_filled_and_said_as_from_the_objects():
+    results = _results(6)
+    for r in results:
+        for f in ("bbox", "alpha", "truncated", "occluded", "boxes_lidar"):
+            del r[f]
+    fast = _assert_parity(results, taken=True, keep_lidar=True)
+    assert dict(fast[1].missing_fields) == {"alpha": "000000", "bbox": "000000"}
+    assert np.isnan(fast[1].boxes_lidar).all() and (fast[1].alpha == -10).all()
+
+
+def test_the_camera_and_lidar_boxes_are_compared_on_the_same_frames_with_the_same_warning():
+    results = _results(30, empty_pred_frac=0.1)
+    calib = Calib(np.eye(4), np.eye(4)[:3].copy(), None)
+    calibs = {f"{i:06d}": calib for i in range(30)}  # not the frames' own: most boxes disagree
+    fast = _assert_parity(results, taken=True, calibs=calibs)
+    assert len(fast[2]) == 1 and "camera fields and boxes_lidar disagree" in fast[2][0]
+
+
+def test_the_ground_truths_frames_and_the_limits_apply_as_from_the_objects():
+    results = _results(5)
+    known = {f"{i:06d}": i for i in range(5)}
+    _assert_parity(results, taken=True, known_frames=known)
+    refused = _assert_parity(results, taken=False, known_frames={k: v for k, v in known.items() if k != "000003"})
+    assert refused[1:] == ("InputError", "r.pkl, frame 000003: predictions for a frame that is not in the ground truth")
+    too_many = _assert_parity(results, taken=False, max_frames=4)
+    assert "more than the limit of 4" in too_many[2]
+
+
+# ---------------------------------------------------------------------------------- left to the objects
+
+
+def _with(change: Any) -> list[dict[str, Any]]:
+    results = _results(6)
+    change(results)
+    return results
+
+
+def _set(i: int, field: str, value: Any) -> Any:
+    return lambda rs: rs[i].__setitem__(field, value)
+
+
+LEFT = {
+    "a repeated frame": lambda rs: rs[3].__setitem__("frame_id", rs[1]["frame_id"]),
+    "a negative frame id": _set(2, "frame_id", -2),
+    "a bool frame id": _set(2, "frame_id", True),
+    "a missing frame id": lambda rs: rs[2].pop("frame_id"),
+    "a missing field": lambda rs: rs[2].pop("score"),
+    "a field in some frames only": lambda rs: rs[2].pop("alpha"),
+    "a key of another format": _set(0, "sample_idx", 0),
+    "NaN": lambda rs: rs[1]["location"].__setitem__((0, 2), np.nan),
+    "an infinite lidar box": lambda rs: rs[1]["boxes_lidar"].__setitem__((0, 2), np.inf),
+    "names as bytes": lambda rs: rs[1].__setitem__("name", rs[1]["name"].astype("S")),
+    "names as a list": lambda rs: rs[1].__setitem__("name", list(rs[1]["name"])),
+    "a code point past U+10FFFF": lambda rs: rs[1]["name"].view("<u4").__setitem__(0, 0x110000),
+    "a short field": lambda rs: rs[1].__setitem__("score", rs[1]["score"][:-1]),
+    "a wide field": lambda rs: rs[1].__setitem__("rotation_y", rs[1]["rotation_y"][:, None]),
+    "bools": lambda rs: rs[1].__setitem__("score", rs[1]["score"] > 0.5),
+    "big-endian numbers": lambda rs: rs[1].__setitem__("bbox", rs[1]["bbox"].astype(">f4")),
+    "a Fortran-ordered field": lambda rs: rs[1].__setitem__("bbox", np.asfortranarray(rs[1]["bbox"])),
+    "a list of numbers": lambda rs: rs[1].__setitem__("score", rs[1]["score"].tolist()),
+    "boxes in a frame without names": lambda rs: rs[1].__setitem__("name", np.zeros(0)),
+    "an OrderedDict frame": lambda rs: rs.__setitem__(1, OrderedDict(rs[1])),
+    "a tuple of frames": lambda rs: None,  # made a tuple below
+}
+
+
+@pytest.mark.parametrize("case", list(LEFT))
+def test_what_the_bytes_reader_leaves_is_read_or_refused_as_from_the_objects(case):
+    results = _with(LEFT[case])
+    obj: object = tuple(results) if case == "a tuple of frames" else results
+    fast = _assert_parity(obj, taken=False, keep_lidar=True)
+    refused = {"a repeated frame", "a negative frame id", "a bool frame id", "a missing frame id", "a missing field"}
+    refused |= {"NaN", "an infinite lidar box", "a code point past U+10FFFF", "a short field", "a wide field", "bools"}
+    refused |= {"boxes in a frame without names"}
+    assert (fast[0] == "refused") == (case in refused)
