@@ -240,6 +240,8 @@ def read_detections(
     boxed = names.size > 0
     if not np.all((names.ndim[boxed] == 1) & (names.kind[boxed] == _U) & ~names.big[boxed] & names.raw_ok[boxed]):
         return None
+    if np.any(names.nbytes[boxed] != names.size[boxed] * names.itemsize[boxed]):
+        return None
     if np.any(names.itemsize[boxed] <= 0):
         return None
     counts = np.where(boxed, names.d0, 0)
