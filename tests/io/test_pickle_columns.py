@@ -101,7 +101,8 @@ def test_a_result_pkl_read_from_its_bytes_is_the_one_read_from_its_objects(proto
 def test_the_fields_and_ids_of_other_shapes_and_dtypes_it_takes():
     results = _results(9)
     for i, r in enumerate(results):
-        r["frame_id"] = [i, np.int64(i), f"{i:06d}"][i % 3]  # ints, numpy ints and str, as one frame each
+        # ints, numpy ints, str and numpy str (from a wider array: its bytes end in NULs)
+        r["frame_id"] = [i, np.int64(i), f"{i:06d}", np.array([f" {i}", "a wider id"])[0]][i % 4]
         if i % 2:
             for f in ("bbox", "location", "score"):
                 r[f] = r[f].astype(np.float64)  # float32 and float64 frames in one column
@@ -188,3 +189,23 @@ def test_what_the_bytes_reader_leaves_is_read_or_refused_as_from_the_objects(cas
     refused |= {"NaN", "an infinite lidar box", "a code point past U+10FFFF", "a short field", "a wide field", "bools"}
     refused |= {"boxes in a frame without names"}
     assert (fast[0] == "refused") == (case in refused)
+
+
+# ---------------------------------------------------------------------------------- the scan's record
+
+
+def test_the_scans_record_of_items_is_what_pickle_builds_and_grows_past_its_first_room():
+    """Every item put into a list or dict, in order, with its container: 30,000 one-byte-ish items in a pickle
+    of 60 kB need more rows than the record is first given (the scan is run again with more)."""
+    obj = [list(range(200)) for _ in range(150)] + [{"a": 1, "b": [2, 3]}]
+    data = pickle.dumps(obj, protocol=4)
+    scan = check_pickle(io.BytesIO(data), source="x").scan
+    nodes, root, items = scan[5], scan[7], scan[8]
+    assert len(items) > len(data) // 64 + 1024  # past the first room
+    frames = items[items[:, 0] == root, 1]
+    assert len(frames) == 151 and (items[:, 2][items[:, 0] == root] == -1).all()
+    inner = items[items[:, 0] == frames[3]]
+    assert [int(nodes[n, 1]) for n in inner[:, 1]] == list(range(200))  # the ints' values, in order
+    pairs = items[items[:, 0] == frames[-1]]
+    assert len(pairs) == 2 and (pairs[:, 2] >= 0).all()
+    assert pickle.loads(data) == load_pickle(io.BytesIO(data), source="x")
