@@ -1,12 +1,15 @@
-"""Detections straight from a checked pickle's bytes into the evaluator's columns, without building an object.
+"""Ground truth and detections straight from a checked pickle's bytes into the evaluator's columns, without
+building an object.
 
 The scan (:mod:`kitti_eval.io._pickle_scan`) has checked every byte of the pickle before this module looks
 at it, and it records what it saw: every item put into a list or dict, in order, and for every numpy array
-the state it was given (shape, dtype and where its data lie in the bytes). For the layout almost every
-result.pkl has (a list of plain dicts, one a frame, each with ``frame_id`` and the fields as numpy arrays of
-numbers, the names as a 1-D str array) :func:`read_detections` takes each field of all frames from those bytes
-at once (one join of the frames' data and one conversion to float64 per field and dtype) and runs the checks
-over whole columns (:meth:`Annotations.from_columns`). Nothing is unpickled, called or imported.
+the state it was given (shape, dtype and where its data lie in the bytes). For the layouts almost every
+file has, :func:`read_detections` (OpenPCDet's result.pkl: a list of plain dicts, one a frame, each with
+``frame_id`` and the fields as numpy arrays of numbers, the names as a 1-D str array) and
+:func:`read_ground_truth` (OpenPCDet's infos: the same fields in each entry's ``annos``, the frame id in its
+``image``, its calibration's matrices in ``calib``) take each field of all frames from those bytes at once
+(one join of the frames' data and one conversion to float64 per field and dtype) and run the checks over
+whole columns (:meth:`Annotations.from_columns`). Nothing is unpickled, called or imported.
 
 Anything else returns None, and the caller reads the pickle as before (the C unpickler, then the format's
 reader and :meth:`Annotations.from_frames`): another layout or kind of value, a frame id that is refused
@@ -22,13 +25,14 @@ from typing import Any
 
 import numpy as np
 
-from ..core.frames import NUMERIC_FIELDS, REQUIRED_FIELDS, Annotations, normalize_frame_id
+from ..core.frames import NUMERIC_FIELDS, REQUIRED_FIELDS, Annotations, Kind, normalize_frame_id
 from ..errors import InputError
 from . import _pickle_scan as _ps
-from .camera import check_agreement
+from .calib import calib_from_info
+from .camera import _LazyCalibs, check_agreement
 from .safe_pickle import CheckedPickle
 
-__all__ = ["read_detections"]
+__all__ = ["read_detections", "read_ground_truth"]
 
 #: the keys a frame of detections may have here (another key, e.g. mmdetection3d's sample_idx, is read as before)
 _FIELDS = ("frame_id", "name", *NUMERIC_FIELDS, "boxes_lidar")
@@ -184,6 +188,152 @@ def _frame_ids(
     return ids
 
 
+class _Record:
+    """What the scan recorded of a checked pickle, and the walks over it."""
+
+    def __init__(self, checked: CheckedPickle) -> None:
+        self.nodes, self.ch, self.root, self.items = checked.scan[5], checked.scan[6], checked.scan[7], checked.scan[8]
+        self.kinds = self.nodes[:, _ps.W] & _ps.KIND_MASK
+        self.data = memoryview(checked.data).cast("B")
+        self.source = checked.source
+
+    def frames(self) -> np.ndarray | None:
+        """The items of the top-level list when each is a distinct plain dict (the frames), else None."""
+        if self.kinds[self.root] != _ps.K_LIST:
+            return None
+        frames = self.items[self.items[:, 0] == self.root, 1]
+        if not len(frames) or np.any(self.kinds[frames] != _ps.K_DICT) or len(np.unique(frames)) != len(frames):
+            return None
+        return frames
+
+    def table(self, dicts: np.ndarray, names: tuple[str, ...], *, others: bool) -> np.ndarray | None:
+        """(len(dicts), len(names)) the value of each key of ``names`` in each of the plain dicts ``dicts`` (-1
+        where a dict lacks it); None when one is not a plain dict, a key is there twice, a str key is not
+        plain ASCII text (it could be one of the names, written otherwise), or a key is not one of ``names``
+        and ``others`` is False (keys that are not str are never one of them)."""
+        if np.any(self.kinds[dicts] != _ps.K_DICT):
+            return None
+        count, width = len(dicts), len(names)
+        position = np.full(len(self.nodes), -1, np.int64)
+        position[dicts] = np.arange(count)
+        entries = self.items[self.items[:, 2] >= 0]
+        owner = position[entries[:, 0]]
+        entries, owner = entries[owner >= 0], owner[owner >= 0]
+        keys, which = np.unique(entries[:, 1], return_inverse=True)
+        index = {f: i for i, f in enumerate(names)}
+        field_of = []
+        for key in keys.tolist():  # a few str nodes: the memo shares them between frames
+            text = _text(self.data, self.nodes, key)
+            if text is None and self.kinds[key] == _ps.K_STR:
+                return None
+            i = index.get(text, -1) if text is not None else -1
+            if i < 0 and not others:
+                return None
+            field_of.append(i)
+        field = np.asarray(field_of, np.int64)[which.reshape(-1)]
+        mine = field >= 0
+        slot = owner[mine] * width + field[mine]
+        if np.any(np.bincount(slot, minlength=1) > 1):  # a key twice in one dict
+            return None
+        flat = np.full(count * width, -1, np.int64)
+        flat[slot] = entries[mine, 2]
+        return flat.reshape(count, width)
+
+    def arrays_of_numbers(self, values: np.ndarray, ndim: int) -> bool:
+        """Each of the nodes ``values`` is a numpy array of numbers of ``ndim`` dimensions (C order,
+        little-endian): what :meth:`array` makes an array of."""
+        arrays = _Arrays(self.nodes, self.ch, values)
+        if not arrays.ok:
+            return False
+        codes = np.unique(arrays.kind * 256 + arrays.itemsize).tolist()
+        return bool(
+            np.all((arrays.ndim == ndim) & arrays.c_order & arrays.raw_ok & ~arrays.big)
+            and np.all(arrays.nbytes == arrays.size * arrays.itemsize)
+            and all((c >> 8, c & 255) in _NUMBER_TYPES for c in codes)
+        )
+
+    def array(self, node: int) -> np.ndarray:
+        """The array of a node :meth:`arrays_of_numbers` took, as the unpickler builds it (a fresh copy)."""
+        arrays = _Arrays(self.nodes, self.ch, np.array([node]))
+        kind, size, count = int(arrays.kind[0]), int(arrays.itemsize[0]), int(arrays.size[0])
+        shape = tuple(int(d) for d in (arrays.d0[0], arrays.d1[0])[: int(arrays.ndim[0])])
+        raw = np.frombuffer(self.data, f"<{chr(kind)}{size}", count, int(arrays.start[0]))
+        return raw.reshape(shape).copy()
+
+
+def _annotations(
+    record: _Record,
+    kind: Kind,
+    ids: tuple[str, ...],
+    table: np.ndarray,
+    names: tuple[str, ...],
+    *,
+    keep_lidar: bool,
+    calibs: Mapping[str, Any] | None,
+    warnings: list[str],
+) -> Annotations | None:
+    """The columns of the frames' field dicts (``table``: their values, by ``names``), checked over whole
+    columns; None where :meth:`Annotations.from_frames` would not take them as they are."""
+    present = table >= 0
+    given = [bool(present[:, f].all()) for f in range(len(names))]
+    if given != [bool(present[:, f].any()) for f in range(len(names))]:  # a field in some frames only
+        return None
+    at = {f: i for i, f in enumerate(names)}
+    if not all(given[at[f]] for f in REQUIRED_FIELDS[kind]):
+        return None
+    nodes, ch, data = record.nodes, record.ch, record.data
+    names_ = _Arrays(nodes, ch, table[:, at["name"]])
+    if not names_.ok:
+        return None
+    boxed = names_.size > 0
+    if not np.all((names_.ndim[boxed] == 1) & (names_.kind[boxed] == _U) & ~names_.big[boxed] & names_.raw_ok[boxed]):
+        return None
+    if np.any(names_.nbytes[boxed] != names_.size[boxed] * names_.itemsize[boxed]):
+        return None
+    if np.any(names_.itemsize[boxed] <= 0):
+        return None
+    count = len(table)
+    counts = np.where(boxed, names_.d0, 0)
+    offsets = np.zeros(count + 1, np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    width = int(names_.itemsize[boxed].max()) // 4 if boxed.any() else 1
+    if not boxed.all():  # as from_frames, where a frame without boxes adds an empty <U1 array (dtypes join)
+        width = max(width, 1)
+    name = _gather(
+        data,
+        names_,
+        boxed,
+        names_.itemsize[boxed],
+        counts,
+        (int(offsets[-1]),),
+        lambda size: f"<U{size // 4}",
+        f"<U{width}",
+    )
+    columns: dict[str, np.ndarray] = {}
+    for field, trailing in _TRAILING.items():
+        if field not in at or not given[at[field]]:
+            continue
+        arrays = _Arrays(nodes, ch, table[:, at[field]])
+        column = arrays.column(data, boxed, counts, trailing) if arrays.ok else None
+        if column is None:
+            return None
+        columns[field] = column
+    lidar = columns.pop("boxes_lidar", None)
+    said: list[str] = []
+    if lidar is not None:
+        check_agreement(columns["location"], columns["rotation_y"], lidar, offsets, ids, calibs, record.source, said)
+    if keep_lidar and lidar is None:
+        lidar = np.full((int(offsets[-1]), 7), np.nan)
+    try:
+        annotations = Annotations.from_columns(
+            kind, record.source, ids, offsets, name, columns, lidar=lidar if keep_lidar else None
+        )
+    except InputError:
+        return None  # refused: the objects' route says so, in its own words
+    warnings.extend(said)
+    return annotations
+
+
 def read_detections(
     checked: CheckedPickle,
     *,
@@ -197,90 +347,63 @@ def read_detections(
     for anything else (see the module). The options are :class:`kitti_eval.io.reading.LoadOptions`'; the
     agreement of camera fields and ``boxes_lidar`` is checked as :func:`kitti_eval.io.camera.camera_fields`
     checks it, its warning appended to ``warnings``."""
-    nodes, ch, root, items = checked.scan[5], checked.scan[6], checked.scan[7], checked.scan[8]
-    kinds = nodes[:, _ps.W] & _ps.KIND_MASK
-    if kinds[root] != _ps.K_LIST:
+    record = _Record(checked)
+    frames = record.frames()
+    table = None if frames is None else record.table(frames, _FIELDS, others=False)
+    if table is None or np.any(table[:, 0] < 0):
         return None
-    frames = items[items[:, 0] == root, 1]
-    count = len(frames)
-    if not count or np.any(kinds[frames] != _ps.K_DICT) or len(np.unique(frames)) != count:
-        return None
-    position = np.full(len(nodes), -1, np.int64)
-    position[frames] = np.arange(count)
-    entries = items[items[:, 2] >= 0]
-    frame_of = position[entries[:, 0]]
-    entries, frame_of = entries[frame_of >= 0], frame_of[frame_of >= 0]
-    data = memoryview(checked.data).cast("B")
-    keys, which = np.unique(entries[:, 1], return_inverse=True)
-    field_of = []
-    for key in keys.tolist():  # a few str nodes: the memo shares them between frames
-        index = _INDEX.get(_text(data, nodes, key) or "")
-        if index is None:
-            return None
-        field_of.append(index)
-    slot = frame_of * len(_FIELDS) + np.asarray(field_of, np.int64)[which.reshape(-1)]
-    if np.any(np.bincount(slot, minlength=1) > 1):  # a field twice in one dict
-        return None
-    flat = np.full(count * len(_FIELDS), -1, np.int64)
-    flat[slot] = entries[:, 2]
-    table = flat.reshape(count, len(_FIELDS))
-    present = table >= 0
-    given = [bool(present[:, f].all()) for f in range(len(_FIELDS))]
-    if given != [bool(present[:, f].any()) for f in range(len(_FIELDS))]:  # a field in some frames only
-        return None
-    if not all(given[_INDEX[f]] for f in ("frame_id", *REQUIRED_FIELDS["detections"])):
-        return None
-    ids = _frame_ids(data, nodes, ch, table[:, 0], max_frames, known_frames)
+    ids = _frame_ids(record.data, record.nodes, record.ch, table[:, 0], max_frames, known_frames)
     if ids is None:
         return None
-
-    names = _Arrays(nodes, ch, table[:, _INDEX["name"]])
-    if not names.ok:
-        return None
-    boxed = names.size > 0
-    if not np.all((names.ndim[boxed] == 1) & (names.kind[boxed] == _U) & ~names.big[boxed] & names.raw_ok[boxed]):
-        return None
-    if np.any(names.nbytes[boxed] != names.size[boxed] * names.itemsize[boxed]):
-        return None
-    if np.any(names.itemsize[boxed] <= 0):
-        return None
-    counts = np.where(boxed, names.d0, 0)
-    offsets = np.zeros(count + 1, np.int64)
-    np.cumsum(counts, out=offsets[1:])
-    width = int(names.itemsize[boxed].max()) // 4 if boxed.any() else 1
-    if not boxed.all():  # as from_frames, where a frame without boxes adds an empty <U1 array (dtypes join)
-        width = max(width, 1)
-    name = _gather(
-        data,
-        names,
-        boxed,
-        names.itemsize[boxed],
-        counts,
-        (int(offsets[-1]),),
-        lambda size: f"<U{size // 4}",
-        f"<U{width}",
+    return _annotations(
+        record, "detections", ids, table[:, 1:], _FIELDS[1:], keep_lidar=keep_lidar, calibs=calibs, warnings=warnings
     )
 
-    columns: dict[str, np.ndarray] = {}
-    for field, trailing in _TRAILING.items():
-        if not given[_INDEX[field]]:
-            continue
-        arrays = _Arrays(nodes, ch, table[:, _INDEX[field]])
-        column = arrays.column(data, boxed, counts, trailing) if arrays.ok else None
-        if column is None:
-            return None
-        columns[field] = column
-    lidar = columns.pop("boxes_lidar", None)
-    said: list[str] = []
-    if lidar is not None:
-        check_agreement(columns["location"], columns["rotation_y"], lidar, offsets, ids, calibs, checked.source, said)
-    if keep_lidar and lidar is None:
-        lidar = np.full((int(offsets[-1]), 7), np.nan)
-    try:
-        annotations = Annotations.from_columns(
-            "detections", checked.source, ids, offsets, name, columns, lidar=lidar if keep_lidar else None
-        )
-    except InputError:
-        return None  # refused: the objects' route says so, in its own words
-    warnings.extend(said)
-    return annotations
+
+#: an OpenPCDet infos entry's keys (another key is read as before), and those of its parts read here
+_INFO = ("point_cloud", "image", "calib", "annos")
+_IMAGE = ("image_idx", "image_shape")
+_CALIB = ("P2", "R0_rect", "Tr_velo_to_cam")
+_ANNOS = ("name", *NUMERIC_FIELDS)
+
+
+def read_ground_truth(checked: CheckedPickle, *, max_frames: int) -> tuple[Annotations, Mapping[str, Any]] | None:
+    """Ground truth of a checked pickle in OpenPCDet's infos layout (``openpcdet_infos``: every entry with
+    ``image.image_idx``, ``annos`` and, where it has one, a ``calib`` of three matrices), read from its bytes,
+    and each frame's calibration (built when first asked for, as :func:`kitti_eval.io.camera.calibs_from_object`
+    builds it); None for anything else (see the module)."""
+    record = _Record(checked)
+    entries = record.frames()
+    infos = None if entries is None else record.table(entries, _INFO, others=False)
+    if infos is None or np.any(infos[:, 1] < 0) or np.any(infos[:, 3] < 0):
+        return None
+    image = record.table(infos[:, 1], _IMAGE, others=True)
+    if image is None or np.any(image[:, 0] < 0):
+        return None
+    ids = _frame_ids(record.data, record.nodes, record.ch, image[:, 0], max_frames, None)
+    annos = record.table(infos[:, 3], _ANNOS, others=True)
+    if ids is None or annos is None:
+        return None
+    with_calib = np.flatnonzero(infos[:, 2] >= 0)
+    calib = record.table(infos[with_calib, 2], _CALIB, others=True)
+    if calib is None or np.any(calib < 0):
+        return None
+    shapes = image[with_calib, 1]
+    for column, ndim in ((calib[:, 0], 2), (calib[:, 1], 2), (calib[:, 2], 2), (shapes[shapes >= 0], 1)):
+        if not record.arrays_of_numbers(column, ndim):
+            return None  # read from the objects, where a calibration may be anything calib_from_info reads
+    parts = {
+        ids[i]: (record, *row, shape) for i, row, shape in zip(with_calib.tolist(), calib.tolist(), shapes.tolist())
+    }
+    annotations = _annotations(record, "ground_truth", ids, annos, _ANNOS, keep_lidar=False, calibs=None, warnings=[])
+    if annotations is None:
+        return None
+    return annotations, _LazyCalibs(parts, _calib_of)
+
+
+def _calib_of(part: tuple[Any, ...]) -> Any:
+    """A frame's calibration from the arrays (already checked) of its infos entry, as calib_from_info reads them."""
+    record, p2, r0, tr, shape = part
+    image = {} if shape < 0 else {"image_shape": record.array(shape)}
+    matrices = {"P2": record.array(p2), "R0_rect": record.array(r0), "Tr_velo_to_cam": record.array(tr)}
+    return calib_from_info({"calib": matrices, "image": image})

@@ -6,10 +6,10 @@ duplicate frames; the formats (:mod:`kitti_eval.io.formats`) only find the frame
 dicts, and report structural problems (wrong top-level type, entries without a frame id, txt lines with the
 wrong number of fields) with the entry, frame and line where they happen. A folder is read as KITTI txt
 files, a zip or tar as an archived txt folder, any other file as a pickle (only through the restricted
-unpickler's scan, :func:`kitti_eval.io.safe_pickle.check_pickle`, gzip or not). Detections in the usual
-result.pkl layout skip the objects: :mod:`kitti_eval.io.pickle_columns` takes them from the checked bytes
-into the same columns, with the same checks (:meth:`Annotations.from_columns`), and leaves anything else,
-refusals included, to the route above. Detections that carry only ``boxes_lidar`` are
+unpickler's scan, :func:`kitti_eval.io.safe_pickle.check_pickle`, gzip or not). OpenPCDet's result.pkl and
+infos in their usual layout skip the objects: :mod:`kitti_eval.io.pickle_columns` takes them from the checked
+bytes into the same columns, with the same checks (:meth:`Annotations.from_columns`), and leaves anything
+else, refusals included, to the route above. Detections that carry only ``boxes_lidar`` are
 converted to the camera frame with each frame's calibration from the ground-truth infos
 (:mod:`kitti_eval.io.camera`; see :func:`read_pair`).
 """
@@ -29,8 +29,8 @@ from .camera import calibs_from_object, camera_fields
 from .formats import FORMATS, REGISTRY, check_layout, detect_format
 from .formats._common import check_kind
 from .formats.kitti_txt import input_kind, load_kitti_txt_dir, load_txt_archive, read_text
-from .pickle_columns import read_detections
-from .safe_pickle import CheckedPickle, check_pickle, check_pickles, load_pickle
+from .pickle_columns import read_detections, read_ground_truth
+from .safe_pickle import CheckedPickle, check_pickle, check_pickles
 
 __all__ = [
     "LoadOptions",
@@ -145,7 +145,9 @@ def read_pickle(
 def _read_checked(checked: CheckedPickle, kind: Kind, options: LoadOptions) -> Loaded:
     """Annotations of a checked pickle: from its bytes where :mod:`kitti_eval.io.pickle_columns` takes it, else
     from its objects (whose reading makes every refusal, as ever)."""
-    if kind == "detections" and options.fmt in (None, "annos_list"):
+    if kind == "ground_truth":
+        return _read_checked_ground_truth(checked, options)[0]
+    if options.fmt in (None, "annos_list"):
         warnings: list[str] = []
         annos = read_detections(
             checked,
@@ -158,6 +160,17 @@ def _read_checked(checked: CheckedPickle, kind: Kind, options: LoadOptions) -> L
         if annos is not None:
             return Loaded(annos, tuple(warnings))
     return read_object(checked.load(), kind, checked.source, options)
+
+
+def _read_checked_ground_truth(checked: CheckedPickle, options: LoadOptions) -> tuple[Loaded, Mapping[str, Any]]:
+    """Ground truth of a checked pickle and its calibration per frame: from its bytes where
+    :mod:`kitti_eval.io.pickle_columns` takes it (OpenPCDet infos), else from its objects."""
+    if options.fmt in (None, "openpcdet_infos"):
+        fast = read_ground_truth(checked, max_frames=limits.resolve(None, options.max_frames)[1])
+        if fast is not None:
+            return Loaded(fast[0]), fast[1]
+    obj = checked.load()
+    return read_object(obj, "ground_truth", checked.source, options), calibs_from_object(obj)
 
 
 def read_object(obj: object, kind: Kind, source: str, options: LoadOptions = DEFAULT) -> Loaded:
@@ -235,9 +248,8 @@ def read_ground_truth_and_calibs(path: PathLike, options: LoadOptions = DEFAULT)
     options = options.with_limits()
     p = Path(path)
     if _is_pickle_file(p, options.fmt):
-        obj = load_pickle(p, source=str(path), max_bytes=options.max_bytes, max_entries=options.max_frames)
-        gt_options = LoadOptions(fmt=options.fmt, max_frames=options.max_frames)
-        return read_object(obj, "ground_truth", str(path), gt_options), calibs_from_object(obj)
+        checked = check_pickle(p, source=str(path), max_bytes=options.max_bytes, max_entries=options.max_frames)
+        return _read_checked_ground_truth(checked, LoadOptions(fmt=options.fmt, max_frames=options.max_frames))
     gt_options = LoadOptions(fmt=options.fmt, max_bytes=options.max_bytes, max_frames=options.max_frames)
     return read_annotations(path, "ground_truth", gt_options), {}
 
@@ -268,10 +280,7 @@ def read_pair(
             max_bytes=options.max_bytes,
             max_entries=options.max_frames,
         )
-        gt_obj = next(checked).load()
-        gt = read_object(gt_obj, "ground_truth", str(gt_path), gt_options)
-        calibs = calibs_from_object(gt_obj)
-        del gt_obj
+        gt, calibs = _read_checked_ground_truth(next(checked), gt_options)
         pred_options = replace(
             options, calibs=calibs, known_frames=None if split is not None else gt.annotations.frame_index()
         )

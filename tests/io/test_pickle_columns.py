@@ -15,8 +15,9 @@ import pytest
 from kitti_eval.core.frames import Annotations
 from kitti_eval.errors import InputError
 from kitti_eval.io.calib import Calib
-from kitti_eval.io.pickle_columns import read_detections
-from kitti_eval.io.reading import LoadOptions, read_object, read_pickle
+from kitti_eval.io.camera import calibs_from_object
+from kitti_eval.io.pickle_columns import read_detections, read_ground_truth
+from kitti_eval.io.reading import LoadOptions, read_ground_truth_and_calibs, read_object, read_pickle
 from kitti_eval.io.safe_pickle import check_pickle, load_pickle
 from kitti_eval.synth import generate
 
@@ -239,3 +240,93 @@ def test_corrupted_result_pkls_read_from_their_bytes_as_from_their_objects():
             else:
                 assert fast[1:] == slow[1:], (protocol, at)
     assert taken > 100  # most changes land in array data, which both read as the same numbers
+
+
+# ---------------------------------------------------------------------------------- ground truth
+
+
+def _gt_routes(infos: object, protocol: int = 4) -> tuple[Any, Any, bool]:
+    """(ground truth and calibrations read from the bytes, the same from the objects, whether the bytes' reader
+    took it); a refusal as (type, message)."""
+    data = pickle.dumps(infos, protocol=protocol)
+
+    def outcome(read: Any) -> Any:
+        try:
+            return read()
+        except InputError as e:
+            return type(e).__name__, str(e)
+
+    path = _file(data)
+    fast = outcome(lambda: read_ground_truth_and_calibs(path))
+    obj = load_pickle(io.BytesIO(data), source=str(path))
+    slow = outcome(lambda: (read_object(obj, "ground_truth", str(path), LoadOptions()), calibs_from_object(obj)))
+    took = read_ground_truth(check_pickle(io.BytesIO(data), source="gt.pkl"), max_frames=200_000) is not None
+    return fast, slow, took
+
+
+def _file(data: bytes) -> Any:
+    path = _file.folder / "gt.pkl"  # type: ignore[attr-defined]
+    path.write_bytes(data)
+    return path
+
+
+def _assert_gt_parity(infos: object, *, taken: bool, protocol: int = 4) -> Any:
+    fast, slow, took = _gt_routes(infos, protocol)
+    assert took is taken
+    if isinstance(slow[0], str):
+        assert fast == slow
+        return fast
+    (loaded, calibs), (loaded_slow, calibs_slow) = fast, slow
+    _same(loaded.annotations, loaded_slow.annotations)
+    assert loaded.warnings == loaded_slow.warnings
+    assert sorted(calibs) == sorted(calibs_slow)
+    for fid in calibs_slow:
+        mine, theirs = calibs.get(fid), calibs_slow.get(fid)
+        assert (mine is None) == (theirs is None), fid
+        if theirs is not None:
+            assert np.array_equal(mine.velo_to_rect, theirs.velo_to_rect) and np.array_equal(mine.p2, theirs.p2)
+            assert mine.image_shape == theirs.image_shape
+    return fast
+
+
+@pytest.fixture(autouse=True)
+def _folder(tmp_path):
+    _file.folder = tmp_path  # type: ignore[attr-defined]
+
+
+def _infos(frames: int = 10, **kwargs: Any) -> list[dict[str, Any]]:
+    return generate(frames, seed=5, **kwargs)[0]
+
+
+@pytest.mark.parametrize("protocol", [3, 4])
+def test_infos_read_from_their_bytes_are_the_ones_read_from_their_objects_with_their_calibrations(protocol):
+    infos = _infos(30, empty_gt_frac=0.2)
+    assert any(len(i["annos"]["name"]) == 0 for i in infos)
+    (loaded, calibs) = _assert_gt_parity(infos, taken=True, protocol=protocol)
+    assert loaded.annotations.num_frames == 30 and len(calibs) == 30
+
+
+GT_LEFT = {
+    "an entry without image_idx (lidar_idx is used, and said)": lambda es: es[2]["image"].pop("image_idx"),
+    "an entry without annos": lambda es: es[2].pop("annos"),
+    "an entry of another key": lambda es: es[2].__setitem__("velodyne", 1),
+    "a calibration as lists": lambda es: es[2]["calib"].__setitem__("P2", es[2]["calib"]["P2"].tolist()),
+    "a calibration without P2": lambda es: es[2]["calib"].pop("P2"),
+    "a repeated frame": lambda es: es[3]["image"].__setitem__("image_idx", es[2]["image"]["image_idx"]),
+    "NaN": lambda es: es[1]["annos"]["location"].__setitem__((0, 0), np.nan),
+}
+
+
+@pytest.mark.parametrize("case", list(GT_LEFT))
+def test_what_the_bytes_reader_leaves_of_infos_is_read_or_refused_as_from_the_objects(case):
+    infos = _infos(6)
+    GT_LEFT[case](infos)
+    outcome = _assert_gt_parity(infos, taken=False)
+    assert isinstance(outcome[0], str) == (case in {"an entry without annos", "a repeated frame", "NaN"})
+
+
+def test_infos_without_calibration_in_some_entries_are_read_from_their_bytes():
+    infos = _infos(6)
+    del infos[2]["calib"], infos[4]["image"]["image_shape"]
+    (_, calibs) = _assert_gt_parity(infos, taken=True)
+    assert "000002" not in calibs and calibs["000004"].image_shape is None
