@@ -367,7 +367,9 @@ _CALIB = ("P2", "R0_rect", "Tr_velo_to_cam")
 _ANNOS = ("name", *NUMERIC_FIELDS)
 
 
-def read_ground_truth(checked: CheckedPickle, *, max_frames: int) -> tuple[Annotations, Mapping[str, Any]] | None:
+def read_ground_truth(
+    checked: CheckedPickle, *, max_frames: int, known_frames: Collection[str] | None = None
+) -> tuple[Annotations, Mapping[str, Any]] | None:
     """Ground truth of a checked pickle in OpenPCDet's infos layout (``openpcdet_infos``: every entry with
     ``image.image_idx``, ``annos`` and, where it has one, a ``calib`` of three matrices), read from its bytes,
     and each frame's calibration (built when first asked for, as :func:`kitti_eval.io.camera.calibs_from_object`
@@ -380,7 +382,7 @@ def read_ground_truth(checked: CheckedPickle, *, max_frames: int) -> tuple[Annot
     image = record.table(infos[:, 1], _IMAGE, others=True)
     if image is None or np.any(image[:, 0] < 0):
         return None
-    ids = _frame_ids(record.data, record.nodes, record.ch, image[:, 0], max_frames, None)
+    ids = _frame_ids(record.data, record.nodes, record.ch, image[:, 0], max_frames, known_frames)
     annos = record.table(infos[:, 3], _ANNOS, others=True)
     if ids is None or annos is None:
         return None

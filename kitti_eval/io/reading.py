@@ -166,7 +166,8 @@ def _read_checked_ground_truth(checked: CheckedPickle, options: LoadOptions) -> 
     """Ground truth of a checked pickle and its calibration per frame: from its bytes where
     :mod:`kitti_eval.io.pickle_columns` takes it (OpenPCDet infos), else from its objects."""
     if options.fmt in (None, "openpcdet_infos"):
-        fast = read_ground_truth(checked, max_frames=limits.resolve(None, options.max_frames)[1])
+        max_frames = limits.resolve(None, options.max_frames)[1]
+        fast = read_ground_truth(checked, max_frames=max_frames, known_frames=options.known_frames)
         if fast is not None:
             return Loaded(fast[0]), fast[1]
     obj = checked.load()

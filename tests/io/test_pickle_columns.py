@@ -330,3 +330,21 @@ def test_infos_without_calibration_in_some_entries_are_read_from_their_bytes():
     del infos[2]["calib"], infos[4]["image"]["image_shape"]
     (_, calibs) = _assert_gt_parity(infos, taken=True)
     assert "000002" not in calibs and calibs["000004"].image_shape is None
+
+
+def test_infos_read_with_known_frames_are_refused_as_from_their_objects():
+    data = pickle.dumps(_infos(5), protocol=4)
+    options = LoadOptions(known_frames={f"{i:06d}" for i in range(5) if i != 3})
+    refusals = []
+    for read in (
+        lambda: read_pickle(io.BytesIO(data), "ground_truth", "gt.pkl", options),
+        lambda: read_object(load_pickle(io.BytesIO(data), source="gt.pkl"), "ground_truth", "gt.pkl", options),
+    ):
+        with pytest.raises(InputError) as caught:
+            read()
+        refusals.append(str(caught.value))
+    assert refusals[0] == refusals[1] == "gt.pkl, frame 000003: predictions for a frame that is not in the ground truth"
+    whole = read_pickle(
+        io.BytesIO(data), "ground_truth", "gt.pkl", LoadOptions(known_frames={f"{i:06d}" for i in range(5)})
+    )
+    assert whole.annotations.num_frames == 5
