@@ -88,8 +88,8 @@ class _Arrays:
             and np.all(self.d1[b] == width)
             and np.all(self.c_order[b] & self.raw_ok[b] & ~self.big[b])
             and np.all(self.nbytes[b] == self.size[b] * self.itemsize[b])
-            and all((c >> 8, c & 255) in _NUMBER_TYPES for c in np.unique(codes).tolist())
-            and all(int(k) in (ord("f"), ord("i"), ord("u")) for k in np.unique(self.kind[~b]).tolist())
+            and all((c >> 8, c & 255) in _NUMBER_TYPES for c in set(codes.tolist()))
+            and set(self.kind[~b].tolist()) <= {ord("f"), ord("i"), ord("u")}
         ):
             return None
         n = int(counts.sum())
@@ -108,7 +108,7 @@ def _gather(
 ) -> np.ndarray:
     """The boxed frames' data, joined per dtype and converted: one fresh array of ``shape``."""
     starts, ends = arrays.start[boxed], arrays.start[boxed] + arrays.nbytes[boxed]
-    distinct = np.unique(codes).tolist()
+    distinct = sorted(set(codes.tolist()))
     if len(distinct) == 1:
         joined = b"".join([data[a:e] for a, e in zip(starts.tolist(), ends.tolist())])
         return np.frombuffer(joined, dtype_of(distinct[0])).astype(out_dtype).reshape(shape)
@@ -239,26 +239,29 @@ class _Record:
         flat[slot] = entries[mine, 2]
         return flat.reshape(count, width)
 
-    def arrays_of_numbers(self, values: np.ndarray, ndim: int) -> bool:
-        """Each of the nodes ``values`` is a numpy array of numbers of ``ndim`` dimensions (C order,
-        little-endian): what :meth:`array` makes an array of."""
+    def arrays_of_numbers(self, values: np.ndarray, ndim: int) -> list[tuple[str, int, tuple[int, ...]]] | None:
+        """How to make each of the nodes ``values`` into the array it is, (dtype, where its data start, shape),
+        when each is a numpy array of numbers of ``ndim`` dimensions (C order, little-endian); else None."""
         arrays = _Arrays(self.nodes, self.ch, values)
         if not arrays.ok:
-            return False
-        codes = np.unique(arrays.kind * 256 + arrays.itemsize).tolist()
-        return bool(
+            return None
+        codes = arrays.kind * 256 + arrays.itemsize
+        if not (
             np.all((arrays.ndim == ndim) & arrays.c_order & arrays.raw_ok & ~arrays.big)
             and np.all(arrays.nbytes == arrays.size * arrays.itemsize)
-            and all((c >> 8, c & 255) in _NUMBER_TYPES for c in codes)
-        )
+            and all((c >> 8, c & 255) in _NUMBER_TYPES for c in set(codes.tolist()))
+        ):
+            return None
+        dims = zip(arrays.d0.tolist(), arrays.d1.tolist())
+        return [
+            (f"<{chr(c >> 8)}{c & 255}", start, (d0, d1)[:ndim])
+            for c, start, (d0, d1) in zip(codes.tolist(), arrays.start.tolist(), dims)
+        ]
 
-    def array(self, node: int) -> np.ndarray:
-        """The array of a node :meth:`arrays_of_numbers` took, as the unpickler builds it (a fresh copy)."""
-        arrays = _Arrays(self.nodes, self.ch, np.array([node]))
-        kind, size, count = int(arrays.kind[0]), int(arrays.itemsize[0]), int(arrays.size[0])
-        shape = tuple(int(d) for d in (arrays.d0[0], arrays.d1[0])[: int(arrays.ndim[0])])
-        raw = np.frombuffer(self.data, f"<{chr(kind)}{size}", count, int(arrays.start[0]))
-        return raw.reshape(shape).copy()
+    def array(self, spec: tuple[str, int, tuple[int, ...]]) -> np.ndarray:
+        """The array :meth:`arrays_of_numbers` said how to make, as the unpickler builds it (a fresh copy)."""
+        dtype, start, shape = spec
+        return np.frombuffer(self.data, dtype, int(np.prod(shape)), start).reshape(shape).copy()
 
 
 def _annotations(
@@ -391,11 +394,14 @@ def read_ground_truth(
     if calib is None or np.any(calib < 0):
         return None
     shapes = image[with_calib, 1]
-    for column, ndim in ((calib[:, 0], 2), (calib[:, 1], 2), (calib[:, 2], 2), (shapes[shapes >= 0], 1)):
-        if not record.arrays_of_numbers(column, ndim):
-            return None  # read from the objects, where a calibration may be anything calib_from_info reads
+    p2s, r0s, trs = (record.arrays_of_numbers(column, 2) for column in calib.T)
+    shape_specs = record.arrays_of_numbers(shapes[shapes >= 0], 1)
+    if p2s is None or r0s is None or trs is None or shape_specs is None:
+        return None  # read from the objects, where a calibration may be anything calib_from_info reads
+    shape_of = iter(shape_specs)
     parts = {
-        ids[i]: (record, *row, shape) for i, row, shape in zip(with_calib.tolist(), calib.tolist(), shapes.tolist())
+        ids[i]: (record, p2, r0, tr, next(shape_of) if shape >= 0 else None)
+        for i, p2, r0, tr, shape in zip(with_calib.tolist(), p2s, r0s, trs, shapes.tolist())
     }
     annotations = _annotations(record, "ground_truth", ids, annos, _ANNOS, keep_lidar=False, calibs=None, warnings=[])
     if annotations is None:
@@ -406,6 +412,6 @@ def read_ground_truth(
 def _calib_of(part: tuple[Any, ...]) -> Any:
     """A frame's calibration from the arrays (already checked) of its infos entry, as calib_from_info reads them."""
     record, p2, r0, tr, shape = part
-    image = {} if shape < 0 else {"image_shape": record.array(shape)}
+    image = {} if shape is None else {"image_shape": record.array(shape)}
     matrices = {"P2": record.array(p2), "R0_rect": record.array(r0), "Tr_velo_to_cam": record.array(tr)}
     return calib_from_info({"calib": matrices, "image": image})
