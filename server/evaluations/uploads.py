@@ -3,7 +3,8 @@
 An upload is one of
 
 * a pickle, plain or gzipped (OpenPCDet ``result.pkl`` / ``kitti_infos_val.pkl``): read only through
-  :func:`kitti_eval.io.safe_pickle.load_pickle`, with the decompressed size capped;
+  :func:`kitti_eval.io.loaders.annotations_from_pickle` (the restricted unpickler), with the decompressed size
+  capped;
 * a zip or a tar (plain, gz, bz2, xz) of KITTI txt files (a ``label_2`` or result folder), unpacked by
   :func:`kitti_eval.io.archives.extract_txt_folder` (the library's one safe extractor: no absolute paths, no
   ``..``, no links, devices, fifos or sparse files, at most ``max_members`` members and
@@ -26,8 +27,7 @@ from kitti_eval.core.frames import Annotations, Kind
 from kitti_eval.errors import InputError, UnsafePickleError
 from kitti_eval.io import archives
 from kitti_eval.io.archives import ArchiveKind, ArchiveLimits, sniff_input
-from kitti_eval.io.loaders import annotations_from_object, input_limits, load_kitti_txt_dir
-from kitti_eval.io.safe_pickle import load_pickle
+from kitti_eval.io.loaders import annotations_from_pickle, input_limits, load_kitti_txt_dir
 
 from ..errors import ArchiveError
 
@@ -218,15 +218,13 @@ def load_upload(
     """
     fmt = sniff(upload.file, upload.filename)
     if fmt is InputFormat.PICKLE:
-        obj = load_pickle(
-            upload.file, source=upload.filename, max_bytes=limits.max_unpacked_bytes, max_entries=limits.frames
-        )
-        annotations = annotations_from_object(
-            obj,
+        annotations = annotations_from_pickle(
+            upload.file,
             kind,
             source=upload.filename,
-            keep_lidar=keep_lidar,
+            max_bytes=limits.max_unpacked_bytes,
             max_frames=limits.frames,
+            keep_lidar=keep_lidar,
             known_frames=known_frames,
         )
         return Loaded(fmt, annotations, None)
