@@ -18,9 +18,10 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from kitti_eval_server.commands import admin, serve, worker
+
 from ..errors import ConfigError, KittiEvalError, ServiceError
 from . import (
-    admin,
     compare,
     demo,
     describe,
@@ -30,10 +31,8 @@ from . import (
     gate,
     inspect,
     login,
-    serve,
     submit,
     validate,
-    worker,
 )
 from .common import EXIT_INPUT, EXIT_USAGE, PROG, config, limits_from, say, say_defaults
 from .remote import report

@@ -7,7 +7,7 @@ import argparse
 from collections.abc import Sequence
 from typing import Any
 
-from ..errors import ConfigError
+from kitti_eval.errors import ConfigError
 
 NAME = "serve"
 

@@ -173,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as e:
         _say(f"error: needs the server extra: pip install 'kitti-eval[server]' ({e})")
         return EXIT_INPUT
-    from ..errors import KittiEvalError
+    from kitti_eval.errors import KittiEvalError
 
     overrides = {k: v for k, v in (("data_dir", args.data_dir), ("database_url", args.database_url)) if v}
     try:

@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError
+from kitti_eval.errors import ConfigError
 
 __all__ = ["add_parser", "run"]
 
