@@ -19,6 +19,8 @@ from kitti_eval.analysis.diagnostics import frame_stats, frames_document
 from kitti_eval.analysis.inspection import inspect_frame, model_name, unique_names
 from kitti_eval.core.frames import Annotations, normalize_frame_id
 from kitti_eval.core.protocol import EvalConfig
+from kitti_eval.io.reading import LoadOptions
+from kitti_eval.io.upload import UploadLimits, read_upload
 
 from .audit import Audit
 from .catalog import GroundTruthCatalog
@@ -29,7 +31,7 @@ from .idempotency import EVALUATIONS, Idempotency, RequestKey, fingerprint
 from .jobs import JobQueue
 from .policy import Caller, Policy
 from .store import EvaluationRecord, GroundTruthRecord, IdempotencyRecord, JobInput, JobRecord, KeyTaken, Store, new_id
-from .uploads import FileIn, Limits, load_upload, receive_content, stored_upload
+from .uploads import FileIn, receive_content, stored_upload
 
 __all__ = ["Evaluations", "FileIn", "sealed_document", "MAX_INSPECTED"]
 
@@ -67,7 +69,7 @@ class Evaluations:
         predictions: GroundTruthCache,
         policy: Policy,
         audit: Audit,
-        limits: Limits,
+        limits: UploadLimits,
         scratch: Callable[[], AbstractContextManager[Path]],
         jobs: JobQueue,
         *,
@@ -181,12 +183,23 @@ class Evaluations:
                 gt_input = self.store.job_input(job_id, "gt_file")
                 assert gt_input is not None
                 gt_upload = stored_upload(gt_input.content, gt_input.filename, gt_input.sha256)
-                gt = load_upload(gt_upload, "ground_truth", scratch / "gt", self.limits).annotations
+                gt = read_upload(
+                    gt_upload.file,
+                    "ground_truth",
+                    source=gt_upload.filename,
+                    scratch=scratch / "gt",
+                    limits=self.limits,
+                ).annotations
                 gt_sha256 = gt_upload.sha256
             pred = stored_upload(pred_input.content, pred_input.filename, pred_input.sha256)
             keep = self.keep_predictions and gt_record is not None
-            loaded = load_upload(
-                pred, "detections", scratch / "pred", self.limits, keep_lidar=keep, known_frames=gt.frame_index()
+            loaded = read_upload(
+                pred.file,
+                "detections",
+                source=pred.filename,
+                scratch=scratch / "pred",
+                limits=self.limits,
+                options=LoadOptions(keep_lidar=keep, known_frames=gt.frame_index()),
             )
             doc = evaluate_document(
                 gt,
@@ -209,7 +222,7 @@ class Evaluations:
             gt_sha256=gt_sha256,
             pred_filename=pred.filename,
             pred_sha256=pred.sha256,
-            pred_format=str(loaded.format),
+            pred_format=loaded.kind,
             pred_size=pred.size,
             protocol=doc["protocol"],
             duration_ms=round((time.perf_counter() - started) * 1000, 3),
@@ -332,7 +345,15 @@ class Evaluations:
                 )
             with self.scratch() as scratch:
                 upload = stored_upload(content, record.pred_filename, record.pred_sha256)
-                return load_upload(upload, "detections", scratch, self.limits, keep_lidar=True).annotations
+                options = LoadOptions(keep_lidar=True)
+                return read_upload(
+                    upload.file,
+                    "detections",
+                    source=upload.filename,
+                    scratch=scratch,
+                    limits=self.limits,
+                    options=options,
+                ).annotations
 
         return gt, self.predictions.get_or_load(record.pred_sha256, load_kept), config
 

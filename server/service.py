@@ -23,6 +23,7 @@ import sqlalchemy.exc
 
 from kitti_eval._jit import warm_up
 from kitti_eval.demo import demo_paths
+from kitti_eval.io.upload import UploadLimits
 
 from .accounts import Accounts
 from .audit import Audit
@@ -41,7 +42,7 @@ from .runner import Runner, release_memory
 from .scratch import ScratchSpace
 from .settings import Settings
 from .store import IdempotencyRecord, JobInput, Store
-from .uploads import FileIn, Limits, receive_upload
+from .uploads import FileIn, receive_upload
 from .worker_pool import WorkerPool
 from .workers import Workers, await_outcome
 
@@ -70,7 +71,11 @@ class Service:
         )
         self.accounts = Accounts(self.store, self.audit, lambda: self.admin_token)
         self.limiter = FailureLimiter(settings.auth_max_failures, settings.auth_failure_window_s)
-        self.limits = Limits(max_unpacked_bytes=settings.max_unpacked_bytes, max_members=settings.max_archive_members)
+        self.limits = UploadLimits(
+            max_bytes=settings.max_unpacked_bytes,
+            max_members=settings.max_archive_members,
+            members_setting="KITTI_EVAL_MAX_ARCHIVE_MEMBERS",
+        )
         self.scratch_space = ScratchSpace(self.data_dir)
         #: admission counts, shared with the middlewares (and read by the metrics)
         self.admission = AdmissionState()

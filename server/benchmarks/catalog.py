@@ -12,6 +12,7 @@ from typing import Any
 
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import THRESHOLD_SETS
+from kitti_eval.io.upload import UploadLimits
 
 from ..accounts import Accounts
 from ..audit import Audit
@@ -22,7 +23,6 @@ from ..idempotency import Idempotency
 from ..jobs import JobQueue
 from ..policy import Caller, Policy
 from ..store import BenchmarkRecord, GroundTruthRecord, Store
-from ..uploads import Limits
 from .rules import DEFAULT_KEY, DIFFICULTIES, Benchmark, parse_column, parse_quota, parse_time
 from .views import benchmark_view
 
@@ -43,7 +43,7 @@ class BenchmarkCatalog:
         policy: Policy,
         audit: Audit,
         scratch: Callable[[], AbstractContextManager[Path]],
-        limits: Limits,
+        limits: UploadLimits,
         *,
         draining: Callable[[], bool] = lambda: False,
         jobs: JobQueue | None = None,

@@ -36,11 +36,13 @@ from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.analysis.ranking import LEVEL, METHOD, resampled_key
 from kitti_eval.core.evaluation import plan_evaluation
 from kitti_eval.core.frames import Annotations
+from kitti_eval.io.reading import LoadOptions
+from kitti_eval.io.upload import read_upload
 
 from ..errors import Conflict
 from ..jobs import JobRecord
 from ..store import ResampledKey, SubmissionRecord
-from ..uploads import load_upload, stored_upload
+from ..uploads import stored_upload
 from .catalog import BenchmarkCatalog
 from .rules import Benchmark, key_value, part_frames
 
@@ -157,7 +159,10 @@ class Intervals(BenchmarkCatalog):
             raise Conflict(f"the predictions of submission {row.id} are not kept")
         with self.scratch() as scratch:
             upload = stored_upload(content, row.pred_filename, row.pred_sha256)
-            return load_upload(upload, "detections", scratch, self.limits, known_frames=gt.frame_index()).annotations
+            options = LoadOptions(known_frames=gt.frame_index())
+            return read_upload(
+                upload.file, "detections", source=upload.filename, scratch=scratch, limits=self.limits, options=options
+            ).annotations
 
     # -- reading ----------------------------------------------------------------------------------------------
     def resampled(self, bench: Benchmark, rows: Sequence[SubmissionRecord]) -> dict[str, npt.NDArray[np.float64]]:
