@@ -209,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
                 return _jobs(args, service, caller)
             return _account_command(args, service, caller)
     except (ApiError, KittiEvalError) as e:
-        _say(f"error: {getattr(e, 'message', e)}")
+        _say(f"error: {e.message if isinstance(e, ApiError) else e}")  # the library's names the file
         return EXIT_INPUT
     except SQLAlchemyError as e:
         where = settings.resolved_database_url.split("@")[-1]  # not the password
