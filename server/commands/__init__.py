@@ -11,30 +11,17 @@ __all__ = ["INSTALL", "without_server_extra"]
 
 INSTALL = "pip install 'kitti-eval[server]'"
 
-#: the top-level modules of the server extra's packages (and of what they bring: pydantic, starlette)
-_EXTRA_MODULES = frozenset(
-    {
-        "fastapi",
-        "fastapi_offline",
-        "jinja2",
-        "multipart",
-        "platformdirs",
-        "prometheus_client",
-        "psycopg",
-        "pydantic",
-        "pydantic_settings",
-        "sqlalchemy",
-        "starlette",
-        "uvicorn",
-    }
-)
+#: this project's own packages: a module of theirs that cannot be found is a fault, not a missing extra
+_OWN = frozenset({"kitti_eval", "kitti_eval_server"})
 
 
 def without_server_extra(command: str, error: ImportError) -> int:
     """Say that ``kitti-eval COMMAND`` needs the server extra and how to install it (exit code 1), when
-    ``error`` is a module of the extra missing; any other ImportError is a fault and raised as it is."""
+    ``error`` says that a package the service imports (fastapi, uvicorn, sqlalchemy, or one they need: anyio,
+    pydantic, ...) is not installed; any other ImportError (a name missing from a module, a module of this
+    project's missing) is a fault and raised as it is."""
     missing = (error.name or "").partition(".")[0]
-    if missing not in _EXTRA_MODULES:
+    if not isinstance(error, ModuleNotFoundError) or not missing or missing in _OWN:
         raise error
     print(f"kitti-eval {command}: error: needs the server extra ({missing} is missing): {INSTALL}", file=sys.stderr)
     return 1

@@ -137,7 +137,14 @@ def _without(hidden: set[str], *argv: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120)
 
 
-@pytest.mark.parametrize("hidden", [{"fastapi", "uvicorn", "sqlalchemy"}, {"kitti_eval_server"}])
+@pytest.mark.parametrize(
+    "hidden",
+    [
+        {"fastapi", "uvicorn", "sqlalchemy", "pydantic", "pydantic_settings"},  # the extra's packages
+        {"anyio", "starlette"},  # what they bring (an install where only these are missing)
+        {"kitti_eval_server"},  # the service's package itself
+    ],
+)
 def test_without_the_server_extra_the_service_commands_say_how_to_install_it(hidden: set[str]) -> None:
     """Without the server extra's packages (or without the service's package at all), ``kitti-eval --help`` still
     lists the service's commands, and each says in one line how to install what it needs: exit 1, no traceback."""
@@ -153,3 +160,20 @@ def test_without_the_server_extra_the_service_commands_say_how_to_install_it(hid
         assert line.endswith("pip install 'kitti-eval[server]'"), line
     evaluated = _without(hidden, "describe", str(Path(__file__).resolve().parents[1] / "golden"))
     assert "server extra" not in evaluated.stderr  # the library's own commands do not ask for it
+
+
+def test_a_fault_is_not_taken_for_a_missing_extra(capsys) -> None:
+    """Only a package the project does not hold being absent is a missing extra: a module of the project's own
+    that cannot be found, or a name missing from a module, is raised as the fault it is."""
+    from kitti_eval_server.commands import without_server_extra
+
+    own = ModuleNotFoundError("No module named 'kitti_eval_server.gone'", name="kitti_eval_server.gone")
+    renamed = ImportError("cannot import name 'serve' from 'kitti_eval_server.main'", name="kitti_eval_server.main")
+    for fault in (own, renamed, ImportError("no name at all")):
+        with pytest.raises(ImportError) as raised:
+            without_server_extra("serve", fault)
+        assert raised.value is fault
+    assert without_server_extra("admin", ModuleNotFoundError("No module named 'anyio'", name="anyio")) == 1
+    assert capsys.readouterr().err == (
+        "kitti-eval admin: error: needs the server extra (anyio is missing): pip install 'kitti-eval[server]'\n"
+    )
