@@ -114,7 +114,7 @@ def _score(client: Any, service: Any, participant: dict[str, str], ids: list[str
     """Run the scorings one after another in this process, timing their resampling; publish; read the board."""
     import kitti_eval.analysis.ranking as ranking
     import kitti_eval_server.benchmarks.intervals as intervals
-    from kitti_eval_server.workers import Workers
+    from kitti_eval_server.jobs.workers import Workers
 
     resampling, draws = _Clock(), _Clock()
     ranking.resampled_key = resampling.around(ranking.resampled_key)
@@ -149,8 +149,8 @@ def _backfill(client: Any, service: Any) -> dict[str, float]:
     """Drop the kept values (a database from before they were kept), let the board queue their jobs, run them."""
     from sqlalchemy import delete
 
+    from kitti_eval_server.jobs.workers import Workers
     from kitti_eval_server.store.database import submission_resamples
-    from kitti_eval_server.workers import Workers
 
     with service.store.engine.begin() as conn:
         conn.execute(delete(submission_resamples))
@@ -181,18 +181,18 @@ def _where_a_read_goes(service: Any, repeat: int = 20) -> dict[str, float]:
     from kitti_eval_server.benchmarks.intervals import ranked_rows
 
     benchmarks = service.benchmarks
-    bench = benchmarks._get("bench")
+    bench = benchmarks.catalog.named("bench")
     parts: dict[str, list[float]] = {"rows": [], "kept values": [], "standings": [], "whole read": []}
     caller = service.policy.anonymous()
     for _ in range(repeat):
         t0 = time.perf_counter()
-        ranked = ranked_rows(bench, service.store.list_submissions("bench", published_only=True))
+        ranked = ranked_rows(bench, service.store.benchmark_store.list_submissions("bench", published_only=True))
         t1 = time.perf_counter()
-        values = benchmarks.resampled(bench, [r for r, _ in ranked])
+        values = benchmarks.intervals.resampled(bench, [r for r, _ in ranked])
         t2 = time.perf_counter()
         standings([values.get(r.id) for r, _ in ranked])
         t3 = time.perf_counter()
-        benchmarks.leaderboard("bench", caller)
+        benchmarks.board.leaderboard("bench", caller)
         t4 = time.perf_counter()
         for name, seconds in zip(parts, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
             parts[name].append(seconds)

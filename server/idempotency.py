@@ -24,8 +24,8 @@ from datetime import datetime, timedelta
 from typing import Any
 
 from .errors import ApiError, echo
-from .jobs import JobQueue, JobRecord, now_utc
-from .store import IdempotencyRecord, KeyTaken, Store
+from .jobs.queue import JobQueue, JobRecord, now_utc
+from .store import IdempotencyRecord, IdempotencyStore, KeyTaken
 
 __all__ = [
     "HEADER",
@@ -118,9 +118,13 @@ class Idempotency:
     """The keys of one database."""
 
     def __init__(
-        self, store: Store, jobs: JobQueue, hours: float = 24.0, clock: Callable[[], datetime] = now_utc
+        self,
+        idempotency_store: IdempotencyStore,
+        jobs: JobQueue,
+        hours: float = 24.0,
+        clock: Callable[[], datetime] = now_utc,
     ) -> None:
-        self.store = store
+        self.idempotency_store = idempotency_store
         self.jobs = jobs
         self.keep = timedelta(hours=hours)
         self.clock = clock
@@ -128,14 +132,14 @@ class Idempotency:
     def known(self, owner: str, scope: str, key: str | None) -> bool:
         """Whether the key was recorded and has not expired (before a request's body: a retry is answered by its
         route, whatever a quota says now)."""
-        return key is not None and self.store.idempotency_key(owner, scope, key, self.clock()) is not None
+        return key is not None and self.idempotency_store.idempotency_key(owner, scope, key, self.clock()) is not None
 
     def earlier(self, key: RequestKey | None) -> JobRecord | None:
         """The job the key's first request made (None: no key, or not recorded); :class:`KeyReused` when the
         key was sent with another request."""
         if key is None:
             return None
-        found = self.store.idempotency_key(key.owner, key.scope, key.key, self.clock())
+        found = self.idempotency_store.idempotency_key(key.owner, key.scope, key.key, self.clock())
         return None if found is None else self._job(key, found)
 
     def record(self, key: RequestKey, job_id: str) -> IdempotencyRecord:

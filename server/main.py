@@ -26,9 +26,10 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from kitti_eval import __version__
 from kitti_eval.core.matching import available_cpus
 
-from .auth import CALLER_KEY, AuthMiddleware, Door, access_of, flat_routes
+from .access.auth import CALLER_KEY, AuthMiddleware, Door, access_of, flat_routes
+from .access.headers import SecurityHeaders
+from .access.policy import Access, Caller
 from .errors import ApiError, StartupRefused, install_error_handlers
-from .headers import SecurityHeaders
 from .idempotency import parse_key
 from .middleware import (
     PART_MEMORY_BYTES,
@@ -39,7 +40,6 @@ from .middleware import (
     RefuseBeforeBody,
 )
 from .observability import Metrics, RequestMiddleware, configure_logging
-from .policy import Access, Caller
 from .routes import admin, benchmarks, evaluations, frames, gates, ground_truths, health, jobs, metrics
 from .service import Service
 from .settings import Settings, default_data_dir
@@ -205,7 +205,7 @@ def _submission_refused(service: Service, access: Callable[[], Access]) -> Befor
             idempotency_key = parse_key(key)
         except ApiError:
             return None  # the route refuses it, as always
-        return service.benchmarks.refused_now(params["name"], admitted, size, idempotency_key)
+        return service.benchmarks.submissions.refused_now(params["name"], admitted, size, idempotency_key)
 
     return check
 

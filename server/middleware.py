@@ -427,7 +427,7 @@ class AdmissionMiddleware:
 
     It runs inside :class:`BodyMiddleware`, so a request is counted from the moment its body has arrived. It
     refuses nothing for being busy: what the service holds is bounded by the job queue's limits
-    (:meth:`~kitti_eval_server.jobs.JobQueue.admit`) and the requests waiting for a result by
+    (:meth:`~kitti_eval_server.jobs.queue.JobQueue.admit`) and the requests waiting for a result by
     ``max_queued_evals`` (past it a request is answered 202 at once)."""
 
     def __init__(

@@ -188,7 +188,7 @@ class Metrics:
         self.cache_lookups.labels("hit" if hit else "miss").inc()
 
     def job_ended(self, kind: str, outcome: str, seconds: float, attempt: int) -> None:
-        """A worker's run of a job ended (:attr:`kitti_eval_server.workers.Workers.on_ended`)."""
+        """A worker's run of a job ended (:attr:`kitti_eval_server.jobs.workers.Workers.on_ended`)."""
         self.job_seconds.labels(kind, outcome).observe(seconds)
         self.job_attempts.labels(kind, outcome).observe(attempt)
 

@@ -8,9 +8,6 @@ blocking work on worker threads. The routes call the parts; no part reaches into
 from __future__ import annotations
 
 import logging
-import os
-import secrets
-import socket
 import threading
 import time
 from collections.abc import Callable
@@ -25,26 +22,26 @@ from kitti_eval._jit import warm_up
 from kitti_eval.demo import demo_paths
 from kitti_eval.io.upload import UploadLimits
 
-from .accounts import Accounts
-from .audit import Audit
-from .auth import FailureLimiter
+from .access.accounts import Accounts, admin_token
+from .access.audit import Audit
+from .access.auth import FailureLimiter
+from .access.policy import AuthMode, Policy
 from .benchmarks import Benchmarks
-from .catalog import GroundTruthCatalog
 from .errors import StartupRefused
-from .evaluations import Evaluations, sealed_document
-from .ground_truths import GroundTruthCache, GroundTruths
+from .evaluations.evaluations import EvaluationFrames, Evaluations, sealed_document
+from .evaluations.uploads import FileIn
+from .ground_truths.cache import GroundTruthCache, GroundTruths
+from .ground_truths.catalog import GroundTruthCatalog
 from .idempotency import Idempotency
-from .job_admin import JobAdmin
-from .jobs import JobQueue, JobRecord, QueueLimits
+from .jobs.admin import JobAdmin
+from .jobs.pool import WorkerPool, why_no_worker
+from .jobs.queue import JobQueue, JobRecord, QueueLimits
+from .jobs.runner import Runner, release_memory
+from .jobs.scratch import ScratchSpace
+from .jobs.workers import Workers, await_outcome
 from .observability import AdmissionState
-from .policy import AuthMode, Policy
-from .runner import Runner, release_memory
-from .scratch import ScratchSpace
 from .settings import Settings
 from .store import IdempotencyRecord, JobInput, Store
-from .uploads import FileIn, receive_upload
-from .worker_pool import WorkerPool
-from .workers import Workers, await_outcome
 
 __all__ = ["Service", "FileIn", "DEMO_NAME", "sealed_document", "release_memory"]
 
@@ -61,7 +58,7 @@ class Service:
         self.settings = settings
         self.data_dir = settings.data_dir.resolve()
         self.store = Store(settings.resolved_database_url, busy_s=settings.database_busy_s)
-        self.audit = Audit(self.store)
+        self.audit = Audit(self.store.account_store)
         self.admin_token = ""
         self.policy = Policy(
             AuthMode(settings.auth),
@@ -69,7 +66,7 @@ class Service:
             metrics_token=lambda: settings.metrics_token.get_secret_value() if settings.metrics_token else None,
             test_sets=self._test_sets,
         )
-        self.accounts = Accounts(self.store, self.audit, lambda: self.admin_token)
+        self.accounts = Accounts(self.store.account_store, self.audit, lambda: self.admin_token)
         self.limiter = FailureLimiter(settings.auth_max_failures, settings.auth_failure_window_s)
         self.limits = UploadLimits(
             max_bytes=settings.max_unpacked_bytes,
@@ -81,7 +78,8 @@ class Service:
         self.admission = AdmissionState()
         self.runner = Runner(settings.max_concurrent_evals, self.admission, self.scratch_space)
         self.ground_truths = GroundTruths(
-            self.store,
+            self.store.ground_truth_store,
+            self.store.benchmark_store,
             self.data_dir / "ground-truths",
             GroundTruthCache(settings.gt_cache_entries, settings.gt_cache_bytes),
             self.limits,
@@ -90,7 +88,7 @@ class Service:
         #: the ground truths as callers see them (the policy's rules and the audit over ``ground_truths``)
         self.catalog = GroundTruthCatalog(
             self.ground_truths,
-            self.store,
+            self.store.ground_truth_store,
             self.policy,
             self.audit,
             self.runner.scratch,
@@ -100,7 +98,7 @@ class Service:
             settings.pred_cache_entries, settings.gt_cache_bytes, what="predictions", setting="KITTI_EVAL_GT_CACHE_MB"
         )
         #: every accepted evaluation is a job; workers of this process run them (and any ``kitti-eval worker``)
-        self.jobs = JobQueue(
+        self.jobs = JobQueue.of(
             self.store,
             lease_s=settings.job_lease_s,
             max_attempts=settings.job_max_attempts,
@@ -112,9 +110,12 @@ class Service:
             ),
         )
         #: the requests' idempotency keys (evaluations and submissions)
-        self.idempotency = Idempotency(self.store, self.jobs, settings.idempotency_key_hours)
+        self.idempotency = Idempotency(self.store.idempotency_store, self.jobs, settings.idempotency_key_hours)
         self.evaluations = Evaluations(
-            self.store,
+            self.store.evaluation_store,
+            self.store.ground_truth_store,
+            self.store.job_input_store,
+            self.store.account_store,
             self.catalog,
             self.predictions,
             self.policy,
@@ -124,6 +125,16 @@ class Service:
             self.jobs,
             keep_predictions=settings.keep_predictions,
             idempotency=self.idempotency,
+        )
+        #: the frames of stored evaluations (counts, labelled boxes)
+        self.evaluation_frames = EvaluationFrames(
+            self.evaluations,
+            self.store.ground_truth_store,
+            self.catalog,
+            self.predictions,
+            self.policy,
+            self.limits,
+            self.runner.scratch,
         )
         self.warm = threading.Event()
         self.warmup_error: str | None = None
@@ -135,9 +146,9 @@ class Service:
             self.jobs,
             {
                 "evaluation": self._run_evaluation,
-                "submission": lambda job: self.benchmarks.score_job(job),
-                "rescore": lambda job: self.benchmarks.score_job(job),
-                "intervals": lambda job: self.benchmarks.intervals_job(job),
+                "submission": lambda job: self.benchmarks.scoring.score_job(job),
+                "rescore": lambda job: self.benchmarks.scoring.score_job(job),
+                "intervals": lambda job: self.benchmarks.intervals.intervals_job(job),
             },
             threads=settings.job_threads,
             admission=self.admission,
@@ -152,17 +163,17 @@ class Service:
         )
         #: worker processes of the service's own (KITTI_EVAL_WORKER_PROCESSES), started and stopped with it
         self.pool: WorkerPool | None = None
-        self.benchmarks = Benchmarks(
+        self.benchmarks = Benchmarks.assemble(
             self.store,
             self.ground_truths,
             self.policy,
             self.audit,
             self.runner.scratch,
             self.limits,
-            draining=self.draining.is_set,
             jobs=self.jobs,
-            wake=lambda n: self.workers.wake(n),
             idempotency=self.idempotency,
+            draining=self.draining.is_set,
+            wake=lambda n: self.workers.wake(n),
         )
 
     # -- lifecycle ---------------------------------------------------------------------------------------
@@ -186,9 +197,10 @@ class Service:
                 )
             raise StartupRefused(f"cannot use the database {where}: {reason}{hint}") from None
         self._check_open_mode()
-        self.admin_token = self._admin_token()
+        self.admin_token = admin_token(self.settings, self.data_dir)
         if self.settings.register_demo:
-            self._register_demo()
+            with self.scratch() as scratch:
+                self.ground_truths.register_bundled(DEMO_NAME, demo_paths()[0], scratch)
         if self.settings.warmup:
             threading.Thread(target=self._warm_up, name="kitti-eval-warmup", daemon=True).start()
         else:
@@ -265,34 +277,6 @@ class Service:
         self.store.dispose()
         self.scratch_space.close()
 
-    def _admin_token(self) -> str:
-        if self.settings.admin_token is not None:
-            return self.settings.admin_token.get_secret_value()
-        path = self.data_dir / "admin-token"
-        try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        except FileExistsError:
-            return path.read_text().strip()
-        token = secrets.token_urlsafe(32)
-        with os.fdopen(fd, "w") as fh:
-            fh.write(token + "\n")
-        log.warning("generated an admin token in %s (set KITTI_EVAL_ADMIN_TOKEN to choose one)", path)
-        return token
-
-    def _register_demo(self) -> None:
-        if self.store.get_ground_truth(DEMO_NAME) is not None:
-            return
-        gt_path, _ = demo_paths()
-        with open(gt_path, "rb") as fh, self.scratch() as scratch:
-            upload = receive_upload(fh, gt_path.name, gt_path.name)
-            try:
-                self.ground_truths.register(DEMO_NAME, upload, scratch)
-            except Exception as e:  # noqa: BLE001 - another worker may have registered it meanwhile
-                if self.store.get_ground_truth(DEMO_NAME) is None:
-                    raise
-                log.debug("demo ground truth registered concurrently: %s", e)
-        log.info("registered the bundled demo ground truth as %r", DEMO_NAME)
-
     def _warm_up(self) -> None:
         """Compile (or load) every kernel before requests need them: the same ones the CLI and library use."""
         started = time.perf_counter()
@@ -320,32 +304,9 @@ class Service:
             return "the database is unavailable"
         return self._no_worker()
 
-    #: a worker process not seen on the database for this long does not count for the readiness
-    WORKERS_SEEN_S = 60.0
-
     def _no_worker(self) -> str | None:
-        """Why no accepted evaluation would run (None: a worker can run it): no worker thread in this process,
-        and no worker process seen on the database within a minute. A worker process records itself there once
-        its kernels are warm and it takes jobs: while this service's own are still starting, it is not ready."""
-        if self.workers.threads > 0:
-            return None
-        try:
-            seen = self.jobs.workers_seen(self.WORKERS_SEEN_S)
-        except Exception as e:  # noqa: BLE001 - the ping answered: a failure here is a passing one
-            log.warning("could not read the worker processes: %s", e)
-            return "the database is unavailable"
-        if self.pool is not None:
-            host, own = socket.gethostname(), set(self.pool.pids)
-            if any(w.host == host and w.pid in own for w in seen):
-                return None
-            if self.pool.alive > 0:
-                return "the worker processes are starting (warming the evaluation kernels)"
-        if seen:
-            return None
-        return (
-            "no worker runs evaluations: KITTI_EVAL_JOB_THREADS is 0, KITTI_EVAL_WORKER_PROCESSES is 0, and no "
-            f"'kitti-eval worker' was seen on the database in the last {self.WORKERS_SEEN_S:g} s"
-        )
+        """Why no accepted evaluation would run (None: a worker can run it): :func:`why_no_worker`."""
+        return why_no_worker(self.workers.threads, self.jobs, self.pool)
 
     # -- the runner ----------------------------------------------------------------------------------------
     async def outcome(self, job_id: str, wait_s: float | None = None) -> JobRecord:
@@ -362,7 +323,7 @@ class Service:
             self.admission.waiting -= 1
 
     async def run(self, func: Callable[..., T], *args: Any) -> T:
-        """Blocking work on the runner's threads (:meth:`Runner.run <kitti_eval_server.runner.Runner.run>`)."""
+        """Blocking work on the runner's threads (:meth:`Runner.run <kitti_eval_server.jobs.runner.Runner.run>`)."""
         return await self.runner.run(func, *args)
 
     async def accept(self, func: Callable[[], T]) -> T:
@@ -376,6 +337,6 @@ class Service:
     def _test_sets(self) -> dict[str, list[str]]:
         """Ground truth name -> the benchmarks whose test set it is (for the policy)."""
         found: dict[str, list[str]] = {}
-        for bench in self.store.list_benchmarks():
+        for bench in self.store.benchmark_store.list_benchmarks():
             found.setdefault(bench.gt_name, []).append(bench.name)
         return found

@@ -10,7 +10,7 @@ import platformdirs
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from .policy import AuthMode
+from .access.policy import AuthMode
 
 __all__ = ["Settings", "ENV_PREFIX", "default_data_dir"]
 
@@ -136,7 +136,7 @@ class Settings(BaseSettings):
     """``open``: everyone who reaches the service sees and changes everything but the ground truths (which
     need the admin token). ``accounts``: every request but those to the routes declared public (the probes,
     the static files, the sign-in page, public benchmarks' boards) needs a token (``kitti-eval admin token
-    add``), and sees only its projects' work (:mod:`kitti_eval_server.policy`)."""
+    add``), and sees only its projects' work (:mod:`kitti_eval_server.access.policy`)."""
 
     allow_open_with_accounts: bool = False
     """Open mode on a database that holds accounts (users, or tokens not revoked: made in accounts mode) serves

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -44,6 +45,7 @@ def client(service_client: Callable[..., AbstractContextManager[Any]]) -> Iterat
         yield c
 
 
+TESTS = Path(__file__).parent
 FOLDERS = ("core", "io", "analysis", "cli", "compat", "server", "web", "docs", "packaging")
 
 
@@ -51,7 +53,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     from slow_tests import why_slow
 
     for item in items:
-        folder = item.path.parent.name
+        folder = item.path.relative_to(TESTS).parts[0]  # tests/server/jobs/... is a test of tests/server
         if folder in FOLDERS:
             item.add_marker(getattr(pytest.mark, folder))
         if item.get_closest_marker("slow") is None and why_slow(item) is not None:

@@ -12,7 +12,7 @@ rank of its own).
 A submission is checked first with :func:`kitti_eval.io.submission.validate_submission` against the test frame
 ids (the sentences ``kitti-eval validate`` prints; a refused submission costs nothing), then counted against
 the quota and accepted in one transaction (``BenchmarkStore.accept_submission``; the acceptance time is the
-submission's), then scored on the sealed set by a job (:mod:`kitti_eval_server.jobs`: a worker of this or
+submission's), then scored on the sealed set by a job (:mod:`kitti_eval_server.jobs.queue`: a worker of this or
 another process; rescoring queues one job per submission). Its participant sees its aggregate result (on the
 public part only while a benchmark with a split is not revealed); nobody else sees it until it is
 published. What is published is frozen when the benchmark closes, and a benchmark may cap the entries a
@@ -40,16 +40,33 @@ a caller is shown, from allow-lists) and
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from contextlib import AbstractContextManager
+from pathlib import Path
+
+from kitti_eval.io.upload import UploadLimits
+
+from ..access.audit import Audit
+from ..access.policy import Policy
+from ..ground_truths.cache import GroundTruths
+from ..idempotency import Idempotency
+from ..jobs.queue import JobQueue
+from ..store import Store
 from .catalog import BenchmarkCatalog
+from .intervals import Intervals
 from .leaderboard import Leaderboard
 from .markdown import render_markdown
 from .rules import DEFAULT_KEY, Benchmark, in_public_part, key_value, parse_column, parse_quota
-from .submissions import InvalidSubmission, QuotaExceeded, Submissions
+from .submissions import InvalidSubmission, QuotaExceeded, Scoring, Submissions
 
 __all__ = [
     "Benchmarks",
     "Benchmark",
     "BenchmarkCatalog",
+    "Intervals",
+    "Leaderboard",
+    "Scoring",
+    "Submissions",
     "QuotaExceeded",
     "InvalidSubmission",
     "DEFAULT_KEY",
@@ -61,6 +78,57 @@ __all__ = [
 ]
 
 
-class Benchmarks(Submissions, Leaderboard):
-    """Benchmarks on the service's store, ground truths and evaluation machinery: the catalog, the
-    submissions and the leaderboards over one service."""
+class Benchmarks:
+    """The hosted benchmarks, as collaborators the routes reach by name: the ``catalog`` (seeing benchmarks, the
+    admins' actions on them), the ``submissions`` (accepting, publishing, the admins' lists), their ``scoring``
+    (by jobs), the ``board`` (ranking, CSV) and the ``intervals`` (the resampled keys), over one service."""
+
+    def __init__(
+        self,
+        catalog: BenchmarkCatalog,
+        intervals: Intervals,
+        submissions: Submissions,
+        scoring: Scoring,
+        board: Leaderboard,
+    ) -> None:
+        self.catalog = catalog
+        self.intervals = intervals
+        self.submissions = submissions
+        self.scoring = scoring
+        self.board = board
+
+    @classmethod
+    def assemble(
+        cls,
+        store: Store,
+        ground_truths: GroundTruths,
+        policy: Policy,
+        audit: Audit,
+        scratch: Callable[[], AbstractContextManager[Path]],
+        limits: UploadLimits,
+        *,
+        jobs: JobQueue,
+        idempotency: Idempotency,
+        draining: Callable[[], bool] = lambda: False,
+        wake: Callable[[int], None] = lambda n: None,
+    ) -> Benchmarks:
+        """The collaborators, each given the areas of ``store`` and the parts it uses. ``jobs``: the queue the
+        scorings, rescorings and intervals go through; ``wake(n)``: n jobs were queued (idle workers of this
+        process look at once); ``draining()``: whether the process is stopping (no submission is accepted)."""
+        catalog = BenchmarkCatalog(store.benchmark_store, ground_truths, policy, audit, jobs)
+        stores = (store.benchmark_store, store.ground_truth_store, store.job_input_store)
+        intervals = Intervals(catalog, *stores, jobs, limits, scratch, wake=wake)
+        submissions = Submissions(
+            catalog,
+            intervals,
+            store.benchmark_store,
+            store.job_input_store,
+            policy,
+            audit,
+            jobs,
+            idempotency,
+            draining=draining,
+            wake=wake,
+        )
+        scoring = Scoring(catalog, intervals, *stores, policy, jobs, limits, scratch)
+        return cls(catalog, intervals, submissions, scoring, Leaderboard(catalog, intervals, store.benchmark_store))

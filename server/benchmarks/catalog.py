@@ -4,25 +4,21 @@ revealing."""
 from __future__ import annotations
 
 import secrets
-from collections.abc import Callable, Sequence
-from contextlib import AbstractContextManager
+from collections.abc import Sequence
 from datetime import datetime, timezone
-from pathlib import Path
 from typing import Any
 
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import THRESHOLD_SETS
-from kitti_eval.io.upload import UploadLimits
 
-from ..accounts import Accounts
-from ..audit import Audit
+from ..access.accounts import Accounts
+from ..access.audit import Audit
+from ..access.policy import Caller, Policy
 from ..errors import BadRequest, Conflict, NotFound, echo
-from ..evaluator import EvalOptions
-from ..ground_truths import GroundTruths
-from ..idempotency import Idempotency
-from ..jobs import JobQueue
-from ..policy import Caller, Policy
-from ..store import BenchmarkRecord, GroundTruthRecord, Store
+from ..evaluations.evaluator import EvalOptions
+from ..ground_truths.cache import GroundTruths
+from ..jobs.queue import JobQueue
+from ..store import BenchmarkRecord, BenchmarkStore, GroundTruthRecord
 from .rules import DEFAULT_KEY, DIFFICULTIES, Benchmark, parse_column, parse_quota, parse_time
 from .views import benchmark_view
 
@@ -37,35 +33,19 @@ class BenchmarkCatalog:
     actions on them (audited)."""
 
     def __init__(
-        self,
-        store: Store,
-        ground_truths: GroundTruths,
-        policy: Policy,
-        audit: Audit,
-        scratch: Callable[[], AbstractContextManager[Path]],
-        limits: UploadLimits,
-        *,
-        draining: Callable[[], bool] = lambda: False,
-        jobs: JobQueue | None = None,
-        wake: Callable[[int], None] = lambda n: None,
-        idempotency: Idempotency | None = None,
+        self, benchmark_store: BenchmarkStore, ground_truths: GroundTruths, policy: Policy, audit: Audit, jobs: JobQueue
     ) -> None:
-        """``jobs``: the queue submissions' scorings and rescorings go through; ``wake(n)``: n jobs were queued
-        (idle workers of this process look at once); ``idempotency``: the submissions' idempotency keys."""
-        self.store = store
+        """``ground_truths``: where a benchmark's test set is kept; ``jobs``: the queue its rescorings go through
+        (a benchmark described to an admin says how many are left)."""
+        self.benchmark_store = benchmark_store
         self.ground_truths = ground_truths
         self.policy = policy
         self.audit = audit
-        self.scratch = scratch
-        self.limits = limits
-        self.draining = draining
-        self.jobs = jobs or JobQueue(store)
-        self.wake = wake
-        self.idempotency = idempotency or Idempotency(store, self.jobs)
+        self.jobs = jobs
 
     # -- seeing -------------------------------------------------------------------------------------------
-    def _get(self, name: str) -> Benchmark:
-        record = self.store.get_benchmark(name)
+    def named(self, name: str) -> Benchmark:
+        record = self.benchmark_store.get_benchmark(name)
         if record is None:
             raise NotFound(f"no benchmark named {echo(name)}")
         return Benchmark.from_record(record)
@@ -74,16 +54,16 @@ class BenchmarkCatalog:
         return self.policy.sees_benchmark(caller, public=bench.public, project=bench.project)
 
     def get(self, name: str, caller: Caller) -> Benchmark:
-        bench = self._get(name)
+        bench = self.named(name)
         if not self.sees(caller, bench):
             raise NotFound(f"no benchmark named {echo(name)}")
         return bench
 
     def taking_part(self, name: str) -> tuple[str | None, bool]:
         """Who takes part in the benchmark, for :meth:`Policy.may_take_part
-        <kitti_eval_server.policy.Policy.may_take_part>`: its test set's project (None: shared, or no such
+        <kitti_eval_server.access.policy.Policy.may_take_part>`: its test set's project (None: shared, or no such
         benchmark) and whether it is open to all."""
-        record = self.store.get_benchmark(name)
+        record = self.benchmark_store.get_benchmark(name)
         if record is None:
             return None, False
         bench = Benchmark.from_record(record)
@@ -98,24 +78,24 @@ class BenchmarkCatalog:
         return out
 
     def visible(self, caller: Caller) -> list[Benchmark]:
-        found = [Benchmark.from_record(r) for r in self.store.list_benchmarks()]
+        found = [Benchmark.from_record(r) for r in self.benchmark_store.list_benchmarks()]
         return [b for b in found if self.sees(caller, b)]
 
     def frame_ids(self, name: str, caller: Caller) -> list[str]:
         """The test frame ids (public, as KITTI's: the labels are what is sealed)."""
         bench = self.get(name, caller)
-        return list(self._ground_truth(bench)[1].frame_ids)
+        return list(self.ground_truth_of(bench)[1].frame_ids)
 
     def using_ground_truth(self, name: str) -> list[Benchmark]:
         """The benchmarks whose test set is the ground truth ``name`` (whoever may see them), by name."""
-        return [Benchmark.from_record(r) for r in self.store.benchmarks_using(name)]
+        return [Benchmark.from_record(r) for r in self.benchmark_store.benchmarks_using(name)]
 
-    def _ground_truth(self, bench: Benchmark) -> tuple[GroundTruthRecord, Annotations]:
+    def ground_truth_of(self, bench: Benchmark) -> tuple[GroundTruthRecord, Annotations]:
         """The benchmark's test set as registered now, loaded (see :meth:`_ground_truth_record`)."""
-        record = self._ground_truth_record(bench)
+        record = self.ground_truth_record_of(bench)
         return record, self.ground_truths.load(record)
 
-    def _ground_truth_record(self, bench: Benchmark) -> GroundTruthRecord:
+    def ground_truth_record_of(self, bench: Benchmark) -> GroundTruthRecord:
         """The record of the benchmark's test set as registered now: refused unless it is sealed (registering a
         benchmark's ground truth unsealed is refused too, so this holds unless the database was changed by hand)."""
         record = self.ground_truths.record(bench.gt_name)
@@ -215,17 +195,17 @@ class BenchmarkCatalog:
             created_at=datetime.now(timezone.utc),
             max_published=max_published,
         )
-        if not self.store.add_benchmark(bench):
+        if not self.benchmark_store.add_benchmark(bench):
             raise Conflict(f"a benchmark named {name!r} exists")
         detail = record.name + (f", shared with {', '.join(others)}" if others else "")
         self.audit.record(caller, "benchmark.add", name, detail=detail)
-        return self._get(name)
+        return self.named(name)
 
     def set_state(self, name: str, *, caller: Caller, **values: bool) -> Benchmark:
         """close (closed=True), reopen (closed=False), reveal (revealed=True): a benchmark is revealed once it
         has opened and is closed (by hand or by its ``closes_at``), and is never reopened after."""
         self.policy.require_admin(caller)
-        bench = self._get(name)
+        bench = self.named(name)
         now = datetime.now(timezone.utc)
         if values.get("closed") is False and bench.revealed:
             raise Conflict("revealed benchmarks stay closed: the private part's scores are out")
@@ -240,7 +220,7 @@ class BenchmarkCatalog:
                     "the private ranking is revealed once the benchmark is closed: close it first (or wait for "
                     "its closes_at)"
                 )
-        self.store.update_benchmark(name, **values)
+        self.benchmark_store.update_benchmark(name, **values)
         action = ",".join(f"{k}={v}" for k, v in sorted(values.items()))
         self.audit.record(caller, "benchmark.state", name, detail=action)
-        return self._get(name)
+        return self.named(name)

@@ -24,8 +24,10 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager
 from datetime import datetime, timezone
 from functools import lru_cache
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -37,12 +39,12 @@ from kitti_eval.analysis.ranking import LEVEL, METHOD, resampled_key
 from kitti_eval.core.evaluation import plan_evaluation
 from kitti_eval.core.frames import Annotations
 from kitti_eval.io.reading import LoadOptions
-from kitti_eval.io.upload import read_upload
+from kitti_eval.io.upload import UploadLimits, read_upload
 
 from ..errors import Conflict
-from ..jobs import JobRecord
-from ..store import ResampledKey, SubmissionRecord
-from ..uploads import stored_upload
+from ..evaluations.uploads import stored_upload
+from ..jobs.queue import JobQueue, JobRecord
+from ..store import BenchmarkStore, GroundTruthStore, JobInputStore, ResampledKey, SubmissionRecord
 from .catalog import BenchmarkCatalog
 from .rules import Benchmark, key_value, part_frames
 
@@ -89,9 +91,32 @@ def rounded(pair: tuple[float, float] | None) -> list[float] | None:
     return None if pair is None else [round(pair[0], 4), round(pair[1], 4)]
 
 
-class Intervals(BenchmarkCatalog):
+class Intervals:
     """The resampled keys of a benchmark's submissions: computed with each scoring (or by a job for one scored
     before), kept, and read by the board and by the participants' comparisons."""
+
+    def __init__(
+        self,
+        catalog: BenchmarkCatalog,
+        benchmark_store: BenchmarkStore,
+        ground_truth_store: GroundTruthStore,
+        job_input_store: JobInputStore,
+        jobs: JobQueue,
+        limits: UploadLimits,
+        scratch: Callable[[], AbstractContextManager[Path]],
+        *,
+        wake: Callable[[int], None] = lambda n: None,
+    ) -> None:
+        """``catalog``: the benchmarks and their test sets; ``jobs``: where an ``intervals`` job is queued for a
+        submission scored before the keys were kept; ``wake(n)``: n jobs were queued."""
+        self.catalog = catalog
+        self.benchmark_store = benchmark_store
+        self.ground_truth_store = ground_truth_store
+        self.job_input_store = job_input_store
+        self.jobs = jobs
+        self.limits = limits
+        self.scratch = scratch
+        self.wake = wake
 
     def bootstrap_of(self, bench: Benchmark) -> dict[str, Any]:
         """What the board says of its intervals (without ``pending``)."""
@@ -134,27 +159,27 @@ class Intervals(BenchmarkCatalog):
         the job; nothing is written when the submission was scored again meanwhile, which kept its own)."""
         sid = str(job.payload["submission_id"])
         scored_at = datetime.fromisoformat(str(job.payload["scored_at"]))
-        row = self.store.get_submission(sid)
+        row = self.benchmark_store.get_submission(sid)
         if row is None or row.status != "scored" or row.scored_at != scored_at:
             return sid, lambda conn: None  # gone, or scored again: that scoring kept its own
-        bench = self._get(row.benchmark)
-        record, gt = self._ground_truth(bench)
+        bench = self.catalog.named(row.benchmark)
+        record, gt = self.catalog.ground_truth_of(bench)
         if record.sha256 != row.gt_sha256:
             return sid, lambda conn: None  # the test set changed: a rescoring follows
-        keys = self.resampled_keys_of(bench, gt, self._predictions(job, row, gt))
+        keys = self.resampled_keys_of(bench, gt, self.predictions_of(job, row, gt))
 
         def write(conn: Any) -> None:
-            self.store.replace_resampled_keys_in(conn, sid, scored_at, keys)
+            self.benchmark_store.replace_resampled_keys_in(conn, sid, scored_at, keys)
 
         return sid, write
 
-    def _predictions(self, job: JobRecord, row: SubmissionRecord, gt: Annotations) -> Annotations:
+    def predictions_of(self, job: JobRecord, row: SubmissionRecord, gt: Annotations) -> Annotations:
         """The submission's predictions: its job's input (a submission's scoring), else the kept file."""
-        stored = self.store.job_input(job.id, "predictions") if job.kind == "submission" else None
+        stored = self.job_input_store.job_input(job.id, "predictions") if job.kind == "submission" else None
         if stored is not None:
             content: bytes | None = stored.content
         else:
-            content = self.store.prediction_content(row.pred_sha256)
+            content = self.ground_truth_store.prediction_content(row.pred_sha256)
         if content is None:
             raise Conflict(f"the predictions of submission {row.id} are not kept")
         with self.scratch() as scratch:
@@ -169,7 +194,7 @@ class Intervals(BenchmarkCatalog):
         """Submission id -> its resampled key on the board's part, for those of ``rows`` that have one; the
         job of each scored one that has none is queued unless it was (see :func:`intervals_job_id`)."""
         seed = board_seed(bench.name)
-        kept = self.store.resampled_keys(
+        kept = self.benchmark_store.resampled_keys(
             bench.name, part=bench.phase, seed=seed, resamples=RESAMPLES, ids=[r.id for r in rows]
         )
         found = {sid: np.frombuffer(blob, dtype="<f8") for sid, blob in kept.items()}
@@ -203,10 +228,10 @@ class Intervals(BenchmarkCatalog):
         95% intervals from the kept resamples (None while one of them is being computed)."""
         if record.status != "scored":
             return None
-        own = self.store.list_submissions(bench.name, participant=record.participant)
+        own = self.benchmark_store.list_submissions(bench.name, participant=record.participant)
         before = [r for r in own if r.created_at < record.created_at]
         earlier = [(r, k) for r, k in ranked_rows(bench, before) if k is not None]
-        published = self.store.list_submissions(bench.name, published_only=True)
+        published = self.benchmark_store.list_submissions(bench.name, published_only=True)
         board = ranked_rows(bench, [r for r in published if not r.baseline])  # baselines lead no one
         leader = board[0] if board and board[0][1] is not None else None
         mine = key_value((record.scores or {}).get(bench.phase) or {}, bench.key)

@@ -11,16 +11,24 @@ from typing import Any
 
 from kitti_eval.analysis.ranking import standings
 
+from ..access.policy import Caller
 from ..errors import BadRequest
-from ..policy import Caller
+from ..store import BenchmarkStore
+from .catalog import BenchmarkCatalog
 from .intervals import Intervals, ranked_rows, rounded
 from .views import BOARD_FIELDS, ENTRY_FIELDS, pick
 
 __all__ = ["Leaderboard"]
 
 
-class Leaderboard(Intervals):
+class Leaderboard:
     """The boards of the benchmarks."""
+
+    def __init__(self, catalog: BenchmarkCatalog, intervals: Intervals, benchmark_store: BenchmarkStore) -> None:
+        """``catalog``: who sees which benchmark; ``intervals``: the entries' resampled keys."""
+        self.catalog = catalog
+        self.intervals = intervals
+        self.benchmark_store = benchmark_store
 
     def leaderboard(
         self, name: str, caller: Caller, *, sort: str | None = None, order: str | None = None
@@ -29,10 +37,10 @@ class Leaderboard(Intervals):
         its 95% ``interval``, its ``rank_range`` and whether it ``differs_from_next`` (:mod:`.intervals`:
         from the kept resampled keys; None while an entry's are being computed, counted in
         ``bootstrap.pending``), then sorted as asked."""
-        bench = self.get(name, caller)
+        bench = self.catalog.get(name, caller)
         phase = bench.phase
-        ranked = ranked_rows(bench, self.store.list_submissions(name, published_only=True))
-        values = self.resampled(bench, [row for row, key in ranked if key is not None])
+        ranked = ranked_rows(bench, self.benchmark_store.list_submissions(name, published_only=True))
+        values = self.intervals.resampled(bench, [row for row, key in ranked if key is not None])
         # the participants are ranked among themselves (1, 2, 3, ... without a gap); an admin's baseline stands
         # in its place by the key without a rank, and its interval is its own
         ranked_ids = [row.id for row, _ in ranked if not row.baseline]
@@ -88,7 +96,7 @@ class Leaderboard(Intervals):
             "sort": sort,
             "order": order,
             "entries": rows,
-            "bootstrap": {**self.bootstrap_of(bench), "pending": pending},
+            "bootstrap": {**self.intervals.bootstrap_of(bench), "pending": pending},
         }
         return pick(board, BOARD_FIELDS)
 

@@ -6,24 +6,32 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from datetime import datetime, timedelta, timezone
+from pathlib import Path
 from typing import Any
 
 from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.core.frames import Annotations
 from kitti_eval.errors import InputError, InvalidSubmissionError
 from kitti_eval.io.submission import SubmissionRules
-from kitti_eval.io.upload import read_upload
+from kitti_eval.io.upload import UploadLimits, read_upload
 
+from ..access.audit import Audit
+from ..access.policy import Caller, Policy
 from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
-from ..evaluations import sealed_document
-from ..evaluator import evaluate_document, evaluate_document_resampled
-from ..idempotency import RequestKey, fingerprint, submissions_scope
-from ..jobs import JobRecord
-from ..policy import Caller
+from ..evaluations.evaluations import sealed_document
+from ..evaluations.evaluator import evaluate_document, evaluate_document_resampled
+from ..evaluations.uploads import FileIn, Upload, receive_content, stored_upload
+from ..idempotency import Idempotency, RequestKey, fingerprint, submissions_scope
+from ..jobs.queue import JobQueue, JobRecord
+from ..jobs.workers import JobFailed, error_of
 from ..store import (
+    BenchmarkStore,
     GroundTruthRecord,
+    GroundTruthStore,
     JobInput,
+    JobInputStore,
     KeyTaken,
     PublishRefused,
     QuotaRefused,
@@ -31,13 +39,12 @@ from ..store import (
     SubmissionRecord,
     new_id,
 )
-from ..uploads import FileIn, Upload, receive_content, stored_upload
-from ..workers import JobFailed, error_of
+from .catalog import BenchmarkCatalog
 from .intervals import Intervals
 from .rules import Benchmark, part_frames, scores_of
 from .views import submission_view
 
-__all__ = ["Submissions", "QuotaExceeded", "InvalidSubmission"]
+__all__ = ["Submissions", "Scoring", "QuotaExceeded", "InvalidSubmission"]
 
 _LINK = re.compile(r"^https?://[^\s<>\"']{1,490}$")
 
@@ -74,24 +81,54 @@ class InvalidSubmission(ApiError):
         self.details = {"problems": problems}
 
 
-class Submissions(Intervals):
-    """A benchmark's submissions: the participants' side and the admins'."""
+class Submissions:
+    """A benchmark's submissions: the participants' side and the admins' (their scoring: :class:`Scoring`)."""
+
+    def __init__(
+        self,
+        catalog: BenchmarkCatalog,
+        intervals: Intervals,
+        benchmark_store: BenchmarkStore,
+        job_input_store: JobInputStore,
+        policy: Policy,
+        audit: Audit,
+        jobs: JobQueue,
+        idempotency: Idempotency,
+        *,
+        draining: Callable[[], bool] = lambda: False,
+        wake: Callable[[int], None] = lambda n: None,
+    ) -> None:
+        """``jobs``: the queue submissions' scorings and rescorings go through; ``idempotency``: the submissions'
+        idempotency keys; ``draining()``: whether the process is stopping (no submission is accepted);
+        ``wake(n)``: n jobs were queued (idle workers of this process look at once)."""
+        self.catalog = catalog
+        self.intervals = intervals
+        self.benchmark_store = benchmark_store
+        self.job_input_store = job_input_store
+        self.policy = policy
+        self.audit = audit
+        self.jobs = jobs
+        self.idempotency = idempotency
+        self.draining = draining
+        self.wake = wake
 
     # -- admin ----------------------------------------------------------------------------------------------
     def all_submissions(self, name: str, caller: Caller) -> list[dict[str, Any]]:
         self.policy.require_admin(caller)
-        bench = self._get(name)
-        return [submission_view(r, bench, full=False, everything=True) for r in self.store.list_submissions(name)]
+        bench = self.catalog.named(name)
+        return [
+            submission_view(r, bench, full=False, everything=True) for r in self.benchmark_store.list_submissions(name)
+        ]
 
     def disqualify(self, name: str, submission_id: str, *, caller: Caller) -> dict[str, Any]:
         self.policy.require_admin(caller)
-        bench = self._get(name)
-        record = self.store.get_submission(submission_id)
+        bench = self.catalog.named(name)
+        record = self.benchmark_store.get_submission(submission_id)
         if record is None or record.benchmark != name:
             raise NotFound(f"no submission {echo(submission_id)} in benchmark {echo(name)}")
-        self.store.update_submission(submission_id, disqualified=True)
+        self.benchmark_store.update_submission(submission_id, disqualified=True)
         self.audit.record(caller, "submission.disqualify", submission_id)
-        again = self.store.get_submission(submission_id)
+        again = self.benchmark_store.get_submission(submission_id)
         assert again is not None
         return submission_view(again, bench, full=False, everything=True)
 
@@ -99,9 +136,9 @@ class Submissions(Intervals):
         """Queue one job per stored submission that evaluates it again against the ground truth as registered
         when the job runs; returns at once (``GET /v1/benchmarks/{name}`` shows an admin the jobs' progress)."""
         self.policy.require_admin(caller)
-        bench = self._get(name)
-        record, _ = self._ground_truth(bench)
-        rows = self.store.list_submissions(name)
+        bench = self.catalog.named(name)
+        record, _ = self.catalog.ground_truth_of(bench)
+        rows = self.benchmark_store.list_submissions(name)
         queued = self.jobs.enqueue_many(
             "rescore", [{"submission_id": r.id, "benchmark": name} for r in rows], owner=caller.name, group=name
         )
@@ -135,7 +172,7 @@ class Submissions(Intervals):
             raise Forbidden("benchmarks take submissions in accounts mode (KITTI_EVAL_AUTH=accounts)")
         if not self.policy.is_participant(caller):
             raise Forbidden("a participant submits with their own token (kitti-eval admin token add USER)")
-        bench = self.get(name, caller)
+        bench = self.catalog.get(name, caller)
         if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
             raise _not_taking_part(name)
         upload = key = None
@@ -149,7 +186,7 @@ class Submissions(Intervals):
             raise Conflict(f"the benchmark {name!r} is closed: its board is frozen")
         if not baseline and not bench.is_open():
             raise Conflict(f"the benchmark {name!r} is not open for submissions")
-        self._ground_truth_record(bench)  # registered, and sealed if it is to be
+        self.catalog.ground_truth_record_of(bench)  # registered, and sealed if it is to be
         if upload is None:  # read (and hashed) only once the cheap refusals are past
             upload = receive_content(predictions.file, predictions.filename, "predictions")
         self.jobs.admit(caller.name, upload.size)
@@ -173,13 +210,13 @@ class Submissions(Intervals):
         action = "baseline.add" if baseline else "submission.add"
 
         def with_its_job(conn: Any) -> None:  # the submission, its input, its job and its audit row: one commit
-            self.store.add_job_inputs_in(conn, submission_id, inputs)
+            self.job_input_store.add_job_inputs_in(conn, submission_id, inputs)
             self.jobs.enqueue_in(conn, "submission", payload, owner=caller.name, group=name, job_id=submission_id)
             self.audit.record_in(conn, caller, action, f"{name} {submission_id}")
 
         try:
             limit = None if baseline else count
-            self.store.accept_submission(
+            self.benchmark_store.accept_submission(
                 accepted,
                 limit=limit,
                 window_start=now - window,
@@ -200,7 +237,7 @@ class Submissions(Intervals):
     def refused_now(self, name: str, caller: Caller, size: int, idempotency_key: str | None = None) -> ApiError | None:
         """What a participant's submission of ``size`` bytes to ``name`` would be refused with now, found before
         its file is received: a caller who reads the benchmark but does not take part in it (403), a used quota
-        (429 ``quota_exceeded``) or a full queue (:meth:`JobQueue.admit <kitti_eval_server.jobs.JobQueue.admit>`).
+        (429 ``quota_exceeded``) or a full queue (:meth:`JobQueue.admit <kitti_eval_server.jobs.queue.JobQueue.admit>`).
         None when it may be accepted, or for any other answer: the route decides those, and the transaction that
         accepts counts the quota again. A request sent again with an idempotency key already recorded is not
         refused here: the route answers it with its first job."""
@@ -209,7 +246,7 @@ class Submissions(Intervals):
         if self.idempotency.known(caller.name, submissions_scope(name), idempotency_key):
             return None
         try:
-            bench = self.get(name, caller)
+            bench = self.catalog.get(name, caller)
             if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
                 return _not_taking_part(name)
             if not bench.is_open():
@@ -219,124 +256,16 @@ class Submissions(Intervals):
             return e if e.status_code in (429, 503) else None
         count, days = bench.quota
         window = timedelta(days=days)
-        used, oldest = self.store.quota_used(name, caller.name, datetime.now(timezone.utc) - window)
+        used, oldest = self.benchmark_store.quota_used(name, caller.name, datetime.now(timezone.utc) - window)
         if used >= count and oldest is not None:
             return QuotaExceeded.of(count, days, oldest + window)
         return None
 
-    def score_job(self, job: JobRecord) -> tuple[str, Callable[[Any], None]]:
-        """Run a submission's scoring or rescoring job: the submission's id and the writes of its scores (for
-        the transaction that ends the job). A submission's first scoring checks it as ``kitti-eval validate``
-        does on the same read of the file: one that breaks the rules, or cannot be read, is removed (it never
-        counted, as a file refused at once would not) and its job fails with the validator's sentences or the
-        reader's refusal. A submission whose scoring fails, or whose last attempt failed, is marked failed (and
-        no longer counts against the quota)."""
-        sid = str(job.payload["submission_id"])
-        row = self.store.get_submission(sid)
-        if row is None:
-            raise Conflict(f"the submission {sid} is gone")
-        try:
-            bench = self._get(row.benchmark)
-            record, gt = self._ground_truth(bench)
-            if job.kind == "submission":
-                stored = self.store.job_input(job.id, "predictions")
-                if stored is None:
-                    raise Conflict(f"the predictions of submission {row.id} are not kept")
-                try:
-                    dt = self._checked(stored_upload(stored.content, row.pred_filename, stored.sha256), gt)
-                except (InputError, InvalidSubmission):  # the file is refused: it never counted
-                    self.store.delete_submission(sid)
-                    raise
-                if not stored.kept:  # accepted before files were kept at acceptance
-                    self.store.add_prediction_file(row.pred_sha256, stored.content)
-            else:
-                dt = self._predictions(job, row, gt)  # a rescoring: the kept file
-            values, resampled = self._scores(bench, record, gt, dt)
-        except BaseException as e:
-            body, retry = error_of(e)
-            if not retry or job.attempts >= job.max_attempts:
-                self.store.update_submission(sid, status="failed", failure=str(body["message"])[:500])
-            raise
-
-        def write(conn: Any) -> None:
-            self.store.update_submission_in(conn, sid, **values)
-            self.store.replace_resampled_keys_in(conn, sid, values["scored_at"], resampled)
-            if job.kind == "submission":
-                self.store.delete_job_inputs_in(conn, job.id)
-
-        return sid, write
-
-    def refusal(self, submission_id: str, caller: Caller) -> JobFailed | None:
-        """Why the caller's submission was refused by its scoring job's check of the file (the validator's
-        sentences, or the reader's refusal), if that is what happened to it: the job failed and the submission
-        was removed (it never counted)."""
-        job = self.jobs.get(submission_id)
-        if job is None or job.kind != "submission" or job.state != "failed":
-            return None
-        if not self.policy.sees_job(caller, job.owner) or self.store.get_submission(submission_id) is not None:
-            return None
-        return JobFailed(job.error)
-
-    def _checked(self, upload: Upload, gt: Annotations) -> Annotations:
-        """The submission's predictions, read once and checked as :func:`validate_submission` checks them (its
-        sentences, naming the upload): raises :class:`InvalidSubmission` with them when it breaks the rules;
-        unreadable or unsafe input raises as every load does."""
-        rules = SubmissionRules(frames=tuple(gt.frame_ids))
-        with self.scratch() as scratch:
-            try:
-                read = read_upload(
-                    upload.file, "detections", source=upload.filename, scratch=scratch, limits=self.limits, rules=rules
-                )
-            except InvalidSubmissionError as e:
-                raise InvalidSubmission(e.lines()) from None
-            return read.annotations
-
-    def _scores(
-        self, bench: Benchmark, record: GroundTruthRecord, gt: Annotations, dt: Annotations
-    ) -> tuple[dict[str, Any], list[ResampledKey]]:
-        """A submission's scored values: its (sealed) documents and its scores on the whole set and each part;
-        and its key under the benchmark's resamples of each part a board ranks on (from the same plans)."""
-        config = bench.options().config()
-        columns = list(dict.fromkeys([*bench.columns, *bench.key]))
-        keys = [ValueKey.parse(k) for k in bench.key]
-        parts = part_frames(bench.split_seed, gt.frame_ids, bench.split_percent)
-        resampled: list[ResampledKey] = []
-
-        def scored(part: str, g: Annotations, d: Annotations) -> dict[str, Any]:
-            if part not in parts:  # the whole set of a benchmark with a split: no board ranks on it
-                return evaluate_document(g, d, config)
-            n = len(parts[part])
-            doc, values = evaluate_document_resampled(g, d, config, keys, self.board_weights(bench, n))
-            resampled.append(self.resampled_key_record(bench, part, values, n))
-            return doc
-
-        doc = scored("all", gt, dt)
-        scores: dict[str, dict[str, float | None]] = {"all": scores_of(doc, columns)}
-        public_result = None
-        if "all" not in parts:
-            for part, frames in parts.items():
-                if frames:
-                    part_doc = scored(part, gt.subset(frames), dt.subset(frames))
-                    scores[part] = scores_of(part_doc, columns)
-                    if part == "public":
-                        public_result = sealed_document(part_doc)
-                else:
-                    scores[part] = dict.fromkeys(columns)
-        values = {
-            "status": "scored",
-            "result": sealed_document(doc),
-            "scores": scores,
-            "public_result": public_result,
-            "gt_sha256": record.sha256,
-            "scored_at": datetime.now(timezone.utc),
-        }
-        return values, resampled
-
     def _own(self, name: str, submission_id: str, caller: Caller) -> SubmissionRecord:
         """One of the caller's own submissions (another's is as absent as a missing one; admins list every
         submission with ``all_submissions``)."""
-        self.get(name, caller)
-        record = self.store.get_submission(submission_id)
+        self.catalog.get(name, caller)
+        record = self.benchmark_store.get_submission(submission_id)
         if record is None or record.benchmark != name or not self.policy.owns(caller, record.participant):
             raise NotFound(f"no submission of yours with id {echo(submission_id)}")
         return record
@@ -345,14 +274,14 @@ class Submissions(Intervals):
         """One of the caller's submissions with its full result and its ``comparison`` (:meth:`comparison`: with
         their best earlier submission and the leader, on the part the board shows)."""
         record = self._own(name, submission_id, caller)
-        bench = self._get(name)
+        bench = self.catalog.named(name)
         out = submission_view(record, bench, full=True)
-        out["comparison"] = self.comparison(bench, record)
+        out["comparison"] = self.intervals.comparison(bench, record)
         return out
 
     def mine(self, name: str, caller: Caller) -> dict[str, Any]:
-        bench = self.get(name, caller)
-        records = self.store.list_submissions(name, participant=caller.name)
+        bench = self.catalog.get(name, caller)
+        records = self.benchmark_store.list_submissions(name, participant=caller.name)
         count, days = bench.quota
         since = datetime.now(timezone.utc) - timedelta(days=days)
         counted = sorted(
@@ -399,7 +328,7 @@ class Submissions(Intervals):
         if link and not _LINK.fullmatch(link):
             raise BadRequest("a link is an http:// or https:// address of at most 500 characters")
         try:
-            self.store.publish_submission(
+            self.benchmark_store.publish_submission(
                 record,
                 cap=None if record.baseline else bench.max_published,
                 method=method,
@@ -420,7 +349,7 @@ class Submissions(Intervals):
     def withdraw(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
         record = self._own(name, submission_id, caller)
         self._still_selecting(name)
-        self.store.update_submission(submission_id, published=False, published_at=None)
+        self.benchmark_store.update_submission(submission_id, published=False, published_at=None)
         action = "baseline.withdraw" if record.baseline else "submission.withdraw"
         self.audit.record(caller, action, f"{name} {submission_id}")
         return self.submission(name, submission_id, caller)
@@ -428,7 +357,7 @@ class Submissions(Intervals):
     def _still_selecting(self, name: str) -> Benchmark:
         """The benchmark, while its participants may still choose what is published: until it closes. The
         entries published at the close are the ones ranked on the private part after the reveal."""
-        bench = self._get(name)
+        bench = self.catalog.named(name)
         if bench.is_closed():
             raise Conflict(
                 f"the benchmark {name!r} is closed: the published entries were frozen at the close (they are "
@@ -443,3 +372,141 @@ def _not_taking_part(name: str) -> Forbidden:
         f"the benchmark {name!r} takes part from the members of its test set's project: reading it is not taking "
         "part in it"
     )
+
+
+class Scoring:
+    """A submission scored on the sealed test set by its job (a submission's, or a rescoring's), and why a
+    refused one was refused."""
+
+    def __init__(
+        self,
+        catalog: BenchmarkCatalog,
+        intervals: Intervals,
+        benchmark_store: BenchmarkStore,
+        ground_truth_store: GroundTruthStore,
+        job_input_store: JobInputStore,
+        policy: Policy,
+        jobs: JobQueue,
+        limits: UploadLimits,
+        scratch: Callable[[], AbstractContextManager[Path]],
+    ) -> None:
+        self.catalog = catalog
+        self.intervals = intervals
+        self.benchmark_store = benchmark_store
+        self.ground_truth_store = ground_truth_store
+        self.job_input_store = job_input_store
+        self.policy = policy
+        self.jobs = jobs
+        self.limits = limits
+        self.scratch = scratch
+
+    def score_job(self, job: JobRecord) -> tuple[str, Callable[[Any], None]]:
+        """Run a submission's scoring or rescoring job: the submission's id and the writes of its scores (for
+        the transaction that ends the job). A submission's first scoring checks it as ``kitti-eval validate``
+        does on the same read of the file: one that breaks the rules, or cannot be read, is removed (it never
+        counted, as a file refused at once would not) and its job fails with the validator's sentences or the
+        reader's refusal. A submission whose scoring fails, or whose last attempt failed, is marked failed (and
+        no longer counts against the quota)."""
+        sid = str(job.payload["submission_id"])
+        row = self.benchmark_store.get_submission(sid)
+        if row is None:
+            raise Conflict(f"the submission {sid} is gone")
+        try:
+            bench = self.catalog.named(row.benchmark)
+            record, gt = self.catalog.ground_truth_of(bench)
+            if job.kind == "submission":
+                stored = self.job_input_store.job_input(job.id, "predictions")
+                if stored is None:
+                    raise Conflict(f"the predictions of submission {row.id} are not kept")
+                try:
+                    dt = self._checked(stored_upload(stored.content, row.pred_filename, stored.sha256), gt)
+                except (InputError, InvalidSubmission):  # the file is refused: it never counted
+                    self.benchmark_store.delete_submission(sid)
+                    raise
+                if not stored.kept:  # accepted before files were kept at acceptance
+                    self.ground_truth_store.add_prediction_file(row.pred_sha256, stored.content)
+            else:
+                dt = self.intervals.predictions_of(job, row, gt)  # a rescoring: the kept file
+            values, resampled = self._scores(bench, record, gt, dt)
+        except BaseException as e:
+            body, retry = error_of(e)
+            if not retry or job.attempts >= job.max_attempts:
+                self.benchmark_store.update_submission(sid, status="failed", failure=str(body["message"])[:500])
+            raise
+
+        def write(conn: Any) -> None:
+            self.benchmark_store.update_submission_in(conn, sid, **values)
+            self.benchmark_store.replace_resampled_keys_in(conn, sid, values["scored_at"], resampled)
+            if job.kind == "submission":
+                self.job_input_store.delete_job_inputs_in(conn, job.id)
+
+        return sid, write
+
+    def refusal(self, submission_id: str, caller: Caller) -> JobFailed | None:
+        """Why the caller's submission was refused by its scoring job's check of the file (the validator's
+        sentences, or the reader's refusal), if that is what happened to it: the job failed and the submission
+        was removed (it never counted)."""
+        job = self.jobs.get(submission_id)
+        if job is None or job.kind != "submission" or job.state != "failed":
+            return None
+        if (
+            not self.policy.sees_job(caller, job.owner)
+            or self.benchmark_store.get_submission(submission_id) is not None
+        ):
+            return None
+        return JobFailed(job.error)
+
+    def _checked(self, upload: Upload, gt: Annotations) -> Annotations:
+        """The submission's predictions, read once and checked as :func:`validate_submission` checks them (its
+        sentences, naming the upload): raises :class:`InvalidSubmission` with them when it breaks the rules;
+        unreadable or unsafe input raises as every load does."""
+        rules = SubmissionRules(frames=tuple(gt.frame_ids))
+        with self.scratch() as scratch:
+            try:
+                read = read_upload(
+                    upload.file, "detections", source=upload.filename, scratch=scratch, limits=self.limits, rules=rules
+                )
+            except InvalidSubmissionError as e:
+                raise InvalidSubmission(e.lines()) from None
+            return read.annotations
+
+    def _scores(
+        self, bench: Benchmark, record: GroundTruthRecord, gt: Annotations, dt: Annotations
+    ) -> tuple[dict[str, Any], list[ResampledKey]]:
+        """A submission's scored values: its (sealed) documents and its scores on the whole set and each part;
+        and its key under the benchmark's resamples of each part a board ranks on (from the same plans)."""
+        config = bench.options().config()
+        columns = list(dict.fromkeys([*bench.columns, *bench.key]))
+        keys = [ValueKey.parse(k) for k in bench.key]
+        parts = part_frames(bench.split_seed, gt.frame_ids, bench.split_percent)
+        resampled: list[ResampledKey] = []
+
+        def scored(part: str, g: Annotations, d: Annotations) -> dict[str, Any]:
+            if part not in parts:  # the whole set of a benchmark with a split: no board ranks on it
+                return evaluate_document(g, d, config)
+            n = len(parts[part])
+            doc, values = evaluate_document_resampled(g, d, config, keys, self.intervals.board_weights(bench, n))
+            resampled.append(self.intervals.resampled_key_record(bench, part, values, n))
+            return doc
+
+        doc = scored("all", gt, dt)
+        scores: dict[str, dict[str, float | None]] = {"all": scores_of(doc, columns)}
+        public_result = None
+        if "all" not in parts:
+            for part, frames in parts.items():
+                if frames:
+                    part_doc = scored(part, gt.subset(frames), dt.subset(frames))
+                    scores[part] = scores_of(part_doc, columns)
+                    if part == "public":
+                        public_result = sealed_document(part_doc)
+                else:
+                    scores[part] = dict.fromkeys(columns)
+        values = {
+            "status": "scored",
+            "result": sealed_document(doc),
+            "scores": scores,
+            "public_result": public_result,
+            "gt_sha256": record.sha256,
+            "scored_at": datetime.now(timezone.utc),
+        }
+        return values, resampled

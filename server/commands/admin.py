@@ -25,8 +25,8 @@ from kitti_eval.errors import KittiEvalError
 from . import without_server_extra
 
 if TYPE_CHECKING:  # the server extra's: imported when the command runs, so that its parser builds without them
-    from ..jobs import JobRecord
-    from ..policy import Caller
+    from ..access.policy import Caller
+    from ..jobs.queue import JobRecord
     from ..service import Service
     from ..settings import Settings
 
@@ -174,8 +174,8 @@ def run(args: argparse.Namespace) -> int:
         from pydantic import ValidationError
         from sqlalchemy.exc import SQLAlchemyError
 
+        from ..access.policy import Policy
         from ..errors import ApiError
-        from ..policy import Policy
         from ..service import Service
         from ..settings import Settings
     except ImportError as e:
@@ -253,12 +253,12 @@ def _account_command(args: argparse.Namespace, service: Service, caller: Caller)
         user = accounts.add_user(args.name, is_admin=args.admin, caller=caller)
         print(f"user {user.name}{' (admin)' if user.is_admin else ''}")
     elif what == "user":
-        for user in store.list_users():
+        for user in store.account_store.list_users():
             print(f"{user.name}\t{'admin' if user.is_admin else 'member'}\t{','.join(user.projects) or '-'}")
     elif what == "project" and action == "add":
         print(f"project {accounts.add_project(args.name, caller=caller)}")
     elif what == "project":
-        for name in store.list_projects():
+        for name in store.account_store.list_projects():
             print(name)
     elif what == "member" and action == "add":
         accounts.add_member(args.user, args.project, caller=caller)
@@ -277,7 +277,7 @@ def _account_command(args: argparse.Namespace, service: Service, caller: Caller)
         accounts.revoke_token(args.token_id, caller=caller)
         print(f"token {args.token_id} revoked")
     elif what == "token":
-        for t in store.list_tokens(args.user):
+        for t in store.account_store.list_tokens(args.user):
             state = "revoked" if t.revoked_at else f"expires {t.expires_at.isoformat()}" if t.expires_at else "active"
             print(f"{t.id}\t{t.user_name}\t{t.scopes}\t{state}")
     elif what == "audit":
@@ -305,7 +305,7 @@ def _run_jobs(service: Service, job_ids: list[str]) -> list[JobRecord | None]:
     """Run the queued rescoring jobs, and the jobs of the board's intervals they queue, in this process until none
     is left (a service's workers on the same database may take some of ``job_ids`` meanwhile: those are waited
     for); the jobs ``job_ids`` as they ended."""
-    from ..workers import worker_name
+    from ..jobs.workers import worker_name
 
     name = worker_name(0) + ":admin"
     while (job := service.jobs.claim(name, kinds=["rescore", "intervals"])) is not None:
@@ -334,7 +334,7 @@ def _benchmark(args: argparse.Namespace, service: Service, caller: Caller) -> in
         description = args.description
         if description.startswith("@"):
             description = Path(description[1:]).read_text(encoding="utf-8")
-        bench = benchmarks.create(
+        bench = benchmarks.catalog.create(
             args.name,
             ground_truth=args.ground_truth,
             title=args.title,
@@ -361,33 +361,33 @@ def _benchmark(args: argparse.Namespace, service: Service, caller: Caller) -> in
             f"days{cap}, {'public' if bench.public else 'not public'}"
         )
     elif action == "list":
-        for b in benchmarks.visible(caller):
+        for b in benchmarks.catalog.visible(caller):
             state = "open" if b.is_open() else "closed"
             print(f"{b.name}\t{b.gt_name}\t{state}\t{'public' if b.public else '-'}\t{b.title}")
     elif action in ("close", "reopen", "reveal"):
         values = {"close": {"closed": True}, "reopen": {"closed": False}, "reveal": {"revealed": True}}[action]
-        bench = benchmarks.set_state(args.name, caller=caller, **values)
+        bench = benchmarks.catalog.set_state(args.name, caller=caller, **values)
         print(f"benchmark {bench.name}: {'open' if bench.is_open() else 'closed'}, board {bench.phase}")
     elif action == "rescore":
-        queued = benchmarks.rescore(args.name, caller=caller)
+        queued = benchmarks.submissions.rescore(args.name, caller=caller)
         ended = _run_jobs(service, queued["jobs"])
         done = sum(1 for j in ended if j is not None and j.state == "done")
         print(f"benchmark {args.name}: {done} submissions rescored, {len(ended) - done} failed")
     elif action == "submissions":
-        for s in benchmarks.all_submissions(args.name, caller):
+        for s in benchmarks.submissions.all_submissions(args.name, caller):
             flags = ",".join(k for k in ("published", "disqualified") if s[k]) or "-"
             print(f"{s['id']}\t{s['participant']}\t{s['created_at']}\t{s['status']}\t{flags}\t{s['method'] or '-'}")
     elif action == "disqualify":
-        benchmarks.disqualify(args.name, args.submission, caller=caller)
+        benchmarks.submissions.disqualify(args.name, args.submission, caller=caller)
         print(f"submission {args.submission} disqualified")
     elif action == "export":
-        board = benchmarks.leaderboard(args.name, caller)
-        sys.stdout.write(benchmarks.leaderboard_csv(board))
+        board = benchmarks.board.leaderboard(args.name, caller)
+        sys.stdout.write(benchmarks.board.leaderboard_csv(board))
     return EXIT_OK
 
 
 def _jobs(args: argparse.Namespace, service: Service, caller: Caller) -> int:
-    from ..workers import JobFailed
+    from ..jobs.workers import JobFailed
 
     admin = service.job_admin
     if args.admin_action == "list":

@@ -53,7 +53,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        from ..worker_process import run_pool
+        from ..jobs.process import run_pool
     except ImportError as e:
         return without_server_extra("worker", e)
     return run_pool(

@@ -9,11 +9,11 @@ from fastapi import APIRouter, Query, Response
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
-from ..accounts import READ, WRITE
-from ..deps import AdminCaller, ServiceDep
+from ..access.accounts import READ, WRITE
+from ..access.deps import AdminCaller, ServiceDep
+from ..jobs.workers import admin_job_view
 from ..schemas import ErrorResponse, iso
 from ..store import TokenRecord, UserRecord
-from ..workers import admin_job_view
 
 router = APIRouter(
     prefix="/v1/admin",

@@ -10,10 +10,10 @@ from fastapi import APIRouter, Depends, File, Header, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, Field
 
+from ..access.deps import AdminCaller, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.policy import Caller
 from ..benchmarks import DEFAULT_KEY, Benchmarks
-from ..deps import AdminCaller, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
-from ..policy import Caller
 from ..schemas import ErrorResponse
 from ..service import FileIn
 from .jobs import still_pending
@@ -78,7 +78,7 @@ class PublishIn(BaseModel):
 
 @router.post("", status_code=201, summary="Create a benchmark on a sealed ground truth (admins)")
 def create(body: BenchmarkIn, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
-    bench = benchmarks.create(
+    bench = benchmarks.catalog.create(
         body.name,
         ground_truth=body.ground_truth,
         title=body.title,
@@ -98,22 +98,22 @@ def create(body: BenchmarkIn, benchmarks: BenchmarksDep, caller: AdminCaller) ->
         share_test_set=body.share_test_set,
         caller=caller,
     )
-    return benchmarks.describe(bench, caller)
+    return benchmarks.catalog.describe(bench, caller)
 
 
 @router.get("", summary="Benchmarks you can see")
 def list_benchmarks(benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
-    return {"items": [benchmarks.describe(b, caller) for b in benchmarks.visible(caller)]}
+    return {"items": [benchmarks.catalog.describe(b, caller) for b in benchmarks.catalog.visible(caller)]}
 
 
 @router.get("/{name}", summary="One benchmark (admins: with the rescoring jobs by state)")
 def get_benchmark(name: str, benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
-    return benchmarks.describe(benchmarks.get(name, caller), caller, rescoring=True)
+    return benchmarks.catalog.describe(benchmarks.catalog.get(name, caller), caller, rescoring=True)
 
 
 @router.get("/{name}/frames", summary="The test frame ids (for kitti-eval validate --benchmark)")
 async def frame_ids(name: str, benchmarks: BenchmarksDep, service: ServiceDep, caller: AnyoneCaller) -> dict[str, Any]:
-    frames = await service.run(benchmarks.frame_ids, name, caller)
+    frames = await service.run(benchmarks.catalog.frame_ids, name, caller)
     return {"benchmark": name, "frames": frames}
 
 
@@ -126,10 +126,10 @@ def leaderboard(
     order: Annotated[Literal["asc", "desc"] | None, Query()] = None,
     format: Annotated[Literal["json", "csv"], Query()] = "json",
 ) -> Response:
-    board = benchmarks.leaderboard(name, caller, sort=sort, order=order)
+    board = benchmarks.board.leaderboard(name, caller, sort=sort, order=order)
     if format == "csv":
         return PlainTextResponse(
-            benchmarks.leaderboard_csv(board),
+            benchmarks.board.leaderboard_csv(board),
             media_type="text/csv; charset=utf-8",
             headers={"Content-Disposition": f'attachment; filename="{board["benchmark"]}-leaderboard.csv"'},
         )
@@ -137,7 +137,7 @@ def leaderboard(
 
 
 def _admin_state(name: str, benchmarks: Benchmarks, caller: Caller, **values: bool) -> dict[str, Any]:
-    return benchmarks.describe(benchmarks.set_state(name, caller=caller, **values), caller)
+    return benchmarks.catalog.describe(benchmarks.catalog.set_state(name, caller=caller, **values), caller)
 
 
 @router.post("/{name}/close", summary="Close a benchmark to submissions (admins)")
@@ -162,17 +162,17 @@ def reveal(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[st
 )
 async def rescore(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
     """Returns at once with the jobs queued; `GET /v1/benchmarks/{name}` shows their progress (`rescoring`)."""
-    return await anyio.to_thread.run_sync(lambda: benchmarks.rescore(name, caller=caller))
+    return await anyio.to_thread.run_sync(lambda: benchmarks.submissions.rescore(name, caller=caller))
 
 
 @router.get("/{name}/submissions/all", summary="Every submission, published or not (admins)")
 def all_submissions(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
-    return {"items": benchmarks.all_submissions(name, caller)}
+    return {"items": benchmarks.submissions.all_submissions(name, caller)}
 
 
 @router.post("/{name}/submissions/{submission_id}/disqualify", summary="Hide an entry, keeping it (admins)")
 def disqualify(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
-    return benchmarks.disqualify(name, submission_id, caller=caller)
+    return benchmarks.submissions.disqualify(name, submission_id, caller=caller)
 
 
 @router.post(
@@ -216,29 +216,29 @@ async def submit(
     key = parse_key(idempotency_key)
     file = FileIn(predictions.file, predictions.filename)
     # refusals: 422 problems, 429 retry_at
-    job = await service.accept(lambda: benchmarks.submit(name, file, caller, idempotency_key=key))
+    job = await service.accept(lambda: benchmarks.submissions.submit(name, file, caller, idempotency_key=key))
     ended = await service.outcome(job.id, wait)
     if ended.state != "done":
         return await still_pending(service.jobs, ended)
-    body = await anyio.to_thread.run_sync(benchmarks.submission, name, job.id, caller)
+    body = await anyio.to_thread.run_sync(benchmarks.submissions.submission, name, job.id, caller)
     return JSONResponse(body, status_code=201, headers={"Location": f"/v1/benchmarks/{name}/submissions/{job.id}"})
 
 
 @router.get("/{name}/submissions", summary="Your submissions and your quota")
 def my_submissions(name: str, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[str, Any]:
-    return benchmarks.mine(name, caller)
+    return benchmarks.submissions.mine(name, caller)
 
 
 @router.get("/{name}/submissions/{submission_id}", summary="One of your submissions, with its full result")
 def my_submission(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[str, Any]:
-    return benchmarks.submission(name, submission_id, caller)
+    return benchmarks.submissions.submission(name, submission_id, caller)
 
 
 @router.post("/{name}/submissions/{submission_id}/publish", summary="Show one of your submissions on the board")
 def publish(
     name: str, submission_id: str, body: PublishIn, benchmarks: BenchmarksDep, caller: WriterCaller
 ) -> dict[str, Any]:
-    return benchmarks.publish(
+    return benchmarks.submissions.publish(
         name,
         submission_id,
         caller,
@@ -251,4 +251,4 @@ def publish(
 
 @router.post("/{name}/submissions/{submission_id}/withdraw", summary="Take one of your entries off the board")
 def withdraw(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: WriterCaller) -> dict[str, Any]:
-    return benchmarks.withdraw(name, submission_id, caller)
+    return benchmarks.submissions.withdraw(name, submission_id, caller)

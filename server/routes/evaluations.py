@@ -11,10 +11,10 @@ from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from kitti_eval.core.result import EvalResult
 from kitti_eval.report.render import OutputFormat, render
 
-from ..compare import compare, render_comparison_markdown
-from ..deps import FormatDep, ReaderCaller, ServiceDep, WriterCaller
+from ..access.deps import FormatDep, ReaderCaller, ServiceDep, WriterCaller
 from ..errors import BadRequest
-from ..evaluator import EvalOptions, parse_labels
+from ..evaluations.compare import compare, render_comparison_markdown
+from ..evaluations.evaluator import EvalOptions, parse_labels
 from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
 from ..schemas import (
     Comparison,

@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query
 
-from ..deps import ReaderCaller, ServiceDep
+from ..access.deps import ReaderCaller, ServiceDep
 from ..schemas import ErrorResponse
 
 router = APIRouter(
@@ -54,7 +54,7 @@ async def evaluation_frames(
     """The counts come from the same matching as the AP (as `kitti-eval frames`): frames ranked by FP + FN,
     ties by more misses. Needs an evaluation against a registered ground truth whose predictions were kept."""
     return await service.run(
-        lambda: service.evaluations.frames(
+        lambda: service.evaluation_frames.frames(
             evaluation_id,
             cls=cls,
             metric=metric,
@@ -91,7 +91,7 @@ async def inspect_frame(
     evaluation every detection labelled (tp with its ground truth and IoU, fp and why, ignored, dontcare,
     below_threshold, other_class), the ground truth's labels, the missed boxes and the counts."""
     return await service.run(
-        lambda: service.evaluations.inspect(
+        lambda: service.evaluation_frames.inspect(
             evaluation,
             frame_id,
             cls=cls,

@@ -18,9 +18,9 @@ from kitti_eval.analysis.gate import (
 )
 from kitti_eval.errors import ConfigError
 
-from ..deps import ReaderCaller, ServiceDep
+from ..access.deps import ReaderCaller, ServiceDep
 from ..errors import BadRequest, NotFound
-from ..evaluator import parse_labels
+from ..evaluations.evaluator import parse_labels
 from ..schemas import ErrorResponse
 
 router = APIRouter(

@@ -7,8 +7,8 @@ from typing import Annotated, Any
 from fastapi import APIRouter, File, Form, Response, UploadFile
 from fastapi.responses import JSONResponse
 
-from ..deps import AdminCaller, ReaderCaller, ServiceDep
-from ..ground_truths import NAME_PATTERN
+from ..access.deps import AdminCaller, ReaderCaller, ServiceDep
+from ..ground_truths.cache import NAME_PATTERN
 from ..schemas import ErrorResponse, GroundTruthList, GroundTruthOut, ground_truth_out
 from ..service import FileIn
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from ..deps import PublicCaller, ServiceDep
+from ..access.deps import PublicCaller, ServiceDep
 from ..errors import NotReady
 from ..schemas import ErrorResponse, Health
 

@@ -9,13 +9,13 @@ import anyio.to_thread
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
-from ..deps import ReaderCaller, ServiceDep
+from ..access.deps import ReaderCaller, ServiceDep
+from ..access.policy import Caller
 from ..errors import NotFound, echo
-from ..jobs import JobQueue, JobRecord
-from ..policy import Caller
+from ..jobs.queue import JobQueue, JobRecord
+from ..jobs.workers import job_view
 from ..schemas import ErrorResponse
 from ..service import Service
-from ..workers import job_view
 
 router = APIRouter(
     prefix="/v1/jobs",
@@ -34,11 +34,11 @@ async def still_pending(queue: JobQueue, record: JobRecord) -> JSONResponse:
 
 def _sees(service: Service, caller: Caller, record: JobRecord) -> bool:
     """Whether the caller sees the job: an evaluation's while they see its project, a submission's while they
-    still take part in its benchmark (:meth:`Policy.sees_job <kitti_eval_server.policy.Policy.sees_job>`)."""
+    still take part in its benchmark (:meth:`Policy.sees_job <kitti_eval_server.access.policy.Policy.sees_job>`)."""
     if record.kind == "evaluation":
         project = record.payload.get("project")
         return service.policy.sees_job(caller, record.owner, project=str(project) if project else None)
-    project, open_to_all = service.benchmarks.taking_part(record.group) if record.group else (None, False)
+    project, open_to_all = service.benchmarks.catalog.taking_part(record.group) if record.group else (None, False)
     return service.policy.sees_job(caller, record.owner, project=project, open_to_all=open_to_all)
 
 

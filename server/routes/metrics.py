@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request, Response
 
-from ..deps import ScraperCaller
+from ..access.deps import ScraperCaller
 from ..errors import NotFound
 from ..observability import CONTENT_TYPE, Metrics
 

@@ -2,12 +2,16 @@
 retry of a call that found SQLite locked); :mod:`.ground_truth_store`, :mod:`.evaluation_store`,
 :mod:`.account_store`, :mod:`.benchmark_store`, :mod:`.job_store`, :mod:`.job_input_store`, :mod:`.worker_store`
 and :mod:`.idempotency_store` each define an area's records (frozen dataclasses) and a class of its reads and
-writes. :class:`Store` is all of them over one :class:`Database`, as the service and the command line use it.
+writes, an object of its own over the shared :class:`Database`; a write that spans areas takes one connection of
+:meth:`Database.writing` to each area's ``..._in`` method. :class:`Store` holds one of each area over one
+:class:`Database`; the service hands each of its parts the areas that part uses.
 (The modules are named after their classes, not their tables: a submodule named ``ground_truths`` would replace
 the table of that name among the package's attributes when imported.)
 """
 
 from __future__ import annotations
+
+from sqlalchemy.engine import Engine
 
 from .account_store import AccountStore, AuditRecord, TokenRecord, UserRecord
 from .benchmark_store import (
@@ -56,6 +60,7 @@ __all__ = [
     "AccountStore",
     "BenchmarkStore",
     "JobStore",
+    "JobInputStore",
     "WorkerStore",
     "IdempotencyStore",
     "IdempotencyRecord",
@@ -74,6 +79,7 @@ __all__ = [
     "PublishRefused",
     "JobInput",
     "new_id",
+    "retry_when_locked",
     "metadata",
     "ground_truths",
     "ground_truth_files",
@@ -93,40 +99,34 @@ __all__ = [
 ]
 
 
-class Store(
-    GroundTruthStore,
-    EvaluationStore,
-    AccountStore,
-    BenchmarkStore,
-    JobStore,
-    JobInputStore,
-    WorkerStore,
-    IdempotencyStore,
-):
-    """Every area of the database on one :class:`Database` (SQLite or PostgreSQL)."""
+class Store:
+    """Every area of the database, each its own object over one :class:`Database` (SQLite or PostgreSQL). A part
+    of the service is given the areas it uses, not this; the service and the command line hold it to create the
+    schema, ping and close the database."""
 
     def __init__(self, url: str, *, busy_s: float = 10.0) -> None:
         """``busy_s``: how long a SQLite call keeps trying while another connection holds the write lock."""
-        super().__init__(Database(url, busy_s=busy_s))
+        self.db = Database(url, busy_s=busy_s)
+        self.ground_truth_store = GroundTruthStore(self.db)
+        self.evaluation_store = EvaluationStore(self.db)
+        self.account_store = AccountStore(self.db)
+        self.benchmark_store = BenchmarkStore(self.db)
+        self.job_store = JobStore(self.db)
+        self.job_input_store = JobInputStore(self.db)
+        self.worker_store = WorkerStore(self.db)
+        self.idempotency_store = IdempotencyStore(self.db)
+
+    @property
+    def engine(self) -> Engine:
+        return self.db.engine
+
+    @property
+    def dialect(self) -> str:
+        return self.db.dialect
 
     @property
     def busy_s(self) -> float | None:
         return self.db.busy_s
-
-    @retry_when_locked
-    def add_job_with_inputs(
-        self, record: JobRecord, inputs: list[JobInput], key: IdempotencyRecord | None = None
-    ) -> bool:
-        """The job and its uploaded files in one transaction (one commit: a job is never without its input);
-        False, and nothing added, when the job's id is taken. ``key``: the request's idempotency key, recorded in
-        the same transaction (:class:`KeyTaken` when another request recorded it first: nothing is added)."""
-        with self._writing() as conn:
-            if key is not None:
-                self.add_idempotency_key_in(conn, key)
-            if not self.add_job_in(conn, record):
-                return False
-            self.add_job_inputs_in(conn, record.id, inputs)
-            return True
 
     @property
     def lock_retries(self) -> int:

@@ -273,7 +273,7 @@ quota_locks = Table(
 )
 
 #: the queue of work: every evaluation, submission and rescoring, recorded when its input is stored and taken by
-#: a worker (of this process or another) with a lease; see kitti_eval_server.jobs for the rules
+#: a worker (of this process or another) with a lease; see kitti_eval_server.jobs.queue for the rules
 jobs = Table(
     "jobs",
     metadata,
@@ -503,6 +503,25 @@ class Database:
     def dispose(self) -> None:
         self.engine.dispose()
 
+    @contextlib.contextmanager
+    def writing(self) -> Iterator[Connection]:
+        """One transaction, committed when the block ends and rolled back when it raises; on SQLite it holds the
+        write lock from its start (``BEGIN IMMEDIATE``: no other writer between its reads and its writes, and no
+        failed upgrade of a read transaction to a write one). Every area writes through it, and a write that spans
+        areas hands its connection to each area's ``..._in`` method: one commit."""
+        if self.dialect != "sqlite":
+            with self.engine.begin() as conn:
+                yield conn
+            return
+        with self.engine.connect() as conn:
+            conn.exec_driver_sql("BEGIN IMMEDIATE")
+            try:
+                yield conn
+                conn.commit()
+            except BaseException:
+                conn.rollback()
+                raise
+
 
 def _file_storage(conn: Connection) -> None:
     """How PostgreSQL keeps the uploaded files. By default it compresses a large value with pglz before storing
@@ -550,23 +569,8 @@ class Area:
     def dialect(self) -> str:
         return self.db.dialect
 
-    @contextlib.contextmanager
-    def _writing(self) -> Iterator[Connection]:
-        """One transaction, committed when the block ends and rolled back when it raises; on SQLite it holds the
-        write lock from its start (``BEGIN IMMEDIATE``: no other writer between its reads and its writes, and no
-        failed upgrade of a read transaction to a write one)."""
-        if self.dialect != "sqlite":
-            with self.engine.begin() as conn:
-                yield conn
-            return
-        with self.engine.connect() as conn:
-            conn.exec_driver_sql("BEGIN IMMEDIATE")
-            try:
-                yield conn
-                conn.commit()
-            except BaseException:
-                conn.rollback()
-                raise
+    def _writing(self) -> contextlib.AbstractContextManager[Connection]:
+        return self.db.writing()
 
     @retry_when_locked
     def _insert(self, table: Table, **values: Any) -> bool:

@@ -1,4 +1,4 @@
-"""The store's queue of work (the rules, and the times they use, are :mod:`kitti_eval_server.jobs`'s).
+"""The store's queue of work (the rules, and the times they use, are :mod:`kitti_eval_server.jobs.queue`'s).
 
 A job is taken in one transaction that no other taker can share: on PostgreSQL the oldest takeable row is
 locked with ``SELECT ... FOR UPDATE SKIP LOCKED`` (takers on other servers skip it and lock the next one), on

@@ -23,13 +23,13 @@ from starlette.exceptions import HTTPException
 
 from kitti_eval.errors import KittiEvalError
 
+from ..access.deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.policy import Caller
 from ..benchmarks import Benchmarks, InvalidSubmission, render_markdown
-from ..deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..errors import ApiError, BadRequest, NotFound, clip, fault_of
 from ..idempotency import FORM_FIELD, new_form_key, parse_key
-from ..policy import Caller
+from ..jobs.workers import JobFailed
 from ..service import FileIn, Service
-from ..workers import JobFailed
 from .boards import board_entries, board_header, bootstrap_line, column_label, comparison_rows, full_time, number
 from .routes import _render, _status, queued_text
 
@@ -110,9 +110,9 @@ def benchmarks_page(request: Request, service: ServiceDep, caller: AnyoneCaller)
     """The benchmarks the caller sees, with their rules and, for a participant, the submissions left."""
     benchmarks = _benchmarks(request)
     rows = []
-    for bench in benchmarks.visible(caller):
-        described = benchmarks.describe(bench, caller)
-        mine = benchmarks.mine(bench.name, caller) if _participant(service, caller) else None
+    for bench in benchmarks.catalog.visible(caller):
+        described = benchmarks.catalog.describe(bench, caller)
+        mine = benchmarks.submissions.mine(bench.name, caller) if _participant(service, caller) else None
         rows.append({"bench": described, "rules": _rules(described), "mine": mine})
     return _render(request, "benchmarks.html", rows=rows, participant=_participant(service, caller))
 
@@ -146,12 +146,12 @@ def _benchmark_context(
     request: Request, service: Service, caller: Caller, name: str, sort: str | None, order: str | None
 ) -> dict[str, Any]:
     benchmarks = _benchmarks(request)
-    bench = benchmarks.get(name, caller)
-    board = benchmarks.leaderboard(name, caller, sort=sort, order=order)
-    described = benchmarks.describe(bench, caller)
+    bench = benchmarks.catalog.get(name, caller)
+    board = benchmarks.board.leaderboard(name, caller, sort=sort, order=order)
+    described = benchmarks.catalog.describe(bench, caller)
     mine = None
     if _participant(service, caller):
-        mine = benchmarks.mine(name, caller)
+        mine = benchmarks.submissions.mine(name, caller)
         mine["items"] = _states(service, mine["items"], described["key"])
     return {
         "bench": described,
@@ -213,7 +213,7 @@ async def submit_form(request: Request, service: ServiceDep, caller: WriterCalle
             file = FileIn(predictions.file, predictions.filename)
             key = form.get(FORM_FIELD)
             key = parse_key(key) if isinstance(key, str) and key else None  # the form's: sent again, one submission
-            job = await service.accept(lambda: benchmarks.submit(name, file, caller, idempotency_key=key))
+            job = await service.accept(lambda: benchmarks.submissions.submit(name, file, caller, idempotency_key=key))
         try:
             await service.outcome(job.id, FORM_WAIT_S)  # the file's check runs in its job: a refusal shows here
         except JobFailed:
@@ -258,9 +258,9 @@ def _submission_context(
     request: Request, service: Service, caller: Caller, name: str, submission_id: str
 ) -> dict[str, Any]:
     benchmarks = _benchmarks(request)
-    submission = benchmarks.submission(name, submission_id, caller)
-    bench = benchmarks.get(name, caller)
-    described = benchmarks.describe(bench, caller)
+    submission = benchmarks.submissions.submission(name, submission_id, caller)
+    bench = benchmarks.catalog.get(name, caller)
+    described = benchmarks.catalog.describe(bench, caller)
     state = _state(service, submission)
     columns = described["columns"]
     scores = submission.get("scores") or {}
@@ -311,7 +311,7 @@ def submission_page(
 def _refused_job(service: Service, caller: Caller, submission_id: str) -> ApiError | None:
     """Why the caller's submission was refused by its scoring job's check of the file, if it was: the
     validator's sentences as on the form, or the reader's refusal."""
-    failed = service.benchmarks.refusal(submission_id, caller)
+    failed = service.benchmarks.scoring.refusal(submission_id, caller)
     return None if failed is None else _as_refusal(failed)
 
 
@@ -326,7 +326,7 @@ async def publish_form(
         async with request.form(max_files=0, max_fields=_PUBLISH_FIELDS) as form:
             values = {k: v for k, v in form.items() if isinstance(v, str)}
         await anyio.to_thread.run_sync(
-            lambda: benchmarks.publish(
+            lambda: benchmarks.submissions.publish(
                 name,
                 submission_id,
                 caller,
@@ -354,7 +354,7 @@ async def withdraw_form(
     """Take one of the caller's entries off the board; then the submission's page again."""
     benchmarks = _benchmarks(request)
     try:
-        await anyio.to_thread.run_sync(lambda: benchmarks.withdraw(name, submission_id, caller))
+        await anyio.to_thread.run_sync(lambda: benchmarks.submissions.withdraw(name, submission_id, caller))
     except ApiError as e:
         return await anyio.to_thread.run_sync(
             partial(_submission_refused, request, service, caller, name, submission_id, e, {})

@@ -26,9 +26,9 @@ from kitti_eval.analysis.decomposition import AOS_TYPES, ERROR_TYPES, TP_ERRORS
 from kitti_eval.core.protocol import ALL_METRICS, KNOWN_CLASSES, PROTOCOLS
 from kitti_eval.errors import KittiEvalError
 
-from ..auth import CALLER_KEY, check_token, over_https, session_cookie, signin_cookie
-from ..compare import compare
-from ..deps import FORM_MAX_FIELDS, PublicCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.auth import CALLER_KEY, check_token, over_https, session_cookie, signin_cookie
+from ..access.deps import FORM_MAX_FIELDS, PublicCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.policy import SIGNIN_CSRF_S, Caller, Policy
 from ..errors import (
     MAX_ECHO_CHARS,
     ApiError,
@@ -39,15 +39,15 @@ from ..errors import (
     fault_of,
     library_error_status,
 )
-from ..evaluator import ERRORS_SET, EvalOptions, parse_labels
+from ..evaluations.compare import compare
+from ..evaluations.evaluator import ERRORS_SET, EvalOptions, parse_labels
 from ..idempotency import FORM_FIELD, new_form_key, parse_key
-from ..jobs import JobRecord
-from ..policy import SIGNIN_CSRF_S, Caller, Policy
+from ..jobs.queue import JobRecord
+from ..jobs.workers import JobFailed
 from ..routes.frames import MAX_SCORE
 from ..schemas import iso
 from ..service import FileIn, Service
 from ..store import EvaluationRecord
-from ..workers import JobFailed
 from .svg import bar_chart, bev_view, points_text, pr_chart
 
 __all__ = ["router", "templates", "STATIC_DIR", "sign_in_page", "error_page"]
@@ -145,7 +145,7 @@ async def sign_in_form(request: Request, service: ServiceDep, caller: PublicCall
 
 @router.post("/signin")
 async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -> Response:
-    """Check the token once, as the door checks one (:func:`~kitti_eval_server.auth.check_token`: the same
+    """Check the token once, as the door checks one (:func:`~kitti_eval_server.access.auth.check_token`: the same
     failure limit and audit), open a session (its own token, in an HttpOnly SameSite=Strict cookie) and go to
     the evaluations. The form carries its own CSRF token, signed by the service (a cookie sent alike: there is
     no session yet); the door has already refused a post from another origin."""
@@ -435,7 +435,7 @@ async def _worst_frames(
     try:
         found = await service.run(
             partial(
-                service.evaluations.frames,
+                service.evaluation_frames.frames,
                 record.id,
                 cls=choice["cls"],
                 metric=choice["metric"],
@@ -658,7 +658,7 @@ async def frame_page(
             raise BadRequest("name at least one evaluation: /frames/<frame>?e=<evaluation id>")
         data = await service.run(
             partial(
-                service.evaluations.inspect,
+                service.evaluation_frames.inspect,
                 ids,
                 frame_id,
                 cls=cls,

@@ -24,16 +24,16 @@ import pytest
 from server_helpers import ROOT, app_client, register, upload
 
 from kitti_eval.synth import generate
-from kitti_eval_server.jobs import JobQueue
+from kitti_eval_server.jobs.pool import WorkerPool
+from kitti_eval_server.jobs.queue import JobQueue
+from kitti_eval_server.jobs.workers import Workers
 from kitti_eval_server.store import Store
-from kitti_eval_server.worker_pool import WorkerPool
-from kitti_eval_server.workers import Workers
 
 
 def _queue(tmp_path: Path, **kwargs: Any) -> JobQueue:
     store = Store(f"sqlite:///{tmp_path / 'jobs.db'}")
     store.create_schema()
-    return JobQueue(store, **kwargs)
+    return JobQueue.of(store, **kwargs)
 
 
 def test_a_database_away_while_a_job_ends_neither_loses_the_job_nor_kills_the_worker(tmp_path) -> None:
@@ -208,7 +208,7 @@ def test_a_worker_process_killed_mid_batch_loses_nothing_and_stores_nothing_twic
     data_dir = tmp_path / "data"
     ids = _accept(data_dir, 20, fields={"errors": "true"}, database_url=database)  # most of a second each
     store = Store(database or f"sqlite:///{data_dir / 'kitti-eval.db'}")
-    queue = JobQueue(store)
+    queue = JobQueue.of(store)
     proc, log_path = _worker(data_dir, "--processes", "2", database_url=database, KITTI_EVAL_JOB_LEASE_S="1")
     try:
 
@@ -236,7 +236,7 @@ def test_a_worker_process_killed_mid_batch_loses_nothing_and_stores_nothing_twic
     taken_over = jobs[victim.id]
     assert taken_over is not None and taken_over.attempts == 2 and taken_over.worker != victim.worker
     assert sorted(j.attempts for j in jobs.values()).count(1) == 19  # type: ignore[union-attr]
-    stored = store.list_evaluations(limit=1000)
+    stored = store.evaluation_store.list_evaluations(limit=1000)
     assert sorted(e.id for e in stored) == sorted(ids)  # each once: none lost, none twice
     text = log_path.read_text()
     assert f"worker process {pid} exited with -9" in text
@@ -252,7 +252,7 @@ def test_sigterm_drains_a_worker_and_it_exits_0(tmp_path, grace: str) -> None:
     data_dir = tmp_path / "data"
     first, second = _accept(data_dir, 2, fields=SLOW_OPTIONS)
     store = Store(f"sqlite:///{data_dir / 'kitti-eval.db'}")
-    queue = JobQueue(store)
+    queue = JobQueue.of(store)
     proc, log_path = _worker(data_dir, "--processes", "1", "--grace", grace)
     try:
         running = _until(lambda: queue.list(state="running"), 120, "a running job", log_path)[0]
@@ -271,11 +271,11 @@ def test_sigterm_drains_a_worker_and_it_exits_0(tmp_path, grace: str) -> None:
     text = log_path.read_text()
     if grace == "60":
         assert ran.state == "done" and ran.attempts == 1
-        assert [e.id for e in store.list_evaluations(limit=10)] == [first]
+        assert [e.id for e in store.evaluation_store.list_evaluations(limit=10)] == [first]
         assert f"job {first} evaluation done in" in text
     else:
         assert ran.state == "queued" and ran.attempts == 0 and ran.worker is None
-        assert store.list_evaluations(limit=10) == []
+        assert store.evaluation_store.list_evaluations(limit=10) == []
         assert f"job {first} evaluation released" in text
     assert "kitti-eval worker: stopped" in text and f"worker process {pid}: stopped" in text
     store.dispose()
@@ -299,7 +299,7 @@ def test_serve_starts_its_own_worker_processes_and_drains_them(tmp_path) -> None
         assert value(samples, "kitti_eval_job_workers_alive") == 0
         assert value(samples, "kitti_eval_job_workers_seen") == 2
         store = Store(f"sqlite:///{data_dir / 'kitti-eval.db'}")
-        jobs = [JobQueue(store).get(r.json()["id"]) for r in answers]
+        jobs = [JobQueue.of(store).get(r.json()["id"]) for r in answers]
         pids = {int(j.worker.split(":")[1]) for j in jobs if j is not None and j.worker}
         assert pids and server.proc is not None and server.proc.pid not in pids  # run by the worker processes
         server.proc.send_signal(signal.SIGTERM)
@@ -307,7 +307,7 @@ def test_serve_starts_its_own_worker_processes_and_drains_them(tmp_path) -> None
     finally:
         server.stop()
     assert not any(_alive(pid) for pid in pids)
-    assert JobQueue(store).workers_seen(3600) == []  # each process removed its row as it stopped
+    assert JobQueue.of(store).workers_seen(3600) == []  # each process removed its row as it stopped
     store.dispose()
 
 
@@ -315,9 +315,9 @@ def test_a_worker_process_runs_the_installed_service_whatever_folder_it_starts_i
     """``python -m`` puts the working folder first on the import path: started inside another checkout, a worker
     would run that checkout's service, not the one the web process runs. The pool's command does not."""
     other = tmp_path / "kitti_eval_server"
-    other.mkdir()
+    (other / "jobs").mkdir(parents=True)
     marker = tmp_path / "the-other-checkout-ran"
-    for name in ("__init__.py", "worker_process.py"):
+    for name in ("__init__.py", "jobs/__init__.py", "jobs/process.py"):
         (other / name).write_text(f"open({str(marker)!r}, 'w').close()\n")
     pool = WorkerPool(1, threads=1, grace_s=1.0, work_dir=tmp_path / "work", database_url="sqlite://")
     command = [*pool._command()[:3], "--help"]  # the interpreter and how it starts the module, then --help

@@ -27,8 +27,8 @@ from server_helpers import (
 from kitti_eval.cli import main as cli_main
 from kitti_eval.demo import demo_paths
 from kitti_eval_server import Settings, create_app
-from kitti_eval_server.evaluations import Evaluations
-from kitti_eval_server.ground_truths import GroundTruthCache, annotations_nbytes
+from kitti_eval_server.evaluations.evaluations import Evaluations
+from kitti_eval_server.ground_truths.cache import GroundTruthCache, annotations_nbytes
 from kitti_eval_server.service import Service
 
 DEMO_PRED = demo_paths()[1].read_bytes()

@@ -91,12 +91,12 @@ def _connection_refused(*args: Any, **kwargs: Any) -> None:
 def test_an_unreachable_database_is_503_wherever_it_is_met(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     with app_client(tmp_path / "open") as c:
         store = c.app.state.service.store
-        monkeypatch.setattr(store, "list_evaluations", _connection_refused)
+        monkeypatch.setattr(store.evaluation_store, "list_evaluations", _connection_refused)
         r = c.get("/v1/evaluations")
         err = assert_error(r, 503, "unavailable")
         assert err["code"] == "database_unavailable" and err["request_id"] == r.headers["x-request-id"]
         assert r.headers["retry-after"] == "2"
-        monkeypatch.setattr(store, "list_evaluations", lambda **kw: [][1])  # a bug stays a 500
+        monkeypatch.setattr(store.evaluation_store, "list_evaluations", lambda **kw: [][1])  # a bug stays a 500
         assert assert_error(c.get("/v1/evaluations"), 500)["code"] == "internal_error"
         # each counted by its code on /metrics, what an alert on the outage reads
         metrics = c.get("/metrics").text
@@ -106,7 +106,7 @@ def test_an_unreachable_database_is_503_wherever_it_is_met(tmp_path: Path, monke
         assert c.post("/v1/admin/users", json={"name": "ann", "admin": False}, headers=ADMIN).status_code == 201
         token = c.post("/v1/admin/tokens", json={"user": "ann"}, headers=ADMIN).json()["token"]
         assert c.get("/v1/evaluations", headers=bearer(token)).status_code == 200
-        monkeypatch.setattr(c.app.state.service.store, "get_token", _connection_refused)
+        monkeypatch.setattr(c.app.state.service.store.account_store, "get_token", _connection_refused)
         r = c.get("/v1/evaluations", headers=bearer(token))  # the token is looked up before any route runs
         err = assert_error(r, 503)
         assert err["code"] == "database_unavailable" and err["request_id"] == r.headers["x-request-id"]
@@ -135,7 +135,7 @@ def _write_lock(db: Path, seconds: float | None = None) -> Iterator[sqlite3.Conn
 
 
 def _evaluation_count(c: Any) -> int:
-    return len(c.app.state.service.store.list_evaluations(limit=1000))
+    return len(c.app.state.service.store.evaluation_store.list_evaluations(limit=1000))
 
 
 def test_a_lock_held_past_the_budget_is_503_then_work_resumes(tmp_path: Path) -> None:

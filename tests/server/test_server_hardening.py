@@ -25,7 +25,7 @@ from server_helpers import ADMIN, ADMIN_TOKEN, LogRecords, app_client, assert_er
 
 from kitti_eval.demo import demo_paths
 from kitti_eval_server import Settings, create_app
-from kitti_eval_server.auth import client_of
+from kitti_eval_server.access.auth import client_of
 from kitti_eval_server.errors import StartupRefused
 from kitti_eval_server.observability import JsonFormatter, TextFormatter
 

@@ -99,7 +99,7 @@ def test_an_unexpected_failure_is_answered_inside_the_request_layer(service_clie
     """A bug's 500 carries the request id and is counted and logged like every answer (the server's own
     last-resort handler sits outside the request layer and would do none of that)."""
     with service_client() as client:
-        monkeypatch.setattr(client.app.state.service.store, "list_evaluations", lambda **kw: [][1])
+        monkeypatch.setattr(client.app.state.service.store.evaluation_store, "list_evaluations", lambda **kw: [][1])
         r = client.get("/v1/evaluations", headers={"X-Request-ID": "bug-1"})
         assert r.status_code == 500 and r.headers["x-request-id"] == "bug-1"
         assert r.json() == {
@@ -325,7 +325,7 @@ def test_no_worker_no_readiness(service_client: Any) -> None:
     import time
     from datetime import datetime, timedelta, timezone
 
-    from kitti_eval_server.jobs import JobQueue
+    from kitti_eval_server.jobs.queue import JobQueue
 
     with service_client(job_threads=0, ready=False) as client:
         service = client.app.state.service
@@ -334,7 +334,7 @@ def test_no_worker_no_readiness(service_client: Any) -> None:
         assert r.status_code == 503 and "no worker runs evaluations" in r.json()["error"]["message"], r.text
         assert upload(client, golden_bytes("result.pkl"), params={"wait": "0"}).status_code == 202
         long_ago = datetime.now(timezone.utc) - timedelta(minutes=2)
-        JobQueue(service.store, clock=lambda: long_ago).worker_beat(
+        JobQueue.of(service.store, clock=lambda: long_ago).worker_beat(
             "elsewhere:1", host="elsewhere", pid=1, threads=3, started_at=long_ago
         )
         assert client.get("/readyz").status_code == 503  # seen two minutes ago: gone, as far as anyone knows

@@ -151,7 +151,7 @@ def test_servers_creating_the_schema_at_once_all_succeed(postgres) -> None:
             t.join(60)
         try:
             assert not failures, failures[0]
-            assert stores[0].list_ground_truths() == []
+            assert stores[0].ground_truth_store.list_ground_truths() == []
         finally:
             for store in stores:
                 store.dispose()

@@ -11,8 +11,8 @@ from server_accounts import add_token, make_teams
 from server_helpers import ADMIN, ADMIN_TOKEN, app_client, golden_bytes
 from sqlalchemy import update
 
-from kitti_eval_server.accounts import csrf_token, split_token
-from kitti_eval_server.auth import CSRF_COOKIE, SESSION_COOKIE
+from kitti_eval_server.access.accounts import csrf_token, split_token
+from kitti_eval_server.access.auth import CSRF_COOKIE, SESSION_COOKIE
 from kitti_eval_server.store import tokens
 
 
@@ -162,8 +162,8 @@ def test_ended_sessions_do_not_pile_up(service) -> None:
     with store.engine.begin() as conn:  # it ended two days ago
         conn.execute(update(tokens).where(tokens.c.id == old).values(expires_at=two_days_ago))
     assert c.get("/").status_code == 401
-    assert store.get_token(old) is not None
+    assert store.account_store.get_token(old) is not None
     assert sign_in(c, teams.tokens["bob"]).status_code == 303  # the next sign-in clears it away
-    assert store.get_token(old) is None
-    assert store.get_token(teams.token_ids["bob"]) is not None  # tokens are never purged
+    assert store.account_store.get_token(old) is None
+    assert store.account_store.get_token(teams.token_ids["bob"]) is not None  # tokens are never purged
     c.cookies.clear()

@@ -270,7 +270,7 @@ def test_the_board_renders_intervals_rank_ranges_and_ties_when_the_board_has_the
                 headers=hosted.headers(who),
             )
         )
-    benchmarks = c.app.state.benchmarks
+    benchmarks = c.app.state.benchmarks.board
     plain = benchmarks.leaderboard
 
     page = c.get("/benchmarks/bench").text  # the board's own intervals, rank ranges and bootstrap line
@@ -399,7 +399,7 @@ def test_the_submission_page_shows_the_comparison_when_the_submission_has_one(wo
     sid = ok(submit(c, hosted.headers("alice"), golden_bytes("result.pkl")), 201)["id"]
     sign_in(c, hosted.tokens["alice"])
     assert 'id="comparison"' in c.get(f"/benchmarks/bench/submissions/{sid}").text  # the service's own
-    benchmarks = c.app.state.benchmarks
+    benchmarks = c.app.state.benchmarks.submissions
     plain = benchmarks.submission
 
     def without(name, submission_id, caller):  # a submission without the key (an older service): no table
@@ -472,7 +472,7 @@ def test_a_failed_scoring_says_why_and_stops_reloading(world, monkeypatch) -> No
     from kitti_eval.errors import InputError
 
     c, hosted = world
-    benchmarks = c.app.state.benchmarks
+    benchmarks = c.app.state.benchmarks.scoring
 
     def refuse(*args, **kwargs):
         raise InputError("predictions for frame 000007: boxes with a negative size", frame="000007", field="dimensions")

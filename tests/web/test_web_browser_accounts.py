@@ -10,7 +10,7 @@ from server_helpers import ADMIN, LiveServer
 from test_web_browser import By, browser, ec, submit_upload, wait  # noqa: F401 - the browser fixture
 
 from kitti_eval.demo import demo_paths
-from kitti_eval_server.auth import SESSION_COOKIE
+from kitti_eval_server.access.auth import SESSION_COOKIE
 
 pytestmark = pytest.mark.slow
 
