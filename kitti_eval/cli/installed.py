@@ -33,14 +33,16 @@ INSTALL = "pip install 'kitti-eval[server]'"
 
 @functools.cache
 def commands() -> dict[str, Any]:
-    """The installed commands by name, loaded, the service's first in the order of the help; a service command
-    whose package cannot be imported is left out (and stands in as missing)."""
+    """The installed commands by name, loaded, the service's first in the order of the help; a command whose
+    module cannot be found (its package was removed) is left out, and a service command stands in as missing."""
     found: dict[str, Any] = {}
     for point in entry_points(group=GROUP):
         try:
             found[point.name] = point.load()
-        except ImportError:
-            continue
+        except ModuleNotFoundError as e:  # the package that registered it is gone (or has no such module now)
+            if not e.name or not f"{point.module}.".startswith(f"{e.name}."):
+                raise  # a module it imports is missing: its own fault, said as it is
+
     order = [*(n for n in SERVICE_COMMANDS if n in found), *sorted(n for n in found if n not in SERVICE_COMMANDS)]
     return {name: found[name] for name in order}
 

@@ -177,3 +177,29 @@ def test_a_fault_is_not_taken_for_a_missing_extra(capsys) -> None:
     assert capsys.readouterr().err == (
         "kitti-eval admin: error: needs the server extra (anyio is missing): pip install 'kitti-eval[server]'\n"
     )
+
+
+def test_an_entry_point_whose_package_is_gone_is_left_out_and_a_broken_one_is_said(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """A command registered by a package since removed is left out (a service command then stands in as missing);
+    one whose module is there but imports something that is not is a fault of that package, raised as it is."""
+    from importlib.metadata import EntryPoint
+
+    (tmp_path / "broken_plugin.py").write_text("import a_module_nobody_has\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    gone = [EntryPoint("serve", "a_package_removed.commands.serve", installed.GROUP)]
+    broken = [EntryPoint("tally", "broken_plugin", installed.GROUP)]
+    for points, outcome in ((gone, None), (broken, "a_module_nobody_has")):
+        monkeypatch.setattr(installed, "entry_points", lambda group, points=points: points)
+        installed.commands.cache_clear()
+        try:
+            if outcome is None:
+                assert installed.commands() == {}
+                assert installed.own_parser("serve") is not None  # the stand-in that says how to install it
+            else:
+                with pytest.raises(ModuleNotFoundError) as raised:
+                    installed.commands()
+                assert raised.value.name == outcome
+        finally:
+            installed.commands.cache_clear()
