@@ -49,7 +49,7 @@ def commands() -> dict[str, Any]:
 
 def _missing(name: str) -> Callable[[Sequence[str]], int]:
     def run(argv: Sequence[str]) -> int:
-        missing = "the service's package is missing"
+        missing = "no installed package provides it; an editable install older than its entry point: install again"
         print(f"{PROG} {name}: error: needs the server extra ({missing}): {INSTALL}", file=sys.stderr)
         return EXIT_INPUT
 
