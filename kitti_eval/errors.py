@@ -7,6 +7,8 @@ __all__ = [
     "InputError",
     "UnsafePickleError",
     "UnknownFormatError",
+    "ArchiveError",
+    "InvalidSubmissionError",
     "ConfigError",
     "ServiceError",
     "ServiceUnreachable",
@@ -45,6 +47,27 @@ class UnsafePickleError(InputError):
 
 class UnknownFormatError(InputError):
     """A file is none of the formats read (a pickle, a zip or tar of KITTI txt files, a txt folder)."""
+
+
+class ArchiveError(InputError):
+    """A zip or tar was refused as a whole: unreadable, or past a limit (members, unpacked bytes), or unsafe
+    (absolute paths, ``..``, links); nothing of it was loaded."""
+
+
+class InvalidSubmissionError(InputError):
+    """A benchmark submission that can be read but breaks the rules (:mod:`kitti_eval.io.submission`):
+    ``problems``, the validator's sentences in the order found (``more``: those past its limit, not listed);
+    :meth:`lines` as ``kitti-eval validate`` prints them."""
+
+    def __init__(self, problems: list[str], more: int = 0) -> None:
+        self.problems = list(problems)
+        self.more = more
+        lines = self.lines()
+        shown = "; ".join(lines[:3]) + (" ..." if len(lines) > 3 else "")
+        super().__init__(f"the submission breaks the rules: {shown}")
+
+    def lines(self) -> list[str]:
+        return [*self.problems, *([f"... and {self.more} more problems"] if self.more else [])]
 
 
 class ConfigError(KittiEvalError):

@@ -8,9 +8,9 @@ alternated in one run (the load of a shared machine varies from minute to minute
 * where a process's time goes, for each commit: importing the command line, reading both files
   (``read_pair``), evaluating and writing the JSON (a driver that makes those calls and times them);
 * a job in a worker, for each commit: a long-lived process that has imported everything and holds the
-  ground truth, reading an uploaded result.pkl from its bytes as the service does (the restricted
-  unpickler, then the annotations with the boxes kept and the frames checked against the ground truth's)
-  and evaluating it;
+  ground truth, reading an uploaded result.pkl from its bytes as that commit's service does (the restricted
+  unpickler and the annotations with the boxes kept and the frames checked against the ground truth's: one
+  call, ``annotations_from_pickle``, where the commit has it) and evaluating it;
 * reading the 22 MB result.pkl in such a process: ``pickle.load`` of the file, the restricted unpickler
   alone (``load_pickle``) and the whole read into arrays (``load_detections``).
 
@@ -103,22 +103,28 @@ import os
 os._exit(0)
 """
 
-#: a worker: imports once, holds the ground truth, then one job (or one read) per line of stdin
+#: a worker: imports once, holds the ground truth, then one job (or one read) per line of stdin. A job reads
+#: the upload as that commit's service does: one call where the commit has it, else the pickle then its frames
 WORKER = r"""
 import io, json, pickle, sys, time
 from kitti_eval.core.evaluation import evaluate
 from kitti_eval.core.protocol import EvalConfig
+from kitti_eval.io import loaders
 from kitti_eval.io.loaders import annotations_from_object, load_detections, load_ground_truth
 from kitti_eval.io.safe_pickle import load_pickle
 gt_path, pred_path = sys.argv[1], sys.argv[2]
 gt = load_ground_truth(gt_path)
 known = gt.frame_index()
 content = open(pred_path, "rb").read()
+one_call = getattr(loaders, "annotations_from_pickle", None)
 
 def job():
     t0 = time.perf_counter()
-    obj = load_pickle(io.BytesIO(content), source="result.pkl")
-    dt = annotations_from_object(obj, "detections", source="result.pkl", keep_lidar=True, known_frames=known)
+    if one_call is not None:
+        dt = one_call(io.BytesIO(content), "detections", source="result.pkl", keep_lidar=True, known_frames=known)
+    else:
+        obj = load_pickle(io.BytesIO(content), source="result.pkl")
+        dt = annotations_from_object(obj, "detections", source="result.pkl", keep_lidar=True, known_frames=known)
     t1 = time.perf_counter()
     evaluate(gt, dt, EvalConfig()).to_dict()
     t2 = time.perf_counter()
@@ -274,8 +280,9 @@ def main() -> int:
 
         workers = {side: Worker(tree, gt, pred) for side, tree in trees.items()}
         try:
-            for _ in range(args.pairs):
-                for side, worker in workers.items():
+            for i in range(args.pairs):
+                for side in ("old", "new") if i % 2 == 0 else ("new", "old"):
+                    worker = workers[side]
                     for what in ("job", "reads"):
                         for key, value in worker.ask(what).items():
                             parts[side].setdefault(key, []).append(value)

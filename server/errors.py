@@ -21,7 +21,14 @@ from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from kitti_eval.errors import ConfigError, InputError, KittiEvalError, UnknownFormatError, UnsafePickleError
+from kitti_eval.errors import (
+    ArchiveError,
+    ConfigError,
+    InputError,
+    KittiEvalError,
+    UnknownFormatError,
+    UnsafePickleError,
+)
 
 __all__ = [
     "ApiError",
@@ -217,17 +224,11 @@ class StartupRefused(ApiError):
     code = "startup_refused"
 
 
-class ArchiveError(ApiError):
-    """An uploaded zip/tar is unsafe or unusable (traversal, links, devices, bombs, no txt files)."""
-
-    status_code = 422
-    code = "invalid_archive"
-
-
 #: library error -> (status, code); the first matching class wins
 _LIBRARY_ERRORS: tuple[tuple[type[KittiEvalError], int, str], ...] = (
     (UnsafePickleError, 422, "unsafe_pickle"),
     (UnknownFormatError, 422, "unknown_format"),
+    (ArchiveError, 422, "invalid_archive"),  # an uploaded zip/tar unsafe or unusable (traversal, links, bombs, ...)
     (InputError, 422, "invalid_input"),
     (ConfigError, 422, "invalid_config"),
     (KittiEvalError, 422, "invalid_input"),

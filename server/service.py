@@ -20,6 +20,7 @@ import sqlalchemy.exc
 
 from kitti_eval._jit import warm_up
 from kitti_eval.demo import demo_paths
+from kitti_eval.io.upload import UploadLimits
 
 from .access.accounts import Accounts, admin_token
 from .access.audit import Audit
@@ -28,7 +29,7 @@ from .access.policy import AuthMode, Policy
 from .benchmarks import Benchmarks
 from .errors import StartupRefused
 from .evaluations.evaluations import EvaluationFrames, Evaluations, sealed_document
-from .evaluations.uploads import FileIn, Limits
+from .evaluations.uploads import FileIn
 from .ground_truths.cache import GroundTruthCache, GroundTruths
 from .ground_truths.catalog import GroundTruthCatalog
 from .idempotency import Idempotency
@@ -67,7 +68,11 @@ class Service:
         )
         self.accounts = Accounts(self.store.account_store, self.audit, lambda: self.admin_token)
         self.limiter = FailureLimiter(settings.auth_max_failures, settings.auth_failure_window_s)
-        self.limits = Limits(max_unpacked_bytes=settings.max_unpacked_bytes, max_members=settings.max_archive_members)
+        self.limits = UploadLimits(
+            max_bytes=settings.max_unpacked_bytes,
+            max_members=settings.max_archive_members,
+            members_setting="KITTI_EVAL_MAX_ARCHIVE_MEMBERS",
+        )
         self.scratch_space = ScratchSpace(self.data_dir)
         #: admission counts, shared with the middlewares (and read by the metrics)
         self.admission = AdmissionState()

@@ -7,7 +7,9 @@ Data goes to stdout (or ``--output``); warnings and progress go to stderr.
 This module only builds the parser and dispatches. The main job (``--gt``/``--pred``, no command name) is
 :mod:`~kitti_eval.cli.evaluate`; every command is a module of its own whose ``add_parser(sub)`` adds its
 subparser with ``run`` (its handler) as a default; what they share is in :mod:`~kitti_eval.cli.common`.
-A new command is a module with an ``add_parser`` imported here and added to :data:`COMMANDS`.
+A new command is a module with an ``add_parser`` imported here and added to :data:`COMMANDS`; another package
+adds its commands through an entry point (:mod:`~kitti_eval.cli.installed`: the service's ``serve``, ``worker``
+and ``admin``).
 """
 
 from __future__ import annotations
@@ -20,7 +22,6 @@ from typing import Any
 
 from ..errors import ConfigError, KittiEvalError, ServiceError
 from . import (
-    admin,
     compare,
     demo,
     describe,
@@ -29,21 +30,20 @@ from . import (
     frames,
     gate,
     inspect,
+    installed,
     login,
-    serve,
     submit,
     validate,
-    worker,
 )
 from .common import EXIT_INPUT, EXIT_USAGE, PROG, config, limits_from, say, say_defaults
 from .remote import report
 
 __all__ = ["main", "entry", "COMMANDS"]
 
-#: every command's ``add_parser(sub)``, in the order ``kitti-eval --help`` lists them
-COMMANDS: tuple[Callable[[Any], object], ...] = tuple(
-    cmd.add_parser
-    for cmd in (demo, gate, compare, frames, inspect, errors, describe, validate, submit, login, serve, worker, admin)
+#: every command's ``add_parser(sub)``, in the order ``kitti-eval --help`` lists them: the installed ones last
+COMMANDS: tuple[Callable[[Any], object], ...] = (
+    *(cmd.add_parser for cmd in (demo, gate, compare, frames, inspect, errors, describe, validate, submit, login)),
+    *installed.parsers(),
 )
 
 
@@ -69,8 +69,8 @@ _parser, _config = build_parser, config
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        if argv[:1] == [serve.NAME]:
-            return serve.run(argv[1:])
+        if argv and (run_argv := installed.own_parser(argv[0])) is not None:
+            return run_argv(argv[1:])
         parser = build_parser()
         args = parser.parse_args(argv)
         with limits_from(args):

@@ -54,6 +54,10 @@ _REQUIRED = {
     "ground_truth": ("name", "dimensions", "location", "rotation_y"),
     "detections": ("name", "dimensions", "location", "rotation_y", "score"),
 }
+#: the numeric fields (field -> trailing shape of one box) and the fields each kind needs, for readers that
+#: build the columns themselves (:meth:`Annotations.from_columns`)
+NUMERIC_FIELDS = _NUMERIC_FIELDS
+REQUIRED_FIELDS: Mapping[str, tuple[str, ...]] = _REQUIRED
 #: fields that come from the image; a LiDAR-only set may lack them (filled with these values, and listed in
 #: ``Annotations.missing_fields`` so that an image-based evaluation refuses them)
 IMAGE_FIELDS: Mapping[Kind, Mapping[str, float]] = {
@@ -269,6 +273,13 @@ def _numeric_column(col: list[Any], counts: np.ndarray, trailing: tuple[int, ...
     return arr if arr.shape == (int(lengths.sum()), *trailing) else None
 
 
+def _filled(kind: Kind, f: str, n: int, ids: Sequence[str], absent: dict[str, str]) -> np.ndarray:
+    """The column of a numeric field no frame has (an image field is then noted in ``absent``)."""
+    if f in IMAGE_FIELDS[kind] and ids:
+        absent[f] = ids[0]
+    return np.full((n, *_NUMERIC_FIELDS[f]), -1.0 if f == "score" else IMAGE_FIELDS[kind].get(f, 0.0))
+
+
 @dataclass(frozen=True)
 class _Columns:
     """The frames' fields concatenated (before the checks over whole columns)."""
@@ -318,9 +329,7 @@ class _Columns:
             except KeyError:
                 if f in _REQUIRED[kind] or any(f in d for d in fields):
                     return None  # missing, or in some frames only: filled frame by frame
-                numeric[f] = np.full((n, *trailing), -1.0 if f == "score" else IMAGE_FIELDS[kind].get(f, 0.0))
-                if f in IMAGE_FIELDS[kind] and ids:
-                    absent[f] = ids[0]
+                numeric[f] = _filled(kind, f, n, ids, absent)
                 continue
             arr = _numeric_column(col, counts, trailing)
             if arr is None:
@@ -563,6 +572,28 @@ class Annotations:
             source,
             _Columns.frame_by_frame(kind, source, rest, keep_lidar, max_frames, known_frames),
         )
+
+    @classmethod
+    def from_columns(
+        cls,
+        kind: Kind,
+        source: str,
+        frame_ids: tuple[str, ...],
+        offsets: npt.NDArray[np.int64],
+        name: npt.NDArray[np.str_],
+        numeric: Mapping[str, np.ndarray],
+        *,
+        lidar: np.ndarray | None = None,
+    ) -> Annotations:
+        """Annotations from columns a reader built itself (:mod:`kitti_eval.io.pickle_columns`): fresh arrays,
+        each field of all frames, frame after frame, as :meth:`from_frames` concatenates them; ``frame_ids``
+        normalised and unique; ``numeric`` float64 of the shapes of :data:`NUMERIC_FIELDS`, a field no frame
+        has left out (filled as :meth:`from_frames` fills it). The same checks over whole columns (names are
+        text, numbers finite) as :meth:`from_frames`, with the same errors."""
+        absent: dict[str, str] = {}
+        n = int(offsets[-1])
+        columns = {f: numeric[f] if f in numeric else _filled(kind, f, n, frame_ids, absent) for f in _NUMERIC_FIELDS}
+        return cls._checked(kind, source, _Columns(frame_ids, offsets, name, columns, absent, lidar))
 
     @classmethod
     def _checked(cls, kind: Kind, source: str, c: _Columns) -> Annotations:

@@ -70,7 +70,7 @@ E_FROMBUF_OBJ = 25  # object dtype from a raw buffer
 E_DTYPE_SIZE = 26  # bad str/bytes size in a dtype state (i1: size)
 E_ARGS = 27  # wrong number or kind of call arguments
 E_ROOM = 28  # not an error: work array i0 (a ROOM_* index) needs i1 rows; the caller grows it and calls again
-ROOM_NODES, ROOM_CH, ROOM_STACK, ROOM_MARKS, ROOM_MEMO = range(5)
+ROOM_NODES, ROOM_CH, ROOM_STACK, ROOM_MARKS, ROOM_MEMO, ROOM_ITEMS = range(6)
 # refused (UnsafePickleError)
 E_GLOBAL = 40  # a global outside the allowlist (i0: 0 GLOBAL, i1/i2 line offsets; 1 STACK_GLOBAL, str nodes)
 E_NEWOBJ = 41
@@ -107,10 +107,11 @@ K_SET = 11
 K_FROZENSET = 12
 K_ODICT = 13
 K_GLOBAL = 14  # V: row of the allowlist
-K_SHELL = 15  # numpy array from _reconstruct; F_BUILT once its state is set
+K_SHELL = 15  # numpy array from _reconstruct; F_BUILT once its state is set, A: then its state's node
 K_ARRAY = 16  # numpy array from _frombuffer
-K_DTYPE = 17  # V itemsize (-1 until known), A kind letter, B dtype-table row; F_BUILT once its state is set
-K_SCALAR = 18
+K_DTYPE = 17  # V itemsize (-1 until known), A kind letter, B dtype-table row; F_BUILT once its state is set,
+# F_BIG when that state is big-endian
+K_SCALAR = 18  # A: the node of its arguments (dtype, bytes)
 
 KIND_NAMES = {
     K_NONE: "None",
@@ -148,6 +149,7 @@ F_BOOL = 1 << 11
 F_CONTENT = 1 << 12
 F_LEAVES = 1 << 13  # list: every item may go into an object array
 F_UNHASHABLE = 1 << 14  # tuple: holds something unhashable
+F_BIG = 1 << 15  # dtype: its state says big-endian ('>')
 
 # what each allowlisted global does (column 4 of the globals table)
 FN_RECONSTRUCT = 1
@@ -514,22 +516,25 @@ def _hash_cost(nodes, k):
 
 
 @njit(cache=True, nogil=True)
-def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, ch, stack, marks, memo):
+def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, ch, stack, marks, memo, items):
     """Check the pickle in ``data`` (read-only uint8).
 
     ``gblob``/``gtab``: the allowlist (rows: module offset, length, name offset, length, FN_*);
     ``dblob``/``dtab``: the accepted dtype codes (columns D_*). ``nodes`` (N, 4; the first rows
-    :data:`BASE_NODES`), ``ch``, ``stack``, ``marks`` and ``memo`` (zeros; it keeps node + 1 per filled
-    slot), all int64, are room to work in; when one is too small the scan returns E_ROOM naming it (i0) and
-    the size it needs (i1), to be called again.
+    :data:`BASE_NODES`), ``ch``, ``stack``, ``marks``, ``memo`` (zeros; it keeps node + 1 per filled
+    slot) and ``items`` (M, 3), all int64, are room to work in; when one is too small the scan returns E_ROOM
+    naming it (i0) and the size it needs (i1), to be called again. ``items`` is also a record: every item put
+    into a list, dict or OrderedDict, in order, as rows (container, item, -1) or (dict, key, value); with the
+    state node of each built array (a K_SHELL's A) it is what :mod:`kitti_eval.io.pickle_columns` reads. The
+    record decides nothing: the checks are the same with or without it.
 
-    Returns ``(code, pos, i0, i1, i2, nodes used, children used, result)``: OK or an E_* code for the opcode
-    at byte ``pos`` with details i0..i2; how many nodes and tuple children there are (for messages), and
-    the node STOP returns.
+    Returns ``(code, pos, i0, i1, i2, nodes used, children used, result, items used)``: OK or an E_* code for
+    the opcode at byte ``pos`` with details i0..i2; how many nodes and tuple children there are (for messages),
+    the node STOP returns, and how many rows of ``items`` are filled.
     """
     n = data.shape[0]
     nn, nch, sp, nmarks, fence = _FIRST, 0, 0, 0, 0
-    memo_len, writes, spent, hashed = 0, 0, 0, 0
+    memo_len, writes, spent, hashed, ni = 0, 0, 0, 0, 0
     pos, p0, err, i0, i1, i2, result = 0, 0, OK, 0, 0, 0, -1
     while True:
         if pos >= n:
@@ -756,6 +761,8 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                 data, nodes, ch, gtab, dblob, dtab, gtab[nodes[call, V], 4], args
             )
             spent += made
+            if w & KIND_MASK == K_SCALAR:
+                a = args  # its (dtype, bytes), for the columns
             push = nn
         elif op == 0x62:  # BUILD
             if sp - 2 < fence:
@@ -767,6 +774,10 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
             nodes[target, W] |= F_BUILT
             if nodes[target, W] & KIND_MASK == K_DTYPE:
                 nodes[target, V] = itemsize
+                if not err and _char(data, nodes, ch[nodes[stack[sp], A] + 1]) == 62:  # '>'
+                    nodes[target, W] |= F_BIG
+            elif not err:
+                nodes[target, A] = stack[sp]  # the state, for the columns (kitti_eval.io.pickle_columns)
             spent += made
         # ------------------------------------------------------------ containers
         elif w or _INTO[op]:  # TUPLE, TUPLE1-3, LIST, DICT, FROZENSET; APPEND(S), SETITEM(S), ADDITEMS
@@ -804,6 +815,10 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                 err = E_ODD
                 break
             is_tuple = w & KIND_MASK == K_TUPLE
+            logged = w & KIND_MASK == K_LIST or w & KIND_MASK == K_DICT or w & KIND_MASK == K_ODICT
+            if logged and ni + sp - first >= items.shape[0]:
+                err, i0, i1 = E_ROOM, ROOM_ITEMS, 2 * (ni + sp - first)
+                break
             if is_tuple:
                 if nch + sp - first >= ch.shape[0]:
                     err, i0, i1 = E_ROOM, ROOM_CH, 2 * (nch + sp - first)
@@ -849,6 +864,13 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                     nodes[k, W] |= F_PLACED
             b = sp - first
             spent += _ITEM_BYTES * b
+            if logged and not err:  # the items, in order: (container, item, -1) or (dict, key, value)
+                step = 2 if keyed else 1
+                for j in range(first, sp, step):
+                    items[ni, 0] = target if target >= 0 else nn
+                    items[ni, 1] = stack[j]
+                    items[ni, 2] = stack[j + 1] if keyed else -1
+                    ni += 1
             sp = first
             if target >= 0:
                 nodes[target, W], nodes[target, V] = w, v
@@ -871,4 +893,4 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
         if push >= 0:
             stack[sp] = push
             sp += 1
-    return err, p0, i0, i1, i2, nn, nch, result
+    return err, p0, i0, i1, i2, nn, nch, result, ni

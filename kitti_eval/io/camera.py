@@ -15,7 +15,7 @@ from .formats import mmdet3d
 from .formats._common import Frames
 from .formats.openpcdet import entry_frame_id
 
-__all__ = ["calibs_from_object", "camera_fields"]
+__all__ = ["calibs_from_object", "camera_fields", "check_agreement"]
 
 _CAMERA_FIELDS = ("location", "dimensions", "rotation_y")
 _CAMERA_SET = frozenset(_CAMERA_FIELDS)
@@ -146,6 +146,38 @@ def camera_fields(frames: Frames, calibs: Mapping[str, Any] | None, source: str,
         if "alpha" in fields and np.size(fields["alpha"]) == len(arr):
             out["alpha"] = fields["alpha"]
         yield fid, out
+    _agreement(both, source, warnings)
+
+
+def check_agreement(
+    location: np.ndarray,
+    rotation_y: np.ndarray,
+    lidar: np.ndarray,
+    offsets: np.ndarray,
+    frame_ids: tuple[str, ...],
+    calibs: Mapping[str, Any] | None,
+    source: str,
+    warnings: list[str],
+) -> None:
+    """:func:`camera_fields`' check of detections whose every frame carries both the camera fields and
+    ``boxes_lidar``, over their columns (float64, frame after frame; ``frame_ids`` normalised): the same frames
+    sampled (every tenth), the same warning."""
+    if not calibs:
+        return
+    both: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+    for i in range(0, len(frame_ids), _CHECK_EVERY):
+        lo, hi = int(offsets[i]), int(offsets[i + 1])
+        calib = calibs.get(frame_ids[i])
+        if calib is not None and hi > lo:
+            both.append((location[lo:hi], rotation_y[lo:hi], lidar[lo:hi], calib.velo_to_rect))
+    _agreement(both, source, warnings)
+
+
+def _agreement(
+    both: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], source: str, warnings: list[str]
+) -> None:
+    """Check the sampled frames' camera fields against their ``boxes_lidar``: a warning when over 1% of the boxes
+    disagree."""
     if not both:
         return
     counts = [len(b[2]) for b in both]

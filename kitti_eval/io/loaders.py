@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from typing import Any
+from typing import IO, Any
 
 from ..core.frames import Annotations, Kind
 from .archives import ArchiveLimits
@@ -34,6 +34,7 @@ from .reading import (
     read_ground_truth_and_calibs,
     read_object,
     read_pair,
+    read_pickle,
     read_split,
 )
 
@@ -44,6 +45,7 @@ __all__ = [
     "load_kitti_txt_dir",
     "parse_kitti_txt",
     "annotations_from_object",
+    "annotations_from_pickle",
     "detect_format",
     "describe_format",
     "PICKLE_FORMATS",
@@ -99,6 +101,22 @@ def annotations_from_object(
 ) -> Annotations:
     """Annotations from an already unpickled object (e.g. an upload passed through ``load_pickle``)."""
     return _told(read_object(obj, kind, source, LoadOptions(**options)), warnings)
+
+
+def annotations_from_pickle(
+    path_or_fileobj: PathLike | IO[bytes],
+    kind: Kind,
+    *,
+    source: str,
+    warnings: list[str] | None = None,
+    **options: Any,
+) -> Annotations:
+    """Annotations from a pickle given as a path or a binary file object (e.g. an upload; gzip or not), through
+    the restricted unpickler: what :func:`~kitti_eval.io.safe_pickle.load_pickle` then
+    :func:`annotations_from_object` give, with ``max_bytes`` and ``max_frames`` applied to both, but a
+    result.pkl of the usual layout read from its bytes without building its objects
+    (:mod:`kitti_eval.io.pickle_columns`)."""
+    return _told(read_pickle(path_or_fileobj, kind, source, LoadOptions(**options)), warnings)
 
 
 def load_ground_truth_and_calibs(

@@ -5,8 +5,11 @@ Every route ends in :meth:`Annotations.from_frames`, which validates shapes, dty
 duplicate frames; the formats (:mod:`kitti_eval.io.formats`) only find the frames, their ids and their field
 dicts, and report structural problems (wrong top-level type, entries without a frame id, txt lines with the
 wrong number of fields) with the entry, frame and line where they happen. A folder is read as KITTI txt
-files, a zip or tar as an archived txt folder, any other file as a pickle (only through
-:func:`kitti_eval.io.safe_pickle.load_pickle`, gzip or not). Detections that carry only ``boxes_lidar`` are
+files, a zip or tar as an archived txt folder, any other file as a pickle (only through the restricted
+unpickler's scan, :func:`kitti_eval.io.safe_pickle.check_pickle`, gzip or not). OpenPCDet's result.pkl and
+infos in their usual layout skip the objects: :mod:`kitti_eval.io.pickle_columns` takes them from the checked
+bytes into the same columns, with the same checks (:meth:`Annotations.from_columns`), and leaves anything
+else, refusals included, to the route above. Detections that carry only ``boxes_lidar`` are
 converted to the camera frame with each frame's calibration from the ground-truth infos
 (:mod:`kitti_eval.io.camera`; see :func:`read_pair`).
 """
@@ -17,7 +20,7 @@ import os
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from ..core.frames import Annotations, Kind, normalize_frame_id
 from ..errors import InputError
@@ -26,7 +29,8 @@ from .camera import calibs_from_object, camera_fields
 from .formats import FORMATS, REGISTRY, check_layout, detect_format
 from .formats._common import check_kind
 from .formats.kitti_txt import input_kind, load_kitti_txt_dir, load_txt_archive, read_text
-from .safe_pickle import load_pickle, load_pickles
+from .pickle_columns import read_detections, read_ground_truth
+from .safe_pickle import CheckedPickle, check_pickle, check_pickles
 
 __all__ = [
     "LoadOptions",
@@ -34,6 +38,7 @@ __all__ = [
     "LoadedPair",
     "read_annotations",
     "read_object",
+    "read_pickle",
     "read_ground_truth_and_calibs",
     "read_pair",
     "read_split",
@@ -121,8 +126,52 @@ def read_annotations(path: PathLike, kind: Kind, options: LoadOptions = DEFAULT)
     if fmt == "kitti_txt" or (fmt is None and input_kind(p, source) != "pickle"):
         annos = load_txt_archive(p, kind, source, options.max_bytes, options.max_frames, options.known_frames)
         return Loaded(annos)
-    obj = load_pickle(p, source=source, max_bytes=options.max_bytes, max_entries=options.max_frames)
-    return read_object(obj, kind, source, options)
+    return read_pickle(p, kind, source, options)
+
+
+def read_pickle(
+    path_or_fileobj: PathLike | IO[bytes], kind: Kind, source: str, options: LoadOptions = DEFAULT
+) -> Loaded:
+    """Annotations from a pickle (a path or a binary file object, gzip or not), read only through the restricted
+    unpickler's scan: a result.pkl of the usual layout straight from its bytes into the columns
+    (:mod:`kitti_eval.io.pickle_columns`), anything else built and read as :func:`read_object` reads it. The
+    limits of ``options`` (None: the environment's) apply; ``options.fmt`` forces a pickle layout."""
+    check_kind(kind)
+    options = options.with_limits()
+    checked = check_pickle(path_or_fileobj, source=source, max_bytes=options.max_bytes, max_entries=options.max_frames)
+    return _read_checked(checked, kind, options)
+
+
+def _read_checked(checked: CheckedPickle, kind: Kind, options: LoadOptions) -> Loaded:
+    """Annotations of a checked pickle: from its bytes where :mod:`kitti_eval.io.pickle_columns` takes it, else
+    from its objects (whose reading makes every refusal, as ever)."""
+    if kind == "ground_truth":
+        return _read_checked_ground_truth(checked, options)[0]
+    if options.fmt in (None, "annos_list"):
+        warnings: list[str] = []
+        annos = read_detections(
+            checked,
+            max_frames=limits.resolve(None, options.max_frames)[1],
+            keep_lidar=options.keep_lidar,
+            known_frames=options.known_frames,
+            calibs=options.calibs,
+            warnings=warnings,
+        )
+        if annos is not None:
+            return Loaded(annos, tuple(warnings))
+    return read_object(checked.load(), kind, checked.source, options)
+
+
+def _read_checked_ground_truth(checked: CheckedPickle, options: LoadOptions) -> tuple[Loaded, Mapping[str, Any]]:
+    """Ground truth of a checked pickle and its calibration per frame: from its bytes where
+    :mod:`kitti_eval.io.pickle_columns` takes it (OpenPCDet infos), else from its objects."""
+    if options.fmt in (None, "openpcdet_infos"):
+        max_frames = limits.resolve(None, options.max_frames)[1]
+        fast = read_ground_truth(checked, max_frames=max_frames, known_frames=options.known_frames)
+        if fast is not None:
+            return Loaded(fast[0]), fast[1]
+    obj = checked.load()
+    return read_object(obj, "ground_truth", checked.source, options), calibs_from_object(obj)
 
 
 def read_object(obj: object, kind: Kind, source: str, options: LoadOptions = DEFAULT) -> Loaded:
@@ -200,9 +249,8 @@ def read_ground_truth_and_calibs(path: PathLike, options: LoadOptions = DEFAULT)
     options = options.with_limits()
     p = Path(path)
     if _is_pickle_file(p, options.fmt):
-        obj = load_pickle(p, source=str(path), max_bytes=options.max_bytes, max_entries=options.max_frames)
-        gt_options = LoadOptions(fmt=options.fmt, max_frames=options.max_frames)
-        return read_object(obj, "ground_truth", str(path), gt_options), calibs_from_object(obj)
+        checked = check_pickle(p, source=str(path), max_bytes=options.max_bytes, max_entries=options.max_frames)
+        return _read_checked_ground_truth(checked, LoadOptions(fmt=options.fmt, max_frames=options.max_frames))
     gt_options = LoadOptions(fmt=options.fmt, max_bytes=options.max_bytes, max_frames=options.max_frames)
     return read_annotations(path, "ground_truth", gt_options), {}
 
@@ -227,20 +275,17 @@ def read_pair(
     gt_options = LoadOptions(fmt=gt_format, max_bytes=options.max_bytes, max_frames=options.max_frames)
     if _is_pickle_file(Path(gt_path), gt_format) and _is_pickle_file(Path(pred_path), options.fmt):
         # the predictions are read and checked in a helper thread while the ground truth is converted
-        objects = load_pickles(
+        checked = check_pickles(
             [gt_path, pred_path],
             sources=[str(gt_path), str(pred_path)],
             max_bytes=options.max_bytes,
             max_entries=options.max_frames,
         )
-        gt_obj = next(objects)
-        gt = read_object(gt_obj, "ground_truth", str(gt_path), gt_options)
-        calibs = calibs_from_object(gt_obj)
-        del gt_obj
+        gt, calibs = _read_checked_ground_truth(next(checked), gt_options)
         pred_options = replace(
             options, calibs=calibs, known_frames=None if split is not None else gt.annotations.frame_index()
         )
-        dt = read_object(next(objects), "detections", str(pred_path), pred_options)
+        dt = _read_checked(next(checked), "detections", pred_options)
     else:
         gt, calibs = read_ground_truth_and_calibs(gt_path, gt_options)
         pred_options = replace(

@@ -41,7 +41,15 @@ import numpy as np
 from ..errors import InputError, UnsafePickleError
 from . import _pickle_scan as _ps
 
-__all__ = ["load_pickle", "load_pickles", "ALLOWED_GLOBALS", "GZIP_MAGIC"]
+__all__ = [
+    "load_pickle",
+    "load_pickles",
+    "check_pickle",
+    "check_pickles",
+    "CheckedPickle",
+    "ALLOWED_GLOBALS",
+    "GZIP_MAGIC",
+]
 
 try:  # numpy >= 2 (numpy 1.26 also ships the numpy._core aliases)
     from numpy._core import multiarray as _np_multiarray
@@ -393,11 +401,12 @@ def _scan(data: Buffer, source: str) -> tuple[Any, ...]:
         u8 = u8.view()
         u8.flags.writeable = False
     n = len(u8)
-    # by _ps.ROOM_*: nodes, children, stack (pickle appends in batches of 1000), marks, memo
-    sizes = [n // 8 + 1024, n // 8 + 1024, 1 << 16, 1 << 10, n // 16 + 1024]
+    # by _ps.ROOM_*: nodes, children, stack (pickle appends in batches of 1000), marks, memo, container items
+    sizes = [n // 8 + 1024, n // 8 + 1024, 1 << 16, 1 << 10, n // 16 + 1024, n // 64 + 1024]
     try:
         while True:
-            work = [np.empty((sizes[0], 4), np.int64)] + [np.empty(k, np.int64) for k in sizes[1:]]
+            work = [np.empty((sizes[0], 4), np.int64)] + [np.empty(k, np.int64) for k in sizes[1:-1]]
+            work.append(np.empty((sizes[-1], 3), np.int64))
             work[_ps.ROOM_MEMO] = np.zeros(sizes[_ps.ROOM_MEMO], np.int64)  # pages zeroed as they are touched
             work[_ps.ROOM_NODES][: len(_ps.BASE_NODES)] = _ps.BASE_NODES
             res = _ps.scan(u8, _GBLOB, _GTAB, _DBLOB, _DTAB, _budget(n), _MAX_DEPTH, _KEY_BUDGET, *work)
@@ -406,8 +415,8 @@ def _scan(data: Buffer, source: str) -> tuple[Any, ...]:
             sizes[int(res[2])] = int(res[3])
     except MemoryError:
         raise InputError("not a readable pickle: it needs more memory than is available", source=source) from None
-    nn, nch = int(res[5]), int(res[6])
-    return (*res[:5], work[_ps.ROOM_NODES][:nn], work[_ps.ROOM_CH][:nch], int(res[7]))
+    nn, nch, ni = int(res[5]), int(res[6]), int(res[8])
+    return (*res[:5], work[_ps.ROOM_NODES][:nn], work[_ps.ROOM_CH][:nch], int(res[7]), work[_ps.ROOM_ITEMS][:ni])
 
 
 def _build(data: Buffer, res: tuple[Any, ...], source: str) -> object:
@@ -578,6 +587,51 @@ def _checked(
     return data, res
 
 
+class CheckedPickle:
+    """A pickle's bytes that the scan accepted, and what the scan recorded of them (:func:`check_pickle`).
+
+    :meth:`load` builds its objects with the C unpickler (what :func:`load_pickle` returns);
+    :mod:`kitti_eval.io.pickle_columns` reads the usual layouts' arrays from the bytes instead, through the
+    record, without building an object.
+    """
+
+    __slots__ = ("data", "scan", "source")
+
+    def __init__(self, data: Buffer, scan: tuple[Any, ...], source: str) -> None:
+        self.data, self.scan, self.source = data, scan, source
+
+    def load(self) -> object:
+        """The objects of the pickle, as :func:`load_pickle` returns them."""
+        return _build(self.data, self.scan, self.source)
+
+
+def check_pickle(
+    path_or_fileobj: str | os.PathLike[str] | IO[bytes],
+    *,
+    source: str,
+    max_bytes: int | None = None,
+    max_entries: int | None = None,
+) -> CheckedPickle:
+    """The first half of :func:`load_pickle`: the input read (gzip or not) and scanned, nothing built; the same
+    arguments, and the same errors for anything the scan refuses."""
+    return CheckedPickle(*_checked(path_or_fileobj, source, max_bytes, max_entries), source)
+
+
+def check_pickles(
+    paths: Sequence[str | os.PathLike[str]],
+    *,
+    sources: Sequence[str],
+    max_bytes: int | None = None,
+    max_entries: int | None = None,
+) -> Iterator[CheckedPickle]:
+    """:func:`check_pickle` of several files, in order; while the caller works on one, the next file is read
+    and checked in a helper thread (the scan needs no GIL). Errors are raised where that file would be."""
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="kitti-eval pickle check") as pool:
+        pending = [pool.submit(_checked, p, s, max_bytes, max_entries) for p, s in zip(paths, sources)]
+        for future, source in zip(pending, sources):
+            yield CheckedPickle(*future.result(), source)
+
+
 def load_pickles(
     paths: Sequence[str | os.PathLike[str]],
     *,
@@ -588,7 +642,5 @@ def load_pickles(
     """:func:`load_pickle` of several files, in order; while the caller works on one object, the next file
     is read and checked in a helper thread (the scan needs no GIL). Errors are raised where that file's
     object would be."""
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="kitti-eval pickle check") as pool:
-        pending = [pool.submit(_checked, p, s, max_bytes, max_entries) for p, s in zip(paths, sources)]
-        for future, source in zip(pending, sources):
-            yield _build(*future.result(), source)
+    for checked in check_pickles(paths, sources=sources, max_bytes=max_bytes, max_entries=max_entries):
+        yield checked.load()

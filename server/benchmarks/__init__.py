@@ -45,9 +45,10 @@ from collections.abc import Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
 
+from kitti_eval.io.upload import UploadLimits
+
 from ..access.audit import Audit
 from ..access.policy import Policy
-from ..evaluations.uploads import Limits
 from ..ground_truths.cache import GroundTruths
 from ..idempotency import Idempotency
 from ..jobs.queue import JobQueue
@@ -109,7 +110,7 @@ class Benchmarks:
         policy: Policy,
         audit: Audit,
         scratch: Callable[[], AbstractContextManager[Path]],
-        limits: Limits,
+        limits: UploadLimits,
         *,
         jobs: JobQueue,
         idempotency: Idempotency,

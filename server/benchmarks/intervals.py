@@ -38,9 +38,11 @@ from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.analysis.ranking import LEVEL, METHOD, resampled_key
 from kitti_eval.core.evaluation import plan_evaluation
 from kitti_eval.core.frames import Annotations
+from kitti_eval.io.reading import LoadOptions
+from kitti_eval.io.upload import UploadLimits, read_upload
 
 from ..errors import Conflict
-from ..evaluations.uploads import Limits, load_upload, stored_upload
+from ..evaluations.uploads import stored_upload
 from ..jobs.queue import JobQueue, JobRecord
 from ..store import BenchmarkStore, GroundTruthStore, JobInputStore, ResampledKey, SubmissionRecord
 from .catalog import BenchmarkCatalog
@@ -100,7 +102,7 @@ class Intervals:
         ground_truth_store: GroundTruthStore,
         job_input_store: JobInputStore,
         jobs: JobQueue,
-        limits: Limits,
+        limits: UploadLimits,
         scratch: Callable[[], AbstractContextManager[Path]],
         *,
         wake: Callable[[int], None] = lambda n: None,
@@ -182,7 +184,10 @@ class Intervals:
             raise Conflict(f"the predictions of submission {row.id} are not kept")
         with self.scratch() as scratch:
             upload = stored_upload(content, row.pred_filename, row.pred_sha256)
-            return load_upload(upload, "detections", scratch, self.limits, known_frames=gt.frame_index()).annotations
+            options = LoadOptions(known_frames=gt.frame_index())
+            return read_upload(
+                upload.file, "detections", source=upload.filename, scratch=scratch, limits=self.limits, options=options
+            ).annotations
 
     # -- reading ----------------------------------------------------------------------------------------------
     def resampled(self, bench: Benchmark, rows: Sequence[SubmissionRecord]) -> dict[str, npt.NDArray[np.float64]]:

@@ -13,26 +13,16 @@ from typing import Any
 
 from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.core.frames import Annotations
-from kitti_eval.errors import InputError
-from kitti_eval.io.submission import SubmissionRules, validate_annotations, validate_txt_folder
+from kitti_eval.errors import InputError, InvalidSubmissionError
+from kitti_eval.io.submission import SubmissionRules
+from kitti_eval.io.upload import UploadLimits, read_upload
 
 from ..access.audit import Audit
 from ..access.policy import Caller, Policy
-from ..errors import ApiError, ArchiveError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
+from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
 from ..evaluations.evaluations import sealed_document
 from ..evaluations.evaluator import evaluate_document, evaluate_document_resampled
-from ..evaluations.uploads import (
-    FileIn,
-    InputFormat,
-    Limits,
-    Upload,
-    extract_txt_folder,
-    load_txt_folder,
-    load_upload,
-    receive_content,
-    sniff,
-    stored_upload,
-)
+from ..evaluations.uploads import FileIn, Upload, receive_content, stored_upload
 from ..idempotency import Idempotency, RequestKey, fingerprint, submissions_scope
 from ..jobs.queue import JobQueue, JobRecord
 from ..jobs.workers import JobFailed, error_of
@@ -409,7 +399,7 @@ class Scoring:
         job_input_store: JobInputStore,
         policy: Policy,
         jobs: JobQueue,
-        limits: Limits,
+        limits: UploadLimits,
         scratch: Callable[[], AbstractContextManager[Path]],
     ) -> None:
         self.catalog = catalog
@@ -442,7 +432,7 @@ class Scoring:
                     raise Conflict(f"the predictions of submission {row.id} are not kept")
                 try:
                     dt = self._checked(stored_upload(stored.content, row.pred_filename, stored.sha256), gt)
-                except (InputError, ArchiveError, InvalidSubmission):  # the file is refused: it never counted
+                except (InputError, InvalidSubmission):  # the file is refused: it never counted
                     self.benchmark_store.delete_submission(sid)
                     raise
                 if not stored.kept:  # accepted before files were kept at acceptance
@@ -484,23 +474,13 @@ class Scoring:
         unreadable or unsafe input raises as every load does."""
         rules = SubmissionRules(frames=tuple(gt.frame_ids))
         with self.scratch() as scratch:
-            fmt = sniff(upload.file, upload.filename)
-            if fmt is InputFormat.PICKLE:
-                try:
-                    annotations = load_upload(upload, "detections", scratch, self.limits).annotations
-                except InputError as e:
-                    if type(e) is not InputError:  # unsafe or unknown: not a submission at all
-                        raise
-                    raise InvalidSubmission([str(e)]) from None
-                outcome = validate_annotations(annotations, rules)
-                if not outcome.ok:
-                    raise InvalidSubmission(outcome.lines())
-                return annotations
-            folder, names = extract_txt_folder(upload.file, fmt, scratch, self.limits, upload.filename)
-            outcome = validate_txt_folder(folder, rules, shown_as=upload.filename)
-            if not outcome.ok:
-                raise InvalidSubmission(outcome.lines())
-            return load_txt_folder(folder, names, upload.filename, self.limits)
+            try:
+                read = read_upload(
+                    upload.file, "detections", source=upload.filename, scratch=scratch, limits=self.limits, rules=rules
+                )
+            except InvalidSubmissionError as e:
+                raise InvalidSubmission(e.lines()) from None
+            return read.annotations
 
     def _scores(
         self, bench: Benchmark, record: GroundTruthRecord, gt: Annotations, dt: Annotations

@@ -19,6 +19,8 @@ from kitti_eval.analysis.diagnostics import frame_stats, frames_document
 from kitti_eval.analysis.inspection import inspect_frame, model_name, unique_names
 from kitti_eval.core.frames import Annotations, normalize_frame_id
 from kitti_eval.core.protocol import EvalConfig
+from kitti_eval.io.reading import LoadOptions
+from kitti_eval.io.upload import UploadLimits, read_upload
 
 from ..access.audit import Audit
 from ..access.policy import Caller, Policy
@@ -41,7 +43,7 @@ from ..store import (
     new_id,
 )
 from .evaluator import EvalOptions, evaluate_document, summarize
-from .uploads import FileIn, Limits, load_upload, receive_content, stored_upload
+from .uploads import FileIn, receive_content, stored_upload
 
 __all__ = ["Evaluations", "EvaluationFrames", "FileIn", "sealed_document", "MAX_INSPECTED"]
 
@@ -82,7 +84,7 @@ class Evaluations:
         predictions: GroundTruthCache,
         policy: Policy,
         audit: Audit,
-        limits: Limits,
+        limits: UploadLimits,
         scratch: Callable[[], AbstractContextManager[Path]],
         jobs: JobQueue,
         *,
@@ -199,12 +201,23 @@ class Evaluations:
                 gt_input = self.job_input_store.job_input(job_id, "gt_file")
                 assert gt_input is not None
                 gt_upload = stored_upload(gt_input.content, gt_input.filename, gt_input.sha256)
-                gt = load_upload(gt_upload, "ground_truth", scratch / "gt", self.limits).annotations
+                gt = read_upload(
+                    gt_upload.file,
+                    "ground_truth",
+                    source=gt_upload.filename,
+                    scratch=scratch / "gt",
+                    limits=self.limits,
+                ).annotations
                 gt_sha256 = gt_upload.sha256
             pred = stored_upload(pred_input.content, pred_input.filename, pred_input.sha256)
             keep = self.keep_predictions and gt_record is not None
-            loaded = load_upload(
-                pred, "detections", scratch / "pred", self.limits, keep_lidar=keep, known_frames=gt.frame_index()
+            loaded = read_upload(
+                pred.file,
+                "detections",
+                source=pred.filename,
+                scratch=scratch / "pred",
+                limits=self.limits,
+                options=LoadOptions(keep_lidar=keep, known_frames=gt.frame_index()),
             )
             doc = evaluate_document(
                 gt,
@@ -227,7 +240,7 @@ class Evaluations:
             gt_sha256=gt_sha256,
             pred_filename=pred.filename,
             pred_sha256=pred.sha256,
-            pred_format=str(loaded.format),
+            pred_format=loaded.kind,
             pred_size=pred.size,
             protocol=doc["protocol"],
             duration_ms=round((time.perf_counter() - started) * 1000, 3),
@@ -327,7 +340,7 @@ class EvaluationFrames:
         ground_truths: GroundTruthCatalog,
         predictions: GroundTruthCache,
         policy: Policy,
-        limits: Limits,
+        limits: UploadLimits,
         scratch: Callable[[], AbstractContextManager[Path]],
     ) -> None:
         """``evaluations``: the stored evaluations as callers see them; ``predictions``: the bounded cache of the
@@ -374,7 +387,15 @@ class EvaluationFrames:
                 )
             with self.scratch() as scratch:
                 upload = stored_upload(content, record.pred_filename, record.pred_sha256)
-                return load_upload(upload, "detections", scratch, self.limits, keep_lidar=True).annotations
+                options = LoadOptions(keep_lidar=True)
+                return read_upload(
+                    upload.file,
+                    "detections",
+                    source=upload.filename,
+                    scratch=scratch,
+                    limits=self.limits,
+                    options=options,
+                ).annotations
 
         return gt, self.predictions.get_or_load(record.pred_sha256, load_kept), config
 

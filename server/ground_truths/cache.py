@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import io
 import logging
 import os
 import re
@@ -25,18 +26,12 @@ import numpy as np
 
 from kitti_eval.core.frames import Annotations
 from kitti_eval.errors import KittiEvalError
+from kitti_eval.io.archives import extract_txt_folder
 from kitti_eval.io.loaders import load_ground_truth
+from kitti_eval.io.upload import UploadLimits, read_upload
 
 from ..errors import ApiError, BadRequest, Conflict, NotFound, echo
-from ..evaluations.uploads import (
-    InputFormat,
-    Limits,
-    Upload,
-    extract_txt_folder,
-    load_upload,
-    receive_upload,
-    stored_upload,
-)
+from ..evaluations.uploads import Upload, receive_upload
 from ..store import BenchmarkStore, GroundTruthRecord, GroundTruthStore
 
 __all__ = ["GroundTruths", "GroundTruthCache", "NAME_PATTERN", "annotations_nbytes", "display_name"]
@@ -145,7 +140,7 @@ class GroundTruths:
         benchmark_store: BenchmarkStore,
         root: Path,
         cache: GroundTruthCache,
-        limits: Limits,
+        limits: UploadLimits,
         scratch: Callable[[], AbstractContextManager[Path]],
     ) -> None:
         self.ground_truth_store = ground_truth_store
@@ -187,15 +182,15 @@ class GroundTruths:
             raise Conflict(f"a ground truth named {name!r} exists; delete it first or pick another name")
         if not sealed:
             self._check_not_a_test_set(name)
-        loaded = load_upload(upload, "ground_truth", scratch, self.limits)
+        loaded = read_upload(upload.file, "ground_truth", source=upload.filename, scratch=scratch, limits=self.limits)
         upload.file.seek(0)
         content = upload.file.read()
         record = GroundTruthRecord(
             name=name,
             sha256=upload.sha256,
-            format=str(loaded.format),
+            format=loaded.kind,
             filename=upload.filename,
-            storage=self._relative(upload.sha256, loaded.format),
+            storage=self._relative(upload.sha256, loaded.kind),
             size_bytes=upload.size,
             frames=loaded.annotations.num_frames,
             boxes=loaded.annotations.num_boxes,
@@ -224,14 +219,14 @@ class GroundTruths:
             )
 
     @staticmethod
-    def _relative(sha256: str, fmt: InputFormat | str) -> str:
-        return f"ground-truths/{sha256}.pkl" if str(fmt) == str(InputFormat.PICKLE) else f"ground-truths/{sha256}"
+    def _relative(sha256: str, fmt: str) -> str:
+        return f"ground-truths/{sha256}.pkl" if fmt == "pickle" else f"ground-truths/{sha256}"
 
     def _keep_local(self, record: GroundTruthRecord, content: bytes, folder: Path | None) -> Path:
         """Put the file (or, for an archive, its unpacked txt folder) under the data folder; its path."""
         self.root.mkdir(parents=True, exist_ok=True)
         target = self.root.parent / record.storage
-        if record.format == str(InputFormat.PICKLE):
+        if record.format == "pickle":
             tmp = target.with_name(f".{target.name}.{os.getpid()}.{threading.get_ident()}")
             try:
                 with open(tmp, "wb") as out:
@@ -261,10 +256,13 @@ class GroundTruths:
             )
         with self.scratch() as scratch:
             folder = None
-            if record.format != str(InputFormat.PICKLE):
-                upload = stored_upload(content, record.filename, record.sha256)
+            if record.format != "pickle":  # a zip or tar, unpacked as it was at its registration
                 folder, _ = extract_txt_folder(
-                    upload.file, InputFormat(record.format), scratch, self.limits, record.filename
+                    io.BytesIO(content),
+                    "zip" if record.format == "zip" else "tar",
+                    scratch,
+                    self.limits.archive,
+                    record.filename,
                 )
             return self._keep_local(record, content, folder)
 

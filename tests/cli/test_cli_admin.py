@@ -227,3 +227,24 @@ def test_jobs_from_the_cli(admin, tmp_path) -> None:
         (True, "job.rerun", ids[0]),
         (True, "job.cancel", ids[0]),
     ]
+
+
+def test_a_refused_ground_truth_file_is_named(admin, tmp_path) -> None:
+    """A file the library refuses is named in the one line that says why (the library's error, read once by
+    :func:`kitti_eval.io.upload.read_upload`), whatever refuses it: the archive or what it holds."""
+    import zipfile
+
+    escaping = tmp_path / "labels.zip"
+    with zipfile.ZipFile(escaping, "w") as zf:
+        zf.writestr("../000000.txt", "Car 0 0 0 0 0 1 1 1 1 1 0 0 0 0\n")
+    code, out, err = admin("ground-truth", "add", "gt", str(escaping))
+    assert (code, out) == (1, "")
+    assert (
+        err.splitlines()[-1]
+        == "kitti-eval admin: error: labels.zip: member '../000000.txt' points outside the archive ('..')"
+    )
+    broken = tmp_path / "infos.pkl"
+    broken.write_bytes((GOLDEN / "kitti_infos_val.pkl").read_bytes()[:-100])
+    code, _, err = admin("ground-truth", "add", "gt", str(broken))
+    assert code == 1 and err.splitlines()[-1].startswith("kitti-eval admin: error: infos.pkl: ")
+    assert admin("ground-truth", "add", "gt", str(GOLDEN / "kitti_infos_val.pkl"))[0] == 0  # the name is free

@@ -151,6 +151,32 @@ def test_the_bottom_of_the_house_imports_nothing_above_it() -> None:
     assert importers and all(m.startswith(("kitti_eval.cli", "kitti_eval_server.")) for m in importers), importers
 
 
+def test_the_library_imports_nothing_of_the_service() -> None:
+    """``kitti_eval`` imports nothing of ``kitti_eval_server``, in no statement (inside functions and under
+    ``if TYPE_CHECKING:`` too) and by no name in its code (``importlib.import_module("kitti_eval_server...")``):
+    the service's commands reach the command line through an entry point (kitti_eval/cli/installed.py)."""
+    graph = import_graph(PACKAGES)
+    upward = {m: sorted(t for t in targets if t.startswith("kitti_eval_server")) for m, targets in graph.items()}
+    assert {m: t for m, t in upward.items() if m.startswith("kitti_eval.") and t} == {}
+    named = []
+    for path in sorted((ROOT / "kitti_eval").rglob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        docstrings = {
+            id(node.body[0].value)
+            for node in ast.walk(tree)
+            if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+            and node.body
+            and isinstance(node.body[0], ast.Expr)
+        }
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docstrings:
+                if "kitti_eval_server" in node.value:
+                    named.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert named == []
+    # the other way is read: the service's commands (the command line's before) import the library
+    assert "kitti_eval.errors" in graph["kitti_eval_server.commands.admin"]
+
+
 def _write(folder: Path, files: Mapping[str, str]) -> None:
     for name, text in files.items():
         path = folder / name

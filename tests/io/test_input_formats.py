@@ -589,9 +589,9 @@ def _same_file_cases(tmp_path: Path) -> dict[str, tuple[str, bytes]]:
     ],
 )
 def test_a_file_loads_the_same_way_through_the_cli_and_the_service(tmp_path: Path, case: str) -> None:
-    """The CLI's loader and the service's upload path decide what a file is by the same test of its content,
-    whatever its name: the same boxes, or the same refusal."""
-    from kitti_eval_server.evaluations.uploads import Limits, load_upload, receive_upload
+    """The CLI's loader and the upload reader the service calls decide what a file is by the same test of its
+    content, whatever its name: the same boxes, or the same refusal."""
+    from kitti_eval.io.upload import read_upload
 
     name, data = _same_file_cases(tmp_path)[case]
     path = tmp_path / "in" / name
@@ -600,14 +600,7 @@ def test_a_file_loads_the_same_way_through_the_cli_and_the_service(tmp_path: Pat
     outcomes = []
     for load in (
         lambda: load_detections(path),
-        lambda: (
-            load_upload(
-                receive_upload(io.BytesIO(data), name, "upload"),
-                "detections",
-                tmp_path / "scratch",
-                Limits(1 << 30, 1000),
-            ).annotations
-        ),
+        lambda: read_upload(io.BytesIO(data), "detections", source=name, scratch=tmp_path / "scratch").annotations,
     ):
         try:
             dt = load()

@@ -391,8 +391,8 @@ def _verdicts(c, tmp_path, name: str, data: bytes) -> tuple[object, object]:
         assert set(dt.frame_ids) == set(gt.frame_ids)  # what is scored is every test frame
     except InvalidSubmission as e:
         job = e.problems
-    except Exception as e:  # noqa: BLE001 - the service's ArchiveError is the library's InputError, as a 422
-        job = f"{type(e).__name__.replace('ArchiveError', 'InputError')}: {e}"
+    except Exception as e:  # noqa: BLE001 - the class is the verdict: the library's, as the validator's
+        job = f"{type(e).__name__}: {e}"
     return cli, job
 
 

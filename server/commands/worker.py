@@ -1,8 +1,8 @@
 """``kitti-eval worker``: worker processes that run the service's accepted evaluations, on this machine or any
 other that reaches the service's database (the server extra). Needs the database only.
 
-Exit codes: 0 drained and stopped (SIGTERM or SIGINT), 1 no database or a process that did not stop cleanly,
-2 usage.
+Exit codes: 0 drained and stopped (SIGTERM or SIGINT), 1 no database, a process that did not stop cleanly or no
+server extra, 2 usage.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError
+from . import without_server_extra
 
 __all__ = ["add_parser", "run"]
 
@@ -53,9 +53,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        from kitti_eval_server.jobs.process import run_pool
+        from ..jobs.process import run_pool
     except ImportError as e:
-        raise ConfigError(f"the workers need the server extra: pip install 'kitti-eval[server]' ({e})") from None
+        return without_server_extra("worker", e)
     return run_pool(
         data_dir=args.data_dir,
         database_url=args.database_url,

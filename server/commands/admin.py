@@ -18,7 +18,17 @@ import getpass
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from kitti_eval.errors import KittiEvalError
+
+from . import without_server_extra
+
+if TYPE_CHECKING:  # the server extra's: imported when the command runs, so that its parser builds without them
+    from ..access.policy import Caller
+    from ..jobs.queue import JobRecord
+    from ..service import Service
+    from ..settings import Settings
 
 __all__ = ["add_parser", "run"]
 
@@ -168,16 +178,12 @@ def run(args: argparse.Namespace) -> int:
         from pydantic import ValidationError
         from sqlalchemy.exc import SQLAlchemyError
 
-        from kitti_eval_server.access.accounts import Accounts
-        from kitti_eval_server.access.audit import Audit
-        from kitti_eval_server.access.policy import Policy
-        from kitti_eval_server.errors import ApiError
-        from kitti_eval_server.settings import Settings
-        from kitti_eval_server.store import Store
+        from ..access.policy import Policy
+        from ..errors import ApiError
+        from ..service import Service
+        from ..settings import Settings
     except ImportError as e:
-        _say(f"error: needs the server extra: pip install 'kitti-eval[server]' ({e})")
-        return EXIT_INPUT
-    from ..errors import KittiEvalError
+        return without_server_extra("admin", e)
 
     overrides = {k: v for k, v in (("data_dir", args.data_dir), ("database_url", args.database_url)) if v}
     try:
@@ -190,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
     where = settings.database_name
     _say(f"database {where}")  # every run names the database it reads and writes
     try:
-        if not args.create and not _database_exists(settings.resolved_database_url, settings.database_busy_s):
+        if not args.create and not _database_exists(settings):
             _say(
                 f"error: no kitti-eval database at {where}: give the service's settings (KITTI_EVAL_DATA_DIR or "
                 "--data-dir, KITTI_EVAL_DATABASE_URL or --database-url), or --create to make a new one there"
@@ -198,21 +204,16 @@ def run(args: argparse.Namespace) -> int:
             return EXIT_INPUT
         if settings.database_url is None:  # SQLite in the data folder, which --create makes
             settings.data_dir.mkdir(parents=True, exist_ok=True)
-        if args.admin_what == "ground-truth":
-            return _ground_truth(args, settings, caller)
-        if args.admin_what == "benchmark":
-            return _benchmark(args, settings, caller)
-        if args.admin_what == "jobs":
-            return _jobs(args, settings, caller)
-        store = Store(settings.resolved_database_url, busy_s=settings.database_busy_s)
-        try:
-            store.create_schema()
-            audit = Audit(store.account_store)
-            return _account_command(args, store, Accounts(store.account_store, audit, lambda: ""), caller)
-        finally:
-            store.dispose()
+        with _offline_service(Service(settings)) as service:
+            if args.admin_what == "ground-truth":
+                return _ground_truth(args, service, caller)
+            if args.admin_what == "benchmark":
+                return _benchmark(args, service, caller)
+            if args.admin_what == "jobs":
+                return _jobs(args, service, caller)
+            return _account_command(args, service, caller)
     except (ApiError, KittiEvalError) as e:
-        _say(f"error: {getattr(e, 'message', e)}")
+        _say(f"error: {e.message if isinstance(e, ApiError) else e}")  # the library's names the file
         return EXIT_INPUT
     except SQLAlchemyError as e:
         where = settings.resolved_database_url.split("@")[-1]  # not the password
@@ -223,18 +224,19 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_INPUT
 
 
-def _database_exists(url: str, busy_s: float) -> bool:
-    """Whether ``url`` holds a kitti-eval database (its SQLite file exists, or its tables do): the service makes
-    it at its first start, ``--create`` here."""
+def _database_exists(settings: Settings) -> bool:
+    """Whether the settings' database is a kitti-eval database (its SQLite file exists, or its tables do): the
+    service makes it at its first start, ``--create`` here."""
     from sqlalchemy import inspect
     from sqlalchemy.engine import make_url
 
-    from kitti_eval_server.store import Store
+    from ..store import Store
 
+    url = settings.resolved_database_url
     parsed = make_url(url)
     if parsed.get_backend_name() == "sqlite":
         return parsed.database is not None and Path(parsed.database).is_file()
-    store = Store(url, busy_s=busy_s)
+    store = Store(url, busy_s=settings.database_busy_s)
     try:
         return bool(inspect(store.engine).has_table("audit"))
     finally:
@@ -248,8 +250,9 @@ def _login() -> str:
         return "unknown"
 
 
-def _account_command(args: argparse.Namespace, store: Any, accounts: Any, caller: Any) -> int:
+def _account_command(args: argparse.Namespace, service: Service, caller: Caller) -> int:
     what, action = args.admin_what, getattr(args, "admin_action", None)
+    store, accounts = service.store, service.accounts
     if what == "user" and action == "add":
         user = accounts.add_user(args.name, is_admin=args.admin, caller=caller)
         print(f"user {user.name}{' (admin)' if user.is_admin else ''}")
@@ -291,11 +294,9 @@ def _account_command(args: argparse.Namespace, store: Any, accounts: Any, caller
 
 
 @contextlib.contextmanager
-def _offline_service(settings: Any) -> Iterator[Any]:
-    """The service's state on this machine, without its HTTP side: scratch space and tables ready, closed after."""
-    from kitti_eval_server.service import Service
-
-    service = Service(settings)
+def _offline_service(service: Service) -> Iterator[Service]:
+    """The service's parts on this machine, as the application assembles them (:class:`Service`), without its
+    HTTP side, its workers or its demo: scratch space and tables ready, closed after."""
     try:
         service.scratch_space.open()
         service.store.create_schema()
@@ -304,109 +305,104 @@ def _offline_service(settings: Any) -> Iterator[Any]:
         service.stop()
 
 
-def _run_jobs(service: Any, job_ids: list[str]) -> list[Any]:
+def _run_jobs(service: Service, job_ids: list[str]) -> list[JobRecord | None]:
     """Run the queued rescoring jobs, and the jobs of the board's intervals they queue, in this process until none
     is left (a service's workers on the same database may take some of ``job_ids`` meanwhile: those are waited
     for); the jobs ``job_ids`` as they ended."""
-    from kitti_eval_server.jobs.workers import Workers, worker_name
+    from ..jobs.workers import worker_name
 
-    workers = Workers(service.jobs, service.workers.handlers, threads=0)
     name = worker_name(0) + ":admin"
     while (job := service.jobs.claim(name, kinds=["rescore", "intervals"])) is not None:
-        workers.run_one(job, name)
+        service.workers.run_one(job, name)
     return [service.jobs.wait(job_id, service.jobs.lease_s * service.jobs.max_attempts + 60) for job_id in job_ids]
 
 
-def _ground_truth(args: argparse.Namespace, settings: Any, caller: Any) -> int:
-    from kitti_eval_server.service import FileIn
+def _ground_truth(args: argparse.Namespace, service: Service, caller: Caller) -> int:
+    from ..service import FileIn
 
-    with _offline_service(settings) as service:
-        with open(args.file, "rb") as fh:
-            record = service.catalog.add(
-                args.name, FileIn(fh, args.file.name), caller=caller, project=args.project, sealed=args.sealed
-            )
+    with open(args.file, "rb") as fh:
+        record = service.catalog.add(
+            args.name, FileIn(fh, args.file.name), caller=caller, project=args.project, sealed=args.sealed
+        )
     sealed = ", sealed" if record.sealed else ""
     print(f"ground truth {record.name}: {record.frames} frames, {record.boxes} boxes{sealed}, sha256 {record.sha256}")
     return EXIT_OK
 
 
-def _benchmark(args: argparse.Namespace, settings: Any, caller: Any) -> int:
-    from kitti_eval_server.benchmarks import DEFAULT_KEY
+def _benchmark(args: argparse.Namespace, service: Service, caller: Caller) -> int:
+    from ..benchmarks import DEFAULT_KEY
 
-    with _offline_service(settings) as service:
-        benchmarks = service.benchmarks
-        action = args.admin_action
-        if action == "add":
-            description = args.description
-            if description.startswith("@"):
-                description = Path(description[1:]).read_text(encoding="utf-8")
-            bench = benchmarks.catalog.create(
-                args.name,
-                ground_truth=args.ground_truth,
-                title=args.title,
-                description=description,
-                protocol=args.protocol,
-                classes=args.classes,
-                threshold_sets=args.threshold_sets,
-                key=args.key or [DEFAULT_KEY],
-                columns=args.column or [],
-                quota=args.quota,
-                public=args.public,
-                opens_at=args.opens,
-                closes_at=args.closes,
-                split_percent=args.split_percent,
-                max_published=args.max_published,
-                open_to_all=args.open_to_all,
-                share_test_set=args.share_test_set,
-                caller=caller,
-            )
-            n, days = bench.quota
-            cap = f", at most {bench.max_published} published per participant" if bench.max_published else ""
-            print(
-                f"benchmark {bench.name} on {bench.gt_name}: key {' + '.join(bench.key)}, quota {n} per {days:g} "
-                f"days{cap}, {'public' if bench.public else 'not public'}"
-            )
-        elif action == "list":
-            for b in benchmarks.catalog.visible(caller):
-                state = "open" if b.is_open() else "closed"
-                print(f"{b.shown_name}\t{b.gt_name}\t{state}\t{'public' if b.public else '-'}\t{b.title}")
-        elif action in ("close", "reopen", "reveal"):
-            values = {"close": {"closed": True}, "reopen": {"closed": False}, "reveal": {"revealed": True}}[action]
-            bench = benchmarks.catalog.set_state(args.name, caller=caller, **values)
-            print(f"benchmark {bench.name}: {'open' if bench.is_open() else 'closed'}, board {bench.phase}")
-        elif action == "rescore":
-            queued = benchmarks.submissions.rescore(args.name, caller=caller)
-            ended = _run_jobs(service, queued["jobs"])
-            done = sum(1 for j in ended if j is not None and j.state == "done")
-            print(f"benchmark {args.name}: {done} submissions rescored, {len(ended) - done} failed")
-        elif action == "submissions":
-            for s in benchmarks.submissions.all_submissions(args.name, caller):
-                flags = ",".join(k for k in ("published", "disqualified") if s[k]) or "-"
-                print(f"{s['id']}\t{s['participant']}\t{s['created_at']}\t{s['status']}\t{flags}\t{s['method'] or '-'}")
-        elif action == "disqualify":
-            benchmarks.submissions.disqualify(args.name, args.submission, caller=caller)
-            print(f"submission {args.submission} disqualified")
-        elif action == "apply":
-            from kitti_eval_server.benchmarks.benchmark_file import apply_benchmark_file
+    benchmarks = service.benchmarks
+    action = args.admin_action
+    if action == "add":
+        description = args.description
+        if description.startswith("@"):
+            description = Path(description[1:]).read_text(encoding="utf-8")
+        bench = benchmarks.catalog.create(
+            args.name,
+            ground_truth=args.ground_truth,
+            title=args.title,
+            description=description,
+            protocol=args.protocol,
+            classes=args.classes,
+            threshold_sets=args.threshold_sets,
+            key=args.key or [DEFAULT_KEY],
+            columns=args.column or [],
+            quota=args.quota,
+            public=args.public,
+            opens_at=args.opens,
+            closes_at=args.closes,
+            split_percent=args.split_percent,
+            max_published=args.max_published,
+            open_to_all=args.open_to_all,
+            share_test_set=args.share_test_set,
+            caller=caller,
+        )
+        n, days = bench.quota
+        cap = f", at most {bench.max_published} published per participant" if bench.max_published else ""
+        print(
+            f"benchmark {bench.name} on {bench.gt_name}: key {' + '.join(bench.key)}, quota {n} per {days:g} "
+            f"days{cap}, {'public' if bench.public else 'not public'}"
+        )
+    elif action == "list":
+        for b in benchmarks.catalog.visible(caller):
+            state = "open" if b.is_open() else "closed"
+            print(f"{b.shown_name}\t{b.gt_name}\t{state}\t{'public' if b.public else '-'}\t{b.title}")
+    elif action in ("close", "reopen", "reveal"):
+        values = {"close": {"closed": True}, "reopen": {"closed": False}, "reveal": {"revealed": True}}[action]
+        bench = benchmarks.catalog.set_state(args.name, caller=caller, **values)
+        print(f"benchmark {bench.name}: {'open' if bench.is_open() else 'closed'}, board {bench.phase}")
+    elif action == "rescore":
+        queued = benchmarks.submissions.rescore(args.name, caller=caller)
+        ended = _run_jobs(service, queued["jobs"])
+        done = sum(1 for j in ended if j is not None and j.state == "done")
+        print(f"benchmark {args.name}: {done} submissions rescored, {len(ended) - done} failed")
+    elif action == "submissions":
+        for s in benchmarks.submissions.all_submissions(args.name, caller):
+            flags = ",".join(k for k in ("published", "disqualified") if s[k]) or "-"
+            print(f"{s['id']}\t{s['participant']}\t{s['created_at']}\t{s['status']}\t{flags}\t{s['method'] or '-'}")
+    elif action == "disqualify":
+        benchmarks.submissions.disqualify(args.name, args.submission, caller=caller)
+        print(f"submission {args.submission} disqualified")
+    elif action == "apply":
+        from ..benchmarks.benchmark_file import apply_benchmark_file
 
-            applied = apply_benchmark_file(
-                benchmarks.catalog, _read_text(args.file), caller=caller, source=str(args.file)
-            )
-            print(f"benchmark {applied.name}: " + ("; ".join(applied.lines)))
-        elif action == "export" and args.file is not None:
-            from kitti_eval_server.benchmarks.benchmark_file import export_benchmark_file
+        applied = apply_benchmark_file(benchmarks.catalog, _read_text(args.file), caller=caller, source=str(args.file))
+        print(f"benchmark {applied.name}: " + ("; ".join(applied.lines)))
+    elif action == "export" and args.file is not None:
+        from ..benchmarks.benchmark_file import export_benchmark_file
 
-            args.file.write_text(export_benchmark_file(benchmarks.catalog, args.name, caller=caller), encoding="utf-8")
-            print(f"benchmark {args.name}: written to {args.file}")
-        elif action == "export":
-            board = benchmarks.board.leaderboard(args.name, caller)
-            sys.stdout.write(benchmarks.board.leaderboard_csv(board))
+        args.file.write_text(export_benchmark_file(benchmarks.catalog, args.name, caller=caller), encoding="utf-8")
+        print(f"benchmark {args.name}: written to {args.file}")
+    elif action == "export":
+        board = benchmarks.board.leaderboard(args.name, caller)
+        sys.stdout.write(benchmarks.board.leaderboard_csv(board))
     return EXIT_OK
 
 
 def _read_text(path: Path) -> str:
     """A file the command reads (a benchmark file): its refusal is an input error naming it, not a traceback."""
-    from ..errors import InputError
+    from kitti_eval.errors import InputError
 
     try:
         return path.read_text(encoding="utf-8")
@@ -414,29 +410,28 @@ def _read_text(path: Path) -> str:
         raise InputError(f"{path}: cannot be read as UTF-8 text: {getattr(e, 'strerror', None) or e}") from None
 
 
-def _jobs(args: argparse.Namespace, settings: Any, caller: Any) -> int:
-    from kitti_eval_server.jobs.workers import JobFailed
+def _jobs(args: argparse.Namespace, service: Service, caller: Caller) -> int:
+    from ..jobs.workers import JobFailed
 
-    with _offline_service(settings) as service:
-        admin = service.job_admin
-        if args.admin_action == "list":
-            for job in admin.listed(caller, state=args.state, limit=max(1, args.limit)):
-                if job.state == "done":
-                    detail = job.result_id or "-"
-                elif job.state == "running":
-                    detail = job.worker or "-"
-                else:
-                    detail = JobFailed(job.error).message if job.error else "-"
-                print(
-                    f"{job.id}\t{job.kind}\t{job.state}\t{job.attempts}/{job.max_attempts}\t{job.owner}\t"
-                    f"{job.accepted_at.isoformat()}\t{detail}"
-                )
-            counts = admin.counts(caller)
-            _say(", ".join(f"{n} {state}" for state, n in counts.items()))
-        elif args.admin_action == "cancel":
-            job = admin.cancel(args.job_id, caller)
-            print(f"job {job.id} cancelled")
-        elif args.admin_action == "rerun":
-            job = admin.rerun(args.job_id, caller)
-            print(f"job {job.id} queued again")
+    admin = service.job_admin
+    if args.admin_action == "list":
+        for job in admin.listed(caller, state=args.state, limit=max(1, args.limit)):
+            if job.state == "done":
+                detail = job.result_id or "-"
+            elif job.state == "running":
+                detail = job.worker or "-"
+            else:
+                detail = JobFailed(job.error).message if job.error else "-"
+            print(
+                f"{job.id}\t{job.kind}\t{job.state}\t{job.attempts}/{job.max_attempts}\t{job.owner}\t"
+                f"{job.accepted_at.isoformat()}\t{detail}"
+            )
+        counts = admin.counts(caller)
+        _say(", ".join(f"{n} {state}" for state, n in counts.items()))
+    elif args.admin_action == "cancel":
+        job = admin.cancel(args.job_id, caller)
+        print(f"job {job.id} cancelled")
+    elif args.admin_action == "rerun":
+        job = admin.rerun(args.job_id, caller)
+        print(f"job {job.id} queued again")
     return EXIT_OK
