@@ -91,6 +91,7 @@ def test_a_participant_makes_a_team_and_submits_to_the_test_phase_through_the_pa
     shown = c.get("/benchmarks/kitti-phases", params={"phase": "test"}).text
     assert '<span class="team-of">Two</span>: alice' in shown
     assert "sort=rank&amp;order=asc&amp;phase=test" in shown  # sorting keeps the phase
+    assert "sort=Car/3d/moderate/R40/strict&amp;order=desc&amp;phase=test" in shown  # by a column too
     # bob's page: the team's quota, one of two used
     c.cookies.clear()
     mine = ok(c.get("/v1/benchmarks/kitti-phases/phases/test/submissions", headers=bearer(hosted.tokens["bob"])))
