@@ -21,7 +21,7 @@ from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any
 
 from ..access.policy import Caller
-from ..errors import BadRequest, NotFound, echo
+from ..errors import ApiError, BadRequest, NotFound, echo
 from ..store import BenchmarkRecord
 from .rules import MAIN_PHASE, PHASE_SEPARATOR, Benchmark
 from .views import PHASE_FIELDS, pick
@@ -37,6 +37,7 @@ __all__ = [
     "current_row",
     "current_phase_of",
     "row_of",
+    "phase_row_or_none",
     "submission_row",
     "phase_views",
     "MAX_BENCHMARK_NAME",
@@ -152,6 +153,14 @@ def row_of(catalog: BenchmarkCatalog, name: str, phase: str, caller: Caller) -> 
             catalog.get(bench.name, caller)
             return bench.name
     raise NotFound(f"the benchmark {name!r} has no phase named {echo(phase)}")
+
+
+def phase_row_or_none(catalog: BenchmarkCatalog, name: str, phase: str, caller: Caller) -> str | None:
+    """:func:`row_of`, None where it refuses (whoever asks before a request's body: the route refuses them)."""
+    try:
+        return row_of(catalog, name, phase, caller)
+    except ApiError:
+        return None
 
 
 def phase_view(bench: Benchmark, *, current: bool, names_test_set: bool) -> dict[str, Any]:
