@@ -29,6 +29,7 @@ from kitti_eval.core.matching import available_cpus
 from .access.auth import CALLER_KEY, AuthMiddleware, Door, access_of, flat_routes
 from .access.headers import SecurityHeaders
 from .access.policy import Access, Caller
+from .benchmarks.phases import phase_row_or_none
 from .errors import ApiError, StartupRefused, install_error_handlers
 from .idempotency import parse_key
 from .middleware import (
@@ -40,7 +41,7 @@ from .middleware import (
     RefuseBeforeBody,
 )
 from .observability import Metrics, RequestMiddleware, configure_logging
-from .routes import admin, benchmarks, evaluations, frames, gates, ground_truths, health, jobs, metrics
+from .routes import admin, benchmarks, evaluations, frames, gates, ground_truths, health, jobs, metrics, phases
 from .service import Service
 from .settings import Settings, default_data_dir
 from .shutdown import Drainer
@@ -115,6 +116,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(frames.router)
     app.include_router(metrics.router)
     app.include_router(admin.router)
+    app.include_router(phases.router)
     app.include_router(benchmarks.router)
     app.include_router(web_router)
     app.include_router(benchmark_pages)
@@ -134,7 +136,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # before the body: a submission the quota or the queue refuses now is answered without its file, when it
     # arrives and again when its turn to send its file comes
     before_body = BeforeBody(
-        [("POST", SUBMISSIONS, _submission_refused(service, cache(lambda: _declared(app, "POST", SUBMISSIONS))))],
+        [
+            (method, path, _submission_refused(service, cache(lambda p=path: _declared(app, "POST", p))))
+            for method, path in (("POST", SUBMISSIONS), ("POST", PHASE_SUBMISSIONS))
+        ],
         caller_key=CALLER_KEY,
         limit=settings.max_upload_bytes,
         timeout_s=settings.body_timeout_s,
@@ -184,6 +189,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
 #: the route whose refusals (a used quota, a full queue) are answered before its file
 SUBMISSIONS = "/v1/benchmarks/{name}/submissions"
+#: and a phase's (its quota, the team's in a team)
+PHASE_SUBMISSIONS = "/v1/benchmarks/{name}/phases/{phase}/submissions"
 
 
 def _declared(app: FastAPI, method: str, path: str) -> Access:
@@ -205,7 +212,10 @@ def _submission_refused(service: Service, access: Callable[[], Access]) -> Befor
             idempotency_key = parse_key(key)
         except ApiError:
             return None  # the route refuses it, as always
-        return service.benchmarks.submissions.refused_now(params["name"], admitted, size, idempotency_key)
+        name = params["name"]
+        if "phase" in params:  # the phase's row, for a caller who sees the benchmark (the route answers the others)
+            name = phase_row_or_none(service.benchmarks.catalog, name, params["phase"], admitted) or ""
+        return service.benchmarks.submissions.refused_now(name, admitted, size, idempotency_key) if name else None
 
     return check
 

@@ -41,6 +41,9 @@ __all__ = [
     "Caller",
     "Policy",
     "RULES",
+    "may_join_team",
+    "sees_teams",
+    "require_open_labels",
     "READ",
     "WRITE",
     "ALL_SCOPES",
@@ -128,6 +131,14 @@ class _Evaluation(Protocol):
     def gt_name(self) -> str | None: ...
 
 
+class _User(Protocol):
+    @property
+    def is_admin(self) -> bool: ...
+
+    @property
+    def projects(self) -> tuple[str, ...]: ...
+
+
 class _GroundTruth(Protocol):
     @property
     def name(self) -> str: ...
@@ -173,12 +184,26 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
         "the public part's AP until the reveal, then all; never a count of the test set",
         "all (submissions/all)",
     ),
+    (
+        "own submissions: frames (TP, FP, FN per frame)",
+        Access.READER,
+        "in a phase on open labels only, never on a sealed test set",
+        "their baselines', on open labels",
+    ),
     ("own submissions: publish, withdraw", Access.WRITER, "until the benchmark closes", "their baselines"),
     (
         "benchmark baselines: submit, publish, withdraw",
         Access.WRITER,
         "no",
         "under no quota, shown unranked, until the close",
+    ),
+    ("benchmark teams: list", Access.READER, "who may take part in it", "yes"),
+    (
+        "benchmark teams: make one, join one",
+        Access.WRITER,
+        "who may take part: makes one inviting others who may, joins one that invited them (one team each a "
+        "benchmark, at most its team size)",
+        "no (admins submit baselines)",
     ),
     ("benchmarks: create, close, reopen, reveal, rescore, disqualify", Access.ADMIN, "no", "yes"),
     ("accounts: users, projects, members, tokens, audit log", Access.ADMIN, "no", "yes"),
@@ -483,3 +508,29 @@ class Policy:
         caller is an admin)."""
         if not caller.is_admin:
             raise Forbidden("this action is for admins")
+
+
+# -- teams and open labels: the benchmarks' rules beside the class (whose size is kept down) ----------------------
+def may_join_team(user: _User | None, *, project: str | None, open_to_all: bool) -> bool:
+    """Whom a participant may invite to a team: an account that is not an admin's (an admin submits baselines)
+    and that may take part in the benchmark (a member of its test set's project, any account when the test set is
+    shared or the benchmark is open to all)."""
+    if user is None or user.is_admin:
+        return False
+    return open_to_all or project is None or project in user.projects
+
+
+def sees_teams(policy: Policy, caller: Caller, *, project: str | None, open_to_all: bool) -> bool:
+    """A benchmark's teams and their members are seen by those who may take part in it, and by admins (the board
+    names the team of each published entry that is not anonymous)."""
+    return caller.is_admin or policy.may_take_part(caller, project=project, open_to_all=open_to_all)
+
+
+def require_open_labels(*, open_labels: bool, what: str) -> None:
+    """A submission's frames are shown to its participant in a phase on open labels only: a sealed test set's
+    per-frame view never leaves the service."""
+    if not open_labels:
+        raise Sealed(
+            f"the {what} is on a sealed test set: only aggregate results are shown, no per-frame view (a phase on "
+            "open labels shows its participants their frames)"
+        )

@@ -34,8 +34,9 @@ them, and a participant's submission is compared with their previous best and th
 The modules: :mod:`.rules` (a benchmark's definition and rules), :mod:`.catalog` (seeing benchmarks, the
 admins' actions on them), :mod:`.intervals` (the resampled keys: computed, kept, compared),
 :mod:`.submissions` (accepting, scoring, publishing), :mod:`.leaderboard` (ranking, CSV), :mod:`.views` (what
-a caller is shown, from allow-lists) and
-:mod:`.markdown` (the description as HTML).
+a caller is shown, from allow-lists), :mod:`.markdown` (the description as HTML), :mod:`.phases` (a benchmark's
+phases, each a benchmark row of its own, and which one a route addresses), :mod:`.teams` (teams, and the team's
+quota) and :mod:`.benchmark_file` (a benchmark defined by a TOML file: applied, exported).
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ from .leaderboard import Leaderboard
 from .markdown import render_markdown
 from .rules import DEFAULT_KEY, Benchmark, in_public_part, key_value, parse_column, parse_quota
 from .submissions import InvalidSubmission, QuotaExceeded, Scoring, Submissions
+from .teams import Teams
 
 __all__ = [
     "Benchmarks",
@@ -81,7 +83,8 @@ __all__ = [
 class Benchmarks:
     """The hosted benchmarks, as collaborators the routes reach by name: the ``catalog`` (seeing benchmarks, the
     admins' actions on them), the ``submissions`` (accepting, publishing, the admins' lists), their ``scoring``
-    (by jobs), the ``board`` (ranking, CSV) and the ``intervals`` (the resampled keys), over one service."""
+    (by jobs), the ``board`` (ranking, CSV), the ``intervals`` (the resampled keys) and the ``teams``, over one
+    service."""
 
     def __init__(
         self,
@@ -90,12 +93,14 @@ class Benchmarks:
         submissions: Submissions,
         scoring: Scoring,
         board: Leaderboard,
+        teams: Teams,
     ) -> None:
         self.catalog = catalog
         self.intervals = intervals
         self.submissions = submissions
         self.scoring = scoring
         self.board = board
+        self.teams = teams
 
     @classmethod
     def assemble(
@@ -131,4 +136,6 @@ class Benchmarks:
             wake=wake,
         )
         scoring = Scoring(catalog, intervals, *stores, policy, jobs, limits, scratch)
-        return cls(catalog, intervals, submissions, scoring, Leaderboard(catalog, intervals, store.benchmark_store))
+        board = Leaderboard(catalog, intervals, store.benchmark_store)
+        teams = Teams(catalog, store.team_store, store.account_store)
+        return cls(catalog, intervals, submissions, scoring, board, teams)

@@ -19,13 +19,36 @@ from ..evaluations.evaluator import EvalOptions
 from ..ground_truths.cache import GroundTruths
 from ..jobs.queue import JobQueue
 from ..store import BenchmarkRecord, BenchmarkStore, GroundTruthRecord
+from .phases import PhaseOf, current_phase_of, phase_views
 from .rules import DEFAULT_KEY, DIFFICULTIES, Benchmark, parse_column, parse_quota, parse_time
 from .views import benchmark_view
 
-__all__ = ["BenchmarkCatalog"]
+__all__ = ["BenchmarkCatalog", "scoring_options"]
 
 _MAX_COLUMNS = 60
 _MAX_PUBLISHED = 1000
+
+
+def scoring_options(
+    protocol: str, classes: str, threshold_sets: str, key: Sequence[str], columns: Sequence[str]
+) -> dict[str, Any]:
+    """A benchmark's scoring as its row keeps it (``protocol``, ``classes``, ``sets``, ``key``, ``columns``),
+    checked and normalised: the library's checks of the options, each column to its five parts."""
+    options = EvalOptions(protocol=protocol, classes=classes, threshold_sets=threshold_sets)
+    config = options.config()  # the library's checks of the options
+    class_names, sets = list(config.classes), list(config.threshold_sets)
+    keys = [parse_column(k, class_names, sets) for k in key if k.strip()] or [DEFAULT_KEY]
+    wanted = list(columns) or [f"{c}/3d/{d}" for c in class_names for d in DIFFICULTIES]
+    cols = list(dict.fromkeys(parse_column(c, class_names, sets) for c in wanted if c.strip()))
+    if len(cols) > _MAX_COLUMNS:
+        raise BadRequest(f"at most {_MAX_COLUMNS} columns")
+    return {
+        "protocol": protocol,
+        "classes": ",".join(class_names),
+        "sets": ",".join(sets),
+        "key": keys,
+        "columns": cols,
+    }
 
 
 class BenchmarkCatalog:
@@ -72,14 +95,21 @@ class BenchmarkCatalog:
     def describe(self, bench: Benchmark, caller: Caller, *, rescoring: bool = False) -> dict[str, Any]:
         """The benchmark as the caller reads it (:func:`.views.benchmark_view`): its test set's name only for
         those the policy lets read it; ``rescoring``: for an admin, the rescoring jobs by state too."""
-        out = benchmark_view(bench, names_test_set=self.policy.names_test_set(caller, project=bench.project))
+        out = benchmark_view(
+            bench,
+            names_test_set=self.policy.names_test_set(caller, project=bench.project),
+            phases=phase_views(self, bench, caller),
+        )
         if rescoring and self.policy.administers(caller):
             out["rescoring"] = self.jobs.counts(group=bench.name, kind="rescore")
         return out
 
     def visible(self, caller: Caller) -> list[Benchmark]:
+        """The benchmarks the caller sees, by name, each in its current phase."""
         found = [Benchmark.from_record(r) for r in self.benchmark_store.list_benchmarks()]
-        return [b for b in found if self.sees(caller, b)]
+        firsts = [b for b in found if self.sees(caller, b) and not b.is_later_phase]  # a benchmark, not each phase
+        current = [current_phase_of(self, b) for b in firsts]  # each in its current phase
+        return [c if self.sees(caller, c) else b for b, c in zip(firsts, current)]
 
     def frame_ids(self, name: str, caller: Caller) -> list[str]:
         """The test frame ids (public, as KITTI's: the labels are what is sealed)."""
@@ -99,7 +129,7 @@ class BenchmarkCatalog:
         """The record of the benchmark's test set as registered now: refused unless it is sealed (registering a
         benchmark's ground truth unsealed is refused too, so this holds unless the database was changed by hand)."""
         record = self.ground_truths.record(bench.gt_name)
-        if not record.sealed:
+        if not record.sealed and not bench.open_labels:
             raise Conflict(
                 f"the test set {bench.gt_name!r} of benchmark {bench.name!r} is not sealed; an admin deletes it "
                 "and registers it again with sealed=true"
@@ -128,26 +158,24 @@ class BenchmarkCatalog:
         open_to_all: bool = False,
         share_test_set: bool = False,
         caller: Caller,
+        phase: PhaseOf | None = None,
     ) -> Benchmark:
         """``open_to_all``: every signed-in account may take part (else the members of the test set's project);
         ``share_test_set``: the test set may already be another benchmark's (refused otherwise: each benchmark
-        gives a participant a quota and a public part of its own on the same labels)."""
+        gives a participant a quota and a public part of its own on the same labels). ``phase``: the row is a
+        phase of a benchmark defined by a file (:mod:`.phases`): stored under its row's name, with its phase's
+        settings; a phase without a split may be on open labels (a ground truth not sealed)."""
         self.policy.require_admin(caller)
         Accounts.check_name(name, "benchmark")
+        name = phase.row if phase is not None else name
         record = self.ground_truths.record(ground_truth)
-        if not record.sealed:
+        open_labels = phase is not None and split_percent is None and not record.sealed
+        if not record.sealed and not open_labels:
             raise BadRequest(
                 f"the ground truth {ground_truth!r} is not sealed; a benchmark's test set is registered "
                 "with sealed=true"
             )
-        options = EvalOptions(protocol=protocol, classes=classes, threshold_sets=threshold_sets)
-        config = options.config()  # the library's checks of the options
-        class_names, sets = list(config.classes), list(config.threshold_sets)
-        keys = [parse_column(k, class_names, sets) for k in key if k.strip()] or [DEFAULT_KEY]
-        wanted = list(columns) or [f"{c}/3d/{d}" for c in class_names for d in DIFFICULTIES]
-        cols = list(dict.fromkeys(parse_column(c, class_names, sets) for c in wanted if c.strip()))
-        if len(cols) > _MAX_COLUMNS:
-            raise BadRequest(f"at most {_MAX_COLUMNS} columns")
+        scoring = scoring_options(protocol, classes, threshold_sets, key, columns)
         count, days = parse_quota(quota)
         if split_percent is not None and not 0 < split_percent < 100:
             raise BadRequest("split_percent is the public part of the test frames: more than 0 and less than 100")
@@ -177,14 +205,11 @@ class BenchmarkCatalog:
             gt_name=record.name,
             project=record.project,
             config={
-                "protocol": protocol,
-                "classes": ",".join(class_names),
-                "sets": ",".join(sets),
-                "key": keys,
-                "columns": cols,
+                **scoring,
                 "quota": [count, days],
                 "split_percent": split_percent,
                 "open_to_all": bool(open_to_all),
+                **(phase.config(open_labels=open_labels) if phase is not None else {}),
             },
             split_seed=secrets.token_hex(16) if split_percent is not None else None,
             public=public,

@@ -16,6 +16,7 @@ from ..errors import BadRequest
 from ..store import BenchmarkStore
 from .catalog import BenchmarkCatalog
 from .intervals import Intervals, ranked_rows, rounded
+from .teams import team_names
 from .views import BOARD_FIELDS, ENTRY_FIELDS, pick
 
 __all__ = ["Leaderboard"]
@@ -47,6 +48,7 @@ class Leaderboard:
         rank_of = {sid: i for i, sid in enumerate(ranked_ids, 1)}
         keyed = [row.id for row, key in ranked if key is not None and not row.baseline]
         standing = dict(zip(keyed, standings([values.get(i) for i in keyed])))
+        team_of = team_names(self.benchmark_store, bench)
         for row, key in ranked:
             if row.baseline and key is not None:
                 standing[row.id] = standings([values.get(row.id)])[0]
@@ -60,6 +62,7 @@ class Leaderboard:
                         "id": row.id,
                         "method": row.method,
                         "participant": None if row.anonymous else row.participant,
+                        "team": None if row.anonymous else team_of.get(row.participant),
                         "affiliation": None if row.anonymous else row.affiliation,
                         "link": None if row.anonymous else row.link,
                         "anonymous": bool(row.anonymous),
@@ -88,7 +91,8 @@ class Leaderboard:
         if sort not in ("key", "rank") or order != "desc" or sort == "rank":
             rows = self._sorted(entries, sort, order)
         board = {
-            "benchmark": bench.name,
+            "benchmark": bench.shown_name,
+            "phase": bench.phase_name,
             "title": bench.title,
             "board": phase,
             "key": bench.key,

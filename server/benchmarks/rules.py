@@ -20,6 +20,8 @@ from ..store import BenchmarkRecord
 __all__ = [
     "Benchmark",
     "DEFAULT_KEY",
+    "PHASE_SEPARATOR",
+    "MAIN_PHASE",
     "DIFFICULTIES",
     "parse_quota",
     "parse_column",
@@ -31,6 +33,11 @@ __all__ = [
 ]
 
 DEFAULT_KEY = "Car/3d/moderate/R40/strict"
+#: a later phase of a benchmark is stored as a benchmark named ``NAME~PHASE`` (a name no one can give: ``~`` is
+#: not in a benchmark's name); a benchmark's first phase is the benchmark's own row
+PHASE_SEPARATOR = "~"
+#: the phase of a benchmark made with ``benchmark add`` (one phase)
+MAIN_PHASE = "main"
 #: the recall modes as a column's help names them, the default first
 _RECALLS = tuple(reversed(RECALL_MODES))
 
@@ -153,6 +160,42 @@ class Benchmark(BenchmarkRecord):
         """Taking submissions: opened and not closed."""
         now = now or datetime.now(timezone.utc)
         return self.has_opened(now) and not self.is_closed(now)
+
+    # -- phases and teams (a benchmark defined by a file, :mod:`.phases`; one made with ``add`` is one phase) --
+    @property
+    def shown_name(self) -> str:
+        """The benchmark's name, as its participants address it (a later phase's row is ``NAME~PHASE``)."""
+        return self.name.split(PHASE_SEPARATOR, 1)[0]
+
+    @property
+    def is_later_phase(self) -> bool:
+        """The row of a phase after the first: listed as a phase of its benchmark, not as a benchmark."""
+        return PHASE_SEPARATOR in self.name
+
+    @property
+    def phase_name(self) -> str:
+        return str(self.config.get("phase") or MAIN_PHASE)
+
+    @property
+    def late_submissions(self) -> bool:
+        """Taking submissions after its close: scored for their participants, never published nor ranked."""
+        return bool(self.config.get("late_submissions", False))
+
+    @property
+    def open_labels(self) -> bool:
+        """A phase on a ground truth that is not sealed (a labelled validation set): no split, and its
+        participants see their whole result."""
+        return bool(self.config.get("open_labels", False))
+
+    @property
+    def team_size(self) -> int:
+        """The most members a team may have (1: no teams). Kept on the benchmark's first row."""
+        return int(self.config.get("team_size") or 1)
+
+    def takes_late(self, now: datetime | None = None) -> bool:
+        """Closed, and taking late submissions (never ranked)."""
+        now = now or datetime.now(timezone.utc)
+        return self.late_submissions and self.has_opened(now) and self.is_closed(now) and not self.revealed
 
     @property
     def phase(self) -> str:

@@ -41,7 +41,9 @@ from ..store import (
 )
 from .catalog import BenchmarkCatalog
 from .intervals import Intervals
+from .phases import current_row
 from .rules import Benchmark, part_frames, scores_of
+from .teams import quota_team
 from .views import submission_view
 
 __all__ = ["Submissions", "Scoring", "QuotaExceeded", "InvalidSubmission"]
@@ -184,7 +186,7 @@ class Submissions:
         baseline = self.policy.is_baseline(caller)  # under no quota, never ranked
         if baseline and bench.is_closed():
             raise Conflict(f"the benchmark {name!r} is closed: its board is frozen")
-        if not baseline and not bench.is_open():
+        if not baseline and not bench.is_open() and not bench.takes_late():
             raise Conflict(f"the benchmark {name!r} is not open for submissions")
         self.catalog.ground_truth_record_of(bench)  # registered, and sealed if it is to be
         if upload is None:  # read (and hashed) only once the cheap refusals are past
@@ -223,6 +225,9 @@ class Submissions:
                 window=window,
                 then=with_its_job,
                 key=None if key is None else self.idempotency.record(key, submission_id),
+                team=None
+                if baseline
+                else quota_team(self.benchmark_store, bench, caller.name),  # counted as the team's
             )
         except QuotaRefused as e:
             raise QuotaExceeded.of(count, days, e.retry_at) from None
@@ -243,6 +248,7 @@ class Submissions:
         refused here: the route answers it with its first job."""
         if not self.policy.counts_quota(caller):
             return None
+        name = current_row(self.catalog, name)  # the phase a submission without one goes to
         if self.idempotency.known(caller.name, submissions_scope(name), idempotency_key):
             return None
         try:
@@ -256,7 +262,9 @@ class Submissions:
             return e if e.status_code in (429, 503) else None
         count, days = bench.quota
         window = timedelta(days=days)
-        used, oldest = self.benchmark_store.quota_used(name, caller.name, datetime.now(timezone.utc) - window)
+        team = quota_team(self.benchmark_store, bench, caller.name)
+        since = datetime.now(timezone.utc) - window
+        used, oldest = self.benchmark_store.quota_used(name, caller.name, since, team[1] if team else ())
         if used >= count and oldest is not None:
             return QuotaExceeded.of(count, days, oldest + window)
         return None
@@ -284,9 +292,13 @@ class Submissions:
         records = self.benchmark_store.list_submissions(name, participant=caller.name)
         count, days = bench.quota
         since = datetime.now(timezone.utc) - timedelta(days=days)
-        counted = sorted(
-            r.created_at for r in records if r.created_at > since and r.status != "failed" and not r.baseline
+        team = quota_team(self.benchmark_store, bench, caller.name)  # a team's members count together
+        pool = (
+            [r for m in team[1] for r in self.benchmark_store.list_submissions(name, participant=m)]
+            if team
+            else records
         )
+        counted = sorted(r.created_at for r in pool if r.created_at > since and r.status != "failed" and not r.baseline)
         used = len(counted)
         # none left: the next is accepted when enough of the window's oldest have left it (the 429's retry_at)
         next_at = (counted[used - count] + timedelta(days=days)).isoformat() if used >= count else None

@@ -11,7 +11,7 @@ which frames are public (2**k detections in frame k make the count the binary li
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from ..store import SubmissionRecord
@@ -25,6 +25,9 @@ __all__ = [
     "RESULT_FIELDS",
     "BOARD_FIELDS",
     "ENTRY_FIELDS",
+    "PHASE_FIELDS",
+    "TEAM_FIELDS",
+    "OWN_TEAM_FIELDS",
     "pick",
     "benchmark_view",
     "submission_view",
@@ -52,15 +55,41 @@ BENCHMARK_FIELDS = (
     "revealed",
     "board",
     "max_published",
+    "phase",
+    "phases",
+    "team_size",
 )
 #: and as those who see its test set read it (admins, the members of the test set's project, every signed-in
 #: account when the test set is shared): with the test set's name
 TEST_SET_FIELDS = (*BENCHMARK_FIELDS, "ground_truth")
 
+#: a phase of a benchmark (in its ``phases``), as everyone who sees the benchmark reads it; its test set's name
+#: only for those who see the ground truth
+PHASE_FIELDS = (
+    "name",
+    "current",
+    "ground_truth",
+    "opens_at",
+    "closes_at",
+    "open",
+    "closed",
+    "late_submissions",
+    "open_labels",
+    "quota",
+    "split_percent",
+    "revealed",
+    "board",
+    "max_published",
+)
+#: a team, as those who see its benchmark's teams read it; and as its members read it, with whom it invited
+TEAM_FIELDS = ("benchmark", "name", "members", "created_at")
+OWN_TEAM_FIELDS = (*TEAM_FIELDS, "invited")
+
 #: a submission in its participant's list (and the admins')
 SUBMISSION_FIELDS = (
     "id",
     "benchmark",
+    "phase",
     "participant",
     "created_at",
     "status",
@@ -84,11 +113,12 @@ SUBMISSION_FIELDS = (
 OWN_SUBMISSION_FIELDS = (*SUBMISSION_FIELDS, "result")
 
 #: a leaderboard, as everyone who sees the benchmark reads it, and each of its entries (a published submission)
-BOARD_FIELDS = ("benchmark", "title", "board", "key", "columns", "sort", "order", "entries", "bootstrap")
+BOARD_FIELDS = ("benchmark", "phase", "title", "board", "key", "columns", "sort", "order", "entries", "bootstrap")
 ENTRY_FIELDS = (
     "id",
     "method",
     "participant",
+    "team",
     "affiliation",
     "link",
     "anonymous",
@@ -123,12 +153,17 @@ def pick(values: Mapping[str, Any], fields: tuple[str, ...]) -> dict[str, Any]:
     return {f: values[f] for f in fields if f in values}
 
 
-def benchmark_view(bench: Benchmark, *, names_test_set: bool) -> dict[str, Any]:
+def benchmark_view(
+    bench: Benchmark, *, names_test_set: bool, phases: Sequence[Mapping[str, Any]] = ()
+) -> dict[str, Any]:
     """A benchmark as a caller reads it (``names_test_set``: whether the caller may read its test set's name;
-    the policy says)."""
+    the policy says), in the phase ``bench`` is (its ``phases``: the phases the caller sees, :mod:`.phases`)."""
     n, days = bench.quota
     values = {
-        "name": bench.name,
+        "name": bench.shown_name,
+        "phase": bench.phase_name,
+        "phases": [dict(p) for p in phases],
+        "team_size": bench.team_size,
         "title": bench.title,
         "description": bench.description,
         "ground_truth": bench.gt_name,
@@ -160,7 +195,7 @@ def result_view(record: SubmissionRecord, bench: Benchmark, *, everything: bool 
     whole = record.result
     if whole is None:
         return None
-    if everything:
+    if everything or bench.open_labels:  # an admin's; or a phase on open labels: the participant has the labels
         return dict(whole)
     shown = record.public_result if bench.phase == "public" else whole
     if shown is None:
@@ -183,7 +218,8 @@ def submission_view(
     shown = "public" if public_only else "all"
     values = {
         "id": record.id,
-        "benchmark": record.benchmark,
+        "benchmark": bench.shown_name,
+        "phase": bench.phase_name,
         "participant": record.participant,
         "created_at": record.created_at.isoformat(),
         "status": record.status,

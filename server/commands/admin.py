@@ -136,6 +136,8 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         metavar="N",
         help="published entries per participant (default: no cap; Kaggle's is 2)",
     )
+    ap = bench.add_parser("apply", help="create or change a benchmark as a TOML file defines it (phases, teams)")
+    ap.add_argument("file", type=Path, metavar="FILE.toml")
     bench.add_parser("list", help="benchmarks")
     for action, helptext in (
         ("close", "close to submissions"),
@@ -143,9 +145,11 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         ("reveal", "show the private ranking (once closed)"),
         ("rescore", "evaluate every submission again on the ground truth as registered now"),
         ("submissions", "every submission, published or not"),
-        ("export", "the leaderboard as CSV on stdout"),
     ):
         bench.add_parser(action, help=helptext).add_argument("name")
+    ex = bench.add_parser("export", help="the leaderboard as CSV on stdout; with FILE.toml, the benchmark's file")
+    ex.add_argument("name")
+    ex.add_argument("file", nargs="?", type=Path, metavar="FILE.toml", help="write the file that defines it there")
     dq = bench.add_parser("disqualify", help="hide an entry (it is kept)")
     dq.add_argument("name")
     dq.add_argument("submission")
@@ -363,7 +367,7 @@ def _benchmark(args: argparse.Namespace, service: Service, caller: Caller) -> in
     elif action == "list":
         for b in benchmarks.catalog.visible(caller):
             state = "open" if b.is_open() else "closed"
-            print(f"{b.name}\t{b.gt_name}\t{state}\t{'public' if b.public else '-'}\t{b.title}")
+            print(f"{b.shown_name}\t{b.gt_name}\t{state}\t{'public' if b.public else '-'}\t{b.title}")
     elif action in ("close", "reopen", "reveal"):
         values = {"close": {"closed": True}, "reopen": {"closed": False}, "reveal": {"revealed": True}}[action]
         bench = benchmarks.catalog.set_state(args.name, caller=caller, **values)
@@ -380,10 +384,30 @@ def _benchmark(args: argparse.Namespace, service: Service, caller: Caller) -> in
     elif action == "disqualify":
         benchmarks.submissions.disqualify(args.name, args.submission, caller=caller)
         print(f"submission {args.submission} disqualified")
+    elif action == "apply":
+        from ..benchmarks.benchmark_file import apply_benchmark_file
+
+        applied = apply_benchmark_file(benchmarks.catalog, _read_text(args.file), caller=caller, source=str(args.file))
+        print(f"benchmark {applied.name}: " + ("; ".join(applied.lines)))
+    elif action == "export" and args.file is not None:
+        from ..benchmarks.benchmark_file import export_benchmark_file
+
+        args.file.write_text(export_benchmark_file(benchmarks.catalog, args.name, caller=caller), encoding="utf-8")
+        print(f"benchmark {args.name}: written to {args.file}")
     elif action == "export":
         board = benchmarks.board.leaderboard(args.name, caller)
         sys.stdout.write(benchmarks.board.leaderboard_csv(board))
     return EXIT_OK
+
+
+def _read_text(path: Path) -> str:
+    """A file the command reads (a benchmark file): its refusal is an input error naming it, not a traceback."""
+    from kitti_eval.errors import InputError
+
+    try:
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: cannot be read as UTF-8 text: {getattr(e, 'strerror', None) or e}") from None
 
 
 def _jobs(args: argparse.Namespace, service: Service, caller: Caller) -> int:

@@ -13,10 +13,12 @@ from pydantic import BaseModel, Field
 from ..access.deps import AdminCaller, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..access.policy import Caller
 from ..benchmarks import DEFAULT_KEY, Benchmarks
+from ..benchmarks.rules import PHASE_SEPARATOR
 from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
 from ..schemas import ErrorResponse
 from ..service import FileIn
 from .jobs import still_pending
+from .phase_names import CurrentPhase, SubmissionPhase
 
 router = APIRouter(
     prefix="/v1/benchmarks",
@@ -107,19 +109,21 @@ def list_benchmarks(benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str
 
 
 @router.get("/{name}", summary="One benchmark (admins: with the rescoring jobs by state)")
-def get_benchmark(name: str, benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
+def get_benchmark(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
     return benchmarks.catalog.describe(benchmarks.catalog.get(name, caller), caller, rescoring=True)
 
 
 @router.get("/{name}/frames", summary="The test frame ids (for kitti-eval validate --benchmark)")
-async def frame_ids(name: str, benchmarks: BenchmarksDep, service: ServiceDep, caller: AnyoneCaller) -> dict[str, Any]:
+async def frame_ids(
+    name: CurrentPhase, benchmarks: BenchmarksDep, service: ServiceDep, caller: AnyoneCaller
+) -> dict[str, Any]:
     frames = await service.run(benchmarks.catalog.frame_ids, name, caller)
-    return {"benchmark": name, "frames": frames}
+    return {"benchmark": name.split(PHASE_SEPARATOR, 1)[0], "frames": frames}
 
 
 @router.get("/{name}/leaderboard", summary="The leaderboard (JSON, or CSV with format=csv)")
 def leaderboard(
-    name: str,
+    name: CurrentPhase,
     benchmarks: BenchmarksDep,
     caller: AnyoneCaller,
     sort: Annotated[str | None, Query(max_length=200, description="rank, key, method, date or a column")] = None,
@@ -141,17 +145,17 @@ def _admin_state(name: str, benchmarks: Benchmarks, caller: Caller, **values: bo
 
 
 @router.post("/{name}/close", summary="Close a benchmark to submissions (admins)")
-def close(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+def close(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
     return _admin_state(name, benchmarks, caller, closed=True)
 
 
 @router.post("/{name}/reopen", summary="Reopen a closed benchmark (admins)")
-def reopen(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+def reopen(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
     return _admin_state(name, benchmarks, caller, closed=False)
 
 
 @router.post("/{name}/reveal", summary="Show the private ranking of a closed benchmark (admins)")
-def reveal(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+def reveal(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
     return _admin_state(name, benchmarks, caller, revealed=True)
 
 
@@ -160,18 +164,20 @@ def reveal(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[st
     status_code=202,
     summary="Queue one job per submission that evaluates it again on the ground truth as registered (admins)",
 )
-async def rescore(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+async def rescore(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
     """Returns at once with the jobs queued; `GET /v1/benchmarks/{name}` shows their progress (`rescoring`)."""
     return await anyio.to_thread.run_sync(lambda: benchmarks.submissions.rescore(name, caller=caller))
 
 
 @router.get("/{name}/submissions/all", summary="Every submission, published or not (admins)")
-def all_submissions(name: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+def all_submissions(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
     return {"items": benchmarks.submissions.all_submissions(name, caller)}
 
 
 @router.post("/{name}/submissions/{submission_id}/disqualify", summary="Hide an entry, keeping it (admins)")
-def disqualify(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+def disqualify(
+    name: SubmissionPhase, submission_id: str, benchmarks: BenchmarksDep, caller: AdminCaller
+) -> dict[str, Any]:
     return benchmarks.submissions.disqualify(name, submission_id, caller=caller)
 
 
@@ -191,7 +197,7 @@ def disqualify(name: str, submission_id: str, benchmarks: BenchmarksDep, caller:
     },
 )
 async def submit(
-    name: str,
+    name: CurrentPhase,
     benchmarks: BenchmarksDep,
     service: ServiceDep,
     caller: WriterCaller,
@@ -221,22 +227,25 @@ async def submit(
     if ended.state != "done":
         return await still_pending(service.jobs, ended)
     body = await anyio.to_thread.run_sync(benchmarks.submissions.submission, name, job.id, caller)
-    return JSONResponse(body, status_code=201, headers={"Location": f"/v1/benchmarks/{name}/submissions/{job.id}"})
+    where = f"/v1/benchmarks/{body['benchmark']}/submissions/{job.id}"  # the benchmark's name, whatever the phase
+    return JSONResponse(body, status_code=201, headers={"Location": where})
 
 
 @router.get("/{name}/submissions", summary="Your submissions and your quota")
-def my_submissions(name: str, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[str, Any]:
+def my_submissions(name: CurrentPhase, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[str, Any]:
     return benchmarks.submissions.mine(name, caller)
 
 
 @router.get("/{name}/submissions/{submission_id}", summary="One of your submissions, with its full result")
-def my_submission(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[str, Any]:
+def my_submission(
+    name: SubmissionPhase, submission_id: str, benchmarks: BenchmarksDep, caller: ReaderCaller
+) -> dict[str, Any]:
     return benchmarks.submissions.submission(name, submission_id, caller)
 
 
 @router.post("/{name}/submissions/{submission_id}/publish", summary="Show one of your submissions on the board")
 def publish(
-    name: str, submission_id: str, body: PublishIn, benchmarks: BenchmarksDep, caller: WriterCaller
+    name: SubmissionPhase, submission_id: str, body: PublishIn, benchmarks: BenchmarksDep, caller: WriterCaller
 ) -> dict[str, Any]:
     return benchmarks.submissions.publish(
         name,
@@ -250,5 +259,7 @@ def publish(
 
 
 @router.post("/{name}/submissions/{submission_id}/withdraw", summary="Take one of your entries off the board")
-def withdraw(name: str, submission_id: str, benchmarks: BenchmarksDep, caller: WriterCaller) -> dict[str, Any]:
+def withdraw(
+    name: SubmissionPhase, submission_id: str, benchmarks: BenchmarksDep, caller: WriterCaller
+) -> dict[str, Any]:
     return benchmarks.submissions.withdraw(name, submission_id, caller)

@@ -102,12 +102,12 @@ class ResampledKey:
     key_values: bytes  # float64, little-endian, one a resample
 
 
-def _quota_count(benchmark: str, participant: str, window_start: datetime) -> Select[int, Any]:
-    """The participant's submissions that count against the quota since ``window_start`` (not failed, not
-    baselines), and the oldest one's acceptance time."""
+def _quota_count(benchmark: str, participants: Sequence[str], window_start: datetime) -> Select[int, Any]:
+    """The participants' submissions that count against the quota since ``window_start`` (not failed, not
+    baselines), and the oldest one's acceptance time (``participants``: one, or a team's members)."""
     return select(func.count(), func.min(submissions.c.created_at)).where(
         submissions.c.benchmark == benchmark,
-        submissions.c.participant == participant,
+        submissions.c.participant.in_(list(participants)),
         submissions.c.created_at > window_start,
         submissions.c.status != "failed",
         submissions.c.baseline.is_(False),
@@ -181,6 +181,7 @@ class BenchmarkStore(Area):
         window: timedelta,
         then: Callable[[Connection], object] | None = None,
         key: IdempotencyRecord | None = None,
+        team: tuple[str, Sequence[str]] | None = None,
     ) -> None:
         """Insert the submission if its participant has fewer than ``limit`` submissions in this benchmark
         since ``window_start``; else raise :class:`QuotaRefused` (``limit`` None: an admin's baseline, inserted
@@ -189,8 +190,10 @@ class BenchmarkStore(Area):
         servers on the database, are counted one after another and none is admitted over the limit. ``then``
         writes what goes with the submission in the same transaction. ``key``: the request's idempotency key,
         recorded first (:class:`KeyTaken`, nothing written, when a copy of the request recorded it: the copy is
-        not counted again)."""
-        count_query = _quota_count(record.benchmark, record.participant, window_start)
+        not counted again). ``team``: the participant's team's lock name and members, whose submissions count
+        together (the lock is the team's, so its members' parallel submissions are counted one after another)."""
+        lock_as, counted = team if team is not None else (record.participant, [record.participant])
+        count_query = _quota_count(record.benchmark, counted, window_start)
         if limit is None:  # on SQLite the write lock from the start, as the key's record needs
             with self._writing() as conn:
                 if key is not None:
@@ -199,7 +202,7 @@ class BenchmarkStore(Area):
                 if then is not None:
                     then(conn)
             return
-        with self._holding(record.benchmark, record.participant) as conn:
+        with self._holding(record.benchmark, lock_as) as conn:
             if key is not None:
                 IdempotencyStore.add_idempotency_key_in(conn, key)
             used, oldest = conn.execute(count_query).one()
@@ -210,12 +213,16 @@ class BenchmarkStore(Area):
                 then(conn)
 
     @retry_when_locked
-    def quota_used(self, benchmark: str, participant: str, window_start: datetime) -> tuple[int, datetime | None]:
+    def quota_used(
+        self, benchmark: str, participant: str, window_start: datetime, counted: Sequence[str] = ()
+    ) -> tuple[int, datetime | None]:
         """The participant's submissions that count against the benchmark's quota since ``window_start``, and
         when the oldest of them was accepted: as :meth:`accept_submission` counts them, read without its lock
-        (a look before a submission's file is received; the count only grows until the window moves on)."""
+        (a look before a submission's file is received; the count only grows until the window moves on).
+        ``counted``: the participant's team's members, when they are in one."""
         with self.engine.connect() as conn:
-            used, oldest = conn.execute(_quota_count(benchmark, participant, window_start)).one()
+            query = _quota_count(benchmark, list(counted) or [participant], window_start)
+            used, oldest = conn.execute(query).one()
         return int(used), utc(oldest) if oldest is not None else None
 
     @retry_when_locked

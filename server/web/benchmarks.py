@@ -26,9 +26,12 @@ from kitti_eval.errors import KittiEvalError
 from ..access.deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..access.policy import Caller
 from ..benchmarks import Benchmarks, InvalidSubmission, render_markdown
+from ..benchmarks.phases import current_row, row_of
+from ..benchmarks.rules import PHASE_SEPARATOR
 from ..errors import ApiError, BadRequest, NotFound, clip, fault_of
 from ..idempotency import FORM_FIELD, new_form_key, parse_key
 from ..jobs.workers import JobFailed
+from ..routes.phase_names import SubmissionPhase
 from ..service import FileIn, Service
 from .boards import board_entries, board_header, bootstrap_line, column_label, comparison_rows, full_time, number
 from .routes import _render, _status, queued_text
@@ -153,7 +156,14 @@ def _benchmark_context(
     if _participant(service, caller):
         mine = benchmarks.submissions.mine(name, caller)
         mine["items"] = _states(service, mine["items"], described["key"])
+    phases = sorted(described["phases"], key=lambda p: not p["current"])  # the current one first
+    teams = None
+    if described["team_size"] > 1 and _participant(service, caller) and not service.policy.administers(caller):
+        teams = benchmarks.teams.list(bench.shown_name, caller)
     return {
+        "phases": [{**p, "rules": _rules({**p, "key": described["key"]})} for p in phases] if len(phases) > 1 else [],
+        "teams": teams,
+        "team_error": None,
         "bench": described,
         "rules": _rules(described),
         "description": Markup(render_markdown(bench.description)),  # noqa: S704 - every character escaped first
@@ -183,6 +193,15 @@ def _short_key(key: list[str], columns: list[str]) -> str:
     return f"mean of {label}" if len(key) > 1 else label
 
 
+def _phase_row(request: Request, caller: Caller, name: str, phase: str | None) -> str:
+    """The row of the phase a page shows: the one named (``?phase=``), else the current one."""
+    benchmarks = _benchmarks(request)
+    return row_of(benchmarks.catalog, name, phase, caller) if phase else current_row(benchmarks.catalog, name)
+
+
+PhaseQuery = Annotated[str | None, Query(max_length=40, description="a phase of the benchmark (default: the current)")]
+
+
 @router.get("/benchmarks/{name}")
 def benchmark_page(
     request: Request,
@@ -191,21 +210,25 @@ def benchmark_page(
     name: str,
     sort: Annotated[str | None, Query(max_length=200)] = None,
     order: Annotated[Literal["asc", "desc"] | None, Query()] = None,
+    phase: PhaseQuery = None,
 ) -> Response:
     try:
-        context = _benchmark_context(request, service, caller, name, sort, order)
+        context = _benchmark_context(request, service, caller, _phase_row(request, caller, name, phase), sort, order)
     except ApiError as e:
         return _error(request, e)
     return _render(request, "benchmark.html", **context)
 
 
 @router.post("/benchmarks/{name}/submissions")
-async def submit_form(request: Request, service: ServiceDep, caller: WriterCaller, name: str) -> Response:
+async def submit_form(
+    request: Request, service: ServiceDep, caller: WriterCaller, name: str, phase: PhaseQuery = None
+) -> Response:
     """The submission form: counted against the quota and accepted, then checked and scored by its job (a
     refused file shows the validator's sentences here when the job ran within ``FORM_WAIT_S``, and counts
     nothing); then the submission's page, which follows its scoring."""
     benchmarks = _benchmarks(request)
     try:
+        name = _phase_row(request, caller, name, phase)
         async with request.form(max_files=1, max_fields=FORM_MAX_FIELDS) as form:
             predictions = form.get("predictions")
             if not isinstance(predictions, UploadFile) or not predictions.filename:
@@ -226,7 +249,7 @@ async def submit_form(request: Request, service: ServiceDep, caller: WriterCalle
         if failure is None:
             raise
         return await anyio.to_thread.run_sync(partial(_refused, request, service, caller, name, failure))
-    return RedirectResponse(f"/benchmarks/{quote(name)}/submissions/{quote(job.id)}", status_code=303)
+    return RedirectResponse(f"/benchmarks/{quote(_shown(name))}/submissions/{quote(job.id)}", status_code=303)
 
 
 def _refused(
@@ -294,7 +317,7 @@ def _key(scores: Mapping[str, float | None], key: list[str]) -> float | None:
 
 @router.get("/benchmarks/{name}/submissions/{submission_id}")
 def submission_page(
-    request: Request, service: ServiceDep, caller: ReaderCaller, name: str, submission_id: str
+    request: Request, service: ServiceDep, caller: ReaderCaller, name: SubmissionPhase, submission_id: str
 ) -> Response:
     try:
         context = _submission_context(request, service, caller, name, submission_id)
@@ -317,7 +340,7 @@ def _refused_job(service: Service, caller: Caller, submission_id: str) -> ApiErr
 
 @router.post("/benchmarks/{name}/submissions/{submission_id}/publish")
 async def publish_form(
-    request: Request, service: ServiceDep, caller: WriterCaller, name: str, submission_id: str
+    request: Request, service: ServiceDep, caller: WriterCaller, name: SubmissionPhase, submission_id: str
 ) -> Response:
     """Publish one of the caller's scored submissions on the board; then the board, at the entry."""
     benchmarks = _benchmarks(request)
@@ -344,12 +367,12 @@ async def publish_form(
         return await anyio.to_thread.run_sync(
             partial(_submission_refused, request, service, caller, name, submission_id, failure, refill)
         )
-    return RedirectResponse(f"/benchmarks/{quote(name)}#entry-{quote(submission_id)}", status_code=303)
+    return RedirectResponse(f"{_page_of(benchmarks, name, caller)}#entry-{quote(submission_id)}", status_code=303)
 
 
 @router.post("/benchmarks/{name}/submissions/{submission_id}/withdraw")
 async def withdraw_form(
-    request: Request, service: ServiceDep, caller: WriterCaller, name: str, submission_id: str
+    request: Request, service: ServiceDep, caller: WriterCaller, name: SubmissionPhase, submission_id: str
 ) -> Response:
     """Take one of the caller's entries off the board; then the submission's page again."""
     benchmarks = _benchmarks(request)
@@ -359,7 +382,7 @@ async def withdraw_form(
         return await anyio.to_thread.run_sync(
             partial(_submission_refused, request, service, caller, name, submission_id, e, {})
         )
-    return RedirectResponse(f"/benchmarks/{quote(name)}/submissions/{quote(submission_id)}", status_code=303)
+    return RedirectResponse(f"/benchmarks/{quote(_shown(name))}/submissions/{quote(submission_id)}", status_code=303)
 
 
 def _submission_refused(
@@ -377,3 +400,58 @@ def _submission_refused(
         return _error(request, e)
     context.update(error=_message(failure), form=form)
     return _render(request, "submission.html", _status(failure), **context)
+
+
+# ------------------------------------------------------------------------------------------------ teams
+
+
+def _shown(row: str) -> str:
+    """The benchmark's name of a phase's row."""
+    return row.split(PHASE_SEPARATOR, 1)[0]
+
+
+def _page_of(benchmarks: Benchmarks, row: str, caller: Caller) -> str:
+    """The page of the phase ``row`` is (of a benchmark with phases: ``?phase=``)."""
+    bench = benchmarks.catalog.get(row, caller)
+    phased = bench.is_later_phase or bool(bench.config.get("phases"))
+    return f"/benchmarks/{quote(bench.shown_name)}" + (f"?phase={quote(bench.phase_name)}" if phased else "")
+
+
+_TEAM_FIELDS = 3
+
+
+@router.post("/benchmarks/{name}/teams")
+async def team_form(request: Request, service: ServiceDep, caller: WriterCaller, name: str) -> Response:
+    """Make a team (its name, the names of those it invites separated by commas); then the benchmark's page at the
+    team."""
+    benchmarks = _benchmarks(request)
+    try:
+        async with request.form(max_files=0, max_fields=_TEAM_FIELDS) as form:
+            values = {k: v for k, v in form.items() if isinstance(v, str)}
+        members = [m.strip() for m in values.get("members", "").split(",") if m.strip()]
+        await anyio.to_thread.run_sync(lambda: benchmarks.teams.create(name, values.get("name", ""), members, caller))
+    except ApiError as e:
+        return await anyio.to_thread.run_sync(partial(_team_refused, request, service, caller, name, e))
+    return RedirectResponse(f"/benchmarks/{quote(name)}#team", status_code=303)
+
+
+@router.post("/benchmarks/{name}/teams/{team}/join")
+async def join_form(request: Request, service: ServiceDep, caller: WriterCaller, name: str, team: str) -> Response:
+    """Join a team that invited the caller; then the benchmark's page at the team."""
+    benchmarks = _benchmarks(request)
+    try:
+        await anyio.to_thread.run_sync(lambda: benchmarks.teams.join(name, team, caller))
+    except ApiError as e:
+        return await anyio.to_thread.run_sync(partial(_team_refused, request, service, caller, name, e))
+    return RedirectResponse(f"/benchmarks/{quote(name)}#team", status_code=303)
+
+
+def _team_refused(request: Request, service: Service, caller: Caller, name: str, failure: ApiError) -> Response:
+    try:
+        context = _benchmark_context(
+            request, service, caller, current_row(_benchmarks(request).catalog, name), None, None
+        )
+    except ApiError as e:
+        return _error(request, e)
+    context["team_error"] = _message(failure)
+    return _render(request, "benchmark.html", _status(failure), **context)

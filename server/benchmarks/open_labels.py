@@ -1,0 +1,62 @@
+"""A phase on open labels (a labelled validation set, not sealed): its participants see their own submission's
+result frame by frame, as ``kitti-eval frames`` shows an evaluation's (TP, FP and FN per frame, worst first). A
+sealed phase's frames never leave the service
+(:func:`~kitti_eval_server.access.policy.require_open_labels`)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from kitti_eval.analysis.diagnostics import frame_stats, frames_document
+
+from ..access.policy import Caller, require_open_labels
+from ..errors import BadRequest, Conflict
+from ..evaluations.uploads import stored_upload
+
+if TYPE_CHECKING:
+    from . import Benchmarks
+
+__all__ = ["submission_frames"]
+
+
+def submission_frames(
+    benchmarks: Benchmarks,
+    name: str,
+    submission_id: str,
+    caller: Caller,
+    *,
+    cls: str = "Car",
+    metric: str = "3d",
+    difficulty: str = "moderate",
+    oset: str = "strict",
+    worst: int | None = 20,
+    score_threshold: float = 0.0,
+) -> dict[str, Any]:
+    """TP/FP/FN per frame of one of the caller's submissions to the phase ``name`` (a row), when the phase is on
+    open labels: the submission's file read as its scoring read it, matched as the AP is."""
+    if worst is not None and worst < 1:
+        raise BadRequest("worst must be at least 1")
+    record = benchmarks.submissions._own(name, submission_id, caller)
+    bench = benchmarks.catalog.named(name)
+    require_open_labels(open_labels=bench.open_labels, what=f"phase {bench.phase_name!r}")
+    if record.status != "scored":
+        raise Conflict(f"the submission {record.id} is {record.status}: its frames are shown once it is scored")
+    _, gt = benchmarks.catalog.ground_truth_of(bench)
+    scoring = benchmarks.scoring  # the file is read as its scoring read it
+    content = scoring.ground_truth_store.prediction_content(record.pred_sha256)
+    if content is None:
+        raise Conflict(f"the predictions of submission {record.id} are not kept")
+    dt = scoring._checked(stored_upload(content, record.pred_filename, record.pred_sha256), gt)
+    stats = frame_stats(
+        gt,
+        dt,
+        bench.options().config(),
+        cls=cls,
+        metric=metric,
+        difficulty=difficulty,
+        oset=oset,
+        score_threshold=score_threshold,
+    )
+    doc = frames_document(stats, worst=worst)
+    doc["submission"] = record.id
+    return doc

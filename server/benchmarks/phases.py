@@ -1,0 +1,203 @@
+"""A benchmark's phases: a development phase on a labelled validation set, a test phase on a sealed set, each
+with its own dates, quota, split and board.
+
+Each phase is stored as a benchmark row of its own, so every rule of a benchmark (the quota, the split and its
+reveal, the freeze at the close, the intervals and rank ranges) holds per phase as it is: the first phase is the
+benchmark's own row (``NAME``), a later one the row ``NAME~PHASE`` (``~`` is in no name a host can give). The
+first row's ``config`` lists the phases in order (``phases``: ``[[phase, row], ...]``); each row's holds its
+phase's name (``phase``), the team size, whether it takes late submissions and whether it is on open labels.
+A benchmark made with ``benchmark add`` is one phase, named ``main``.
+
+The benchmark's routes without a phase address its current phase (:func:`current_row`): the first phase taking
+submissions now; else the last one that has opened; else the first.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from typing import TYPE_CHECKING, Any
+
+from ..access.policy import Caller
+from ..errors import ApiError, BadRequest, NotFound, echo
+from ..store import BenchmarkRecord
+from .rules import MAIN_PHASE, PHASE_SEPARATOR, Benchmark
+from .views import PHASE_FIELDS, pick
+
+if TYPE_CHECKING:
+    from .catalog import BenchmarkCatalog
+
+__all__ = [
+    "PhaseOf",
+    "phase_list",
+    "phase_row",
+    "check_phase_name",
+    "current_row",
+    "current_phase_of",
+    "row_of",
+    "phase_row_or_none",
+    "submission_row",
+    "phase_views",
+    "MAX_BENCHMARK_NAME",
+]
+
+_PHASE_NAME = re.compile(r"^[a-z0-9][a-z0-9_-]{0,19}$")
+#: a benchmark with phases: its name and ``~PHASE`` fit a benchmark row's 64 characters
+MAX_BENCHMARK_NAME = 40
+
+
+def check_phase_name(name: object) -> str:
+    if not isinstance(name, str) or not _PHASE_NAME.fullmatch(name):
+        raise BadRequest(
+            f"a phase's name is 1-20 lower-case letters, digits, '_' or '-', starting with a letter or digit; got "
+            f"{echo(str(name))}"
+        )
+    return name
+
+
+def phase_row(benchmark: str, phase: str, *, first: bool) -> str:
+    """The row a phase is stored as."""
+    return benchmark if first else f"{benchmark}{PHASE_SEPARATOR}{phase}"
+
+
+@dataclass(frozen=True)
+class PhaseOf:
+    """What :meth:`BenchmarkCatalog.create <.catalog.BenchmarkCatalog.create>` stores of a phase beside the
+    benchmark's options: its row, its name, late submissions, and on the first row the phases and team size."""
+
+    row: str
+    name: str
+    late_submissions: bool = False
+    phases: tuple[tuple[str, str], ...] = ()  # the first row only: (phase, row) in order
+    team_size: int = 1  # on every row (the teams are the benchmark's)
+
+    def config(self, *, open_labels: bool) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "phase": self.name,
+            "late_submissions": self.late_submissions,
+            "team_size": self.team_size,
+        }
+        if open_labels:
+            out["open_labels"] = True
+        if self.phases:
+            out["phases"] = [list(p) for p in self.phases]
+        return out
+
+
+def phase_list(first: BenchmarkRecord) -> list[tuple[str, str]]:
+    """(phase, row) of a benchmark in order, from its first row."""
+    listed = first.config.get("phases")
+    if not listed:
+        return [(str(first.config.get("phase") or MAIN_PHASE), first.name)]
+    return [(str(p), str(r)) for p, r in listed]
+
+
+def _rows(catalog: BenchmarkCatalog, name: str) -> list[Benchmark]:
+    first = catalog.benchmark_store.get_benchmark(name)
+    if first is None:
+        return []
+    rows = []
+    for _, row in phase_list(first):
+        record = first if row == first.name else catalog.benchmark_store.get_benchmark(row)
+        if record is not None:
+            rows.append(Benchmark.from_record(record))
+    return rows
+
+
+def _current(rows: list[Benchmark], now: datetime) -> Benchmark:
+    for bench in rows:
+        if bench.is_open(now):
+            return bench
+    opened = [b for b in rows if b.has_opened(now)]
+    return opened[-1] if opened else rows[0]
+
+
+def current_row(catalog: BenchmarkCatalog, name: str) -> str:
+    """The row the benchmark's routes without a phase address: its current phase's (``name`` itself when it
+    has one phase, is a phase's row or is no benchmark: the route's own answer follows)."""
+    if PHASE_SEPARATOR in name:
+        return name
+    rows = _rows(catalog, name)
+    if len(rows) < 2:
+        return name
+    return _current(rows, datetime.now(timezone.utc)).name
+
+
+def submission_row(catalog: BenchmarkCatalog, name: str, submission_id: str) -> str:
+    """The row of the phase a submission of the benchmark ``name`` is in (else its current phase's: whoever
+    asks, the route's own refusal follows for a submission that is not theirs or not there)."""
+    record = catalog.benchmark_store.get_submission(submission_id)
+    if record is not None and record.benchmark.split(PHASE_SEPARATOR, 1)[0] == name:
+        return record.benchmark
+    return current_row(catalog, name)
+
+
+def current_phase_of(catalog: BenchmarkCatalog, first: Benchmark) -> Benchmark:
+    """The current phase of the benchmark whose first row is ``first`` (``first`` itself for one phase)."""
+    if not first.config.get("phases"):
+        return first
+    rows = _rows(catalog, first.name)
+    return _current(rows, datetime.now(timezone.utc)) if rows else first
+
+
+def row_of(catalog: BenchmarkCatalog, name: str, phase: str, caller: Caller) -> str:
+    """The row of the benchmark's phase ``phase``, for a caller who sees the benchmark (404 otherwise, as for a
+    benchmark that does not exist)."""
+    if PHASE_SEPARATOR in name:
+        raise NotFound(f"no benchmark named {echo(name)}")
+    catalog.get(name, caller)
+    for bench in _rows(catalog, name):
+        if bench.phase_name == phase:
+            catalog.get(bench.name, caller)
+            return bench.name
+    raise NotFound(f"the benchmark {name!r} has no phase named {echo(phase)}")
+
+
+def phase_row_or_none(catalog: BenchmarkCatalog, name: str, phase: str, caller: Caller) -> str | None:
+    """:func:`row_of`, None where it refuses (whoever asks before a request's body: the route refuses them)."""
+    try:
+        return row_of(catalog, name, phase, caller)
+    except ApiError:
+        return None
+
+
+def phase_view(bench: Benchmark, *, current: bool, names_test_set: bool) -> dict[str, Any]:
+    """A phase as those who see its benchmark read it (:data:`.views.PHASE_FIELDS`; its ground truth's name for
+    those the policy lets read it)."""
+    n, days = bench.quota
+    values: Mapping[str, Any] = {
+        "name": bench.phase_name,
+        "current": current,
+        "ground_truth": bench.gt_name,
+        "opens_at": bench.opens_at.isoformat(),
+        "closes_at": bench.closes_at.isoformat() if bench.closes_at else None,
+        "open": bench.is_open(),
+        "closed": bench.is_closed(),
+        "late_submissions": bench.late_submissions,
+        "open_labels": bench.open_labels,
+        "quota": {"submissions": n, "days": days},
+        "split_percent": bench.split_percent,
+        "revealed": bench.revealed,
+        "board": bench.phase,
+        "max_published": bench.max_published,
+    }
+    fields = PHASE_FIELDS if names_test_set else tuple(f for f in PHASE_FIELDS if f != "ground_truth")
+    return pick(values, fields)
+
+
+def phase_views(catalog: BenchmarkCatalog, bench: Benchmark, caller: Caller) -> list[dict[str, Any]]:
+    """The phases of ``bench``'s benchmark the caller sees, in order, the current one marked."""
+    rows = _rows(catalog, bench.shown_name) or [bench]
+    now = datetime.now(timezone.utc)
+    current = _current(rows, now).name
+    return [
+        phase_view(
+            b,
+            current=b.name == current,
+            names_test_set=catalog.policy.names_test_set(caller, project=b.project),
+        )
+        for b in rows
+        if catalog.sees(caller, b)
+    ]
