@@ -18,16 +18,26 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime, timezone
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
-from ..access.policy import Caller
+from ..access.policy import Caller, Policy
 from ..errors import ApiError, BadRequest, NotFound, echo
-from ..store import BenchmarkRecord
+from ..store import BenchmarkRecord, BenchmarkStore
 from .rules import MAIN_PHASE, PHASE_SEPARATOR, Benchmark
 from .views import PHASE_FIELDS, pick
 
-if TYPE_CHECKING:
-    from .catalog import BenchmarkCatalog
+
+class BenchmarkCatalog(Protocol):
+    """What the phases read of :class:`.catalog.BenchmarkCatalog` (which reads the phases: named here, not
+    imported, so the two modules do not import each other)."""
+
+    benchmark_store: BenchmarkStore
+    policy: Policy
+
+    def sees(self, caller: Caller, bench: Benchmark) -> bool: ...
+
+    def get(self, name: str, caller: Caller) -> Benchmark: ...
+
 
 __all__ = [
     "PhaseOf",
