@@ -74,8 +74,9 @@ def part_memory_bytes() -> int:
     """The size up to which an uploaded file of the request being handled stays in memory (Starlette's form
     parser spools a larger one to a temporary file): a body :class:`BodyMiddleware` held in memory, within the
     bodies' budget, keeps its files in memory whatever their size (they are the body's bytes, already counted:
-    spooling a val-sized result.pkl to disk and reading it back cost a fifth of the web process's work on an
-    upload); a body past the budget, or one that did not go through it, keeps those up to ``PART_MEMORY_BYTES``."""
+    writing a val-sized result.pkl to disk chunk by chunk and reading it back took a fifth of the web process's
+    samples in a profile of uploads); a body past the budget, or one that did not go through it, keeps those up
+    to ``PART_MEMORY_BYTES``."""
     return _PART_MEMORY.get()
 
 
