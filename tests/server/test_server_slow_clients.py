@@ -21,7 +21,7 @@ import anyio
 import pytest
 from server_helpers import ROOT, LiveServer
 
-from kitti_eval_server.middleware import BodyMiddleware, BodyTooLarge
+from kitti_eval_server.middleware import PART_MEMORY_BYTES, BodyMiddleware, BodyTooLarge, part_memory_bytes
 
 SLOW_CLIENTS = 10
 RECEIVING = 12  # bodies received at once: the slow clients and the normal upload fit
@@ -526,3 +526,73 @@ def test_a_turn_is_given_back_when_the_check_of_a_waiting_request_fails() -> Non
     assert [str(e) for e in failed] == ["the database is away"]
     assert middleware._turns is not None and middleware._turns.value == 1  # given back: the next one may send
     assert middleware.receiving == 0 and middleware.memory.held == 0
+
+
+class FormReader:
+    """An app that parses the multipart body as the routes do (Starlette's form parser, its spooled file's size
+    as the service sets it) and records the uploaded file's bytes and the size up to which it stays in memory."""
+
+    def __init__(self) -> None:
+        self.part_memory = 0
+        self.content = b""
+
+    async def __call__(self, scope, receive, send) -> None:
+        from starlette.requests import Request
+
+        self.part_memory = part_memory_bytes()
+        form = await Request(scope, receive).form()
+        upload = form["f"]
+        self.content = await upload.read()
+        await form.close()
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"ok"})
+
+
+def multipart_messages(content: bytes) -> list[dict]:
+    body = b"".join(
+        [
+            b'--b\r\nContent-Disposition: form-data; name="f"; filename="result.pkl"\r\n',
+            b"Content-Type: application/octet-stream\r\n\r\n",
+            content,
+            b"\r\n--b--\r\n",
+        ]
+    )
+    return chunks_of(body, 1 * MB)
+
+
+@pytest.mark.parametrize("memory_mb", [48, 2])
+def test_an_uploaded_file_stays_in_memory_when_its_body_was_held_in_memory(spools, monkeypatch, memory_mb) -> None:
+    """A val-sized file (past PART_MEMORY_BYTES) whose body was held in memory is not written to a temporary file
+    and read back by the form parser; a body past the memory budget (spooled itself) keeps the parser's bound."""
+    from starlette.formparsers import MultiPartParser
+
+    monkeypatch.setattr(MultiPartParser, "spool_max_size", property(lambda _: part_memory_bytes()))
+    content = os.urandom(PART_MEMORY_BYTES + 3 * MB)
+    app = FormReader()
+    messages = multipart_messages(content)
+    sent = []
+    middleware = BodyMiddleware(
+        app, limit=64 * MB, timeout_s=5, max_receiving=4, retry_after_s=lambda: 2, memory_bytes=memory_mb * MB
+    )
+
+    async def run() -> None:
+        pending = list(messages)
+
+        async def receive() -> dict:
+            return pending.pop(0) if pending else {"type": "http.disconnect"}
+
+        async def send(message: dict) -> None:
+            sent.append(message)
+
+        headers = [(b"content-type", b"multipart/form-data; boundary=b"), (b"transfer-encoding", b"chunked")]
+        await middleware(
+            {"type": "http", "method": "POST", "path": "/v1/evaluations", "headers": headers}, receive, send
+        )
+
+    anyio.run(run)
+    assert sent[0]["status"] == 200 and app.content == content
+    assert part_memory_bytes() == PART_MEMORY_BYTES  # outside a request
+    if memory_mb == 48:  # held in memory: the file too, no temporary file at all
+        assert app.part_memory >= len(content) and spools == []
+    else:  # the body spooled, and the file past PART_MEMORY_BYTES spooled by the parser as before
+        assert app.part_memory == PART_MEMORY_BYTES and len(spools) == 2
