@@ -631,24 +631,27 @@ class Client:
         return dict(self._get(f"/v1/benchmarks/{name}"))
 
     @_answered
-    def frames(self, benchmark: str) -> list[str]:
-        """The benchmark's test frame ids (what a submission must hold)."""
+    def frames(self, benchmark: str, *, phase: str | None = None) -> list[str]:
+        """The test frame ids of the benchmark's phase (None: its current one): what a submission must hold."""
         from .core.frames import normalize_frame_id
 
-        frames = self._get(f"/v1/benchmarks/{benchmark}/frames").get("frames")
+        frames = self._get(f"{_at(benchmark, phase)}/frames").get("frames")
         if not isinstance(frames, list) or not frames:
             raise ServiceError(f"{self.service}: benchmark {benchmark} lists no test frames")
         return [normalize_frame_id(f) for f in frames]
 
     @_answered
-    def leaderboard(self, benchmark: str, *, sort: str | None = None, order: str | None = None) -> dict[str, Any]:
-        """The board as the service shows it to you (entries, columns, the key, intervals)."""
-        return dict(self._get(f"/v1/benchmarks/{benchmark}/leaderboard", sort=sort, order=order))
+    def leaderboard(
+        self, benchmark: str, *, sort: str | None = None, order: str | None = None, phase: str | None = None
+    ) -> dict[str, Any]:
+        """The board of the benchmark's phase (None: its current one) as the service shows it to you (entries,
+        columns, the key, intervals)."""
+        return dict(self._get(f"{_at(benchmark, phase)}/leaderboard", sort=sort, order=order))
 
     @_answered
-    def quota(self, benchmark: str) -> Quota:
-        """Your quota on the benchmark as it stands."""
-        q = self._get(f"/v1/benchmarks/{benchmark}/submissions")["quota"]
+    def quota(self, benchmark: str, *, phase: str | None = None) -> Quota:
+        """Your quota (your team's, in a team) on the benchmark's phase (None: its current one) as it stands."""
+        q = self._get(f"{_at(benchmark, phase)}/submissions")["quota"]
         next_at = q.get("next_at")
         return Quota(
             int(q["submissions"]),
@@ -659,21 +662,25 @@ class Client:
         )
 
     @_answered
-    def submissions(self, benchmark: str) -> list[Submission]:
-        """Your submissions to the benchmark, newest first."""
-        return [Submission.from_body(s) for s in self._get(f"/v1/benchmarks/{benchmark}/submissions")["items"]]
+    def submissions(self, benchmark: str, *, phase: str | None = None) -> list[Submission]:
+        """Your submissions to the benchmark's phase (None: its current one), newest first."""
+        return [Submission.from_body(s) for s in self._get(f"{_at(benchmark, phase)}/submissions")["items"]]
 
     @_answered
     def submission(self, benchmark: str, submission_id: str) -> Submission:
         """One of your submissions, with its scores and aggregate result once scored."""
         return Submission.from_body(self._get(f"/v1/benchmarks/{benchmark}/submissions/{submission_id}"))
 
-    def check_submission(self, predictions: str | os.PathLike[str], benchmark: str) -> None:
-        """The checks of ``kitti-eval validate`` against the benchmark's test frames, here, before anything is
-        sent: raises :class:`~kitti_eval.errors.SubmissionRefused` with the validator's sentences."""
+    def check_submission(
+        self, predictions: str | os.PathLike[str], benchmark: str, *, phase: str | None = None
+    ) -> None:
+        """The checks of ``kitti-eval validate`` against the test frames of the benchmark's phase (None: its
+        current one), here, before anything is sent: raises :class:`~kitti_eval.errors.SubmissionRefused` with the
+        validator's sentences."""
         from .io.submission import SubmissionRules, validate_submission
 
-        outcome = validate_submission(Path(predictions), SubmissionRules(frames=tuple(self.frames(benchmark))))
+        frames = tuple(self.frames(benchmark, phase=phase))
+        outcome = validate_submission(Path(predictions), SubmissionRules(frames=frames))
         if not outcome.ok:
             lines = outcome.lines()
             raise SubmissionRefused(
@@ -692,21 +699,23 @@ class Client:
         wait_s: float = 3600.0,
         check: bool = True,
         idempotency_key: str | None = None,
+        phase: str | None = None,
     ) -> Submission:
         """Submits ``predictions`` to the benchmark: checked here first (``check``: a refused file costs no
         quota and no upload), sent with an idempotency key of its own (sent again while the service is away, it
         counts once), and with ``wait``, followed until it is scored (:class:`Submission` with its scores).
         Over the quota: :class:`~kitti_eval.errors.QuotaExceeded` (with when the next one is accepted).
         ``idempotency_key``: the key sent with every try (default: a new UUID); sent again in another call (the
-        client itself restarted), it is answered with the submission it made, counted once."""
+        client itself restarted), it is answered with the submission it made, counted once. ``phase``: the
+        benchmark's phase to submit to (None: its current one)."""
         path = Path(predictions)
         if not path.exists():
             raise ConfigError(f"{path}: no such file (a result.pkl, a zip/tar of txt files, or a folder of them)")
         if check:
-            self.check_submission(path, benchmark)
+            self.check_submission(path, benchmark, phase=phase)
         response = self._request(
             "POST",
-            f"/v1/benchmarks/{benchmark}/submissions",
+            f"{_at(benchmark, phase)}/submissions",
             params={"wait": _POST_WAIT_S if wait else 0},
             files={"predictions": (path.name, path)},
             headers={"Idempotency-Key": idempotency_key or new_key()},
@@ -720,6 +729,11 @@ class Client:
             return Submission(submission_id, benchmark, job.state, None, None, {"id": submission_id, "job": body})
         self.wait_job(job.id, timeout_s=wait_s)
         return self.submission(benchmark, submission_id)
+
+
+def _at(benchmark: str, phase: str | None) -> str:
+    """The path of a benchmark's phase: its own routes address its current phase."""
+    return f"/v1/benchmarks/{benchmark}" if phase is None else f"/v1/benchmarks/{benchmark}/phases/{phase}"
 
 
 def new_key() -> str:

@@ -51,6 +51,12 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--benchmark", required=True, metavar="NAME", help="the benchmark's name (its page: /benchmarks/NAME)"
     )
+    p.add_argument(
+        "--phase",
+        metavar="PHASE",
+        help="the benchmark's phase to submit to, checked against that phase's test frames (default: its current "
+        "phase)",
+    )
     add_connection_arguments(p, required=True)
     p.add_argument(
         "--format",
@@ -95,7 +101,12 @@ def run(args: argparse.Namespace) -> int:
     with client_of(args, progress=True) as client:
         try:
             submission = client.submit(
-                args.file, args.benchmark, wait=args.wait, wait_s=args.wait_for, idempotency_key=key
+                args.file,
+                args.benchmark,
+                wait=args.wait,
+                wait_s=args.wait_for,
+                idempotency_key=key,
+                phase=args.phase,
             )
         except KeyboardInterrupt:
             say(

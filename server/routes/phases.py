@@ -61,6 +61,15 @@ def phase(name: str, phase: str, benchmarks: BenchmarksDep, caller: AnyoneCaller
     return benchmarks.catalog.describe(benchmarks.catalog.get(row, caller), caller, rescoring=True)
 
 
+@router.get("/{name}/phases/{phase}/frames", summary="A phase's test frame ids (for kitti-eval submit --phase)")
+async def phase_frame_ids(
+    name: str, phase: str, benchmarks: BenchmarksDep, service: ServiceDep, caller: AnyoneCaller
+) -> dict[str, Any]:
+    row = row_of(benchmarks.catalog, name, phase, caller)
+    frames = await service.run(benchmarks.catalog.frame_ids, row, caller)
+    return {"benchmark": name, "phase": phase, "frames": frames}
+
+
 @router.get("/{name}/phases/{phase}/leaderboard", summary="A phase's leaderboard (JSON, or CSV with format=csv)")
 def phase_leaderboard(
     name: str,

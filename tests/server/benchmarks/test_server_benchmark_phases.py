@@ -321,3 +321,34 @@ def test_a_phase_on_open_labels_shows_its_participant_their_frames_and_a_sealed_
     sealed = c.get(f"/v1/benchmarks/kitti-phases/submissions/{test}/frames", headers=bearer(alice))
     assert sealed.status_code == 403 and sealed.json()["error"]["code"] == "sealed"
     assert c.get(f"/v1/benchmarks/kitti-phases/submissions/{dev}/frames", headers=bearer(bob)).status_code == 404
+
+
+def test_the_client_submits_to_a_phase_it_names_and_checks_against_that_phases_frames(world, tmp_path) -> None:
+    """``Client.submit(..., phase=)`` (``kitti-eval submit --phase``) sends to that phase, checked first against
+    the frames its own route lists; without a phase, the current one; a phase that does not exist is refused."""
+    import httpx
+
+    from kitti_eval.client import Client
+    from kitti_eval.errors import ServiceError
+
+    c, hosted = world
+
+    def forward(request: httpx.Request) -> httpx.Response:
+        answer = c.request(
+            request.method, request.url.raw_path.decode(), content=request.read(), headers=request.headers
+        )
+        return httpx.Response(answer.status_code, headers=answer.headers, content=answer.content)
+
+    predictions = tmp_path / "result.pkl"
+    predictions.write_bytes(golden_bytes("result.pkl"))
+    with Client("http://testserver", hosted.tokens["alice"], transport=httpx.MockTransport(forward)) as client:
+        test_frames = client.frames("kitti-phases", phase="test")
+        assert test_frames == client.frames("kitti-phases") and len(test_frames) > 10  # both phases: one set's frames
+        sent = client.submit(predictions, "kitti-phases", phase="test", wait=False)
+        assert [s.id for s in client.submissions("kitti-phases", phase="test")] == [sent.id]
+        assert client.submissions("kitti-phases") == [] and client.submissions("kitti-phases", phase="dev") == []
+        assert client.quota("kitti-phases", phase="test").left == 1 and client.quota("kitti-phases").left == 5
+        with pytest.raises(ServiceError):
+            client.frames("kitti-phases", phase="nope")
+    assert ok(c.get("/v1/benchmarks/kitti-phases/phases/test/frames"))["phase"] == "test"
+    assert c.get("/v1/benchmarks/kitti-phases/phases/nope/frames").status_code == 404
