@@ -1,17 +1,5 @@
 """The rules of a benchmark submission and their checks, on predictions already read (a pickle's) or on a folder
-of result txt files; :mod:`kitti_eval.io.submission` reads a file and checks it.
-
-Checks of a benchmark submission before it is evaluated, as KITTI's submission server makes them.
-
-A submission is a result for every frame of a test set: a zip or tar of KITTI result txt files (one
-``<frame>.txt`` a frame, 16 fields a line; KITTI's server wants them at the zip's root), a folder of them, or
-a result pickle (any layout :func:`kitti_eval.io.loaders.load_detections` reads). :func:`validate_submission`
-lists every problem it finds, one sentence each, so that a participant can fix them all at once; the command
-line (``kitti-eval validate``) and the service say exactly these sentences.
-
-What is checked: every test frame present exactly once (the missing and the extra ones named), every line of
-16 fields whose numbers parse and are finite, every class name one of KITTI's, at most a bounded number of
-boxes a frame. Not checked: sizes, since the devkit reads any (:func:`kitti_eval.core.frames.unsized_boxes`).
+of result txt files; :mod:`kitti_eval.io.submission` reads a file and checks it, and says what is checked.
 """
 
 from __future__ import annotations

@@ -120,15 +120,16 @@ def read_upload(
 def _pickle(
     file: IO[bytes], kind: Kind, source: str, options: LoadOptions, rules: SubmissionRules | None
 ) -> LoadedUpload:
-    if rules is None:
-        loaded = read_pickle(file, kind, source, options)
-        return LoadedUpload("pickle", loaded.annotations, loaded.warnings)
     try:
         loaded = read_pickle(file, kind, source, options)
     except (UnsafePickleError, UnknownFormatError):  # not a submission at all
         raise
     except InputError as e:  # a pickle, but not a result that can be read: one of the submission's problems
+        if rules is None:
+            raise
         raise InvalidSubmissionError([str(e)]) from None
+    if rules is None:
+        return LoadedUpload("pickle", loaded.annotations, loaded.warnings)
     validation = validate_annotations(loaded.annotations, rules)
     if not validation.ok:
         raise InvalidSubmissionError(validation.problems, validation.more)

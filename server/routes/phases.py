@@ -6,18 +6,18 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, File, Header, Query, Request, UploadFile
+from fastapi import APIRouter, File, Header, Query, UploadFile
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
 from ..access.deps import AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
-from ..benchmarks import Benchmarks
 from ..benchmarks.open_labels import submission_frames as frames_of
 from ..benchmarks.phases import phase_views, row_of
 from ..errors import NotFound, echo
 from ..idempotency import IDEMPOTENCY_DESCRIPTION
 from ..schemas import ErrorResponse
 from . import benchmarks as single
+from .benchmarks import BenchmarksDep
 from .frames import MAX_SCORE, MAX_WORST, ClassQ, DifficultyQ, MetricQ, SetQ
 from .phase_names import SubmissionPhase
 
@@ -32,14 +32,6 @@ router = APIRouter(
         404: {"model": ErrorResponse, "description": "no such benchmark or phase"},
     },
 )
-
-
-def _benchmarks(request: Request) -> Benchmarks:
-    found: Benchmarks = request.app.state.benchmarks
-    return found
-
-
-BenchmarksDep = Annotated[Benchmarks, Depends(_benchmarks)]
 
 
 class TeamIn(BaseModel):
