@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Depends, Query
 
 from ..access.deps import ReaderCaller, ServiceDep
 from ..schemas import ErrorResponse
@@ -34,11 +34,7 @@ MAX_SCORE = 1e9
 MAX_WORST = 1_000_000
 
 
-@router.get("/v1/evaluations/{evaluation_id}/frames", summary="TP, FP and FN per frame, worst first")
-async def evaluation_frames(
-    service: ServiceDep,
-    caller: ReaderCaller,
-    evaluation_id: str,
+def frame_counts_question(
     cls: ClassQ = "Car",
     metric: MetricQ = "3d",
     difficulty: DifficultyQ = "moderate",
@@ -51,20 +47,31 @@ async def evaluation_frames(
         Query(ge=-MAX_SCORE, le=MAX_SCORE, allow_inf_nan=False, description="count detections scoring at least this"),
     ] = 0.0,
 ) -> dict[str, Any]:
+    """The query of a TP/FP/FN-per-frame listing (an evaluation's, a submission's), as keyword arguments."""
+    return {
+        "cls": cls,
+        "metric": metric,
+        "difficulty": difficulty,
+        "oset": oset,
+        "worst": worst,
+        "score_threshold": score_threshold,
+    }
+
+
+#: a frame listing's query, for the routes that answer one
+FrameCountsQ = Annotated[dict[str, Any], Depends(frame_counts_question)]
+
+
+@router.get("/v1/evaluations/{evaluation_id}/frames", summary="TP, FP and FN per frame, worst first")
+async def evaluation_frames(
+    service: ServiceDep,
+    caller: ReaderCaller,
+    evaluation_id: str,
+    question: FrameCountsQ,
+) -> dict[str, Any]:
     """The counts come from the same matching as the AP (as `kitti-eval frames`): frames ranked by FP + FN,
     ties by more misses. Needs an evaluation against a registered ground truth whose predictions were kept."""
-    return await service.run(
-        lambda: service.evaluation_frames.frames(
-            evaluation_id,
-            cls=cls,
-            metric=metric,
-            difficulty=difficulty,
-            oset=oset,
-            worst=worst,
-            score_threshold=score_threshold,
-            caller=caller,
-        )
-    )
+    return await service.run(lambda: service.evaluation_frames.frames(evaluation_id, caller=caller, **question))
 
 
 @router.get("/v1/frames/{frame_id}", summary="One frame's boxes, labelled, for several evaluations")

@@ -18,7 +18,7 @@ from ..idempotency import IDEMPOTENCY_DESCRIPTION
 from ..schemas import ErrorResponse
 from . import benchmarks as single
 from .benchmarks import BenchmarksDep
-from .frames import MAX_SCORE, MAX_WORST, ClassQ, DifficultyQ, MetricQ, SetQ
+from .frames import FrameCountsQ
 from .phase_names import SubmissionPhase
 
 __all__ = ["router"]
@@ -119,30 +119,10 @@ async def submission_frames(
     benchmarks: BenchmarksDep,
     service: ServiceDep,
     caller: ReaderCaller,
-    cls: ClassQ = "Car",
-    metric: MetricQ = "3d",
-    difficulty: DifficultyQ = "moderate",
-    oset: SetQ = "strict",
-    worst: Annotated[int | None, Query(ge=1, le=MAX_WORST, description="only the N frames with most errors")] = 20,
-    score_threshold: Annotated[
-        float, Query(ge=-MAX_SCORE, le=MAX_SCORE, allow_inf_nan=False, description="count detections scoring this")
-    ] = 0.0,
+    question: FrameCountsQ,
 ) -> dict[str, Any]:
     """As `GET /v1/evaluations/{id}/frames` for an evaluation; a sealed phase's frames are refused (403 `sealed`)."""
-    return await service.run(
-        lambda: frames_of(
-            benchmarks,
-            name,
-            submission_id,
-            caller,
-            cls=cls,
-            metric=metric,
-            difficulty=difficulty,
-            oset=oset,
-            worst=worst,
-            score_threshold=score_threshold,
-        )
-    )
+    return await service.run(lambda: frames_of(benchmarks, name, submission_id, caller, **question))
 
 
 @router.get("/{name}/teams", summary="The benchmark's teams (for those who take part in it) and yours")
