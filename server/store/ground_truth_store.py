@@ -11,6 +11,7 @@ from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.engine import Connection, RowMapping
 from sqlalchemy.exc import IntegrityError
 
+from .contents import insert_with_content, read_content
 from .database import Area, ground_truth_files, ground_truths, prediction_files, retry_when_locked, utc
 
 __all__ = ["GroundTruthRecord", "GroundTruthStore", "keep_prediction_file"]
@@ -44,7 +45,7 @@ class GroundTruthStore(Area):
                         select(ground_truth_files.c.sha256).where(ground_truth_files.c.sha256 == record.sha256)
                     ).first()
                     if known is None:
-                        conn.execute(insert(ground_truth_files).values(sha256=record.sha256, content=content))
+                        insert_with_content(conn, insert(ground_truth_files).values(sha256=record.sha256), content)
                     conn.execute(insert(ground_truths).values(**record.__dict__))
                 return True
             except IntegrityError:
@@ -55,10 +56,7 @@ class GroundTruthStore(Area):
     @retry_when_locked
     def ground_truth_content(self, sha256: str) -> bytes | None:
         with self.engine.connect() as conn:
-            row = conn.execute(
-                select(ground_truth_files.c.content).where(ground_truth_files.c.sha256 == sha256)
-            ).first()
-        return None if row is None else bytes(row[0])
+            return read_content(conn, ground_truth_files, ground_truth_files.c.sha256 == sha256)
 
     @retry_when_locked
     def get_ground_truth(self, name: str) -> GroundTruthRecord | None:
@@ -108,8 +106,7 @@ class GroundTruthStore(Area):
     @retry_when_locked
     def prediction_content(self, sha256: str) -> bytes | None:
         with self.engine.connect() as conn:
-            row = conn.execute(select(prediction_files.c.content).where(prediction_files.c.sha256 == sha256)).first()
-        return None if row is None else bytes(row[0])
+            return read_content(conn, prediction_files, prediction_files.c.sha256 == sha256)
 
 
 def keep_prediction_file(conn: Connection, sha256: str, content: bytes) -> None:
@@ -117,8 +114,5 @@ def keep_prediction_file(conn: Connection, sha256: str, content: bytes) -> None:
     kept at the same moment by another transaction is left as it is (the contents are the same)."""
     if conn.execute(select(prediction_files.c.sha256).where(prediction_files.c.sha256 == sha256)).first() is not None:
         return
-    row = {"sha256": sha256, "content": content}
-    if conn.dialect.name == "postgresql":
-        conn.execute(pg_insert(prediction_files).values(row).on_conflict_do_nothing())
-    else:
-        conn.execute(sqlite_insert(prediction_files).values(row).on_conflict_do_nothing())
+    dialect = pg_insert if conn.dialect.name == "postgresql" else sqlite_insert
+    insert_with_content(conn, dialect(prediction_files).values(sha256=sha256).on_conflict_do_nothing(), content)

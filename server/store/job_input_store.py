@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from sqlalchemy import and_, case, delete, func, insert, select
 from sqlalchemy.engine import Connection
 
+from .contents import insert_with_content, read_content, snapshot
 from .database import Area, job_inputs, jobs, prediction_files, retry_when_locked
 from .ground_truth_store import keep_prediction_file
 
@@ -42,35 +43,26 @@ class JobInputStore(Area):
         for i in inputs:
             if i.kept:
                 keep_prediction_file(conn, i.sha256, i.content)
-        conn.execute(
-            insert(job_inputs),
-            [
-                {
-                    "job_id": job_id,
-                    "name": i.name,
-                    "filename": i.filename,
-                    "sha256": i.sha256,
-                    "content": b"" if i.kept else i.content,
-                    "kept": i.kept,
-                }
-                for i in inputs
-            ],
-        )
+        for i in inputs:
+            row = {"job_id": job_id, "name": i.name, "filename": i.filename, "sha256": i.sha256, "kept": i.kept}
+            insert_with_content(conn, insert(job_inputs).values(row), b"" if i.kept else i.content)
 
     @retry_when_locked
     def job_input(self, job_id: str, name: str) -> JobInput | None:
         """A job's input with its content (a kept one's read from the kept predictions)."""
-        query = (
-            select(job_inputs, prediction_files.c.content.label("kept_content"))
-            .select_from(_WITH_KEPT)
-            .where(job_inputs.c.job_id == job_id, job_inputs.c.name == name)
-        )
-        with self.engine.connect() as conn:
-            row = conn.execute(query).mappings().first()
-        if row is None or (row["kept"] and row["kept_content"] is None):
+        fields = [job_inputs.c.name, job_inputs.c.filename, job_inputs.c.sha256, job_inputs.c.kept]
+        key = (job_inputs.c.job_id == job_id, job_inputs.c.name == name)
+        with self.engine.connect() as conn, snapshot(conn):
+            row = conn.execute(select(*fields).where(*key)).mappings().first()
+            if row is None:
+                return None
+            if row["kept"]:
+                content = read_content(conn, prediction_files, prediction_files.c.sha256 == row["sha256"])
+            else:
+                content = read_content(conn, job_inputs, *key)
+        if content is None:
             return None
-        content = row["kept_content"] if row["kept"] else row["content"]
-        return JobInput(row["name"], row["filename"], row["sha256"], bytes(content), kept=bool(row["kept"]))
+        return JobInput(row["name"], row["filename"], row["sha256"], content, kept=bool(row["kept"]))
 
     @retry_when_locked
     def job_input_bytes(self) -> int:
