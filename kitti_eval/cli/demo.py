@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Any
 
 from .common import EXIT_OK, add_eval_options
@@ -31,7 +32,8 @@ def run(args: argparse.Namespace) -> int:
 
     gt_path, pred_path = demo_paths()
     if args.where:
-        for path in (gt_path, pred_path, demo_weaker_path()):
-            print(path)
+        # one write, whatever the buffering (PYTHONUNBUFFERED=1 writes each print at once): a reader that stops
+        # after the first line, as `kitti-eval demo --where | head -n 1` does, never finds the pipe closed
+        sys.stdout.write("".join(f"{path}\n" for path in (gt_path, pred_path, demo_weaker_path())))
         return EXIT_OK
     return run_pair(gt_path, pred_path, args)

@@ -440,12 +440,27 @@ def apply_benchmark_file(catalog: BenchmarkCatalog, text: str, *, caller: Caller
             lines.append(f"phase {p.name}: created")
         elif changes:
             catalog.benchmark_store.update_benchmark(row, **changes)
-            detail = ", ".join(sorted(changes))
+            before = rows[p.name]
+            detail = _said(changes, Benchmark.from_record(before).config if before is not None else {})
             catalog.audit.record(caller, "benchmark.apply", row, detail=detail)
             lines.append(f"phase {p.name}: changed {detail}")
         else:
             lines.append(f"phase {p.name}: unchanged")
     return Applied(spec.name, tuple(lines))
+
+
+def _said(changes: dict[str, Any], before: Mapping[str, Any]) -> str:
+    """What a phase's row changed, for its line and the audit: the columns, and within ``config`` the settings
+    (``config (quota, team_size)``)."""
+    said = []
+    for column in sorted(changes):
+        if column == "config":
+            after = changes["config"]
+            keys = sorted(k for k in after.keys() | before.keys() if after.get(k) != before.get(k))
+            said.append(f"config ({', '.join(keys)})")
+        else:
+            said.append(column)
+    return ", ".join(said)
 
 
 def _changes(

@@ -135,6 +135,7 @@ class Leaderboard:
                 "rank",
                 "method",
                 "participant",
+                "team",
                 "affiliation",
                 "link",
                 "date",
@@ -148,7 +149,7 @@ class Leaderboard:
         )
         for e in board["entries"]:
             rank = "baseline" if e["rank"] is None else e["rank"]
-            cells = [rank, e["method"], e["participant"], e["affiliation"], e["link"], e["date"], e["key"]]
+            cells = [rank, e["method"], e["participant"], e["team"], e["affiliation"], e["link"], e["date"], e["key"]]
             cells += [e["columns"].get(c) for c in board["columns"]]
             cells += e["interval"] or [None, None]
             cells += e["rank_range"] or [None, None]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import pickle
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -271,6 +272,24 @@ def test_demo_where_prints_one_path_a_line(capsys):
     assert all(Path(p).is_file() for p in lines)
     assert Path(lines[0]).name.startswith("kitti_infos_val") and Path(lines[1]).name.startswith("result")
     assert Path(lines[2]).name == "result_weaker.pkl.gz"  # the weaker model, for compare and baseline gates
+
+
+def test_demo_where_writes_its_paths_at_once_for_a_reader_that_stops_after_one(monkeypatch):
+    # with PYTHONUNBUFFERED=1 each print was a write of its own: `kitti-eval demo --where | head -n 1` then
+    # broke the pipe on the second line when head had gone (exit 1, "error: Broken pipe") now and then
+    writes: list[str] = []
+
+    class Unbuffered:
+        def write(self, text: str) -> int:
+            writes.append(text)
+            return len(text)
+
+        def flush(self) -> None:
+            pass
+
+    monkeypatch.setattr(sys, "stdout", Unbuffered())
+    assert main(["demo", "--where"]) == 0
+    assert len(writes) == 1 and writes[0].count("\n") == 3 and writes[0].endswith("\n")
 
 
 def test_a_tiny_negative_difference_prints_as_zero_not_minus_zero():

@@ -189,10 +189,10 @@ def test_benchmarks_from_the_cli(admin, tmp_path) -> None:
         scores = made["scores"]
     code, out, _ = admin("benchmark", "export", "kitti-3d")
     header, row = out.splitlines()
-    assert header.startswith("rank,method,participant,affiliation,link,date,key (")
+    assert header.startswith("rank,method,participant,team,affiliation,link,date,key (")
     cells = row.split(",")
     mean = round((scores["Car/3d/moderate/R40/strict"] + scores["Car/bev/moderate/R40/strict"]) / 2, 4)
-    assert cells[:3] == ["1", "'=cmd", "alice"] and float(cells[6]) == mean  # no formula for a spreadsheet
+    assert cells[:4] == ["1", "'=cmd", "alice", ""] and float(cells[7]) == mean  # no formula for a spreadsheet
     code, out, _ = admin("benchmark", "submissions", "kitti-3d")
     assert code == 0 and made["id"] in out and "published" in out
     assert admin("benchmark", "close", "kitti-3d")[1].startswith("benchmark kitti-3d: closed")

@@ -45,4 +45,4 @@ def test_the_submissions_list_and_the_csv_are_documented_field_by_field(tmp_path
     columns_said = _paragraph("* **Leaderboard.**")
     fixed = [h for h in header if "/" not in h]
     assert all(f"`{h}`" in columns_said for h in fixed), [h for h in fixed if f"`{h}`" not in columns_said]
-    assert header[6] == "key (Car/3d/moderate/R40/strict)" and f"`{header[6]}`" in columns_said
+    assert header[7] == "key (Car/3d/moderate/R40/strict)" and f"`{header[7]}`" in columns_said

@@ -30,11 +30,11 @@ def test_the_benchmark_example_runs_as_written(tmp_path: Path) -> None:
         proc = run_bash(script, tmp_path)
         assert "valid: 200 frames" in proc.stdout  # kitti-eval validate --benchmark
         rows = list(csv.reader(io.StringIO(proc.stdout[proc.stdout.index("rank,method") :])))
-        assert rows[1][:4] == ["1", "My detector", "alice", "My lab"], proc.stdout
+        assert rows[1][:5] == ["1", "My detector", "alice", "", "My lab"], proc.stdout  # no team
         with server.client() as c:
             board = c.get("/v1/benchmarks/kitti-3d/leaderboard").json()
             assert [e["method"] for e in board["entries"]] == ["My detector"]
-            assert float(rows[1][6]) == board["entries"][0]["key"] > 0
+            assert float(rows[1][7]) == board["entries"][0]["key"] > 0
             page = c.get("/benchmarks/kitti-3d")
             assert page.status_code == 200 and "My detector" in page.text and "<strong>Car 3D AP</strong>" in page.text
             actions = {r["action"] for r in c.get("/v1/admin/audit", headers=ADMIN).json()["items"]}

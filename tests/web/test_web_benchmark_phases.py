@@ -88,6 +88,10 @@ def test_a_participant_makes_a_team_and_submits_to_the_test_phase_through_the_pa
     assert published.headers["location"] == f"/benchmarks/kitti-phases?phase=test#entry-{sid}"
     board = ok(c.get("/v1/benchmarks/kitti-phases/phases/test/leaderboard"))
     assert [(e["method"], e["participant"], e["team"]) for e in board["entries"]] == [("Team-Net", "alice", "Two")]
+    table = c.get("/v1/benchmarks/kitti-phases/phases/test/leaderboard", params={"format": "csv"}).text.splitlines()
+    assert table[0].startswith("rank,method,participant,team,affiliation,") and table[1].startswith(
+        "1,Team-Net,alice,Two,"
+    )
     shown = c.get("/benchmarks/kitti-phases", params={"phase": "test"}).text
     assert '<span class="team-of">Two</span>: alice' in shown
     assert "sort=rank&amp;order=asc&amp;phase=test" in shown  # sorting keeps the phase

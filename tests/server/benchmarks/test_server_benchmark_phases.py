@@ -78,7 +78,7 @@ def test_a_change_of_quota_and_dates_is_applied(world) -> None:
     closes = datetime.now(timezone.utc) + timedelta(days=30)
     changed = TWO_PHASES.replace('quota = "2/1"', f'quota = "4/2"\ncloses_at = {closes.isoformat()}')
     applied = apply_benchmark_file(c.app.state.benchmarks.catalog, changed, caller=HOST)
-    assert applied.lines == ("phase dev: unchanged", "phase test: changed closes_at, config")
+    assert applied.lines == ("phase dev: unchanged", "phase test: changed closes_at, config (quota)")
     test = ok(c.get("/v1/benchmarks/kitti-phases/phases/test"))
     assert test["quota"] == {"submissions": 4, "days": 2.0}
     assert datetime.fromisoformat(test["closes_at"]) == closes

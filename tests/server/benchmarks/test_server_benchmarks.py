@@ -130,10 +130,19 @@ def test_results_publishing_and_the_leaderboard(world) -> None:
     assert [e["method"] for e in by_method["entries"]] == ["B", "PointPillars-ish"]
     text = c.get("/v1/benchmarks/bench/leaderboard", params={"format": "csv"}).text
     rows = list(csv.reader(io.StringIO(text)))
-    header = ["rank", "method", "participant", "affiliation", "link", "date", "key (Car/3d/moderate/R40/strict)"]
-    assert rows[0][:7] == header and "Car/3d/moderate/R40/strict" in rows[0][7:]  # the key and its column
+    header = [
+        "rank",
+        "method",
+        "participant",
+        "team",
+        "affiliation",
+        "link",
+        "date",
+        "key (Car/3d/moderate/R40/strict)",
+    ]
+    assert rows[0][:8] == header and "Car/3d/moderate/R40/strict" in rows[0][8:]  # the key and its column
     assert len(set(rows[0])) == len(rows[0])  # every column's name once
-    assert rows[1][:3] == ["1", "PointPillars-ish", "alice"] and float(rows[1][6]) == expected
+    assert rows[1][:4] == ["1", "PointPillars-ish", "alice", ""] and float(rows[1][7]) == expected  # no team
     # the page, without a token
     page = c.get("/benchmarks/bench")
     assert (
