@@ -356,14 +356,18 @@ def _answered(method: Callable[..., _T]) -> Callable[..., _T]:
 @contextlib.contextmanager
 def _tar_of_txt(folder: Path) -> Iterator[BinaryIO]:
     """A folder of KITTI txt files (the local reader's layout) as the service takes it: a tar.gz of its txt
-    files, in a temporary file."""
+    files, in a temporary file. The same files give the same bytes each time it is packed (gzip's header says
+    no time): each try of a request packs it again, and a try after one whose answer was lost must send the
+    file the idempotency key was first recorded with, or the service refuses the key as reused."""
+    import gzip
     import tarfile
     import tempfile
 
     with tempfile.TemporaryFile() as raw:
-        with tarfile.open(fileobj=raw, mode="w:gz", compresslevel=1) as tar:
-            for path in sorted(folder.glob("*.txt")):
-                tar.add(path, arcname=path.name, recursive=False)
+        with gzip.GzipFile(fileobj=raw, mode="wb", compresslevel=1, mtime=0) as packed:
+            with tarfile.open(fileobj=packed, mode="w") as tar:
+                for path in sorted(folder.glob("*.txt")):
+                    tar.add(path, arcname=path.name, recursive=False)
         raw.seek(0)
         yield raw
 

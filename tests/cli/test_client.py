@@ -83,6 +83,35 @@ def test_a_submission_sent_again_carries_its_one_key_and_honours_retry_after(mon
     assert [r.url.path for r in answers.requests[4:]] == ["/v1/jobs/j1", "/v1/benchmarks/b/submissions/j1"]
 
 
+def _sent_file(request: httpx.Request) -> bytes:
+    """The bytes of the one file of a multipart request."""
+    boundary = request.headers["content-type"].split("boundary=")[1].encode()
+    (part,) = [p for p in request.content.split(b"--" + boundary) if b"filename=" in p]
+    return part.split(b"\r\n\r\n", 1)[1][: -len(b"\r\n")]
+
+
+def test_a_folder_sent_again_is_the_same_file_so_its_key_is_not_refused_as_reused(tmp_path, monkeypatch) -> None:
+    # a folder is packed again for each try: a try whose answer was lost may have been recorded with its key,
+    # and the service refuses the key with another file (gzip's header once held the time of packing)
+    import io
+    import tarfile
+
+    folder = tmp_path / "pred"
+    folder.mkdir()
+    for frame in ("000000", "000001"):
+        folder.joinpath(f"{frame}.txt").write_text("Car 0 0 0 0 0 10 10 1.5 1.6 3.9 1 1.7 20 0 0.9\n")
+    clock = iter(range(1_800_000_000, 1_800_000_000 + 1000, 100))
+    monkeypatch.setattr(client_module.time, "time", lambda: float(next(clock)))  # a minute or more between tries
+    answers = _Answers([_drop, _status(201, _SCORED)])
+    with _client(answers, [], monkeypatch) as c:
+        c.submit(folder, "b", check=False)
+    first, again = (_sent_file(r) for r in answers.requests)
+    assert first == again and first[:2] == b"\x1f\x8b"  # one gzip, byte for byte
+    assert {r.headers["Idempotency-Key"] for r in answers.requests} == {answers.requests[0].headers["Idempotency-Key"]}
+    with tarfile.open(fileobj=io.BytesIO(first)) as tar:
+        assert tar.getnames() == ["000000.txt", "000001.txt"]
+
+
 def test_two_submissions_draw_two_keys(monkeypatch) -> None:
     answers = _Answers([_status(201, _SCORED), _status(201, _SCORED)])
     with _client(answers, [], monkeypatch) as c:
