@@ -29,12 +29,17 @@ from sqlalchemy.sql.dml import Insert
 __all__ = ["read_content", "insert_with_content", "snapshot"]
 
 
+def _sqlite3(conn: Connection) -> Any:
+    """The ``sqlite3.Connection`` under ``conn``."""
+    return conn.connection.driver_connection
+
+
 @contextlib.contextmanager
 def snapshot(conn: Connection) -> Iterator[None]:
     """On SQLite, the reads within see one state of the database (a read transaction: Python's ``sqlite3``
     begins none before a ``SELECT``); nothing within a transaction already begun, or on PostgreSQL, where a
     file is read by its key in one statement."""
-    raw: Any = conn.connection.driver_connection
+    raw = _sqlite3(conn)
     if conn.dialect.name != "sqlite" or raw.in_transaction:
         yield
         return
@@ -54,9 +59,8 @@ def read_content(conn: Connection, table: Table, *where: ColumnElement[bool]) ->
         row = conn.execute(select(literal_column("rowid")).select_from(table).where(*where)).first()
         if row is None:
             return None
-        raw: Any = conn.connection.driver_connection
-        with raw.blobopen(table.name, "content", row[0], readonly=True) as blob:
-            return bytes(blob.read())
+        with _sqlite3(conn).blobopen(table.name, "content", row[0], readonly=True) as blob:
+            return blob.read()
 
 
 def insert_with_content(conn: Connection, statement: Insert, content: bytes) -> None:
@@ -71,6 +75,5 @@ def insert_with_content(conn: Connection, statement: Insert, content: bytes) -> 
     result = conn.execute(statement.values(content=func.zeroblob(len(content))))
     if result.rowcount != 1:  # nothing inserted (SQLite counts the rows an INSERT wrote)
         return
-    raw: Any = conn.connection.driver_connection
-    with raw.blobopen(table.name, "content", result.lastrowid) as blob:
+    with _sqlite3(conn).blobopen(table.name, "content", result.lastrowid) as blob:
         blob.write(content)
