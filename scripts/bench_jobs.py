@@ -183,11 +183,6 @@ def _encoded(kind: str, pred: bytes) -> tuple[str, bytes, str]:
     return ("/v1/benchmarks/bench/submissions", *_encode(pred))
 
 
-def _send(c: httpx.Client, request: tuple[str, bytes, str], headers: dict[str, str]) -> httpx.Response:
-    path, body, content_type = request
-    return c.post(path, params={"wait": "0"}, content=body, headers={**headers, "Content-Type": content_type})
-
-
 def _post(port: int, request: tuple[str, bytes, str], headers: dict[str, str]) -> tuple[int, bytes]:
     """The upload as a client elsewhere sends it, with the least of this machine's CPU: the standard library's
     ``http.client`` hands the encoded body to the socket as it is. (httpx, through h11, spent ~44 ms of CPU an
@@ -213,14 +208,13 @@ def _last_finished(c: httpx.Client, count: int) -> float:
 
 
 def variants(pred: bytes, count: int) -> list[bytes]:
-    """``count`` result.pkl files that differ from ``pred`` and from each other in one detection's score (frame
-    0's first, moved by 1e-4 steps): the service keeps each of them (it keeps a file once by its content)."""
+    """``count`` result.pkl files that differ from ``pred`` and from each other in one detection's score (the
+    first one, set to 1e-4, 2e-4, ...): the service keeps each of them (it keeps a file once by its content)."""
     results = pickle.loads(pred)  # the pickle made just above by this script
+    scores = next(r["score"] for r in results if len(r["score"]))
     out = []
     for i in range(count):
-        frame = results[next(k for k, r in enumerate(results) if len(r["score"]))]
-        frame["score"] = frame["score"].copy()
-        frame["score"][0] = (i + 1) * 1e-4
+        scores[0] = (i + 1) * 1e-4
         out.append(pickle.dumps(results, protocol=4))
     return out
 
@@ -269,12 +263,11 @@ def _run(
                     return int(counts.get("done", 0))
 
                 request = _encoded(kind, pred)
-                files = variants(pred, uploads) if distinct else []
-                requests = [_encoded(kind, f) for f in files] or [request] * uploads
-                del files
+                requests = [_encoded(kind, f) for f in variants(pred, uploads)] if distinct else [request] * uploads
                 warm = max(2, workers)  # one for each worker process: its kernels loaded, the ground truth read
                 for i in range(warm):
-                    _send(c, request, headers[i % clients]).raise_for_status()
+                    status, text = _post(port, request, headers[i % clients])
+                    assert status in (201, 202), text[:300]
                 while done() < warm:
                     time.sleep(0.1)
                 cpu_before = _cpu_of([proc.pid, *(w.pid for w in worker)])
@@ -305,8 +298,7 @@ def _run(
         share = f" ({uploads / wall / rate:.2f}x in-process: {before[0]:.2f} before, {after[0]:.2f} after)"
         if cpu_before is not None and cpu_after is not None:
             service_cpu, library_cpu = (cpu_after - cpu_before) / uploads, (before[1] + after[1]) / 2
-            client_cpu = sum(client_after[:2]) - sum(client_before[:2])
-            client_cpu /= uploads
+            client_cpu = (sum(client_after[:2]) - sum(client_before[:2])) / uploads
             cpu = (
                 f"; CPU an upload {service_cpu * 1000:.0f} ms, the library's {library_cpu * 1000:.0f} ms "
                 f"({library_cpu / service_cpu:.2f}x); the clients' {client_cpu * 1000:.0f} ms"
@@ -343,35 +335,27 @@ def main(argv: list[str] | None = None) -> int:
     kinds = ["uploads", "submissions"] if args.kind == "both" else [args.kind]
     threads = {"KITTI_EVAL_WORKER_PROCESSES": "0", "KITTI_EVAL_JOB_THREADS": "2"}
     none = {"KITTI_EVAL_WORKER_PROCESSES": "0", "KITTI_EVAL_JOB_THREADS": "0"}
-    for kind in kinds:
+
+    def run(label: str, kind: str, env: dict[str, str], workers: int = 0) -> None:
         _run(
-            "kitti-eval serve (default)",
+            label,
             kind,
-            {},
+            env,
             gt,
             pred,
             args.uploads,
             args.clients,
+            workers=workers,
             library=library,
             distinct=args.distinct,
         )
+
+    for kind in kinds:
+        run("kitti-eval serve (default)", kind, {})
         if not args.skip_threads:
-            label = "2 worker threads, no process"
-            _run(label, kind, threads, gt, pred, args.uploads, args.clients, library=library, distinct=args.distinct)
+            run("2 worker threads, no process", kind, threads)
         if not args.skip_workers:
-            label = f"{args.processes} kitti-eval worker procs"
-            _run(
-                label,
-                kind,
-                none,
-                gt,
-                pred,
-                args.uploads,
-                args.clients,
-                workers=args.processes,
-                library=library,
-                distinct=args.distinct,
-            )
+            run(f"{args.processes} kitti-eval worker procs", kind, none, workers=args.processes)
     return 0
 
 
