@@ -7,10 +7,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from kitti_eval.analysis.diagnostics import frame_stats, frames_document
-
 from ..access.policy import Caller, require_open_labels
-from ..errors import BadRequest, Conflict
+from ..errors import Conflict
+from ..evaluations.evaluator import frame_listing
 from ..evaluations.uploads import stored_upload
 
 if TYPE_CHECKING:
@@ -24,18 +23,11 @@ def submission_frames(
     name: str,
     submission_id: str,
     caller: Caller,
-    *,
-    cls: str = "Car",
-    metric: str = "3d",
-    difficulty: str = "moderate",
-    oset: str = "strict",
-    worst: int | None = 20,
-    score_threshold: float = 0.0,
+    **question: Any,
 ) -> dict[str, Any]:
     """TP/FP/FN per frame of one of the caller's submissions to the phase ``name`` (a row), when the phase is on
-    open labels: the submission's file read as its scoring read it, matched as the AP is."""
-    if worst is not None and worst < 1:
-        raise BadRequest("worst must be at least 1")
+    open labels: the submission's file read as its scoring read it, matched as the AP is
+    (:func:`~kitti_eval_server.evaluations.evaluator.frame_listing`, ``question`` its keywords)."""
     record = benchmarks.submissions._own(name, submission_id, caller)
     bench = benchmarks.catalog.named(name)
     require_open_labels(open_labels=bench.open_labels, what=f"phase {bench.phase_name!r}")
@@ -47,16 +39,6 @@ def submission_frames(
     if content is None:
         raise Conflict(f"the predictions of submission {record.id} are not kept")
     dt = scoring._checked(stored_upload(content, record.pred_filename, record.pred_sha256), gt)
-    stats = frame_stats(
-        gt,
-        dt,
-        bench.options().config(),
-        cls=cls,
-        metric=metric,
-        difficulty=difficulty,
-        oset=oset,
-        score_threshold=score_threshold,
-    )
-    doc = frames_document(stats, worst=worst)
+    doc = frame_listing(gt, dt, bench.options().config(), **question)
     doc["submission"] = record.id
     return doc

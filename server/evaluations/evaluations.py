@@ -15,7 +15,6 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from kitti_eval.analysis.diagnostics import frame_stats, frames_document
 from kitti_eval.analysis.inspection import inspect_frame, model_name, unique_names
 from kitti_eval.core.frames import Annotations, normalize_frame_id
 from kitti_eval.core.protocol import EvalConfig
@@ -42,7 +41,7 @@ from ..store import (
     KeyTaken,
     new_id,
 )
-from .evaluator import EvalOptions, evaluate_document, summarize
+from .evaluator import EvalOptions, evaluate_document, frame_listing, summarize
 from .uploads import FileIn, receive_content, stored_upload
 
 __all__ = ["Evaluations", "EvaluationFrames", "FileIn", "sealed_document", "MAX_INSPECTED"]
@@ -399,28 +398,12 @@ class EvaluationFrames:
 
         return gt, self.predictions.get_or_load(record.pred_sha256, load_kept), config
 
-    def frames(
-        self,
-        evaluation_id: str,
-        *,
-        cls: str = "Car",
-        metric: str = "3d",
-        difficulty: str = "moderate",
-        oset: str = "strict",
-        worst: int | None = 20,
-        score_threshold: float = 0.0,
-        caller: Caller,
-    ) -> dict[str, Any]:
-        """TP/FP/FN per frame of a stored evaluation (the ``worst`` n first, or all), as
-        :func:`kitti_eval.analysis.diagnostics.frames_document`."""
-        if worst is not None and worst < 1:
-            raise BadRequest("worst must be at least 1")
+    def frames(self, evaluation_id: str, *, caller: Caller, **question: Any) -> dict[str, Any]:
+        """TP/FP/FN per frame of a stored evaluation: :func:`.evaluator.frame_listing` of its kept inputs,
+        ``question`` its keywords (class, metric, difficulty, set, worst, score threshold)."""
         record = self.evaluations.get(evaluation_id, caller)
         gt, dt, config = self._kept_inputs(record)
-        stats = frame_stats(
-            gt, dt, config, cls=cls, metric=metric, difficulty=difficulty, oset=oset, score_threshold=score_threshold
-        )
-        doc = frames_document(stats, worst=worst)
+        doc = frame_listing(gt, dt, config, **question)
         doc["evaluation"] = record.id
         return doc
 

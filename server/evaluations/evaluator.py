@@ -17,6 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from kitti_eval.analysis.decomposition import errors_document, evaluate_with_errors
+from kitti_eval.analysis.diagnostics import frame_stats, frames_document
 from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.analysis.ranking import evaluate_resampled
 from kitti_eval.core.evaluation import evaluate
@@ -33,6 +34,7 @@ __all__ = [
     "evaluate_document_resampled",
     "check_image_fields",
     "summarize",
+    "frame_listing",
     "parse_labels",
     "LABEL_KEY_PATTERN",
     "ERRORS_SET",
@@ -155,6 +157,29 @@ def check_image_fields(gt: Annotations, dt: Annotations, config: EvalConfig, *, 
                 frame=annos.missing_fields[field] if frame_shown else None,
                 field=field,
             )
+
+
+def frame_listing(
+    gt: Annotations,
+    dt: Annotations,
+    config: EvalConfig,
+    *,
+    cls: str = "Car",
+    metric: str = "3d",
+    difficulty: str = "moderate",
+    oset: str = "strict",
+    worst: int | None = 20,
+    score_threshold: float = 0.0,
+) -> dict[str, Any]:
+    """TP/FP/FN per frame (the ``worst`` n first, or all), from the same matching as the AP, as
+    :func:`kitti_eval.analysis.diagnostics.frames_document`: what an evaluation's and a submission's frame
+    listings answer."""
+    if worst is not None and worst < 1:
+        raise BadRequest("worst must be at least 1")
+    stats = frame_stats(
+        gt, dt, config, cls=cls, metric=metric, difficulty=difficulty, oset=oset, score_threshold=score_threshold
+    )
+    return frames_document(stats, worst=worst)
 
 
 def summarize(doc: Mapping[str, Any]) -> dict[str, dict[str, float | None]]:
