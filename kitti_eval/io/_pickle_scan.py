@@ -28,7 +28,9 @@ every container operation the C unpickler would perform is an allowed one:
   ``budget`` (a small pickle cannot make a huge array, nor millions of empty containers or dict entries);
   a value put into a container a second time (the memo, DUP) is charged the array bytes it holds again,
   each time, since a reader copies it once a place (a small pickle whose frames all share one big array
-  cannot expand to a huge set of boxes); memo indices within the number of memo writes + 1024
+  cannot expand to a huge set of boxes); the strings of all its str arrays, at the widest one's width (a
+  reader joins the frames' class names into one array of that width), within ``budget`` too; memo indices
+  within the number of memo writes + 1024
   (``_pickle.c`` sizes its memo array by the largest index);
 * no NEWOBJ(_EX), INST, OBJ, EXT1/2/4, (BIN)PERSID, NEXT_BUFFER, READONLY_BUFFER.
 
@@ -73,6 +75,8 @@ E_SCALAR = 24  # numpy scalar data of the wrong size or type
 E_FROMBUF_OBJ = 25  # object dtype from a raw buffer
 E_DTYPE_SIZE = 26  # bad str/bytes size in a dtype state (i1: size)
 E_ARGS = 27  # wrong number or kind of call arguments
+E_WIDE = 29  # str arrays that, read together at the widest one's width, take more than the budget (i0: strings,
+# i1: the widest one's itemsize)
 E_ROOM = 28  # not an error: work array i0 (a ROOM_* index) needs i1 rows; the caller grows it and calls again
 ROOM_NODES, ROOM_CH, ROOM_STACK, ROOM_MARKS, ROOM_MEMO, ROOM_ITEMS = range(6)
 # refused (UnsafePickleError)
@@ -138,14 +142,16 @@ KIND_NAMES = {
     K_SCALAR: "numpy scalar",
 }
 
-# a node is a row of 5 int64: W = kind | flags | opcode << 24 | depth << 32, then V, A, B (per kind, above), and
-# X: the bytes of array data the value holds (an array's own, a container's items' summed, each time one is in it)
+# a node is a row of 6 int64: W = kind | flags | opcode << 24 | depth << 32, then V, A, B (per kind, above), and
+# X: the bytes of array data the value holds (an array's own, a container's items' summed, each time one is in it),
+# S: the same of the elements of str arrays
 W = 0
 V = 1
 A = 2
 B = 3
 X = 4
-COLUMNS = 5
+S = 5
+COLUMNS = 6
 KIND_MASK = 0xFF
 OP_SHIFT = 24
 DEPTH_SHIFT = 32
@@ -553,6 +559,7 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
     n = data.shape[0]
     nn, nch, sp, nmarks, fence = _FIRST, 0, 0, 0, 0
     memo_len, writes, spent, again, hashed, ni = 0, 0, 0, 0, 0, 0
+    strings, widest = 0, 0  # elements of str ('U') arrays, and the largest itemsize among them
     pos, p0, err, i0, i1, i2, result = 0, 0, OK, 0, 0, 0, -1
     while True:
         if pos >= n:
@@ -589,8 +596,8 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
             if line < 0:
                 err = E_TRUNC
                 break
-        push = -1  # a node to push: an existing one, or nn for a new one with w, v, a, b, x
-        w, v, a, b, x = _NEW[op], 0, nch, 0, 0
+        push = -1  # a node to push: an existing one, or nn for a new one with w, v, a, b, x, strs
+        w, v, a, b, x, strs = _NEW[op], 0, nch, 0, 0, 0
         # ------------------------------------------------------------ values
         if width or op == 0x53 or op == 0x56:  # counted str/bytes/bytearray; STRING (quoted); UNICODE
             a, b = pos, size
@@ -781,6 +788,13 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
             spent += made
             if w & KIND_MASK == K_ARRAY:
                 x = made
+                dt = ch[nodes[args, A] + 1]
+                if not err and nodes[dt, A] == 85 and nodes[dt, V] > 0:  # a str array
+                    strs = made // nodes[dt, V]
+                    strings += strs
+                    widest = max(widest, nodes[dt, V])
+                    if strings > budget // widest:
+                        err, i0, i1 = E_WIDE, strings, widest
             if w & KIND_MASK == K_SCALAR:
                 a = args  # its (dtype, bytes), for the columns
             push = nn
@@ -799,6 +813,13 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
             elif not err:
                 nodes[target, A] = stack[sp]  # the state, for the columns (kitti_eval.io.pickle_columns)
                 nodes[target, X] = made
+                dt = ch[nodes[stack[sp], A] + 2]
+                if nodes[dt, A] == 85 and nodes[dt, V] > 0:  # a str array
+                    nodes[target, S] = made // nodes[dt, V]
+                    strings += nodes[target, S]
+                    widest = max(widest, nodes[dt, V])
+                    if strings > budget // widest:
+                        err, i0, i1 = E_WIDE, strings, widest
             spent += made
         # ------------------------------------------------------------ containers
         elif w or _INTO[op]:  # TUPLE, TUPLE1-3, LIST, DICT, FROZENSET; APPEND(S), SETITEM(S), ADDITEMS
@@ -830,7 +851,7 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                 if nodes[target, W] & F_PLACED:
                     err = E_CHANGED
                     break
-                w, v, x = nodes[target, W], nodes[target, V], nodes[target, X]
+                w, v, x, strs = nodes[target, W], nodes[target, V], nodes[target, X], nodes[target, S]
             keyed = op == 0x64 or op == 0x73 or op == 0x75
             if keyed and (sp - first) % 2:
                 err = E_ODD
@@ -885,7 +906,12 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                 if kw & F_PLACED:  # in a container already: a reader copies its arrays again, once a place
                     spent = min(spent + held, _SAT)
                     again = min(again + held, _SAT)
+                    strings = min(strings + nodes[k, S], _SAT)
+                    if widest and strings > budget // widest:
+                        err, i0, i1 = E_WIDE, strings, widest
+                        break
                 x = min(x + held, _SAT)
+                strs = min(strs + nodes[k, S], _SAT)
                 if k >= _FIRST:
                     nodes[k, W] |= F_PLACED
             b = sp - first
@@ -899,7 +925,7 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                     ni += 1
             sp = first
             if target >= 0:
-                nodes[target, W], nodes[target, V], nodes[target, X] = w, v, x
+                nodes[target, W], nodes[target, V], nodes[target, X], nodes[target, S] = w, v, x, strs
             else:
                 push = nn
         else:
@@ -914,7 +940,7 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                 push = _INT0 + v
             else:
                 nodes[nn, W], nodes[nn, V], nodes[nn, A], nodes[nn, B] = w | op << OP_SHIFT, v, a, b
-                nodes[nn, X] = x
+                nodes[nn, X], nodes[nn, S] = x, strs
                 nn += 1
                 spent += _OBJECT_BYTES
         if push >= 0:

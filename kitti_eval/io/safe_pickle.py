@@ -298,6 +298,12 @@ def _scan_error(res: tuple[Any, ...], data: Buffer, source: str) -> InputError:
         )
     if code == _ps.E_BUDGET:
         msg = _budget_message(len(data), i1)
+    elif code == _ps.E_WIDE:
+        msg = (
+            f"its str arrays (class names) hold {i0} strings or more, which read together at the widest one's width "
+            f"({i1 // 4} characters) take over {_mb(i0 * i1)}, more than the limit of {_mb(_budget(len(data)))} "
+            f"for a pickle of {_mb(len(data))} (8 times its size + 32 MB)"
+        )
     elif code == _ps.E_SIZE:
         shape, dt = nd.shape(i0), nd.dtype(i1)
         need = int(np.prod(shape, dtype=object)) * dt.itemsize

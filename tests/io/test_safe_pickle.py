@@ -984,3 +984,18 @@ def test_the_state_of_an_array_already_in_a_container_is_refused() -> None:
     assert pickle.loads(placed)[0].shape == (2,)
     with pytest.raises(UnsafePickleError, match="sets the state of a numpy array"):
         loads(placed)
+
+
+def test_str_arrays_are_charged_at_the_widest_ones_width(scan_mode: str) -> None:
+    """A reader joins the frames' class names into one array as wide as the widest name: 3,000 frames of ten
+    3-character names and one name of 2,000 characters (a 0.5 MB pickle) would be 30,001 names of 8,000 bytes,
+    240 MB, past the budget (36 MB); counted at their own width they are 0.4 MB. The same names shared by every
+    frame through the memo count once a frame, as they are copied."""
+    names = [np.array([f"C{i % 10:02d}"] * 10) for i in range(3000)]
+    data = pickle.dumps([*names, np.array(["x" * 2000])], protocol=4)
+    with pytest.raises(InputError, match=r"str arrays \(class names\) hold 30001 strings or more, which read toget"):
+        loads(data)
+    assert len(loads(pickle.dumps(names, protocol=4))) == 3000  # type: ignore[arg-type]
+    shared = np.array(["Car"] * 10)
+    with pytest.raises(InputError, match="at the widest one's width .2000 characters."):
+        loads(pickle.dumps([np.array(["x" * 2000]), *[shared] * 3000], protocol=4))
