@@ -12,7 +12,7 @@ every container operation the C unpickler would perform is an allowed one:
   True)`` for a plain numeric, str, bytes or object code; ``scalar(complete non-object dtype, bytes of its
   itemsize)``; ``_frombuffer(bytes, complete non-object dtype, shape, order[, axis order])`` with exactly
   ``prod(shape) * itemsize`` bytes; ``_codecs.encode(str, latin-1)``; ``OrderedDict()``; ``bytes()``;
-* BUILD once, on a fresh array (state ``(1, shape, complete dtype, bool, data)`` with exactly
+* BUILD once, on a fresh array not yet in a container (state ``(1, shape, complete dtype, bool, data)`` with exactly
   ``prod(shape) * itemsize`` bytes, or for object arrays a list of exactly ``prod(shape)`` str, numbers,
   bytes, None or numpy scalars) or on a fresh dtype (exactly the canonical state of a plain dtype: numpy's
   own ``__setstate__`` accepts states that read or free arbitrary memory later);
@@ -22,9 +22,14 @@ every container operation the C unpickler would perform is an allowed one:
 * nesting at most ``max_depth`` deep (CPython's tuple hash recurses in C without a guard) and at most
   ``key_budget`` elements of tuple keys hashed in all (a shared-child tuple DAG would hash for ever; str
   and number keys are cheap and do not count);
-* what the C unpickler will hold -- array bytes (counted at every BUILD, call and encode, shared inputs
-  each time), 32 bytes an object, 24 an item put into a container, 8 a stack slot -- within ``budget`` (a
-  small pickle cannot make a huge array, nor millions of empty containers or dict entries); memo indices
+* what the C unpickler will hold and what a reader will make of it -- array bytes (counted at every BUILD,
+  call and encode, shared inputs each time; an array of numbers at 8 bytes an element at least, as a reader
+  converts it to float64), 32 bytes an object, 24 an item put into a container, 8 a stack slot -- within
+  ``budget`` (a small pickle cannot make a huge array, nor millions of empty containers or dict entries);
+  a value put into a container a second time (the memo, DUP) is charged the array bytes it holds again,
+  each time, since a reader copies it once a place (a small pickle whose frames all share one big array
+  cannot expand to a huge set of boxes); the strings of all its str arrays, at the widest one's width (a
+  reader joins the frames' class names into one array of that width), within ``budget`` too; memo indices
   within the number of memo writes + 1024
   (``_pickle.c`` sizes its memo array by the largest index);
 * no NEWOBJ(_EX), INST, OBJ, EXT1/2/4, (BIN)PERSID, NEXT_BUFFER, READONLY_BUFFER.
@@ -54,7 +59,8 @@ E_DEPTH = 9  # nested more than max_depth deep
 E_KEYS = 10  # more than key_budget tuple elements hashed
 E_UNHASHABLE = 11  # dict key or set item that cannot be hashed (i0: node)
 E_CHANGED = 12  # a container changed after it was put into another one
-E_BUDGET = 13  # more bytes built (array data, objects, the stack) than the budget
+E_BUDGET = 13  # more bytes built (array data, objects, the stack) than the budget (i0: bytes charged, i1: of them
+# charged again for values put into containers more than once)
 E_OOB = 14  # out-of-band buffers
 E_NOT_TUPLE = 15  # REDUCE arguments that are not a tuple
 E_HEADER = 16  # _reconstruct arguments other than numpy's empty int8 shell
@@ -69,6 +75,8 @@ E_SCALAR = 24  # numpy scalar data of the wrong size or type
 E_FROMBUF_OBJ = 25  # object dtype from a raw buffer
 E_DTYPE_SIZE = 26  # bad str/bytes size in a dtype state (i1: size)
 E_ARGS = 27  # wrong number or kind of call arguments
+E_WIDE = 29  # str arrays that, read together at the widest one's width, take more than the budget (i0: strings,
+# i1: the widest one's itemsize)
 E_ROOM = 28  # not an error: work array i0 (a ROOM_* index) needs i1 rows; the caller grows it and calls again
 ROOM_NODES, ROOM_CH, ROOM_STACK, ROOM_MARKS, ROOM_MEMO, ROOM_ITEMS = range(6)
 # refused (UnsafePickleError)
@@ -134,15 +142,20 @@ KIND_NAMES = {
     K_SCALAR: "numpy scalar",
 }
 
-# a node is a row of 4 int64: W = kind | flags | opcode << 24 | depth << 32, then V, A, B (per kind, above)
+# a node is a row of 6 int64: W = kind | flags | opcode << 24 | depth << 32, then V, A, B (per kind, above), and
+# X: the bytes of array data the value holds (an array's own, a container's items' summed, each time one is in it),
+# S: the same of the elements of str arrays
 W = 0
 V = 1
 A = 2
 B = 3
+X = 4
+S = 5
+COLUMNS = 6
 KIND_MASK = 0xFF
 OP_SHIFT = 24
 DEPTH_SHIFT = 32
-F_PLACED = 1 << 8  # inside another container: frozen from then on
+F_PLACED = 1 << 8  # inside a container: frozen from then on (a list, dict or set), charged again when put in another
 F_GLOBALISH = 1 << 9  # a global, or a tuple holding one
 F_BUILT = 1 << 10
 F_BOOL = 1 << 11
@@ -210,7 +223,7 @@ _NEW = _table(
 )  # what a value or container opcode makes
 _FROM_MARK = _table((b"tldu\x91e\x90", 1))  # takes the items above the last MARK
 _INTO = _table((b"ae", K_LIST), (b"su", K_DICT), (b"\x90", K_SET))  # adds items to the container below them
-BASE_NODES = np.zeros((_FIRST, 4), np.int64)  # the shared nodes: None, True, False, a float, an int, 0..255
+BASE_NODES = np.zeros((_FIRST, COLUMNS), np.int64)  # the shared nodes: None, True, False, a float, an int, 0..255
 BASE_NODES[:, W] = K_INT
 BASE_NODES[[_NONE, _FLOAT, _BIGINT], W] = [K_NONE, K_FLOAT, K_BIGINT]
 BASE_NODES[[_TRUE, _FALSE], W] |= F_BOOL
@@ -324,6 +337,17 @@ def _shape(nodes, ch, s):
             return 2, 0, 0
         count = 0 if v == 0 or count == 0 else (_SAT if count > _SAT // v else count * v)
     return 0, nodes[s, B], count
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _made(nodes, dt, count):
+    """Bytes charged for an array of ``count`` elements of dtype node ``dt``: numbers at 8 bytes an element at
+    least (a reader converts them to float64), str and bytes at their itemsize."""
+    size = nodes[dt, V]
+    kind = nodes[dt, A]
+    if kind == 98 or kind == 105 or kind == 117 or kind == 102:  # b, i, u, f
+        size = max(size, 8)
+    return count * size
 
 
 @njit(cache=True, nogil=True)
@@ -447,14 +471,14 @@ def _reduce(data, nodes, ch, gtab, dblob, dtab, fn, args):
         return E_ORDER, 0, 0, 0, 0, 0, 0, 0, 0
     if count >= _SAT // 64 or count * nodes[dt, V] != size:
         return E_SIZE, c[2], dt, size, 0, 0, 0, 0, 0
-    return OK, 0, 0, 0, K_ARRAY, 0, 0, 0, size
+    return OK, 0, 0, 0, K_ARRAY, 0, 0, 0, _made(nodes, dt, count)
 
 
 @njit(cache=True, nogil=True)
 def _build(data, nodes, ch, dtab, target, state):
     """Check BUILD of ``state`` on ``target``. Returns (error, i0, i1, i2, itemsize of a dtype, array bytes)."""
     tk = nodes[target, W] & KIND_MASK
-    if nodes[target, W] & F_BUILT or not (tk == K_SHELL or tk == K_DTYPE):
+    if nodes[target, W] & (F_BUILT | F_PLACED) or not (tk == K_SHELL or tk == K_DTYPE):
         return E_BUILD, target, 0, 0, 0, 0
     sk = nodes[state, W] & KIND_MASK
     n = nodes[state, B] if sk == K_TUPLE else 0
@@ -502,7 +526,7 @@ def _build(data, nodes, ch, dtab, target, state):
         return E_RAWTYPE, 0, 0, 0, 0, 0
     if count >= _SAT // 64 or count * nodes[dt, V] != size:
         return E_SIZE, c[1], dt, size, 0, 0
-    return OK, 0, 0, 0, 0, size
+    return OK, 0, 0, 0, 0, _made(nodes, dt, count)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -534,7 +558,8 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
     """
     n = data.shape[0]
     nn, nch, sp, nmarks, fence = _FIRST, 0, 0, 0, 0
-    memo_len, writes, spent, hashed, ni = 0, 0, 0, 0, 0
+    memo_len, writes, spent, again, hashed, ni = 0, 0, 0, 0, 0, 0
+    strings, widest = 0, 0  # elements of str ('U') arrays, and the largest itemsize among them
     pos, p0, err, i0, i1, i2, result = 0, 0, OK, 0, 0, 0, -1
     while True:
         if pos >= n:
@@ -571,8 +596,8 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
             if line < 0:
                 err = E_TRUNC
                 break
-        push = -1  # a node to push: an existing one, or nn for a new one with w, v, a, b
-        w, v, a, b = _NEW[op], 0, nch, 0
+        push = -1  # a node to push: an existing one, or nn for a new one with w, v, a, b, x, strs
+        w, v, a, b, x, strs = _NEW[op], 0, nch, 0, 0, 0
         # ------------------------------------------------------------ values
         if width or op == 0x53 or op == 0x56:  # counted str/bytes/bytearray; STRING (quoted); UNICODE
             a, b = pos, size
@@ -761,6 +786,15 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                 data, nodes, ch, gtab, dblob, dtab, gtab[nodes[call, V], 4], args
             )
             spent += made
+            if w & KIND_MASK == K_ARRAY:
+                x = made
+                dt = ch[nodes[args, A] + 1]
+                if not err and nodes[dt, A] == 85 and nodes[dt, V] > 0:  # a str array
+                    strs = made // nodes[dt, V]
+                    strings += strs
+                    widest = max(widest, nodes[dt, V])
+                    if strings > budget // widest:
+                        err, i0, i1 = E_WIDE, strings, widest
             if w & KIND_MASK == K_SCALAR:
                 a = args  # its (dtype, bytes), for the columns
             push = nn
@@ -778,6 +812,14 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                     nodes[target, W] |= F_BIG
             elif not err:
                 nodes[target, A] = stack[sp]  # the state, for the columns (kitti_eval.io.pickle_columns)
+                nodes[target, X] = made
+                dt = ch[nodes[stack[sp], A] + 2]
+                if nodes[dt, A] == 85 and nodes[dt, V] > 0:  # a str array
+                    nodes[target, S] = made // nodes[dt, V]
+                    strings += nodes[target, S]
+                    widest = max(widest, nodes[dt, V])
+                    if strings > budget // widest:
+                        err, i0, i1 = E_WIDE, strings, widest
             spent += made
         # ------------------------------------------------------------ containers
         elif w or _INTO[op]:  # TUPLE, TUPLE1-3, LIST, DICT, FROZENSET; APPEND(S), SETITEM(S), ADDITEMS
@@ -809,7 +851,7 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                 if nodes[target, W] & F_PLACED:
                     err = E_CHANGED
                     break
-                w, v = nodes[target, W], nodes[target, V]
+                w, v, x, strs = nodes[target, W], nodes[target, V], nodes[target, X], nodes[target, S]
             keyed = op == 0x64 or op == 0x73 or op == 0x75
             if keyed and (sp - first) % 2:
                 err = E_ODD
@@ -860,7 +902,17 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                     v += 1
                     if not (1 << (kw & KIND_MASK)) & _LEAVES:
                         w &= ~F_LEAVES
-                if (1 << (kw & KIND_MASK)) & _MUTABLE:
+                held = nodes[k, X]
+                if kw & F_PLACED:  # in a container already: a reader copies its arrays again, once a place
+                    spent = min(spent + held, _SAT)
+                    again = min(again + held, _SAT)
+                    strings = min(strings + nodes[k, S], _SAT)
+                    if widest and strings > budget // widest:
+                        err, i0, i1 = E_WIDE, strings, widest
+                        break
+                x = min(x + held, _SAT)
+                strs = min(strs + nodes[k, S], _SAT)
+                if k >= _FIRST:
                     nodes[k, W] |= F_PLACED
             b = sp - first
             spent += _ITEM_BYTES * b
@@ -873,7 +925,7 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
                     ni += 1
             sp = first
             if target >= 0:
-                nodes[target, W], nodes[target, V] = w, v
+                nodes[target, W], nodes[target, V], nodes[target, X], nodes[target, S] = w, v, x, strs
             else:
                 push = nn
         else:
@@ -881,13 +933,14 @@ def scan(data, gblob, gtab, dblob, dtab, budget, max_depth, key_budget, nodes, c
         if err:
             break
         if spent + 8 * sp > budget:
-            err = E_BUDGET
+            err, i0, i1 = E_BUDGET, min(spent + 8 * sp, _SAT), again
             break
         if push == nn:
             if w & KIND_MASK == K_INT and 0 <= v < 256:
                 push = _INT0 + v
             else:
                 nodes[nn, W], nodes[nn, V], nodes[nn, A], nodes[nn, B] = w | op << OP_SHIFT, v, a, b
+                nodes[nn, X], nodes[nn, S] = x, strs
                 nn += 1
                 spent += _OBJECT_BYTES
         if push >= 0:

@@ -208,10 +208,14 @@ class _Record:
 
     def table(self, dicts: np.ndarray, names: tuple[str, ...], *, others: bool) -> np.ndarray | None:
         """(len(dicts), len(names)) the value of each key of ``names`` in each of the plain dicts ``dicts`` (-1
-        where a dict lacks it); None when one is not a plain dict, a key is there twice, a str key is not
-        plain ASCII text (it could be one of the names, written otherwise), or a key is not one of ``names``
-        and ``others`` is False (keys that are not str are never one of them)."""
-        if np.any(self.kinds[dicts] != _ps.K_DICT):
+        where a dict lacks it); None when one is not a plain dict, a dict is there twice, a key is there twice,
+        a key is not a str of plain ASCII text, or a key is not one of ``names`` and ``others`` is False.
+
+        A key is compared as the dict pickle builds compares it: a ``numpy.str_`` (or a str written with escapes)
+        equals its text, and the last of two equal keys gives the value. Only a plain ASCII str is read here, each
+        at most once a dict; any other key sends the file to the objects, whose dict has settled which value won.
+        """
+        if np.any(self.kinds[dicts] != _ps.K_DICT) or len(np.unique(dicts)) != len(dicts):
             return None
         count, width = len(dicts), len(names)
         position = np.full(len(self.nodes), -1, np.int64)
@@ -224,9 +228,9 @@ class _Record:
         field_of = []
         for key in keys.tolist():  # a few str nodes: the memo shares them between frames
             text = _text(self.data, self.nodes, key)
-            if text is None and self.kinds[key] == _ps.K_STR:
+            if text is None:  # a numpy.str_, escaped text, or another kind: equal to a name or not, pickle decides
                 return None
-            i = index.get(text, -1) if text is not None else -1
+            i = index.get(text, -1)
             if i < 0 and not others:
                 return None
             field_of.append(i)

@@ -206,7 +206,7 @@ class _Nodes:
 
     def text(self, n: int) -> str:
         """A str node as the C unpickler decodes it (best effort: only for messages)."""
-        w, _, a, b = (int(x) for x in self.nodes[n])
+        w, a, b = (int(self.nodes[n, c]) for c in (_ps.W, _ps.A, _ps.B))
         raw = bytes(self.data[a : a + b])
         op = (w >> _ps.OP_SHIFT) & 0xFF
         try:
@@ -234,6 +234,26 @@ class _Nodes:
     def dtype(self, n: int) -> np.dtype:
         kind, size = chr(int(self.nodes[n, _ps.A])), int(self.nodes[n, _ps.V])
         return np.dtype(f"{kind}{size // 4 if kind == 'U' else size}")
+
+
+def _mb(n: int) -> str:
+    return f"{n / (1 << 20):.1f} MB"
+
+
+def _budget_message(size: int, again: int) -> str:
+    """Why a pickle of ``size`` bytes was refused for building more than its budget (``again`` bytes of what it
+    had built then are arrays charged again: values put into containers more than once)."""
+    msg = (
+        "the pickle builds far more array data or objects than it contains (a corrupt or hostile size): more than "
+        f"the limit of {_mb(_budget(size))} for a pickle of {_mb(size)} (8 times its size + 32 MB, arrays of numbers "
+        "counted at 8 bytes a value, as they are read)"
+    )
+    if again:
+        msg += (
+            f"; {_mb(again)} of what it had built when refused are arrays it uses more than once (through its "
+            "memo), counted each time, as each frame that uses one gets a copy"
+        )
+    return msg
 
 
 def _line(data: Buffer, start: int) -> str:
@@ -276,7 +296,15 @@ def _scan_error(res: tuple[Any, ...], data: Buffer, source: str) -> InputError:
         return UnsafePickleError(
             f"{refused[code]}; it was not loaded (only numpy arrays and plain containers are accepted)", source=source
         )
-    if code == _ps.E_SIZE:
+    if code == _ps.E_BUDGET:
+        msg = _budget_message(len(data), i1)
+    elif code == _ps.E_WIDE:
+        msg = (
+            f"its str arrays (class names) hold {i0} strings or more, which read together at the widest one's width "
+            f"({i1 // 4} characters) take over {_mb(i0 * i1)}, more than the limit of {_mb(_budget(len(data)))} "
+            f"for a pickle of {_mb(len(data))} (8 times its size + 32 MB)"
+        )
+    elif code == _ps.E_SIZE:
         shape, dt = nd.shape(i0), nd.dtype(i1)
         need = int(np.prod(shape, dtype=object)) * dt.itemsize
         msg = f"array of shape {shape} and dtype {dt} needs {need} bytes, the pickle holds {i2}"
@@ -298,8 +326,6 @@ def _scan_error(res: tuple[Any, ...], data: Buffer, source: str) -> InputError:
             _ps.E_UNHASHABLE: f"a dict key or set item is a {nd.describe(i0)}, which cannot be hashed",
             _ps.E_CHANGED: "a container is changed after it was put into another one (recursive structures "
             "are not accepted)",
-            _ps.E_BUDGET: "the pickle builds far more array data or objects than it contains (a corrupt or "
-            "hostile size)",
             _ps.E_OOB: "the pickle refers to out-of-band buffers, which are not supported",
             _ps.E_NOT_TUPLE: "call arguments must be a tuple",
             _ps.E_HEADER: "malformed numpy array header (numpy writes an empty int8 shell)",
@@ -387,10 +413,12 @@ _RESULT_TYPES: dict[int, tuple[type, ...]] = {
 
 
 def _budget(n: int) -> int:
-    """Bytes the objects of an ``n``-byte pickle may take (array data, Python objects, the unpickler's stack,
-    dict entries and list items, as the scan counts them). The val-sized pickles use 20% (result.pkl: 41 of
-    210 MB) and 39% (infos: 42 of 107 MB), an mmdetection3d-style infos of the same frames (22 MB, lists of
-    Python floats) 56%; a pickle of a million empty dicts (1 MB) would need 40 MB."""
+    """Bytes the objects of an ``n``-byte pickle, and what a reader makes of them, may take (array data, an
+    array of numbers at 8 bytes a value, charged again each time the pickle puts it into a container; Python
+    objects, the unpickler's stack, dict entries and list items, as the scan counts them). The val-sized
+    pickles use 25% (result.pkl: 50 of 200 MB) and 41% (the golden infos: 41 of 102 MB), an mmdetection3d-style
+    infos of the same frames (22 MB, lists of Python floats) 56%; a pickle of a million empty dicts (1 MB) would
+    need 40 MB, a result.pkl of 200 frames that all use one frame's 10,000 boxes (0.7 MB) 340 MB."""
     return 8 * n + (32 << 20)
 
 
@@ -405,7 +433,7 @@ def _scan(data: Buffer, source: str) -> tuple[Any, ...]:
     sizes = [n // 8 + 1024, n // 8 + 1024, 1 << 16, 1 << 10, n // 16 + 1024, n // 64 + 1024]
     try:
         while True:
-            work = [np.empty((sizes[0], 4), np.int64)] + [np.empty(k, np.int64) for k in sizes[1:-1]]
+            work = [np.empty((sizes[0], _ps.COLUMNS), np.int64)] + [np.empty(k, np.int64) for k in sizes[1:-1]]
             work.append(np.empty((sizes[-1], 3), np.int64))
             work[_ps.ROOM_MEMO] = np.zeros(sizes[_ps.ROOM_MEMO], np.int64)  # pages zeroed as they are touched
             work[_ps.ROOM_NODES][: len(_ps.BASE_NODES)] = _ps.BASE_NODES

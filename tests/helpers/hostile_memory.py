@@ -1,6 +1,6 @@
 """Peak memory of the CLI and the live service on hostile inputs, with default limits (prints a table).
 
-    python tests/helpers/hostile_memory.py
+    python tests/helpers/hostile_memory.py [--only WORD]    (WORD: only the payloads whose label holds it)
 
 Each payload is refused; the figures are the CLI process's peak RSS, and the service's peak RSS during
 the upload (its high-water mark is reset before each one) and its RSS a moment after the answer, next to
@@ -63,6 +63,16 @@ def _many_unknown_frames(n: int) -> bytes:
     return pickle.dumps([dict(frame, frame_id=f"9{i:06d}") for i in range(n)], protocol=4)
 
 
+def _shared_arrays(frames: int, boxes: int) -> bytes:
+    """Frames that all use the same arrays (pickle writes them once, then reads them from its memo): a small
+    file that reads into frames x boxes boxes."""
+    rng = np.random.default_rng(0)
+    arrays = {f: rng.random(boxes, np.float32) for f in ("truncated", "alpha", "rotation_y", "score")}
+    arrays.update(name=np.array(["Car"] * boxes), occluded=np.zeros(boxes, np.int8))
+    arrays.update({f: rng.random((boxes, w), np.float32) for f, w in (("bbox", 4), ("dimensions", 3), ("location", 3))})
+    return pickle.dumps([dict(arrays, frame_id=f"{i:06d}") for i in range(frames)], protocol=4)
+
+
 def _archive(kind: str) -> bytes:
     out = io.BytesIO()
     if kind == "zip":
@@ -101,6 +111,8 @@ PAYLOADS = {
     "3M empty dicts (3 MB)": ("result.pkl", lambda: b"\x80\x04" + b"}" * 3_000_000 + b"."),
     "tar bomb (1 GiB txt member)": ("pred.tar.gz", lambda: _archive("tar")),
     "zip bomb (1 GiB txt member)": ("pred.zip", lambda: _archive("zip")),
+    "200 frames sharing 10k-box arrays (0.7 MB)": ("result.pkl", lambda: _shared_arrays(200, 10_000)),
+    "200 frames sharing 20k-box arrays (1.4 MB)": ("result.pkl", lambda: _shared_arrays(200, 20_000)),
 }
 
 
@@ -124,13 +136,13 @@ def _cli_peak(gt: Path, pred: Path) -> tuple[int, float, str]:
     return proc.returncode, usage.ru_maxrss / 1024, err.strip().splitlines()[-1][:90] if err.strip() else ""
 
 
-def main() -> int:
+def main(only: str = "") -> int:
     gt, _ = demo_paths()
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         # made in a child: a child forked from a big process starts with its peak RSS
-        subprocess.run([sys.executable, __file__, "--make", str(tmp)], check=True)
-        files = {label: tmp / f"{k}-{name}" for k, (label, (name, _)) in enumerate(PAYLOADS.items())}
+        subprocess.run([sys.executable, __file__, "--make", str(tmp), only], check=True)
+        files = {label: tmp / f"{k}-{name}" for k, (label, (name, _)) in enumerate(PAYLOADS.items()) if only in label}
         print("CLI (kitti-eval --gt <demo infos> --pred PAYLOAD), default limits")
         print(f"{'payload':40s} {'exit':>4s} {'peak MiB':>9s}  message")
         for label, path in files.items():
@@ -158,13 +170,14 @@ def main() -> int:
     return 0
 
 
-def make(directory: Path) -> None:
-    for k, (name, build) in enumerate(PAYLOADS.values()):
-        (directory / f"{k}-{name}").write_bytes(build())
+def make(directory: Path, only: str = "") -> None:
+    for k, (label, (name, build)) in enumerate(PAYLOADS.items()):
+        if only in label:
+            (directory / f"{k}-{name}").write_bytes(build())
 
 
 if __name__ == "__main__":
     if sys.argv[1:2] == ["--make"]:
-        make(Path(sys.argv[2]))
+        make(Path(sys.argv[2]), sys.argv[3])
         sys.exit(0)
-    sys.exit(main())
+    sys.exit(main(sys.argv[2] if sys.argv[1:2] == ["--only"] else ""))

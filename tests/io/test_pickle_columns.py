@@ -381,3 +381,88 @@ def test_corrupted_infos_read_from_their_bytes_as_from_their_objects():
                 assert np.array_equal(mine.velo_to_rect, theirs.velo_to_rect, equal_nan=True), (at, fid)
         read += 1
     assert read > 100
+
+
+# ---------------------------------------------------------------------------------- keys as pickle compares them
+
+
+class _NumpyStrKey(str):
+    """A dict key that pickles as ``numpy.str_(text)`` and is, until then, a key of its own beside its str: how a
+    dict with both 'location' and numpy.str_('location') is written (pickle.loads keeps the last one's value)."""
+
+    __hash__ = str.__hash__
+
+    def __eq__(self, other: object) -> bool:
+        return self is other
+
+    def __reduce__(self) -> Any:
+        return np.str_(str(self)).__reduce__()
+
+
+def _twice(d: dict[str, Any], key: str, value: Any) -> None:
+    """``d`` gets ``key`` again as a numpy.str_ with ``value``, after its str: the objects keep ``value``."""
+    d[_NumpyStrKey(key)] = value
+
+
+def test_the_helper_writes_a_numpy_str_key_after_its_str_and_pickle_keeps_the_last_value():
+    d = {"location": 1}
+    _twice(d, "location", 2)
+    loaded = pickle.loads(pickle.dumps(d, protocol=4))
+    assert loaded == {"location": 2} and type(next(iter(loaded))) is str
+
+
+def test_a_numpy_str_key_after_its_str_in_annos_gives_the_objects_numbers():
+    infos = _infos(1, empty_gt_frac=0.0)
+    annos = infos[0]["annos"]
+    other = annos["location"] + np.float32(40.0)  # the boxes pickle keeps: far from the detections
+    _twice(annos, "location", other)
+    (loaded, _) = _assert_gt_parity(infos, taken=False)
+    assert np.array_equal(loaded.annotations.location, other.astype(np.float64))
+
+
+def test_numpy_str_image_ids_after_their_str_give_each_frame_its_own_labels():
+    infos = _infos(2, empty_gt_frac=0.0)
+    _twice(infos[0]["image"], "image_idx", infos[1]["image"]["image_idx"])
+    _twice(infos[1]["image"], "image_idx", infos[0]["image"]["image_idx"])
+    (loaded, _) = _assert_gt_parity(infos, taken=False)
+    annos = loaded.annotations
+    assert annos.frame_ids == ("000001", "000000")  # the ids pickle keeps: the first entry is frame 000001
+    first = annos.offsets[1]
+    assert np.array_equal(annos.location[:first], infos[0]["annos"]["location"].astype(np.float64))
+
+
+def test_a_numpy_str_calibration_key_converts_lidar_only_detections_with_the_matrix_pickle_keeps():
+    infos = _infos(2, empty_gt_frac=0.0)
+    calib = infos[0]["calib"]
+    shifted = calib["Tr_velo_to_cam"].copy()
+    shifted[:3, 3] += 5.0
+    _twice(calib, "Tr_velo_to_cam", shifted)
+    (_, calibs) = _assert_gt_parity(infos, taken=False)
+    objects = calibs_from_object(pickle.loads(pickle.dumps(infos, protocol=4)))
+    assert np.array_equal(calibs["000000"].velo_to_rect, objects["000000"].velo_to_rect)
+    results = _results(2)
+    for r in results:
+        for f in ("location", "dimensions", "rotation_y"):
+            del r[f]
+    read = read_object(results, "detections", "r.pkl", LoadOptions(calibs=calibs))
+    expected = read_object(results, "detections", "r.pkl", LoadOptions(calibs=objects))
+    _same(read.annotations, expected.annotations)
+
+
+def test_numpy_str_keys_alone_are_the_fields_as_the_objects_read_them():
+    infos = _infos(3, empty_gt_frac=0.0)
+    occluded = [info["annos"]["occluded"] for info in infos]
+    for info in infos:  # in every entry: no frame lacks them, none has them as plain str
+        for field in ("occluded", "alpha"):
+            _twice(info["annos"], field, info["annos"].pop(field))
+    (loaded, _) = _assert_gt_parity(infos, taken=False)
+    a = loaded.annotations
+    assert "alpha" not in dict(a.missing_fields)
+    assert np.array_equal(a.occluded, np.concatenate(occluded))
+
+
+def test_a_numpy_str_key_in_a_frame_of_detections_gives_the_objects_numbers():
+    results = _results(3)
+    _twice(results[1], "score", results[1]["score"] * 0 + 0.5)
+    fast = _assert_parity(results, taken=False)
+    assert (fast[1].score[fast[1].offsets[1] : fast[1].offsets[2]] == 0.5).all()

@@ -916,3 +916,86 @@ def test_items_put_into_containers_count_against_the_budget() -> None:
     big = pickle.dumps([dict(frame) for _ in range(400_000)], protocol=4)  # 13 MB, ~140 MB of dicts
     with pytest.raises(InputError, match="far more array data or objects"):
         loads(big)
+
+
+# ---------------------------------------------------------------------------------- what a pickle expands to
+
+
+def _shared_frames(frames: int, boxes: int) -> list[dict[str, object]]:
+    """A result.pkl whose frames all hold the same arrays (one object each: pickle writes them once, then
+    reads them from its memo): ``frames`` x ``boxes`` boxes from a file of one frame's bytes."""
+    rng = np.random.default_rng(0)
+    arrays = {
+        "name": np.array(["Car"] * boxes),
+        "truncated": np.zeros(boxes, np.float32),
+        "occluded": np.zeros(boxes, np.int8),
+        "alpha": rng.random(boxes, np.float32),
+        "bbox": rng.random((boxes, 4), np.float32),
+        "dimensions": rng.random((boxes, 3), np.float32),
+        "location": rng.random((boxes, 3), np.float32),
+        "rotation_y": rng.random(boxes, np.float32),
+        "score": rng.random(boxes, np.float32),
+    }
+    return [{"frame_id": f"{i:06d}", **arrays} for i in range(frames)]
+
+
+def test_arrays_a_pickle_shares_between_frames_are_charged_each_time_and_refused_before_they_are_built(
+    scan_mode: str,
+) -> None:
+    """200 frames that all use the same 10,000-box arrays: a 0.7 MB file that reads into 2 million boxes (about
+    340 MB of float64 columns). Each use of an array is charged its bytes again; the file is refused by the
+    check, before anything is built, naming the limit."""
+    data = pickle.dumps(_shared_frames(200, 10_000), protocol=4)
+    assert len(data) < 1 << 20
+    with pytest.raises(InputError) as err:
+        safe_pickle.check_pickle(io.BytesIO(data), source="r.pkl")
+    message = str(err.value)
+    limit, size = safe_pickle._budget(len(data)) / (1 << 20), len(data) / (1 << 20)
+    assert f"more than the limit of {limit:.1f} MB for a pickle of {size:.1f} MB (8 times its size" in message
+    assert "are arrays it uses more than once (through its memo), counted each time" in message
+    assert not isinstance(err.value, UnsafePickleError)
+    assert len(loads(pickle.dumps(_shared_frames(20, 1_000), protocol=4))) == 20  # type: ignore[arg-type]
+
+
+def test_an_array_put_twice_into_one_list_is_charged_twice_at_eight_bytes_a_value(scan_mode: str) -> None:
+    """One int8 array of 2 M values (2 MB; 16 MB as float64) in a list 3 times is within the budget of its 2 MB
+    pickle (48 MB); 4 times (64 MB) is not. Counted at its own bytes, 4 would be 8 MB."""
+    a = np.zeros(2_000_000, np.int8)
+    assert len(loads(pickle.dumps([a, a, a], protocol=4))) == 3  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="uses more than once"):
+        loads(pickle.dumps([a, a, a, a], protocol=4))
+    with pytest.raises(InputError, match="uses more than once"):
+        loads(pickle.dumps([(a, a), (a, a)], protocol=4))  # in tuples, the tuple again: 4 uses
+
+
+def test_the_state_of_an_array_already_in_a_container_is_refused() -> None:
+    """pickle.loads sets an array's state whenever BUILD comes; the check only on a fresh array not yet put into
+    a container (what numpy writes), so that what a container holds is final when it is charged."""
+    shell = (
+        b"\x80\x04\x8c\x15numpy.core.multiarray\x8c\x0c_reconstruct\x93\x8c\x05numpy\x8c\x07ndarray\x93K\x00\x85"
+        b"C\x01b\x87R\x94"
+    )
+    dtype = b"\x8c\x05numpy\x8c\x05dtype\x93\x8c\x02f8\x89\x88\x87R"
+    dtype += b"(K\x03\x8c\x01<NNNJ\xff\xff\xff\xffJ\xff\xff\xff\xffK\x00tb"  # numpy.dtype("f8") and its state
+    state = b"(K\x01K\x02\x85" + dtype + b"\x89C\x10" + bytes(16) + b"t"  # (1, (2,), float64, False, data)
+    fresh = shell + state + b"b."
+    assert loads(fresh).shape == (2,)  # type: ignore[attr-defined]
+    placed = shell + b"\x85h\x00" + state + b"b0."  # a tuple holding the shell, then its state
+    assert pickle.loads(placed)[0].shape == (2,)
+    with pytest.raises(UnsafePickleError, match="sets the state of a numpy array"):
+        loads(placed)
+
+
+def test_str_arrays_are_charged_at_the_widest_ones_width(scan_mode: str) -> None:
+    """A reader joins the frames' class names into one array as wide as the widest name: 3,000 frames of ten
+    3-character names and one name of 2,000 characters (a 0.5 MB pickle) would be 30,001 names of 8,000 bytes,
+    240 MB, past the budget (36 MB); counted at their own width they are 0.4 MB. The same names shared by every
+    frame through the memo count once a frame, as they are copied."""
+    names = [np.array([f"C{i % 10:02d}"] * 10) for i in range(3000)]
+    data = pickle.dumps([*names, np.array(["x" * 2000])], protocol=4)
+    with pytest.raises(InputError, match=r"str arrays \(class names\) hold 30001 strings or more, which read toget"):
+        loads(data)
+    assert len(loads(pickle.dumps(names, protocol=4))) == 3000  # type: ignore[arg-type]
+    shared = np.array(["Car"] * 10)
+    with pytest.raises(InputError, match="at the widest one's width .2000 characters."):
+        loads(pickle.dumps([np.array(["x" * 2000]), *[shared] * 3000], protocol=4))
