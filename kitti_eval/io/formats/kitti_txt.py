@@ -1,6 +1,8 @@
 """KITTI txt folders: one ``<frame>.txt`` per frame, 15 fields per line for ground truth (a 16th, the score, is
 accepted and ignored) and exactly 16 for detections; dimensions are written h, w, l and are reordered to the
-l, h, w of :class:`~kitti_eval.core.frames.Annotations`. A folder without ``.txt`` files but with a ``data/``
+l, h, w of :class:`~kitti_eval.core.frames.Annotations`. Files are read as bytes, as the official devkit's
+``fscanf`` reads them, and refused where it would read them otherwise (the rules:
+:mod:`~kitti_eval.io.formats.txt_grammar`). A folder without ``.txt`` files but with a ``data/``
 subfolder that has them (OpenPCDet's ``final_result/data``) is read from there. Zip and tar archives of such
 a folder are unpacked safely (:func:`extract_txt_archive`, over :mod:`kitti_eval.io.archives`)."""
 
@@ -220,7 +222,7 @@ def _split_frame(raw: bytes, kind: Kind, frame: str, source: str) -> tuple[list[
     check_names(raw, lines, names, width, kind, frame, source)
     if width > n_keep:  # a 16th field (score) in ground truth: dropped
         del tokens[n_keep - 1 :: width - 1]
-    if not check_number_bytes(tokens, n_keep - 1, kind):
+    if not check_number_bytes(raw, names, tokens, n_keep - 1, kind):
         explain_numbers(lines, width, kind, frame, source)
     # "\n" is in no name and in no character a bad byte is replaced with: one decode for the whole file
     text_names = b"\n".join(names).decode("utf-8", "replace").split("\n") if names else []

@@ -63,6 +63,7 @@ _NON_FINITE = re.compile(rb"[+-]?(?:inf(?:inity)?|nan)", re.IGNORECASE)
 #: exactly the tokens ``strtod`` reads whole
 FLOAT_BYTES = b"0123456789+-.eE"
 INT_BYTES = b"0123456789+-"
+_NUMBER_OR_SPACE = FLOAT_BYTES + C_WHITESPACE
 
 _SEPARATORS = "space, tab, CR, LF, VT and FF"
 _FIELDS = (
@@ -170,11 +171,13 @@ def check_names(
                 )
 
 
-def check_number_bytes(tokens: Sequence[bytes], n_numbers: int, kind: Kind) -> bool:
-    """The fast test of one file's number fields (``n_numbers`` a record, flat, in file order): True when
-    each holds only the bytes of a float (an integer, for ground truth's ``occluded``), so that ``float``
-    reads it exactly when ``strtod`` reads it whole. False sends the file to :func:`explain_numbers`."""
-    if b" ".join(tokens).translate(None, FLOAT_BYTES + b" "):
+def check_number_bytes(raw: bytes, names: Sequence[bytes], tokens: Sequence[bytes], n_numbers: int, kind: Kind) -> bool:
+    """The fast test of one file's number fields (``tokens``, ``n_numbers`` a record, flat, in file order):
+    True when each holds only the bytes of a float (of an integer, for ground truth's ``occluded``), so
+    that ``float`` reads it exactly when ``strtod`` reads it whole. Counted on the whole file: every byte
+    that is neither whitespace nor a number's is in a class name. False sends the file to
+    :func:`explain_numbers`."""
+    if len(raw.translate(None, _NUMBER_OR_SPACE)) != len(b"".join(names).translate(None, _NUMBER_OR_SPACE)):
         return False
     if kind == "ground_truth" and tokens:
         return not b"".join(tokens[1::n_numbers]).translate(None, INT_BYTES)
