@@ -40,6 +40,7 @@ from .txt_grammar import (
     foreign_separator,
     not_a_separator,
     table_problem,
+    values_problem,
 )
 
 __all__ = [
@@ -192,7 +193,7 @@ def parse_kitti_txt(text: bytes | str, kind: Kind, *, frame: str, source: str) -
         values = list(map(float, tokens))
     except ValueError:
         _raise_bad_number(lines, width, kind, frame, source)
-    problem = table_problem(np.array(values, dtype=np.float64).reshape(len(names), _N_FIELDS[kind] - 1), kind)
+    problem = values_problem(values, kind)
     if problem is not None:
         _raise_at_record(raw, problem[0], problem[1], problem[2], frame, source)
     return names, values
