@@ -9,6 +9,7 @@ disagree, each now refused with the reason.
 
 from __future__ import annotations
 
+import os
 import tempfile
 from pathlib import Path
 
@@ -293,7 +294,11 @@ def _records(annos: Annotations) -> list[tuple[str, list[float]]]:
     return [(str(n), row.tolist()) for n, row in zip(annos.name, table, strict=True)]
 
 
-GRAMMAR = settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+#: ``KITTI_EVAL_FUZZ_EXAMPLES=5000 pytest tests/io/test_txt_grammar.py`` runs longer (and with a random seed)
+EXAMPLES = int(os.environ.get("KITTI_EVAL_FUZZ_EXAMPLES", "100"))
+GRAMMAR = settings(
+    max_examples=EXAMPLES, deadline=None, derandomize=EXAMPLES <= 100, suppress_health_check=list(HealthCheck)
+)
 
 
 def _read_or_refuse(data: bytes, kind: str) -> list[tuple[str, list[float]]] | None:

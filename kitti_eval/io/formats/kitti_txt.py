@@ -33,6 +33,7 @@ from ..archives import (
 from ..limits import MAX_FRAMES_ENV, MAX_INPUT_ENV, resolve
 from ._common import Format, Frames, check_kind
 from .txt_grammar import (
+    KITTI_TXT_FIELDS,
     check_names,
     check_number_bytes,
     check_start,
@@ -59,25 +60,6 @@ __all__ = [
 
 PathLike = str | os.PathLike[str]
 
-#: the fields of a KITTI label line, in file order (``score`` only in detections)
-KITTI_TXT_FIELDS = (
-    "type",
-    "truncated",
-    "occluded",
-    "alpha",
-    "x1",
-    "y1",
-    "x2",
-    "y2",
-    "h",
-    "w",
-    "l",
-    "x",
-    "y",
-    "z",
-    "ry",
-    "score",
-)
 _N_FIELDS = {"ground_truth": 15, "detections": 16}
 
 

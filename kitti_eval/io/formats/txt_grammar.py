@@ -36,6 +36,7 @@ from ...errors import InputError
 __all__ = [
     "BOM",
     "C_WHITESPACE",
+    "KITTI_TXT_FIELDS",
     "NAME_MAX_BYTES",
     "check_start",
     "check_names",
@@ -68,7 +69,8 @@ INT_BYTES = b"0123456789+-"
 _NUMBER_OR_SPACE = FLOAT_BYTES + C_WHITESPACE
 
 _SEPARATORS = "space, tab, CR, LF, VT and FF"
-_FIELDS = (
+#: the fields of a KITTI label line, in file order (``score`` only in detections)
+KITTI_TXT_FIELDS = (
     "type",
     "truncated",
     "occluded",
@@ -235,7 +237,7 @@ def explain_numbers(lines: Sequence[bytes], width: int, kind: Kind, frame: str, 
     for lineno, line in enumerate(lines, 1):
         parts = line.split()
         for k, tok in enumerate(parts[1 : min(width, n_fields)], 1):
-            field = _FIELDS[k]
+            field = KITTI_TXT_FIELDS[k]
             integer = kind == "ground_truth" and field == "occluded"
             problem = _int_problem(tok) if integer else _float_problem(tok)
             if problem is None:
