@@ -124,6 +124,19 @@ def test_a_separator_the_devkit_does_not_know_is_refused(tmp_path: Path, kind: s
     )
 
 
+@pytest.mark.parametrize(("kind", "name"), [("ground_truth", "Car\xa00.00"), ("detections", "Car\xa0-1")])
+def test_a_separator_the_devkit_does_not_know_in_a_class_name_is_refused(tmp_path: Path, kind: str, name: str) -> None:
+    """A line of one field too many with U+00A0 after the name has the right count of C fields: the devkit
+    reads the name and the next field as one name, and every later field one place early."""
+    line = GT_LINE + " 0.9" if kind == "ground_truth" else DET_LINE + " 0"
+    err = _refused(tmp_path, (line.replace(" ", "\u00a0", 1) + "\n").encode(), kind)
+    assert err.field == "type"
+    assert err.message == (
+        f"line 1: the class name {name!r} holds U+00A0, which is not a field separator for the devkit (only "
+        "space, tab, CR, LF, VT and FF are): it reads the whole as one class name, of no class"
+    )
+
+
 def test_a_foreign_separator_at_the_end_of_a_number_is_refused(tmp_path: Path) -> None:
     err = _refused(tmp_path, (DET_LINE + "\u00a0\n").encode(), "detections")
     assert err.message == (

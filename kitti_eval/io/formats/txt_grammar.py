@@ -126,14 +126,16 @@ def check_names(
     raw: bytes, lines: Sequence[bytes], names: Sequence[bytes], width: int, kind: Kind, frame: str, source: str
 ) -> None:
     """The class names of one file (``names``, in line order, of the non-blank ``lines``) as the devkit
-    reads them: without a NUL (the devkit's name ends there), at most :data:`NAME_MAX_BYTES` long, and, in
+    reads them: without a NUL (the devkit's name ends there), without a character that looks like a
+    separator and is not one (:func:`foreign_separator`), at most :data:`NAME_MAX_BYTES` long, and, in
     ground truth written with a 16th field, not starting like a number (the devkit reads that 16th field as
     the next record's name and the next line's name as its ``truncated``)."""
     nul = b"\x00" in raw
     long = bool(names) and max(map(len, names)) > NAME_MAX_BYTES
     gt16 = kind == "ground_truth" and width == 16 and len(names) > 1
     folding = not raw.isascii()
-    if not (nul or long or gt16 or folding):
+    separator = foreign_separator(b" ".join(names)) is not None
+    if not (nul or long or gt16 or folding or separator):
         return
     records = [i for i, line in enumerate(lines, 1) if line.split()]
     for lineno, name, previous in zip(records, names, [None, *names[:-1]], strict=True):
@@ -142,6 +144,15 @@ def check_names(
             cut = name.split(b"\x00", 1)[0]
             raise InputError(
                 f"{where} holds a NUL byte; the devkit's name ends there ({_shown(cut)})",
+                source=source,
+                frame=frame,
+                field="type",
+            )
+        sep = foreign_separator(name)
+        if sep is not None:
+            raise InputError(
+                f"{where} holds {sep}, which {not_a_separator(sep)[len(sep) + 1 :]}: it reads the whole as one "
+                "class name, of no class",
                 source=source,
                 frame=frame,
                 field="type",
