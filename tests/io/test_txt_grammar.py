@@ -352,25 +352,31 @@ def test_a_file_the_devkit_reads_normally_is_read_and_not_refused(kind: str) -> 
     run()
 
 
+SECOND = b"\nCar 0 0 0 0 0 10 10 1 1 1 1 1 1 0 1\n"
+
+
 @pytest.mark.parametrize(
-    "data",
+    ("data", "names", "last_score"),
     [
-        b"Car 0 0 0 0 0 10 10 1 1 1 1 1 1 0 0.9\nCar 0 0 0 0 0 10 10 1 1 1 1 1 1 0 1\n",
-        b"Car 1e 0 0 0 0 10 10 1 1 1 1 1 1 0 0.9\nCar 0 0 0 0 0 10 10 1 1 1 1 1 1 0 1\n",
-        b"Car 5_00.00 0 0 0 0 10 10 1 1 1 1 1 1 0 0.9\nCar 0 0 0 0 0 10 10 1 1 1 1 1 1 0 1\n",
-        b"\xef\xbb\xbfCar 0 0 0 0 0 10 10 1 1 1 1 1 1 0 0.9",
+        (b"Car 0 0 0 0 0 10 10 1 1 1 1 1 1 0 0.9" + SECOND, [b"Car", b"Car"], 1.0),
+        # %lf takes "1e", which is no number: dropped; the next record's name is "0", and its 15th number
+        # would be the next line's "Car": dropped too; the second line is read
+        (b"Car 1e 0 0 0 0 10 10 1 1 1 1 1 1 0 0.9" + SECOND, [b"Car"], 1.0),
+        # 5, then "_00.00" fails as occluded: dropped; "_00.00" is the next record's name, and so on
+        (b"Car 5_00.00 0 0 0 0 10 10 1 1 1 1 1 1 0 0.9" + SECOND, [b"Car"], 1.0),
+        # the same one field further: "_00.00" is the name of a record of the 15 fields that follow
+        (b"Car 0 5_00.00 0 0 0 10 10 1 1 1 1 1 1 0 0.9 1 2" + SECOND, [b"_00.00", b"Car"], 1.0),
+        (b"\xef\xbb\xbfCar 0 0 0 0 0 10 10 1 1 1 1 1 1 0 0.9", [b"\xef\xbb\xbfCar"], 0.9),
+        (b"Car\x00x 0 0 0 0 0 10 10 1 1 1 1 1 1 0 0.9", [b"Car"], 0.9),
+        (
+            b"Car 0 0 0 0 0 10 10 1 1 1 1 1 1 0 .9\x0b\x0cVan\t+0 -0 0 0 0 10 10 1 1 1 1 1 1 0 9e-1",
+            [b"Car", b"Van"],
+            0.9,
+        ),
     ],
 )
-def test_the_twin_reads_as_fscanf_does(data: bytes) -> None:
+def test_the_twin_reads_as_fscanf_does(data: bytes, names: list[bytes], last_score: float) -> None:
     """The twin itself, on cases worked by hand from the C standard and glibc."""
-    recs = read_records(data, "detections")
-    if data.startswith(b"\xef"):
-        assert [n for n, _ in recs] == [b"\xef\xbb\xbfCar"]
-    elif b"1e 0" in data:
-        # %lf takes "1e", which is no number: the record is dropped, the next starts at "0" (a name)
-        assert [n for n, _ in recs] == [b"Car"] and recs[0][1][-1] == 1.0
-    elif b"5_00" in data:
-        # 5, then "_00.00" fails as occluded: dropped; "_00.00" is the next record's name, shifted
-        assert [n for n, _ in recs] == [b"Car"] and recs[0][1][-1] == 1.0
-    else:
-        assert [n for n, _ in recs] == [b"Car", b"Car"] and recs[1][1][-1] == 1.0
+    records = read_records(data, "detections")
+    assert [name for name, _ in records] == names
+    assert records[-1][1][-1] == last_score
