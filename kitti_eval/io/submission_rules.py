@@ -12,7 +12,7 @@ from pathlib import Path
 from ..core.frames import Annotations, normalize_frame_id
 from ..core.protocol import KITTI_CLASSES
 from ..errors import InputError
-from .formats.kitti_txt import parse_kitti_txt, read_text, txt_files
+from .formats.kitti_txt import parse_kitti_txt, read_bytes, txt_files
 
 __all__ = [
     "KITTI_RESULT_CLASSES",
@@ -148,7 +148,7 @@ def validate_txt_folder(folder: Path, rules: SubmissionRules, *, shown_as: str |
         if fid not in wanted:
             continue  # named above; what it holds does not matter
         try:
-            names, values = parse_kitti_txt(read_text(path), "detections", frame=fid, source=path.name)
+            names, values = parse_kitti_txt(read_bytes(path), "detections", frame=fid, source=path.name)
         except InputError as e:
             c.out.frames += 1
             c.problem(f"{path.name}: {e.message}")

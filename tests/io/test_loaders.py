@@ -212,11 +212,11 @@ def test_openpcdet_final_result_data_layout(tmp_path: Path) -> None:
     assert dt.frame_ids == ("000000", "000001", "000002")
 
 
-def test_blank_lines_crlf_and_bom(tmp_path: Path) -> None:
+def test_blank_lines_and_crlf(tmp_path: Path) -> None:
     folder = tmp_path / "pred"
     folder.mkdir()
     line = _txt_line(DET["000000"][0], with_score=True)
-    (folder / "000003.txt").write_bytes(("\ufeff" + line + "\r\n\r\n" + line + "\r\n").encode())
+    (folder / "000003.txt").write_bytes((line + "\r\n\r\n" + line + "\r\n").encode())
     dt = load_detections(folder)
     assert dt.counts.tolist() == [2]
 

@@ -1,6 +1,8 @@
 """KITTI txt folders: one ``<frame>.txt`` per frame, 15 fields per line for ground truth (a 16th, the score, is
 accepted and ignored) and exactly 16 for detections; dimensions are written h, w, l and are reordered to the
-l, h, w of :class:`~kitti_eval.core.frames.Annotations`. A folder without ``.txt`` files but with a ``data/``
+l, h, w of :class:`~kitti_eval.core.frames.Annotations`. Files are read as bytes, as the official devkit's
+``fscanf`` reads them, and refused where it would read them otherwise (the rules:
+:mod:`~kitti_eval.io.formats.txt_grammar`). A folder without ``.txt`` files but with a ``data/``
 subfolder that has them (OpenPCDet's ``final_result/data``) is read from there. Zip and tar archives of such
 a folder are unpacked safely (:func:`extract_txt_archive`, over :mod:`kitti_eval.io.archives`)."""
 
@@ -13,7 +15,7 @@ from array import array
 from collections.abc import Collection
 from itertools import chain
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -30,12 +32,24 @@ from ..archives import (
 )
 from ..limits import MAX_FRAMES_ENV, MAX_INPUT_ENV, resolve
 from ._common import Format, Frames, check_kind
+from .txt_grammar import (
+    KITTI_TXT_FIELDS,
+    check_names,
+    check_number_bytes,
+    check_start,
+    explain_numbers,
+    foreign_separator,
+    not_a_separator,
+    table_problem,
+    values_problem,
+)
 
 __all__ = [
     "KITTI_TXT",
     "KITTI_TXT_FIELDS",
     "load_kitti_txt_dir",
     "parse_kitti_txt",
+    "read_bytes",
     "read_text",
     "txt_files",
     "input_kind",
@@ -46,25 +60,6 @@ __all__ = [
 
 PathLike = str | os.PathLike[str]
 
-#: the fields of a KITTI label line, in file order (``score`` only in detections)
-KITTI_TXT_FIELDS = (
-    "type",
-    "truncated",
-    "occluded",
-    "alpha",
-    "x1",
-    "y1",
-    "x2",
-    "y2",
-    "h",
-    "w",
-    "l",
-    "x",
-    "y",
-    "z",
-    "ry",
-    "score",
-)
 _N_FIELDS = {"ground_truth": 15, "detections": 16}
 
 
@@ -108,15 +103,20 @@ def load_kitti_txt_dir(
     values = array("d")  # plain float() parsing, straight into one buffer
     spans: list[tuple[str, int, int]] = []  # (frame id, first row, row count)
     for f in files:
-        lines, frame_names, tokens = _split_frame(read_text(f), kind, f.stem, str(f))
+        lines, width, frame_names, tokens = _split_frame(read_bytes(f), kind, f.stem, str(f))
         try:
             values.extend(map(float, tokens))
         except ValueError:
-            _raise_bad_number(lines, _N_FIELDS[kind], f.stem, str(f))
+            _raise_bad_number(lines, width, kind, f.stem, str(f))
         spans.append((f.stem, len(names), len(frame_names)))
         names.extend(frame_names)
 
     table = np.frombuffer(values, dtype=np.float64).reshape(len(names), n_values)
+    problem = table_problem(table, kind)
+    if problem is not None:
+        row, field, message = problem
+        k = next(k for k, (_, lo, n) in enumerate(spans) if lo <= row < lo + n)
+        _raise_at_record(read_bytes(files[k]), row - spans[k][1], field, message, spans[k][0], str(files[k]))
     name_arr = np.array(names) if names else np.zeros(0, dtype="<U1")
     # columns after the type: trunc occ alpha x1 y1 x2 y2 h w l x y z ry [score]
     columns = {
@@ -140,7 +140,8 @@ def load_kitti_txt_dir(
     return Annotations.from_frames(kind, str(root), frames(), max_frames=max_frames, known_frames=known_frames)
 
 
-def read_text(path: Path) -> str:
+def read_bytes(path: Path) -> bytes:
+    """A txt file's bytes, as the devkit reads them (refused past :data:`MAX_TXT_FILE_BYTES`)."""
     try:
         with open(path, "rb") as fh:
             if os.fstat(fh.fileno()).st_size > MAX_TXT_FILE_BYTES:
@@ -150,37 +151,49 @@ def read_text(path: Path) -> str:
                 raise too_large_txt(path.name, str(path))
     except OSError as e:
         raise InputError(f"cannot read: {e.strerror or e}", source=str(path), frame=path.stem) from None
-    # the devkit reads the fields as bytes: a byte that is not UTF-8 (U+FFFD here) can only be part of a class
-    # name, which then is no class's, as with any unknown name; in a number it fails to parse, naming the line
-    return raw.decode("utf-8-sig", "replace")
+    return raw
 
 
-def parse_kitti_txt(text: str, kind: Kind, *, frame: str, source: str) -> tuple[list[str], list[float]]:
-    """Parse one frame's KITTI lines: the class names, and the numbers after the type, flat.
+def read_text(path: Path) -> str:
+    """A text file that is not a KITTI label file (a split's frame list), as text: a byte order mark is
+    dropped, bytes that are not UTF-8 become U+FFFD."""
+    return read_bytes(path).decode("utf-8-sig", "replace")
+
+
+def parse_kitti_txt(text: bytes | str, kind: Kind, *, frame: str, source: str) -> tuple[list[str], list[float]]:
+    """Parse one frame's KITTI lines (the file's bytes; text is taken as UTF-8): the class names, and the
+    numbers after the type, flat.
 
     Returns ``(names, values)`` with ``len(values) == 14 * len(names)`` for ground truth (truncated ..
     ry; a 16th field is ignored) and ``15 * len(names)`` for detections (.. ry, score). Blank lines are
-    skipped. Raises :class:`InputError` naming the frame, the 1-based line and the field.
+    skipped. Raises :class:`InputError` naming the frame, the 1-based line and the field, for anything
+    the devkit would read otherwise (:mod:`~kitti_eval.io.formats.txt_grammar`).
     """
-    lines, names, tokens = _split_frame(text, kind, frame, source)
+    raw = text.encode("utf-8", "surrogatepass") if isinstance(text, str) else text
+    lines, width, names, tokens = _split_frame(raw, kind, frame, source)
     try:
         values = list(map(float, tokens))
     except ValueError:
-        _raise_bad_number(lines, _N_FIELDS[kind], frame, source)
-        raise  # pragma: no cover - _raise_bad_number always raises
+        _raise_bad_number(lines, width, kind, frame, source)
+    problem = values_problem(values, kind)
+    if problem is not None:
+        _raise_at_record(raw, problem[0], problem[1], problem[2], frame, source)
     return names, values
 
 
-def _split_frame(text: str, kind: Kind, frame: str, source: str) -> tuple[list[str], list[str], list[str]]:
-    """(lines, names, number tokens): field counts checked per line, tokens not yet converted.
+def _split_frame(raw: bytes, kind: Kind, frame: str, source: str) -> tuple[list[bytes], int, list[str], list[bytes]]:
+    """(lines, fields a line, names, number tokens) of one file: the layout and every field's spelling
+    checked against the devkit's grammar (:mod:`~kitti_eval.io.formats.txt_grammar`), the numbers not yet
+    converted.
 
     Works on the whole file at once (all tokens in one list, names every ``width`` tokens) once every
     non-blank line is known to have the same accepted number of fields: 3769 files x 40 lines in ~0.1 s.
     """
+    check_start(raw, frame, source)
     n_keep = _N_FIELDS[kind]  # fields kept per line, the type included
     accepted = {15, 16} if kind == "ground_truth" else {16}
-    lines = text.splitlines()
-    rows = list(map(str.split, lines))
+    lines = raw.splitlines()  # at LF, CR and CRLF; VT and FF separate fields, as any C whitespace
+    rows = list(map(bytes.split, lines))  # at the six C whitespace bytes only, as fscanf
     counts = set(map(len, rows))
     counts.discard(0)  # blank lines
     if not counts <= accepted or len(counts) > 1:
@@ -189,12 +202,17 @@ def _split_frame(text: str, kind: Kind, frame: str, source: str) -> tuple[list[s
     tokens = list(chain.from_iterable(rows))
     names = tokens[0::width]
     del tokens[0::width]  # now width - 1 numbers per line
+    check_names(raw, lines, names, width, kind, frame, source)
     if width > n_keep:  # a 16th field (score) in ground truth: dropped
         del tokens[n_keep - 1 :: width - 1]
-    return lines, names, tokens
+    if not check_number_bytes(raw, names, tokens, n_keep - 1, kind):
+        explain_numbers(lines, width, kind, frame, source)
+    # "\n" is in no name and in no character a bad byte is replaced with: one decode for the whole file
+    text_names = b"\n".join(names).decode("utf-8", "replace").split("\n") if names else []
+    return lines, width, text_names, tokens
 
 
-def _raise_bad_line(lines: list[str], kind: Kind, accepted: set[int], frame: str, source: str) -> None:
+def _raise_bad_line(lines: list[bytes], kind: Kind, accepted: set[int], frame: str, source: str) -> None:
     first_width = None
     for lineno, line in enumerate(lines, 1):
         n = len(line.split())
@@ -208,7 +226,9 @@ def _raise_bad_line(lines: list[str], kind: Kind, accepted: set[int], frame: str
                 )
             else:
                 expected = "16 fields (type truncated occluded alpha x1 y1 x2 y2 h w l x y z ry score)"
-            raise InputError(f"line {lineno}: expected {expected}, got {n}", source=source, frame=frame)
+            sep = foreign_separator(line)
+            hint = f"; {not_a_separator(sep)}, and reads the characters around it as one field" if sep else ""
+            raise InputError(f"line {lineno}: expected {expected}, got {n}{hint}", source=source, frame=frame)
         if first_width is None:
             first_width = n
         elif n != first_width:
@@ -220,18 +240,16 @@ def _raise_bad_line(lines: list[str], kind: Kind, accepted: set[int], frame: str
     raise InputError("inconsistent field counts", source=source, frame=frame)  # pragma: no cover
 
 
-def _raise_bad_number(lines: list[str], n_fields: int, frame: str, source: str) -> None:
-    for lineno, line in enumerate(lines, 1):
-        parts = line.split()
-        for k, tok in enumerate(parts[1:n_fields], 1):
-            try:
-                float(tok)
-            except ValueError:
-                field = KITTI_TXT_FIELDS[k]
-                raise InputError(
-                    f"line {lineno}: {field} is not a number: {tok!r}", source=source, frame=frame, field=field
-                ) from None
+def _raise_bad_number(lines: list[bytes], width: int, kind: Kind, frame: str, source: str) -> NoReturn:
+    explain_numbers(lines, width, kind, frame, source)
     raise InputError("unparsable number", source=source, frame=frame)  # pragma: no cover
+
+
+def _raise_at_record(raw: bytes, record: int, field: str, message: str, frame: str, source: str) -> NoReturn:
+    """Raise ``message`` for the ``record``-th (0-based) non-blank line of the file ``raw``."""
+    lines = raw.splitlines()
+    lineno = [i for i, line in enumerate(lines, 1) if line.split()][record]
+    raise InputError(f"line {lineno}: {message}", source=source, frame=frame, field=field)
 
 
 _DEFAULT_LIMITS = ArchiveLimits()
