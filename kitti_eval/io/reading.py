@@ -158,7 +158,7 @@ def _read_checked(checked: CheckedPickle, kind: Kind, options: LoadOptions) -> L
             warnings=warnings,
         )
         if annos is not None:
-            return Loaded(annos, tuple(warnings))
+            return Loaded(_bounded(annos), tuple(warnings))
     return read_object(checked.load(), kind, checked.source, options)
 
 
@@ -169,9 +169,16 @@ def _read_checked_ground_truth(checked: CheckedPickle, options: LoadOptions) -> 
         max_frames = limits.resolve(None, options.max_frames)[1]
         fast = read_ground_truth(checked, max_frames=max_frames, known_frames=options.known_frames)
         if fast is not None:
-            return Loaded(fast[0]), fast[1]
+            return Loaded(_bounded(fast[0])), fast[1]
     obj = checked.load()
     return read_object(obj, "ground_truth", checked.source, options), calibs_from_object(obj)
+
+
+def _bounded(annos: Annotations) -> Annotations:
+    """Annotations a pickle's columns were read into straight from its bytes (compact, and capped by its bytes),
+    held to the box limits every other read checks as it goes (:func:`kitti_eval.io.limits.box_limits`)."""
+    limits.box_limits().check_counts(annos.counts, annos.frame_ids, source=annos.source)
+    return annos
 
 
 def read_object(obj: object, kind: Kind, source: str, options: LoadOptions = DEFAULT) -> Loaded:
@@ -198,6 +205,7 @@ def read_object(obj: object, kind: Kind, source: str, options: LoadOptions = DEF
         keep_lidar=options.keep_lidar and kind == "detections",
         max_frames=limits.resolve(None, options.max_frames)[1],
         known_frames=options.known_frames,
+        box_limits=limits.box_limits(),
     )
     return Loaded(annos, tuple(warnings))
 

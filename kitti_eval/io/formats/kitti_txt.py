@@ -28,7 +28,7 @@ from ..archives import (
     sniff_input,
     too_large_txt,
 )
-from ..limits import MAX_FRAMES_ENV, MAX_INPUT_ENV, resolve
+from ..limits import MAX_FRAMES_ENV, MAX_INPUT_ENV, box_limits, resolve
 from ._common import Format, Frames, check_kind
 
 __all__ = [
@@ -107,8 +107,10 @@ def load_kitti_txt_dir(
     names: list[str] = []
     values = array("d")  # plain float() parsing, straight into one buffer
     spans: list[tuple[str, int, int]] = []  # (frame id, first row, row count)
+    bounds = box_limits()  # boxes per frame and in all, checked file by file, before the next is read
     for f in files:
         lines, frame_names, tokens = _split_frame(read_text(f), kind, f.stem, str(f))
+        bounds.check_frame(len(frame_names), len(names) + len(frame_names), source=str(f), frame=f.stem)
         try:
             values.extend(map(float, tokens))
         except ValueError:
