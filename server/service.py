@@ -152,6 +152,7 @@ class Service:
             },
             threads=settings.job_threads,
             admission=self.admission,
+            timeout_s=settings.job_timeout_s,
         )
         #: the jobs as admins see them (list, cancel, run again)
         self.job_admin = JobAdmin(

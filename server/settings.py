@@ -90,6 +90,11 @@ class Settings(BaseSettings):
     its job to poll. It bounds the connections held open, never what is accepted: a waiting request holds no
     evaluator, and accepting never waits for one."""
 
+    job_timeout_s: Annotated[float, Field(gt=0)] = 1800.0
+    """How long a job may run: one still running past it is failed then with its reason (``job_timeout``), not
+    tried again, and its worker's place is taken by a new thread at once (the late one's result is not stored).
+    KITTI val's evaluation takes a few seconds; the limits on work bound what a job asks for, this its time."""
+
     max_queued_jobs: Annotated[int, Field(gt=0)] = 2000
     """Jobs queued or running, all callers together; past that an evaluation or a submission is answered 503
     ``queue_full`` with Retry-After (nothing of it is kept or counted)."""
