@@ -7,6 +7,7 @@ blocking work on worker threads. The routes call the parts; no part reaches into
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -20,6 +21,7 @@ import sqlalchemy.exc
 
 from kitti_eval._jit import warm_up
 from kitti_eval.demo import demo_paths
+from kitti_eval.io.limits import BoxLimits, box_limits
 from kitti_eval.io.upload import UploadLimits
 
 from .access.accounts import Accounts, admin_token
@@ -49,6 +51,15 @@ log = logging.getLogger("kitti_eval.server")
 T = TypeVar("T")
 
 DEMO_NAME = "demo"
+
+
+def _frames_view_limits(most: int) -> BoxLimits:
+    """The box limits of kept predictions read to look at their frames: the limits on work, and at most ``most``
+    boxes in all (``KITTI_EVAL_FRAMES_MAX_BOXES``), since they are read whole by the process that answers."""
+    bounds = box_limits()
+    if bounds.per_input is not None and bounds.per_input <= most:
+        return bounds
+    return dataclasses.replace(bounds, per_input=most, per_input_setting="KITTI_EVAL_FRAMES_MAX_BOXES")
 
 
 class Service:
@@ -133,7 +144,7 @@ class Service:
             self.catalog,
             self.predictions,
             self.policy,
-            self.limits,
+            dataclasses.replace(self.limits, boxes=_frames_view_limits(settings.frames_max_boxes)),
             self.runner.scratch,
         )
         self.warm = threading.Event()

@@ -174,3 +174,22 @@ def test_kept_predictions_past_the_limits_on_work_are_refused_not_read_whole(tmp
             err = assert_error(response, 413, "3000 boxes in one frame, more than the limit of 500")
             assert err["code"] == "over_work_limit" and err["frame"] == "000001"
         assert time.monotonic() - started < 10
+
+
+def test_kept_predictions_of_more_boxes_than_a_frame_view_reads_are_refused(tmp_path, monkeypatch) -> None:
+    """Frames are looked at from kept predictions read whole by the process that answers: past
+    KITTI_EVAL_FRAMES_MAX_BOXES they are refused 413 at the frame that passes it, though they were evaluated."""
+    monkeypatch.delenv("KITTI_EVAL_MAX_BOXES", raising=False)
+    data_dir = tmp_path / "data"
+    with app_client(data_dir) as c:
+        r = upload(c, DEMO_PRED, "result.pkl.gz")
+        assert r.status_code == 201, r.text
+        evaluation = r.json()["id"]
+    boxes = load_detections(PRED_PATH).counts
+    most = int(boxes[:3].sum())  # the fourth frame passes it
+    with app_client(data_dir, frames_max_boxes=most) as c:
+        err = assert_error(c.get(f"/v1/evaluations/{evaluation}/frames", params={"worst": 5}), 413)
+        assert err["code"] == "over_work_limit" and err["frame"] == "000003"
+        assert f"more than the limit of {most} in one input (KITTI_EVAL_FRAMES_MAX_BOXES)" in err["message"]
+    with app_client(data_dir, frames_max_boxes=int(boxes.sum())) as c:
+        assert c.get(f"/v1/evaluations/{evaluation}/frames", params={"worst": 5}).status_code == 200
