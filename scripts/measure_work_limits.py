@@ -82,9 +82,31 @@ def service(pred: Path, gt_file: Path | None) -> str:
     """
 
 
+def frames_view(pred: Path, data: Path, *, upload: bool) -> str:
+    """A service on ``data`` that uploads ``pred`` against the demo (``upload``), or, in a fresh process, answers
+    the frame listing of the evaluation stored there: the kept predictions read whole by the process."""
+    return f"""
+    from pathlib import Path
+    from fastapi.testclient import TestClient
+    from kitti_eval_server.main import create_app
+    from kitti_eval_server.settings import Settings
+    app = create_app(Settings(data_dir=Path({str(data)!r}), admin_token="measure-admin-token", warmup=False))
+    with TestClient(app) as client:
+        if {upload!r}:
+            files = {{"predictions": ("pred.tar.gz", open({str(pred)!r}, "rb"))}}
+            r = client.post("/v1/evaluations", data={{"gt": "demo"}}, files=files)
+            print(r.status_code, "evaluated")
+        else:
+            (evaluation,) = [e["id"] for e in client.get("/v1/evaluations").json()["items"]]
+            r = client.get(f"/v1/evaluations/{{evaluation}}/frames", params={{"worst": 5}})
+            print(r.status_code, len(r.content), "bytes answered")
+    """
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--skip-large", action="store_true")
+    parser.add_argument("--only", help="run only the cases whose name holds this")
     parser.add_argument("--case", type=Path, default=ROOT.parent / "shared" / "golden" / "cases" / "kitti_val_scale")
     args = parser.parse_args()
     golden = args.case
@@ -147,9 +169,23 @@ def main() -> int:
             """
             cases.append(("evaluate 200 pairs (baseline)", pairs.replace("N_GT", "10").replace("N_DT", "2"), None))
             cases.append(("evaluate 20,000,000 pairs", pairs.replace("N_GT", "1000").replace("N_DT", "2000"), None))
+            # a frame view of kept predictions of 1,000,000 boxes (KITTI_EVAL_FRAMES_MAX_BOXES): 100 frames of 10,000
+            kept = tar_gz(tmp / "kept.tar.gz", {f"pred/{i:06d}.txt": frame for i in range(100)})
+            cases.append(
+                ("service, evaluate 1,000,000 boxes of txt (kept)", frames_view(kept, tmp / "svc", upload=True), None)
+            )
+            cases.append(
+                (
+                    "service, a frame listing of them in a new process",
+                    frames_view(kept, tmp / "svc", upload=False),
+                    None,
+                )
+            )
         # compile (or load) the kernels once, outside the measured runs
         run("import kitti_eval._jit as j; j.warm_up()")
         for name, code, env in cases:
+            if args.only and args.only not in name:
+                continue
             seconds, peak, rc, last = run(code, env)
             print(f"{name:<55} {seconds:6.1f} s  {peak:7.0f} MB  exit {rc}  {last}")
     return 0

@@ -181,7 +181,8 @@ class Settings(BaseSettings):
     """The most boxes kept predictions may hold for their frames to be looked at (``/v1/evaluations/{id}/frames``,
     ``/v1/frames/{frame}``, the web page's frame view), which reads them whole, once, in the process that answers
     (then keeps them in ``pred_cache_entries``); more are refused 413 at the frame that passes it. KITTI val's
-    predictions hold about 150,000 boxes; 1,000,000 boxes of txt take about 400 MB to read."""
+    predictions hold about 150,000 boxes; a frame listing of 1,000,000 boxes of txt peaked at 922 MB in a fresh
+    process (docs/service/operations.md)."""
 
     register_demo: bool = True
     """Register the bundled 200-frame demo ground truth as ``demo`` at startup (if absent)."""
