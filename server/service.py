@@ -21,7 +21,8 @@ import sqlalchemy.exc
 
 from kitti_eval._jit import warm_up
 from kitti_eval.demo import demo_paths
-from kitti_eval.io.limits import BoxLimits, box_limits
+from kitti_eval.errors import ConfigError
+from kitti_eval.io.limits import BoxLimits, box_limits, input_limits, overlap_budget
 from kitti_eval.io.upload import UploadLimits
 
 from .access.accounts import Accounts, admin_token
@@ -144,7 +145,7 @@ class Service:
             self.catalog,
             self.predictions,
             self.policy,
-            dataclasses.replace(self.limits, boxes=_frames_view_limits(settings.frames_max_boxes)),
+            self.limits,  # with the frame views' box limits once they are read from the environment (start)
             self.runner.scratch,
         )
         self.warm = threading.Event()
@@ -192,6 +193,13 @@ class Service:
     def start(self) -> None:
         """Create folders and tables, register the demo, start the warm-up and the workers (called from the
         lifespan)."""
+        try:  # the limits on input and work the loaders read from the environment: a bad one refuses the start
+            input_limits()
+            overlap_budget()
+            view = _frames_view_limits(self.settings.frames_max_boxes)
+        except ConfigError as e:
+            raise StartupRefused(f"{e} (a limit on input or work)") from None
+        self.evaluation_frames.limits = dataclasses.replace(self.limits, boxes=view)
         self.runner.open()
         self.scratch_space.open()  # and removes what processes killed meanwhile left
         log.info("data folder %s", self.data_dir)

@@ -202,3 +202,19 @@ def test_a_frame_whose_overlaps_pass_the_budget_is_refused_before_they_are_compu
     assert err["code"] == "over_work_limit" and err["frame"] == "000000"
     monkeypatch.setenv("KITTI_EVAL_MAX_FRAME_PAIRS", "90000")
     assert upload(client, pred, "pred.zip", gt=None, gt_file=("label_2.zip", gt)).status_code == 201
+
+
+@pytest.mark.parametrize(
+    ("env", "value"),
+    [("KITTI_EVAL_MAX_BOXES", "lots"), ("KITTI_EVAL_MAX_FRAME_PAIRS", "0"), ("KITTI_EVAL_MAX_FRAMES", "-1")],
+)
+def test_a_limit_that_is_not_a_number_refuses_the_start(tmp_path, monkeypatch, env: str, value: str) -> None:
+    """Said once, at the start, not as every job's failure."""
+    from server_helpers import app_client
+
+    from kitti_eval_server.errors import StartupRefused
+
+    monkeypatch.setenv(env, value)
+    with pytest.raises(StartupRefused) as refused, app_client(tmp_path / "data", warmup=False):
+        pass
+    assert f"{env}={value!r}: expected a number > 0 (a limit on input or work)" in refused.value.message
