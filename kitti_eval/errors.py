@@ -8,6 +8,7 @@ __all__ = [
     "UnsafePickleError",
     "UnknownFormatError",
     "ArchiveError",
+    "WorkLimitError",
     "InvalidSubmissionError",
     "ConfigError",
     "ServiceError",
@@ -54,6 +55,12 @@ class ArchiveError(InputError):
     (absolute paths, ``..``, links); nothing of it was loaded."""
 
 
+class WorkLimitError(InputError):
+    """An input asks for more work than a limit allows (boxes in a frame or in a file, overlaps of a frame or
+    of a set: :mod:`kitti_eval.io.limits`); refused before that work is done, naming the frame, the count and
+    the limit."""
+
+
 class InvalidSubmissionError(InputError):
     """A benchmark submission that can be read but breaks the rules (:mod:`kitti_eval.io.submission`):
     ``problems``, the validator's sentences in the order found (``more``: those past its limit, not listed);
@@ -95,7 +102,15 @@ class ServiceError(KittiEvalError):
 
 #: the error codes of the service's 422 that are about the files sent
 _INPUT_CODES = frozenset(
-    {"invalid_input", "unsafe_pickle", "invalid_archive", "unknown_format", "invalid_submission", "payload_too_large"}
+    {
+        "invalid_input",
+        "unsafe_pickle",
+        "invalid_archive",
+        "unknown_format",
+        "invalid_submission",
+        "payload_too_large",
+        "over_work_limit",
+    }
 )
 
 

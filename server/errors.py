@@ -28,6 +28,7 @@ from kitti_eval.errors import (
     KittiEvalError,
     UnknownFormatError,
     UnsafePickleError,
+    WorkLimitError,
 )
 
 __all__ = [
@@ -229,6 +230,7 @@ _LIBRARY_ERRORS: tuple[tuple[type[KittiEvalError], int, str], ...] = (
     (UnsafePickleError, 422, "unsafe_pickle"),
     (UnknownFormatError, 422, "unknown_format"),
     (ArchiveError, 422, "invalid_archive"),  # an uploaded zip/tar unsafe or unusable (traversal, links, bombs, ...)
+    (WorkLimitError, 413, "over_work_limit"),  # more boxes or overlaps than the limits allow
     (InputError, 422, "invalid_input"),
     (ConfigError, 422, "invalid_config"),
     (KittiEvalError, 422, "invalid_input"),

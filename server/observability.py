@@ -158,7 +158,7 @@ class Metrics:
         self.job_seconds = Histogram(
             "kitti_eval_job_duration_seconds",
             "Time a run of a job took on a worker of this process, by kind and outcome (done, refused, retried, "
-            "failed, lost, released)",
+            "failed, lost, released, timed_out)",
             ["kind", "outcome"],
             buckets=_LATENCY_BUCKETS,
             registry=r,

@@ -7,6 +7,7 @@ blocking work on worker threads. The routes call the parts; no part reaches into
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -20,6 +21,8 @@ import sqlalchemy.exc
 
 from kitti_eval._jit import warm_up
 from kitti_eval.demo import demo_paths
+from kitti_eval.errors import ConfigError
+from kitti_eval.io.limits import BoxLimits, box_limits, input_limits, overlap_budget
 from kitti_eval.io.upload import UploadLimits
 
 from .access.accounts import Accounts, admin_token
@@ -49,6 +52,15 @@ log = logging.getLogger("kitti_eval.server")
 T = TypeVar("T")
 
 DEMO_NAME = "demo"
+
+
+def _frames_view_limits(most: int) -> BoxLimits:
+    """The box limits of kept predictions read to look at their frames: the limits on work, and at most ``most``
+    boxes in all (``KITTI_EVAL_FRAMES_MAX_BOXES``), since they are read whole by the process that answers."""
+    bounds = box_limits()
+    if bounds.per_input is not None and bounds.per_input <= most:
+        return bounds
+    return dataclasses.replace(bounds, per_input=most, per_input_setting="KITTI_EVAL_FRAMES_MAX_BOXES")
 
 
 class Service:
@@ -133,7 +145,7 @@ class Service:
             self.catalog,
             self.predictions,
             self.policy,
-            self.limits,
+            self.limits,  # with the frame views' box limits once they are read from the environment (start)
             self.runner.scratch,
         )
         self.warm = threading.Event()
@@ -152,6 +164,7 @@ class Service:
             },
             threads=settings.job_threads,
             admission=self.admission,
+            timeout_s=settings.job_timeout_s,
         )
         #: the jobs as admins see them (list, cancel, run again)
         self.job_admin = JobAdmin(
@@ -180,6 +193,13 @@ class Service:
     def start(self) -> None:
         """Create folders and tables, register the demo, start the warm-up and the workers (called from the
         lifespan)."""
+        try:  # the limits on input and work the loaders read from the environment: a bad one refuses the start
+            input_limits()
+            overlap_budget()
+            view = _frames_view_limits(self.settings.frames_max_boxes)
+        except ConfigError as e:
+            raise StartupRefused(f"{e} (a limit on input or work)") from None
+        self.evaluation_frames.limits = dataclasses.replace(self.limits, boxes=view)
         self.runner.open()
         self.scratch_space.open()  # and removes what processes killed meanwhile left
         log.info("data folder %s", self.data_dir)

@@ -90,6 +90,11 @@ class Settings(BaseSettings):
     its job to poll. It bounds the connections held open, never what is accepted: a waiting request holds no
     evaluator, and accepting never waits for one."""
 
+    job_timeout_s: Annotated[float, Field(gt=0)] = 1800.0
+    """How long a job may run: one still running past it is failed then with its reason (``job_timeout``), not
+    tried again, and its worker's place is taken by a new thread at once (the late one's result is not stored).
+    KITTI val's evaluation takes a few seconds; the limits on work bound what a job asks for, this its time."""
+
     max_queued_jobs: Annotated[int, Field(gt=0)] = 2000
     """Jobs queued or running, all callers together; past that an evaluation or a submission is answered 503
     ``queue_full`` with Retry-After (nothing of it is kept or counted)."""
@@ -171,6 +176,13 @@ class Settings(BaseSettings):
 
     pred_cache_entries: Annotated[int, Field(ge=1)] = 4
     """Kept predictions held loaded in memory for looking at frames (least recently used dropped first)."""
+
+    frames_max_boxes: Annotated[int, Field(gt=0)] = 1_000_000
+    """The most boxes kept predictions may hold for their frames to be looked at (``/v1/evaluations/{id}/frames``,
+    ``/v1/frames/{frame}``, the web page's frame view), which reads them whole, once, in the process that answers
+    (then keeps them in ``pred_cache_entries``); more are refused 413 at the frame that passes it. KITTI val's
+    predictions hold about 150,000 boxes; a frame listing of 1,000,000 boxes of txt peaked at 922 MB in a fresh
+    process (docs/service/operations.md)."""
 
     register_demo: bool = True
     """Register the bundled 200-frame demo ground truth as ``demo`` at startup (if absent)."""

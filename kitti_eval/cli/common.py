@@ -42,7 +42,14 @@ def _positive(text: str) -> float:
 
 
 #: input-limit flag -> the environment variable it sets for this process (the loaders read it)
-_LIMIT_FLAGS = {"max_input_mb": "KITTI_EVAL_MAX_UNPACKED_MB", "max_frames": "KITTI_EVAL_MAX_FRAMES"}
+_LIMIT_FLAGS = {
+    "max_input_mb": "KITTI_EVAL_MAX_UNPACKED_MB",
+    "max_frames": "KITTI_EVAL_MAX_FRAMES",
+    "max_boxes_per_frame": "KITTI_EVAL_MAX_BOXES_PER_FRAME",
+    "max_boxes": "KITTI_EVAL_MAX_BOXES",
+    "max_frame_pairs": "KITTI_EVAL_MAX_FRAME_PAIRS",
+    "max_pairs": "KITTI_EVAL_MAX_PAIRS",
+}
 
 
 def _add_limit_options(p: argparse.ArgumentParser) -> None:
@@ -59,6 +66,30 @@ def _add_limit_options(p: argparse.ArgumentParser) -> None:
         type=_positive,
         metavar="N",
         help="most frames one input may hold (default: 200000, or $KITTI_EVAL_MAX_FRAMES)",
+    )
+    limits.add_argument(
+        "--max-boxes-per-frame",
+        type=_positive,
+        metavar="N",
+        help="most boxes one frame of an input may hold (default: 10000, or $KITTI_EVAL_MAX_BOXES_PER_FRAME)",
+    )
+    limits.add_argument(
+        "--max-boxes",
+        type=_positive,
+        metavar="N",
+        help="most boxes one input may hold (default: 5000000, or $KITTI_EVAL_MAX_BOXES)",
+    )
+    limits.add_argument(
+        "--max-frame-pairs",
+        type=_positive,
+        metavar="N",
+        help="most detection x ground-truth overlaps of one frame (default: 4000000, or $KITTI_EVAL_MAX_FRAME_PAIRS)",
+    )
+    limits.add_argument(
+        "--max-pairs",
+        type=_positive,
+        metavar="N",
+        help="most detection x ground-truth overlaps of one evaluation (default: 100000000, or $KITTI_EVAL_MAX_PAIRS)",
     )
 
 

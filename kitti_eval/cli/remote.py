@@ -144,6 +144,10 @@ def _evaluate(args: argparse.Namespace, gt: object, pred: object, *, curves: boo
             "plot_dir": "--plot-dir",
             "max_input_mb": "--max-input-mb",
             "max_frames": "--max-frames",
+            "max_boxes_per_frame": "--max-boxes-per-frame",
+            "max_boxes": "--max-boxes",
+            "max_frame_pairs": "--max-frame-pairs",
+            "max_pairs": "--max-pairs",
         },
     )
     if Path(str(gt)).exists():

@@ -17,6 +17,7 @@ import numpy.typing as npt
 
 from ..errors import InputError
 from .ap import Curve, average_precision, curve_from_counts
+from .budget import check_overlap_budget
 from .frames import Annotations, dimension_order_warnings, size_warnings
 from .geometry import FrameOverlaps, frame_overlaps
 from .matching import (
@@ -286,6 +287,7 @@ def plan_evaluation(
         shown = ", ".join(missing[:10]) + (f" and {len(missing) - 10} more" if len(missing) > 10 else "")
         warnings.append(f"{len(missing)} of {gt.num_frames} frames have no predictions and count as empty: {shown}")
     dontcare = _dontcare_rows(gt, protocol)
+    check_overlap_budget(dt.counts, gt.counts, gt.frame_ids, source=dt.source)
     t0 = time.perf_counter()
     fo = frame_overlaps(dt.bbox, dt.boxes_camera, dt.offsets, gt.bbox, gt.boxes_camera, gt.offsets, dontcare)
     overlap_seconds = time.perf_counter() - t0

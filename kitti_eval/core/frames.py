@@ -24,11 +24,12 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
-from ..errors import InputError
+from ..errors import InputError, WorkLimitError
 from .protocol import DONTCARE
 
 __all__ = [
     "Annotations",
+    "BoxLimits",
     "normalize_frame_id",
     "shown_frame_id",
     "dimension_order_warnings",
@@ -122,6 +123,50 @@ def size_warnings(annos: Annotations, *, unsized: UnsizedBoxes | None = None) ->
         f"({cls}), (l, h, w) = {dims}); evaluated as the KITTI devkit reads them: -1 is 'not given', and a box "
         "without length or width overlaps nothing in BEV and 3D"
     ]
+
+
+@dataclass(frozen=True)
+class BoxLimits:
+    """The work-limit rule for boxes: at most ``per_frame`` boxes in one frame and ``per_input`` in one input
+    (ground truth or predictions, DontCare rows included); None: no limit. The settings and their defaults are
+    :func:`kitti_eval.io.limits.box_limits`' (the names in ``*_setting``, for the refusal). Checked as frames
+    are read (:meth:`check_frame`) and over whole columns (:meth:`check_counts`), on the path every format takes
+    (:meth:`Annotations.from_frames`, :meth:`Annotations.from_columns`), before any work that grows with them.
+    """
+
+    per_frame: int | None = None
+    per_input: int | None = None
+    per_frame_setting: str = "KITTI_EVAL_MAX_BOXES_PER_FRAME"
+    per_input_setting: str = "KITTI_EVAL_MAX_BOXES"
+
+    def check_frame(self, count: int, total: int, *, source: str, frame: str) -> None:
+        """Refuse a frame of ``count`` boxes, or one that brings the input to ``total`` boxes, past a limit."""
+        if self.per_frame is not None and count > self.per_frame:
+            raise WorkLimitError(
+                f"{count} boxes in one frame, more than the limit of {self.per_frame} ({self.per_frame_setting})",
+                source=source,
+                frame=frame,
+            )
+        if self.per_input is not None and total > self.per_input:
+            raise WorkLimitError(
+                f"{total} boxes up to this frame, more than the limit of {self.per_input} in one input "
+                f"({self.per_input_setting})",
+                source=source,
+                frame=frame,
+            )
+
+    def check_counts(self, counts: np.ndarray, ids: Sequence[str], *, source: str) -> None:
+        """:meth:`check_frame` over the (F,) box counts of frames ``ids``: the first frame past a limit."""
+        if not len(counts):
+            return
+        over = np.zeros(len(counts), dtype=np.bool_)
+        if self.per_frame is not None:
+            over |= counts > self.per_frame
+        if self.per_input is not None:
+            over |= np.cumsum(counts) > self.per_input
+        if over.any():
+            f = int(np.argmax(over))
+            self.check_frame(int(counts[f]), int(counts[: f + 1].sum()), source=source, frame=ids[f])
 
 
 _MAX_CODE_POINT = 0x10FFFF
@@ -361,6 +406,7 @@ class _Columns:
         keep_lidar: bool,
         max_frames: int | None,
         known_frames: Collection[str] | None,
+        box_limits: BoxLimits | None = None,
     ) -> _Columns:
         """The columns of any frames :meth:`Annotations.from_frames` takes, each frame checked as it comes."""
         ids: list[str] = []
@@ -369,6 +415,7 @@ class _Columns:
         counts: list[int] = []
         absent: dict[str, str] = {}
         lidar: list[np.ndarray] = []
+        total = 0
         for pos, (raw_id, fields) in enumerate(frames):
             try:
                 fid = normalize_frame_id(raw_id)
@@ -392,6 +439,9 @@ class _Columns:
                 raise InputError(f"missing field(s) {', '.join(missing)}", source=source, frame=fid, field=missing[0])
             names = _names(fields["name"], source, fid)
             n = len(names)
+            total += n
+            if box_limits is not None:
+                box_limits.check_frame(n, total, source=source, frame=fid)
             cols["name"].append(names)
             for f, trailing in _NUMERIC_FIELDS.items():
                 if f in fields:
@@ -524,6 +574,7 @@ class Annotations:
         keep_lidar: bool = False,
         max_frames: int | None = None,
         known_frames: Collection[str] | None = None,
+        box_limits: BoxLimits | None = None,
     ) -> Annotations:
         """Validate per-frame field dicts and concatenate them.
 
@@ -539,6 +590,8 @@ class Annotations:
         max_frames : refuse more frames than this, before converting the first one past it
         known_frames : the frame ids there may be (those of the ground truth, for predictions); another is
             refused before it is converted
+        box_limits : refuse a frame, or an input, of more boxes than these (None: no limit); the loaders pass
+            :func:`kitti_eval.io.limits.box_limits`
         """
         if kind not in _REQUIRED:
             raise ValueError(f"kind must be 'ground_truth' or 'detections', got {kind!r}")
@@ -563,14 +616,15 @@ class Annotations:
         if error is None and len(ids) == len(taken):
             whole = _Columns.of(kind, taken, tuple(ids), keep_lidar=keep_lidar)
             if whole is not None:
-                return cls._checked(kind, source, whole)
+                return cls._checked(kind, source, whole, box_limits)
         # anything the columns do not take as they are: frame by frame, in the order the frames come (the same
         # refusal as ever for the same input, the reader's own included)
         rest = _replay(taken, error)
         return cls._checked(
             kind,
             source,
-            _Columns.frame_by_frame(kind, source, rest, keep_lidar, max_frames, known_frames),
+            _Columns.frame_by_frame(kind, source, rest, keep_lidar, max_frames, known_frames, box_limits),
+            box_limits,
         )
 
     @classmethod
@@ -584,6 +638,7 @@ class Annotations:
         numeric: Mapping[str, np.ndarray],
         *,
         lidar: np.ndarray | None = None,
+        box_limits: BoxLimits | None = None,
     ) -> Annotations:
         """Annotations from columns a reader built itself (:mod:`kitti_eval.io.pickle_columns`): fresh arrays,
         each field of all frames, frame after frame, as :meth:`from_frames` concatenates them; ``frame_ids``
@@ -593,11 +648,14 @@ class Annotations:
         absent: dict[str, str] = {}
         n = int(offsets[-1])
         columns = {f: numeric[f] if f in numeric else _filled(kind, f, n, frame_ids, absent) for f in _NUMERIC_FIELDS}
-        return cls._checked(kind, source, _Columns(frame_ids, offsets, name, columns, absent, lidar))
+        return cls._checked(kind, source, _Columns(frame_ids, offsets, name, columns, absent, lidar), box_limits)
 
     @classmethod
-    def _checked(cls, kind: Kind, source: str, c: _Columns) -> Annotations:
-        """The checks over whole columns (names are text, numbers finite), then the container."""
+    def _checked(cls, kind: Kind, source: str, c: _Columns, box_limits: BoxLimits | None = None) -> Annotations:
+        """The checks over whole columns (boxes within the limits, names are text, numbers finite), then the
+        container."""
+        if box_limits is not None:
+            box_limits.check_counts(np.diff(c.offsets), c.ids, source=source)
         _names_are_text(c.name, c.offsets, c.ids, source)
         for f in _NUMERIC_FIELDS:
             arr = c.numeric[f]

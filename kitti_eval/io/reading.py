@@ -53,7 +53,8 @@ class LoadOptions:
     """How one input is read.
 
     ``fmt``: a name of :data:`kitti_eval.io.formats.FORMATS`, instead of detecting the layout.
-    ``max_bytes``, ``max_frames``: see :func:`kitti_eval.io.limits.input_limits` (None: its values).
+    ``max_bytes``, ``max_frames``: see :func:`kitti_eval.io.limits.input_limits` (None: its values); ``box_limits``:
+    :func:`kitti_eval.io.limits.box_limits` (None: its values).
     ``calibs`` ({frame id: :class:`kitti_eval.io.calib.Calib`}) converts LiDAR-only detections and checks
     detections that carry both. ``keep_lidar`` keeps the ``boxes_lidar`` of detections as written, for display
     (:attr:`Annotations.boxes_lidar`). ``known_frames`` (the ground truth's frame ids): a frame of detections
@@ -66,6 +67,8 @@ class LoadOptions:
     calibs: Mapping[str, Any] | None = None
     keep_lidar: bool = False
     known_frames: Collection[str] | None = None
+    #: the boxes one frame and the whole input may hold (None: :func:`kitti_eval.io.limits.box_limits`)
+    box_limits: limits.BoxLimits | None = None
 
     def __post_init__(self) -> None:
         if self.fmt is not None and self.fmt not in FORMATS:
@@ -116,7 +119,11 @@ def read_annotations(path: PathLike, kind: Kind, options: LoadOptions = DEFAULT)
     if p.is_dir():
         if fmt not in (None, "kitti_txt"):
             raise InputError(f"a folder is read as KITTI txt files, not as {fmt!r}", source=source)
-        return Loaded(load_kitti_txt_dir(p, kind, max_frames=options.max_frames, known_frames=options.known_frames))
+        return Loaded(
+            load_kitti_txt_dir(
+                p, kind, max_frames=options.max_frames, known_frames=options.known_frames, bounds=options.box_limits
+            )
+        )
     if not p.exists():
         raise _missing(kind, source)
     if p.suffix.lower() == ".txt":
@@ -124,7 +131,9 @@ def read_annotations(path: PathLike, kind: Kind, options: LoadOptions = DEFAULT)
             "this is a single txt file; pass the folder that holds one KITTI txt file per frame", source=source
         )
     if fmt == "kitti_txt" or (fmt is None and input_kind(p, source) != "pickle"):
-        annos = load_txt_archive(p, kind, source, options.max_bytes, options.max_frames, options.known_frames)
+        annos = load_txt_archive(
+            p, kind, source, options.max_bytes, options.max_frames, options.known_frames, options.box_limits
+        )
         return Loaded(annos)
     return read_pickle(p, kind, source, options)
 
@@ -158,7 +167,7 @@ def _read_checked(checked: CheckedPickle, kind: Kind, options: LoadOptions) -> L
             warnings=warnings,
         )
         if annos is not None:
-            return Loaded(annos, tuple(warnings))
+            return Loaded(_bounded(annos, options), tuple(warnings))
     return read_object(checked.load(), kind, checked.source, options)
 
 
@@ -169,9 +178,17 @@ def _read_checked_ground_truth(checked: CheckedPickle, options: LoadOptions) -> 
         max_frames = limits.resolve(None, options.max_frames)[1]
         fast = read_ground_truth(checked, max_frames=max_frames, known_frames=options.known_frames)
         if fast is not None:
-            return Loaded(fast[0]), fast[1]
+            return Loaded(_bounded(fast[0], options)), fast[1]
     obj = checked.load()
     return read_object(obj, "ground_truth", checked.source, options), calibs_from_object(obj)
+
+
+def _bounded(annos: Annotations, options: LoadOptions) -> Annotations:
+    """Annotations a pickle's columns were read into straight from its bytes (compact, and capped by its bytes),
+    held to the box limits every other read checks as it goes (``options.box_limits``, else
+    :func:`kitti_eval.io.limits.box_limits`)."""
+    (options.box_limits or limits.box_limits()).check_counts(annos.counts, annos.frame_ids, source=annos.source)
+    return annos
 
 
 def read_object(obj: object, kind: Kind, source: str, options: LoadOptions = DEFAULT) -> Loaded:
@@ -198,6 +215,7 @@ def read_object(obj: object, kind: Kind, source: str, options: LoadOptions = DEF
         keep_lidar=options.keep_lidar and kind == "detections",
         max_frames=limits.resolve(None, options.max_frames)[1],
         known_frames=options.known_frames,
+        box_limits=options.box_limits or limits.box_limits(),
     )
     return Loaded(annos, tuple(warnings))
 

@@ -34,7 +34,7 @@ from ..core.frames import Annotations, Kind
 from ..errors import ArchiveError, InputError, InvalidSubmissionError, UnknownFormatError, UnsafePickleError
 from .archives import ArchiveLimits, InputKind, extract_txt_folder, sniff_input
 from .formats.kitti_txt import load_kitti_txt_dir
-from .limits import MAX_INPUT_ENV, resolve
+from .limits import MAX_INPUT_ENV, BoxLimits, box_limits, resolve
 from .reading import DEFAULT, LoadOptions, read_pickle
 from .submission_rules import SubmissionRules, Validation, validate_annotations, validate_txt_folder
 
@@ -45,14 +45,16 @@ __all__ = ["UploadLimits", "LoadedUpload", "read_upload"]
 class UploadLimits:
     """The caps on one file. ``max_bytes``: a pickle after decompression, an archive's unpacked txt files;
     ``max_frames``: the frames it may hold (None: :func:`kitti_eval.io.limits.input_limits`, from the
-    environment); ``max_members``: an archive's members. ``bytes_setting`` / ``members_setting`` name what
-    raises a cap, in the refusal."""
+    environment); ``max_members``: an archive's members; ``boxes``: the boxes of a frame and of the file (None:
+    :func:`kitti_eval.io.limits.box_limits`, from the environment). ``bytes_setting`` / ``members_setting`` name
+    what raises a cap, in the refusal."""
 
     max_bytes: int | None = None
     max_frames: int | None = None
     max_members: int = ArchiveLimits.max_members
     bytes_setting: str | None = MAX_INPUT_ENV
     members_setting: str | None = None
+    boxes: BoxLimits | None = None
 
     def resolved(self) -> tuple[int, int]:
         """``(max_bytes, max_frames)``, the ones left at None read from the environment."""
@@ -97,7 +99,8 @@ def read_upload(
     remove). ``options``: the read's layout and what it keeps (:class:`~kitti_eval.io.reading.LoadOptions`; its
     limits are ``limits``'). See the module for the errors it raises."""
     max_bytes, max_frames = limits.resolved()
-    options = dataclasses.replace(options, max_bytes=max_bytes, max_frames=max_frames)
+    bounds = limits.boxes or box_limits()
+    options = dataclasses.replace(options, max_bytes=max_bytes, max_frames=max_frames, box_limits=bounds)
     what = sniff_input(file, source)
     if what == "pickle":
         return _pickle(file, kind, source, options, rules)
@@ -111,7 +114,9 @@ def read_upload(
         if not validation.ok:
             raise InvalidSubmissionError(validation.problems, validation.more)
     try:
-        annotations = load_kitti_txt_dir(folder, kind, max_frames=max_frames, known_frames=options.known_frames)
+        annotations = load_kitti_txt_dir(
+            folder, kind, max_frames=max_frames, known_frames=options.known_frames, bounds=bounds
+        )
     except InputError as e:
         raise _named(e, names, source) from None
     return LoadedUpload(what, dataclasses.replace(annotations, source=source), (), folder, validation)

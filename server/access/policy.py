@@ -86,7 +86,8 @@ class Access(str, Enum):
     WRITER = "writer"
     #: an admin's token or session that may write (or the admin token); a session also sends its CSRF token
     ADMIN = "admin"
-    #: ``/metrics``: its own token when ``KITTI_EVAL_METRICS_TOKEN`` is set, else as READER
+    #: ``/metrics``: its own token when ``KITTI_EVAL_METRICS_TOKEN`` is set, else an admin's (accounts mode; a
+    #: read-only token will do) or anyone (open mode)
     SCRAPER = "scraper"
 
 
@@ -208,7 +209,7 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
     ("benchmarks: create, close, reopen, reveal, rescore, disqualify", Access.ADMIN, "no", "yes"),
     ("accounts: users, projects, members, tokens, audit log", Access.ADMIN, "no", "yes"),
     ("jobs: list, cancel, re-run", Access.ADMIN, "no", "yes"),
-    ("metrics", Access.SCRAPER, "with the metrics token, else any token", "yes"),
+    ("metrics", Access.SCRAPER, "with the metrics token only", "yes (read-only tokens too)"),
 )
 
 
@@ -344,6 +345,14 @@ class Policy:
                 if not hmac.compare_digest(bearer.encode(), own.encode()):
                     raise Forbidden("the metrics token is not valid")
                 return Caller("metrics-scraper", scopes=frozenset({READ}), client=caller.client, signed_in=True)
+            if self.accounts:  # every tenant's activity: an admin's, read-only tokens included, not a participant's
+                if not caller.signed_in:
+                    raise Unauthorized("sign in: send 'Authorization: Bearer <token>'")
+                if not caller.is_admin:
+                    raise Forbidden(
+                        "the metrics are for admins (or for a scraper's own token, KITTI_EVAL_METRICS_TOKEN)"
+                    )
+                return caller
             access = Access.READER
         if access is Access.ADMIN and not self.accounts:
             if caller.is_admin:

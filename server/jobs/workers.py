@@ -6,6 +6,10 @@ worker that stops (killed, frozen, cut off) loses the job to another once the le
 result, if it comes later, is not committed (the queue's ``finish`` answers False). A job whose input cannot
 be evaluated (the library's or the service's refusal) fails at once with the error a client would have been
 answered, kept as JSON with the job; anything else is tried again, up to the queue's ``max_attempts``.
+
+A job still running past the time limit (``timeout_s``, ``KITTI_EVAL_JOB_TIMEOUT_S``) is failed then, once, with
+its reason (``job_timeout``), and not tried again; a thread cannot be stopped from outside, so the worker's place
+is taken at once by a new thread, and the late one ends when its job returns, its result not stored.
 """
 
 from __future__ import annotations
@@ -80,7 +84,7 @@ def error_of(exc: BaseException) -> tuple[dict[str, Any], bool]:
 JobEnded = Callable[[str, str, float, int], None]
 
 #: what a run of a job ended with (the log line's and the metrics' ``outcome``)
-OUTCOMES = ("done", "refused", "retried", "failed", "lost", "released")
+OUTCOMES = ("done", "refused", "retried", "failed", "lost", "released", "timed_out")
 
 
 class Workers:
@@ -100,6 +104,7 @@ class Workers:
         idle_s: float = 0.5,
         names: Callable[[int], str] = worker_name,
         beat_s: float = 15.0,
+        timeout_s: float | None = None,
     ) -> None:
         self.queue = queue
         self.handlers = dict(handlers)
@@ -108,6 +113,8 @@ class Workers:
         self.idle_s = idle_s
         self.names = names
         self.beat_s = beat_s
+        #: a job running longer than this is failed (``job_timeout``), not tried again; None: no limit
+        self.timeout_s = timeout_s
         self.on_ended: JobEnded | None = None
         self.process_name = f"{socket.gethostname()}:{os.getpid()}"
         self._wake = threading.Condition()
@@ -119,19 +126,27 @@ class Workers:
         #: worker name -> the job it runs now
         self._current: dict[str, JobRecord] = {}
         self._released: set[str] = set()
+        #: the jobs failed past their time limit while their thread still runs them
+        self._timed_out: set[str] = set()
+        #: threads started so far (a thread that replaces one held by a job past its time limit takes the next name)
+        self._started = 0
 
     # -- life ----------------------------------------------------------------------------------------------
     def start(self) -> None:
         self._stopping.clear()
-        for i in range(self.threads):
-            thread = threading.Thread(
-                target=self._loop, args=(self.names(i),), name=f"kitti-eval-worker-{i}", daemon=True
-            )
-            thread.start()
-            self._running.append(thread)
+        for _ in range(self.threads):
+            self._start_thread()
         if self.threads:
             self._beating = threading.Thread(target=self._beat_process, name="kitti-eval-worker-beat", daemon=True)
             self._beating.start()
+
+    def _start_thread(self) -> None:
+        with self._count_lock:
+            i = self._started
+            self._started += 1
+        thread = threading.Thread(target=self._loop, args=(self.names(i),), name=f"kitti-eval-worker-{i}", daemon=True)
+        thread.start()
+        self._running.append(thread)
 
     def stop(self, grace_s: float = 30.0) -> int:
         """Take no new job; the running ones have ``grace_s`` to finish, then those still running are released
@@ -217,6 +232,11 @@ class Workers:
                 self.run_one(job, name)
             except Exception:  # noqa: BLE001 - the database went away for good: the job's lease will lapse
                 log.warning("worker %s could not record the end of job %s", name, job.id, exc_info=True)
+            with self._count_lock:
+                replaced = job.id in self._timed_out
+                self._timed_out.discard(job.id)
+            if replaced:  # a new thread took this one's place when its job passed the time limit
+                return
 
     def _until_recorded(self, record: Callable[[], bool]) -> bool:
         """Record a job's end, trying again while the database is away (its lease is still being extended, so
@@ -238,7 +258,12 @@ class Workers:
 
         def heartbeat() -> None:
             period = max(0.05, self.queue.lease_s / 3)
+            if self.timeout_s is not None:
+                period = min(period, max(0.05, self.timeout_s / 10))
             while not beat.wait(period):
+                if self.timeout_s is not None and time.perf_counter() - started > self.timeout_s:
+                    self._time_out(job, name)
+                    return
                 try:
                     if not self.queue.heartbeat(job.id, name):
                         log.warning("job %s is no longer %s's (taken over or cancelled)", job.id, name)
@@ -255,6 +280,8 @@ class Workers:
         outcome, detail = "lost", ""
         try:
             result_id, write = self.handlers[job.kind](job)
+            if job.id in self._timed_out:
+                return False  # failed past its time limit meanwhile: nothing of it is stored
         except BaseException as e:  # noqa: BLE001 - every failure is the job's, recorded with it
             body, retry = error_of(e)
             detail = f": {body['code']}: {body['message']}"
@@ -275,6 +302,8 @@ class Workers:
                 if job.id in self._released:
                     self._released.discard(job.id)
                     outcome = "released" if outcome == "lost" else outcome
+                if job.id in self._timed_out:
+                    outcome, detail = "timed_out", f": job_timeout: past {self.timeout_s:g} s"
             seconds = time.perf_counter() - started
             log.info(
                 "job %s %s %s in %.2f s (attempt %d of %d)%s",
@@ -291,6 +320,28 @@ class Workers:
                     self.on_ended(job.kind, outcome, seconds, job.attempts)
                 except Exception:  # noqa: BLE001 - a metric never fails a job
                     log.debug("on_ended failed", exc_info=True)
+
+    def _time_out(self, job: JobRecord, name: str) -> None:
+        """Fail ``job``, still running on ``name`` past the time limit, with its reason (not tried again), and
+        put a new thread in the place of the one it holds."""
+        body = {
+            "status": 422,
+            "code": "job_timeout",
+            "message": f"the {job.kind} ran past the time limit of {self.timeout_s:g} s (KITTI_EVAL_JOB_TIMEOUT_S); "
+            "it is not tried again",
+        }
+        try:
+            failed = self._until_recorded(lambda: self.queue.fail(job.id, name, json.dumps(body), retry=False))
+        except Exception:  # noqa: BLE001 - stopping: the job's lease lapses and it is taken over
+            log.warning("job %s could not be failed past its time limit", job.id, exc_info=True)
+            return
+        if not failed:
+            return  # no longer this worker's (cancelled, taken over)
+        log.warning("job %s %s failed: still running after its time limit of %g s", job.id, job.kind, self.timeout_s)
+        with self._count_lock:
+            self._timed_out.add(job.id)
+        if not self._stopping.is_set():
+            self._start_thread()
 
 
 class JobFailed(ApiError):

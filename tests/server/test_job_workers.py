@@ -325,3 +325,40 @@ def test_a_worker_process_runs_the_installed_service_whatever_folder_it_starts_i
     assert run.returncode == 0, run.stderr
     assert "One worker process of kitti-eval." in run.stdout
     assert not marker.exists()
+
+
+def test_a_job_past_its_time_limit_is_failed_once_with_its_reason_and_its_worker_is_free_again(tmp_path) -> None:
+    """A job that runs on and on is failed at its time limit, not tried again (whatever attempts are left), with
+    the reason a client is answered; the next job runs at once, on a new thread in the worker's place, while the
+    late one ends on its own and stores nothing."""
+    queue = _queue(tmp_path, lease_s=5, max_attempts=3)
+    stuck, after = queue.enqueue("evaluation", {"n": 1}, owner="me"), queue.enqueue("evaluation", {"n": 2}, owner="me")
+    release, stored, runs = threading.Event(), [], []
+
+    def handler(job: Any) -> Any:
+        if job.payload["n"] == 1:
+            release.wait(30)  # the evaluation that would not end
+        return job.id, lambda conn: stored.append(job.id)
+
+    workers = Workers(queue, {"evaluation": handler}, threads=1, idle_s=0.02, timeout_s=0.5)
+    workers.on_ended = lambda kind, outcome, seconds, attempt: runs.append((outcome, attempt))
+    workers.start()
+    try:
+        failed, done = queue.wait(stuck.id, 20), queue.wait(after.id, 20)
+        assert failed is not None and failed.state == "failed" and failed.attempts == 1
+        error = json.loads(failed.error or "")
+        assert error["code"] == "job_timeout" and error["status"] == 422
+        assert "ran past the time limit of 0.5 s (KITTI_EVAL_JOB_TIMEOUT_S)" in error["message"]
+        assert done is not None and done.state == "done" and stored == [after.id]  # while the stuck one still runs
+        assert not release.is_set() and workers.busy == 1
+        release.set()
+        deadline = time.monotonic() + 10
+        while len(runs) < 2 or workers.alive != 1:
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+    finally:
+        release.set()
+        workers.stop(5)
+    assert sorted(runs) == [("done", 1), ("timed_out", 1)]
+    assert stored == [after.id]  # the late result is not stored
+    assert queue.get(stuck.id).state == "failed"  # type: ignore[union-attr]

@@ -164,3 +164,57 @@ def test_the_frame_page_refuses_a_score_that_is_no_bounded_number(client, score)
     assert page.headers["content-type"].startswith("text/html")
     assert "score threshold must be a number between -1e+09 and 1e+09" in page.text
     assert client.get(f"/frames/000001?e={evaluation}&score=0.5").status_code == 200
+
+
+# --------------------------------------------------------------------------------------- limits on work
+
+_LABEL = b"Car 0.00 0 -1.58 587.01 173.33 614.12 200.12 1.65 1.67 3.64 -0.65 1.71 46.70 -1.59"
+
+
+def test_many_boxes_in_few_bytes_are_refused_413_naming_the_frame(client, monkeypatch: pytest.MonkeyPatch) -> None:
+    """One line repeated: a small tar.gz inside every byte limit that holds more boxes than a frame may."""
+    import time
+
+    from server_helpers import tar_of
+
+    monkeypatch.setenv("KITTI_EVAL_MAX_BOXES_PER_FRAME", "500")
+    frames = {f"pred/{i:06d}.txt": (_LABEL + b" 0.9\n") * 2000 for i in range(8)}
+    started = time.monotonic()
+    r = upload(client, tar_of(frames), "pred.tar.gz", gt="demo")
+    err = assert_error(r, 413, "2000 boxes in one frame, more than the limit of 500", "KITTI_EVAL_MAX_BOXES_PER_FRAME")
+    assert err["code"] == "over_work_limit" and err["frame"] == "000000"
+    assert "pred.tar.gz:pred/000000.txt" in err["message"]
+    assert time.monotonic() - started < 10
+    assert client.get("/readyz").status_code == 200
+
+
+def test_a_frame_whose_overlaps_pass_the_budget_is_refused_before_they_are_computed(
+    client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A writer's own ground truth: both sides of a frame theirs, the overlaps growing with the square."""
+    from server_helpers import zip_of
+
+    monkeypatch.setenv("KITTI_EVAL_MAX_FRAME_PAIRS", "10000")
+    gt = zip_of({"label_2/000000.txt": (_LABEL + b"\n") * 300})
+    pred = zip_of({"pred/000000.txt": (_LABEL + b" 0.9\n") * 300})
+    r = upload(client, pred, "pred.zip", gt=None, gt_file=("label_2.zip", gt))
+    err = assert_error(r, 413, "300 detections x 300 ground-truth boxes = 90000 overlaps in one frame", "10000")
+    assert err["code"] == "over_work_limit" and err["frame"] == "000000"
+    monkeypatch.setenv("KITTI_EVAL_MAX_FRAME_PAIRS", "90000")
+    assert upload(client, pred, "pred.zip", gt=None, gt_file=("label_2.zip", gt)).status_code == 201
+
+
+@pytest.mark.parametrize(
+    ("env", "value"),
+    [("KITTI_EVAL_MAX_BOXES", "lots"), ("KITTI_EVAL_MAX_FRAME_PAIRS", "0"), ("KITTI_EVAL_MAX_FRAMES", "-1")],
+)
+def test_a_limit_that_is_not_a_number_refuses_the_start(tmp_path, monkeypatch, env: str, value: str) -> None:
+    """Said once, at the start, not as every job's failure."""
+    from server_helpers import app_client
+
+    from kitti_eval_server.errors import StartupRefused
+
+    monkeypatch.setenv(env, value)
+    with pytest.raises(StartupRefused) as refused, app_client(tmp_path / "data", warmup=False):
+        pass
+    assert f"{env}={value!r}: expected a number > 0 (a limit on input or work)" in refused.value.message

@@ -278,16 +278,23 @@ def pickle_bytes(obj: Any) -> bytes:
 
 
 def test_metrics_in_accounts_mode(service_client: Any) -> None:
-    """Accounts mode: /metrics needs a token like every other route (401 as JSON for a scraper without one),
-    unless the operator gave it a token of its own, which then is the only key to it."""
+    """Accounts mode: /metrics needs an admin's token (401 as JSON for a scraper without one, 403 for a
+    participant's: the metrics count every tenant's activity), unless the operator gave it a token of its own,
+    which then is the only key to it."""
     from server_accounts import add_token, bearer
 
     with service_client(auth="accounts") as client:
         r = client.get("/metrics")
         assert r.status_code == 401 and r.json()["error"]["code"] == "unauthorized"
-        client.post("/v1/admin/users", json={"name": "ops", "admin": False}, headers=ADMIN)
+        client.post("/v1/admin/users", json={"name": "ops", "admin": True}, headers=ADMIN)
         _, token = add_token(client, "ops", read_only=True)
         assert scrape(client, **bearer(token))
+        assert scrape(client, authorization=ADMIN["Authorization"])
+        client.post("/v1/admin/users", json={"name": "participant", "admin": False}, headers=ADMIN)
+        for read_only in (True, False):
+            _, token = add_token(client, "participant", read_only=read_only)
+            r = client.get("/metrics", headers=bearer(token))
+            assert r.status_code == 403 and "the metrics are for admins" in r.json()["error"]["message"]
     with service_client(auth="accounts", metrics_token="scrape-me") as client:
         assert scrape(client, authorization="Bearer scrape-me")
         assert client.get("/metrics").status_code == 401

@@ -30,7 +30,7 @@ from ..archives import (
     sniff_input,
     too_large_txt,
 )
-from ..limits import MAX_FRAMES_ENV, MAX_INPUT_ENV, resolve
+from ..limits import MAX_FRAMES_ENV, MAX_INPUT_ENV, BoxLimits, box_limits, resolve
 from ._common import Format, Frames, check_kind
 from .txt_grammar import (
     KITTI_TXT_FIELDS,
@@ -74,7 +74,12 @@ def txt_files(directory: Path) -> list[Path]:
 
 
 def load_kitti_txt_dir(
-    directory: PathLike, kind: Kind, *, max_frames: int | None = None, known_frames: Collection[str] | None = None
+    directory: PathLike,
+    kind: Kind,
+    *,
+    max_frames: int | None = None,
+    known_frames: Collection[str] | None = None,
+    bounds: BoxLimits | None = None,
 ) -> Annotations:
     """One KITTI txt file per frame; the frame id is the file stem (``000015.txt`` -> ``"000015"``).
 
@@ -102,8 +107,10 @@ def load_kitti_txt_dir(
     names: list[str] = []
     values = array("d")  # plain float() parsing, straight into one buffer
     spans: list[tuple[str, int, int]] = []  # (frame id, first row, row count)
+    bounds = bounds or box_limits()  # boxes per frame and in all, checked file by file, before the next is read
     for f in files:
         lines, width, frame_names, tokens = _split_frame(read_bytes(f), kind, f.stem, str(f))
+        bounds.check_frame(len(frame_names), len(names) + len(frame_names), source=str(f), frame=f.stem)
         try:
             values.extend(map(float, tokens))
         except ValueError:
@@ -290,16 +297,22 @@ def extract_txt_archive(path: PathLike, dest: PathLike, *, limits: ArchiveLimits
 
 
 def load_txt_archive(
-    p: Path, kind: Kind, source: str, max_bytes: int, max_frames: int, known_frames: Collection[str] | None
+    p: Path,
+    kind: Kind,
+    source: str,
+    max_bytes: int,
+    max_frames: int,
+    known_frames: Collection[str] | None,
+    bounds: BoxLimits | None = None,
 ) -> Annotations:
     """The KITTI txt folder in the zip or tar ``p``, unpacked to a temporary folder (at most ``max_bytes``)."""
     archive_limits = ArchiveLimits(max_unpacked_bytes=max_bytes, bytes_setting=MAX_INPUT_ENV)
     with tempfile.TemporaryDirectory(prefix="kitti-eval-") as tmp:
         folder = extract_txt_archive(p, tmp, limits=archive_limits)
         try:
-            annos = load_kitti_txt_dir(folder, kind, max_frames=max_frames, known_frames=known_frames)
+            annos = load_kitti_txt_dir(folder, kind, max_frames=max_frames, known_frames=known_frames, bounds=bounds)
         except InputError as e:
-            raise InputError(e.message, source=source, frame=e.frame, field=e.field) from None
+            raise type(e)(e.message, source=source, frame=e.frame, field=e.field) from None
     return dataclasses.replace(annos, source=source)
 
 

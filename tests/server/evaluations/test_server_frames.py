@@ -140,3 +140,56 @@ def test_a_database_from_before_options_were_stored_is_upgraded(tmp_path) -> Non
         assert_error(c.get(f"/v1/evaluations/{old}/frames"), 409, "without its options")
         new = upload(c, DEMO_PRED).json()["id"]
         assert c.get(f"/v1/evaluations/{new}/frames").status_code == 200
+
+
+def test_kept_predictions_past_the_limits_on_work_are_refused_not_read_whole(tmp_path, monkeypatch) -> None:
+    """Predictions kept under larger limits are looked at under the limits in force: the web process refuses
+    them at the first frame past a limit (413, the frame named), instead of reading them whole and answering a
+    frame of any size."""
+    import io
+    import tarfile
+    import time
+
+    line = b"Car 0.00 0 -1.58 587.01 173.33 614.12 200.12 1.65 1.67 3.64 -0.65 1.71 46.70 -1.59 0.95\n"
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+        for i in range(4):
+            data = line * (3000 if i == 1 else 10)
+            info = tarfile.TarInfo(f"pred/{i:06d}.txt")
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+    data_dir = tmp_path / "data"
+    monkeypatch.delenv("KITTI_EVAL_MAX_BOXES_PER_FRAME", raising=False)
+    with app_client(data_dir) as c:
+        r = upload(c, buf.getvalue(), "pred.tar.gz")
+        assert r.status_code == 201, r.text
+        evaluation = r.json()["id"]
+    monkeypatch.setenv("KITTI_EVAL_MAX_BOXES_PER_FRAME", "500")
+    with app_client(data_dir) as c:  # nothing cached: the kept file is read from the database
+        started = time.monotonic()
+        for response in (
+            c.get(f"/v1/evaluations/{evaluation}/frames", params={"worst": 5}),
+            c.get("/v1/frames/000000", params={"evaluation": evaluation}),
+        ):
+            err = assert_error(response, 413, "3000 boxes in one frame, more than the limit of 500")
+            assert err["code"] == "over_work_limit" and err["frame"] == "000001"
+        assert time.monotonic() - started < 10
+
+
+def test_kept_predictions_of_more_boxes_than_a_frame_view_reads_are_refused(tmp_path, monkeypatch) -> None:
+    """Frames are looked at from kept predictions read whole by the process that answers: past
+    KITTI_EVAL_FRAMES_MAX_BOXES they are refused 413 at the frame that passes it, though they were evaluated."""
+    monkeypatch.delenv("KITTI_EVAL_MAX_BOXES", raising=False)
+    data_dir = tmp_path / "data"
+    with app_client(data_dir) as c:
+        r = upload(c, DEMO_PRED, "result.pkl.gz")
+        assert r.status_code == 201, r.text
+        evaluation = r.json()["id"]
+    boxes = load_detections(PRED_PATH).counts
+    most = int(boxes[:3].sum())  # the fourth frame passes it
+    with app_client(data_dir, frames_max_boxes=most) as c:
+        err = assert_error(c.get(f"/v1/evaluations/{evaluation}/frames", params={"worst": 5}), 413)
+        assert err["code"] == "over_work_limit" and err["frame"] == "000003"
+        assert f"more than the limit of {most} in one input (KITTI_EVAL_FRAMES_MAX_BOXES)" in err["message"]
+    with app_client(data_dir, frames_max_boxes=int(boxes.sum())) as c:
+        assert c.get(f"/v1/evaluations/{evaluation}/frames", params={"worst": 5}).status_code == 200
