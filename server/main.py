@@ -19,7 +19,6 @@ from fastapi import FastAPI
 from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
-from pydantic import ValidationError
 from starlette.formparsers import MultiPartParser
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -40,10 +39,10 @@ from .middleware import (
     RefuseBeforeBody,
     part_memory_bytes,
 )
-from .observability import Metrics, RequestMiddleware, configure_logging
+from .observability import Metrics, RequestMiddleware, configure_logging, route_uvicorn_logs, wants_json
 from .routes import admin, benchmarks, evaluations, frames, gates, ground_truths, health, jobs, metrics, phases
 from .service import Service
-from .settings import Settings, default_data_dir
+from .settings import Settings, default_data_dir_text, settings_error
 from .shutdown import Drainer
 from .web import STATIC_DIR
 from .web import router as web_router
@@ -262,7 +261,8 @@ def serve(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=8000, help="port (default 8000)")
     parser.add_argument(
         "--data-dir",
-        help=f"KITTI_EVAL_DATA_DIR: database, ground truths, admin token, scratch space (default {default_data_dir()})",
+        help="KITTI_EVAL_DATA_DIR: database, ground truths, admin token, scratch space "
+        f"(default {default_data_dir_text()})",
     )
     parser.add_argument("--database-url", help="KITTI_EVAL_DATABASE_URL, e.g. postgresql://user:pw@host/db")
     parser.add_argument(
@@ -285,11 +285,12 @@ def serve(argv: Sequence[str] | None = None) -> int:
         overrides.update(worker_processes=available_cpus(), job_threads=0)
     try:
         settings = Settings(**overrides)
-    except ValidationError as e:
-        print(f"kitti-eval serve: error: invalid settings:\n{e}", file=sys.stderr)  # noqa: T201
+    except ValueError as e:  # pydantic's ValidationError, or no data folder (NoDataFolder)
+        print(f"kitti-eval serve: {settings_error(e)}", file=sys.stderr)  # noqa: T201
         return 2
     app = create_app(settings)
     log.setLevel(args.log_level.upper())
+    route_uvicorn_logs(wants_json(settings.log_format))  # uvicorn's own lines in the service's format
     # the service writes its own access log (one line a request, with its id): uvicorn's would repeat it. Which
     # proxy's X-Forwarded-For is believed is KITTI_EVAL_TRUSTED_PROXIES' alone: uvicorn's own proxy headers
     # (on by default, trusting 127.0.0.1 or FORWARDED_ALLOW_IPS) would rewrite the client's address before it
@@ -300,6 +301,7 @@ def serve(argv: Sequence[str] | None = None) -> int:
             port=args.port,
             log_level=args.log_level,
             access_log=False,
+            log_config=None,  # its loggers keep the service's handler (route_uvicorn_logs)
             proxy_headers=False,
             timeout_graceful_shutdown=10,
         )

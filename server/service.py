@@ -27,6 +27,7 @@ from .access.audit import Audit
 from .access.auth import FailureLimiter
 from .access.policy import AuthMode, Policy
 from .benchmarks import Benchmarks
+from .data_folder import check_writable
 from .errors import StartupRefused
 from .evaluations.evaluations import EvaluationFrames, Evaluations, sealed_document
 from .evaluations.uploads import FileIn
@@ -180,6 +181,7 @@ class Service:
     def start(self) -> None:
         """Create folders and tables, register the demo, start the warm-up and the workers (called from the
         lifespan)."""
+        check_writable(self.data_dir)  # one sentence naming the folder and the fix, not a PermissionError
         self.runner.open()
         self.scratch_space.open()  # and removes what processes killed meanwhile left
         log.info("data folder %s", self.data_dir)
@@ -228,6 +230,7 @@ class Service:
     def run_jobs(self) -> None:
         """Start as a worker process (``kitti-eval worker``): the scratch space, the tables, the kernels, then the
         workers; no HTTP, no admin token, no demo. :meth:`stop` ends it."""
+        check_writable(self.data_dir, "--work-dir")
         self.scratch_space.open()
         self.store.create_schema()
         warm_up(everything=False)

@@ -175,21 +175,20 @@ def _say(msg: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        from pydantic import ValidationError
         from sqlalchemy.exc import SQLAlchemyError
 
         from ..access.policy import Policy
         from ..errors import ApiError
         from ..service import Service
-        from ..settings import Settings
+        from ..settings import Settings, settings_error
     except ImportError as e:
         return without_server_extra("admin", e)
 
     overrides = {k: v for k, v in (("data_dir", args.data_dir), ("database_url", args.database_url)) if v}
     try:
         settings = Settings(**overrides)
-    except ValidationError as e:
-        _say(f"error: invalid settings:\n{e}")
+    except ValueError as e:  # pydantic's ValidationError, or no data folder (NoDataFolder)
+        _say(settings_error(e))
         return EXIT_USAGE
     # whoever may open the service's database acts as an admin
     caller = Policy.command_line(_login())
