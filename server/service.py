@@ -42,7 +42,7 @@ from .jobs.scratch import ScratchSpace
 from .jobs.workers import Workers, await_outcome
 from .observability import AdmissionState
 from .settings import Settings
-from .store import IdempotencyRecord, JobInput, Store
+from .store import IdempotencyRecord, JobInput, Store, UnusableDatabase
 
 __all__ = ["Service", "FileIn", "DEMO_NAME", "sealed_document", "release_memory"]
 
@@ -185,19 +185,7 @@ class Service:
         self.runner.open()
         self.scratch_space.open()  # and removes what processes killed meanwhile left
         log.info("data folder %s", self.data_dir)
-        try:
-            self.store.create_schema()
-        except sqlalchemy.exc.OperationalError as e:  # not reached, or refused: said in one line, not a traceback
-            url = self.settings.resolved_database_url
-            where = self.settings.database_name
-            reason = (str(e.orig or e).strip() or type(e).__name__).splitlines()[0]
-            hint = ""
-            if url.partition("://")[2].count("@") > 1:
-                hint = (
-                    " (a password holding @, /, # or : must be percent-encoded in KITTI_EVAL_DATABASE_URL, or left "
-                    "out of it and given as PGPASSWORD)"
-                )
-            raise StartupRefused(f"cannot use the database {where}: {reason}{hint}") from None
+        self._open_database()
         self._check_open_mode()
         self.admin_token = admin_token(self.settings, self.data_dir)
         if self.settings.register_demo:
@@ -227,12 +215,31 @@ class Service:
             "s" * (self.settings.job_threads != 1),
         )
 
+    def _open_database(self) -> None:
+        """The tables, created or brought up to date; a database the service cannot use (not reached, refused, not
+        UTF8) is :class:`StartupRefused` with one sentence, not a traceback."""
+        try:
+            self.store.create_schema()
+        except UnusableDatabase as e:
+            raise StartupRefused(e.message) from None
+        except sqlalchemy.exc.OperationalError as e:  # not reached, or refused: said in one line, not a traceback
+            url = self.settings.resolved_database_url
+            where = self.settings.database_name
+            reason = (str(e.orig or e).strip() or type(e).__name__).splitlines()[0]
+            hint = ""
+            if url.partition("://")[2].count("@") > 1:
+                hint = (
+                    " (a password holding @, /, # or : must be percent-encoded in KITTI_EVAL_DATABASE_URL, or left "
+                    "out of it and given as PGPASSWORD)"
+                )
+            raise StartupRefused(f"cannot use the database {where}: {reason}{hint}") from None
+
     def run_jobs(self) -> None:
         """Start as a worker process (``kitti-eval worker``): the scratch space, the tables, the kernels, then the
         workers; no HTTP, no admin token, no demo. :meth:`stop` ends it."""
         check_writable(self.data_dir, "--work-dir")
         self.scratch_space.open()
-        self.store.create_schema()
+        self._open_database()
         warm_up(everything=False)
         self.warm.set()
         self.workers.start()

@@ -26,6 +26,7 @@ from .benchmark_store import (
 from .database import (
     Area,
     Database,
+    UnusableDatabase,
     audit,
     benchmarks,
     evaluation_labels,
@@ -56,6 +57,7 @@ from .worker_store import WorkerRecord, WorkerStore
 __all__ = [
     "Store",
     "Database",
+    "UnusableDatabase",
     "Area",
     "GroundTruthStore",
     "EvaluationStore",

@@ -451,6 +451,47 @@ def retry_when_locked(method: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+class UnusableDatabase(Exception):
+    """The database cannot hold the service's data as it is (a PostgreSQL database not encoded in UTF8); the
+    message says why and what to do, in one sentence."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+        self.message = message
+
+
+def check_encoding(engine: Engine) -> None:
+    """A PostgreSQL database must be encoded in UTF8: with SQL_ASCII (``initdb`` under the C locale, or
+    ``CREATE DATABASE ... ENCODING 'SQL_ASCII'``) psycopg hands back bytes instead of text, SQLAlchemy's first
+    connection fails on them (``TypeError: cannot use a string pattern on a bytes-like object``), and any other
+    encoding cannot hold every name and label a caller may send. Asked over a plain driver connection, before
+    SQLAlchemy's own first one; raises :class:`UnusableDatabase` naming the encoding and the fix."""
+    if engine.dialect.name != "postgresql":
+        return
+    dialect = engine.dialect
+    cargs, cparams = dialect.create_connect_args(engine.url)
+    try:
+        conn = dialect.connect(*cargs, **cparams)
+    except dialect.loaded_dbapi.Error as e:  # not reached, or refused: as SQLAlchemy's connection would say it
+        raise OperationalError(None, None, e) from e
+    try:
+        cursor = conn.cursor()
+        cursor.execute(
+            "SELECT pg_encoding_to_char(encoding), current_database() FROM pg_database "
+            "WHERE datname = current_database()"
+        )
+        row = cursor.fetchone() or ("", "")
+        encoding, name = (v.decode("ascii", "replace") if isinstance(v, bytes) else str(v) for v in row)
+    finally:
+        conn.close()
+    if encoding.upper() != "UTF8":
+        raise UnusableDatabase(
+            f"the PostgreSQL database {name} is encoded in {encoding}, not UTF8, which the service needs for "
+            f"every name and label it keeps: create it again with CREATE DATABASE {name} ENCODING 'UTF8' "
+            "TEMPLATE template0 (or createdb -E UTF8 -T template0)"
+        )
+
+
 class Database:
     """The engine on SQLite or PostgreSQL, the schema, and what the areas of the store share."""
 
@@ -481,6 +522,7 @@ class Database:
         empty database (replicas rolled out at once) would otherwise all issue the same CREATE TABLE, and
         all but one fail at start-up (a unique violation in PostgreSQL's catalog). The others wait for the
         lock, then find the tables there."""
+        check_encoding(self.engine)
         with self.engine.begin() as conn:
             if self.dialect == "postgresql":
                 conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _SCHEMA_LOCK})

@@ -176,3 +176,20 @@ def test_uploaded_files_are_stored_without_pglz(postgres, tmp_path) -> None:
         frame = c.get(f"/v1/evaluations/{first.json()['id']}/frames")  # the file kept before the change
         assert frame.status_code == 200, frame.text
     engine.dispose()
+
+
+def test_a_database_not_encoded_in_utf8_is_refused_in_one_sentence(postgres, tmp_path) -> None:
+    """SQL_ASCII (``initdb`` under the C locale): psycopg hands back bytes, and SQLAlchemy's first connection
+    failed with ``TypeError: cannot use a string pattern on a bytes-like object``, a crash loop."""
+    import psycopg
+
+    from kitti_eval_server.errors import StartupRefused
+
+    with psycopg.connect(host="127.0.0.1", port=postgres.port, user="postgres", autocommit=True) as conn:
+        conn.execute("CREATE DATABASE ascii_db ENCODING 'SQL_ASCII' TEMPLATE template0")
+    url = postgres.url.rpartition("/")[0] + "/ascii_db"
+    with pytest.raises(StartupRefused) as refused, app_client(tmp_path / "data", database_url=url, warmup=False):
+        pass
+    message = refused.value.message
+    assert message.startswith("the PostgreSQL database ascii_db is encoded in SQL_ASCII, not UTF8"), message
+    assert "ENCODING 'UTF8'" in message and "\n" not in message
