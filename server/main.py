@@ -271,13 +271,25 @@ def serve(argv: Sequence[str] | None = None) -> int:
         help="KITTI_EVAL_AUTH: open (default: no accounts, everyone sees everything) or accounts (every request "
         "needs a token; users, projects and tokens come from kitti-eval admin)",
     )
+    parser.add_argument(
+        "--upgrade",
+        action="store_true",
+        help="KITTI_EVAL_DB_UPGRADE: upgrade an older database's schema at start (under a lock) instead of refusing",
+    )
     parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     try:
         args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
     except SystemExit as e:
         return int(e.code) if isinstance(e.code, int) else 2
     overrides: dict[str, Any] = {
-        k: v for k, v in (("data_dir", args.data_dir), ("database_url", args.database_url), ("auth", args.auth)) if v
+        k: v
+        for k, v in (
+            ("data_dir", args.data_dir),
+            ("database_url", args.database_url),
+            ("auth", args.auth),
+            ("db_upgrade", args.upgrade),
+        )
+        if v
     }
     if "KITTI_EVAL_WORKER_PROCESSES" not in os.environ and "KITTI_EVAL_JOB_THREADS" not in os.environ:
         # one command uses the machine: a worker process a CPU (evaluations in parallel processes, not threads

@@ -185,7 +185,7 @@ class Service:
         self.runner.open()
         self.scratch_space.open()  # and removes what processes killed meanwhile left
         log.info("data folder %s", self.data_dir)
-        self._open_database()
+        self._open_database(upgrade=self.settings.db_upgrade)
         self._check_open_mode()
         self.admin_token = admin_token(self.settings, self.data_dir)
         if self.settings.register_demo:
@@ -215,11 +215,12 @@ class Service:
             "s" * (self.settings.job_threads != 1),
         )
 
-    def _open_database(self) -> None:
-        """The tables, created or brought up to date; a database the service cannot use (not reached, refused, not
-        UTF8) is :class:`StartupRefused` with one sentence, not a traceback."""
+    def _open_database(self, upgrade: bool = False) -> None:
+        """The tables: created in an empty database, upgraded in an older one when ``upgrade``; a database the
+        service cannot use (not reached, refused, not UTF8, older and not to be upgraded, newer) is
+        :class:`StartupRefused` with one sentence, not a traceback."""
         try:
-            self.store.create_schema()
+            self.store.create_schema(upgrade=upgrade, where=self.settings.database_name)
         except UnusableDatabase as e:
             raise StartupRefused(e.message) from None
         except sqlalchemy.exc.OperationalError as e:  # not reached, or refused: said in one line, not a traceback

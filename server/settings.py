@@ -70,6 +70,11 @@ class Settings(BaseSettings):
     """SQLAlchemy URL. Unset: ``sqlite:///<data_dir>/kitti-eval.db`` (WAL). ``postgresql://user:pw@host/db``
     uses PostgreSQL through psycopg 3."""
 
+    db_upgrade: bool = False
+    """Upgrade an older database's schema at start (in one transaction, under a lock, by the first process to
+    start), instead of refusing to start with one sentence naming ``kitti-eval admin db upgrade``. A database
+    that a newer release upgraded is refused either way. ``kitti-eval serve --upgrade`` sets it."""
+
     database_busy_s: Annotated[float, Field(gt=0)] = 10.0
     """SQLite: how long a request keeps trying while another process holds the database's write lock (a CLI
     command, another worker, a backup), in attempts of at most 1 s with short pauses between; past that it

@@ -154,6 +154,14 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     dq.add_argument("name")
     dq.add_argument("submission")
 
+    db = what.add_parser("db", help="the database's schema: its revision, its upgrade").add_subparsers(
+        dest="admin_action", metavar="ACTION", required=True
+    )
+    db.add_parser("current", help="the revision the database's schema is at, and this release's newest")
+    db.add_parser(
+        "upgrade",
+        help="upgrade the schema to this release's (in one transaction, under a lock; back the service up first)",
+    )
     jobs = what.add_parser("jobs", help="the queue of evaluations: list, cancel, run again").add_subparsers(
         dest="admin_action", metavar="ACTION", required=True
     )
@@ -181,6 +189,7 @@ def run(args: argparse.Namespace) -> int:
         from ..errors import ApiError
         from ..service import Service
         from ..settings import Settings, settings_error
+        from ..store import UnusableDatabase
     except ImportError as e:
         return without_server_extra("admin", e)
 
@@ -203,6 +212,8 @@ def run(args: argparse.Namespace) -> int:
             return EXIT_INPUT
         if settings.database_url is None:  # SQLite in the data folder, which --create makes
             settings.data_dir.mkdir(parents=True, exist_ok=True)
+        if args.admin_what == "db":
+            return _db(args.admin_action, settings)
         with _offline_service(Service(settings)) as service:
             if args.admin_what == "ground-truth":
                 return _ground_truth(args, service, caller)
@@ -214,6 +225,9 @@ def run(args: argparse.Namespace) -> int:
     except (ApiError, KittiEvalError) as e:
         _say(f"error: {e.message if isinstance(e, ApiError) else e}")  # the library's names the file
         return EXIT_INPUT
+    except UnusableDatabase as e:  # older or newer than this release, not UTF8: the sentence says what to do
+        _say(f"error: {e.message}")
+        return EXIT_INPUT
     except SQLAlchemyError as e:
         where = settings.resolved_database_url.split("@")[-1]  # not the password
         _say(f"error: the database at {where} is not usable: {getattr(e, 'orig', None) or e}")
@@ -221,6 +235,33 @@ def run(args: argparse.Namespace) -> int:
     except OSError as e:
         _say(f"error: {e.strerror or e}: {e.filename or ''}".rstrip(": "))
         return EXIT_INPUT
+
+
+def _db(action: str, settings: Settings) -> int:
+    """``kitti-eval admin db current|upgrade``: the schema's revision, or its upgrade to this release's."""
+    from ..store import Store
+    from ..store.schema import head
+
+    where = settings.database_name
+    store = Store(settings.resolved_database_url, busy_s=settings.database_busy_s)
+    try:
+        if action == "current":
+            state = store.schema_state()
+            print(state.revision or "none")  # noqa: T201 - the answer, on stdout
+            _say(f"the database {where} is {state.describe()}; this release's newest revision is {head()}")
+            return EXIT_OK
+        before = store.schema_state()
+        store.create_schema(upgrade=True, where=where)
+        if before.empty:
+            _say(f"made the schema of revision {head()} in the empty database {where}")
+        elif before.current:
+            _say(f"the database {where} is already at revision {head()}, this release's newest: nothing to do")
+        else:
+            _say(f"upgraded the database {where} from {before.revision or 'no revision'} to revision {head()}")
+        print(head())  # noqa: T201
+        return EXIT_OK
+    finally:
+        store.dispose()
 
 
 def _database_exists(settings: Settings) -> bool:
@@ -298,7 +339,7 @@ def _offline_service(service: Service) -> Iterator[Service]:
     HTTP side, its workers or its demo: scratch space and tables ready, closed after."""
     try:
         service.scratch_space.open()
-        service.store.create_schema()
+        service.store.create_schema(upgrade=False, where=service.settings.database_name)
         yield service
     finally:
         service.stop()
