@@ -154,6 +154,16 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     dq.add_argument("name")
     dq.add_argument("submission")
 
+    what.add_parser(
+        "backup",
+        help="a consistent copy of the service, running or not, into DIR (new or empty): SQLite's online backup "
+        "or pg_dump, and the data folder's admin token",
+    ).add_argument("dir", type=Path, metavar="DIR")
+    what.add_parser(
+        "restore",
+        help="the service from the backup in DIR, into a data folder without a database (and an empty PostgreSQL "
+        "database)",
+    ).add_argument("dir", type=Path, metavar="DIR")
     db = what.add_parser("db", help="the database's schema: its revision, its upgrade").add_subparsers(
         dest="admin_action", metavar="ACTION", required=True
     )
@@ -204,6 +214,8 @@ def run(args: argparse.Namespace) -> int:
     where = settings.database_name
     _say(f"database {where}")  # every run names the database it reads and writes
     try:
+        if args.admin_what == "restore":
+            return _restore(args.dir, settings)
         if not args.create and not _database_exists(settings):
             _say(
                 f"error: no kitti-eval database at {where}: give the service's settings (KITTI_EVAL_DATA_DIR or "
@@ -214,6 +226,8 @@ def run(args: argparse.Namespace) -> int:
             settings.data_dir.mkdir(parents=True, exist_ok=True)
         if args.admin_what == "db":
             return _db(args.admin_action, settings)
+        if args.admin_what == "backup":
+            return _backup(args.dir, settings)
         with _offline_service(Service(settings)) as service:
             if args.admin_what == "ground-truth":
                 return _ground_truth(args, service, caller)
@@ -235,6 +249,40 @@ def run(args: argparse.Namespace) -> int:
     except OSError as e:
         _say(f"error: {e.strerror or e}: {e.filename or ''}".rstrip(": "))
         return EXIT_INPUT
+
+
+def _backup(folder: Path, settings: Settings) -> int:
+    from ..backup import BackupError, backup
+
+    try:
+        made = backup(settings, folder)
+    except BackupError as e:
+        _say(f"error: {e}")
+        return EXIT_INPUT
+    size = sum(int(str(f["bytes"])) for f in made.files.values())
+    _say(
+        f"backed up the {made.backend} database {settings.database_name} (revision {made.revision or 'none'}) and "
+        f"{len(made.files) - 1} file(s) of the data folder into {folder}: {size / 1e6:.1f} MB in {made.seconds:.1f} s"
+    )
+    return EXIT_OK
+
+
+def _restore(folder: Path, settings: Settings) -> int:
+    from ..backup import BackupError, restore
+    from ..store.schema import head
+
+    try:
+        made = restore(settings, folder)
+    except BackupError as e:
+        _say(f"error: {e}")
+        return EXIT_INPUT
+    _say(f"restored the {made.backend} database {settings.database_name} from {folder} in {made.seconds:.1f} s")
+    if made.revision != head():
+        _say(
+            f"its schema is at revision {made.revision or 'none'}, older than this release's {head()}: run kitti-eval "
+            "admin db upgrade before starting the service"
+        )
+    return EXIT_OK
 
 
 def _db(action: str, settings: Settings) -> int:
