@@ -95,6 +95,17 @@ def test_an_unwritable_data_folder_is_one_sentence_naming_it_the_uid_and_the_fix
     service.stop()
 
 
+def test_a_subfolder_the_service_cannot_write_is_named_too(tmp_path: Path) -> None:
+    """A volume an earlier uid used may hold ``tmp/`` with that uid's permissions: named before anything fails on
+    it (here a file where the folder should be, which fails whoever runs the test)."""
+    folder = tmp_path / "data"
+    folder.mkdir()
+    (folder / "run").write_text("")
+    with pytest.raises(StartupRefused) as e:
+        check_writable(folder)
+    assert e.value.message.startswith(f"{folder / 'run'} in the data folder cannot be written by uid {os.getuid()}")
+
+
 def test_serve_on_an_unwritable_data_folder_exits_2(
     tmp_path: Path, capfd: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
 ) -> None:
