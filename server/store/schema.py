@@ -88,7 +88,7 @@ class SchemaState:
         if self.empty:
             return "empty (no kitti-eval tables)"
         if self.revision is None:
-            return "made by a release before the schema had versions (no revision recorded)"
+            return "unversioned (made by a release before the schema had versions: no revision recorded)"
         if self.newer:
             return f"at revision {self.revision}, which this release does not know (a newer release upgraded it)"
         return f"at revision {self.revision}" + (" (the newest)" if self.current else "")

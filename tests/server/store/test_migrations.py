@@ -93,7 +93,7 @@ def test_the_previous_release_s_sqlite_database_upgrades_and_keeps_every_record(
     expected = _expected("sqlite")
     _refused_until_upgraded(data_dir, expected, ["--data-dir", str(data_dir)])
     err = capsys.readouterr().err
-    assert "is made by a release before the schema had versions" in err
+    assert "is unversioned (made by a release before the schema had versions" in err
     assert f"upgraded the database {data_dir / 'kitti-eval.db'} from no revision to revision {head()}" in err
     assert "already at revision" in err
     assert _schema_differences(f"sqlite:///{data_dir / 'kitti-eval.db'}") == []
