@@ -51,9 +51,11 @@ def _cache_places() -> list[tuple[Path, str]]:
     if custom:
         places = [(Path(custom), "**/{}")]
     else:
-        user = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "numba"
         # the package and its sub-packages keep their own __pycache__
-        places = [(_PACKAGE, "**/__pycache__/{}"), (user, "**/{}")]
+        places = [(_PACKAGE, "**/__pycache__/{}")]
+        user = _user_cache()
+        if user is not None:
+            places.append((user, "**/{}"))
     from .core.kernel_cache import shipped_kernels
 
     shipped = shipped_kernels()
@@ -63,6 +65,16 @@ def _cache_places() -> list[tuple[Path, str]]:
         if shipped.usable_on(cpu_target.target_context.codegen().magic_tuple()):
             places.append((shipped.root, "**/{}"))
     return places
+
+
+def _user_cache() -> Path | None:
+    """numba's user-wide cache (``$XDG_CACHE_HOME/numba``, else ``~/.cache/numba``), or None where there is no
+    home to find it in (``env -i``, a uid without an entry in /etc/passwd): nothing is kept there then."""
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    if xdg and os.path.isabs(xdg):
+        return Path(xdg) / "numba"
+    home = os.path.expanduser("~")
+    return Path(home) / ".cache" / "numba" if os.path.isabs(home) else None
 
 
 def _cached(markers: tuple[str, ...]) -> bool:

@@ -6,6 +6,8 @@
     python scripts/container_smoke.py --build-network host --network host   # Docker without a bridge
     python scripts/container_smoke.py --database-url postgresql://user:pw@host:5432/empty_db
     python scripts/container_smoke.py --user 12345:0 --read-only     # as a cluster runs it (see below)
+    python scripts/container_smoke.py --user 12345:12345 --read-only --no-home   # any uid, no HOME
+    python scripts/container_smoke.py --compose           # compose.yaml: up -d --wait exits 0, down is quick
 
 It starts a container on a fresh volume, waits for ``/readyz``, uploads the bundled demo predictions
 against the ``demo`` ground truth and checks the numbers against ``kitti-eval demo --format json`` (run in
@@ -20,8 +22,18 @@ a tmpfs on ``/tmp`` (``readOnlyRootFilesystem``), with every capability dropped 
 security settings of the Kubernetes example (docs/service/container.md). Either way the service must start,
 compile nothing (no warning about numba's cache in its log) and pass every check.
 
-The log is checked too: the service's worker processes started, one JSON line a request (no uvicorn access
-line), and no kernel compiled for want of a cache.
+``--user UID:GID`` with a group other than root's first starts the image on a fresh volume the uid may not
+write, which must exit 2 with one line naming the folder and the uid (no traceback), then gives the volume to the
+uid as Kubernetes' ``fsGroup`` would (a one-off ``chown`` as root) and runs every check. ``--no-home`` starts
+the service (and ``kitti-eval demo``) with no HOME in its environment (``env -u HOME``), as ``env -i`` and some
+init systems do.
+
+The log is checked too: the service's worker processes started, every line JSON (uvicorn's own too), one line a
+request and none for the probes (``/healthz``, ``/readyz``, ``/metrics``), and no kernel compiled for want of a
+cache.
+
+``--compose`` checks compose.yaml instead: ``docker compose up -d --wait`` (the image built, PostgreSQL, the
+service and a worker) exits 0 once every service is healthy, and ``docker compose down`` ends within 20 s.
 
 On ``--network host`` there is no port mapping, so the image's command (port 8000) is replaced by
 ``kitti-eval serve`` on the chosen port and its HEALTHCHECK (which probes port 8000) is not run.
@@ -140,11 +152,13 @@ def check_log(log: str) -> None:
     (uvicorn's access lines are off), no kernel compiled for want of a writable cache."""
     lines = [line for line in log.splitlines() if line.strip()]
     records = []
+    plain = []
     for line in lines:
         try:
             records.append(json.loads(line))
         except ValueError:
-            pass
+            plain.append(line)
+    check(not plain, f"every log line is JSON ({len(records)} lines), uvicorn's own too", "; ".join(plain[:2]))
     started = [r for r in records if "worker processes of" in str(r.get("message", ""))]
     check(bool(started), "the service started its worker processes", "no 'started N worker processes' line")
     say(f"      {started[0]['message']}")
@@ -155,6 +169,8 @@ def check_log(log: str) -> None:
         f"one JSON log line a request ({len(requests)} lines of the service's access log, none of uvicorn's)",
         "; ".join(uvicorn_access[:2]),
     )
+    probes = [r for r in requests if r.get("route") in ("/healthz", "/readyz", "/metrics")]
+    check(not probes, "the probes are not logged per request", json.dumps(probes[:1]))
     compiled = [line for line in lines if "NUMBA_CACHE_DIR" in line or "cannot cache function" in line]
     check(not compiled, "nothing compiled at start (the kernels came with the package)", "; ".join(compiled[:1]))
 
@@ -200,13 +216,23 @@ def smoke(args: argparse.Namespace) -> dict[str, str]:
         run += READ_ONLY
     if args.database_url:
         run += ["-e", f"KITTI_EVAL_DATABASE_URL={args.database_url}"]
+    no_home = ["env", "-u", "HOME"] if args.no_home else []
     if args.network == "host":
         # no port mapping on the host's network: the service itself listens on 127.0.0.1 and the chosen port
         run += ["--network", "host", "--no-healthcheck", args.image]
-        run += ["kitti-eval", "serve", "--host", "127.0.0.1", "--port", str(port)]
+        run += [*no_home, "kitti-eval", "serve", "--host", "127.0.0.1", "--port", str(port)]
     else:
         run += ["-p", f"127.0.0.1:{port}:8000"] + (["--network", args.network] if args.network else []) + [args.image]
+        if no_home:
+            run += [*no_home, "kitti-eval", "serve", "--host", "0.0.0.0", "--port", "8000"]
     docker("volume", "create", volume)
+    if args.user and args.user.partition(":")[2] not in ("", "0"):
+        refused_on_a_volume_it_may_not_write(args, volume)
+        # as Kubernetes' fsGroup does: the volume given to the uid's group before the service starts on it
+        owner = args.user if ":" in args.user else f"{args.user}:0"
+        docker(
+            "run", "--rm", "--user", "0:0", "-v", f"{volume}:/data", "--entrypoint", "chown", args.image, owner, "/data"
+        )
     try:
         start = time.monotonic()
         docker(*run)
@@ -226,7 +252,7 @@ def smoke(args: argparse.Namespace) -> dict[str, str]:
         uploaded = json.loads(raw)
         evaluation_id = str(uploaded["id"])
 
-        inside = docker("exec", name, "kitti-eval", "demo", "--format", "json", "--quiet")
+        inside = docker("exec", name, *no_home, "kitti-eval", "demo", "--format", "json", "--quiet")
         in_container = json.loads(inside.stdout)
         same_numbers(
             uploaded, in_container, "the upload's numbers equal kitti-eval demo --format json's in the container"
@@ -284,7 +310,7 @@ def smoke(args: argparse.Namespace) -> dict[str, str]:
             )
         else:
             say("skip  the image's HEALTHCHECK: it probes port 8000, which --network host does not map")
-        table = docker("exec", name, "kitti-eval", "demo", check_rc=False)
+        table = docker("exec", name, *no_home, "kitti-eval", "demo", check_rc=False)
         check(
             table.returncode == 0 and "Car AP_R40@0.70, 0.70, 0.70:" in table.stdout,
             "kitti-eval demo runs in the container and prints the table",
@@ -300,6 +326,58 @@ def smoke(args: argparse.Namespace) -> dict[str, str]:
             docker("volume", "rm", "-f", volume, check_rc=False)
         else:
             say(f"kept  container {name} and volume {volume} ({base})")
+    return figures
+
+
+def refused_on_a_volume_it_may_not_write(args: argparse.Namespace, volume: str) -> None:
+    """The image as ``args.user`` on ``volume`` as created (the image's /data: uid 10001, the root group): the
+    service must exit 2 with one line naming the folder, the uid and the fix, not a PermissionError."""
+    uid, _, gid = args.user.partition(":")
+    run = ["run", "--rm", "--user", args.user, "-v", f"{volume}:/data", *(READ_ONLY if args.read_only else [])]
+    done = docker(*run, "-e", "KITTI_EVAL_WARMUP=false", args.image, check_rc=False, timeout=300)
+    out = done.stdout + done.stderr
+    lines = [line for line in out.splitlines() if "cannot be written by uid" in line]
+    check(
+        done.returncode == 2 and len(lines) == 1 and "Traceback" not in out,
+        f"on a volume uid {uid} may not write the service exits 2 with one line naming it (gid {gid or 0})",
+        f"exit {done.returncode}: {out[-1500:]}",
+    )
+    say(f"      {json.loads(lines[0])['message'] if lines[0].startswith('{') else lines[0]}")
+
+
+def compose_smoke(args: argparse.Namespace) -> dict[str, str]:
+    """compose.yaml as an operator scripts it: ``up -d --wait`` exits 0 with every service healthy (the worker's
+    healthcheck too), and ``down`` is quick with nothing running."""
+    figures: dict[str, str] = {}
+    project = f"kitti-eval-smoke-{uuid.uuid4().hex[:8]}"
+    env = {**os.environ, "POSTGRES_PASSWORD": uuid.uuid4().hex, "KITTI_EVAL_PORT": str(args.port or free_port())}
+    compose = ["docker", "compose", "--project-directory", str(ROOT), "-p", project]
+
+    def run(*more: str, timeout: float) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([*compose, *more], env=env, capture_output=True, text=True, timeout=timeout)
+
+    try:
+        start = time.monotonic()
+        up = run("up", "-d", "--wait", "--wait-timeout", str(int(args.ready_timeout) + 120), timeout=3600)
+        figures["compose up --wait"] = f"{time.monotonic() - start:.1f} s"
+        check(
+            up.returncode == 0,
+            f"docker compose up -d --wait exits 0 with every service healthy ({figures['compose up --wait']})",
+            f"exit {up.returncode}: {up.stderr[-1500:]}",
+        )
+        states = run("ps", "--format", "json", timeout=60).stdout
+        services = [json.loads(line) for line in states.splitlines() if line.strip().startswith("{")]
+        unhealthy = [f"{s.get('Service')}: {s.get('Health')}" for s in services if s.get("Health") != "healthy"]
+        check(bool(services) and not unhealthy, "every service reports healthy", "; ".join(unhealthy))
+    finally:
+        start = time.monotonic()
+        down = run("down", "-v", timeout=300)
+        figures["compose down"] = f"{time.monotonic() - start:.1f} s"
+    check(
+        down.returncode == 0 and time.monotonic() - start < 20,
+        f"docker compose down ends within 20 s ({figures['compose down']})",
+        down.stderr[-800:],
+    )
     return figures
 
 
@@ -326,6 +404,12 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="a read-only root filesystem with a tmpfs on /tmp, no capabilities, no privilege escalation",
     )
+    parser.add_argument(
+        "--no-home", action="store_true", help="start the service and kitti-eval demo with no HOME (env -u HOME)"
+    )
+    parser.add_argument(
+        "--compose", action="store_true", help="check compose.yaml instead: up -d --wait exits 0, down is quick"
+    )
     parser.add_argument("--ready-timeout", type=float, default=180, help="seconds to wait for /readyz")
     parser.add_argument("--keep", action="store_true", help="leave the container and its volume")
     args = parser.parse_args(argv)
@@ -333,7 +417,7 @@ def main(argv: list[str] | None = None) -> int:
         say("FAIL  no docker command")
         return 2
     try:
-        figures = smoke(args)
+        figures = compose_smoke(args) if args.compose else smoke(args)
     except (SmokeFailure, subprocess.TimeoutExpired, OSError, ValueError, KeyError) as err:
         say(f"FAIL  {err}")
         return 1

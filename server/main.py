@@ -19,7 +19,6 @@ from fastapi import FastAPI
 from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
-from pydantic import ValidationError
 from starlette.formparsers import MultiPartParser
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -40,10 +39,10 @@ from .middleware import (
     RefuseBeforeBody,
     part_memory_bytes,
 )
-from .observability import Metrics, RequestMiddleware, configure_logging
+from .observability import Metrics, RequestMiddleware, configure_logging, route_uvicorn_logs, wants_json
 from .routes import admin, benchmarks, evaluations, frames, gates, ground_truths, health, jobs, metrics, phases
 from .service import Service
-from .settings import Settings, default_data_dir
+from .settings import Settings, default_data_dir_text, settings_error
 from .shutdown import Drainer
 from .web import STATIC_DIR
 from .web import router as web_router
@@ -262,7 +261,8 @@ def serve(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=8000, help="port (default 8000)")
     parser.add_argument(
         "--data-dir",
-        help=f"KITTI_EVAL_DATA_DIR: database, ground truths, admin token, scratch space (default {default_data_dir()})",
+        help="KITTI_EVAL_DATA_DIR: database, ground truths, admin token, scratch space "
+        f"(default {default_data_dir_text()})",
     )
     parser.add_argument("--database-url", help="KITTI_EVAL_DATABASE_URL, e.g. postgresql://user:pw@host/db")
     parser.add_argument(
@@ -271,13 +271,25 @@ def serve(argv: Sequence[str] | None = None) -> int:
         help="KITTI_EVAL_AUTH: open (default: no accounts, everyone sees everything) or accounts (every request "
         "needs a token; users, projects and tokens come from kitti-eval admin)",
     )
+    parser.add_argument(
+        "--upgrade",
+        action="store_true",
+        help="KITTI_EVAL_DB_UPGRADE: upgrade an older database's schema at start (under a lock) instead of refusing",
+    )
     parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     try:
         args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
     except SystemExit as e:
         return int(e.code) if isinstance(e.code, int) else 2
     overrides: dict[str, Any] = {
-        k: v for k, v in (("data_dir", args.data_dir), ("database_url", args.database_url), ("auth", args.auth)) if v
+        k: v
+        for k, v in (
+            ("data_dir", args.data_dir),
+            ("database_url", args.database_url),
+            ("auth", args.auth),
+            ("db_upgrade", args.upgrade),
+        )
+        if v
     }
     if "KITTI_EVAL_WORKER_PROCESSES" not in os.environ and "KITTI_EVAL_JOB_THREADS" not in os.environ:
         # one command uses the machine: a worker process a CPU (evaluations in parallel processes, not threads
@@ -285,11 +297,12 @@ def serve(argv: Sequence[str] | None = None) -> int:
         overrides.update(worker_processes=available_cpus(), job_threads=0)
     try:
         settings = Settings(**overrides)
-    except ValidationError as e:
-        print(f"kitti-eval serve: error: invalid settings:\n{e}", file=sys.stderr)  # noqa: T201
+    except ValueError as e:  # pydantic's ValidationError, or no data folder (NoDataFolder)
+        print(f"kitti-eval serve: {settings_error(e)}", file=sys.stderr)  # noqa: T201
         return 2
     app = create_app(settings)
     log.setLevel(args.log_level.upper())
+    route_uvicorn_logs(wants_json(settings.log_format))  # uvicorn's own lines in the service's format
     # the service writes its own access log (one line a request, with its id): uvicorn's would repeat it. Which
     # proxy's X-Forwarded-For is believed is KITTI_EVAL_TRUSTED_PROXIES' alone: uvicorn's own proxy headers
     # (on by default, trusting 127.0.0.1 or FORWARDED_ALLOW_IPS) would rewrite the client's address before it
@@ -300,6 +313,7 @@ def serve(argv: Sequence[str] | None = None) -> int:
             port=args.port,
             log_level=args.log_level,
             access_log=False,
+            log_config=None,  # its loggers keep the service's handler (route_uvicorn_logs)
             proxy_headers=False,
             timeout_graceful_shutdown=10,
         )

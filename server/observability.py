@@ -45,6 +45,7 @@ __all__ = [
     "RequestMiddleware",
     "REQUEST_ID_HEADER",
     "configure_logging",
+    "route_uvicorn_logs",
     "CONTENT_TYPE",
     "JsonFormatter",
     "TextFormatter",
@@ -57,6 +58,11 @@ REQUEST_ID_HEADER = "x-request-id"
 _SANE_ID = re.compile(r"[A-Za-z0-9._:-]{1,128}")
 #: the paths whose POST runs an evaluation
 EVALUATION_PATHS = frozenset({"/v1/evaluations", "/ui/evaluations"})
+#: the routes probes and scrapers ask every few seconds: their access lines are written at DEBUG, not INFO
+#: (a readiness probe every 5 s is 17,000 lines a day), and counted in the metrics as every request is
+PROBE_ROUTES = frozenset({"/healthz", "/readyz", "/metrics"})
+#: uvicorn's loggers, whose lines (the start, the stop, a failed startup) go through the service's formatter
+UVICORN_LOGGERS = ("uvicorn", "uvicorn.error", "uvicorn.access")
 _ATTEMPT_BUCKETS = (1, 2, 3, 5, 10)
 _LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0)
 
@@ -408,10 +414,14 @@ class RequestMiddleware:
         }
         if evaluation:
             record["evaluation_id"] = str(evaluation)
+        level = logging.DEBUG if route in PROBE_ROUTES else logging.INFO
+        if not access_log.isEnabledFor(level):
+            return
         if self.log_json():
-            access_log.info(json.dumps(record), extra={"access": record})
+            access_log.log(level, json.dumps(record), extra={"access": record})
         else:  # the values as arguments, so that the text format escapes them (TextFormatter)
-            access_log.info(
+            access_log.log(
+                level,
                 "%s %s %s %.0f ms in=%s B out=%s B id=%s%s",
                 method,
                 route,
@@ -538,3 +548,19 @@ def configure_logging(log_format: str) -> bool:
         logger.setLevel(logging.INFO)
     logger.propagate = False
     return as_json
+
+
+def route_uvicorn_logs(as_json: bool) -> None:
+    """uvicorn's own lines (``Started server process``, ``Application startup complete``, a failed startup, the
+    shutdown) through the service's formatter, so that a JSON log holds nothing but JSON lines. For
+    ``kitti-eval serve``, which runs uvicorn with ``log_config=None`` (uvicorn then leaves these loggers alone
+    but for their level)."""
+    handler = logging.StreamHandler()
+    handler._kitti_eval = True  # type: ignore[attr-defined]
+    handler.setFormatter(JsonFormatter() if as_json else TextFormatter("%(levelname)s:     %(message)s"))
+    for name in UVICORN_LOGGERS:
+        logger = logging.getLogger(name)
+        for old in [h for h in logger.handlers if getattr(h, "_kitti_eval", False)]:
+            logger.removeHandler(old)
+        logger.addHandler(handler)
+        logger.propagate = False

@@ -30,6 +30,7 @@ from .access.audit import Audit
 from .access.auth import FailureLimiter
 from .access.policy import AuthMode, Policy
 from .benchmarks import Benchmarks
+from .data_folder import check_writable
 from .errors import StartupRefused
 from .evaluations.evaluations import EvaluationFrames, Evaluations, sealed_document
 from .evaluations.uploads import FileIn
@@ -44,7 +45,7 @@ from .jobs.scratch import ScratchSpace
 from .jobs.workers import Workers, await_outcome
 from .observability import AdmissionState
 from .settings import Settings
-from .store import IdempotencyRecord, JobInput, Store
+from .store import IdempotencyRecord, JobInput, Store, UnusableDatabase
 
 __all__ = ["Service", "FileIn", "DEMO_NAME", "sealed_document", "release_memory"]
 
@@ -193,6 +194,7 @@ class Service:
     def start(self) -> None:
         """Create folders and tables, register the demo, start the warm-up and the workers (called from the
         lifespan)."""
+        check_writable(self.data_dir)  # one sentence naming the folder and the fix, not a PermissionError
         try:  # the limits on input and work the loaders read from the environment: a bad one refuses the start
             input_limits()
             overlap_budget()
@@ -203,19 +205,7 @@ class Service:
         self.runner.open()
         self.scratch_space.open()  # and removes what processes killed meanwhile left
         log.info("data folder %s", self.data_dir)
-        try:
-            self.store.create_schema()
-        except sqlalchemy.exc.OperationalError as e:  # not reached, or refused: said in one line, not a traceback
-            url = self.settings.resolved_database_url
-            where = self.settings.database_name
-            reason = (str(e.orig or e).strip() or type(e).__name__).splitlines()[0]
-            hint = ""
-            if url.partition("://")[2].count("@") > 1:
-                hint = (
-                    " (a password holding @, /, # or : must be percent-encoded in KITTI_EVAL_DATABASE_URL, or left "
-                    "out of it and given as PGPASSWORD)"
-                )
-            raise StartupRefused(f"cannot use the database {where}: {reason}{hint}") from None
+        self._open_database(upgrade=self.settings.db_upgrade)
         self._check_open_mode()
         self.admin_token = admin_token(self.settings, self.data_dir)
         if self.settings.register_demo:
@@ -245,11 +235,32 @@ class Service:
             "s" * (self.settings.job_threads != 1),
         )
 
+    def _open_database(self, upgrade: bool = False) -> None:
+        """The tables: created in an empty database, upgraded in an older one when ``upgrade``; a database the
+        service cannot use (not reached, refused, not UTF8, older and not to be upgraded, newer) is
+        :class:`StartupRefused` with one sentence, not a traceback."""
+        try:
+            self.store.create_schema(upgrade=upgrade, where=self.settings.database_name)
+        except UnusableDatabase as e:
+            raise StartupRefused(e.message) from None
+        except sqlalchemy.exc.OperationalError as e:  # not reached, or refused: said in one line, not a traceback
+            url = self.settings.resolved_database_url
+            where = self.settings.database_name
+            reason = (str(e.orig or e).strip() or type(e).__name__).splitlines()[0]
+            hint = ""
+            if url.partition("://")[2].count("@") > 1:
+                hint = (
+                    " (a password holding @, /, # or : must be percent-encoded in KITTI_EVAL_DATABASE_URL, or left "
+                    "out of it and given as PGPASSWORD)"
+                )
+            raise StartupRefused(f"cannot use the database {where}: {reason}{hint}") from None
+
     def run_jobs(self) -> None:
         """Start as a worker process (``kitti-eval worker``): the scratch space, the tables, the kernels, then the
         workers; no HTTP, no admin token, no demo. :meth:`stop` ends it."""
+        check_writable(self.data_dir, "--work-dir")
         self.scratch_space.open()
-        self.store.create_schema()
+        self._open_database()
         warm_up(everything=False)
         self.warm.set()
         self.workers.start()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ipaddress
+import os
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -12,17 +13,44 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .access.policy import AuthMode
 
-__all__ = ["Settings", "ENV_PREFIX", "default_data_dir"]
+__all__ = ["Settings", "ENV_PREFIX", "NoDataFolder", "default_data_dir", "default_data_dir_text", "settings_error"]
 
 ENV_PREFIX = "KITTI_EVAL_"
 _MB = 1 << 20
 
 
+class NoDataFolder(ValueError):
+    """No data folder is set and the user's cannot be found (no HOME, and a uid without a home of its own)."""
+
+
 def default_data_dir() -> Path:
     """The user's data folder for kitti-eval (``~/.local/share/kitti-eval`` or ``$XDG_DATA_HOME/kitti-eval``
     on Linux, ``~/Library/Application Support/kitti-eval`` on macOS, ``%LOCALAPPDATA%\\kitti-eval`` on
-    Windows): never the working directory, where a ``git add .`` would pick up the admin token."""
-    return Path(platformdirs.user_data_dir("kitti-eval", appauthor=False))
+    Windows): never the working directory, where a ``git add .`` would pick up the admin token. Asked only when
+    no data folder is set; without a home (``env -i``, a uid with no entry in /etc/passwd) it raises
+    :class:`NoDataFolder`, which says to set one."""
+    try:
+        return Path(platformdirs.user_data_dir("kitti-eval", appauthor=False))
+    except RuntimeError:  # platformdirs: no HOME, and none in the user database
+        raise NoDataFolder(
+            "no data folder: KITTI_EVAL_DATA_DIR (or --data-dir) is unset and the user's data folder is unknown "
+            f"without a home (HOME is unset and uid {os.getuid()} has none): set KITTI_EVAL_DATA_DIR"
+        ) from None
+
+
+def default_data_dir_text() -> str:
+    """The default data folder as a help text names it, without failing where there is no home."""
+    try:
+        return str(default_data_dir())
+    except NoDataFolder:
+        return "the user's data folder; none here, as there is no HOME: set it"
+
+
+def settings_error(error: ValueError) -> str:
+    """What a command says when its settings are refused: pydantic's list of fields, or :class:`NoDataFolder`."""
+    if isinstance(error, NoDataFolder):
+        return f"error: {error}"
+    return f"error: invalid settings:\n{error}"
 
 
 class Settings(BaseSettings):
@@ -41,6 +69,11 @@ class Settings(BaseSettings):
     database_url: str | None = None
     """SQLAlchemy URL. Unset: ``sqlite:///<data_dir>/kitti-eval.db`` (WAL). ``postgresql://user:pw@host/db``
     uses PostgreSQL through psycopg 3."""
+
+    db_upgrade: bool = False
+    """Upgrade an older database's schema at start (in one transaction, under a lock, by the first process to
+    start), instead of refusing to start with one sentence naming ``kitti-eval admin db upgrade``. A database
+    that a newer release upgraded is refused either way. ``kitti-eval serve --upgrade`` sets it."""
 
     database_busy_s: Annotated[float, Field(gt=0)] = 10.0
     """SQLite: how long a request keeps trying while another process holds the database's write lock (a CLI

@@ -324,7 +324,8 @@ class KernelLocator(caching._CacheLocator):
             if other is cls:
                 continue
             inner = other.from_function(py_func, py_file)
-            if inner is not None:
+            # numba's user-wide place is relative (``~/.cache``) where no home is found: never the working folder
+            if inner is not None and os.path.isabs(str(inner.get_cache_path())):
                 return cls(inner, py_file)
         return cls(ReadOnlyLocator.from_function(py_func, py_file), py_file)
 

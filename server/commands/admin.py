@@ -154,6 +154,24 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     dq.add_argument("name")
     dq.add_argument("submission")
 
+    what.add_parser(
+        "backup",
+        help="a consistent copy of the service, running or not, into DIR (new or empty): SQLite's online backup "
+        "or pg_dump, and the data folder's admin token",
+    ).add_argument("dir", type=Path, metavar="DIR")
+    what.add_parser(
+        "restore",
+        help="the service from the backup in DIR, into a data folder without a database (and an empty PostgreSQL "
+        "database)",
+    ).add_argument("dir", type=Path, metavar="DIR")
+    db = what.add_parser("db", help="the database's schema: its revision, its upgrade").add_subparsers(
+        dest="admin_action", metavar="ACTION", required=True
+    )
+    db.add_parser("current", help="the revision the database's schema is at, and this release's newest")
+    db.add_parser(
+        "upgrade",
+        help="upgrade the schema to this release's (in one transaction, under a lock; back the service up first)",
+    )
     jobs = what.add_parser("jobs", help="the queue of evaluations: list, cancel, run again").add_subparsers(
         dest="admin_action", metavar="ACTION", required=True
     )
@@ -175,27 +193,29 @@ def _say(msg: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        from pydantic import ValidationError
         from sqlalchemy.exc import SQLAlchemyError
 
         from ..access.policy import Policy
         from ..errors import ApiError
         from ..service import Service
-        from ..settings import Settings
+        from ..settings import Settings, settings_error
+        from ..store import UnusableDatabase
     except ImportError as e:
         return without_server_extra("admin", e)
 
     overrides = {k: v for k, v in (("data_dir", args.data_dir), ("database_url", args.database_url)) if v}
     try:
         settings = Settings(**overrides)
-    except ValidationError as e:
-        _say(f"error: invalid settings:\n{e}")
+    except ValueError as e:  # pydantic's ValidationError, or no data folder (NoDataFolder)
+        _say(settings_error(e))
         return EXIT_USAGE
     # whoever may open the service's database acts as an admin
     caller = Policy.command_line(_login())
     where = settings.database_name
     _say(f"database {where}")  # every run names the database it reads and writes
     try:
+        if args.admin_what == "restore":
+            return _restore(args.dir, settings)
         if not args.create and not _database_exists(settings):
             _say(
                 f"error: no kitti-eval database at {where}: give the service's settings (KITTI_EVAL_DATA_DIR or "
@@ -204,6 +224,10 @@ def run(args: argparse.Namespace) -> int:
             return EXIT_INPUT
         if settings.database_url is None:  # SQLite in the data folder, which --create makes
             settings.data_dir.mkdir(parents=True, exist_ok=True)
+        if args.admin_what == "db":
+            return _db(args.admin_action, settings)
+        if args.admin_what == "backup":
+            return _backup(args.dir, settings)
         with _offline_service(Service(settings)) as service:
             if args.admin_what == "ground-truth":
                 return _ground_truth(args, service, caller)
@@ -215,6 +239,9 @@ def run(args: argparse.Namespace) -> int:
     except (ApiError, KittiEvalError) as e:
         _say(f"error: {e.message if isinstance(e, ApiError) else e}")  # the library's names the file
         return EXIT_INPUT
+    except UnusableDatabase as e:  # older or newer than this release, not UTF8: the sentence says what to do
+        _say(f"error: {e.message}")
+        return EXIT_INPUT
     except SQLAlchemyError as e:
         where = settings.resolved_database_url.split("@")[-1]  # not the password
         _say(f"error: the database at {where} is not usable: {getattr(e, 'orig', None) or e}")
@@ -222,6 +249,67 @@ def run(args: argparse.Namespace) -> int:
     except OSError as e:
         _say(f"error: {e.strerror or e}: {e.filename or ''}".rstrip(": "))
         return EXIT_INPUT
+
+
+def _backup(folder: Path, settings: Settings) -> int:
+    from ..backup import BackupError, backup
+
+    try:
+        made = backup(settings, folder)
+    except BackupError as e:
+        _say(f"error: {e}")
+        return EXIT_INPUT
+    size = sum(int(str(f["bytes"])) for f in made.files.values())
+    _say(
+        f"backed up the {made.backend} database {settings.database_name} (revision {made.revision or 'none'}) and "
+        f"{len(made.files) - 1} file(s) of the data folder into {folder}: {size / 1e6:.1f} MB in {made.seconds:.1f} s"
+    )
+    return EXIT_OK
+
+
+def _restore(folder: Path, settings: Settings) -> int:
+    from ..backup import BackupError, restore
+    from ..store.schema import head
+
+    try:
+        made = restore(settings, folder)
+    except BackupError as e:
+        _say(f"error: {e}")
+        return EXIT_INPUT
+    _say(f"restored the {made.backend} database {settings.database_name} from {folder} in {made.seconds:.1f} s")
+    if made.revision != head():
+        _say(
+            f"its schema is at revision {made.revision or 'none'}, older than this release's {head()}: run kitti-eval "
+            "admin db upgrade before starting the service"
+        )
+    return EXIT_OK
+
+
+def _db(action: str, settings: Settings) -> int:
+    """``kitti-eval admin db current|upgrade``: the schema's revision, or its upgrade to this release's."""
+    from ..store import Store
+    from ..store.schema import head
+
+    where = settings.database_name
+    store = Store(settings.resolved_database_url, busy_s=settings.database_busy_s)
+    try:
+        if action == "current":
+            state = store.schema_state()
+            print(state.revision or "none")  # noqa: T201 - the answer, on stdout
+            _say(f"the database {where} is {state.describe()}; this release's newest revision is {head()}")
+            return EXIT_OK
+        before = store.schema_state()
+        store.create_schema(upgrade=True, where=where)
+        if before.empty:
+            _say(f"made the schema of revision {head()} in the empty database {where}")
+        elif before.current:
+            _say(f"the database {where} is already at revision {head()}, this release's newest: nothing to do")
+        else:
+            _say(f"upgraded the database {where} from {before.revision or 'no revision'} to revision {head()}")
+        print(head())  # noqa: T201
+        return EXIT_OK
+    finally:
+        store.dispose()
 
 
 def _database_exists(settings: Settings) -> bool:
@@ -299,7 +387,7 @@ def _offline_service(service: Service) -> Iterator[Service]:
     HTTP side, its workers or its demo: scratch space and tables ready, closed after."""
     try:
         service.scratch_space.open()
-        service.store.create_schema()
+        service.store.create_schema(upgrade=False, where=service.settings.database_name)
         yield service
     finally:
         service.stop()

@@ -2,7 +2,8 @@
 other that reaches the service's database (the server extra). Needs the database only.
 
 Exit codes: 0 drained and stopped (SIGTERM or SIGINT), 1 no database, a process that did not stop cleanly or no
-server extra, 2 usage.
+server extra, 2 usage. With ``--check`` (a healthcheck): 0 when a worker process of this host is seen on the
+database, else 1.
 """
 
 from __future__ import annotations
@@ -47,11 +48,23 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         help="the workers' own folder: scratch space and unpacked ground truths (default: a temporary one, "
         "removed at the end)",
     )
+    p.add_argument(
+        "--check",
+        action="store_true",
+        help="start nothing: exit 0 when a worker process of this host has recorded itself on the database lately "
+        "(connected, kernels warm, polling for jobs), else 1; a container's healthcheck",
+    )
     p.set_defaults(run=run)
     return p
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.check:
+        try:
+            from ..jobs.check import check_workers
+        except ImportError as e:
+            return without_server_extra("worker", e)
+        return check_workers(data_dir=args.data_dir, database_url=args.database_url)
     try:
         from ..jobs.process import run_pool
     except ImportError as e:

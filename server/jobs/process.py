@@ -26,11 +26,11 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from pydantic import ValidationError
-
+from ..data_folder import check_writable
+from ..errors import StartupRefused
 from ..observability import Metrics, configure_logging
 from ..service import Service
-from ..settings import Settings
+from ..settings import Settings, settings_error
 from .pool import WorkerPool
 
 __all__ = ["run_pool", "child_main", "default_processes"]
@@ -84,8 +84,8 @@ def run_pool(
     overrides: dict[str, Any] = {k: v for k, v in (("data_dir", data_dir), ("database_url", database_url)) if v}
     try:
         settings = Settings(**overrides)
-    except ValidationError as e:
-        _say(f"error: invalid settings:\n{e}")
+    except ValueError as e:  # pydantic's ValidationError, or no data folder (NoDataFolder)
+        _say(settings_error(e))
         return EXIT_USAGE
     if threads < 1 or (processes is not None and processes < 1) or (grace_s is not None and grace_s < 0):
         _say("error: --processes and --threads must be at least 1, --grace at least 0")
@@ -97,6 +97,12 @@ def run_pool(
             "KITTI_EVAL_DATA_DIR) once the service has started on it, or its --database-url"
         )
         return EXIT_INPUT
+    if work_dir is not None:
+        try:
+            check_writable(work_dir, "--work-dir")
+        except StartupRefused as e:
+            _say(f"error: {e.message}")
+            return EXIT_USAGE
     configure_logging(settings.log_format)
     own_dir = work_dir is None
     folder = Path(tempfile.mkdtemp(prefix="kitti-eval-worker-")) if work_dir is None else work_dir
@@ -137,7 +143,11 @@ def child_main(argv: Sequence[str] | None = None) -> int:
     if os.environ.get("PROMETHEUS_MULTIPROC_DIR"):  # counted with the service's, in its scrape
         service.workers.on_ended = Metrics().job_ended
     try:
-        service.run_jobs()
+        try:
+            service.run_jobs()
+        except StartupRefused as e:  # said in one line of the log, not a traceback
+            log.error("worker process %d: %s", os.getpid(), e.message)
+            return EXIT_USAGE
         log.info("worker process %d: %d thread(s) on %s", os.getpid(), args.threads, _where(settings.database_url))
         while not stop.wait(0.5):
             if args.parent is not None and os.getppid() != args.parent:

@@ -94,6 +94,9 @@ class Workers:
     metrics of any process on the database count the workers seen lately). Each run of a job writes one log
     line (the job, its kind, the outcome, the seconds) and is told to ``on_ended`` (the metrics)."""
 
+    #: how often a worker process beats its row in the database (the default of ``beat_s``)
+    BEAT_S = 15.0
+
     def __init__(
         self,
         queue: JobQueue,
@@ -103,7 +106,7 @@ class Workers:
         admission: AdmissionState | None = None,
         idle_s: float = 0.5,
         names: Callable[[int], str] = worker_name,
-        beat_s: float = 15.0,
+        beat_s: float = BEAT_S,
         timeout_s: float | None = None,
     ) -> None:
         self.queue = queue

@@ -12,6 +12,8 @@ the table of that name among the package's attributes when imported.)
 
 from __future__ import annotations
 
+from typing import Any
+
 from sqlalchemy.engine import Engine
 
 from .account_store import AccountStore, AuditRecord, TokenRecord, UserRecord
@@ -26,6 +28,7 @@ from .benchmark_store import (
 from .database import (
     Area,
     Database,
+    UnusableDatabase,
     audit,
     benchmarks,
     evaluation_labels,
@@ -56,6 +59,7 @@ from .worker_store import WorkerRecord, WorkerStore
 __all__ = [
     "Store",
     "Database",
+    "UnusableDatabase",
     "Area",
     "GroundTruthStore",
     "EvaluationStore",
@@ -138,9 +142,14 @@ class Store:
         """Attempts run again because the database was locked (for the tests and the curious)."""
         return self.db.lock_retries
 
-    def create_schema(self) -> None:
-        """Create missing tables, and add the columns a database made by an earlier version lacks."""
-        self.db.create_schema()
+    def create_schema(self, *, upgrade: bool = True, where: str = "") -> str | None:
+        """Bring the schema to this release's: created when the database is empty, upgraded when it is older and
+        ``upgrade``, else refused (:meth:`Database.create_schema`); the revision it was at before."""
+        return self.db.create_schema(upgrade=upgrade, where=where)
+
+    def schema_state(self) -> Any:
+        """Where the database's schema is (:class:`.schema.SchemaState`)."""
+        return self.db.schema_state()
 
     def ping(self) -> None:
         self.db.ping()

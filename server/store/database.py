@@ -1,4 +1,5 @@
-"""The shared part of the database: the SQLAlchemy 2 Core tables, the engine, the schema and its upgrades, and
+"""The shared part of the database: the SQLAlchemy 2 Core tables, the engine, the schema (its versions are
+Alembic's revisions, :mod:`.schema`), and
 the retry of a call that found SQLite locked. Each area of the store (:mod:`.ground_truth_store`,
 :mod:`.evaluation_store`, :mod:`.account_store`, :mod:`.benchmark_store`) reads and writes its tables
 through one :class:`Database`; :mod:`.job_store` is the queue of work (evaluations, submissions, rescoring)
@@ -40,12 +41,11 @@ from sqlalchemy import (
     create_engine,
     event,
     insert,
-    inspect,
     text,
 )
 from sqlalchemy.dialects.postgresql import JSONB
 from sqlalchemy.engine import Connection, Engine, RowMapping
-from sqlalchemy.exc import DBAPIError, IntegrityError, OperationalError
+from sqlalchemy.exc import IntegrityError, OperationalError
 
 log = logging.getLogger("kitti_eval.server")
 
@@ -347,20 +347,6 @@ idempotency_keys = Table(
 )
 
 
-#: columns added since the first release, by table, with their SQL kinds ("{json}": the dialect's JSON): a
-#: database made by an earlier version gets them when the schema is created
-_ADDED_COLUMNS = {
-    "evaluations": {"options": "{json}", "project": "VARCHAR(64)"},
-    "ground_truths": {"project": "VARCHAR(64)", "sealed": "BOOLEAN NOT NULL DEFAULT FALSE"},
-    "benchmarks": {"max_published": "INTEGER"},
-    "submissions": {
-        "public_result": "{json}",
-        "baseline": "BOOLEAN NOT NULL DEFAULT FALSE",
-        "failure": "VARCHAR(500)",
-    },
-    "job_inputs": {"kept": "BOOLEAN NOT NULL DEFAULT FALSE"},
-}
-
 #: the PostgreSQL advisory lock held while the schema is created or upgraded (any fixed 64-bit number)
 _SCHEMA_LOCK = 0x6B69747469657661  # "kittieva"
 
@@ -451,6 +437,47 @@ def retry_when_locked(method: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+class UnusableDatabase(Exception):
+    """The database cannot hold the service's data as it is (a PostgreSQL database not encoded in UTF8); the
+    message says why and what to do, in one sentence."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+        self.message = message
+
+
+def check_encoding(engine: Engine) -> None:
+    """A PostgreSQL database must be encoded in UTF8: with SQL_ASCII (``initdb`` under the C locale, or
+    ``CREATE DATABASE ... ENCODING 'SQL_ASCII'``) psycopg hands back bytes instead of text, SQLAlchemy's first
+    connection fails on them (``TypeError: cannot use a string pattern on a bytes-like object``), and any other
+    encoding cannot hold every name and label a caller may send. Asked over a plain driver connection, before
+    SQLAlchemy's own first one; raises :class:`UnusableDatabase` naming the encoding and the fix."""
+    if engine.dialect.name != "postgresql":
+        return
+    dialect = engine.dialect
+    cargs, cparams = dialect.create_connect_args(engine.url)
+    try:
+        conn = dialect.connect(*cargs, **cparams)
+    except dialect.loaded_dbapi.Error as e:  # not reached, or refused: as SQLAlchemy's connection would say it
+        raise OperationalError(None, None, e) from e
+    try:
+        cursor = conn.cursor()
+        cursor.execute(
+            "SELECT pg_encoding_to_char(encoding), current_database() FROM pg_database "
+            "WHERE datname = current_database()"
+        )
+        row = cursor.fetchone() or ("", "")
+        encoding, name = (v.decode("ascii", "replace") if isinstance(v, bytes) else str(v) for v in row)
+    finally:
+        conn.close()
+    if encoding.upper() != "UTF8":
+        raise UnusableDatabase(
+            f"the PostgreSQL database {name} is encoded in {encoding}, not UTF8, which the service needs for "
+            f"every name and label it keeps: create it again with CREATE DATABASE {name} ENCODING 'UTF8' "
+            "TEMPLATE template0 (or createdb -E UTF8 -T template0)"
+        )
+
+
 class Database:
     """The engine on SQLite or PostgreSQL, the schema, and what the areas of the store share."""
 
@@ -473,27 +500,48 @@ class Database:
         self.dialect = self.engine.dialect.name
 
     @retry_when_locked
-    def create_schema(self) -> None:
-        """Create missing tables, and add the columns a database made by an earlier version lacks
-        (``_ADDED_COLUMNS``).
+    def create_schema(self, *, upgrade: bool = True, where: str = "") -> str | None:
+        """Bring the schema to this release's (:mod:`.schema`): an empty database is created at the newest
+        revision; an older one is upgraded when ``upgrade``, else refused (:class:`UnusableDatabase` naming
+        ``kitti-eval admin db upgrade``); one a newer release upgraded is refused. Returns the revision it was
+        at before (None: none recorded). ``where`` names the database in the refusals.
 
-        On PostgreSQL this runs in one transaction under an advisory lock: servers started together on one
-        empty database (replicas rolled out at once) would otherwise all issue the same CREATE TABLE, and
-        all but one fail at start-up (a unique violation in PostgreSQL's catalog). The others wait for the
-        lock, then find the tables there."""
-        with self.engine.begin() as conn:
+        It runs in one transaction under a lock (PostgreSQL's advisory lock, SQLite's write lock): servers
+        started together on one database (replicas rolled out at once) would otherwise all create or upgrade
+        it, and all but one fail at start-up; the others wait for the lock, then find it done."""
+        from . import schema
+
+        check_encoding(self.engine)
+        where = where or self.engine.url.render_as_string(hide_password=True)
+        with self.writing() as conn:
             if self.dialect == "postgresql":
                 conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _SCHEMA_LOCK})
-            metadata.create_all(conn)
-            json_kind = "JSONB" if self.dialect == "postgresql" else "JSON"
-            for table, columns in _ADDED_COLUMNS.items():
-                present = {c["name"] for c in inspect(conn).get_columns(table)}
-                for column, kind in columns.items():
-                    if column not in present:
-                        kind = kind.format(json=json_kind)
-                        conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {column} {kind}"))
-            if self.dialect == "postgresql":
-                _file_storage(conn)
+            state = schema.state_of(conn)
+            if state.current:
+                return state.revision
+            if state.newer:
+                raise UnusableDatabase(
+                    f"the database {where} is {state.describe()}: this release's newest is {schema.head()}; run "
+                    "the release that upgraded it, or a newer one"
+                )
+            if not state.empty and not upgrade:
+                raise UnusableDatabase(
+                    f"the database {where} is {state.describe()}, older than this release's {schema.head()}: run "
+                    "kitti-eval admin db upgrade (after kitti-eval admin backup), or start the service with "
+                    "KITTI_EVAL_DB_UPGRADE=true to upgrade it at start"
+                )
+            schema.upgrade(conn)
+            if not state.empty:
+                log.info("database %s upgraded from %s to %s", where, state.revision or "no revision", schema.head())
+            return state.revision
+
+    def schema_state(self) -> Any:
+        """Where the database's schema is (:class:`.schema.SchemaState`)."""
+        from . import schema
+
+        check_encoding(self.engine)
+        with self.engine.connect() as conn:
+            return schema.state_of(conn)
 
     @retry_when_locked
     def ping(self) -> None:
@@ -521,38 +569,6 @@ class Database:
             except BaseException:
                 conn.rollback()
                 raise
-
-
-def _file_storage(conn: Connection) -> None:
-    """How PostgreSQL keeps the uploaded files. By default it compresses a large value with pglz before storing
-    it, which cost ~95 ms of the database's CPU for every val-sized result.pkl accepted. A job's inputs live until
-    the job ends: they are stored as they are (``EXTERNAL``). The files kept for good (predictions, ground truths)
-    are compressed with lz4 where the server has it (PostgreSQL 14 and later, built with it), several times
-    faster than pglz (predictions kept for good are written once, when their job is accepted). Only new rows are
-    written the new way; the changes are made once, by the first server."""
-    columns = {"job_inputs": "e", "prediction_files": "l", "ground_truth_files": "l"}
-    lz4 = int(conn.execute(text("SHOW server_version_num")).scalar_one()) >= 140000
-    for table, want in columns.items():
-        if want == "l" and not lz4:
-            continue
-        field = "attstorage" if want == "e" else "attcompression"
-        now = conn.execute(
-            text(
-                f"SELECT a.{field} FROM pg_attribute a JOIN pg_class c ON a.attrelid = c.oid "
-                "WHERE c.relname = :table AND a.attname = 'content' AND pg_table_is_visible(c.oid)"
-            ),
-            {"table": table},
-        ).scalar_one_or_none()
-        if now is None or now == want:
-            continue
-        if want == "e":
-            conn.execute(text(f"ALTER TABLE {table} ALTER COLUMN content SET STORAGE EXTERNAL"))
-            continue
-        try:
-            with conn.begin_nested():  # a server built without lz4 refuses it: pglz stays
-                conn.execute(text(f"ALTER TABLE {table} ALTER COLUMN content SET COMPRESSION lz4"))
-        except DBAPIError:
-            log.info("PostgreSQL has no lz4: %s keeps pglz", table)
 
 
 class Area:

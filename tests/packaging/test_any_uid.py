@@ -4,9 +4,11 @@ This is how clusters run the image (another uid, a read-only root filesystem) an
 is used from compute nodes: no ``NUMBA_CACHE_DIR``, an installation the user cannot write (numba's in-tree
 ``__pycache__``), no writable home (numba's user-wide cache). numba alone refuses to decorate a kernel then;
 :mod:`kitti_eval.core.kernel_cache` compiles it in memory with one warning. Here the package is copied into a
-folder owned by root, the process runs as uid 65534 (``nobody``) with ``HOME=/nonexistent``, and
-``kitti-eval demo`` and ``kitti-eval serve`` (its worker processes too, with an upload) must work and give the
-numbers they give here. Needs root to switch users (CI runs as root): skipped elsewhere.
+folder owned by root, the process runs as uid 12345, which /etc/passwd does not know, in an environment with no
+HOME at all (``env -i``: no home to be found, by the variable or by the uid), and ``kitti-eval demo`` and
+``kitti-eval serve`` (its worker processes too, with an upload) must work and give the numbers they give here;
+a data folder that uid may not write is refused in one line (exit 2). Needs root to switch users (CI runs as
+root): skipped elsewhere.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from kitti_eval.demo import demo_paths
 
 pytestmark = pytest.mark.slow
 
-UID = GID = 65534
+UID = GID = 12345  # no entry in /etc/passwd: no home by the uid either
 PACKAGE = Path(kitti_eval.__file__).resolve().parent
 SERVER = PACKAGE.parent / "server"
 WARNING = "set NUMBA_CACHE_DIR to a writable folder to keep them"
@@ -45,7 +47,7 @@ def _as_nobody(argv: list[str], env: dict[str, str], cwd: Path, **kwargs: object
 
 
 def _interpreter(env: dict[str, str], cwd: Path) -> str | None:
-    """A Python of this version that uid 65534 can run, and that can start itself again (the worker processes
+    """A Python of this version that uid 12345 can run, and that can start itself again (the worker processes
     do): this one, or where it leads (a virtual environment's interpreter may sit in a folder only root reads)."""
     version = f"{sys.version_info[0]}.{sys.version_info[1]}"
     check = (
@@ -69,10 +71,10 @@ def _interpreter(env: dict[str, str], cwd: Path) -> str | None:
 @pytest.fixture(scope="module")
 def read_only_install() -> Iterator[tuple[str, dict[str, str], Path]]:
     """(interpreter, environment, folder): the package and the service copied into a folder of root's, which
-    uid 65534 may read and not write, first on the path; the dependencies from this installation's
+    uid 12345 may read and not write, first on the path; the dependencies from this installation's
     site-packages (root's as well)."""
     if not hasattr(os, "geteuid") or os.geteuid() != 0:
-        pytest.skip("switching to uid 65534 needs root")
+        pytest.skip("switching to uid 12345 needs root")
     folder = Path(tempfile.mkdtemp(prefix="kitti-eval-ro-"))
     try:
         skip = shutil.ignore_patterns("__pycache__", "*.py[cod]", "*.nbi", "*.nbc")
@@ -82,7 +84,6 @@ def read_only_install() -> Iterator[tuple[str, dict[str, str], Path]]:
             path.chmod(0o755 if path.is_dir() else 0o644)
         env = {
             "PATH": "/usr/local/bin:/usr/bin:/bin",
-            "HOME": "/nonexistent",
             "LANG": "C.UTF-8",
             "PYTHONPATH": os.pathsep.join([str(folder), *site.getsitepackages()]),
         }
@@ -91,7 +92,7 @@ def read_only_install() -> Iterator[tuple[str, dict[str, str], Path]]:
             pytest.skip(f"no Python {sys.version_info[0]}.{sys.version_info[1]} that uid {UID} can run")
         deps = _as_nobody([python, "-c", "import numba, numpy, fastapi"], env, folder, stderr=subprocess.PIPE)
         _, why = deps.communicate(timeout=120)
-        if deps.returncode != 0:  # this installation's site-packages lie in a folder that uid 65534 cannot read
+        if deps.returncode != 0:  # this installation's site-packages lie in a folder that uid 12345 cannot read
             pytest.skip(f"uid {UID} cannot import this installation's dependencies: {why.strip()[-300:]}")
         yield python, env, folder
     finally:
@@ -100,11 +101,12 @@ def read_only_install() -> Iterator[tuple[str, dict[str, str], Path]]:
 
 def _nothing_written(folder: Path) -> None:
     assert not any(folder.rglob("__pycache__")), "something was written into the installation"
-    assert not Path("/nonexistent").exists()
+    assert not (folder / "~").exists(), "a home taken literally (~) was made in the working folder"
 
 
 def test_demo_as_another_user_with_nowhere_to_cache(read_only_install: tuple[str, dict[str, str], Path]) -> None:
     python, env, folder = read_only_install
+    assert "HOME" not in env
     here = subprocess.run(
         [sys.executable, "-m", "kitti_eval.cli", "demo"], capture_output=True, text=True, timeout=600, check=True
     )
@@ -175,3 +177,23 @@ def test_serve_and_an_upload_as_another_user_with_nowhere_to_cache(
     assert "Traceback" not in text and "cannot cache function" not in text
     assert gt_path.exists()
     _nothing_written(folder)
+
+
+def test_serve_on_a_data_folder_the_uid_may_not_write_is_one_line(
+    read_only_install: tuple[str, dict[str, str], Path],
+) -> None:
+    python, env, folder = read_only_install
+    data = Path(tempfile.mkdtemp(prefix="kitti-eval-data-"))  # root's, 0700: uid 12345 may not write it
+    try:
+        argv = [python, "-m", "kitti_eval.cli", "serve", "--port", str(free_port()), "--data-dir", str(data / "d")]
+        run_env = {**env, "KITTI_EVAL_LOG_FORMAT": "json", "KITTI_EVAL_WARMUP": "false"}
+        proc = _as_nobody(argv, run_env, folder, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        out, _ = proc.communicate(timeout=300)
+    finally:
+        shutil.rmtree(data, ignore_errors=True)
+    assert proc.returncode == 2, out[-3000:]
+    assert "Traceback" not in out and "PermissionError" not in out
+    (line,) = [line for line in out.splitlines() if "cannot be written" in line]
+    message = json.loads(line)["message"]
+    assert message.startswith(f"the data folder {data / 'd'} cannot be written by uid {UID} (gid {GID})"), message
+    assert "fsGroup" in message

@@ -81,7 +81,7 @@ def test_compose_runs_the_service_and_its_workers_on_a_healthy_postgresql() -> N
     # the image is built here, never pulled: the workers run the one the service builds
     assert service["build"] == "." and service["pull_policy"] == "build"
     assert worker["image"] == service["image"] and worker["pull_policy"] == "never" and "build" not in worker
-    assert worker["command"] == ["kitti-eval", "worker"] and worker["healthcheck"] == {"disable": True}
+    assert worker["command"] == ["kitti-eval", "worker"]
     assert "ports" not in worker and "deploy" not in worker  # `--scale worker=N` decides how many
     assert service["ports"] == ["127.0.0.1:${KITTI_EVAL_PORT:-8000}:8000"]  # published on the loopback only
     # the evaluations run in the workers only: the service is ready once one is seen on the database
@@ -98,6 +98,21 @@ def test_compose_runs_the_service_and_its_workers_on_a_healthy_postgresql() -> N
     named = {volume.split(":")[0] for s in (db, service) for volume in s["volumes"]}
     assert named == set(compose["volumes"]) == {"pgdata", "kitti-eval-data"}
     assert [v.split(":")[1] for v in service["volumes"]] == ["/data"]  # the image's VOLUME
+
+
+def test_every_compose_service_has_a_healthcheck_and_stops_on_its_signal() -> None:
+    """``docker compose up -d --wait`` exits 1 when a service has no healthcheck ("has no healthcheck
+    configured"), even with everything up; the worker's says a worker process of its own is connected and
+    polling (``kitti-eval worker --check``, tests/server/jobs/test_worker_check.py)."""
+    services = _compose()["services"]
+    for name, service in services.items():
+        check = service.get("healthcheck", {})
+        assert check.get("test") and not check.get("disable"), name
+    assert services["worker"]["healthcheck"]["test"] == ["CMD", "kitti-eval", "worker", "--check"]
+    # the service's processes are not PID 1: Docker's init hands SIGTERM on (the drain) and reaps
+    for name in ("kitti-eval", "worker"):
+        assert services[name]["init"] is True and services[name]["stop_signal"] == "SIGTERM", name
+    assert services["db"]["stop_signal"] == "SIGINT"  # PostgreSQL's fast shutdown
 
 
 def test_every_compose_command_works_without_a_variable_in_the_shell() -> None:

@@ -47,7 +47,11 @@ def test_every_package_is_listed_under_its_installed_name() -> None:
     assert set(config["packages"]) == packages
     assert "kitti_eval_server.web" in packages and "kitti_eval.core" in packages
     assert config["package-dir"] == {"kitti_eval_server": "server"}
-    assert config["package-data"]["kitti_eval_server"] == ["web/templates/*", "web/static/*"]
+    assert config["package-data"]["kitti_eval_server"] == [
+        "web/templates/*",
+        "web/static/*",
+        "store/migrations/script.py.mako",  # the template of a new revision (docs/development)
+    ]
 
 
 def test_the_installed_service_is_kitti_eval_server_and_reads_the_checkout() -> None:

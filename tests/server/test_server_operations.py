@@ -414,3 +414,31 @@ def test_a_database_the_service_cannot_use_refuses_the_start_in_one_line(tmp_pat
         assert "secret" not in message and "ab@c" not in message and "\n" not in message
         assert ("given as PGPASSWORD" in message) == hinted, message
         assert hinted or "refused" in message.lower(), message  # the driver's reason
+
+
+def test_probes_are_counted_not_logged_at_the_default_level(service_client: Any, access: LogRecords) -> None:
+    def probes(samples: dict) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for (name, labels), v in samples.items():
+            route = dict(labels).get("route")
+            if name == "kitti_eval_http_requests_total" and route in ("/healthz", "/readyz", "/metrics"):
+                out[route] = out.get(route, 0.0) + v
+        return out
+
+    with service_client(log_format="json") as client:
+        before = probes(scrape(client))
+        access.records.clear()
+        for _ in range(3):
+            for probe in ("/healthz", "/readyz", "/metrics"):
+                client.get(probe)
+        assert client.get("/v1/evaluations").status_code == 200
+        after = probes(scrape(client))
+        logged = [(r.access["method"], r.access["route"]) for r in access.records]  # type: ignore[attr-defined]
+        assert logged == [("GET", "/v1/evaluations")]  # the probes: none at INFO
+        # each counted (/metrics: the three, and the scrape before them)
+        assert {k: after[k] - before.get(k, 0.0) for k in after} == {"/healthz": 3, "/readyz": 3, "/metrics": 4}
+        logging.getLogger("kitti_eval.server.access").setLevel(logging.DEBUG)  # asked for: each one is logged
+        access.records.clear()
+        client.get("/healthz")
+    (record,) = access.records
+    assert record.levelno == logging.DEBUG and record.access["route"] == "/healthz"  # type: ignore[attr-defined]

@@ -302,7 +302,7 @@ def test_kept_predictions_are_written_once_when_accepted_and_an_uploaded_ground_
 
 def test_a_job_accepted_before_kept_inputs_runs_after_the_upgrade_and_keeps_its_predictions(tmp_path) -> None:
     """A database from before: no ``kept`` column, a queued job's predictions in its own input row. The column is
-    added at start-up, and the job runs from its row and keeps the file as a job did then."""
+    added by the upgrade at start-up, and the job runs from its row and keeps the file as a job did then."""
     import hashlib
     import sqlite3
 
@@ -316,9 +316,10 @@ def test_a_job_accepted_before_kept_inputs_runs_after_the_upgrade_and_keeps_its_
     )
     db.execute("DELETE FROM prediction_files")
     db.execute("ALTER TABLE job_inputs DROP COLUMN kept")
+    db.execute("DROP TABLE alembic_version")  # an unversioned release's: upgraded at start, as told
     db.commit()
     db.close()
-    with app_client(data, ready=False, job_threads=1, keep_predictions=True) as c:
+    with app_client(data, ready=False, job_threads=1, keep_predictions=True, db_upgrade=True) as c:
         store = c.app.state.service.store
         ended = c.app.state.service.jobs.wait(job_id, 120)
         assert ended is not None and ended.state == "done", ended

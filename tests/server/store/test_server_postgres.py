@@ -108,8 +108,9 @@ def test_concurrent_uploads_and_sigkill_on_postgres(postgres, tmp_path) -> None:
 
 
 def test_baselines_on_postgres_and_the_column_added_to_an_older_database(postgres, tmp_path) -> None:
-    """An admin's baseline (no quota, no rank) on PostgreSQL; a database made before baselines gets the column
-    (``BOOLEAN NOT NULL DEFAULT FALSE``) at start-up, its rows reading as participants' submissions."""
+    """An admin's baseline (no quota, no rank) on PostgreSQL; a database made before baselines (by an unversioned
+    release) gets the column (``BOOLEAN NOT NULL DEFAULT FALSE``) from the base revision when it is upgraded at
+    start-up, its rows reading as participants' submissions."""
     from server_benchmarks import host, ok, submit
     from sqlalchemy import create_engine, text
 
@@ -124,8 +125,9 @@ def test_baselines_on_postgres_and_the_column_added_to_an_older_database(postgre
     engine = create_engine(url)
     with engine.begin() as conn:
         conn.execute(text("ALTER TABLE submissions DROP COLUMN baseline"))
+        conn.execute(text("DROP TABLE alembic_version"))
     engine.dispose()
-    with app_client(tmp_path / "data", database_url=url, auth="accounts") as c:
+    with app_client(tmp_path / "data", database_url=url, auth="accounts", db_upgrade=True) as c:
         root = hosted.headers("root")
         made = [ok(submit(c, root, golden_bytes("result.pkl")), 201) for _ in range(2)]  # over a quota of 1
         assert [m["baseline"] for m in made] == [True, True]
@@ -139,8 +141,8 @@ def test_baselines_on_postgres_and_the_column_added_to_an_older_database(postgre
 
 def test_uploaded_files_are_stored_without_pglz(postgres, tmp_path) -> None:
     """A job's input is stored as it is (EXTERNAL: it lives until its job ends), the files kept for good with
-    lz4 (PostgreSQL 14 and later); a database made with the defaults is changed at start-up, and its files
-    still read back whole."""
+    lz4 (PostgreSQL 14 and later); a database made with the defaults is changed by the base revision when it is
+    upgraded at start-up, and its files still read back whole."""
     from sqlalchemy import create_engine, text
 
     url = postgres.url.rsplit("/", 1)[0] + "/storage"
@@ -164,15 +166,33 @@ def test_uploaded_files_are_stored_without_pglz(postgres, tmp_path) -> None:
         assert first.status_code == 201, first.text
     expected = [("ground_truth_files", "x", "l"), ("job_inputs", "e", ""), ("prediction_files", "x", "l")]
     assert columns() == expected
-    with engine.begin() as conn:  # as a database made before: pglz, compressed in line
+    with engine.begin() as conn:  # as a database an unversioned release made before: pglz, compressed in line
         for table in ("job_inputs", "prediction_files", "ground_truth_files"):
             conn.execute(text(f"ALTER TABLE {table} ALTER COLUMN content SET STORAGE EXTENDED"))
             if table != "job_inputs":
                 conn.execute(text(f"ALTER TABLE {table} ALTER COLUMN content SET COMPRESSION pglz"))
-    with app_client(tmp_path / "data", database_url=url, keep_predictions=True) as c:
+        conn.execute(text("DROP TABLE alembic_version"))
+    with app_client(tmp_path / "data", database_url=url, keep_predictions=True, db_upgrade=True) as c:
         assert columns() == expected
         again = upload(c, golden_bytes("result.pkl"), gt="demo")
         assert again.status_code == 201 and again.json()["ap"] == first.json()["ap"]
         frame = c.get(f"/v1/evaluations/{first.json()['id']}/frames")  # the file kept before the change
         assert frame.status_code == 200, frame.text
     engine.dispose()
+
+
+def test_a_database_not_encoded_in_utf8_is_refused_in_one_sentence(postgres, tmp_path) -> None:
+    """SQL_ASCII (``initdb`` under the C locale): psycopg hands back bytes, and SQLAlchemy's first connection
+    failed with ``TypeError: cannot use a string pattern on a bytes-like object``, a crash loop."""
+    import psycopg
+
+    from kitti_eval_server.errors import StartupRefused
+
+    with psycopg.connect(host="127.0.0.1", port=postgres.port, user="postgres", autocommit=True) as conn:
+        conn.execute("CREATE DATABASE ascii_db ENCODING 'SQL_ASCII' TEMPLATE template0")
+    url = postgres.url.rpartition("/")[0] + "/ascii_db"
+    with pytest.raises(StartupRefused) as refused, app_client(tmp_path / "data", database_url=url, warmup=False):
+        pass
+    message = refused.value.message
+    assert message.startswith("the PostgreSQL database ascii_db is encoded in SQL_ASCII, not UTF8"), message
+    assert "ENCODING 'UTF8'" in message and "\n" not in message
