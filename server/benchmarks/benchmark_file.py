@@ -39,7 +39,7 @@ import re
 import secrets
 import sys
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import date, datetime, timezone
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -55,8 +55,9 @@ else:  # pragma: no cover - Python 3.10
 
 from ..access.accounts import Accounts
 from ..access.policy import Caller
-from ..errors import BadRequest, NotFound, echo
+from ..errors import BadRequest, Conflict, NotFound, echo
 from .catalog import scoring_options
+from .lifecycle import PhaseState, check_change, state_of
 from .phases import MAX_BENCHMARK_NAME, PhaseOf, check_phase_name, phase_list, phase_row
 from .rules import DEFAULT_KEY, MAIN_PHASE, Benchmark, parse_quota, parse_time
 
@@ -512,8 +513,13 @@ def _changes(
         row["project"] = record.project
     if config != dict(bench.config):
         row["config"] = config
-    if bench.closes_at is not None and wanted["closes_at"] is None and bench.revealed:
-        raise r.refuse(f"the phase {p.name!r} is revealed: it stays closed", "closes_at", p.index)
+    try:  # the phase's life allows the change of its dates (:mod:`.lifecycle`): a revealed phase stays closed
+        check_change(p.name, bench, row)
+    except Conflict as e:
+        # said at the date the refusal is about: opens_at when it would make the phase scheduled again
+        later_opening = "opens_at" in row and state_of(replace(bench, opens_at=row["opens_at"])) is PhaseState.SCHEDULED
+        key = "opens_at" if later_opening or "closes_at" not in row else "closes_at"
+        raise r.refuse(e.message, key, p.index) from None
     return row
 
 

@@ -19,6 +19,7 @@ from ..evaluations.evaluator import EvalOptions
 from ..ground_truths.cache import GroundTruths
 from ..jobs.queue import JobQueue
 from ..store import BenchmarkRecord, BenchmarkStore, GroundTruthRecord
+from .lifecycle import check_change
 from .phases import PhaseOf, current_phase_of, phase_views
 from .rules import DEFAULT_KEY, DIFFICULTIES, Benchmark, parse_column, parse_quota, parse_time
 from .views import benchmark_view
@@ -227,24 +228,12 @@ class BenchmarkCatalog:
         return self.named(name)
 
     def set_state(self, name: str, *, caller: Caller, **values: bool) -> Benchmark:
-        """close (closed=True), reopen (closed=False), reveal (revealed=True): a benchmark is revealed once it
-        has opened and is closed (by hand or by its ``closes_at``), and is never reopened after."""
+        """close (closed=True), reopen (closed=False), reveal (revealed=True), as :func:`.lifecycle.check_change`
+        allows: a phase is revealed once it has opened and is closed (by hand or by its ``closes_at``), and is
+        never reopened after."""
         self.policy.require_admin(caller)
         bench = self.named(name)
-        now = datetime.now(timezone.utc)
-        if values.get("closed") is False and bench.revealed:
-            raise Conflict("revealed benchmarks stay closed: the private part's scores are out")
-        if values.get("revealed"):
-            if not bench.has_opened(now):
-                raise Conflict(
-                    f"the benchmark {name!r} has not opened yet (it opens at {bench.opens_at.isoformat()}): "
-                    "there is no ranking to reveal"
-                )
-            if not bench.is_closed(now):
-                raise Conflict(
-                    "the private ranking is revealed once the benchmark is closed: close it first (or wait for "
-                    "its closes_at)"
-                )
+        check_change(name, bench, values)  # the phase's life allows it (:mod:`.lifecycle`)
         self.benchmark_store.update_benchmark(name, **values)
         action = ",".join(f"{k}={v}" for k, v in sorted(values.items()))
         self.audit.record(caller, "benchmark.state", name, detail=action)

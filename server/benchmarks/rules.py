@@ -16,6 +16,7 @@ from kitti_eval.core.protocol import DEFAULT_OSET, DEFAULT_RECALL, DIFFICULTIES,
 from ..errors import BadRequest, echo
 from ..evaluations.evaluator import EvalOptions
 from ..store import BenchmarkRecord
+from .lifecycle import PhaseState, state_of
 
 __all__ = [
     "Benchmark",
@@ -151,15 +152,17 @@ class Benchmark(BenchmarkRecord):
         """Its period has begun (``opens_at`` has passed), whether or not it was closed since."""
         return self.opens_at <= (now or datetime.now(timezone.utc))
 
+    def state(self, now: datetime | None = None) -> PhaseState:
+        """Its state (:func:`.lifecycle.state_of`: scheduled, open, closed or revealed)."""
+        return state_of(self, now)
+
     def is_closed(self, now: datetime | None = None) -> bool:
-        """Closed by hand, or its ``closes_at`` has passed."""
-        now = now or datetime.now(timezone.utc)
-        return self.closed or (self.closes_at is not None and now >= self.closes_at)
+        """Closed (by hand, or its ``closes_at`` has passed) or revealed."""
+        return self.state(now) in (PhaseState.CLOSED, PhaseState.REVEALED)
 
     def is_open(self, now: datetime | None = None) -> bool:
-        """Taking submissions: opened and not closed."""
-        now = now or datetime.now(timezone.utc)
-        return self.has_opened(now) and not self.is_closed(now)
+        """Taking submissions: in the state ``open``."""
+        return self.state(now) is PhaseState.OPEN
 
     # -- phases and teams (a benchmark defined by a file, :mod:`.phases`; one made with ``add`` is one phase) --
     @property
@@ -195,7 +198,7 @@ class Benchmark(BenchmarkRecord):
     def takes_late(self, now: datetime | None = None) -> bool:
         """Closed, and taking late submissions (never ranked)."""
         now = now or datetime.now(timezone.utc)
-        return self.late_submissions and self.has_opened(now) and self.is_closed(now) and not self.revealed
+        return self.late_submissions and self.has_opened(now) and self.state(now) is PhaseState.CLOSED
 
     @property
     def phase(self) -> str:
