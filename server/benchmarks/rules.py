@@ -25,6 +25,7 @@ __all__ = [
     "MAIN_PHASE",
     "DIFFICULTIES",
     "parse_quota",
+    "quota_words",
     "parse_column",
     "parse_time",
     "in_public_part",
@@ -41,6 +42,11 @@ PHASE_SEPARATOR = "~"
 MAIN_PHASE = "main"
 #: the recall modes as a column's help names them, the default first
 _RECALLS = tuple(reversed(RECALL_MODES))
+
+
+def quota_words(count: int, days: float, what: str = "submission") -> str:
+    """A quota as it is said: ``1 submission per day``, ``3 submissions per 2 days``."""
+    return f"{count} {what}{'s' if count != 1 else ''} per {'day' if days == 1 else f'{days:g} days'}"
 
 
 def parse_quota(text: str) -> tuple[int, float]:

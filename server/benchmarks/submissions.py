@@ -42,7 +42,7 @@ from ..store import (
 from .catalog import BenchmarkCatalog
 from .intervals import Intervals
 from .phases import current_row
-from .rules import Benchmark, part_frames, scores_of
+from .rules import Benchmark, part_frames, quota_words, scores_of
 from .teams import quota_team
 from .views import submission_view
 
@@ -64,7 +64,7 @@ class QuotaExceeded(ApiError):
     def of(cls, count: int, days: float, retry_at: datetime) -> QuotaExceeded:
         retry = max(1, math.ceil((retry_at - datetime.now(timezone.utc)).total_seconds()))
         return cls(
-            f"the quota of {count} accepted submissions per {days:g} days is used; the next one is "
+            f"the quota of {quota_words(count, days, 'accepted submission')} is used; the next one is "
             f"accepted from {retry_at.isoformat()} (in {retry} s)",
             retry,
             retry_at,
@@ -78,7 +78,8 @@ class InvalidSubmission(ApiError):
     code = "invalid_submission"
 
     def __init__(self, problems: list[str]) -> None:
-        super().__init__(f"the submission is not valid ({len(problems)} problems): " + "; ".join(problems[:5]))
+        counted = f"{len(problems)} problem{'s' if len(problems) != 1 else ''}"
+        super().__init__(f"the submission is not valid ({counted}): " + "; ".join(problems[:5]))
         self.problems = problems
         self.details = {"problems": problems}
 

@@ -361,8 +361,8 @@ def _benchmark(args: argparse.Namespace, service: Service, caller: Caller) -> in
         n, days = bench.quota
         cap = f", at most {bench.max_published} published per participant" if bench.max_published else ""
         print(
-            f"benchmark {bench.name} on {bench.gt_name}: key {' + '.join(bench.key)}, quota {n} per {days:g} "
-            f"days{cap}, {'public' if bench.public else 'not public'}"
+            f"benchmark {bench.name} on {bench.gt_name}: key {' + '.join(bench.key)}, quota {n} per "
+            f"{'day' if days == 1 else f'{days:g} days'}{cap}, {'public' if bench.public else 'not public'}"
         )
     elif action == "list":
         for b in benchmarks.catalog.visible(caller):
