@@ -320,6 +320,12 @@ def _submission_context(
     return {
         "bench": described,
         "rules": _rules(described),
+        "phased": len(described["phases"]) > 1,
+        "frames_url": (
+            f"/v1/benchmarks/{quote(bench.shown_name)}/submissions/{quote(submission['id'])}/frames"
+            if bench.open_labels
+            else None
+        ),
         "sub": submission,
         "state": state,
         "refresh": None if state["done"] else REFRESH_S,

@@ -9,8 +9,9 @@ from datetime import datetime, timedelta, timezone
 from html import unescape
 
 import pytest
-from server_helpers import ADMIN, app_client
+from server_helpers import ADMIN, app_client, golden_bytes
 from server_phases import HOST, TWO_PHASES, phased_world
+from test_web_benchmarks import until_scored
 
 from kitti_eval_server.benchmarks.benchmark_file import apply_benchmark_file
 from kitti_eval_server.web.boards import full_time
@@ -115,3 +116,23 @@ def test_a_signed_out_reader_reads_no_dangling_parenthesis(world) -> None:
     assert "(open labels" not in dev and "(sealed)" not in test
     listed = c.get("/benchmarks").text
     assert "the board shows the whole validation set" in listed  # the current phase, dev, is on open labels
+
+
+def test_a_submissions_page_names_its_phase_and_links_a_validation_sets_frames(world) -> None:
+    c, hosted = world
+    apply_benchmark_file(c.app.state.benchmarks.catalog, TWO_PHASES, caller=HOST)
+    alice = {"Authorization": f"Bearer {hosted.tokens['alice']}"}
+    files = {"predictions": ("result.pkl", golden_bytes("result.pkl"), "application/octet-stream")}
+    ids = {}
+    for phase in ("dev", "test"):
+        sent = c.post(f"/v1/benchmarks/kitti-phases/phases/{phase}/submissions", files=files, headers=alice)
+        assert sent.status_code == 201, sent.text[:500]
+        ids[phase] = sent.json()["id"]
+    _sign_in(c, hosted.tokens["alice"])
+    dev = until_scored(c, f"/benchmarks/kitti-phases/submissions/{ids['dev']}")
+    assert _text(dev, "phase") == "dev on its validation set"
+    link = re.search(r'<p id="frames-link">.*?<a href="([^"]+)"', dev, re.S)
+    assert link is not None and link.group(1) == f"/v1/benchmarks/kitti-phases/submissions/{ids['dev']}/frames"
+    assert c.get(link.group(1), headers=alice).status_code == 200
+    test = until_scored(c, f"/benchmarks/kitti-phases/submissions/{ids['test']}")
+    assert _text(test, "phase") == "test" and 'id="frames-link"' not in test  # a sealed phase's frames stay hidden
