@@ -432,7 +432,8 @@ class Scoring:
                 if stored is None:
                     raise Conflict(f"the predictions of submission {row.id} are not kept")
                 try:
-                    dt = self._checked(stored_upload(stored.content, row.pred_filename, stored.sha256), gt)
+                    upload = stored_upload(stored.content, row.pred_filename, stored.sha256)
+                    dt = self._checked(upload, gt, labels="validation" if bench.open_labels else "test")
                 except (InputError, InvalidSubmission):  # the file is refused: it never counted
                     self.benchmark_store.delete_submission(sid)
                     raise
@@ -469,11 +470,11 @@ class Scoring:
             return None
         return JobFailed(job.error)
 
-    def _checked(self, upload: Upload, gt: Annotations) -> Annotations:
+    def _checked(self, upload: Upload, gt: Annotations, *, labels: str = "test") -> Annotations:
         """The submission's predictions, read once and checked as :func:`validate_submission` checks them (its
         sentences, naming the upload): raises :class:`InvalidSubmission` with them when it breaks the rules;
         unreadable or unsafe input raises as every load does."""
-        rules = SubmissionRules(frames=tuple(gt.frame_ids))
+        rules = SubmissionRules(frames=tuple(gt.frame_ids), labels=labels)  # a phase on open labels: "validation"
         with self.scratch() as scratch:
             try:
                 read = read_upload(

@@ -9,7 +9,7 @@ from datetime import datetime, timedelta, timezone
 from html import unescape
 
 import pytest
-from server_helpers import ADMIN, app_client, golden_bytes
+from server_helpers import ADMIN, app_client, golden_bytes, golden_txt, zip_of
 from server_phases import HOST, TWO_PHASES, phased_world
 from test_web_benchmarks import until_scored
 
@@ -136,3 +136,20 @@ def test_a_submissions_page_names_its_phase_and_links_a_validation_sets_frames(w
     assert c.get(link.group(1), headers=alice).status_code == 200
     test = until_scored(c, f"/benchmarks/kitti-phases/submissions/{ids['test']}")
     assert _text(test, "phase") == "test" and 'id="frames-link"' not in test  # a sealed phase's frames stay hidden
+
+
+def test_a_phase_on_open_labels_calls_its_frames_a_validation_set(world) -> None:
+    c, hosted = world
+    apply_benchmark_file(c.app.state.benchmarks.catalog, TWO_PHASES, caller=HOST)
+    alice = {"Authorization": f"Bearer {hosted.tokens['alice']}"}
+    txt = golden_txt("pred.tar.gz")
+    broken = zip_of(dict(list(txt.items())[1:]))  # one frame missing
+    said = {}
+    for phase in ("dev", "test"):
+        files = {"predictions": ("broken.zip", broken, "application/zip")}
+        sent = c.post(f"/v1/benchmarks/kitti-phases/phases/{phase}/submissions", files=files, headers=alice)
+        assert sent.status_code == 422
+        said[phase] = sent.json()["error"]["problems"][0]
+        frames = c.get(f"/v1/benchmarks/kitti-phases/phases/{phase}/frames").json()
+        assert frames["labels"] == ("validation" if phase == "dev" else "test")
+    assert said == {"dev": "1 validation frames are missing: 000000", "test": "1 test frames are missing: 000000"}
