@@ -25,6 +25,10 @@ __all__ = [
     "MAIN_PHASE",
     "DIFFICULTIES",
     "parse_quota",
+    "check_split_percent",
+    "check_max_published",
+    "check_texts",
+    "MAX_PUBLISHED",
     "quota_words",
     "parse_column",
     "parse_time",
@@ -42,6 +46,32 @@ PHASE_SEPARATOR = "~"
 MAIN_PHASE = "main"
 #: the recall modes as a column's help names them, the default first
 _RECALLS = tuple(reversed(RECALL_MODES))
+
+
+#: the most published entries a participant may be capped at
+MAX_PUBLISHED = 1000
+#: the longest title and description of a benchmark
+MAX_TITLE, MAX_DESCRIPTION = 200, 20000
+
+
+def check_split_percent(value: float | None) -> float | None:
+    """A phase's public part of its test frames, in percent (None: no split): more than 0, less than 100."""
+    if value is not None and not 0 < value < 100:
+        raise BadRequest("split_percent is the public part of the test frames: more than 0, less than 100")
+    return None if value is None else float(value)
+
+
+def check_max_published(value: int | None) -> int | None:
+    """A phase's cap on the entries a participant has published (None: no cap)."""
+    if value is not None and not 1 <= value <= MAX_PUBLISHED:
+        raise BadRequest(f"max_published is 1 to {MAX_PUBLISHED} published entries a participant (or none)")
+    return value
+
+
+def check_texts(title: str, description: str) -> None:
+    """A benchmark's title and description fit."""
+    if len(description) > MAX_DESCRIPTION or len(title) > MAX_TITLE:
+        raise BadRequest(f"a title is at most {MAX_TITLE} characters, a description at most {MAX_DESCRIPTION}")
 
 
 def quota_words(count: int, days: float, what: str = "submission") -> str:

@@ -66,8 +66,8 @@ class BenchmarkIn(BaseModel):
     opens_at: str | None = Field(None, max_length=100)
     closes_at: str | None = Field(None, max_length=100)
     split_percent: float | None = Field(None, description="the public part of the test frames, in percent")
-    max_published: int | None = Field(
-        None, ge=1, le=1000, description="published entries per participant (default: no cap); withdraw to swap"
+    max_published: int | None = Field(  # its range is checked once, by the rules (check_max_published)
+        None, description="published entries per participant, 1 to 1000 (default: no cap); withdraw to swap"
     )
 
 
