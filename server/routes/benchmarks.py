@@ -118,7 +118,8 @@ async def frame_ids(
     name: CurrentPhase, benchmarks: BenchmarksDep, service: ServiceDep, caller: AnyoneCaller
 ) -> dict[str, Any]:
     frames = await service.run(benchmarks.catalog.frame_ids, name, caller)
-    return {"benchmark": name.split(PHASE_SEPARATOR, 1)[0], "frames": frames}
+    labels = "validation" if benchmarks.catalog.named(name).open_labels else "test"
+    return {"benchmark": name.split(PHASE_SEPARATOR, 1)[0], "frames": frames, "labels": labels}
 
 
 @router.get("/{name}/leaderboard", summary="The leaderboard (JSON, or CSV with format=csv)")
