@@ -327,8 +327,15 @@ async def _library_error(request: Request, exc: Exception) -> JSONResponse:
     return error_response(status, code, str(exc), frame=frame, field=field)
 
 
-async def _http_error(request: Request, exc: Exception) -> JSONResponse:
+async def _http_error(request: Request, exc: Exception) -> Response:
+    """The one error shape; a browser asking for a page the service does not have (outside the API, HTML
+    accepted) is shown the app's error page instead of JSON."""
     assert isinstance(exc, StarletteHTTPException)
+    page = getattr(request.app.state, "error_page", None)
+    if page is not None and not is_api(request.url.path) and "text/html" in request.headers.get("accept", ""):
+        response: Response = page(request, exc)
+        response.headers.update(exc.headers or {})
+        return response
     message = exc.detail if isinstance(exc.detail, str) else HTTPStatus(exc.status_code).phrase
     return error_response(exc.status_code, _status_code_name(exc.status_code), message, exc.headers)
 

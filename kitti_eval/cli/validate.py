@@ -15,7 +15,7 @@ from typing import Any
 
 from .common import EXIT_INPUT, EXIT_OK
 
-__all__ = ["add_parser", "run", "fetch_frames"]
+__all__ = ["add_parser", "run", "fetch_frames", "fetch_set"]
 
 _TIMEOUT_S = 60
 
@@ -65,8 +65,10 @@ def run(args: argparse.Namespace) -> int:
     if args.max_boxes is not None and args.max_boxes < 1:
         raise ConfigError("--max-boxes must be >= 1")
     extra = {} if args.max_boxes is None else {"max_boxes_per_frame": args.max_boxes}
-    frames = read_split(args.frames) if args.frames is not None else fetch_frames(args.benchmark, args.token)
-    rules = SubmissionRules(frames=tuple(frames), **extra)
+    frames, labels = (
+        (read_split(args.frames), "test") if args.frames is not None else fetch_set(args.benchmark, args.token)
+    )
+    rules = SubmissionRules(frames=tuple(frames), labels=labels, **extra)
     outcome = validate_submission(args.file, rules)
     if not outcome.ok:
         for line in outcome.lines():
@@ -79,6 +81,12 @@ def run(args: argparse.Namespace) -> int:
 def fetch_frames(url: str, token: str | None = None) -> list[str]:
     """The test frame ids of the benchmark at ``url`` (``http(s)://HOST/benchmarks/NAME``, or its API path
     ``/v1/benchmarks/NAME``), from the service's ``GET /v1/benchmarks/NAME/frames``."""
+    return fetch_set(url, token)[0]
+
+
+def fetch_set(url: str, token: str | None = None) -> tuple[list[str], str]:
+    """:func:`fetch_frames`, and what the service calls them: ``test`` (a sealed test set) or ``validation`` (the
+    labelled set of a phase on open labels)."""
     import urllib.error  # here: every other command would import the HTTP client (and ssl) for nothing
     import urllib.request
 
@@ -108,4 +116,5 @@ def fetch_frames(url: str, token: str | None = None) -> list[str]:
     frames = body.get("frames") if isinstance(body, dict) else None
     if not isinstance(frames, list) or not frames:
         raise InputError(f"{url}: the answer holds no frame ids")
-    return [normalize_frame_id(f) for f in frames]
+    labels = "validation" if body.get("labels") == "validation" else "test"
+    return [normalize_frame_id(f) for f in frames], labels

@@ -40,10 +40,14 @@ class SubmissionRules:
     max_boxes_per_frame: int = 1000
     #: problems listed; past it one last sentence says how many more there were
     max_problems: int = 100
+    #: what the frames are called: ``"test"`` (a sealed test set) or ``"validation"`` (a set on open labels)
+    labels: str = "test"
 
     def __post_init__(self) -> None:
         if not self.frames:
             raise ValueError("a test set has at least one frame")
+        if self.labels not in ("test", "validation"):
+            raise ValueError("labels is 'test' or 'validation'")
         if self.max_boxes_per_frame < 1 or self.max_problems < 1:
             raise ValueError("max_boxes_per_frame and max_problems must be >= 1")
 
@@ -105,9 +109,9 @@ class _Collector:
         missing = [f for f in self.rules.frames if f not in seen]
         extra = sorted(f for f in seen if f not in wanted)
         if missing:
-            self.problem(f"{len(missing)} test frames are missing: {_shown(missing)}")
+            self.problem(f"{len(missing)} {self.rules.labels} frames are missing: {_shown(missing)}")
         if extra:
-            self.problem(f"{len(extra)} frames are not in the test set: {_shown(extra)}")
+            self.problem(f"{len(extra)} frames are not in the {self.rules.labels} set: {_shown(extra)}")
 
 
 def _shown(frames: Sequence[str]) -> str:

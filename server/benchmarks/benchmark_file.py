@@ -39,7 +39,7 @@ import re
 import secrets
 import sys
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import date, datetime, timezone
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -55,10 +55,20 @@ else:  # pragma: no cover - Python 3.10
 
 from ..access.accounts import Accounts
 from ..access.policy import Caller
-from ..errors import BadRequest, NotFound, echo
+from ..errors import BadRequest, Conflict, NotFound, echo
 from .catalog import scoring_options
+from .lifecycle import PhaseState, check_change, state_of
 from .phases import MAX_BENCHMARK_NAME, PhaseOf, check_phase_name, phase_list, phase_row
-from .rules import DEFAULT_KEY, MAIN_PHASE, Benchmark, parse_quota, parse_time
+from .rules import (
+    DEFAULT_KEY,
+    MAIN_PHASE,
+    Benchmark,
+    check_max_published,
+    check_split_percent,
+    check_texts,
+    parse_quota,
+    parse_time,
+)
 
 if TYPE_CHECKING:
     from .catalog import BenchmarkCatalog
@@ -227,8 +237,7 @@ def _parse(text: str, source: str) -> tuple[_Spec, _Reader]:
         raise r.refuse(f"a benchmark defined by a file has a name of at most {MAX_BENCHMARK_NAME} characters", "name")
     title = r.value(doc, "title", str, None, name) or name
     description = r.value(doc, "description", str, None, "")
-    if len(description) > 20000 or len(title) > 200:
-        raise r.refuse("a title is at most 200 characters, a description at most 20000", "description")
+    r.checked(check_texts, title, description, key="description")
     key = r.value(doc, "key", (str, list), None, [DEFAULT_KEY])
     keys = [key] if isinstance(key, str) else key
     columns = r.value(doc, "columns", list, None, [])
@@ -279,14 +288,12 @@ def _parse(text: str, source: str) -> tuple[_Spec, _Reader]:
         if opens is not None and closes is not None and closes <= opens:
             raise r.refuse(f"the phase {phase_name!r} closes after it opens", "closes_at", i)
         quota = r.checked(parse_quota, r.value(table, "quota", str, i, "3/1"), key="quota", phase=i)
-        split = r.value(table, "split_percent", (int, float), i, None)
-        if split is not None and not 0 < split < 100:
-            raise r.refuse(
-                "split_percent is the public part of the test frames: more than 0, less than 100", "split_percent", i
-            )
-        cap = r.value(table, "max_published", int, i, None)
-        if cap is not None and not 1 <= cap <= 1000:
-            raise r.refuse("max_published is 1 to 1000 published entries a participant", "max_published", i)
+        split = r.checked(
+            check_split_percent, r.value(table, "split_percent", (int, float), i, None), key="split_percent", phase=i
+        )
+        cap = r.checked(
+            check_max_published, r.value(table, "max_published", int, i, None), key="max_published", phase=i
+        )
         spec.phases.append(
             _Phase(
                 index=i,
@@ -295,7 +302,7 @@ def _parse(text: str, source: str) -> tuple[_Spec, _Reader]:
                 opens_at=opens,
                 closes_at=closes,
                 quota=quota,
-                split_percent=None if split is None else float(split),
+                split_percent=split,
                 max_published=cap,
                 late_submissions=r.value(table, "late_submissions", bool, i, False),
             )
@@ -512,8 +519,13 @@ def _changes(
         row["project"] = record.project
     if config != dict(bench.config):
         row["config"] = config
-    if bench.closes_at is not None and wanted["closes_at"] is None and bench.revealed:
-        raise r.refuse(f"the phase {p.name!r} is revealed: it stays closed", "closes_at", p.index)
+    try:  # the phase's life allows the change of its dates (:mod:`.lifecycle`): a revealed phase stays closed
+        check_change(p.name, bench, row)
+    except Conflict as e:
+        # said at the date the refusal is about: opens_at when it would make the phase scheduled again
+        later_opening = "opens_at" in row and state_of(replace(bench, opens_at=row["opens_at"])) is PhaseState.SCHEDULED
+        key = "opens_at" if later_opening or "closes_at" not in row else "closes_at"
+        raise r.refuse(e.message, key, p.index) from None
     return row
 
 

@@ -19,14 +19,24 @@ from ..evaluations.evaluator import EvalOptions
 from ..ground_truths.cache import GroundTruths
 from ..jobs.queue import JobQueue
 from ..store import BenchmarkRecord, BenchmarkStore, GroundTruthRecord
+from .lifecycle import check_change
 from .phases import PhaseOf, current_phase_of, phase_views
-from .rules import DEFAULT_KEY, DIFFICULTIES, Benchmark, parse_column, parse_quota, parse_time
+from .rules import (
+    DEFAULT_KEY,
+    DIFFICULTIES,
+    Benchmark,
+    check_max_published,
+    check_split_percent,
+    check_texts,
+    parse_column,
+    parse_quota,
+    parse_time,
+)
 from .views import benchmark_view
 
 __all__ = ["BenchmarkCatalog", "scoring_options"]
 
 _MAX_COLUMNS = 60
-_MAX_PUBLISHED = 1000
 
 
 def scoring_options(
@@ -177,14 +187,9 @@ class BenchmarkCatalog:
             )
         scoring = scoring_options(protocol, classes, threshold_sets, key, columns)
         count, days = parse_quota(quota)
-        if split_percent is not None and not 0 < split_percent < 100:
-            raise BadRequest("split_percent is the public part of the test frames: more than 0 and less than 100")
-        if max_published is not None and not 1 <= max_published <= _MAX_PUBLISHED:
-            raise BadRequest(
-                f"max_published is the published entries a participant may have: 1 to {_MAX_PUBLISHED} (or none)"
-            )
-        if len(description) > 20000 or len(title or "") > 200:
-            raise BadRequest("a title is at most 200 characters, a description at most 20000")
+        split_percent = check_split_percent(split_percent)
+        check_max_published(max_published)
+        check_texts(title or "", description)
         others = [b.name for b in self.using_ground_truth(record.name)]
         if others and not share_test_set:
             named = ", ".join(repr(b) for b in others)
@@ -227,24 +232,12 @@ class BenchmarkCatalog:
         return self.named(name)
 
     def set_state(self, name: str, *, caller: Caller, **values: bool) -> Benchmark:
-        """close (closed=True), reopen (closed=False), reveal (revealed=True): a benchmark is revealed once it
-        has opened and is closed (by hand or by its ``closes_at``), and is never reopened after."""
+        """close (closed=True), reopen (closed=False), reveal (revealed=True), as :func:`.lifecycle.check_change`
+        allows: a phase is revealed once it has opened and is closed (by hand or by its ``closes_at``), and is
+        never reopened after."""
         self.policy.require_admin(caller)
         bench = self.named(name)
-        now = datetime.now(timezone.utc)
-        if values.get("closed") is False and bench.revealed:
-            raise Conflict("revealed benchmarks stay closed: the private part's scores are out")
-        if values.get("revealed"):
-            if not bench.has_opened(now):
-                raise Conflict(
-                    f"the benchmark {name!r} has not opened yet (it opens at {bench.opens_at.isoformat()}): "
-                    "there is no ranking to reveal"
-                )
-            if not bench.is_closed(now):
-                raise Conflict(
-                    "the private ranking is revealed once the benchmark is closed: close it first (or wait for "
-                    "its closes_at)"
-                )
+        check_change(name, bench, values)  # the phase's life allows it (:mod:`.lifecycle`)
         self.benchmark_store.update_benchmark(name, **values)
         action = ",".join(f"{k}={v}" for k, v in sorted(values.items()))
         self.audit.record(caller, "benchmark.state", name, detail=action)

@@ -16,7 +16,7 @@ from ..errors import BadRequest
 from ..store import BenchmarkStore
 from .catalog import BenchmarkCatalog
 from .intervals import Intervals, ranked_rows, rounded
-from .teams import team_names
+from .teams import entry_teams
 from .views import BOARD_FIELDS, ENTRY_FIELDS, pick
 
 __all__ = ["Leaderboard"]
@@ -48,7 +48,7 @@ class Leaderboard:
         rank_of = {sid: i for i, sid in enumerate(ranked_ids, 1)}
         keyed = [row.id for row, key in ranked if key is not None and not row.baseline]
         standing = dict(zip(keyed, standings([values.get(i) for i in keyed])))
-        team_of = team_names(self.benchmark_store, bench)
+        team_of = entry_teams(self.benchmark_store, bench, [row for row, _ in ranked])
         for row, key in ranked:
             if row.baseline and key is not None:
                 standing[row.id] = standings([values.get(row.id)])[0]
@@ -62,7 +62,7 @@ class Leaderboard:
                         "id": row.id,
                         "method": row.method,
                         "participant": None if row.anonymous else row.participant,
-                        "team": None if row.anonymous else team_of.get(row.participant),
+                        "team": None if row.anonymous else team_of.get(row.id),
                         "affiliation": None if row.anonymous else row.affiliation,
                         "link": None if row.anonymous else row.link,
                         "anonymous": bool(row.anonymous),

@@ -38,7 +38,7 @@ def submission_frames(
     content = scoring.ground_truth_store.prediction_content(record.pred_sha256)
     if content is None:
         raise Conflict(f"the predictions of submission {record.id} are not kept")
-    dt = scoring._checked(stored_upload(content, record.pred_filename, record.pred_sha256), gt)
+    dt = scoring._checked(stored_upload(content, record.pred_filename, record.pred_sha256), gt, labels="validation")
     doc = frame_listing(gt, dt, bench.options().config(), **question)
     doc["submission"] = record.id
     return doc

@@ -46,6 +46,7 @@ __all__ = [
     "check_phase_name",
     "current_row",
     "current_phase_of",
+    "last_phase",
     "row_of",
     "phase_row_or_none",
     "submission_row",
@@ -152,6 +153,13 @@ def current_phase_of(catalog: BenchmarkCatalog, first: Benchmark) -> Benchmark:
     return _current(rows, datetime.now(timezone.utc)) if rows else first
 
 
+def last_phase(catalog: BenchmarkCatalog, first: Benchmark) -> Benchmark:
+    """The last phase of the benchmark whose first row is ``first`` (``first`` itself for one phase): once it
+    has closed, the benchmark has (:meth:`.teams.Teams` change no more)."""
+    rows = _rows(catalog, first.shown_name)
+    return rows[-1] if rows else first
+
+
 def row_of(catalog: BenchmarkCatalog, name: str, phase: str, caller: Caller) -> str:
     """The row of the benchmark's phase ``phase``, for a caller who sees the benchmark (404 otherwise, as for a
     benchmark that does not exist)."""
@@ -173,9 +181,10 @@ def phase_row_or_none(catalog: BenchmarkCatalog, name: str, phase: str, caller: 
         return None
 
 
-def phase_view(bench: Benchmark, *, current: bool, names_test_set: bool) -> dict[str, Any]:
+def phase_view(bench: Benchmark, *, current: bool, names_test_set: bool, now: datetime | None = None) -> dict[str, Any]:
     """A phase as those who see its benchmark read it (:data:`.views.PHASE_FIELDS`; its ground truth's name for
-    those the policy lets read it)."""
+    those the policy lets read it); its ``state`` as :mod:`.lifecycle` says at ``now``."""
+    now = now or datetime.now(timezone.utc)
     n, days = bench.quota
     values: Mapping[str, Any] = {
         "name": bench.phase_name,
@@ -183,8 +192,9 @@ def phase_view(bench: Benchmark, *, current: bool, names_test_set: bool) -> dict
         "ground_truth": bench.gt_name,
         "opens_at": bench.opens_at.isoformat(),
         "closes_at": bench.closes_at.isoformat() if bench.closes_at else None,
-        "open": bench.is_open(),
-        "closed": bench.is_closed(),
+        "state": bench.state(now).value,
+        "open": bench.is_open(now),
+        "closed": bench.is_closed(now),
         "late_submissions": bench.late_submissions,
         "open_labels": bench.open_labels,
         "quota": {"submissions": n, "days": days},
@@ -207,6 +217,7 @@ def phase_views(catalog: BenchmarkCatalog, bench: Benchmark, caller: Caller) -> 
             b,
             current=b.name == current,
             names_test_set=catalog.policy.names_test_set(caller, project=b.project),
+            now=now,
         )
         for b in rows
         if catalog.sees(caller, b)

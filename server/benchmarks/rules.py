@@ -16,6 +16,7 @@ from kitti_eval.core.protocol import DEFAULT_OSET, DEFAULT_RECALL, DIFFICULTIES,
 from ..errors import BadRequest, echo
 from ..evaluations.evaluator import EvalOptions
 from ..store import BenchmarkRecord
+from .lifecycle import PhaseState, state_of
 
 __all__ = [
     "Benchmark",
@@ -24,6 +25,11 @@ __all__ = [
     "MAIN_PHASE",
     "DIFFICULTIES",
     "parse_quota",
+    "check_split_percent",
+    "check_max_published",
+    "check_texts",
+    "MAX_PUBLISHED",
+    "quota_words",
     "parse_column",
     "parse_time",
     "in_public_part",
@@ -40,6 +46,37 @@ PHASE_SEPARATOR = "~"
 MAIN_PHASE = "main"
 #: the recall modes as a column's help names them, the default first
 _RECALLS = tuple(reversed(RECALL_MODES))
+
+
+#: the most published entries a participant may be capped at
+MAX_PUBLISHED = 1000
+#: the longest title and description of a benchmark
+MAX_TITLE, MAX_DESCRIPTION = 200, 20000
+
+
+def check_split_percent(value: float | None) -> float | None:
+    """A phase's public part of its test frames, in percent (None: no split): more than 0, less than 100."""
+    if value is not None and not 0 < value < 100:
+        raise BadRequest("split_percent is the public part of the test frames: more than 0, less than 100")
+    return None if value is None else float(value)
+
+
+def check_max_published(value: int | None) -> int | None:
+    """A phase's cap on the entries a participant has published (None: no cap)."""
+    if value is not None and not 1 <= value <= MAX_PUBLISHED:
+        raise BadRequest(f"max_published is 1 to {MAX_PUBLISHED} published entries a participant (or none)")
+    return value
+
+
+def check_texts(title: str, description: str) -> None:
+    """A benchmark's title and description fit."""
+    if len(description) > MAX_DESCRIPTION or len(title) > MAX_TITLE:
+        raise BadRequest(f"a title is at most {MAX_TITLE} characters, a description at most {MAX_DESCRIPTION}")
+
+
+def quota_words(count: int, days: float, what: str = "submission") -> str:
+    """A quota as it is said: ``1 submission per day``, ``3 submissions per 2 days``."""
+    return f"{count} {what}{'s' if count != 1 else ''} per {'day' if days == 1 else f'{days:g} days'}"
 
 
 def parse_quota(text: str) -> tuple[int, float]:
@@ -151,15 +188,17 @@ class Benchmark(BenchmarkRecord):
         """Its period has begun (``opens_at`` has passed), whether or not it was closed since."""
         return self.opens_at <= (now or datetime.now(timezone.utc))
 
+    def state(self, now: datetime | None = None) -> PhaseState:
+        """Its state (:func:`.lifecycle.state_of`: scheduled, open, closed or revealed)."""
+        return state_of(self, now)
+
     def is_closed(self, now: datetime | None = None) -> bool:
-        """Closed by hand, or its ``closes_at`` has passed."""
-        now = now or datetime.now(timezone.utc)
-        return self.closed or (self.closes_at is not None and now >= self.closes_at)
+        """Closed (by hand, or its ``closes_at`` has passed) or revealed."""
+        return self.state(now) in (PhaseState.CLOSED, PhaseState.REVEALED)
 
     def is_open(self, now: datetime | None = None) -> bool:
-        """Taking submissions: opened and not closed."""
-        now = now or datetime.now(timezone.utc)
-        return self.has_opened(now) and not self.is_closed(now)
+        """Taking submissions: in the state ``open``."""
+        return self.state(now) is PhaseState.OPEN
 
     # -- phases and teams (a benchmark defined by a file, :mod:`.phases`; one made with ``add`` is one phase) --
     @property
@@ -195,7 +234,7 @@ class Benchmark(BenchmarkRecord):
     def takes_late(self, now: datetime | None = None) -> bool:
         """Closed, and taking late submissions (never ranked)."""
         now = now or datetime.now(timezone.utc)
-        return self.late_submissions and self.has_opened(now) and self.is_closed(now) and not self.revealed
+        return self.late_submissions and self.has_opened(now) and self.state(now) is PhaseState.CLOSED
 
     @property
     def phase(self) -> str:

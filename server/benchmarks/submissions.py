@@ -42,7 +42,7 @@ from ..store import (
 from .catalog import BenchmarkCatalog
 from .intervals import Intervals
 from .phases import current_row
-from .rules import Benchmark, part_frames, scores_of
+from .rules import Benchmark, part_frames, quota_words, scores_of
 from .teams import quota_team
 from .views import submission_view
 
@@ -64,7 +64,7 @@ class QuotaExceeded(ApiError):
     def of(cls, count: int, days: float, retry_at: datetime) -> QuotaExceeded:
         retry = max(1, math.ceil((retry_at - datetime.now(timezone.utc)).total_seconds()))
         return cls(
-            f"the quota of {count} accepted submissions per {days:g} days is used; the next one is "
+            f"the quota of {quota_words(count, days, 'accepted submission')} is used; the next one is "
             f"accepted from {retry_at.isoformat()} (in {retry} s)",
             retry,
             retry_at,
@@ -78,7 +78,8 @@ class InvalidSubmission(ApiError):
     code = "invalid_submission"
 
     def __init__(self, problems: list[str]) -> None:
-        super().__init__(f"the submission is not valid ({len(problems)} problems): " + "; ".join(problems[:5]))
+        counted = f"{len(problems)} problem{'s' if len(problems) != 1 else ''}"
+        super().__init__(f"the submission is not valid ({counted}): " + "; ".join(problems[:5]))
         self.problems = problems
         self.details = {"problems": problems}
 
@@ -431,7 +432,8 @@ class Scoring:
                 if stored is None:
                     raise Conflict(f"the predictions of submission {row.id} are not kept")
                 try:
-                    dt = self._checked(stored_upload(stored.content, row.pred_filename, stored.sha256), gt)
+                    upload = stored_upload(stored.content, row.pred_filename, stored.sha256)
+                    dt = self._checked(upload, gt, labels="validation" if bench.open_labels else "test")
                 except (InputError, InvalidSubmission):  # the file is refused: it never counted
                     self.benchmark_store.delete_submission(sid)
                     raise
@@ -468,11 +470,11 @@ class Scoring:
             return None
         return JobFailed(job.error)
 
-    def _checked(self, upload: Upload, gt: Annotations) -> Annotations:
+    def _checked(self, upload: Upload, gt: Annotations, *, labels: str = "test") -> Annotations:
         """The submission's predictions, read once and checked as :func:`validate_submission` checks them (its
         sentences, naming the upload): raises :class:`InvalidSubmission` with them when it breaks the rules;
         unreadable or unsafe input raises as every load does."""
-        rules = SubmissionRules(frames=tuple(gt.frame_ids))
+        rules = SubmissionRules(frames=tuple(gt.frame_ids), labels=labels)  # a phase on open labels: "validation"
         with self.scratch() as scratch:
             try:
                 read = read_upload(

@@ -17,15 +17,17 @@ from typing import TYPE_CHECKING, Any
 
 from ..access.policy import Caller, may_join_team, sees_teams
 from ..errors import BadRequest, Conflict, Forbidden, NotFound, echo
-from ..store import AccountStore, BenchmarkStore
+from ..store import AccountStore, BenchmarkStore, SubmissionRecord
 from ..store.team_store import TeamRecord, TeamRefused, TeamStore
+from .lifecycle import PhaseState
+from .phases import last_phase
 from .rules import Benchmark
 from .views import OWN_TEAM_FIELDS, TEAM_FIELDS, pick
 
 if TYPE_CHECKING:
     from .catalog import BenchmarkCatalog
 
-__all__ = ["Teams", "quota_team", "team_names", "team_view"]
+__all__ = ["Teams", "quota_team", "entry_teams", "team_view"]
 
 _TEAM_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9 ._-]{0,47}$")
 
@@ -47,11 +49,19 @@ def quota_team(store: BenchmarkStore, bench: Benchmark, participant: str) -> tup
     return f"team~{team.name}", list(team.members)
 
 
-def team_names(store: BenchmarkStore, bench: Benchmark) -> dict[str, str]:
-    """Participant -> their team's name, in the benchmark ``bench`` is a phase of (none when it takes no teams)."""
+def entry_teams(store: BenchmarkStore, bench: Benchmark, rows: Sequence[SubmissionRecord]) -> dict[str, str]:
+    """Submission id -> the team it counted for when it was accepted, in the benchmark ``bench`` is a phase of
+    (none when it takes no teams): its participant's team, if they had joined it by then. A participant is in one
+    team of a benchmark and never leaves it, so who joins later relabels none of the entries already made."""
     if bench.team_size < 2:
         return {}
-    return {m: t.name for t in _store(store).teams(bench.shown_name) for m in t.members}
+    joined = _store(store).memberships(bench.shown_name)
+    out = {}
+    for row in rows:
+        team = joined.get(row.participant)
+        if team is not None and team[1] <= row.created_at:
+            out[row.id] = team[0]
+    return out
 
 
 def team_view(team: TeamRecord, *, own: bool = False) -> dict[str, Any]:
@@ -111,6 +121,12 @@ class Teams:
             raise Forbidden(f"one who takes part in {name!r} {doing}")
         if bench.team_size < 2:
             raise Conflict(f"the benchmark {name!r} takes no teams (its team size is 1)")
+        last = last_phase(self.catalog, bench)
+        if last.state() in (PhaseState.CLOSED, PhaseState.REVEALED):
+            raise Conflict(
+                f"the benchmark {name!r} has closed (its last phase, {last.phase_name!r}, is {last.state().value}): "
+                "its teams no longer change"
+            )
         return bench
 
     def create(self, name: str, team: str, members: Sequence[str], caller: Caller) -> dict[str, Any]:
@@ -132,8 +148,13 @@ class Teams:
             raise BadRequest(f"a team of {name!r} has at most {bench.team_size} members, its maker included")
         for member in everyone[1:]:
             user = self.account_store.get_user(member)
-            if not may_join_team(user, project=bench.project, open_to_all=bench.open_to_all):
-                raise BadRequest(f"{echo(member)} may not take part in {name!r}: a team is made of its participants")
+            if not may_join_team(user, project=bench.project, open_to_all=bench.open_to_all) or (
+                self.team_store.team_of(bench.name, member) is not None
+            ):  # one refusal whoever it is (missing, an admin, not taking part, in a team): it names no one
+                raise BadRequest(
+                    f"one of those invited may not join a team of {name!r}: a team invites participants of the "
+                    "benchmark who are in no team of it"
+                )
         store = self.team_store
         try:
             store.add_team(bench.name, team, caller.name, everyone[1:], datetime.now(timezone.utc))

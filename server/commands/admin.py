@@ -449,17 +449,17 @@ def _benchmark(args: argparse.Namespace, service: Service, caller: Caller) -> in
         n, days = bench.quota
         cap = f", at most {bench.max_published} published per participant" if bench.max_published else ""
         print(
-            f"benchmark {bench.name} on {bench.gt_name}: key {' + '.join(bench.key)}, quota {n} per {days:g} "
-            f"days{cap}, {'public' if bench.public else 'not public'}"
+            f"benchmark {bench.name} on {bench.gt_name}: key {' + '.join(bench.key)}, quota {n} per "
+            f"{'day' if days == 1 else f'{days:g} days'}{cap}, {'public' if bench.public else 'not public'}"
         )
     elif action == "list":
         for b in benchmarks.catalog.visible(caller):
-            state = "open" if b.is_open() else "closed"
+            state = b.state().value
             print(f"{b.shown_name}\t{b.gt_name}\t{state}\t{'public' if b.public else '-'}\t{b.title}")
     elif action in ("close", "reopen", "reveal"):
         values = {"close": {"closed": True}, "reopen": {"closed": False}, "reveal": {"revealed": True}}[action]
         bench = benchmarks.catalog.set_state(args.name, caller=caller, **values)
-        print(f"benchmark {bench.name}: {'open' if bench.is_open() else 'closed'}, board {bench.phase}")
+        print(f"benchmark {bench.name}: {bench.state().value}, board {bench.phase}")
     elif action == "rescore":
         queued = benchmarks.submissions.rescore(args.name, caller=caller)
         ended = _run_jobs(service, queued["jobs"])

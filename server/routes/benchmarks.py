@@ -66,8 +66,8 @@ class BenchmarkIn(BaseModel):
     opens_at: str | None = Field(None, max_length=100)
     closes_at: str | None = Field(None, max_length=100)
     split_percent: float | None = Field(None, description="the public part of the test frames, in percent")
-    max_published: int | None = Field(
-        None, ge=1, le=1000, description="published entries per participant (default: no cap); withdraw to swap"
+    max_published: int | None = Field(  # its range is checked once, by the rules (check_max_published)
+        None, description="published entries per participant, 1 to 1000 (default: no cap); withdraw to swap"
     )
 
 
@@ -118,7 +118,8 @@ async def frame_ids(
     name: CurrentPhase, benchmarks: BenchmarksDep, service: ServiceDep, caller: AnyoneCaller
 ) -> dict[str, Any]:
     frames = await service.run(benchmarks.catalog.frame_ids, name, caller)
-    return {"benchmark": name.split(PHASE_SEPARATOR, 1)[0], "frames": frames}
+    labels = "validation" if benchmarks.catalog.named(name).open_labels else "test"
+    return {"benchmark": name.split(PHASE_SEPARATOR, 1)[0], "frames": frames, "labels": labels}
 
 
 @router.get("/{name}/leaderboard", summary="The leaderboard (JSON, or CSV with format=csv)")

@@ -59,7 +59,8 @@ async def phase_frame_ids(
 ) -> dict[str, Any]:
     row = row_of(benchmarks.catalog, name, phase, caller)
     frames = await service.run(benchmarks.catalog.frame_ids, row, caller)
-    return {"benchmark": name, "phase": phase, "frames": frames}
+    labels = "validation" if benchmarks.catalog.named(row).open_labels else "test"
+    return {"benchmark": name, "phase": phase, "frames": frames, "labels": labels}
 
 
 @router.get("/{name}/phases/{phase}/leaderboard", summary="A phase's leaderboard (JSON, or CSV with format=csv)")

@@ -172,6 +172,14 @@ class TeamStore(Area):
         return found[0] if found else None
 
     @retry_when_locked
+    def memberships(self, benchmark: str) -> dict[str, tuple[str, datetime]]:
+        """Participant -> (their team in the benchmark, when they joined it)."""
+        query = select(team_members).where(team_members.c.benchmark == benchmark)
+        with self.engine.connect() as conn:
+            rows = conn.execute(query).mappings().all()
+        return {r["participant"]: (r["team"], utc(r["joined_at"])) for r in rows}
+
+    @retry_when_locked
     def teams(self, benchmark: str, *, name: str | None = None) -> list[TeamRecord]:
         """The benchmark's teams by name (``name``: that one only), each with its members."""
         query = select(teams).where(teams.c.benchmark == benchmark).order_by(teams.c.name)

@@ -10,6 +10,7 @@ benchmark is public; the forms go through the same service methods, and the same
 from __future__ import annotations
 
 from collections.abc import Mapping
+from datetime import datetime, timezone
 from functools import partial
 from typing import Annotated, Any, Literal
 from urllib.parse import quote
@@ -100,7 +101,32 @@ def _rules(bench: Mapping[str, Any]) -> dict[str, Any]:
             "the final ranking uses the rest"
         ),
         "max_published": bench.get("max_published"),
+        "period": _period(bench),
     }
+
+
+def _period(bench: Mapping[str, Any]) -> str:
+    """A phase's period in words for its state (the ``state`` of :mod:`..benchmarks.lifecycle`): ``opens DATE``,
+    ``open; closes DATE``, ``closed on DATE``, and the final ranking once revealed."""
+    state = bench.get("state", "open" if bench.get("open") else "closed")
+    closes_at = bench.get("closes_at")
+    closes = full_time(closes_at) if closes_at else None
+    if state == "scheduled":
+        return f"opens {full_time(bench['opens_at'])}" + (f"; closes {closes}" if closes else "")
+    if state == "open":
+        return f"open; closes {closes}" if closes else "open; no closing date"
+    # closed by its closes_at (a date past) or by hand (the date is not kept)
+    ended = (
+        f"closed on {closes}"
+        if closes_at and datetime.fromisoformat(closes_at) <= datetime.now(timezone.utc)
+        else "closed"
+    )
+    return f"{ended}; final ranking" if state == "revealed" else ended
+
+
+def _taking_now(phases: list[dict[str, Any]]) -> str | None:
+    """The phase that takes submissions now, of a benchmark with phases (None: none does)."""
+    return next((p["name"] for p in phases if p.get("state") == "open"), None)
 
 
 def _participant(service: Service, caller: Caller) -> bool:
@@ -116,7 +142,9 @@ def benchmarks_page(request: Request, service: ServiceDep, caller: AnyoneCaller)
     for bench in benchmarks.catalog.visible(caller):
         described = benchmarks.catalog.describe(bench, caller)
         mine = benchmarks.submissions.mine(bench.name, caller) if _participant(service, caller) else None
-        rows.append({"bench": described, "rules": _rules(described), "mine": mine})
+        current: dict[str, Any] = next((p for p in described["phases"] if p["current"]), {})
+        set_word = "validation set" if current.get("open_labels") else "test set"
+        rows.append({"bench": described, "rules": _rules(described), "mine": mine, "set_word": set_word})
     return _render(request, "benchmarks.html", rows=rows, participant=_participant(service, caller))
 
 
@@ -164,6 +192,8 @@ def _benchmark_context(
         "phases": [{**p, "rules": _rules({**p, "key": described["key"]})} for p in phases] if len(phases) > 1 else [],
         "teams": teams,
         "team_error": None,
+        "taking_now": _taking_now(phases),
+        "set_word": "validation set" if bench.open_labels else "test set",
         "bench": described,
         "rules": _rules(described),
         "description": Markup(render_markdown(bench.description)),  # noqa: S704 - every character escaped first
@@ -290,6 +320,12 @@ def _submission_context(
     return {
         "bench": described,
         "rules": _rules(described),
+        "phased": len(described["phases"]) > 1,
+        "frames_url": (
+            f"/v1/benchmarks/{quote(bench.shown_name)}/submissions/{quote(submission['id'])}/frames"
+            if bench.open_labels
+            else None
+        ),
         "sub": submission,
         "state": state,
         "refresh": None if state["done"] else REFRESH_S,

@@ -57,7 +57,7 @@ def test_a_participant_makes_a_team_and_submits_to_the_test_phase_through_the_pa
     page = c.get("/benchmarks/kitti-phases").text
     assert 'id="make-team"' in page and "a team of up to 3" in page
     refused = c.post("/benchmarks/kitti-phases/teams", data={"csrf": csrf, "name": "Two", "members": "nobody"})
-    assert refused.status_code == 422 and "may not take part" in refused.text and 'id="team-error"' in refused.text
+    assert refused.status_code == 422 and "may not join a team" in refused.text and 'id="team-error"' in refused.text
     made = c.post(
         "/benchmarks/kitti-phases/teams", data={"csrf": csrf, "name": "Two", "members": "bob"}, follow_redirects=False
     )

@@ -90,7 +90,7 @@ def test_a_client_waiting_for_continue_is_refused_without_sending_its_file(live)
         status, headers, raw = _response(sock)
         assert status == 429  # not "100 Continue": the file is not asked for
         error = json.loads(raw)["error"]
-        assert error["code"] == "quota_exceeded" and "quota of 1 accepted submissions per 1 days" in error["message"]
+        assert error["code"] == "quota_exceeded" and "quota of 1 accepted submission per day" in error["message"]
         retry_at = datetime.fromisoformat(error["retry_at"])
         assert abs((retry_at - datetime.fromisoformat(first["created_at"])).total_seconds() - 86400) < 1
         assert 86000 <= int(headers["retry-after"]) <= 86401
