@@ -20,7 +20,16 @@ from .common import EXIT_INPUT, EXIT_OK, EXIT_QUOTA, EXIT_UNREACHABLE, EXIT_USAG
 if TYPE_CHECKING:
     from ..client import Client
 
-__all__ = ["add_service_arguments", "client_of", "exit_code", "report", "run_evaluation", "run_gate"]
+__all__ = [
+    "add_connection_arguments",
+    "add_service_arguments",
+    "client_of",
+    "service_of",
+    "exit_code",
+    "report",
+    "run_evaluation",
+    "run_gate",
+]
 
 #: how long a request is sent again while the service is away, unless --retry-for says
 RETRY_FOR_S = 300.0
@@ -43,14 +52,19 @@ def _label(text: str) -> str:
     return text
 
 
-def add_connection_arguments(group: Any, *, required: bool = False) -> None:
-    """``--service`` and how long to try it (every command that talks to a service)."""
+def add_connection_arguments(group: Any, *, required: bool = False, saved: bool = False) -> None:
+    """``--service``, how long to try it and ``--allow-http`` (every command that talks to a service).
+    ``saved``: ``--service`` may be left out when ``kitti-eval login`` saved a token for one service only."""
+    if saved:
+        where = " (default: the one service 'kitti-eval login' saved a token for)"
+    else:
+        where = "" if required else " (default: none, evaluate here)"
     group.add_argument(
         "--service",
         metavar="URL",
         required=required,
         help="the service, http(s)://HOST[:PORT]; the token is $KITTI_EVAL_TOKEN, else the one 'kitti-eval "
-        "login' saved for it" + ("" if required else " (default: none, evaluate here)"),
+        "login' saved for it" + where,
     )
     group.add_argument(
         "--retry-for",
@@ -60,6 +74,29 @@ def add_connection_arguments(group: Any, *, required: bool = False) -> None:
         help="how long to send a request again while the service is away (no answer, restarting, 503), with "
         f"backoff and jitter; exit 5 past it (default: {RETRY_FOR_S:g})",
     )
+    group.add_argument(
+        "--allow-http",
+        action="store_true",
+        help="send the token over plain http to a host other than this machine (a trusted network only; "
+        "$KITTI_EVAL_ALLOW_HTTP=1 says the same; default: refused, use https)",
+    )
+
+
+def service_of(args: argparse.Namespace) -> str:
+    """The service a command talks to: ``--service``, else the one service ``kitti-eval login`` saved a token
+    for (set on ``args`` for the command's sentences)."""
+    if getattr(args, "service", None):
+        return str(args.service)
+    from ..client import saved_services
+
+    saved = saved_services()
+    if len(saved) != 1:
+        known = f" (tokens are saved for {', '.join(saved)})" if saved else ""
+        raise ConfigError(
+            f"which service? give --service URL{known}, or save a token once with 'kitti-eval login --service URL'"
+        )
+    args.service = saved[0]
+    return args.service
 
 
 def add_service_arguments(p: argparse.ArgumentParser) -> None:
@@ -90,10 +127,11 @@ def client_of(args: argparse.Namespace, *, progress: bool = False) -> Client:
 
     quiet = getattr(args, "quiet", False)
     return Client(
-        args.service,
+        service_of(args),
         retries=Retries(within_s=args.retry_for),
         progress=progress and not quiet and sys.stderr.isatty(),
         on_retry=None if quiet else (lambda sentence: say(sentence)),
+        allow_http=True if getattr(args, "allow_http", False) else None,
     )
 
 

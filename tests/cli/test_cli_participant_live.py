@@ -1,0 +1,100 @@
+"""A participant's path with ``kitti-eval`` alone, against a real service (uvicorn in a subprocess): a run of
+``submit`` killed (SIGKILL) after the service accepted its file, run again, counts once and ``--new`` counts
+again; alice makes a team inviting bob, bob joins, alice submits, lists her submissions, publishes one and reads
+the board, which names the team."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from server_benchmarks import host, ok
+from server_helpers import ADMIN, ROOT, LiveServer, golden_bytes
+
+pytestmark = pytest.mark.slow
+
+_TIMEOUT_S = 300
+_NO_WORKER = {"auth": "accounts", "job_threads": "0", "worker_processes": "0"}
+
+
+def _env(token: str | None, config_dir: Path) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("KITTI_EVAL_")}
+    env["KITTI_EVAL_CONFIG_DIR"] = str(config_dir)
+    if token:
+        env["KITTI_EVAL_TOKEN"] = token
+    return env
+
+
+def _cli(args: list[str], token: str, config_dir: Path) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "kitti_eval.cli", *args],
+        cwd=ROOT,
+        env=_env(token, config_dir),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _finish(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
+    out, err = proc.communicate(timeout=_TIMEOUT_S)
+    return proc.returncode, out, err
+
+
+def _submission_jobs(server: LiveServer) -> list[dict[str, Any]]:
+    with server.client() as c:
+        return [j for j in ok(c.get("/v1/admin/jobs", headers=ADMIN))["items"] if j["kind"] == "submission"]
+
+
+def _quota(server: LiveServer, token: str) -> dict[str, Any]:
+    with server.client() as c:
+        mine = ok(c.get("/v1/benchmarks/bench/submissions", headers={"Authorization": f"Bearer {token}"}))
+    return dict(mine["quota"])
+
+
+def test_a_submit_killed_after_the_service_accepted_its_file_counts_once_when_run_again(tmp_path) -> None:
+    """The service has no worker: the submission stays queued, its run of ``submit`` follows it; SIGKILL once
+    the service recorded it; the service started again with its workers; the same command again is answered
+    with that submission, scored (exit 0), one submission used; ``--new`` makes a second."""
+    data_dir, config = tmp_path / "data", tmp_path / "config"
+    server = LiveServer(data_dir, ready_path="/healthz", **_NO_WORKER).start()
+    try:
+        with server.client() as c:
+            hosted = host(c)
+        token = hosted.tokens["alice"]
+        pred = tmp_path / "result.pkl"
+        pred.write_bytes(golden_bytes("result.pkl"))
+        command = ["submit", str(pred), "--benchmark", "bench", "--service", server.url, "--format", "json"]
+        proc = _cli(command, token, config)
+        deadline = time.monotonic() + 120
+        while not _submission_jobs(server):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        proc.kill()  # SIGKILL: no handler of the client runs
+        proc.wait(timeout=10)
+        (accepted,) = _submission_jobs(server)
+        assert _quota(server, token)["used"] == 1
+        server.stop()
+        server = LiveServer(data_dir, auth="accounts").start(port=server.port)
+
+        code, out, err = _finish(_cli(command, token, config))
+        assert code == 0, err
+        view = json.loads(out)
+        assert view["id"] == accepted["id"] and view["status"] == "scored"
+        assert "counted once" in err
+        assert _quota(server, token)["used"] == 1
+        assert [j["id"] for j in _submission_jobs(server)] == [accepted["id"]]
+
+        code, out, err = _finish(_cli([*command, "--new"], token, config))
+        assert code == 0, err
+        assert json.loads(out)["id"] != accepted["id"]
+        assert _quota(server, token)["used"] == 2
+    finally:
+        server.stop()
