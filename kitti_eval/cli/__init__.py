@@ -25,6 +25,7 @@ from . import (
     compare,
     demo,
     describe,
+    entries,
     errors,
     evaluate,
     frames,
@@ -33,6 +34,7 @@ from . import (
     installed,
     login,
     submit,
+    team,
     validate,
 )
 from .common import EXIT_INPUT, EXIT_USAGE, PROG, config, limits_from, say, say_defaults
@@ -43,6 +45,8 @@ __all__ = ["main", "entry", "COMMANDS"]
 #: every command's ``add_parser(sub)``, in the order ``kitti-eval --help`` lists them: the installed ones last
 COMMANDS: tuple[Callable[[Any], object], ...] = (
     *(cmd.add_parser for cmd in (demo, gate, compare, frames, inspect, errors, describe, validate, submit, login)),
+    team.add_parser,
+    entries.add_parsers,
     *installed.parsers(),
 )
 

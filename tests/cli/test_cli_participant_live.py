@@ -15,7 +15,11 @@ from typing import Any
 
 import pytest
 from server_benchmarks import host, ok
-from server_helpers import ADMIN, ROOT, LiveServer, golden_bytes
+from server_helpers import ADMIN, ROOT, LiveServer, app_client, golden_bytes
+from server_phases import HOST, TWO_PHASES, phased_world
+
+from kitti_eval.cli import main
+from kitti_eval_server.benchmarks.benchmark_file import apply_benchmark_file
 
 pytestmark = pytest.mark.slow
 
@@ -98,3 +102,80 @@ def test_a_submit_killed_after_the_service_accepted_its_file_counts_once_when_ru
         assert _quota(server, token)["used"] == 2
     finally:
         server.stop()
+
+
+def _as(who: str, hosted: Any, config: Path, monkeypatch: Any) -> None:
+    monkeypatch.setenv("KITTI_EVAL_TOKEN", hosted.tokens[who])
+    monkeypatch.setenv("KITTI_EVAL_CONFIG_DIR", str(config / who))
+
+
+def _run(argv: list[str], capsys: Any) -> tuple[int, str, str]:
+    code = main(argv)
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_a_teams_whole_path_with_the_command_line_alone(tmp_path, capsys, monkeypatch) -> None:
+    """alice makes the team lidar-lab inviting bob, bob joins; alice submits (told the phase, the team's quota
+    left, the page and how to publish), lists her submissions, publishes one and reads the board, which names
+    the team; withdrawn, it is off the board."""
+    data_dir, config = tmp_path / "data", tmp_path / "config"
+    with app_client(data_dir, auth="accounts") as c:
+        hosted = phased_world(c, ("alice", "bob"))
+        apply_benchmark_file(c.app.state.benchmarks.catalog, TWO_PHASES, caller=HOST, source="kitti-phases.toml")
+    with LiveServer(data_dir, auth="accounts") as server:
+        service = ["--service", server.url]
+        bench = ["--benchmark", "kitti-phases"]
+        _as("alice", hosted, config, monkeypatch)
+        code, out, err = _run(["team", "create", "lidar-lab", *bench, "--invite", "bob", *service], capsys)
+        assert code == 0, err
+        assert out == "lidar-lab: alice (invited: bob)\n"
+        _as("bob", hosted, config, monkeypatch)
+        code, out, err = _run(["team", "show", *bench, *service], capsys)
+        assert code == 0, err
+        assert "your team: none" in out and "invited to: lidar-lab" in out
+        code, out, err = _run(["team", "join", "lidar-lab", *bench, *service], capsys)
+        assert code == 0, err
+        assert out.startswith("lidar-lab: alice, bob")
+        code, out, err = _run(["team", "join", "lidar-lab", *bench, *service], capsys)
+        assert code == 2 and "lidar-lab" in err  # joined already: the service refuses
+
+        _as("alice", hosted, config, monkeypatch)
+        pred = tmp_path / "result.pkl"
+        pred.write_bytes(golden_bytes("result.pkl"))
+        code, out, err = _run(["submit", str(pred), *bench, *service, "--format", "json", "--quiet"], capsys)
+        assert code == 0, err
+        first = json.loads(out)["id"]
+        code, out, err = _run(["submit", str(pred), *bench, *service, "--new"], capsys)
+        assert code == 0, err
+        assert "phase dev: scored; the team lidar-lab has 3 of 5 left today" in err
+        second = out.splitlines()[0].split()[1]
+        assert f"its page: {server.url}/benchmarks/kitti-phases/submissions/{second}" in err
+        assert f'kitti-eval publish {second} --benchmark kitti-phases --method "YOUR METHOD"' in err
+
+        code, out, err = _run(["submissions", "kitti-phases", *service], capsys)
+        assert code == 0, err
+        assert "the team lidar-lab has 3 of 5 left today" in err
+        rows = out.splitlines()[1:]
+        assert [r.split()[0] for r in rows] == [second, first]
+        assert all(r.split()[1] == "scored" and r.split()[3] == "no" for r in rows)
+        code, out, err = _run(["submissions", "kitti-phases", *service, "--format", "json"], capsys)
+        assert [s["id"] for s in json.loads(out)] == [second, first]
+
+        code, out, err = _run(["publish", second, *bench, "--method", "PointPillars", *service], capsys)
+        assert code == 0, err
+        assert "is on the board of kitti-phases as 'PointPillars'" in err
+        code, out, err = _run(["board", "kitti-phases", *service], capsys)
+        assert code == 0, err
+        (row,) = out.splitlines()[2:]
+        assert row.split()[:3] == ["1", row.split()[1], "PointPillars"] and "lidar-lab" in row
+        code, out, err = _run(["board", "kitti-phases", *service, "--format", "json"], capsys)
+        (entry,) = json.loads(out)["entries"]
+        assert (entry["id"], entry["team"], entry["method"]) == (second, "lidar-lab", "PointPillars")
+        code, out, err = _run(["board", "kitti-phases", *service, "--format", "csv"], capsys)
+        assert code == 0 and "PointPillars" in out and "lidar-lab" in out
+
+        code, out, err = _run(["withdraw", second, *bench, *service], capsys)
+        assert code == 0, err
+        code, out, err = _run(["board", "kitti-phases", *service, "--format", "json"], capsys)
+        assert json.loads(out)["entries"] == []
