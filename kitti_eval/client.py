@@ -561,6 +561,12 @@ class Client:
             raise ServiceError(f"{self.service}: the answer names {location!r} as the result, not a path of its own")
         return self._get(location)
 
+    @_answered
+    def whoami(self) -> dict[str, Any]:
+        """Who the token is, as the service admitted it: ``user``, ``admin``, ``read_only``."""
+        body = self._get("/v1/me")
+        return {"user": _shown(body["user"]), "admin": bool(body.get("admin")), "read_only": bool(body["read_only"])}
+
     # -- jobs -------------------------------------------------------------------------------------------
     @_answered
     def job(self, job_id: str) -> Job:

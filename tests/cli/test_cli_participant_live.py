@@ -5,6 +5,7 @@ the board, which names the team."""
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import subprocess
@@ -127,6 +128,10 @@ def test_a_teams_whole_path_with_the_command_line_alone(tmp_path, capsys, monkey
         service = ["--service", server.url]
         bench = ["--benchmark", "kitti-phases"]
         _as("alice", hosted, config, monkeypatch)
+        monkeypatch.delenv("KITTI_EVAL_TOKEN")  # alice's token saved by login, which says whose it is
+        monkeypatch.setattr("sys.stdin", io.StringIO(hosted.tokens["alice"] + "\n"))
+        code, out, err = _run(["login", *service], capsys)
+        assert code == 0 and "the token is alice's: saved in" in err, err
         code, out, err = _run(["team", "create", "lidar-lab", *bench, "--invite", "bob", *service], capsys)
         assert code == 0, err
         assert out == "lidar-lab: alice (invited: bob)\n"
@@ -172,7 +177,7 @@ def test_a_teams_whole_path_with_the_command_line_alone(tmp_path, capsys, monkey
         code, out, err = _run(["board", "kitti-phases", *service, "--format", "json"], capsys)
         (entry,) = json.loads(out)["entries"]
         assert (entry["id"], entry["team"], entry["method"]) == (second, "lidar-lab", "PointPillars")
-        code, out, err = _run(["board", "kitti-phases", *service, "--format", "csv"], capsys)
+        code, out, err = _run(["board", "kitti-phases", "--format", "csv"], capsys)  # the service login saved
         assert code == 0 and "PointPillars" in out and "lidar-lab" in out
 
         code, out, err = _run(["withdraw", second, *bench, *service], capsys)
