@@ -236,7 +236,18 @@ def run_gate(args: argparse.Namespace, *, errors: bool = False) -> tuple[dict, d
         raise ConfigError("--service gates --pred against --gt, the name of a ground truth registered there")
     if args.baseline is not None and args.baseline_label:
         raise ConfigError("give --baseline (an evaluation id) or --baseline-label, not both")
-    current = _evaluate(args, args.gt, args.pred, curves=False, errors=errors)
+    try:
+        current = _evaluate(args, args.gt, args.pred, curves=False, errors=errors)
+    except ServiceError as e:
+        if e.status == 403 and "read-only" in e.message:
+            raise ServiceError(
+                f"{args.service}: this token is read-only, and gate --service has the service evaluate --pred and "
+                "keep the evaluation, which a read-only token may not; gate with a token that may write, or gate "
+                "an evaluation already stored (POST /v1/gates with its id)",
+                status=403,
+                code=e.code,
+            ) from None
+        raise
     if not args.quiet:
         say(f"stored as evaluation {current.id} ({args.service}/v1/evaluations/{current.id})")
     baseline = None

@@ -184,3 +184,32 @@ def test_a_teams_whole_path_with_the_command_line_alone(tmp_path, capsys, monkey
         assert code == 0, err
         code, out, err = _run(["board", "kitti-phases", *service, "--format", "json"], capsys)
         assert json.loads(out)["entries"] == []
+
+
+def test_gate_with_a_read_only_token_says_why_it_cannot_and_what_to_do(tmp_path, capsys, monkeypatch) -> None:
+    with LiveServer(tmp_path / "data", auth="accounts") as server:
+        with server.client() as c:
+            host(c)
+            body = {"user": "alice", "read_only": True}
+            reader = ok(c.post("/v1/admin/tokens", json=body, headers=ADMIN), 201)["token"]
+        monkeypatch.setenv("KITTI_EVAL_TOKEN", reader)
+        pred = tmp_path / "result.pkl"
+        pred.write_bytes(golden_bytes("result.pkl"))
+        argv = [
+            "gate",
+            "--service",
+            server.url,
+            "--gt",
+            "test-set",
+            "--pred",
+            str(pred),
+            "--min",
+            "Car/3d/moderate >= 1",
+        ]
+        code, out, err = _run(argv, capsys)
+        assert code == 2 and out == ""
+        assert "this token is read-only" in err and "gate with a token that may write" in err
+        monkeypatch.setenv("KITTI_EVAL_CONFIG_DIR", str(tmp_path / "config"))
+        monkeypatch.setattr("sys.stdin", io.StringIO(reader + "\n"))
+        code, out, err = _run(["login", "--service", server.url], capsys)
+        assert code == 0 and "the token is alice's, read-only (it may read, not submit nor store an evaluation)" in err
