@@ -300,8 +300,8 @@ def saved_token(service: str) -> str | None:
 
 def save_token(service: str, token: str) -> Path:
     """Saves ``token`` for ``service`` in the client's folder (readable by its owner only, written through a
-    temporary file of its own: :mod:`kitti_eval.client_parts.files`); returns the file."""
-    from .client_parts.files import write_private_json
+    temporary file of its own: :mod:`kitti_eval.client_state`); returns the file."""
+    from .client_state import write_private_json
 
     tokens = {**_saved(), _service_key(service): token}
     return write_private_json(config_dir() / _TOKENS_FILE, tokens)
@@ -737,7 +737,7 @@ class Client:
     @_answered
     def leaderboard_csv(self, benchmark: str, *, phase: str | None = None) -> str:
         """The board of the benchmark's phase (None: its current one) as the service's CSV."""
-        from .client_parts.entries import board_csv
+        from .client_benchmarks import board_csv
 
         return board_csv(self, f"{_at(benchmark, phase)}/leaderboard")
 
@@ -754,7 +754,7 @@ class Client:
     ) -> Submission:
         """Shows one of your scored submissions on the board under ``method`` (``anonymous``: without your name,
         affiliation or link); the submission as it is then."""
-        from .client_parts.entries import publish
+        from .client_benchmarks import publish
 
         return Submission.from_body(
             publish(
@@ -771,7 +771,7 @@ class Client:
     @_answered
     def withdraw(self, benchmark: str, submission_id: str) -> Submission:
         """Takes one of your entries off the board; the submission as it is then."""
-        from .client_parts.entries import withdraw
+        from .client_benchmarks import withdraw
 
         return Submission.from_body(withdraw(self, benchmark, _id(submission_id)))
 
@@ -780,7 +780,7 @@ class Client:
     def teams(self, benchmark: str) -> dict[str, Any]:
         """The benchmark's teams: ``items`` (each with its members), ``mine`` (yours, None when in none),
         ``invitations`` (the teams that invited you) and ``team_size``."""
-        from .client_parts.teams import teams
+        from .client_benchmarks import teams
 
         return teams(self, benchmark)
 
@@ -788,14 +788,14 @@ class Client:
     def create_team(self, benchmark: str, name: str, *, invite: Sequence[str] = ()) -> dict[str, Any]:
         """Makes the team ``name`` in the benchmark (you are its first member) and invites ``invite``, who join
         when they accept (:meth:`join_team`); the team with its ``members`` and ``invited``."""
-        from .client_parts.teams import create_team
+        from .client_benchmarks import create_team
 
         return create_team(self, benchmark, name, invite)
 
     @_answered
     def join_team(self, benchmark: str, name: str) -> dict[str, Any]:
         """Joins the team ``name``, which invited you: from then on each phase's quota is the team's."""
-        from .client_parts.teams import join_team
+        from .client_benchmarks import join_team
 
         return join_team(self, benchmark, name)
 
@@ -840,7 +840,7 @@ class Client:
         it made, counted once); else the key saved in the client's folder for the same file (its sha256) sent
         to the same service, benchmark and phase by a call that has not shown it scored yet (a process killed
         after its file reached the service), so that the same file submitted again counts once; else a new
-        one, saved before the file is sent (:mod:`kitti_eval.client_parts.pending`). ``new``: a new key
+        one, saved before the file is sent (:mod:`kitti_eval.client_state`). ``new``: a new key
         whatever was saved: the same file submitted again on purpose, counted again."""
         path = Path(predictions)
         if not path.exists():
@@ -849,7 +849,7 @@ class Client:
             self.check_submission(path, benchmark, phase=phase)
         if idempotency_key is not None:
             return self._submit(path, benchmark, phase, idempotency_key, wait=wait, wait_s=wait_s)
-        from .client_parts.pending import PendingKeys
+        from .client_state import PendingKeys
 
         pending = PendingKeys(config_dir())
         with pending.held(self.service, benchmark, phase, _upload_sha256(path), new=new) as held:
@@ -880,7 +880,7 @@ class Client:
 
 def _upload_sha256(path: Path) -> str:
     """The sha256 of the bytes a submission of ``path`` sends (a folder: the tar.gz it is packed as)."""
-    from .client_parts.pending import sha256_of
+    from .client_state import sha256_of
 
     if path.is_dir():
         with _tar_of_txt(path) as raw:

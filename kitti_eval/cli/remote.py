@@ -25,6 +25,7 @@ __all__ = [
     "add_service_arguments",
     "client_of",
     "service_of",
+    "quota_left",
     "exit_code",
     "report",
     "run_evaluation",
@@ -133,6 +134,21 @@ def client_of(args: argparse.Namespace, *, progress: bool = False) -> Client:
         on_retry=None if quiet else (lambda sentence: say(sentence)),
         allow_http=True if getattr(args, "allow_http", False) else None,
     )
+
+
+def quota_left(client: Client, benchmark: str, phase: str | None, info: dict[str, Any]) -> str:
+    """The quota left on the benchmark's phase as a sentence: the team's in a team ("the team lidar-lab has 1
+    of 2 left today"), else the caller's. ``info``: the benchmark as :meth:`Client.benchmark` reads it."""
+    from ..client import _shown
+
+    team = None
+    if int(info.get("team_size") or 1) > 1:
+        mine = client.teams(benchmark).get("mine")
+        team = _shown(mine.get("name")) if isinstance(mine, dict) else None
+    quota = client.quota(benchmark, phase=phase)
+    when = "today" if quota.days == 1 else f"in any {quota.days:g} days"
+    who = f"the team {team} has" if team else "you have"
+    return f"{who} {quota.left} of {quota.submissions} left {when}"
 
 
 def exit_code(error: ServiceError) -> int:

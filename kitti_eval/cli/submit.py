@@ -18,10 +18,10 @@ from typing import TYPE_CHECKING, Any
 
 from ..errors import ConfigError
 from .common import EXIT_OK, emit, say
-from .remote import add_connection_arguments, client_of
+from .remote import add_connection_arguments, client_of, quota_left
 
 if TYPE_CHECKING:
-    from ..client import Client, Quota, Submission
+    from ..client import Client, Submission
 
 __all__ = ["add_parser", "run", "render_submission", "standing"]
 
@@ -132,12 +132,6 @@ def run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _left(quota: Quota, team: str | None) -> str:
-    when = "today" if quota.days == 1 else f"in any {quota.days:g} days"
-    who = f"the team {team} has" if team else "you have"
-    return f"{who} {quota.left} of {quota.submissions} left {when}"
-
-
 def standing(client: Client, submission: Submission, benchmark: str, phase: str | None) -> list[str]:
     """Where a submission stands, as ``submit`` says it on stderr: the phase it went to, the quota left (the
     team's, in a team), its page and how to publish it; first, when it is the answer to an earlier run's key,
@@ -152,15 +146,9 @@ def standing(client: Client, submission: Submission, benchmark: str, phase: str 
         )
     info = client.benchmark(benchmark)
     shown_phase = submission.view.get("phase") or phase or info.get("phase")
-    team = None
-    if int(info.get("team_size") or 1) > 1:
-        mine = client.teams(benchmark).get("mine")
-        team = _shown(mine.get("name")) if isinstance(mine, dict) else None
-    quota = client.quota(benchmark, phase=phase)
     state = submission.status if submission.status in ("scored", "failed") else f"accepted ({submission.status})"
-    lines.append(
-        f"submission {submission.id} to {benchmark}, phase {_shown(shown_phase)}: {state}; {_left(quota, team)}"
-    )
+    left = quota_left(client, benchmark, phase, info)
+    lines.append(f"submission {submission.id} to {benchmark}, phase {_shown(shown_phase)}: {state}; {left}")
     lines.append(f"its page: {client.service}/benchmarks/{benchmark}/submissions/{submission.id}")
     if submission.status == "scored" and not submission.view.get("published"):
         lines.append(

@@ -25,6 +25,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         "teams that invited you. In a team, each phase's quota is the team's.",
         epilog=_EPILOG,
     )
+    p.set_defaults(run=run, quiet=False)
     actions = p.add_subparsers(dest="team_action", metavar="ACTION", required=True)
     create = actions.add_parser("create", help="make a team and invite others", epilog=_EPILOG)
     create.add_argument("name", help="the team's name (1-48 letters, digits, spaces, '.', '_' or '-')")

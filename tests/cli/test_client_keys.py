@@ -18,7 +18,7 @@ import pytest
 
 from kitti_eval.cli import main
 from kitti_eval.client import Client, Retries, save_token
-from kitti_eval.client_parts.pending import FILE_NAME, PendingKeys
+from kitti_eval.client_state import FILE_NAME, PendingKeys
 from kitti_eval.errors import ConfigError, QuotaExceeded, ServiceError
 
 GOLDEN = Path(__file__).resolve().parents[1] / "data" / "golden" / "small"

@@ -1,27 +1,60 @@
-"""The idempotency keys of submissions sent and not yet shown scored, so that a run of ``kitti-eval submit``
-again (the first killed after its file reached the service: ``kill -9``, a closed laptop, a cancelled CI job)
-sends the key the first run sent and is answered with the submission it made, counted once.
+"""The client's own state in its folder (:func:`kitti_eval.client.config_dir`): files written readable by their
+owner only, and the idempotency keys of submissions sent and not yet shown scored.
 
-A key is saved, before the file is sent, under (the service, the benchmark, the phase, the file's sha256) in
-``submissions.json`` of the client's folder; it is forgotten once its submission is shown scored (or failed,
-or refused: nothing of it counts then). A key older than :data:`KEEP_DAYS` is forgotten (the service keeps a
-key for a day by default, ``KITTI_EVAL_IDEMPOTENCY_KEY_HOURS``)."""
+**Files.** A file is written whole or not at all, readable by its owner only, whatever was left or planted beside
+it: to a temporary file that :func:`tempfile.mkstemp` makes (``O_CREAT | O_EXCL``, mode 0600: a name that exists,
+a symlink included, is never opened), made 0600 again with ``fchmod`` before anything is written (a umask or an
+ACL cannot widen it), flushed, then renamed over the file.
+
+**Keys.** So that a run of ``kitti-eval submit`` again (the first killed after its file reached the service:
+``kill -9``, a closed laptop, a cancelled CI job) sends the key the first run sent and is answered with the
+submission it made, counted once: a key is saved, before the file is sent, under (the service, the benchmark,
+the phase, the file's sha256) in ``submissions.json``; it is forgotten once its submission is shown scored (or
+failed, or refused: nothing of it counts then). A key older than :data:`KEEP_DAYS` is forgotten (the service
+keeps a key for a day by default, ``KITTI_EVAL_IDEMPOTENCY_KEY_HOURS``)."""
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
 import json
+import os
+import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from ..errors import ConfigError
-from .files import write_private_json
+from .errors import ConfigError
 
-__all__ = ["PendingKeys", "Held", "sha256_of", "KEEP_DAYS", "FILE_NAME"]
+__all__ = ["private_folder", "write_private_json", "PendingKeys", "Held", "sha256_of", "KEEP_DAYS", "FILE_NAME"]
+
+
+def private_folder(folder: Path) -> Path:
+    """``folder``, made when missing (readable by its owner only when made here)."""
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    return folder
+
+
+def write_private_json(path: Path, data: Any) -> Path:
+    """Writes ``data`` as JSON to ``path``, readable and writable by its owner only; returns ``path``."""
+    private_folder(path.parent)
+    fd, partial = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as out:
+            if hasattr(os, "fchmod"):
+                os.fchmod(out.fileno(), 0o600)
+            json.dump(data, out, indent=2)
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(partial, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(partial)
+        raise
+    return path
+
 
 FILE_NAME = "submissions.json"
 #: how long a saved key is kept at most
@@ -96,8 +129,8 @@ class PendingKeys:
         """The key to send (the saved one, else a new one saved first; ``new``: a new one whatever was saved),
         forgotten when the block ends without an error (unless the block set ``keep``: its submission is not
         shown scored yet), or with a refusal that recorded nothing or a job that failed."""
-        from ..client import new_key
-        from ..errors import QuotaExceeded, ServiceError, ServiceUnreachable, SubmissionRefused
+        from .client import new_key
+        from .errors import QuotaExceeded, ServiceError, ServiceUnreachable, SubmissionRefused
 
         key = None if new else self.get(service, benchmark, phase, sha256)
         reused = key is not None
