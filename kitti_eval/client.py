@@ -20,6 +20,7 @@ that service (:func:`saved_token`).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import json
 import math
@@ -55,7 +56,9 @@ __all__ = [
     "Quota",
     "TOKEN_ENV",
     "CONFIG_ENV",
+    "ALLOW_HTTP_ENV",
     "saved_token",
+    "saved_services",
     "save_token",
     "token_for",
     "new_key",
@@ -65,6 +68,8 @@ __all__ = [
 TOKEN_ENV = "KITTI_EVAL_TOKEN"
 #: the folder of the client's configuration instead of the user's config folder
 CONFIG_ENV = "KITTI_EVAL_CONFIG_DIR"
+#: ``1``: a token may be sent over plain http to a host other than loopback
+ALLOW_HTTP_ENV = "KITTI_EVAL_ALLOW_HTTP"
 _TOKENS_FILE = "services.json"
 #: statuses answered while a service is away or too busy for now: sent again
 _AWAY = frozenset({408, 502, 503, 504})
@@ -150,7 +155,8 @@ class Job:
 class Submission:
     """One of your submissions as the service shows it to you: ``status`` (``queued``, ``scored``, ``failed``),
     ``scores`` (the board's columns, on the part of the test set the board shows: ``scored_on``), and ``view``,
-    everything the service answered."""
+    everything the service answered. ``reused``: :meth:`Client.submit` sent the key an earlier call saved for
+    the same file (the answer is the submission that call made, counted once)."""
 
     id: str
     benchmark: str
@@ -158,6 +164,7 @@ class Submission:
     scores: dict[str, float | None] | None
     scored_on: str | None
     view: dict[str, Any]
+    reused: bool = False
 
     @classmethod
     def from_body(cls, body: Mapping[str, Any]) -> Submission:
@@ -292,22 +299,48 @@ def saved_token(service: str) -> str | None:
 
 
 def save_token(service: str, token: str) -> Path:
-    """Saves ``token`` for ``service`` in the client's folder (readable by its owner only); returns the file."""
-    folder = config_dir()
-    folder.mkdir(parents=True, exist_ok=True)
+    """Saves ``token`` for ``service`` in the client's folder (readable by its owner only, written through a
+    temporary file of its own: :mod:`kitti_eval.client_state`); returns the file."""
+    from .client_state import write_private_json
+
     tokens = {**_saved(), _service_key(service): token}
-    path = folder / _TOKENS_FILE
-    partial = path.with_name(path.name + ".partial")
-    fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w", encoding="utf-8") as out:
-        json.dump(tokens, out, indent=2)
-    os.replace(partial, path)
-    return path
+    return write_private_json(config_dir() / _TOKENS_FILE, tokens)
+
+
+def saved_services() -> list[str]:
+    """The services ``kitti-eval login`` saved a token for."""
+    return sorted(_saved())
 
 
 def token_for(service: str, token: str | None = None) -> str | None:
     """The token to send: ``token``, else ``$KITTI_EVAL_TOKEN``, else the one saved for ``service``."""
     return token or os.environ.get(TOKEN_ENV, "").strip() or saved_token(service)
+
+
+def _loopback(host: str) -> bool:
+    import ipaddress
+
+    if host.lower() in ("localhost", "localhost."):
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _refuse_plain_http(service: str, allow_http: bool | None) -> None:
+    """The token goes over plain http to a loopback host only, unless the caller says the network is trusted."""
+    from urllib.parse import urlsplit
+
+    if allow_http is None:
+        allow_http = os.environ.get(ALLOW_HTTP_ENV, "").strip() == "1"
+    parts = urlsplit(service)
+    if parts.scheme != "http" or allow_http or _loopback(parts.hostname or ""):
+        return
+    raise ConfigError(
+        f"--service {service}: the token would be sent unencrypted (plain http to a host other than this "
+        f"machine); use https://, or say the network is trusted with --allow-http (or {ALLOW_HTTP_ENV}=1)"
+    )
 
 
 # ------------------------------------------------------------------------------------------ the client
@@ -381,7 +414,11 @@ class Client:
 
     ``retries``: how long and how often a request is sent again while the service is away; ``timeout_s``: the
     longest silence on one connection; ``progress``: a bar (on stderr) while a file is sent; ``on_retry``: told
-    a sentence each time a request is sent again (the CLI prints it); ``transport``: httpx's, for tests."""
+    a sentence each time a request is sent again (the CLI prints it); ``transport``: httpx's, for tests.
+
+    A token is sent over plain ``http://`` to a loopback host only (``localhost``, ``127.0.0.1``, ``::1``);
+    to any other host :class:`~kitti_eval.errors.ConfigError`, unless ``allow_http`` (None: whether
+    ``$KITTI_EVAL_ALLOW_HTTP`` is ``1``) says that the network between is trusted."""
 
     def __init__(
         self,
@@ -393,6 +430,7 @@ class Client:
         progress: bool = False,
         on_retry: Callable[[str], None] | None = None,
         transport: Any = None,
+        allow_http: bool | None = None,
     ) -> None:
         try:
             import httpx
@@ -408,7 +446,9 @@ class Client:
         headers = {"User-Agent": _USER_AGENT, "Accept": "application/json"}
         token = token_for(service, token)
         if token:
+            _refuse_plain_http(service, allow_http)
             headers["Authorization"] = f"Bearer {token}"
+        self.sends_token = bool(token)
         self._httpx = httpx
         self._http = httpx.Client(base_url=service, headers=headers, timeout=timeout_s, transport=transport)
 
@@ -455,7 +495,7 @@ class Client:
                 if not away:
                     if response.status_code in ok:
                         return response
-                    raise _refusal(response)
+                    raise self._refused(response)
                 reason = f"{response.status_code} {_shown(error.get('code') or response.reason_phrase)}"
                 wait = _retry_after(response)
             delay = self.retries.delay(attempt, wait)
@@ -470,6 +510,19 @@ class Client:
                 self.on_retry(f"{self.service}: {reason}; trying again in {delay:.1f} s")
             time.sleep(delay)
             attempt += 1
+
+    def _refused(self, response: httpx.Response) -> ServiceError:
+        """The refusal's error; one for want of a token says how to give one."""
+        error = _refusal(response)
+        if response.status_code == 401 and not self.sends_token:
+            return ServiceError(
+                f"{self.service} needs a token: save yours once with 'kitti-eval login --service {self.service}' "
+                f"(or set ${TOKEN_ENV})",
+                status=401,
+                code=error.code,
+                details=error.details,
+            )
+        return error
 
     @contextlib.contextmanager
     def _opened(self, files: _Files | None) -> Iterator[dict[str, Any] | None]:
@@ -507,6 +560,12 @@ class Client:
         if not isinstance(location, str) or not location.startswith("/") or location.startswith("//"):
             raise ServiceError(f"{self.service}: the answer names {location!r} as the result, not a path of its own")
         return self._get(location)
+
+    @_answered
+    def whoami(self) -> dict[str, Any]:
+        """Who the token is, as the service admitted it: ``user``, ``admin``, ``read_only``."""
+        body = self._get("/v1/me")
+        return {"user": _shown(body["user"]), "admin": bool(body.get("admin")), "read_only": bool(body["read_only"])}
 
     # -- jobs -------------------------------------------------------------------------------------------
     @_answered
@@ -675,6 +734,71 @@ class Client:
         """One of your submissions, with its scores and aggregate result once scored."""
         return Submission.from_body(self._get(f"/v1/benchmarks/{benchmark}/submissions/{submission_id}"))
 
+    @_answered
+    def leaderboard_csv(self, benchmark: str, *, phase: str | None = None) -> str:
+        """The board of the benchmark's phase (None: its current one) as the service's CSV."""
+        from .client_benchmarks import board_csv
+
+        return board_csv(self, f"{_at(benchmark, phase)}/leaderboard")
+
+    @_answered
+    def publish(
+        self,
+        benchmark: str,
+        submission_id: str,
+        *,
+        method: str,
+        anonymous: bool = False,
+        affiliation: str | None = None,
+        link: str | None = None,
+    ) -> Submission:
+        """Shows one of your scored submissions on the board under ``method`` (``anonymous``: without your name,
+        affiliation or link); the submission as it is then."""
+        from .client_benchmarks import publish
+
+        return Submission.from_body(
+            publish(
+                self,
+                benchmark,
+                _id(submission_id),
+                method=method,
+                anonymous=anonymous,
+                affiliation=affiliation,
+                link=link,
+            )
+        )
+
+    @_answered
+    def withdraw(self, benchmark: str, submission_id: str) -> Submission:
+        """Takes one of your entries off the board; the submission as it is then."""
+        from .client_benchmarks import withdraw
+
+        return Submission.from_body(withdraw(self, benchmark, _id(submission_id)))
+
+    # -- teams ------------------------------------------------------------------------------------------
+    @_answered
+    def teams(self, benchmark: str) -> dict[str, Any]:
+        """The benchmark's teams: ``items`` (each with its members), ``mine`` (yours, None when in none),
+        ``invitations`` (the teams that invited you) and ``team_size``."""
+        from .client_benchmarks import teams
+
+        return teams(self, benchmark)
+
+    @_answered
+    def create_team(self, benchmark: str, name: str, *, invite: Sequence[str] = ()) -> dict[str, Any]:
+        """Makes the team ``name`` in the benchmark (you are its first member) and invites ``invite``, who join
+        when they accept (:meth:`join_team`); the team with its ``members`` and ``invited``."""
+        from .client_benchmarks import create_team
+
+        return create_team(self, benchmark, name, invite)
+
+    @_answered
+    def join_team(self, benchmark: str, name: str) -> dict[str, Any]:
+        """Joins the team ``name``, which invited you: from then on each phase's quota is the team's."""
+        from .client_benchmarks import join_team
+
+        return join_team(self, benchmark, name)
+
     def check_submission(
         self, predictions: str | os.PathLike[str], benchmark: str, *, phase: str | None = None
     ) -> None:
@@ -704,25 +828,44 @@ class Client:
         check: bool = True,
         idempotency_key: str | None = None,
         phase: str | None = None,
+        new: bool = False,
     ) -> Submission:
         """Submits ``predictions`` to the benchmark: checked here first (``check``: a refused file costs no
-        quota and no upload), sent with an idempotency key of its own (sent again while the service is away, it
-        counts once), and with ``wait``, followed until it is scored (:class:`Submission` with its scores).
+        quota and no upload), sent with an idempotency key (sent again while the service is away, it counts
+        once), and with ``wait``, followed until it is scored (:class:`Submission` with its scores).
         Over the quota: :class:`~kitti_eval.errors.QuotaExceeded` (with when the next one is accepted).
-        ``idempotency_key``: the key sent with every try (default: a new UUID); sent again in another call (the
-        client itself restarted), it is answered with the submission it made, counted once. ``phase``: the
-        benchmark's phase to submit to (None: its current one)."""
+        ``phase``: the benchmark's phase to submit to (None: its current one).
+
+        The key: ``idempotency_key`` when given (sent again in another call, it is answered with the submission
+        it made, counted once); else the key saved in the client's folder for the same file (its sha256) sent
+        to the same service, benchmark and phase by a call that has not shown it scored yet (a process killed
+        after its file reached the service), so that the same file submitted again counts once; else a new
+        one, saved before the file is sent (:mod:`kitti_eval.client_state`). ``new``: a new key
+        whatever was saved: the same file submitted again on purpose, counted again."""
         path = Path(predictions)
         if not path.exists():
             raise ConfigError(f"{path}: no such file (a result.pkl, a zip/tar of txt files, or a folder of them)")
         if check:
             self.check_submission(path, benchmark, phase=phase)
+        if idempotency_key is not None:
+            return self._submit(path, benchmark, phase, idempotency_key, wait=wait, wait_s=wait_s)
+        from .client_state import PendingKeys
+
+        pending = PendingKeys(config_dir())
+        with pending.held(self.service, benchmark, phase, _upload_sha256(path), new=new) as held:
+            submission = self._submit(path, benchmark, phase, held.key, wait=wait, wait_s=wait_s)
+            held.keep = not wait
+        return dataclasses.replace(submission, reused=held.reused)
+
+    def _submit(
+        self, path: Path, benchmark: str, phase: str | None, key: str, *, wait: bool, wait_s: float
+    ) -> Submission:
         response = self._request(
             "POST",
             f"{_at(benchmark, phase)}/submissions",
             params={"wait": _POST_WAIT_S if wait else 0},
             files={"predictions": (path.name, path)},
-            headers={"Idempotency-Key": idempotency_key or new_key()},
+            headers={"Idempotency-Key": key},
         )
         body = response.json()
         if response.status_code == 201:
@@ -733,6 +876,17 @@ class Client:
             return Submission(submission_id, benchmark, job.state, None, None, {"id": submission_id, "job": body})
         self.wait_job(job.id, timeout_s=wait_s)
         return self.submission(benchmark, submission_id)
+
+
+def _upload_sha256(path: Path) -> str:
+    """The sha256 of the bytes a submission of ``path`` sends (a folder: the tar.gz it is packed as)."""
+    from .client_state import sha256_of
+
+    if path.is_dir():
+        with _tar_of_txt(path) as raw:
+            return sha256_of(raw)
+    with open(path, "rb") as raw:
+        return sha256_of(raw)
 
 
 def _at(benchmark: str, phase: str | None) -> str:

@@ -27,6 +27,21 @@ def _warm_kernels() -> None:
     warm_up()
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _client_config_folder(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """The service client's folder (saved tokens, the keys of submissions not yet shown scored) is the test
+    session's, never the user's: a test that names its own sets $KITTI_EVAL_CONFIG_DIR itself."""
+    import os
+
+    before = os.environ.get("KITTI_EVAL_CONFIG_DIR")
+    os.environ["KITTI_EVAL_CONFIG_DIR"] = str(tmp_path_factory.mktemp("client-config"))
+    yield
+    if before is None:
+        os.environ.pop("KITTI_EVAL_CONFIG_DIR", None)
+    else:
+        os.environ["KITTI_EVAL_CONFIG_DIR"] = before
+
+
 @pytest.fixture(scope="module")
 def service_client(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., AbstractContextManager[Any]]:
     """A factory of TestClients on a fresh app in a folder of this module's (settings as keywords)."""

@@ -1,16 +1,11 @@
-"""``kitti-eval``: the command line. Parses, loads, evaluates, prints; holds no evaluation logic.
+"""``kitti-eval``: the command line. Parses, loads, evaluates, prints; holds no evaluation logic. Exit codes: 0
+success, 1 bad input (unreadable, unsafe or inconsistent files), 2 usage error, 3 a gate rule failed (``gate``), 4
+over a benchmark's quota (``submit``), 5 a service could not be reached (:mod:`.remote`). Data goes to stdout (or
+``--output``); warnings and progress go to stderr.
 
-Exit codes: 0 success, 1 bad input (unreadable, unsafe or inconsistent files), 2 usage error, 3 a gate rule
-failed (``gate``), 4 over a benchmark's quota (``submit``), 5 a service could not be reached (:mod:`.remote`).
-Data goes to stdout (or ``--output``); warnings and progress go to stderr.
-
-This module only builds the parser and dispatches. The main job (``--gt``/``--pred``, no command name) is
-:mod:`~kitti_eval.cli.evaluate`; every command is a module of its own whose ``add_parser(sub)`` adds its
-subparser with ``run`` (its handler) as a default; what they share is in :mod:`~kitti_eval.cli.common`.
-A new command is a module with an ``add_parser`` imported here and added to :data:`COMMANDS`; another package
-adds its commands through an entry point (:mod:`~kitti_eval.cli.installed`: the service's ``serve``, ``worker``
-and ``admin``).
-"""
+This module only builds the parser and dispatches: the main job (``--gt``/``--pred``) is :mod:`.evaluate`; each
+command is a module whose ``add_parser(sub)`` adds its subparser (``run`` its default), in :data:`COMMANDS`; what
+they share is :mod:`.common`; another package's commands come through an entry point (:mod:`.installed`)."""
 
 from __future__ import annotations
 
@@ -22,6 +17,7 @@ from typing import Any
 
 from ..errors import ConfigError, KittiEvalError, ServiceError
 from . import (
+    board,
     compare,
     demo,
     describe,
@@ -32,8 +28,12 @@ from . import (
     inspect,
     installed,
     login,
+    publish,
+    submissions,
     submit,
+    team,
     validate,
+    withdraw,
 )
 from .common import EXIT_INPUT, EXIT_USAGE, PROG, config, limits_from, say, say_defaults
 from .remote import report
@@ -43,6 +43,7 @@ __all__ = ["main", "entry", "COMMANDS"]
 #: every command's ``add_parser(sub)``, in the order ``kitti-eval --help`` lists them: the installed ones last
 COMMANDS: tuple[Callable[[Any], object], ...] = (
     *(cmd.add_parser for cmd in (demo, gate, compare, frames, inspect, errors, describe, validate, submit, login)),
+    *(cmd.add_parser for cmd in (team, submissions, publish, withdraw, board)),
     *installed.parsers(),
 )
 
@@ -60,10 +61,6 @@ def build_parser() -> argparse.ArgumentParser:
         add_parser(sub)
     say_defaults(p)
     return p
-
-
-#: the names this module had when it was one file, for code that builds the parser or a config through it
-_parser, _config = build_parser, config
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -107,3 +104,6 @@ def entry() -> None:
     except (OSError, ValueError):  # a closed pipe: nothing more can be said
         code = code or EXIT_INPUT
     os._exit(code)
+
+
+_parser, _config = build_parser, config  # the names this module had when it was one file, for code that uses them

@@ -1,5 +1,5 @@
 """``kitti-eval login``: the token the client (``submit``, ``--service``) sends to a service, checked against it
-and saved for it in the user's config folder, readable by the user only."""
+and saved for it in the user's config folder, readable by the user only; says which user the token is."""
 
 from __future__ import annotations
 
@@ -41,8 +41,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("no token given")
     from ..client import Client, Retries
 
-    with Client(args.service, token, retries=Retries(within_s=args.retry_for)) as client:
-        client.evaluations(limit=1)  # 401 for a token the service does not know
+    allow_http = True if args.allow_http else None
+    with Client(args.service, token, retries=Retries(within_s=args.retry_for), allow_http=allow_http) as client:
+        me = client.whoami()  # 401 for a token the service does not know
     path = save_token(args.service, token)
-    say(f"the token for {args.service} is saved in {path}")
+    read_only = ", read-only (it may read, not submit nor store an evaluation)" if me["read_only"] else ""
+    say(f"the token is {me['user']}'s{read_only}: saved in {path} for {args.service}")
     return EXIT_OK

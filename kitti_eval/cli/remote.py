@@ -20,7 +20,17 @@ from .common import EXIT_INPUT, EXIT_OK, EXIT_QUOTA, EXIT_UNREACHABLE, EXIT_USAG
 if TYPE_CHECKING:
     from ..client import Client
 
-__all__ = ["add_service_arguments", "client_of", "exit_code", "report", "run_evaluation", "run_gate"]
+__all__ = [
+    "add_connection_arguments",
+    "add_service_arguments",
+    "client_of",
+    "service_of",
+    "quota_left",
+    "exit_code",
+    "report",
+    "run_evaluation",
+    "run_gate",
+]
 
 #: how long a request is sent again while the service is away, unless --retry-for says
 RETRY_FOR_S = 300.0
@@ -43,14 +53,19 @@ def _label(text: str) -> str:
     return text
 
 
-def add_connection_arguments(group: Any, *, required: bool = False) -> None:
-    """``--service`` and how long to try it (every command that talks to a service)."""
+def add_connection_arguments(group: Any, *, required: bool = False, saved: bool = False) -> None:
+    """``--service``, how long to try it and ``--allow-http`` (every command that talks to a service).
+    ``saved``: ``--service`` may be left out when ``kitti-eval login`` saved a token for one service only."""
+    if saved:
+        where = " (default: the one service 'kitti-eval login' saved a token for)"
+    else:
+        where = "" if required else " (default: none, evaluate here)"
     group.add_argument(
         "--service",
         metavar="URL",
         required=required,
         help="the service, http(s)://HOST[:PORT]; the token is $KITTI_EVAL_TOKEN, else the one 'kitti-eval "
-        "login' saved for it" + ("" if required else " (default: none, evaluate here)"),
+        "login' saved for it" + where,
     )
     group.add_argument(
         "--retry-for",
@@ -60,6 +75,29 @@ def add_connection_arguments(group: Any, *, required: bool = False) -> None:
         help="how long to send a request again while the service is away (no answer, restarting, 503), with "
         f"backoff and jitter; exit 5 past it (default: {RETRY_FOR_S:g})",
     )
+    group.add_argument(
+        "--allow-http",
+        action="store_true",
+        help="send the token over plain http to a host other than this machine (a trusted network only; "
+        "$KITTI_EVAL_ALLOW_HTTP=1 says the same; default: refused, use https)",
+    )
+
+
+def service_of(args: argparse.Namespace) -> str:
+    """The service a command talks to: ``--service``, else the one service ``kitti-eval login`` saved a token
+    for (set on ``args`` for the command's sentences)."""
+    if getattr(args, "service", None):
+        return str(args.service)
+    from ..client import saved_services
+
+    saved = saved_services()
+    if len(saved) != 1:
+        known = f" (tokens are saved for {', '.join(saved)})" if saved else ""
+        raise ConfigError(
+            f"which service? give --service URL{known}, or save a token once with 'kitti-eval login --service URL'"
+        )
+    args.service = saved[0]
+    return args.service
 
 
 def add_service_arguments(p: argparse.ArgumentParser) -> None:
@@ -90,11 +128,27 @@ def client_of(args: argparse.Namespace, *, progress: bool = False) -> Client:
 
     quiet = getattr(args, "quiet", False)
     return Client(
-        args.service,
+        service_of(args),
         retries=Retries(within_s=args.retry_for),
         progress=progress and not quiet and sys.stderr.isatty(),
         on_retry=None if quiet else (lambda sentence: say(sentence)),
+        allow_http=True if getattr(args, "allow_http", False) else None,
     )
+
+
+def quota_left(client: Client, benchmark: str, phase: str | None, info: dict[str, Any]) -> str:
+    """The quota left on the benchmark's phase as a sentence: the team's in a team ("the team lidar-lab has 1
+    of 2 left today"), else the caller's. ``info``: the benchmark as :meth:`Client.benchmark` reads it."""
+    from ..client import _shown
+
+    team = None
+    if int(info.get("team_size") or 1) > 1:
+        mine = client.teams(benchmark).get("mine")
+        team = _shown(mine.get("name")) if isinstance(mine, dict) else None
+    quota = client.quota(benchmark, phase=phase)
+    when = "today" if quota.days == 1 else f"in any {quota.days:g} days"
+    who = f"the team {team} has" if team else "you have"
+    return f"{who} {quota.left} of {quota.submissions} left {when}"
 
 
 def exit_code(error: ServiceError) -> int:
@@ -202,7 +256,18 @@ def run_gate(args: argparse.Namespace, *, errors: bool = False) -> tuple[dict, d
         raise ConfigError("--service gates --pred against --gt, the name of a ground truth registered there")
     if args.baseline is not None and args.baseline_label:
         raise ConfigError("give --baseline (an evaluation id) or --baseline-label, not both")
-    current = _evaluate(args, args.gt, args.pred, curves=False, errors=errors)
+    try:
+        current = _evaluate(args, args.gt, args.pred, curves=False, errors=errors)
+    except ServiceError as e:
+        if e.status == 403 and "read-only" in e.message:
+            raise ServiceError(
+                f"{args.service}: this token is read-only, and gate --service has the service evaluate --pred and "
+                "keep the evaluation, which a read-only token may not; gate with a token that may write, or gate "
+                "an evaluation already stored (POST /v1/gates with its id)",
+                status=403,
+                code=e.code,
+            ) from None
+        raise
     if not args.quiet:
         say(f"stored as evaluation {current.id} ({args.service}/v1/evaluations/{current.id})")
     baseline = None

@@ -18,12 +18,12 @@ from typing import TYPE_CHECKING, Any
 
 from ..errors import ConfigError
 from .common import EXIT_OK, emit, say
-from .remote import add_connection_arguments, client_of
+from .remote import add_connection_arguments, client_of, quota_left
 
 if TYPE_CHECKING:
-    from ..client import Submission
+    from ..client import Client, Submission
 
-__all__ = ["add_parser", "run", "render_submission"]
+__all__ = ["add_parser", "run", "render_submission", "standing"]
 
 _EPILOG = (
     "Exit codes: 0 scored, 1 the file is refused (nothing counted), 2 usage error or a request the service "
@@ -57,7 +57,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         help="the benchmark's phase to submit to, checked against that phase's test frames (default: its current "
         "phase)",
     )
-    add_connection_arguments(p, required=True)
+    add_connection_arguments(p, saved=True)
     p.add_argument(
         "--format",
         choices=["table", "json", "markdown"],
@@ -82,7 +82,13 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         metavar="KEY",
         help="the key sent with the submission (1-255 visible ASCII characters): the same key again answers with "
         "the submission it made, counted once; e.g. a CI run's id, so that the job run again does not submit twice "
-        "(default: a new random key each run)",
+        "(default: the key saved for this file and phase by a run that did not show it scored, else a new one)",
+    )
+    p.add_argument(
+        "--new",
+        action="store_true",
+        help="submit the file as a new submission, counted again, even if a run killed before it showed the "
+        "scores sent the same file to the same phase (default: such a run's submission is answered, counted once)",
     )
     p.add_argument("--output", "-o", type=Path, help="write the scores here instead of stdout (default: stdout)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar, no retry messages (default: off)")
@@ -95,9 +101,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"{args.file}: no such file or folder")
     if not args.wait_for > 0:
         raise ConfigError("--wait-for must be > 0")
-    from ..client import new_key
-
-    key = args.idempotency_key or new_key()
+    if args.new and args.idempotency_key:
+        raise ConfigError("give --new or --idempotency-key, not both")
     with client_of(args, progress=True) as client:
         try:
             submission = client.submit(
@@ -105,24 +110,52 @@ def run(args: argparse.Namespace) -> int:
                 args.benchmark,
                 wait=args.wait,
                 wait_s=args.wait_for,
-                idempotency_key=key,
+                idempotency_key=args.idempotency_key,
                 phase=args.phase,
+                new=args.new,
             )
         except KeyboardInterrupt:
+            again = f"with --idempotency-key {args.idempotency_key} " if args.idempotency_key else ""
             say(
-                f"interrupted: the submission may have been accepted; the same command with --idempotency-key "
-                f"{key} answers with it instead of submitting again"
+                f"interrupted: the submission may have been accepted; the same command {again}again answers with "
+                "it instead of submitting again (--new submits it again, counted again)"
             )
             raise
+        if not args.quiet:
+            for line in standing(client, submission, args.benchmark, args.phase):
+                say(line)
         if not args.wait:
-            if not args.quiet:
-                page = f"{args.service}/benchmarks/{args.benchmark}/submissions/{submission.id}"
-                say(f"accepted: submission {submission.id} ({page})")
             emit(submission.id + "\n", args.output)
             return EXIT_OK
         key = client.benchmark(args.benchmark).get("key") or []
     emit(render_submission(submission, args.format, key=key), args.output)
     return EXIT_OK
+
+
+def standing(client: Client, submission: Submission, benchmark: str, phase: str | None) -> list[str]:
+    """Where a submission stands, as ``submit`` says it on stderr: the phase it went to, the quota left (the
+    team's, in a team), its page and how to publish it; first, when it is the answer to an earlier run's key,
+    that it was counted once."""
+    from ..client import _shown
+
+    lines = []
+    if submission.reused:
+        lines.append(
+            "this file was sent to this phase by a run that did not show its scores: that run's submission, "
+            "counted once (--new submits it again, counted again)"
+        )
+    info = client.benchmark(benchmark)
+    shown_phase = submission.view.get("phase") or phase or info.get("phase")
+    state = submission.status if submission.status in ("scored", "failed") else f"accepted ({submission.status})"
+    left = quota_left(client, benchmark, phase, info)
+    lines.append(f"submission {submission.id} to {benchmark}, phase {_shown(shown_phase)}: {state}; {left}")
+    lines.append(f"its page: {client.service}/benchmarks/{benchmark}/submissions/{submission.id}")
+    if submission.status == "scored" and not submission.view.get("published"):
+        lines.append(
+            f"to show it on the board: kitti-eval publish {submission.id} --benchmark {benchmark} "
+            '--method "YOUR METHOD"'
+        )
+    return lines
 
 
 def _key_value(submission: Submission, key: list[str]) -> float | None:

@@ -26,6 +26,12 @@ GOLDEN = Path(__file__).resolve().parents[1] / "data" / "golden" / "small"
 ROOT = Path(__file__).resolve().parents[2]
 
 
+@pytest.fixture(autouse=True)
+def _own_config_folder(tmp_path, monkeypatch) -> None:
+    """The client's folder (saved tokens and submissions' keys) is the test's own."""
+    monkeypatch.setenv("KITTI_EVAL_CONFIG_DIR", str(tmp_path / "client-config"))
+
+
 class _Answers:
     """A scripted service: each request is recorded and answered by the next function of ``script``."""
 
@@ -50,7 +56,7 @@ def _drop(request: httpx.Request) -> httpx.Response:
 def _client(answers: _Answers, sleeps: list[float], monkeypatch, **retries: Any) -> Client:
     monkeypatch.setattr(client_module.time, "sleep", sleeps.append)
     policy = Retries(rng=random.Random(0), **retries)
-    return Client("http://service.test", "tok", retries=policy, transport=httpx.MockTransport(answers))
+    return Client("https://service.test", "tok", retries=policy, transport=httpx.MockTransport(answers))
 
 
 _JOB = {"id": "j1", "kind": "submission", "state": "queued", "position": 1, "submission": "j1"}

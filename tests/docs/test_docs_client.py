@@ -56,6 +56,7 @@ def test_the_participants_client_examples_run_as_written(tmp_path: Path) -> None
         (tmp_path / "result.pkl").write_bytes(demo_paths()[1].read_bytes())
         env = {k: v for k, v in os.environ.items() if not k.startswith("KITTI_EVAL_")}
         env["KITTI_EVAL_TOKEN"] = token
+        env["KITTI_EVAL_CONFIG_DIR"] = str(config / "python")  # the submissions' keys it saves
         code = PYTHON_CLIENT.code.replace(_DOCS_URL, server.url)
         run = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True)
         assert run.returncode == 0, run.stderr

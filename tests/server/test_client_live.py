@@ -156,7 +156,7 @@ def test_login_no_wait_and_the_quota(tmp_path) -> None:
         assert code == 2 and "the token is not valid" in err
         assert not (config / "services.json").exists()
         code, _, err = _finish_with_input(_cli(login, None, config), hosted.tokens["alice"] + "\n")
-        assert code == 0 and f"saved in {config / 'services.json'}" in err
+        assert code == 0 and f"the token is alice's: saved in {config / 'services.json'}" in err
         pred = tmp_path / "result.pkl"
         pred.write_bytes(golden_bytes("result.pkl"))
         args = ["submit", str(pred), "--benchmark", "bench", "--service", server.url]

@@ -341,7 +341,7 @@ def test_the_client_submits_to_a_phase_it_names_and_checks_against_that_phases_f
 
     predictions = tmp_path / "result.pkl"
     predictions.write_bytes(golden_bytes("result.pkl"))
-    with Client("http://testserver", hosted.tokens["alice"], transport=httpx.MockTransport(forward)) as client:
+    with Client("https://testserver", hosted.tokens["alice"], transport=httpx.MockTransport(forward)) as client:
         test_frames = client.frames("kitti-phases", phase="test")
         assert test_frames == client.frames("kitti-phases") and len(test_frames) > 10  # both phases: one set's frames
         sent = client.submit(predictions, "kitti-phases", phase="test", wait=False)
