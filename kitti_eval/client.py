@@ -28,12 +28,12 @@ import os
 import random
 import re
 import time
-import uuid
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO, TypeVar
 
+from .client_state import new_key
 from .errors import (
     ConfigError,
     QuotaExceeded,
@@ -892,11 +892,6 @@ def _upload_sha256(path: Path) -> str:
 def _at(benchmark: str, phase: str | None) -> str:
     """The path of a benchmark's phase: its own routes address its current phase."""
     return f"/v1/benchmarks/{benchmark}" if phase is None else f"/v1/benchmarks/{benchmark}/phases/{phase}"
-
-
-def new_key() -> str:
-    """A new idempotency key: a random UUID."""
-    return str(uuid.uuid4())
 
 
 def _flag(value: bool) -> str:

@@ -21,12 +21,19 @@ import json
 import os
 import tempfile
 import time
+import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
 from .errors import ConfigError
+
+
+def new_key() -> str:
+    """A new idempotency key: a random UUID."""
+    return str(uuid.uuid4())
+
 
 __all__ = ["private_folder", "write_private_json", "PendingKeys", "Held", "sha256_of", "KEEP_DAYS", "FILE_NAME"]
 
@@ -129,7 +136,6 @@ class PendingKeys:
         """The key to send (the saved one, else a new one saved first; ``new``: a new one whatever was saved),
         forgotten when the block ends without an error (unless the block set ``keep``: its submission is not
         shown scored yet), or with a refusal that recorded nothing or a job that failed."""
-        from .client import new_key
         from .errors import QuotaExceeded, ServiceError, ServiceUnreachable, SubmissionRefused
 
         key = None if new else self.get(service, benchmark, phase, sha256)

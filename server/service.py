@@ -57,11 +57,29 @@ DEMO_NAME = "demo"
 
 def _frames_view_limits(most: int) -> BoxLimits:
     """The box limits of kept predictions read to look at their frames: the limits on work, and at most ``most``
-    boxes in all (``KITTI_EVAL_FRAMES_MAX_BOXES``), since they are read whole by the process that answers."""
-    bounds = box_limits()
+    boxes in all (``KITTI_EVAL_FRAMES_MAX_BOXES``), since they are read whole by the process that answers. The
+    limits on input and work the loaders read from the environment are checked here: a bad one refuses the start."""
+    try:
+        input_limits()
+        overlap_budget()
+        bounds = box_limits()
+    except ConfigError as e:
+        raise StartupRefused(f"{e} (a limit on input or work)") from None
     if bounds.per_input is not None and bounds.per_input <= most:
         return bounds
     return dataclasses.replace(bounds, per_input=most, per_input_setting="KITTI_EVAL_FRAMES_MAX_BOXES")
+
+
+def _log_start(settings: Settings) -> None:
+    log.info(
+        "auth %s, database %s, %d worker process%s, %d job thread%s",
+        AuthMode(settings.auth).value,
+        settings.database_name,
+        settings.worker_processes,
+        "es" * (settings.worker_processes != 1),
+        settings.job_threads,
+        "s" * (settings.job_threads != 1),
+    )
 
 
 class Service:
@@ -195,12 +213,7 @@ class Service:
         """Create folders and tables, register the demo, start the warm-up and the workers (called from the
         lifespan)."""
         check_writable(self.data_dir)  # one sentence naming the folder and the fix, not a PermissionError
-        try:  # the limits on input and work the loaders read from the environment: a bad one refuses the start
-            input_limits()
-            overlap_budget()
-            view = _frames_view_limits(self.settings.frames_max_boxes)
-        except ConfigError as e:
-            raise StartupRefused(f"{e} (a limit on input or work)") from None
+        view = _frames_view_limits(self.settings.frames_max_boxes)  # a bad limit on input or work refuses the start
         self.evaluation_frames.limits = dataclasses.replace(self.limits, boxes=view)
         self.runner.open()
         self.scratch_space.open()  # and removes what processes killed meanwhile left
@@ -225,15 +238,7 @@ class Service:
                 database_url=self.settings.resolved_database_url,
             )
             self.pool.start()
-        log.info(
-            "auth %s, database %s, %d worker process%s, %d job thread%s",
-            AuthMode(self.settings.auth).value,
-            self.settings.database_name,
-            self.settings.worker_processes,
-            "es" * (self.settings.worker_processes != 1),
-            self.settings.job_threads,
-            "s" * (self.settings.job_threads != 1),
-        )
+        _log_start(self.settings)
 
     def _open_database(self, upgrade: bool = False) -> None:
         """The tables: created in an empty database, upgraded in an older one when ``upgrade``; a database the

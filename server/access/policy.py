@@ -213,6 +213,30 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
 )
 
 
+def identity(caller: Caller) -> dict[str, bool | str]:
+    """What ``GET /v1/me`` shows of a caller (``kitti-eval login`` says it): the user, whether an admin, whether
+    read-only; never the token nor its id."""
+    return {"user": caller.name, "admin": caller.is_admin, "read_only": not caller.can_write}
+
+
+def _admit_scraper(own: str | None, accounts: bool, caller: Caller, bearer: str | None) -> Caller | None:
+    """``/metrics``: with a token of its own (``own``), that token only; else in accounts mode an admin's (a
+    read-only token will do: every tenant's activity is not a participant's to see); None: as a reader."""
+    if own is not None:
+        if bearer is None:
+            raise Unauthorized("the metrics need their token: send 'Authorization: Bearer <KITTI_EVAL_METRICS_TOKEN>'")
+        if not hmac.compare_digest(bearer.encode(), own.encode()):
+            raise Forbidden("the metrics token is not valid")
+        return Caller("metrics-scraper", scopes=frozenset({READ}), client=caller.client, signed_in=True)
+    if not accounts:
+        return None
+    if not caller.signed_in:
+        raise Unauthorized("sign in: send 'Authorization: Bearer <token>'")
+    if not caller.is_admin:
+        raise Forbidden("the metrics are for admins (or for a scraper's own token, KITTI_EVAL_METRICS_TOKEN)")
+    return caller
+
+
 class Policy:
     """Every "may this caller see / do this" of the service. Stateless but for the mode and the tokens it
     compares; what it needs to know about the benchmarks' test sets it asks ``test_sets`` (ground truth name
@@ -336,23 +360,9 @@ class Policy:
         if access is Access.PUBLIC or access is Access.ANYONE:
             return caller
         if access is Access.SCRAPER:
-            own = self._metrics_token()
-            if own is not None:
-                if bearer is None:
-                    raise Unauthorized(
-                        "the metrics need their token: send 'Authorization: Bearer <KITTI_EVAL_METRICS_TOKEN>'"
-                    )
-                if not hmac.compare_digest(bearer.encode(), own.encode()):
-                    raise Forbidden("the metrics token is not valid")
-                return Caller("metrics-scraper", scopes=frozenset({READ}), client=caller.client, signed_in=True)
-            if self.accounts:  # every tenant's activity: an admin's, read-only tokens included, not a participant's
-                if not caller.signed_in:
-                    raise Unauthorized("sign in: send 'Authorization: Bearer <token>'")
-                if not caller.is_admin:
-                    raise Forbidden(
-                        "the metrics are for admins (or for a scraper's own token, KITTI_EVAL_METRICS_TOKEN)"
-                    )
-                return caller
+            scraper = _admit_scraper(self._metrics_token(), self.accounts, caller, bearer)
+            if scraper is not None:
+                return scraper
             access = Access.READER
         if access is Access.ADMIN and not self.accounts:
             if caller.is_admin:

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from fastapi import APIRouter
 
 from ..access.deps import ReaderCaller
+from ..access.policy import identity
 from ..schemas import ErrorResponse
 
 router = APIRouter(
@@ -17,6 +16,6 @@ router = APIRouter(
 
 
 @router.get("", summary="Who your token is: the user, whether an admin, whether read-only")
-def me(caller: ReaderCaller) -> dict[str, Any]:
+def me(caller: ReaderCaller) -> dict[str, bool | str]:
     """The caller as the service admitted it; the fields named here only (never the token nor its id)."""
-    return {"user": caller.name, "admin": caller.is_admin, "read_only": not caller.can_write}
+    return identity(caller)
