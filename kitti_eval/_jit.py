@@ -137,13 +137,14 @@ def compilations() -> Iterator[list[str]]:
         yield compiled
 
 
-def warm_in_background() -> subprocess.Popen[bytes] | None:
-    """Start compiling the evaluation kernels in a child process; None on a single core."""
+def warm_in_background(*, loader: bool = False) -> subprocess.Popen[bytes] | None:
+    """Start compiling the evaluation kernels in a child process (``loader``: the pickle scan too, which a run
+    reading only txt files never compiles itself); None on a single core."""
     if (os.cpu_count() or 1) < 2:
         return None
     try:
         return subprocess.Popen(
-            [sys.executable, "-m", "kitti_eval._jit"],
+            [sys.executable, "-m", "kitti_eval._jit", *(["--loader"] if loader else [])],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
@@ -152,7 +153,7 @@ def warm_in_background() -> subprocess.Popen[bytes] | None:
         return None
 
 
-def warm_up(everything: bool = True) -> None:
+def warm_up(everything: bool = True, *, loader: bool = False) -> None:
     """Compile (or load from the cache) the kernels: those an evaluation calls, and with ``everything``
     those of every other entry point too (the pickle scan, per-frame events and the bootstrap, the frame
     labels, the IoU functions). A tiny generated scene has the array types of every real input."""
@@ -164,6 +165,10 @@ def warm_up(everything: bool = True) -> None:
     gt = Annotations.from_frames("ground_truth", "warm-up", [(i["image"]["image_idx"], i["annos"]) for i in infos])
     dt = Annotations.from_frames("detections", "warm-up", [(r["frame_id"], r) for r in results])
     evaluate(gt, dt)
+    if loader and not everything:
+        from .io.safe_pickle import load_pickle
+
+        load_pickle(io.BytesIO(pickle.dumps(results, protocol=4)), source="warm-up")
     if not everything:
         return
     from .analysis.bootstrap import paired_bootstrap
@@ -188,4 +193,4 @@ if __name__ == "__main__":
     if "--cache-key" in sys.argv[1:]:
         print(cache_key())  # noqa: T201
     else:
-        warm_up(everything="--all" in sys.argv[1:])
+        warm_up(everything="--all" in sys.argv[1:], loader="--loader" in sys.argv[1:])
