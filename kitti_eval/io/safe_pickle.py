@@ -242,7 +242,7 @@ def _mb(n: int) -> str:
 
 def _budget_message(size: int, again: int) -> str:
     """Why a pickle of ``size`` bytes was refused for building more than its budget (``again`` bytes of what it
-    had built then are arrays charged again: values put into containers more than once)."""
+    would build, counted up to the refusal, are arrays charged again: values put into containers more than once)."""
     msg = (
         "the pickle builds far more array data or objects than it contains (a corrupt or hostile size): more than "
         f"the limit of {_mb(_budget(size))} for a pickle of {_mb(size)} (8 times its size + 32 MB, arrays of numbers "
@@ -250,8 +250,8 @@ def _budget_message(size: int, again: int) -> str:
     )
     if again:
         msg += (
-            f"; {_mb(again)} of what it had built when refused are arrays it uses more than once (through its "
-            "memo), counted each time, as each frame that uses one gets a copy"
+            f"; {_mb(again)} of what it would build, counted up to the refusal, are arrays it uses more than once "
+            "(through its memo), counted each time, as each frame that uses one gets a copy"
         )
     return msg
 
