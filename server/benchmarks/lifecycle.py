@@ -70,14 +70,24 @@ TRANSITIONS: frozenset[tuple[PhaseState, PhaseState]] = frozenset(
 STATE_COLUMNS = ("opens_at", "closes_at", "closed", "revealed")
 
 
+def has_opened(opens_at: datetime, now: datetime | None = None) -> bool:
+    """A period that begins at ``opens_at`` has begun at ``now`` (default: the present)."""
+    return opens_at <= (now or datetime.now(timezone.utc))
+
+
+def past_closing(closes_at: datetime | None, now: datetime | None = None) -> bool:
+    """A period that ends at ``closes_at`` (None: never) has ended at ``now`` (default: the present)."""
+    return closes_at is not None and closes_at <= (now or datetime.now(timezone.utc))
+
+
 def state_of(phase: PhaseTimes, now: datetime | None = None) -> PhaseState:
     """The phase's state at ``now`` (default: the present)."""
     now = now or datetime.now(timezone.utc)
     if phase.revealed:
         return PhaseState.REVEALED
-    if phase.closed or (phase.closes_at is not None and now >= phase.closes_at):
+    if phase.closed or past_closing(phase.closes_at, now):
         return PhaseState.CLOSED
-    if now < phase.opens_at:
+    if not has_opened(phase.opens_at, now):
         return PhaseState.SCHEDULED
     return PhaseState.OPEN
 

@@ -16,7 +16,7 @@ from kitti_eval.core.protocol import DEFAULT_OSET, DEFAULT_RECALL, DIFFICULTIES,
 from ..errors import BadRequest, echo
 from ..evaluations.evaluator import EvalOptions
 from ..store import BenchmarkRecord
-from .lifecycle import PhaseState, state_of
+from .lifecycle import PhaseState, has_opened, state_of
 
 __all__ = [
     "Benchmark",
@@ -186,7 +186,7 @@ class Benchmark(BenchmarkRecord):
 
     def has_opened(self, now: datetime | None = None) -> bool:
         """Its period has begun (``opens_at`` has passed), whether or not it was closed since."""
-        return self.opens_at <= (now or datetime.now(timezone.utc))
+        return has_opened(self.opens_at, now)
 
     def state(self, now: datetime | None = None) -> PhaseState:
         """Its state (:func:`.lifecycle.state_of`: scheduled, open, closed or revealed)."""

@@ -10,7 +10,7 @@ benchmark is public; the forms go through the same service methods, and the same
 from __future__ import annotations
 
 from collections.abc import Mapping
-from datetime import datetime, timezone
+from datetime import datetime
 from functools import partial
 from typing import Annotated, Any, Literal
 from urllib.parse import quote
@@ -27,6 +27,7 @@ from kitti_eval.errors import KittiEvalError
 from ..access.deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..access.policy import Caller
 from ..benchmarks import Benchmarks, InvalidSubmission, render_markdown
+from ..benchmarks.lifecycle import past_closing
 from ..benchmarks.phases import current_row, row_of
 from ..benchmarks.rules import PHASE_SEPARATOR
 from ..errors import ApiError, BadRequest, NotFound, clip, fault_of
@@ -116,11 +117,7 @@ def _period(bench: Mapping[str, Any]) -> str:
     if state == "open":
         return f"open; closes {closes}" if closes else "open; no closing date"
     # closed by its closes_at (a date past) or by hand (the date is not kept)
-    ended = (
-        f"closed on {closes}"
-        if closes_at and datetime.fromisoformat(closes_at) <= datetime.now(timezone.utc)
-        else "closed"
-    )
+    ended = f"closed on {closes}" if closes_at and past_closing(datetime.fromisoformat(closes_at)) else "closed"
     return f"{ended}; final ranking" if state == "revealed" else ended
 
 
