@@ -39,20 +39,25 @@ DEFAULT_MAX_FRAME_PAIRS = 4_000_000
 DEFAULT_MAX_PAIRS = 100_000_000
 
 
+def positive_setting(env: str, default: float, unit: int = 1) -> int:
+    """A limit from the environment variable ``env`` (a number > 0, times ``unit``), or ``default``; anything
+    else is a :class:`ConfigError` naming the variable. Every limit on input and work is read through it."""
+    raw = os.environ.get(env, "").strip()
+    try:
+        value = float(raw) if raw else default
+    except ValueError:
+        value = -1
+    if not value > 0 or value == float("inf"):
+        raise ConfigError(f"{env}={raw!r}: expected a number > 0")
+    return int(value * unit)
+
+
 def overlap_budget() -> tuple[int, int]:
     """``(max_frame_pairs, max_pairs)`` from :data:`MAX_FRAME_PAIRS_ENV` / :data:`MAX_PAIRS_ENV` or the
     defaults."""
-    out = []
-    for env, default in ((MAX_FRAME_PAIRS_ENV, DEFAULT_MAX_FRAME_PAIRS), (MAX_PAIRS_ENV, DEFAULT_MAX_PAIRS)):
-        raw = os.environ.get(env, "").strip()
-        try:
-            value = float(raw) if raw else default
-        except ValueError:
-            value = -1
-        if not value > 0 or value == float("inf"):
-            raise ConfigError(f"{env}={raw!r}: expected a number > 0")
-        out.append(int(value))
-    return out[0], out[1]
+    return positive_setting(MAX_FRAME_PAIRS_ENV, DEFAULT_MAX_FRAME_PAIRS), positive_setting(
+        MAX_PAIRS_ENV, DEFAULT_MAX_PAIRS
+    )
 
 
 def check_overlap_budget(

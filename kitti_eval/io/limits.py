@@ -8,17 +8,15 @@ loader)."""
 
 from __future__ import annotations
 
-import os
-
 from ..core.budget import (
     DEFAULT_MAX_FRAME_PAIRS,
     DEFAULT_MAX_PAIRS,
     MAX_FRAME_PAIRS_ENV,
     MAX_PAIRS_ENV,
     overlap_budget,
+    positive_setting,
 )
 from ..core.frames import BoxLimits
-from ..errors import ConfigError
 
 __all__ = [
     "MAX_INPUT_ENV",
@@ -59,17 +57,6 @@ DEFAULT_MAX_FRAME_BOXES = 10_000
 DEFAULT_MAX_BOXES = 5_000_000
 
 
-def _from_env(env: str, default: float, unit: int = 1) -> int:
-    raw = os.environ.get(env, "").strip()
-    try:
-        value = float(raw) if raw else default
-    except ValueError:
-        value = -1
-    if not value > 0 or value == float("inf"):
-        raise ConfigError(f"{env}={raw!r}: expected a number > 0")
-    return int(value * unit)
-
-
 def input_limits() -> tuple[int, int]:
     """``(max_bytes, max_frames)`` for one input, from :data:`MAX_INPUT_ENV` / :data:`MAX_FRAMES_ENV` or the
     defaults (512 MB, 200,000 frames; KITTI val is 22 MB and 3,769 frames).
@@ -78,7 +65,9 @@ def input_limits() -> tuple[int, int]:
     caps the frames of one input (a pickle's top-level list is refused before it is built, other layouts
     before a frame beyond the cap is converted). Every loader uses these unless given its own.
     """
-    return _from_env(MAX_INPUT_ENV, DEFAULT_MAX_INPUT_MB, 1 << 20), _from_env(MAX_FRAMES_ENV, DEFAULT_MAX_FRAMES)
+    return positive_setting(MAX_INPUT_ENV, DEFAULT_MAX_INPUT_MB, 1 << 20), positive_setting(
+        MAX_FRAMES_ENV, DEFAULT_MAX_FRAMES
+    )
 
 
 def box_limits(per_frame: int | None = None, per_input: int | None = None) -> BoxLimits:
@@ -86,8 +75,8 @@ def box_limits(per_frame: int | None = None, per_input: int | None = None) -> Bo
     :data:`MAX_FRAME_BOXES_ENV` / :data:`MAX_BOXES_ENV`, else the defaults (10,000 boxes a frame, 5 million
     in all). Every loader checks them as it reads, before anything that grows with the boxes."""
     return BoxLimits(
-        per_frame=_from_env(MAX_FRAME_BOXES_ENV, DEFAULT_MAX_FRAME_BOXES) if per_frame is None else per_frame,
-        per_input=_from_env(MAX_BOXES_ENV, DEFAULT_MAX_BOXES) if per_input is None else per_input,
+        per_frame=positive_setting(MAX_FRAME_BOXES_ENV, DEFAULT_MAX_FRAME_BOXES) if per_frame is None else per_frame,
+        per_input=positive_setting(MAX_BOXES_ENV, DEFAULT_MAX_BOXES) if per_input is None else per_input,
         per_frame_setting=MAX_FRAME_BOXES_ENV,
         per_input_setting=MAX_BOXES_ENV,
     )
