@@ -1,0 +1,216 @@
+"""The store's invitations: a link a host hands out so that people make their own accounts to take part in one
+benchmark (the rules are :mod:`kitti_eval_server.access.invitations`'s), and the accounts each one made. Only the
+sha256 of an invitation's code is kept, as for tokens. The tables are created with the others (they share the
+schema's ``metadata``)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime
+
+from sqlalchemy import Column, DateTime, ForeignKey, Index, Integer, String, Table, insert, or_, select, update
+from sqlalchemy.engine import Connection, RowMapping
+from sqlalchemy.exc import IntegrityError
+
+from .account_store import AccountStore, TokenRecord
+from .database import Area, memberships, metadata, retry_when_locked, tokens, users, utc
+
+__all__ = ["InvitationRecord", "InvitationStore", "NewAccount", "JoinRefused", "invitations", "invitation_accounts"]
+
+#: a host's invitations to a benchmark: looked up by the sha256 of their code, named by their public id
+invitations = Table(
+    "invitations",
+    metadata,
+    Column("id", String(32), primary_key=True),
+    Column("code_sha256", String(64), nullable=False, unique=True),
+    Column("benchmark", String(64), nullable=False),  # the benchmark's name (its first phase's row)
+    Column("project", String(64), nullable=True),  # the accounts it makes are members of it (None: of none)
+    Column("max_uses", Integer, nullable=True),  # None: as many as join before it expires
+    Column("uses", Integer, nullable=False),
+    Column("created_by", String(128), nullable=False),
+    Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("expires_at", DateTime(timezone=True), nullable=True),
+    Column("revoked_at", DateTime(timezone=True), nullable=True),
+)
+
+#: the accounts an invitation made
+invitation_accounts = Table(
+    "invitation_accounts",
+    metadata,
+    Column("user_name", String(64), ForeignKey("users.name", ondelete="CASCADE"), primary_key=True),
+    Column("invitation", String(32), ForeignKey("invitations.id", ondelete="CASCADE"), nullable=False),
+    Column("joined_at", DateTime(timezone=True), nullable=False),
+    Index("ix_invitation_accounts_invitation", "invitation", "joined_at"),
+)
+
+
+class JoinRefused(Exception):
+    """Nothing written: the invitation is used up, expired or revoked (``gone``), or the name is taken
+    (``taken``)."""
+
+    def __init__(self, *, gone: bool = False, taken: bool = False) -> None:
+        super().__init__("join refused")
+        self.gone = gone
+        self.taken = taken
+
+
+@dataclass(frozen=True)
+class InvitationRecord:
+    id: str
+    code_sha256: str
+    benchmark: str
+    project: str | None
+    max_uses: int | None
+    uses: int
+    created_by: str
+    created_at: datetime
+    expires_at: datetime | None
+    revoked_at: datetime | None
+    #: the accounts it made, in the order they joined
+    accounts: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class NewAccount:
+    """An account to make: its name, the projects it is a member of, its token's record (the token itself is
+    never stored)."""
+
+    name: str
+    projects: tuple[str, ...]
+    token: TokenRecord
+
+
+class InvitationStore(Area):
+    """Invitations, the accounts they made, and accounts made many at once."""
+
+    @retry_when_locked
+    def add_invitation(self, record: InvitationRecord) -> None:
+        values = {k: v for k, v in record.__dict__.items() if k != "accounts"}
+        with self._writing() as conn:
+            conn.execute(insert(invitations).values(**values))
+
+    @retry_when_locked
+    def get_invitation(
+        self, *, code_sha256: str | None = None, invitation_id: str | None = None
+    ) -> InvitationRecord | None:
+        query = select(invitations)
+        if code_sha256 is not None:
+            query = query.where(invitations.c.code_sha256 == code_sha256)
+        else:
+            query = query.where(invitations.c.id == invitation_id)
+        with self.engine.connect() as conn:
+            row = conn.execute(query).mappings().first()
+            return None if row is None else self._record(row, self._accounts_of(conn, [row["id"]]))
+
+    @retry_when_locked
+    def list_invitations(self, benchmark: str | None = None) -> list[InvitationRecord]:
+        query = select(invitations).order_by(invitations.c.created_at, invitations.c.id)
+        if benchmark is not None:
+            query = query.where(invitations.c.benchmark == benchmark)
+        with self.engine.connect() as conn:
+            rows = conn.execute(query).mappings().all()
+            made = self._accounts_of(conn, [r["id"] for r in rows])
+        return [self._record(r, made) for r in rows]
+
+    @retry_when_locked
+    def revoke_invitation(self, invitation_id: str, at: datetime) -> bool:
+        """False when there is no such invitation, or it was revoked already."""
+        with self._writing() as conn:
+            done = conn.execute(
+                update(invitations)
+                .where(invitations.c.id == invitation_id, invitations.c.revoked_at.is_(None))
+                .values(revoked_at=at)
+            )
+        return bool(done.rowcount)
+
+    @retry_when_locked
+    def joined(self, benchmark: str) -> int:
+        """How many accounts the benchmark's invitations made."""
+        query = (
+            select(invitation_accounts.c.user_name)
+            .join(invitations, invitations.c.id == invitation_accounts.c.invitation)
+            .where(invitations.c.benchmark == benchmark)
+        )
+        with self.engine.connect() as conn:
+            return len(conn.execute(query).all())
+
+    @retry_when_locked
+    def join(self, invitation_id: str, account: NewAccount, at: datetime, audit: dict[str, str]) -> None:
+        """Use the invitation once and make the account (its memberships, its token, the audit row ``audit``) in
+        one transaction: :class:`JoinRefused`, nothing written, when the invitation is used up, expired or
+        revoked at ``at``, or the name is taken. The use is counted by one conditional update, so two joins at
+        once never exceed the uses."""
+        with self._writing() as conn:
+            used = conn.execute(
+                update(invitations)
+                .where(
+                    invitations.c.id == invitation_id,
+                    invitations.c.revoked_at.is_(None),
+                    or_(invitations.c.expires_at.is_(None), invitations.c.expires_at > at),
+                    or_(invitations.c.max_uses.is_(None), invitations.c.uses < invitations.c.max_uses),
+                )
+                .values(uses=invitations.c.uses + 1)
+            )
+            if not used.rowcount:
+                raise JoinRefused(gone=True)
+            if self._taken(conn, [account.name]):
+                raise JoinRefused(taken=True)
+            self._make(conn, account, at)
+            conn.execute(
+                insert(invitation_accounts).values(user_name=account.name, invitation=invitation_id, joined_at=at)
+            )
+            AccountStore.add_audit_in(conn, **audit)
+
+    @retry_when_locked
+    def taken(self, names: Sequence[str]) -> list[str]:
+        """Which of ``names`` are users' already (compared as the database compares them)."""
+        with self.engine.connect() as conn:
+            return self._taken(conn, names)
+
+    @retry_when_locked
+    def add_accounts(self, accounts: Sequence[NewAccount], at: datetime, audits: Sequence[dict[str, str]]) -> None:
+        """Make every account, or none: :class:`JoinRefused` (``taken``) when a name is taken by then."""
+        with self._writing() as conn:
+            if self._taken(conn, [a.name for a in accounts]):
+                raise JoinRefused(taken=True)
+            for account in accounts:
+                self._make(conn, account, at)
+            for row in audits:
+                AccountStore.add_audit_in(conn, **row)
+
+    @staticmethod
+    def _taken(conn: Connection, names: Sequence[str]) -> list[str]:
+        return sorted(conn.execute(select(users.c.name).where(users.c.name.in_(list(names)))).scalars().all())
+
+    @staticmethod
+    def _make(conn: Connection, account: NewAccount, at: datetime) -> None:
+        try:
+            conn.execute(insert(users).values(name=account.name, is_admin=False, created_at=at))
+        except IntegrityError:  # made meanwhile (PostgreSQL: another transaction committed it first)
+            raise JoinRefused(taken=True) from None
+        if account.projects:
+            conn.execute(insert(memberships), [{"user_name": account.name, "project": p} for p in account.projects])
+        conn.execute(insert(tokens).values(**account.token.__dict__))
+
+    @staticmethod
+    def _accounts_of(conn: Connection, ids: Sequence[str]) -> dict[str, list[str]]:
+        made: dict[str, list[str]] = {}
+        if not ids:
+            return made
+        rows = conn.execute(
+            select(invitation_accounts.c.invitation, invitation_accounts.c.user_name)
+            .where(invitation_accounts.c.invitation.in_(list(ids)))
+            .order_by(invitation_accounts.c.joined_at, invitation_accounts.c.user_name)
+        )
+        for invitation, user_name in rows:
+            made.setdefault(invitation, []).append(user_name)
+        return made
+
+    @staticmethod
+    def _record(row: RowMapping, made: dict[str, list[str]]) -> InvitationRecord:
+        values = dict(row)
+        for key in ("created_at", "expires_at", "revoked_at"):
+            if values[key] is not None:
+                values[key] = utc(values[key])
+        return InvitationRecord(**values, accounts=tuple(made.get(row["id"], ())))
