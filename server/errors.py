@@ -58,6 +58,7 @@ __all__ = [
     "error_body",
     "error_response",
     "install_error_handlers",
+    "Gone",
     "is_api",
 ]
 
@@ -91,6 +92,13 @@ class NotFound(ApiError):
 class Conflict(ApiError):
     status_code = 409
     code = "conflict"
+
+
+class Gone(ApiError):
+    """What was there is no more: an invitation used up, expired or revoked."""
+
+    status_code = 410
+    code = "gone"
 
 
 class Unauthorized(ApiError):

@@ -40,7 +40,20 @@ from .middleware import (
     part_memory_bytes,
 )
 from .observability import Metrics, RequestMiddleware, configure_logging, route_uvicorn_logs, wants_json
-from .routes import admin, benchmarks, evaluations, frames, gates, ground_truths, health, jobs, me, metrics, phases
+from .routes import (
+    admin,
+    benchmarks,
+    evaluations,
+    frames,
+    gates,
+    ground_truths,
+    health,
+    jobs,
+    join,
+    me,
+    metrics,
+    phases,
+)
 from .service import Service
 from .settings import Settings, default_data_dir_text, settings_error
 from .shutdown import Drainer
@@ -116,6 +129,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(metrics.router)
     app.include_router(admin.router)
     app.include_router(me.router)
+    app.include_router(join.router)
     app.include_router(phases.router)
     app.include_router(benchmarks.router)
     app.include_router(web_router)

@@ -28,10 +28,11 @@ from kitti_eval.io.upload import UploadLimits
 from .access.accounts import Accounts, admin_token
 from .access.audit import Audit
 from .access.auth import FailureLimiter
+from .access.invitations import Invitations
 from .access.policy import AuthMode, Policy
 from .benchmarks import Benchmarks
 from .data_folder import check_writable
-from .errors import StartupRefused
+from .errors import NotFound, StartupRefused, echo
 from .evaluations.evaluations import EvaluationFrames, Evaluations, sealed_document
 from .evaluations.uploads import FileIn
 from .ground_truths.cache import GroundTruthCache, GroundTruths
@@ -80,6 +81,19 @@ def _log_start(settings: Settings) -> None:
         settings.job_threads,
         "s" * (settings.job_threads != 1),
     )
+
+
+def _invited_to(benchmarks: Benchmarks) -> Callable[[str], tuple[str, str | None, bool]]:
+    """What an invitation reads of the benchmark it admits to: its name, its test set's project, whether it is
+    open to all (404 for none, and for a phase's row: an invitation is to a benchmark)."""
+
+    def benchmark(name: str) -> tuple[str, str | None, bool]:
+        bench = benchmarks.catalog.named(name)
+        if bench.is_later_phase:
+            raise NotFound(f"no benchmark named {echo(name)}")
+        return bench.shown_name, bench.project, bench.open_to_all
+
+    return benchmark
 
 
 class Service:
@@ -206,6 +220,12 @@ class Service:
             idempotency=self.idempotency,
             draining=self.draining.is_set,
             wake=lambda n: self.workers.wake(n),
+        )
+        self.invitations = Invitations(
+            self.store.invitation_store, self.accounts, self.policy, self.audit, _invited_to(self.benchmarks)
+        )
+        self.join_limiter = FailureLimiter(
+            settings.join_max_attempts, settings.join_window_s, what="attempts to join by an invitation"
         )
 
     # -- lifecycle ---------------------------------------------------------------------------------------

@@ -187,6 +187,14 @@ class Settings(BaseSettings):
     auth_failure_window_s: Annotated[float, Field(gt=0)] = 60.0
     """The window of ``auth_max_failures``."""
 
+    join_max_attempts: Annotated[int, Field(ge=1)] = 30
+    """Accounts mode: attempts to join by an invitation (``/join/CODE``, ``/v1/join/CODE``) one client address may
+    make within ``join_window_s``, made or refused, before it gets 429 for the rest of the window (counted by each
+    process on its own). A class behind one address joins at this pace."""
+
+    join_window_s: Annotated[float, Field(gt=0)] = 60.0
+    """The window of ``join_max_attempts``."""
+
     trusted_proxies: str = ""
     """The reverse proxies in front of the service: IP addresses or CIDR networks, comma-separated (e.g.
     ``10.0.0.5,fd00::/64``). A request whose socket peer is one of them is taken to come from the right-most

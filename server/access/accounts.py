@@ -161,13 +161,20 @@ class Accounts:
             )
         return name
 
-    def add_user(self, name: str, *, is_admin: bool, caller: Caller) -> UserRecord:
-        self.check_name(name, "user")
+    @classmethod
+    def check_user_name(cls, name: str) -> str:
+        """A new user's name, whoever makes the account (an admin, an invitation, an import): the rules of a name,
+        and none of the service's own callers'."""
+        cls.check_name(name, "user")
         if name.lower() in BUILT_IN_CALLERS:
             raise BadRequest(
                 f"the user name {name!r} is reserved: the service names its own callers so "
                 f"({', '.join(sorted(BUILT_IN_CALLERS))})"
             )
+        return name
+
+    def add_user(self, name: str, *, is_admin: bool, caller: Caller) -> UserRecord:
+        self.check_user_name(name)
         if not self.account_store.add_user(name, is_admin):
             raise Conflict(f"a user named {name!r} exists")
         self.audit.record(caller, "user.add", name, detail="admin" if is_admin else "")
@@ -229,6 +236,20 @@ class Accounts:
     def _new(
         self, user: str, kind: str, parent: str | None, scopes: frozenset[str], lifetime: timedelta | None
     ) -> tuple[TokenRecord, str]:
+        record, token = self.token_record(user, kind, parent, scopes, lifetime)
+        self.account_store.add_token(record)
+        return record, token
+
+    @staticmethod
+    def token_record(
+        user: str,
+        kind: str = "token",
+        parent: str | None = None,
+        scopes: frozenset[str] = ALL_SCOPES,
+        lifetime: timedelta | None = None,
+    ) -> tuple[TokenRecord, str]:
+        """A new token's record and the token itself, not stored yet (an account made with its token stores both
+        in one transaction)."""
         token_id, token = _new_token()
         now = datetime.now(timezone.utc)
         record = TokenRecord(
@@ -242,7 +263,6 @@ class Accounts:
             expires_at=now + lifetime if lifetime else None,
             revoked_at=None,
         )
-        self.account_store.add_token(record)
         return record, token
 
     def revoke_token(self, token_id: str, *, caller: Caller) -> None:

@@ -37,10 +37,15 @@ class Audit:
         """``caller`` did ``action`` on ``target``."""
         self._write(caller.actor, action, target, outcome, caller.client, detail)
 
-    def record_in(self, conn: Any, caller: Caller, action: str, target: str) -> None:
+    def record_in(self, conn: Any, caller: Caller, action: str, target: str, *, detail: str = "") -> None:
         """The same, written in the transaction of the change it records (one commit for both). The log line is
         written at once: call it last in the transaction."""
-        self._write(caller.actor, action, target, "ok", caller.client, "", conn=conn)
+        self._write(caller.actor, action, target, "ok", caller.client, detail, conn=conn)
+
+    def joined_in(self, conn: Any, *, user: str, token_id: str, client: str, detail: str) -> None:
+        """``user`` made their account (and its token ``token_id``) by an invitation, from ``client``: in the
+        transaction that makes it."""
+        self._write(user, "invitation.join", f"{user} ({token_id})", "ok", client, detail, conn=conn)
 
     def refused_use(self, caller: Caller, target: str, detail: str) -> None:
         """A valid token (or session) was refused what it asked (an admin action, a write with a read-only

@@ -196,7 +196,16 @@ def _is_trusted(address: ipaddress.IPv4Address | ipaddress.IPv6Address | None, t
 class FailureLimiter:
     """Refused tokens per client within a sliding window; in memory, per process."""
 
-    def __init__(self, max_failures: int, window_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        max_failures: int,
+        window_s: float,
+        clock: Callable[[], float] = time.monotonic,
+        *,
+        what: str = "refused tokens",
+    ) -> None:
+        """``what``: what is counted, as the 429's message names it."""
+        self.what = what
         self.max_failures = max_failures
         self.window_s = window_s
         self.clock = clock
@@ -234,7 +243,7 @@ class FailureLimiter:
     def check(self, client: str) -> None:
         retry = self.retry_after(client)
         if retry is not None:
-            raise TooManyRequests(f"too many refused tokens from this address; retry in {retry} s", retry)
+            raise TooManyRequests(f"too many {self.what} from this address; retry in {retry} s", retry)
 
 
 def _header(scope: Scope, name: bytes) -> str | None:

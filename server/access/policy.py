@@ -42,6 +42,7 @@ __all__ = [
     "Policy",
     "RULES",
     "may_join_team",
+    "invited_projects",
     "sees_teams",
     "require_open_labels",
     "READ",
@@ -207,6 +208,13 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
         "no (admins submit baselines)",
     ),
     ("benchmarks: create, close, reopen, reveal, rescore, disqualify", Access.ADMIN, "no", "yes"),
+    (
+        "joining by an invitation: the page, the JSON route",
+        Access.PUBLIC,
+        "anyone with the link, while it has uses and has not expired: makes an account that takes part in its "
+        "benchmark (a member of its project), nothing more",
+        "yes",
+    ),
     ("accounts: users, projects, members, tokens, audit log", Access.ADMIN, "no", "yes"),
     ("jobs: list, cancel, re-run", Access.ADMIN, "no", "yes"),
     ("metrics", Access.SCRAPER, "with the metrics token only", "yes (read-only tokens too)"),
@@ -529,7 +537,23 @@ class Policy:
             raise Forbidden("this action is for admins")
 
 
-# -- teams and open labels: the benchmarks' rules beside the class (whose size is kept down) ----------------------
+# -- invitations, teams and open labels: the benchmarks' rules beside the class (whose size is kept down) ----------
+def invited_projects(*, project: str | None, open_to_all: bool, wanted: str | None) -> tuple[str, ...]:
+    """The projects an account made by an invitation to a benchmark is a member of: the benchmark's test set's
+    project when only its members take part (``wanted``, the host's ``--project``, must be that one), else the
+    project the host named, if any. Nothing more: an invited account is never an admin, and sees what the members
+    of those projects see."""
+    if project is not None and not open_to_all:
+        if wanted is not None and wanted != project:
+            raise BadRequest(
+                f"the benchmark's test set is project {project!r}'s and only its members take part: an invitation "
+                f"to it makes members of {project!r} (leave --project out)"
+            )
+        return (project,)
+    return (wanted,) if wanted is not None else ()
+
+
+# -- teams and open labels ----------------------------------------------------------------------------------------
 def may_join_team(user: _User | None, *, project: str | None, open_to_all: bool) -> bool:
     """Whom a participant may invite to a team: an account that is not an admin's (an admin submits baselines)
     and that may take part in the benchmark (a member of its test set's project, any account when the test set is

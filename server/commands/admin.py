@@ -14,9 +14,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import csv
 import getpass
 import sys
 from collections.abc import Iterator
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -72,6 +74,34 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         m = member.add_parser(action, help=helptext)
         m.add_argument("user")
         m.add_argument("project")
+
+    u = user.add_parser(
+        "import",
+        help="make many accounts from a CSV (columns name and, optionally, project): prints name,token as CSV; "
+        "refuses the whole file, naming the line, if a name is taken or not valid",
+    )
+    u.add_argument("file", type=Path, metavar="FILE.csv")
+
+    invite = what.add_parser("invite", help="invitations: links people join a benchmark by").add_subparsers(
+        dest="admin_action", metavar="ACTION", required=True
+    )
+    i = invite.add_parser("add", help="a link /join/CODE that makes accounts taking part in a benchmark (shown once)")
+    i.add_argument("--benchmark", required=True, metavar="NAME")
+    i.add_argument("--uses", type=int, metavar="N", help="at most N accounts (default: as many as join)")
+    i.add_argument("--expires-days", type=float, metavar="D", help="valid for D days (default: until revoked)")
+    i.add_argument(
+        "--project",
+        metavar="P",
+        help="the accounts are members of P (default: of the benchmark's test set's project, which only its "
+        "members take part in)",
+    )
+    i.add_argument("--url", metavar="URL", help="the service's address, to print the whole link (e.g. https://host)")
+    invite.add_parser("list", help="invitations: their uses left and the accounts each made").add_argument(
+        "--benchmark", metavar="NAME"
+    )
+    invite.add_parser("revoke", help="no one joins by it any more (the accounts it made stay)").add_argument(
+        "invitation_id"
+    )
 
     token = what.add_parser("token", help="tokens").add_subparsers(dest="admin_action", metavar="ACTION", required=True)
     t = token.add_parser("add", help="a new token for USER, printed as the last line (shown once)")
@@ -235,6 +265,8 @@ def run(args: argparse.Namespace) -> int:
                 return _benchmark(args, service, caller)
             if args.admin_what == "jobs":
                 return _jobs(args, service, caller)
+            if args.admin_what == "invite" or (args.admin_what == "user" and args.admin_action == "import"):
+                return _invite(args, service, caller)
             return _account_command(args, service, caller)
     except (ApiError, KittiEvalError) as e:
         _say(f"error: {e.message if isinstance(e, ApiError) else e}")  # the library's names the file
@@ -522,4 +554,40 @@ def _jobs(args: argparse.Namespace, service: Service, caller: Caller) -> int:
     elif args.admin_action == "rerun":
         job = admin.rerun(args.job_id, caller)
         print(f"job {job.id} queued again")
+    return EXIT_OK
+
+
+def _invite(args: argparse.Namespace, service: Service, caller: Caller) -> int:
+    """``invite add|list|revoke`` and ``user import``."""
+    from ..access.invitations import parse_import, state_of
+
+    invitations = service.invitations
+    if args.admin_what == "user":
+        made = invitations.import_users(parse_import(_read_text(args.file)), caller=caller)
+        out = csv.writer(sys.stdout, lineterminator="\n")
+        out.writerow(("name", "token"))
+        out.writerows(made)
+        _say(
+            f"made {len(made)} account(s) from {args.file}; the tokens are shown this once (only their sha256 is kept)"
+        )
+    elif args.admin_action == "add":
+        record, code = invitations.add(
+            args.benchmark, uses=args.uses, expires_days=args.expires_days, project=args.project, caller=caller
+        )
+        uses = f"{record.max_uses} use(s)" if record.max_uses else "any number of uses"
+        expires = record.expires_at.isoformat() if record.expires_at else "never"
+        members = f", members of {record.project}" if record.project else ""
+        print(f"invitation {record.id} to {record.benchmark}: {uses}, expires {expires}{members}")
+        print("the link follows; it is shown this once (only its code's sha256 is kept):")
+        print(f"{(args.url or '').rstrip('/')}/join/{code}")
+    elif args.admin_action == "list":
+        now = datetime.now(timezone.utc)
+        for r in invitations.listed(caller, args.benchmark):
+            left = "-" if r.max_uses is None else str(max(0, r.max_uses - r.uses))
+            state = state_of(r, now)
+            expires = r.expires_at.isoformat() if r.expires_at else "never"
+            print(f"{r.id}\t{r.benchmark}\t{state}\tleft {left}\texpires {expires}\t{','.join(r.accounts) or '-'}")
+    else:
+        invitations.revoke(args.invitation_id, caller=caller)
+        print(f"invitation {args.invitation_id} revoked")
     return EXIT_OK

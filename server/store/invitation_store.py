@@ -5,7 +5,7 @@ schema's ``metadata``)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 
@@ -13,7 +13,7 @@ from sqlalchemy import Column, DateTime, ForeignKey, Index, Integer, String, Tab
 from sqlalchemy.engine import Connection, RowMapping
 from sqlalchemy.exc import IntegrityError
 
-from .account_store import AccountStore, TokenRecord
+from .account_store import TokenRecord
 from .database import Area, memberships, metadata, retry_when_locked, tokens, users, utc
 
 __all__ = ["InvitationRecord", "InvitationStore", "NewAccount", "JoinRefused", "invitations", "invitation_accounts"]
@@ -136,8 +136,9 @@ class InvitationStore(Area):
             return len(conn.execute(query).all())
 
     @retry_when_locked
-    def join(self, invitation_id: str, account: NewAccount, at: datetime, audit: dict[str, str]) -> None:
-        """Use the invitation once and make the account (its memberships, its token, the audit row ``audit``) in
+    def join(self, invitation_id: str, account: NewAccount, at: datetime, audit: Callable[[Connection], None]) -> None:
+        """Use the invitation once and make the account (its memberships, its token, the audit row ``audit``
+        writes) in
         one transaction: :class:`JoinRefused`, nothing written, when the invitation is used up, expired or
         revoked at ``at``, or the name is taken. The use is counted by one conditional update, so two joins at
         once never exceed the uses."""
@@ -160,7 +161,7 @@ class InvitationStore(Area):
             conn.execute(
                 insert(invitation_accounts).values(user_name=account.name, invitation=invitation_id, joined_at=at)
             )
-            AccountStore.add_audit_in(conn, **audit)
+            audit(conn)
 
     @retry_when_locked
     def taken(self, names: Sequence[str]) -> list[str]:
@@ -169,15 +170,18 @@ class InvitationStore(Area):
             return self._taken(conn, names)
 
     @retry_when_locked
-    def add_accounts(self, accounts: Sequence[NewAccount], at: datetime, audits: Sequence[dict[str, str]]) -> None:
-        """Make every account, or none: :class:`JoinRefused` (``taken``) when a name is taken by then."""
+    def add_accounts(
+        self, accounts: Sequence[NewAccount], at: datetime, audit: Callable[[Connection, NewAccount], None]
+    ) -> None:
+        """Make every account, or none: :class:`JoinRefused` (``taken``) when a name is taken by then; ``audit``
+        writes each one's audit row in the transaction."""
         with self._writing() as conn:
             if self._taken(conn, [a.name for a in accounts]):
                 raise JoinRefused(taken=True)
             for account in accounts:
                 self._make(conn, account, at)
-            for row in audits:
-                AccountStore.add_audit_in(conn, **row)
+            for account in accounts:
+                audit(conn, account)
 
     @staticmethod
     def _taken(conn: Connection, names: Sequence[str]) -> list[str]:
