@@ -60,6 +60,7 @@ from .shutdown import Drainer
 from .web import STATIC_DIR
 from .web import router as web_router
 from .web.benchmarks import router as benchmark_pages
+from .web.join import router as join_pages
 from .web.routes import error_page, sign_in_page
 
 __all__ = ["create_app", "serve"]  # and `app`, built on first access
@@ -134,6 +135,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(benchmarks.router)
     app.include_router(web_router)
     app.include_router(benchmark_pages)
+    app.include_router(join_pages)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     # outermost last: a request is admitted to the evaluations once its body has arrived in full
     app.add_middleware(

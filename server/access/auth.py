@@ -44,6 +44,7 @@ __all__ = [
     "over_https",
     "session_cookie",
     "signin_cookie",
+    "join_cookie",
     "access_of",
     "client_of",
     "flat_routes",
@@ -80,6 +81,12 @@ def signin_cookie(scope: Scope) -> tuple[str, str]:
     """The sign-in form's CSRF cookie: its name and path (over HTTPS ``__Host-kitti_eval_signin`` on ``/``, as
     the prefix requires; else limited to ``/signin``)."""
     return (HOST_PREFIX + CSRF_COOKIE, "/") if over_https(scope) else (CSRF_COOKIE, "/signin")
+
+
+def join_cookie(scope: Scope) -> tuple[str, str]:
+    """The join page's CSRF cookie (the sign-in form's kind of token: there is no session yet): its name and path
+    (over HTTPS the sign-in form's ``__Host-`` cookie on ``/``; else limited to ``/join``)."""
+    return (HOST_PREFIX + CSRF_COOKIE, "/") if over_https(scope) else (CSRF_COOKIE, "/join")
 
 
 #: clients whose failures are remembered at once (the oldest are forgotten first)

@@ -1,7 +1,7 @@
 // kitti-eval pages: drag and drop onto the upload form, the size check, the history's buttons, and the
 // benchmark submission's progress bar. Without it the pages still work (the history's Compare sends ?e=&e= and
 // the server orders the two; a submission is sent by the form itself, without a bar), except the history's
-// Open frame button.
+// Open frame button and the Copy button of a token shown once (the token can still be selected by hand).
 "use strict";
 
 function setupUpload() {
@@ -136,7 +136,32 @@ function setupSubmission() {
   });
 }
 
+// A button with data-copy="ID" copies the text of the element ID (the token shown once after joining).
+function setupCopy() {
+  for (const button of document.querySelectorAll("button[data-copy]")) {
+    const source = document.getElementById(button.dataset.copy);
+    const note = document.getElementById("copy-note");
+    button.addEventListener("click", async () => {
+      const text = source.textContent.trim();
+      let copied = false;
+      try {
+        await navigator.clipboard.writeText(text);
+        copied = true;
+      } catch (_) {
+        const range = document.createRange();  // without the clipboard API (a page over plain HTTP): select it
+        range.selectNodeContents(source);
+        const selection = window.getSelection();
+        selection.removeAllRanges();
+        selection.addRange(range);
+        copied = document.execCommand("copy");
+      }
+      if (note) note.textContent = copied ? "Copied." : "Selected: copy it with Ctrl+C.";
+    });
+  }
+}
+
 document.addEventListener("DOMContentLoaded", () => {
+  setupCopy();
   setupUpload();
   setupHistory();
   setupSubmission();
