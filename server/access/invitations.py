@@ -28,7 +28,7 @@ from ..errors import BadRequest, Conflict, Gone, NotFound, echo
 from ..store import InvitationRecord, InvitationStore, JoinRefused, NewAccount
 from .accounts import Accounts, digest
 from .audit import Audit
-from .policy import Caller, Policy, invited_projects
+from .policy import Caller, Policy, invited_projects, may_join_team
 
 __all__ = [
     "Invitations",
@@ -182,11 +182,16 @@ class Invitations:
             raise NotFound(f"no invitation with id {echo(invitation_id)} that is not revoked already")
         self.audit.record(caller, "invitation.revoke", invitation_id)
 
-    def joined(self, benchmark: str, caller: Caller) -> int | None:
-        """How many accounts the benchmark's invitations made, for an admin (None for anyone else)."""
+    def participants(self, benchmark: str, caller: Caller) -> dict[str, int] | None:
+        """For an admin (None for anyone else): how many accounts may take part in the benchmark
+        (:func:`~kitti_eval_server.access.policy.may_join_team`'s rule: not an admin's, a member of its test set's
+        project unless it is shared or open to all), and how many of them its invitations made."""
         if not self.policy.administers(caller):
             return None
-        return self.store.joined(benchmark)
+        name, project, open_to_all = self._benchmark(benchmark)
+        users = self.accounts.users()
+        taking_part = sum(1 for u in users if may_join_team(u, project=project, open_to_all=open_to_all))
+        return {"accounts": taking_part, "joined": self.store.joined(name)}
 
     # -- the invited's -----------------------------------------------------------------------------------
     def _usable(self, code: str) -> InvitationRecord:

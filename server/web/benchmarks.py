@@ -206,6 +206,9 @@ def _benchmark_context(
         "mine": mine,
         "next_slot": full_time(mine["quota"]["next_at"]) if mine and mine["quota"]["next_at"] else None,
         "accounts": service.policy.has_accounts(),
+        "participants": service.invitations.participants(bench.shown_name, caller)
+        if service.policy.has_accounts()
+        else None,
         "max_upload_bytes": service.settings.max_upload_bytes,
         "idempotency_key": new_form_key(),
         "problems": None,

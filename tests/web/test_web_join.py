@@ -75,3 +75,23 @@ def test_a_taken_name_shows_the_form_again_and_an_unknown_link_is_404(hosted) ->
     r = c.post(f"/join/{code}", data={"name": "bob", "csrf": _csrf(form.text)})
     assert r.status_code == 409 and "taken" in r.text and 'value="bob"' in r.text and _csrf(r.text)
     assert c.get("/join/" + "B" * 43).status_code == 404
+
+
+def test_the_benchmark_page_shows_admins_how_many_take_part(hosted) -> None:
+    c = hosted
+    code = _code(c)
+    assert c.post(f"/v1/join/{code}", json={"name": "pia"}).status_code == 201
+    users = c.get("/v1/admin/users", headers=ADMIN).json()["items"]
+    members = [u["name"] for u in users if "team-a" in u["projects"] and not u["admin"]]
+    assert "alice" in members and "pia" in members and "bob" not in members
+    invitations = c.app.state.service.invitations.listed(HOST)
+    joined = sum(len(i.accounts) for i in invitations)
+    assert joined >= 1
+    c.cookies.clear()
+    page = c.get("/benchmarks/bench", headers=ADMIN).text
+    found = re.search(r'<dd id="participants">(\d+) accounts? may take part; (\d+) joined by its invitations', page)
+    assert found and (int(found.group(1)), int(found.group(2))) == (len(members), joined)
+    root = c.app.state.service.accounts.add_token("root", caller=HOST)[1]
+    assert 'id="participants"' in c.get("/benchmarks/bench", headers=bearer(root)).text
+    alice = c.app.state.service.accounts.add_token("alice", caller=HOST)[1]
+    assert 'id="participants"' not in c.get("/benchmarks/bench", headers=bearer(alice)).text
