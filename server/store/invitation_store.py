@@ -9,7 +9,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 
-from sqlalchemy import Column, DateTime, ForeignKey, Index, Integer, String, Table, insert, or_, select, update
+from sqlalchemy import Column, DateTime, ForeignKey, Index, Integer, String, Table, func, insert, or_, select, update
 from sqlalchemy.engine import Connection, RowMapping
 from sqlalchemy.exc import IntegrityError
 
@@ -128,12 +128,13 @@ class InvitationStore(Area):
     def joined(self, benchmark: str) -> int:
         """How many accounts the benchmark's invitations made."""
         query = (
-            select(invitation_accounts.c.user_name)
+            select(func.count())
+            .select_from(invitation_accounts)
             .join(invitations, invitations.c.id == invitation_accounts.c.invitation)
             .where(invitations.c.benchmark == benchmark)
         )
         with self.engine.connect() as conn:
-            return len(conn.execute(query).all())
+            return int(conn.execute(query).scalar_one())
 
     @retry_when_locked
     def join(self, invitation_id: str, account: NewAccount, at: datetime, audit: Callable[[Connection], None]) -> None:

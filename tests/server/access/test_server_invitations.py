@@ -12,7 +12,7 @@ from server_benchmarks import ok, submit
 from server_helpers import ADMIN, app_client, golden_bytes
 
 from kitti_eval_server.access.invitations import GONE
-from kitti_eval_server.access.policy import Policy
+from kitti_eval_server.access.policy import Policy, invited_projects
 from kitti_eval_server.errors import BadRequest
 
 HOST = Policy.command_line("host")
@@ -120,3 +120,47 @@ def test_joins_are_limited_per_client_address(tmp_path) -> None:
 def test_open_mode_has_no_invitations(tmp_path) -> None:
     with app_client(tmp_path / "data", register_demo=False) as c:
         assert c.post("/v1/join/" + "A" * 43, json={"name": "jo"}).status_code == 404
+
+
+@pytest.mark.parametrize(
+    ("project", "open_to_all", "wanted", "made"),
+    [
+        ("team-a", False, None, ("team-a",)),  # only its project's members take part: they are made members
+        ("team-a", False, "team-a", ("team-a",)),
+        ("team-a", True, None, ()),  # open to all: taking part needs no project, none is given
+        ("team-a", True, "team-b", ("team-b",)),  # the host's choice
+        (None, False, None, ()),  # a shared test set: every account takes part
+        (None, False, "team-b", ("team-b",)),
+    ],
+)
+def test_the_projects_an_invited_account_is_a_member_of(project, open_to_all, wanted, made) -> None:
+    assert invited_projects(project=project, open_to_all=open_to_all, wanted=wanted) == made
+
+
+def test_an_invitation_makes_no_member_of_another_project_than_the_one_that_takes_part() -> None:
+    with pytest.raises(BadRequest, match="only its members take part"):
+        invited_projects(project="team-a", open_to_all=False, wanted="team-b")
+
+
+def test_joins_at_once_never_exceed_the_uses(hosted) -> None:
+    from concurrent.futures import ThreadPoolExecutor
+
+    from kitti_eval_server.errors import Gone
+
+    c, _ = hosted
+    service = c.app.state.service
+    record, code = _invite(c, uses=3)
+    caller = service.policy.anonymous("192.0.2.1")
+
+    def attempt(i: int) -> str:
+        try:
+            return service.invitations.join(code, f"rush-{i}", caller=caller)[0]
+        except Gone:
+            return "gone"
+
+    with ThreadPoolExecutor(8) as pool:
+        outcomes = list(pool.map(attempt, range(8)))
+    made = sorted(o for o in outcomes if o != "gone")
+    assert len(made) == 3 and outcomes.count("gone") == 5
+    listed = next(i for i in service.invitations.listed(HOST) if i.id == record.id)
+    assert listed.uses == 3 and sorted(listed.accounts) == made
