@@ -224,9 +224,7 @@ class Service:
         self.invitations = Invitations(
             self.store.invitation_store, self.accounts, self.policy, self.audit, _invited_to(self.benchmarks)
         )
-        self.join_limiter = FailureLimiter(
-            settings.join_max_attempts, settings.join_window_s, what="attempts to join by an invitation"
-        )
+        self.join_limiter = FailureLimiter(settings.join_max_attempts, settings.join_window_s, what="attempts to join")
 
     # -- lifecycle ---------------------------------------------------------------------------------------
     def start(self) -> None:
