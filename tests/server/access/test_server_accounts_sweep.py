@@ -205,7 +205,9 @@ def test_a_read_only_token_changes_nothing(world, endpoint) -> None:
 
 # --------------------------------------------------------------------------------- the session cookie alone
 
-CHANGES = [e for e in SWEPT if e.method in ("POST", "PUT", "PATCH", "DELETE") and e.path != "/signin"]
+#: the public forms that take no session (signing in, joining by an invitation) carry a CSRF token of their own
+_NO_SESSION = ("/signin", "/join/{code}", "/v1/join/{code}")
+CHANGES = [e for e in SWEPT if e.method in ("POST", "PUT", "PATCH", "DELETE") and e.path not in _NO_SESSION]
 
 
 def _admin_session(c: Any, teams: Teams) -> str:
