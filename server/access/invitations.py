@@ -237,8 +237,11 @@ class Invitations:
         line whose project does not exist, Conflict naming the first whose name is taken. (name, token) each."""
         self.policy.require_admin(caller)
         for line in lines:
-            if line.project is not None and not self.accounts.account_store.project_exists(line.project):
-                raise NotFound(f"line {line.line}: no project named {echo(line.project)}")
+            if line.project is not None:
+                try:
+                    self.accounts.check_project(line.project)
+                except NotFound:
+                    raise NotFound(f"line {line.line}: no project named {echo(line.project)}") from None
         taken = set(self.store.taken([line.name for line in lines]))
         for line in lines:
             if line.name in taken:

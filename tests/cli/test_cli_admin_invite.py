@@ -80,6 +80,9 @@ def test_an_import_of_three_lines_prints_three_working_tokens(admin, tmp_path) -
         assert users == {"ann": ["class"], "ben": ["class"], "cid": []}
         assert c.get("/v1/benchmarks/bench", headers=bearer(rows[0]["token"])).status_code == 200
         assert c.get("/v1/ground-truths/staff-gt", headers=bearer(rows[0]["token"])).status_code == 404
+        audit = c.get("/v1/admin/audit", headers=ADMIN).json()["items"]
+        imported = sorted(r["target"].split()[0] for r in audit if r["action"] == "user.import")
+        assert imported == ["ann", "ben", "cid"]
 
 
 @pytest.mark.parametrize(
