@@ -5,7 +5,8 @@ run on the server's machine against its database (the service's settings: ``KITT
 Every run names its database on stderr, and refuses one that does not exist unless ``--create`` is given (a
 new database would hold none of the service's accounts). Every change is recorded in the audit log as done by
 ``cli:<login name>``. ``token add`` prints the new
-token as the last line of stdout; it is shown this once and stored only as its sha256.
+token as the last line of stdout, ``invite add`` the invitation's link, and ``user import`` ``name,token`` as CSV;
+each is shown this once and stored only as its sha256.
 
 Exit codes: 0 ok, 1 bad input (unknown user, taken name, unreadable file, no server extra), 2 usage.
 """
