@@ -89,6 +89,7 @@ class SubmissionRecord:
     disqualified: bool = False
     baseline: bool = False  # an admin's: on the board as a reference, not ranked, under no quota
     failure: str | None = None  # why a failed submission failed
+    team: str | None = None  # the team it counted for when it was accepted (None: its participant was in none)
 
 
 @dataclass(frozen=True)
