@@ -799,6 +799,16 @@ class Client:
 
         return join_team(self, benchmark, name)
 
+    @_answered
+    def leave_team(self, benchmark: str) -> dict[str, Any]:
+        """Leaves your team of the benchmark (until its last phase has closed): from then on your submissions count
+        against your own quota; what you submitted for the team still counts against the team's and your own while
+        it is in the quota's window, and the board keeps naming the team on its entries. The team left (``left``)
+        and its ``members`` now."""
+        from .client_benchmarks import leave_team
+
+        return leave_team(self, benchmark)
+
     def check_submission(
         self, predictions: str | os.PathLike[str], benchmark: str, *, phase: str | None = None
     ) -> None:

@@ -1,7 +1,8 @@
 """A participant's calls beyond submitting, one function each of a :class:`Sender` (the client's sending, with
 its token and retries; :class:`~kitti_eval.client.Client` has a method for each, which the commands call):
 a benchmark's teams (``/v1/benchmarks/NAME/teams``: the team is made by its first member, who invites the
-others; each joins when they accept; in a team, each phase's quota is the team's), one's entries on the board
+others; each joins when they accept, and may leave until the benchmark's last phase has closed; in a team, each
+phase's quota is the team's), one's entries on the board
 (``.../submissions/ID/publish|withdraw``), and the board as CSV."""
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 if TYPE_CHECKING:
     import httpx
 
-__all__ = ["Sender", "teams", "create_team", "join_team", "publish", "withdraw", "board_csv"]
+__all__ = ["Sender", "teams", "create_team", "join_team", "leave_team", "publish", "withdraw", "board_csv"]
 
 
 class Sender(Protocol):
@@ -52,6 +53,11 @@ def create_team(sender: Sender, benchmark: str, name: str, invite: Sequence[str]
 def join_team(sender: Sender, benchmark: str, name: str) -> dict[str, Any]:
     """Joins the team ``name``, which invited the caller; the team as its members read it."""
     return dict(sender._request("POST", f"/v1/benchmarks/{benchmark}/teams/{name}/join").json())
+
+
+def leave_team(sender: Sender, benchmark: str) -> dict[str, Any]:
+    """Leaves the caller's team of the benchmark: the team left (``left``) and its ``members`` now."""
+    return dict(sender._request("POST", f"/v1/benchmarks/{benchmark}/teams/leave").json())
 
 
 def publish(
