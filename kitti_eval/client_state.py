@@ -30,8 +30,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from filelock import FileLock, Timeout
-
 from .errors import ConfigError
 
 
@@ -108,6 +106,10 @@ class PendingKeys:
     @contextlib.contextmanager
     def _locked(self) -> Iterator[None]:
         """The keys' file held by this run alone (a read then a write: no other run's write falls between)."""
+        try:
+            from filelock import FileLock, Timeout
+        except ImportError:
+            raise ConfigError("the client needs filelock: pip install 'kitti-eval[client]'") from None
         private_folder(self.path.parent)
         lock = FileLock(f"{self.path}.lock", timeout=LOCK_WAIT_S, mode=0o600)
         try:
