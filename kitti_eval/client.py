@@ -33,6 +33,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO, TypeVar
 
+from .client_config import (
+    ALLOW_HTTP_ENV,
+    CONFIG_ENV,
+    TOKEN_ENV,
+    config_dir,
+    refuse_plain_http,
+    save_token,
+    saved_services,
+    saved_token,
+    service_key,
+    token_for,
+)
 from .client_state import new_key
 from .errors import (
     ConfigError,
@@ -64,13 +76,6 @@ __all__ = [
     "new_key",
 ]
 
-#: the environment variable holding the token
-TOKEN_ENV = "KITTI_EVAL_TOKEN"
-#: the folder of the client's configuration instead of the user's config folder
-CONFIG_ENV = "KITTI_EVAL_CONFIG_DIR"
-#: ``1``: a token may be sent over plain http to a host other than loopback
-ALLOW_HTTP_ENV = "KITTI_EVAL_ALLOW_HTTP"
-_TOKENS_FILE = "services.json"
 #: statuses answered while a service is away or too busy for now: sent again
 _AWAY = frozenset({408, 502, 503, 504})
 #: how long one POST asks the service to wait for its result before answering 202 with the job
@@ -261,88 +266,6 @@ def _refusal(response: httpx.Response) -> ServiceError:
     return ServiceError(message, **kw)
 
 
-# ------------------------------------------------------------------------------------------ the token
-
-
-def config_dir() -> Path:
-    """The client's folder: ``$KITTI_EVAL_CONFIG_DIR``, else the user's config folder's ``kitti-eval``."""
-    env = os.environ.get(CONFIG_ENV, "").strip()
-    if env:
-        return Path(env)
-    try:
-        from platformdirs import user_config_dir
-    except ImportError:
-        raise ConfigError("the client needs platformdirs: pip install 'kitti-eval[client]'") from None
-    return Path(user_config_dir("kitti-eval", appauthor=False))
-
-
-def _service_key(service: str) -> str:
-    return service.strip().rstrip("/")
-
-
-def _saved() -> dict[str, str]:
-    path = config_dir() / _TOKENS_FILE
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        return {}
-    except (OSError, ValueError) as e:
-        raise ConfigError(f"{path}: not the tokens kitti-eval login writes: {e}") from None
-    if not isinstance(data, dict) or not all(isinstance(v, str) for v in data.values()):
-        raise ConfigError(f"{path}: not the tokens kitti-eval login writes")
-    return data
-
-
-def saved_token(service: str) -> str | None:
-    """The token ``kitti-eval login`` saved for ``service``, if any."""
-    return _saved().get(_service_key(service))
-
-
-def save_token(service: str, token: str) -> Path:
-    """Saves ``token`` for ``service`` in the client's folder (readable by its owner only, written through a
-    temporary file of its own: :mod:`kitti_eval.client_state`); returns the file."""
-    from .client_state import write_private_json
-
-    tokens = {**_saved(), _service_key(service): token}
-    return write_private_json(config_dir() / _TOKENS_FILE, tokens)
-
-
-def saved_services() -> list[str]:
-    """The services ``kitti-eval login`` saved a token for."""
-    return sorted(_saved())
-
-
-def token_for(service: str, token: str | None = None) -> str | None:
-    """The token to send: ``token``, else ``$KITTI_EVAL_TOKEN``, else the one saved for ``service``."""
-    return token or os.environ.get(TOKEN_ENV, "").strip() or saved_token(service)
-
-
-def _loopback(host: str) -> bool:
-    import ipaddress
-
-    if host.lower() in ("localhost", "localhost."):
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
-def _refuse_plain_http(service: str, allow_http: bool | None) -> None:
-    """The token goes over plain http to a loopback host only, unless the caller says the network is trusted."""
-    from urllib.parse import urlsplit
-
-    if allow_http is None:
-        allow_http = os.environ.get(ALLOW_HTTP_ENV, "").strip() == "1"
-    parts = urlsplit(service)
-    if parts.scheme != "http" or allow_http or _loopback(parts.hostname or ""):
-        return
-    raise ConfigError(
-        f"--service {service}: the token would be sent unencrypted (plain http to a host other than this "
-        f"machine); use https://, or say the network is trusted with --allow-http (or {ALLOW_HTTP_ENV}=1)"
-    )
-
-
 # ------------------------------------------------------------------------------------------ the client
 
 
@@ -436,7 +359,7 @@ class Client:
             import httpx
         except ImportError:
             raise ConfigError("the client needs httpx: pip install 'kitti-eval[client]'") from None
-        service = _service_key(service)
+        service = service_key(service)
         if not service.startswith(("http://", "https://")):
             raise ConfigError(f"--service: expected http(s)://HOST[:PORT], got {service!r}")
         self.service = service
@@ -446,7 +369,7 @@ class Client:
         headers = {"User-Agent": _USER_AGENT, "Accept": "application/json"}
         token = token_for(service, token)
         if token:
-            _refuse_plain_http(service, allow_http)
+            refuse_plain_http(service, allow_http)
             headers["Authorization"] = f"Bearer {token}"
         self.sends_token = bool(token)
         self._httpx = httpx

@@ -1,4 +1,4 @@
-"""The client's own state in its folder (:func:`kitti_eval.client.config_dir`): files written readable by their
+"""The client's own state in its folder (:func:`kitti_eval.client_config.config_dir`): files written readable by their
 owner only, and the idempotency keys of submissions sent and not yet shown scored.
 
 **Files.** A file is written whole or not at all, readable by its owner only, whatever was left or planted beside
