@@ -18,14 +18,14 @@ that service (:func:`saved_token`).
 
 :class:`Client` is composed of parts, each a module: the token and configuration
 (:mod:`kitti_eval.client_config`), the HTTP with its retries (:mod:`kitti_eval.client_http`, the client's
-``http``), the saved submission keys (:mod:`kitti_eval.client_state`) and the benchmark commands beyond
-submitting (:mod:`kitti_eval.client_benchmarks`); this module holds the answers' types, the jobs, the
-evaluations and the submission flow.
+``http``), the saved submission keys (:mod:`kitti_eval.client_state`), the submission flow
+(:mod:`kitti_eval.client_submissions`) and the benchmark commands beyond submitting
+(:mod:`kitti_eval.client_benchmarks`); this module holds the answers' types, the jobs, the evaluations and the
+reads of a benchmark.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import json
 import os
@@ -40,7 +40,6 @@ from .client_config import (
     ALLOW_HTTP_ENV,
     CONFIG_ENV,
     TOKEN_ENV,
-    config_dir,
     save_token,
     saved_services,
     saved_token,
@@ -48,12 +47,10 @@ from .client_config import (
 )
 from .client_http import Retries, Transport
 from .client_http import shown as _shown
-from .client_http import tar_of_txt as _tar_of_txt
 from .client_state import new_key
 from .errors import (
     ConfigError,
     ServiceError,
-    SubmissionRefused,
 )
 
 if TYPE_CHECKING:
@@ -522,17 +519,9 @@ class Client:
         """The checks of ``kitti-eval validate`` against the test frames of the benchmark's phase (None: its
         current one), here, before anything is sent: raises :class:`~kitti_eval.errors.SubmissionRefused` with the
         validator's sentences."""
-        from .io.submission import SubmissionRules, validate_submission
+        from .client_submissions import check_submission
 
-        frames = tuple(self.frames(benchmark, phase=phase))
-        outcome = validate_submission(Path(predictions), SubmissionRules(frames=frames))
-        if not outcome.ok:
-            lines = outcome.lines()
-            raise SubmissionRefused(
-                f"{predictions}: not a valid submission to {benchmark} ({len(lines)} problems); nothing was sent",
-                lines,
-                code="invalid_submission",
-            )
+        check_submission(self, predictions, benchmark, phase=phase)
 
     @_answered
     def submit(
@@ -559,51 +548,19 @@ class Client:
         after its file reached the service), so that the same file submitted again counts once; else a new
         one, saved before the file is sent (:mod:`kitti_eval.client_state`). ``new``: a new key
         whatever was saved: the same file submitted again on purpose, counted again."""
-        path = Path(predictions)
-        if not path.exists():
-            raise ConfigError(f"{path}: no such file (a result.pkl, a zip/tar of txt files, or a folder of them)")
-        if check:
-            self.check_submission(path, benchmark, phase=phase)
-        if idempotency_key is not None:
-            return self._submit(path, benchmark, phase, idempotency_key, wait=wait, wait_s=wait_s)
-        from .client_state import PendingKeys
+        from .client_submissions import submit
 
-        pending = PendingKeys(config_dir())
-        with pending.held(self.service, benchmark, phase, _upload_sha256(path), new=new) as held:
-            submission = self._submit(path, benchmark, phase, held.key, wait=wait, wait_s=wait_s)
-            held.keep = not wait
-        return dataclasses.replace(submission, reused=held.reused)
-
-    def _submit(
-        self, path: Path, benchmark: str, phase: str | None, key: str, *, wait: bool, wait_s: float
-    ) -> Submission:
-        response = self.http.request(
-            "POST",
-            f"{_at(benchmark, phase)}/submissions",
-            params={"wait": _POST_WAIT_S if wait else 0},
-            files={"predictions": (path.name, path)},
-            headers={"Idempotency-Key": key},
+        return submit(
+            self,
+            predictions,
+            benchmark,
+            wait=wait,
+            wait_s=wait_s,
+            check=check,
+            idempotency_key=idempotency_key,
+            phase=phase,
+            new=new,
         )
-        body = response.json()
-        if response.status_code == 201:
-            return Submission.from_body(body)
-        job = Job.from_body(body)
-        submission_id = _id(body.get("submission") or job.id)
-        if not wait:
-            return Submission(submission_id, benchmark, job.state, None, None, {"id": submission_id, "job": body})
-        self.wait_job(job.id, timeout_s=wait_s)
-        return self.submission(benchmark, submission_id)
-
-
-def _upload_sha256(path: Path) -> str:
-    """The sha256 of the bytes a submission of ``path`` sends (a folder: the tar.gz it is packed as)."""
-    from .client_state import sha256_of
-
-    if path.is_dir():
-        with _tar_of_txt(path) as raw:
-            return sha256_of(raw)
-    with open(path, "rb") as raw:
-        return sha256_of(raw)
 
 
 def _at(benchmark: str, phase: str | None) -> str:
