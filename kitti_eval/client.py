@@ -15,31 +15,42 @@ Needs httpx (``pip install 'kitti-eval[client]'``); the rest of the library impo
 
 The token is the ``token`` argument, else ``$KITTI_EVAL_TOKEN``, else the one ``kitti-eval login`` saved for
 that service (:func:`saved_token`).
+
+:class:`Client` is composed of parts, each a module: the token and configuration
+(:mod:`kitti_eval.client_config`), the HTTP with its retries (:mod:`kitti_eval.client_http`, the client's
+``http``), the saved submission keys (:mod:`kitti_eval.client_state`), the submission flow
+(:mod:`kitti_eval.client_submissions`) and the benchmark commands beyond submitting
+(:mod:`kitti_eval.client_benchmarks`); this module holds the answers' types, the jobs, the evaluations and the
+reads of a benchmark.
 """
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
 import functools
 import json
-import math
 import os
-import random
 import re
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, BinaryIO, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
+from .client_config import (
+    ALLOW_HTTP_ENV,
+    CONFIG_ENV,
+    TOKEN_ENV,
+    save_token,
+    saved_services,
+    saved_token,
+    token_for,
+)
+from .client_http import Retries, Transport
+from .client_http import shown as _shown
 from .client_state import new_key
 from .errors import (
     ConfigError,
-    QuotaExceeded,
     ServiceError,
-    ServiceUnreachable,
-    SubmissionRefused,
 )
 
 if TYPE_CHECKING:
@@ -64,18 +75,8 @@ __all__ = [
     "new_key",
 ]
 
-#: the environment variable holding the token
-TOKEN_ENV = "KITTI_EVAL_TOKEN"
-#: the folder of the client's configuration instead of the user's config folder
-CONFIG_ENV = "KITTI_EVAL_CONFIG_DIR"
-#: ``1``: a token may be sent over plain http to a host other than loopback
-ALLOW_HTTP_ENV = "KITTI_EVAL_ALLOW_HTTP"
-_TOKENS_FILE = "services.json"
-#: statuses answered while a service is away or too busy for now: sent again
-_AWAY = frozenset({408, 502, 503, 504})
 #: how long one POST asks the service to wait for its result before answering 202 with the job
 _POST_WAIT_S = 20.0
-_USER_AGENT = "kitti-eval-client"
 _T = TypeVar("_T")
 
 
@@ -197,175 +198,7 @@ class Quota:
     next_at: str | None = None
 
 
-# ------------------------------------------------------------------------------------------ retries
-
-
-@dataclass(frozen=True)
-class Retries:
-    """How requests are sent again while a service is away: after ``first_s``, doubling up to ``max_s``, each
-    wait drawn uniformly below that (full jitter), or the service's ``Retry-After`` plus up to a tenth of it;
-    for at most ``within_s`` seconds from a request's first try."""
-
-    within_s: float = 300.0
-    first_s: float = 0.5
-    max_s: float = 15.0
-    rng: random.Random = field(default_factory=random.Random, compare=False, repr=False)
-
-    def delay(self, attempt: int, retry_after: float | None) -> float:
-        if retry_after is not None:
-            return retry_after + self.rng.uniform(0.0, retry_after / 10)
-        return self.rng.uniform(0.1 * self.first_s, min(self.max_s, self.first_s * 2**attempt))
-
-
-def _retry_after(response: httpx.Response) -> float | None:
-    value = response.headers.get("Retry-After", "").strip()
-    try:
-        seconds = float(value)
-    except ValueError:
-        return None
-    return seconds if math.isfinite(seconds) and seconds >= 0 else None
-
-
-def _error_of(response: httpx.Response) -> dict[str, Any]:
-    try:
-        body = response.json()
-    except ValueError:
-        return {}
-    error = body.get("error") if isinstance(body, dict) else None
-    return error if isinstance(error, dict) else {}
-
-
-#: what a service's text may not hold when it is shown: control characters (a terminal's escape sequences)
-_CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f-\x9f]")
-_MAX_SHOWN = 2000
-
-
-def _shown(text: object) -> str:
-    """A service's text as it may be printed: control characters replaced, its length bounded."""
-    out = _CONTROL.sub("?", str(text))
-    return out if len(out) <= _MAX_SHOWN else out[:_MAX_SHOWN] + "..."
-
-
-def _refusal(response: httpx.Response) -> ServiceError:
-    """The error of the one tree a refusal is."""
-    error = _error_of(response)
-    code = _shown(error.get("code") or "")
-    message = _shown(error.get("message") or response.reason_phrase or f"HTTP {response.status_code}")
-    details = {k: v for k, v in error.items() if k not in ("code", "message")}
-    kw: dict[str, Any] = {"status": response.status_code, "code": code or None, "details": details}
-    if code == "quota_exceeded":
-        return QuotaExceeded(message, **kw)
-    if code == "invalid_submission":
-        problems = details.get("problems")
-        return SubmissionRefused(message, [_shown(p) for p in problems] if isinstance(problems, list) else [], **kw)
-    return ServiceError(message, **kw)
-
-
-# ------------------------------------------------------------------------------------------ the token
-
-
-def config_dir() -> Path:
-    """The client's folder: ``$KITTI_EVAL_CONFIG_DIR``, else the user's config folder's ``kitti-eval``."""
-    env = os.environ.get(CONFIG_ENV, "").strip()
-    if env:
-        return Path(env)
-    try:
-        from platformdirs import user_config_dir
-    except ImportError:
-        raise ConfigError("the client needs platformdirs: pip install 'kitti-eval[client]'") from None
-    return Path(user_config_dir("kitti-eval", appauthor=False))
-
-
-def _service_key(service: str) -> str:
-    return service.strip().rstrip("/")
-
-
-def _saved() -> dict[str, str]:
-    path = config_dir() / _TOKENS_FILE
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        return {}
-    except (OSError, ValueError) as e:
-        raise ConfigError(f"{path}: not the tokens kitti-eval login writes: {e}") from None
-    if not isinstance(data, dict) or not all(isinstance(v, str) for v in data.values()):
-        raise ConfigError(f"{path}: not the tokens kitti-eval login writes")
-    return data
-
-
-def saved_token(service: str) -> str | None:
-    """The token ``kitti-eval login`` saved for ``service``, if any."""
-    return _saved().get(_service_key(service))
-
-
-def save_token(service: str, token: str) -> Path:
-    """Saves ``token`` for ``service`` in the client's folder (readable by its owner only, written through a
-    temporary file of its own: :mod:`kitti_eval.client_state`); returns the file."""
-    from .client_state import write_private_json
-
-    tokens = {**_saved(), _service_key(service): token}
-    return write_private_json(config_dir() / _TOKENS_FILE, tokens)
-
-
-def saved_services() -> list[str]:
-    """The services ``kitti-eval login`` saved a token for."""
-    return sorted(_saved())
-
-
-def token_for(service: str, token: str | None = None) -> str | None:
-    """The token to send: ``token``, else ``$KITTI_EVAL_TOKEN``, else the one saved for ``service``."""
-    return token or os.environ.get(TOKEN_ENV, "").strip() or saved_token(service)
-
-
-def _loopback(host: str) -> bool:
-    import ipaddress
-
-    if host.lower() in ("localhost", "localhost."):
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
-def _refuse_plain_http(service: str, allow_http: bool | None) -> None:
-    """The token goes over plain http to a loopback host only, unless the caller says the network is trusted."""
-    from urllib.parse import urlsplit
-
-    if allow_http is None:
-        allow_http = os.environ.get(ALLOW_HTTP_ENV, "").strip() == "1"
-    parts = urlsplit(service)
-    if parts.scheme != "http" or allow_http or _loopback(parts.hostname or ""):
-        return
-    raise ConfigError(
-        f"--service {service}: the token would be sent unencrypted (plain http to a host other than this "
-        f"machine); use https://, or say the network is trusted with --allow-http (or {ALLOW_HTTP_ENV}=1)"
-    )
-
-
 # ------------------------------------------------------------------------------------------ the client
-
-
-class _Counted:
-    """A file handed to httpx's multipart encoder that reports the bytes read (the upload's progress)."""
-
-    def __init__(self, raw: BinaryIO, on_read: Callable[[int], None]) -> None:
-        self.raw = raw
-        self.on_read = on_read
-
-    def read(self, n: int = -1) -> bytes:
-        chunk = self.raw.read(n)
-        self.on_read(len(chunk))
-        return chunk
-
-    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
-        return self.raw.seek(offset, whence)
-
-    def tell(self) -> int:
-        return self.raw.tell()
-
-    def fileno(self) -> int:
-        return self.raw.fileno()
 
 
 def _answered(method: Callable[..., _T]) -> Callable[..., _T]:
@@ -384,29 +217,6 @@ def _answered(method: Callable[..., _T]) -> Callable[..., _T]:
             ) from None
 
     return wrapper
-
-
-@contextlib.contextmanager
-def _tar_of_txt(folder: Path) -> Iterator[BinaryIO]:
-    """A folder of KITTI txt files (the local reader's layout) as the service takes it: a tar.gz of its txt
-    files, in a temporary file. The same files give the same bytes each time it is packed (gzip's header says
-    no time): each try of a request packs it again, and a try after one whose answer was lost must send the
-    file the idempotency key was first recorded with, or the service refuses the key as reused."""
-    import gzip
-    import tarfile
-    import tempfile
-
-    with tempfile.TemporaryFile() as raw:
-        with gzip.GzipFile(fileobj=raw, mode="wb", compresslevel=1, mtime=0) as packed:
-            with tarfile.open(fileobj=packed, mode="w") as tar:
-                for path in sorted(folder.glob("*.txt")):
-                    tar.add(path, arcname=path.name, recursive=False)
-        raw.seek(0)
-        yield raw
-
-
-#: a request's multipart files: field -> (file name, path)
-_Files = Mapping[str, tuple[str, Path]]
 
 
 class Client:
@@ -432,29 +242,22 @@ class Client:
         transport: Any = None,
         allow_http: bool | None = None,
     ) -> None:
-        try:
-            import httpx
-        except ImportError:
-            raise ConfigError("the client needs httpx: pip install 'kitti-eval[client]'") from None
-        service = _service_key(service)
-        if not service.startswith(("http://", "https://")):
-            raise ConfigError(f"--service: expected http(s)://HOST[:PORT], got {service!r}")
-        self.service = service
-        self.retries = retries or Retries()
-        self.progress = progress
-        self.on_retry = on_retry
-        headers = {"User-Agent": _USER_AGENT, "Accept": "application/json"}
-        token = token_for(service, token)
-        if token:
-            _refuse_plain_http(service, allow_http)
-            headers["Authorization"] = f"Bearer {token}"
-        self.sends_token = bool(token)
-        self._httpx = httpx
-        self._http = httpx.Client(base_url=service, headers=headers, timeout=timeout_s, transport=transport)
+        #: the HTTP every call goes through: the token, the retries, the refusals as errors
+        self.http = Transport(
+            service,
+            token,
+            retries=retries,
+            timeout_s=timeout_s,
+            progress=progress,
+            on_retry=on_retry,
+            transport=transport,
+            allow_http=allow_http,
+        )
+        self.service = self.http.service
 
     def close(self) -> None:
         """Closes the connections (``with Client(...) as c:`` closes them on leaving)."""
-        self._http.close()
+        self.http.close()
 
     def __enter__(self) -> Client:
         return self
@@ -462,116 +265,17 @@ class Client:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # -- sending ----------------------------------------------------------------------------------------
-    def _request(
-        self,
-        method: str,
-        path: str,
-        *,
-        params: Mapping[str, Any] | None = None,
-        data: Mapping[str, Any] | None = None,
-        json_body: Any = None,
-        files: _Files | None = None,
-        headers: Mapping[str, str] | None = None,
-        ok: Sequence[int] = (200, 201, 202),
-    ) -> httpx.Response:
-        """One request, sent again while the service is away (see :class:`Retries`); a refusal raises."""
-        httpx = self._httpx
-        start = time.monotonic()
-        attempt = 0
-        while True:
-            try:
-                with self._opened(files) as opened:
-                    response = self._http.request(
-                        method, path, params=params, data=data, json=json_body, files=opened, headers=headers
-                    )
-            except httpx.TransportError as e:
-                reason, wait = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__, None
-            else:
-                error = _error_of(response) if response.status_code >= 400 else {}
-                away = response.status_code in _AWAY or (
-                    response.status_code == 429 and error.get("code") == "too_many_queued"
-                )
-                if not away:
-                    if response.status_code in ok:
-                        return response
-                    raise self._refused(response)
-                reason = f"{response.status_code} {_shown(error.get('code') or response.reason_phrase)}"
-                wait = _retry_after(response)
-            delay = self.retries.delay(attempt, wait)
-            waited = time.monotonic() - start
-            if waited + delay > self.retries.within_s:
-                raise ServiceUnreachable(
-                    f"{self.service}: no answer to {method} {path} within {self.retries.within_s:g} s "
-                    f"({attempt + 1} tries; the last: {reason})",
-                    code="unreachable",
-                )
-            if self.on_retry is not None:
-                self.on_retry(f"{self.service}: {reason}; trying again in {delay:.1f} s")
-            time.sleep(delay)
-            attempt += 1
-
-    def _refused(self, response: httpx.Response) -> ServiceError:
-        """The refusal's error; one for want of a token says how to give one."""
-        error = _refusal(response)
-        if response.status_code == 401 and not self.sends_token:
-            return ServiceError(
-                f"{self.service} needs a token: save yours once with 'kitti-eval login --service {self.service}' "
-                f"(or set ${TOKEN_ENV})",
-                status=401,
-                code=error.code,
-                details=error.details,
-            )
-        return error
-
-    @contextlib.contextmanager
-    def _opened(self, files: _Files | None) -> Iterator[dict[str, Any] | None]:
-        """The files of one try, opened afresh (a try that failed half-way leaves its file read half-way)."""
-        if not files:
-            yield None
-            return
-        with contextlib.ExitStack() as stack:
-            out: dict[str, Any] = {}
-            for name, (filename, path) in files.items():
-                if path.is_dir():
-                    raw, filename = stack.enter_context(_tar_of_txt(path)), f"{path.name}.tar.gz"
-                else:
-                    raw = stack.enter_context(open(path, "rb"))  # noqa: SIM115 - closed by the stack
-                out[name] = (filename, self._with_progress(raw, filename, stack), "application/octet-stream")
-            yield out
-
-    def _with_progress(self, raw: BinaryIO, filename: str, stack: Any) -> Any:
-        if not self.progress:
-            return raw
-        from tqdm import tqdm
-
-        size = os.fstat(raw.fileno()).st_size
-        bar = stack.enter_context(
-            tqdm(total=size, unit="B", unit_scale=True, unit_divisor=1024, desc=f"sending {filename}", leave=False)
-        )
-        return _Counted(raw, bar.update)
-
-    def _get(self, path: str, **params: Any) -> Any:
-        return self._request("GET", path, params={k: v for k, v in params.items() if v is not None}).json()
-
-    def _follow(self, location: object) -> Any:
-        """GET a place the service named (a job's ``result_location``): a path on this service only, so the token
-        is never sent to another host whatever an answer says."""
-        if not isinstance(location, str) or not location.startswith("/") or location.startswith("//"):
-            raise ServiceError(f"{self.service}: the answer names {location!r} as the result, not a path of its own")
-        return self._get(location)
-
     @_answered
     def whoami(self) -> dict[str, Any]:
         """Who the token is, as the service admitted it: ``user``, ``admin``, ``read_only``."""
-        body = self._get("/v1/me")
+        body = self.http.get("/v1/me")
         return {"user": _shown(body["user"]), "admin": bool(body.get("admin")), "read_only": bool(body["read_only"])}
 
     # -- jobs -------------------------------------------------------------------------------------------
     @_answered
     def job(self, job_id: str) -> Job:
         """An accepted evaluation's or submission's job as it is now."""
-        return Job.from_body(self._get(f"/v1/jobs/{job_id}"))
+        return Job.from_body(self.http.get(f"/v1/jobs/{job_id}"))
 
     @_answered
     def wait_job(self, job_id: str, *, timeout_s: float = 3600.0, poll_s: float = 1.0) -> Job:
@@ -654,7 +358,7 @@ class Client:
             fields["project"] = project
         if labels:
             fields["label"] = [f"{k}={v}" for k, v in labels.items()]
-        response = self._request(
+        response = self.http.request(
             "POST",
             "/v1/evaluations",
             params={"wait": _POST_WAIT_S},
@@ -665,12 +369,12 @@ class Client:
         location = self._accepted(response, wait_s)
         if location is None:
             return Evaluation.from_body(response.json())
-        return Evaluation.from_body(self._follow(location))
+        return Evaluation.from_body(self.http.follow(location))
 
     @_answered
     def evaluation(self, evaluation_id: str) -> Evaluation:
         """One stored evaluation (yours, or your projects')."""
-        return Evaluation.from_body(self._get(f"/v1/evaluations/{evaluation_id}"))
+        return Evaluation.from_body(self.http.get(f"/v1/evaluations/{evaluation_id}"))
 
     @_answered
     def evaluations(
@@ -680,25 +384,25 @@ class Client:
         params: dict[str, Any] = {"gt": gt, "limit": limit}
         if labels:
             params["label"] = [f"{k}={v}" for k, v in labels.items()]
-        return list(self._get("/v1/evaluations", **params)["items"])
+        return list(self.http.get("/v1/evaluations", **params)["items"])
 
     # -- benchmarks -------------------------------------------------------------------------------------
     @_answered
     def benchmarks(self) -> list[dict[str, Any]]:
         """The benchmarks you may see, each with its rules."""
-        return list(self._get("/v1/benchmarks")["items"])
+        return list(self.http.get("/v1/benchmarks")["items"])
 
     @_answered
     def benchmark(self, name: str) -> dict[str, Any]:
         """One benchmark and its rules: key, columns, quota, whether it is open, its board's part."""
-        return dict(self._get(f"/v1/benchmarks/{name}"))
+        return dict(self.http.get(f"/v1/benchmarks/{name}"))
 
     @_answered
     def frames(self, benchmark: str, *, phase: str | None = None) -> list[str]:
         """The test frame ids of the benchmark's phase (None: its current one): what a submission must hold."""
         from .core.frames import normalize_frame_id
 
-        frames = self._get(f"{_at(benchmark, phase)}/frames").get("frames")
+        frames = self.http.get(f"{_at(benchmark, phase)}/frames").get("frames")
         if not isinstance(frames, list) or not frames:
             raise ServiceError(f"{self.service}: benchmark {benchmark} lists no test frames")
         return [normalize_frame_id(f) for f in frames]
@@ -709,12 +413,12 @@ class Client:
     ) -> dict[str, Any]:
         """The board of the benchmark's phase (None: its current one) as the service shows it to you (entries,
         columns, the key, intervals)."""
-        return dict(self._get(f"{_at(benchmark, phase)}/leaderboard", sort=sort, order=order))
+        return dict(self.http.get(f"{_at(benchmark, phase)}/leaderboard", sort=sort, order=order))
 
     @_answered
     def quota(self, benchmark: str, *, phase: str | None = None) -> Quota:
         """Your quota (your team's, in a team) on the benchmark's phase (None: its current one) as it stands."""
-        q = self._get(f"{_at(benchmark, phase)}/submissions")["quota"]
+        q = self.http.get(f"{_at(benchmark, phase)}/submissions")["quota"]
         next_at = q.get("next_at")
         return Quota(
             int(q["submissions"]),
@@ -727,19 +431,19 @@ class Client:
     @_answered
     def submissions(self, benchmark: str, *, phase: str | None = None) -> list[Submission]:
         """Your submissions to the benchmark's phase (None: its current one), newest first."""
-        return [Submission.from_body(s) for s in self._get(f"{_at(benchmark, phase)}/submissions")["items"]]
+        return [Submission.from_body(s) for s in self.http.get(f"{_at(benchmark, phase)}/submissions")["items"]]
 
     @_answered
     def submission(self, benchmark: str, submission_id: str) -> Submission:
         """One of your submissions, with its scores and aggregate result once scored."""
-        return Submission.from_body(self._get(f"/v1/benchmarks/{benchmark}/submissions/{submission_id}"))
+        return Submission.from_body(self.http.get(f"/v1/benchmarks/{benchmark}/submissions/{submission_id}"))
 
     @_answered
     def leaderboard_csv(self, benchmark: str, *, phase: str | None = None) -> str:
         """The board of the benchmark's phase (None: its current one) as the service's CSV."""
         from .client_benchmarks import board_csv
 
-        return board_csv(self, f"{_at(benchmark, phase)}/leaderboard")
+        return board_csv(self.http, f"{_at(benchmark, phase)}/leaderboard")
 
     @_answered
     def publish(
@@ -758,7 +462,7 @@ class Client:
 
         return Submission.from_body(
             publish(
-                self,
+                self.http,
                 benchmark,
                 _id(submission_id),
                 method=method,
@@ -773,7 +477,7 @@ class Client:
         """Takes one of your entries off the board; the submission as it is then."""
         from .client_benchmarks import withdraw
 
-        return Submission.from_body(withdraw(self, benchmark, _id(submission_id)))
+        return Submission.from_body(withdraw(self.http, benchmark, _id(submission_id)))
 
     # -- teams ------------------------------------------------------------------------------------------
     @_answered
@@ -782,7 +486,7 @@ class Client:
         ``invitations`` (the teams that invited you) and ``team_size``."""
         from .client_benchmarks import teams
 
-        return teams(self, benchmark)
+        return teams(self.http, benchmark)
 
     @_answered
     def create_team(self, benchmark: str, name: str, *, invite: Sequence[str] = ()) -> dict[str, Any]:
@@ -790,14 +494,24 @@ class Client:
         when they accept (:meth:`join_team`); the team with its ``members`` and ``invited``."""
         from .client_benchmarks import create_team
 
-        return create_team(self, benchmark, name, invite)
+        return create_team(self.http, benchmark, name, invite)
 
     @_answered
     def join_team(self, benchmark: str, name: str) -> dict[str, Any]:
         """Joins the team ``name``, which invited you: from then on each phase's quota is the team's."""
         from .client_benchmarks import join_team
 
-        return join_team(self, benchmark, name)
+        return join_team(self.http, benchmark, name)
+
+    @_answered
+    def leave_team(self, benchmark: str) -> dict[str, Any]:
+        """Leaves your team of the benchmark (until its last phase has closed): from then on your submissions count
+        against your own quota; what you submitted for the team still counts against the team's and your own while
+        it is in the quota's window, and the board keeps naming the team on its entries. The team left (``left``)
+        and its ``members`` now."""
+        from .client_benchmarks import leave_team
+
+        return leave_team(self.http, benchmark)
 
     def check_submission(
         self, predictions: str | os.PathLike[str], benchmark: str, *, phase: str | None = None
@@ -805,17 +519,9 @@ class Client:
         """The checks of ``kitti-eval validate`` against the test frames of the benchmark's phase (None: its
         current one), here, before anything is sent: raises :class:`~kitti_eval.errors.SubmissionRefused` with the
         validator's sentences."""
-        from .io.submission import SubmissionRules, validate_submission
+        from .client_submissions import check_submission
 
-        frames = tuple(self.frames(benchmark, phase=phase))
-        outcome = validate_submission(Path(predictions), SubmissionRules(frames=frames))
-        if not outcome.ok:
-            lines = outcome.lines()
-            raise SubmissionRefused(
-                f"{predictions}: not a valid submission to {benchmark} ({len(lines)} problems); nothing was sent",
-                lines,
-                code="invalid_submission",
-            )
+        check_submission(self, predictions, benchmark, phase=phase)
 
     @_answered
     def submit(
@@ -842,51 +548,19 @@ class Client:
         after its file reached the service), so that the same file submitted again counts once; else a new
         one, saved before the file is sent (:mod:`kitti_eval.client_state`). ``new``: a new key
         whatever was saved: the same file submitted again on purpose, counted again."""
-        path = Path(predictions)
-        if not path.exists():
-            raise ConfigError(f"{path}: no such file (a result.pkl, a zip/tar of txt files, or a folder of them)")
-        if check:
-            self.check_submission(path, benchmark, phase=phase)
-        if idempotency_key is not None:
-            return self._submit(path, benchmark, phase, idempotency_key, wait=wait, wait_s=wait_s)
-        from .client_state import PendingKeys
+        from .client_submissions import submit
 
-        pending = PendingKeys(config_dir())
-        with pending.held(self.service, benchmark, phase, _upload_sha256(path), new=new) as held:
-            submission = self._submit(path, benchmark, phase, held.key, wait=wait, wait_s=wait_s)
-            held.keep = not wait
-        return dataclasses.replace(submission, reused=held.reused)
-
-    def _submit(
-        self, path: Path, benchmark: str, phase: str | None, key: str, *, wait: bool, wait_s: float
-    ) -> Submission:
-        response = self._request(
-            "POST",
-            f"{_at(benchmark, phase)}/submissions",
-            params={"wait": _POST_WAIT_S if wait else 0},
-            files={"predictions": (path.name, path)},
-            headers={"Idempotency-Key": key},
+        return submit(
+            self,
+            predictions,
+            benchmark,
+            wait=wait,
+            wait_s=wait_s,
+            check=check,
+            idempotency_key=idempotency_key,
+            phase=phase,
+            new=new,
         )
-        body = response.json()
-        if response.status_code == 201:
-            return Submission.from_body(body)
-        job = Job.from_body(body)
-        submission_id = _id(body.get("submission") or job.id)
-        if not wait:
-            return Submission(submission_id, benchmark, job.state, None, None, {"id": submission_id, "job": body})
-        self.wait_job(job.id, timeout_s=wait_s)
-        return self.submission(benchmark, submission_id)
-
-
-def _upload_sha256(path: Path) -> str:
-    """The sha256 of the bytes a submission of ``path`` sends (a folder: the tar.gz it is packed as)."""
-    from .client_state import sha256_of
-
-    if path.is_dir():
-        with _tar_of_txt(path) as raw:
-            return sha256_of(raw)
-    with open(path, "rb") as raw:
-        return sha256_of(raw)
 
 
 def _at(benchmark: str, phase: str | None) -> str:

@@ -1,4 +1,4 @@
-"""The client's own state in its folder (:func:`kitti_eval.client.config_dir`): files written readable by their
+"""The client's own state in its folder (:func:`kitti_eval.client_config.config_dir`): files written readable by their
 owner only, and the idempotency keys of submissions sent and not yet shown scored.
 
 **Files.** A file is written whole or not at all, readable by its owner only, whatever was left or planted beside
@@ -11,7 +11,10 @@ ACL cannot widen it), flushed, then renamed over the file.
 submission it made, counted once: a key is saved, before the file is sent, under (the service, the benchmark,
 the phase, the file's sha256) in ``submissions.json``; it is forgotten once its submission is shown scored (or
 failed, or refused: nothing of it counts then). A key older than :data:`KEEP_DAYS` is forgotten (the service
-keeps a key for a day by default, ``KITTI_EVAL_IDEMPOTENCY_KEY_HOURS``)."""
+keeps a key for a day by default, ``KITTI_EVAL_IDEMPOTENCY_KEY_HOURS``). The file is read and written again
+under a lock (``submissions.json.lock``, the ``filelock`` package's: ``flock`` on POSIX, ``msvcrt.locking`` on
+Windows), so runs that share the folder, in parallel, lose none of each other's keys; and two runs of the same
+file to the same phase send one key (the second reads the key the first saved)."""
 
 from __future__ import annotations
 
@@ -66,6 +69,8 @@ def write_private_json(path: Path, data: Any) -> Path:
 FILE_NAME = "submissions.json"
 #: how long a saved key is kept at most
 KEEP_DAYS = 7.0
+#: how long a run waits for another's hold of the keys' file (a read and a write: milliseconds)
+LOCK_WAIT_S = 60.0
 
 
 def sha256_of(raw: BinaryIO) -> str:
@@ -98,6 +103,27 @@ class PendingKeys:
     def __init__(self, folder: Path) -> None:
         self.path = folder / FILE_NAME
 
+    @contextlib.contextmanager
+    def _locked(self) -> Iterator[None]:
+        """The keys' file held by this run alone (a read then a write: no other run's write falls between)."""
+        try:
+            from filelock import FileLock, Timeout
+        except ImportError:
+            raise ConfigError("the client needs filelock: pip install 'kitti-eval[client]'") from None
+        private_folder(self.path.parent)
+        lock = FileLock(f"{self.path}.lock", timeout=LOCK_WAIT_S, mode=0o600)
+        try:
+            lock.acquire()
+        except Timeout:
+            raise ConfigError(
+                f"{self.path}.lock: another kitti-eval held the submissions' keys for {LOCK_WAIT_S:.0f} s; "
+                "try again when it has ended"
+            ) from None
+        try:
+            yield
+        finally:
+            lock.release()
+
     def _read(self) -> dict[str, dict[str, Any]]:
         try:
             data = json.loads(self.path.read_text(encoding="utf-8"))
@@ -120,16 +146,33 @@ class PendingKeys:
 
     def save(self, service: str, benchmark: str, phase: str | None, sha256: str, key: str) -> None:
         """Saves ``key`` for this file sent to this phase (replacing one saved before)."""
+        with self._locked():
+            self._save(_entry_name(service, benchmark, phase, sha256), key)
+
+    def _save(self, name: str, key: str) -> None:
         entries = self._read()
-        entries[_entry_name(service, benchmark, phase, sha256)] = {"key": key, "saved_at": time.time()}
+        entries[name] = {"key": key, "saved_at": time.time()}
         write_private_json(self.path, entries)
+
+    def _take(self, service: str, benchmark: str, phase: str | None, sha256: str, *, new: bool) -> tuple[str, bool]:
+        """The key to send and whether an earlier run saved it: the saved one (unless ``new``), else a new one
+        saved first, looked up and saved under one hold of the file."""
+        name = _entry_name(service, benchmark, phase, sha256)
+        with self._locked():
+            entry = None if new else self._read().get(name)
+            if entry is not None:
+                return str(entry["key"]), True
+            key = new_key()
+            self._save(name, key)
+            return key, False
 
     def forget(self, key: str) -> None:
         """Forgets ``key`` (its submission was shown scored, failed, or was refused)."""
-        entries = self._read()
-        kept = {k: v for k, v in entries.items() if v["key"] != key}
-        if len(kept) != len(entries):
-            write_private_json(self.path, kept)
+        with self._locked():
+            entries = self._read()
+            kept = {k: v for k, v in entries.items() if v["key"] != key}
+            if len(kept) != len(entries):
+                write_private_json(self.path, kept)
 
     @contextlib.contextmanager
     def held(self, service: str, benchmark: str, phase: str | None, sha256: str, *, new: bool) -> Iterator[Held]:
@@ -138,11 +181,7 @@ class PendingKeys:
         shown scored yet), or with a refusal that recorded nothing or a job that failed."""
         from .errors import QuotaExceeded, ServiceError, ServiceUnreachable, SubmissionRefused
 
-        key = None if new else self.get(service, benchmark, phase, sha256)
-        reused = key is not None
-        if key is None:
-            key = new_key()
-            self.save(service, benchmark, phase, sha256, key)
+        key, reused = self._take(service, benchmark, phase, sha256, new=new)
         held = Held(key, reused)
         try:
             yield held

@@ -1,5 +1,6 @@
-"""``kitti-eval team create|join|show``: a benchmark's team, made, joined and read from the command line (the
-routes ``/v1/benchmarks/NAME/teams``; in a team, each phase's quota is the team's). Exit codes as ``submit``'s."""
+"""``kitti-eval team create|join|leave|show``: a benchmark's team, made, joined, left and read from the command line
+(the routes ``/v1/benchmarks/NAME/teams``; in a team, each phase's quota is the team's). Exit codes as
+``submit``'s."""
 
 from __future__ import annotations
 
@@ -19,10 +20,11 @@ _EPILOG = "Exit codes: 0 done, 2 usage error or a request the service refuses, 5
 def add_parser(sub: Any) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "team",
-        help="make a benchmark's team and invite others, join one that invited you, or show yours",
+        help="make a benchmark's team and invite others, join one that invited you, leave yours, or show it",
         description="A benchmark's teams: 'create NAME --invite USER,USER' makes a team (you are its first member) "
-        "and invites the others, who join with 'join NAME'; 'show' lists the benchmark's teams, yours and the "
-        "teams that invited you. In a team, each phase's quota is the team's.",
+        "and invites the others, who join with 'join NAME'; 'leave' leaves yours (until the benchmark's last phase "
+        "has closed); 'show' lists the benchmark's teams, yours and the teams that invited you. In a team, each "
+        "phase's quota is the team's; leaving frees none of it.",
         epilog=_EPILOG,
     )
     p.set_defaults(run=run, quiet=False)
@@ -34,8 +36,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     )
     join = actions.add_parser("join", help="join a team that invited you", epilog=_EPILOG)
     join.add_argument("name", help="the team's name")
+    leave = actions.add_parser("leave", help="leave your team", epilog=_EPILOG)
     show = actions.add_parser("show", help="the benchmark's teams, yours and your invitations", epilog=_EPILOG)
-    for q in (create, join, show):
+    for q in (create, join, leave, show):
         q.add_argument("--benchmark", required=True, metavar="NAME", help="the benchmark's name")
         add_connection_arguments(q, saved=True)
         q.add_argument("--format", choices=["table", "json"], default="table", help="(default: table)")
@@ -54,6 +57,14 @@ def run(args: argparse.Namespace) -> int:
             team = client.join_team(args.benchmark, args.name)
             say(f"joined the team {team.get('name')} of {args.benchmark}: each phase's quota is the team's")
             emit(_one(team, args.format), None)
+        elif args.team_action == "leave":
+            left = client.leave_team(args.benchmark)
+            say(
+                f"left the team {left.get('left')} of {args.benchmark}: what you submit from now on counts against "
+                "your own quota; what you submitted for the team still counts against its quota and yours"
+            )
+            now = {"name": left.get("left"), "members": left.get("members")}
+            emit(json.dumps(left, indent=2) + "\n" if args.format == "json" else _line(now) + "\n", None)
         elif args.team_action == "show":
             emit(render_team(client.teams(args.benchmark), args.format), None)
         else:  # pragma: no cover - argparse allows no other

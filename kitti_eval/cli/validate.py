@@ -90,7 +90,7 @@ def fetch_set(url: str, token: str | None = None) -> tuple[list[str], str]:
     import urllib.error  # here: every other command would import the HTTP client (and ssl) for nothing
     import urllib.request
 
-    from ..client import token_for  # the standard library only: the HTTP client it uses is loaded when it sends
+    from ..client_config import token_for  # the standard library only: the HTTP client it uses is loaded when it sends
     from ..core.frames import normalize_frame_id
     from ..errors import ConfigError, InputError
 

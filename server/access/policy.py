@@ -201,10 +201,10 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
     ),
     ("benchmark teams: list", Access.READER, "who may take part in it", "yes"),
     (
-        "benchmark teams: make one, join one",
+        "benchmark teams: make one, join one, leave one",
         Access.WRITER,
-        "who may take part: makes one inviting others who may, joins one that invited them (one team each a "
-        "benchmark, at most its team size)",
+        "who may take part: makes one inviting others who may, joins one that invited them, leaves theirs (one "
+        "team each a benchmark, at most its team size; none changes once its last phase has closed)",
         "no (admins submit baselines)",
     ),
     ("benchmarks: create, close, reopen, reveal, rescore, disqualify", Access.ADMIN, "no", "yes"),

@@ -48,7 +48,7 @@ class Leaderboard:
         rank_of = {sid: i for i, sid in enumerate(ranked_ids, 1)}
         keyed = [row.id for row, key in ranked if key is not None and not row.baseline]
         standing = dict(zip(keyed, standings([values.get(i) for i in keyed])))
-        team_of = entry_teams(self.benchmark_store, bench, [row for row, _ in ranked])
+        team_of = entry_teams(bench, [row for row, _ in ranked])
         for row, key in ranked:
             if row.baseline and key is not None:
                 standing[row.id] = standings([values.get(row.id)])[0]

@@ -265,7 +265,7 @@ class Submissions:
         window = timedelta(days=days)
         team = quota_team(self.benchmark_store, bench, caller.name)
         since = datetime.now(timezone.utc) - window
-        used, oldest = self.benchmark_store.quota_used(name, caller.name, since, team[1] if team else ())
+        used, oldest = self.benchmark_store.quota_used(name, caller.name, since, team)
         if used >= count and oldest is not None:
             return QuotaExceeded.of(count, days, oldest + window)
         return None
@@ -293,9 +293,13 @@ class Submissions:
         records = self.benchmark_store.list_submissions(name, participant=caller.name)
         count, days = bench.quota
         since = datetime.now(timezone.utc) - timedelta(days=days)
-        team = quota_team(self.benchmark_store, bench, caller.name)  # a team's members count together
+        team = quota_team(self.benchmark_store, bench, caller.name)  # counted as accept_submission counts them
         pool = (
-            [r for m in team[1] for r in self.benchmark_store.list_submissions(name, participant=m)]
+            [
+                r
+                for r in self.benchmark_store.list_submissions(name)
+                if r.participant in team.members or r.team == team.name
+            ]
             if team
             else records
         )

@@ -2,7 +2,11 @@
 (an invitation binds nobody: no one is put in a team, or made to share a quota, without saying so); the quota of
 each phase is the team's (every member's accepted submission counts against it, and a member who submitted alone
 before joining brings those submissions, not a quota of their own); one team per participant per benchmark; the
-board names the team of each entry.
+board names the team each entry counted for, recorded on the submission when it was accepted.
+
+A member may leave their team until the benchmark's last phase has closed. Leaving frees no quota: what was
+submitted for the team still counts against the team's quota, and against the leaver's own (their submissions
+are theirs whichever team they counted for), for as long as it is in the quota's window.
 
 The team's members are counted together, and their submissions accepted one after another, under one lock: the
 team's (on PostgreSQL the ``quota_locks`` row of (phase, ``team~NAME``); on SQLite the database's write lock).
@@ -17,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..access.policy import Caller, may_join_team, sees_teams
 from ..errors import BadRequest, Conflict, Forbidden, NotFound, echo
-from ..store import AccountStore, BenchmarkStore, SubmissionRecord
+from ..store import AccountStore, BenchmarkStore, QuotaTeam, SubmissionRecord
 from ..store.team_store import TeamRecord, TeamRefused, TeamStore
 from .lifecycle import PhaseState
 from .phases import last_phase
@@ -37,31 +41,24 @@ def _store(area: BenchmarkStore) -> TeamStore:
     return TeamStore(area.db)
 
 
-def quota_team(store: BenchmarkStore, bench: Benchmark, participant: str) -> tuple[str, list[str]] | None:
-    """The lock name and members of the participant's team in the benchmark ``bench`` is a phase of (None: not
-    in a team; a benchmark whose team size is 1 takes no teams): whose submissions count together against the
-    phase's quota."""
+def quota_team(store: BenchmarkStore, bench: Benchmark, participant: str) -> QuotaTeam | None:
+    """The participant's team in the benchmark ``bench`` is a phase of (None: not in a team; a benchmark whose
+    team size is 1 takes no teams): whose submissions count together against the phase's quota, and whom a
+    submission accepted now counts for."""
     if bench.team_size < 2:
         return None
     team = _store(store).team_of(bench.shown_name, participant)
     if team is None:
         return None
-    return f"team~{team.name}", list(team.members)
+    return QuotaTeam(team.name, team.members)
 
 
-def entry_teams(store: BenchmarkStore, bench: Benchmark, rows: Sequence[SubmissionRecord]) -> dict[str, str]:
-    """Submission id -> the team it counted for when it was accepted, in the benchmark ``bench`` is a phase of
-    (none when it takes no teams): its participant's team, if they had joined it by then. A participant is in one
-    team of a benchmark and never leaves it, so who joins later relabels none of the entries already made."""
+def entry_teams(bench: Benchmark, rows: Sequence[SubmissionRecord]) -> dict[str, str]:
+    """Submission id -> the team it counted for, recorded when it was accepted, in the benchmark ``bench`` is a
+    phase of (none when it takes no teams): who joins or leaves later relabels none of the entries made."""
     if bench.team_size < 2:
         return {}
-    joined = _store(store).memberships(bench.shown_name)
-    out = {}
-    for row in rows:
-        team = joined.get(row.participant)
-        if team is not None and team[1] <= row.created_at:
-            out[row.id] = team[0]
-    return out
+    return {row.id: row.team for row in rows if row.team is not None}
 
 
 def team_view(team: TeamRecord, *, own: bool = False) -> dict[str, Any]:
@@ -110,7 +107,10 @@ class Teams:
             "invitations": store.invitations(bench.name, caller.name) if participant and mine is None else [],
         }
 
-    def _taking_part(self, name: str, caller: Caller, doing: str) -> Benchmark:
+    def _taking_part(self, name: str, caller: Caller, doing: str, *, teams_taken: bool = True) -> Benchmark:
+        """The benchmark whose teams the caller changes (``doing``), refused when they do not take part in it, it
+        takes no teams (unless ``teams_taken`` is False: one may leave a team of a benchmark whose team size has
+        shrunk to 1) or its last phase has closed (as the lifecycle says)."""
         policy = self.catalog.policy
         if not policy.is_participant(caller):
             raise Forbidden(f"a participant {doing} with their own token")
@@ -119,7 +119,7 @@ class Teams:
             policy.administers(caller)
         ):
             raise Forbidden(f"one who takes part in {name!r} {doing}")
-        if bench.team_size < 2:
+        if teams_taken and bench.team_size < 2:
             raise Conflict(f"the benchmark {name!r} takes no teams (its team size is 1)")
         last = last_phase(self.catalog, bench)
         if last.state() in (PhaseState.CLOSED, PhaseState.REVEALED):
@@ -183,3 +183,16 @@ class Teams:
             raise Conflict(f"one team per participant per benchmark: you are in a team of {name!r}") from None
         self.catalog.audit.record(caller, "team.join", f"{bench.name} {team}")
         return team_view(store.teams(bench.name, name=team)[0], own=True)
+
+    def leave(self, name: str, caller: Caller) -> dict[str, Any]:
+        """The caller leaves their team: what they submit from then on counts against their own quota, and what
+        they submitted for the team still counts against the team's and their own (leaving frees no quota); the
+        board keeps naming the team on the entries made for it. Refused when they are in no team (404) or the
+        benchmark's last phase has closed (409): its teams no longer change."""
+        bench = self._taking_part(name, caller, "leaves a team", teams_taken=False)
+        left = self.team_store.leave_team(bench.name, caller.name)
+        if left is None:
+            raise NotFound(f"you are in no team of {name!r}")
+        self.catalog.audit.record(caller, "team.leave", f"{bench.name} {left}")
+        found = self.team_store.teams(bench.name, name=left)
+        return {"benchmark": bench.name, "left": left, "members": list(found[0].members) if found else []}

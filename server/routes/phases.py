@@ -142,3 +142,11 @@ def make_team(name: str, body: TeamIn, benchmarks: BenchmarksDep, caller: Writer
 @router.post("/{name}/teams/{team}/join", summary="Join a team that invited you")
 def join_team(name: str, team: str, benchmarks: BenchmarksDep, caller: WriterCaller) -> dict[str, Any]:
     return benchmarks.teams.join(name, team, caller)
+
+
+@router.post("/{name}/teams/leave", summary="Leave your team (until the benchmark's last phase has closed)")
+def leave_team(name: str, benchmarks: BenchmarksDep, caller: WriterCaller) -> dict[str, Any]:
+    """What you submit from then on counts against your own quota; what you submitted for the team still counts
+    against the team's quota and your own while it is in the quota's window, and the board keeps naming the team
+    on the entries made for it."""
+    return benchmarks.teams.leave(name, caller)

@@ -22,6 +22,7 @@ from .benchmark_store import (
     BenchmarkStore,
     PublishRefused,
     QuotaRefused,
+    QuotaTeam,
     ResampledKey,
     SubmissionRecord,
 )
@@ -85,6 +86,7 @@ __all__ = [
     "AuditRecord",
     "BenchmarkRecord",
     "SubmissionRecord",
+    "QuotaTeam",
     "ResampledKey",
     "JobRecord",
     "WorkerRecord",

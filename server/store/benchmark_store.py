@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import Select, delete, func, insert, select, update
+from sqlalchemy import Select, delete, func, insert, or_, select, update
 from sqlalchemy.engine import Connection, RowMapping
 
 from .database import (
@@ -23,7 +23,15 @@ from .database import (
 )
 from .idempotency_store import IdempotencyRecord, IdempotencyStore
 
-__all__ = ["BenchmarkRecord", "SubmissionRecord", "ResampledKey", "QuotaRefused", "PublishRefused", "BenchmarkStore"]
+__all__ = [
+    "BenchmarkRecord",
+    "SubmissionRecord",
+    "ResampledKey",
+    "QuotaRefused",
+    "QuotaTeam",
+    "PublishRefused",
+    "BenchmarkStore",
+]
 
 
 class QuotaRefused(Exception):
@@ -89,6 +97,7 @@ class SubmissionRecord:
     disqualified: bool = False
     baseline: bool = False  # an admin's: on the board as a reference, not ranked, under no quota
     failure: str | None = None  # why a failed submission failed
+    team: str | None = None  # the team it counted for when it was accepted (None: its participant was in none)
 
 
 @dataclass(frozen=True)
@@ -102,12 +111,33 @@ class ResampledKey:
     key_values: bytes  # float64, little-endian, one a resample
 
 
-def _quota_count(benchmark: str, participants: Sequence[str], window_start: datetime) -> Select[int, Any]:
-    """The participants' submissions that count against the quota since ``window_start`` (not failed, not
-    baselines), and the oldest one's acceptance time (``participants``: one, or a team's members)."""
+@dataclass(frozen=True)
+class QuotaTeam:
+    """A participant's team, whose submissions count together against a phase's quota: those its members made
+    (alone before joining too) and those made for it by members who have left it since."""
+
+    name: str
+    members: tuple[str, ...]
+
+    @property
+    def lock(self) -> str:
+        """The name its members' submissions are accepted under, one after another (a participant's is their
+        own name, which holds no ``~``)."""
+        return f"team~{self.name}"
+
+
+def _quota_count(
+    benchmark: str, participant: str, window_start: datetime, team: QuotaTeam | None = None
+) -> Select[int, Any]:
+    """The submissions that count against the participant's quota since ``window_start`` (not failed, not
+    baselines), and the oldest one's acceptance time: their own (those they made for a team they have left too),
+    or in a team the team's (:class:`QuotaTeam`)."""
+    who = submissions.c.participant == participant
+    if team is not None:
+        who = or_(submissions.c.participant.in_(list(team.members)), submissions.c.team == team.name)
     return select(func.count(), func.min(submissions.c.created_at)).where(
         submissions.c.benchmark == benchmark,
-        submissions.c.participant.in_(list(participants)),
+        who,
         submissions.c.created_at > window_start,
         submissions.c.status != "failed",
         submissions.c.baseline.is_(False),
@@ -181,7 +211,7 @@ class BenchmarkStore(Area):
         window: timedelta,
         then: Callable[[Connection], object] | None = None,
         key: IdempotencyRecord | None = None,
-        team: tuple[str, Sequence[str]] | None = None,
+        team: QuotaTeam | None = None,
     ) -> None:
         """Insert the submission if its participant has fewer than ``limit`` submissions in this benchmark
         since ``window_start``; else raise :class:`QuotaRefused` (``limit`` None: an admin's baseline, inserted
@@ -190,15 +220,17 @@ class BenchmarkStore(Area):
         servers on the database, are counted one after another and none is admitted over the limit. ``then``
         writes what goes with the submission in the same transaction. ``key``: the request's idempotency key,
         recorded first (:class:`KeyTaken`, nothing written, when a copy of the request recorded it: the copy is
-        not counted again). ``team``: the participant's team's lock name and members, whose submissions count
-        together (the lock is the team's, so its members' parallel submissions are counted one after another)."""
-        lock_as, counted = team if team is not None else (record.participant, [record.participant])
-        count_query = _quota_count(record.benchmark, counted, window_start)
+        not counted again). ``team``: the participant's team, whose submissions count together (the lock is the
+        team's, so its members' parallel submissions are counted one after another); the submission is recorded
+        as the team's (``record.team``)."""
+        lock_as = team.lock if team is not None else record.participant
+        count_query = _quota_count(record.benchmark, record.participant, window_start, team)
+        row = {**record.__dict__, "team": team.name if team is not None else None}
         if limit is None:  # on SQLite the write lock from the start, as the key's record needs
             with self._writing() as conn:
                 if key is not None:
                     IdempotencyStore.add_idempotency_key_in(conn, key)
-                conn.execute(insert(submissions).values(**record.__dict__))
+                conn.execute(insert(submissions).values(**row))
                 if then is not None:
                     then(conn)
             return
@@ -208,20 +240,20 @@ class BenchmarkStore(Area):
             used, oldest = conn.execute(count_query).one()
             if used >= limit:
                 raise QuotaRefused(utc(oldest) + window, used)
-            conn.execute(insert(submissions).values(**record.__dict__))
+            conn.execute(insert(submissions).values(**row))
             if then is not None:  # what is recorded with it (its job and input), in the same commit
                 then(conn)
 
     @retry_when_locked
     def quota_used(
-        self, benchmark: str, participant: str, window_start: datetime, counted: Sequence[str] = ()
+        self, benchmark: str, participant: str, window_start: datetime, team: QuotaTeam | None = None
     ) -> tuple[int, datetime | None]:
         """The participant's submissions that count against the benchmark's quota since ``window_start``, and
         when the oldest of them was accepted: as :meth:`accept_submission` counts them, read without its lock
         (a look before a submission's file is received; the count only grows until the window moves on).
-        ``counted``: the participant's team's members, when they are in one."""
+        ``team``: the participant's team, when they are in one."""
         with self.engine.connect() as conn:
-            query = _quota_count(benchmark, list(counted) or [participant], window_start)
+            query = _quota_count(benchmark, participant, window_start, team)
             used, oldest = conn.execute(query).one()
         return int(used), utc(oldest) if oldest is not None else None
 

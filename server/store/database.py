@@ -244,6 +244,9 @@ submissions = Table(
     Column("baseline", Boolean, nullable=False, default=False),
     #: why a failed submission failed (its file refused, its scoring cancelled or given up on)
     Column("failure", String(500), nullable=True),
+    #: the team it counted for, recorded when it was accepted (None: its participant was in no team then); the
+    #: board names it and the team's quota counts it, whoever has left the team since
+    Column("team", String(64), nullable=True),
     Index("ix_submissions_quota", "benchmark", "participant", "created_at"),
 )
 

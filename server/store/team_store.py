@@ -149,6 +149,36 @@ class TeamStore(Area):
             )
 
     @retry_when_locked
+    def leave_team(self, benchmark: str, participant: str) -> str | None:
+        """The participant leaves their team of the benchmark, in one transaction holding the write lock (SQLite)
+        or the team's row (PostgreSQL): the team they left (None: they were in none). A team its last member
+        leaves keeps its name (the board names it on the entries made for it) and its invitations are dropped."""
+        with self._writing() as conn:
+            name = conn.execute(
+                select(team_members.c.team).where(
+                    team_members.c.benchmark == benchmark, team_members.c.participant == participant
+                )
+            ).scalar_one_or_none()
+            if name is None:
+                return None
+            conn.execute(
+                select(teams.c.name).where(teams.c.benchmark == benchmark, teams.c.name == name).with_for_update()
+            ).first()
+            conn.execute(
+                delete(team_members).where(
+                    team_members.c.benchmark == benchmark, team_members.c.participant == participant
+                )
+            )
+            left = conn.execute(
+                select(func.count()).where(team_members.c.benchmark == benchmark, team_members.c.team == name)
+            ).scalar_one()
+            if left == 0:
+                conn.execute(
+                    delete(team_invites).where(team_invites.c.benchmark == benchmark, team_invites.c.team == name)
+                )
+            return str(name)
+
+    @retry_when_locked
     def invitations(self, benchmark: str, participant: str) -> list[str]:
         """The teams of the benchmark that invited the participant, by name."""
         query = select(team_invites.c.team).where(
@@ -170,14 +200,6 @@ class TeamStore(Area):
             return None
         found = self.teams(benchmark, name=name)
         return found[0] if found else None
-
-    @retry_when_locked
-    def memberships(self, benchmark: str) -> dict[str, tuple[str, datetime]]:
-        """Participant -> (their team in the benchmark, when they joined it)."""
-        query = select(team_members).where(team_members.c.benchmark == benchmark)
-        with self.engine.connect() as conn:
-            rows = conn.execute(query).mappings().all()
-        return {r["participant"]: (r["team"], utc(r["joined_at"])) for r in rows}
 
     @retry_when_locked
     def teams(self, benchmark: str, *, name: str | None = None) -> list[TeamRecord]:

@@ -119,7 +119,7 @@ def _run(argv: list[str], capsys: Any) -> tuple[int, str, str]:
 def test_a_teams_whole_path_with_the_command_line_alone(tmp_path, capsys, monkeypatch) -> None:
     """alice makes the team lidar-lab inviting bob, bob joins; alice submits (told the phase, the team's quota
     left, the page and how to publish), lists her submissions, publishes one and reads the board, which names
-    the team; withdrawn, it is off the board."""
+    the team; withdrawn, it is off the board; published again, it names the team after alice leaves it."""
     data_dir, config = tmp_path / "data", tmp_path / "config"
     with app_client(data_dir, auth="accounts") as c:
         hosted = phased_world(c, ("alice", "bob"))
@@ -184,6 +184,17 @@ def test_a_teams_whole_path_with_the_command_line_alone(tmp_path, capsys, monkey
         assert code == 0, err
         code, out, err = _run(["board", "kitti-phases", *service, "--format", "json"], capsys)
         assert json.loads(out)["entries"] == []
+
+        # alice leaves the team: the entry she made for it is still the team's on the board
+        code, out, err = _run(["publish", second, *bench, "--method", "PointPillars", *service], capsys)
+        assert code == 0, err
+        code, out, err = _run(["team", "leave", *bench, *service], capsys)
+        assert code == 0 and out == "lidar-lab: bob\n" and "left the team lidar-lab of kitti-phases" in err, err
+        code, out, err = _run(["board", "kitti-phases", *service, "--format", "json"], capsys)
+        (entry,) = json.loads(out)["entries"]
+        assert (entry["id"], entry["participant"], entry["team"]) == (second, "alice", "lidar-lab")
+        code, out, err = _run(["team", "leave", *bench, *service], capsys)
+        assert code == 2 and "you are in no team of 'kitti-phases'" in err
 
 
 def test_gate_with_a_read_only_token_says_why_it_cannot_and_what_to_do(tmp_path, capsys, monkeypatch) -> None:

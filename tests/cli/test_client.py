@@ -202,9 +202,9 @@ def test_a_service_url_that_is_not_http_is_a_usage_error() -> None:
 
 
 def test_the_library_imports_without_httpx() -> None:
-    """httpx is the client extra's: the evaluator, the CLI and its help work without it."""
+    """httpx and filelock are the client extra's: the evaluator, the CLI and its help work without them."""
     code = (
-        "import sys; sys.modules['httpx'] = None\n"
+        "import sys; sys.modules['httpx'] = None; sys.modules['filelock'] = None\n"
         "import kitti_eval, kitti_eval.client, kitti_eval.cli\n"
         "from kitti_eval.cli import build_parser; build_parser()\n"
         "try:\n    kitti_eval.client.Client('http://x')\nexcept kitti_eval.errors.ConfigError as e:\n    print(e)\n"

@@ -9,6 +9,8 @@ from __future__ import annotations
 import json
 import os
 import stat
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -129,6 +131,32 @@ def test_a_saved_keys_file_that_is_not_ours_is_a_config_error(config) -> None:
     (config / FILE_NAME).write_text("[1]")
     with pytest.raises(ConfigError, match="not the submissions' keys"):
         PendingKeys(config).get("https://s", "b", None, "0" * 64)
+
+
+_SAVER = """
+import sys
+from pathlib import Path
+from kitti_eval.client_state import PendingKeys
+
+keys = PendingKeys(Path(sys.argv[1]))
+for i in range(int(sys.argv[3])):
+    keys.save("https://s", "b", None, f"{sys.argv[2]}-{i:04d}", f"key-{sys.argv[2]}-{i}")
+"""
+
+
+def test_two_runs_sharing_the_folder_lose_none_of_each_other_s_keys(config) -> None:
+    """Two processes save keys into one folder at once: each save reads the file and writes it again, and
+    without a lock one overwrites what the other has just saved."""
+    n = 150
+    runs = [
+        subprocess.Popen([sys.executable, "-c", _SAVER, str(config), who, str(n)], stderr=subprocess.PIPE, text=True)
+        for who in ("a", "b")
+    ]
+    for run in runs:
+        assert run.wait(timeout=300) == 0, run.stderr.read() if run.stderr else ""
+    saved = json.loads((config / FILE_NAME).read_text())
+    keys = sorted(entry["key"] for entry in saved.values())
+    assert keys == sorted(f"key-{who}-{i}" for who in ("a", "b") for i in range(n))
 
 
 # ------------------------------------------------------------------------------------------ the token

@@ -200,6 +200,52 @@ def test_a_team_is_joined_by_those_it_invited_one_team_each_within_its_size(worl
     assert c.get(url).status_code == 401  # an anonymous reader of the public benchmark sees no teams
 
 
+def test_a_member_who_leaves_keeps_the_board_naming_the_team_and_frees_no_quota(world) -> None:
+    c, hosted = world
+    alice, bob = hosted.tokens["alice"], hosted.tokens["bob"]
+    url = "/v1/benchmarks/kitti-phases/teams"
+    _team(c, hosted, "alice", "Two", "bob")
+    sid = ok(_submit(c, bob), 202)["id"]  # for the team
+    assert c.app.state.service.jobs.wait(sid, 120).state == "done"
+    path = f"/v1/benchmarks/kitti-phases/submissions/{sid}/publish"
+    ok(c.post(path, json={"method": "Bob's"}, headers=bearer(bob)))
+    left = ok(c.post(f"{url}/leave", headers=bearer(bob)))
+    assert left == {"benchmark": "kitti-phases", "left": "Two", "members": ["alice"]}
+    assert ok(c.get(url, headers=bearer(bob)))["mine"] is None
+    board = ok(c.get("/v1/benchmarks/kitti-phases/phases/test/leaderboard"))
+    assert [(e["participant"], e["team"]) for e in board["entries"]] == [("bob", "Two")]
+    # leaving frees no quota (2 a day): bob's submission counts against the team's and his own
+    mine = "/v1/benchmarks/kitti-phases/phases/test/submissions"
+    assert ok(c.get(mine, headers=bearer(alice)))["quota"]["used"] == 1
+    assert ok(c.get(mine, headers=bearer(bob)))["quota"]["used"] == 1
+    alone = ok(_submit(c, bob), 202)["id"]
+    assert _submit(c, bob).status_code == 429
+    assert _submit(c, alice).status_code == 202
+    assert _submit(c, alice).status_code == 429
+    assert ok(c.get(mine, headers=bearer(alice)))["quota"]["used"] == 2
+    record = c.app.state.benchmarks.catalog.benchmark_store.get_submission(alone)
+    assert record.team is None  # made alone, after leaving
+    assert c.post(f"{url}/leave", headers=bearer(bob)).status_code == 404  # in no team now
+    ok(c.post(f"{url}/leave", headers=bearer(alice)))  # its last member: the team keeps its name
+    carol = hosted.tokens["carol"]
+    assert [(t["name"], t["members"]) for t in ok(c.get(url, headers=bearer(carol)))["items"]] == [("Two", [])]
+    taken = c.post(url, json={"name": "Two", "members": []}, headers=bearer(carol))
+    assert taken.status_code == 409
+
+
+def test_no_one_leaves_a_team_once_the_benchmark_s_last_phase_has_closed(world) -> None:
+    c, hosted = world
+    _team(c, hosted, "alice", "Two", "bob")
+    closed = datetime.now(timezone.utc) - timedelta(seconds=1)
+    window = f"opens_at = {(closed - timedelta(days=1)).isoformat()}\ncloses_at = {closed.isoformat()}"
+    text = TWO_PHASES.replace('quota = "2/1"', f'quota = "2/1"\n{window}')
+    apply_benchmark_file(c.app.state.benchmarks.catalog, text, caller=HOST)
+    refused = c.post("/v1/benchmarks/kitti-phases/teams/leave", headers=bearer(hosted.tokens["bob"]))
+    assert refused.status_code == 409 and "no longer change" in refused.json()["error"]["message"]
+    listed = ok(c.get("/v1/benchmarks/kitti-phases/teams", headers=bearer(hosted.tokens["bob"])))
+    assert listed["mine"]["members"] == ["alice", "bob"]
+
+
 def test_whom_a_team_invites_takes_part_and_a_full_team_takes_no_one(tmp_path) -> None:
     with app_client(tmp_path / "data", auth="accounts", auth_max_failures=1_000_000) as c:
         hosted = phased_world(c, users=("alice", "bob", "carol", "dave"))

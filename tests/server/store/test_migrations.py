@@ -8,6 +8,7 @@ from __future__ import annotations
 import gzip
 import json
 import shutil
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +22,10 @@ from sqlalchemy import create_engine, text
 from kitti_eval.cli import main
 from kitti_eval_server.errors import StartupRefused
 from kitti_eval_server.store import Store
-from kitti_eval_server.store.database import metadata
+from kitti_eval_server.store.database import metadata, submissions
 from kitti_eval_server.store.schema import head
+from kitti_eval_server.store.schema import upgrade as upgrade_schema
+from kitti_eval_server.store.team_store import team_members
 
 PREVIOUS = Path(__file__).resolve().parent / "previous_release"
 NO_PG = why_no_postgres()
@@ -45,6 +48,37 @@ def test_a_new_database_is_made_at_the_newest_revision_with_the_tables_of_the_co
     assert store.schema_state().revision == head()
     store.dispose()
     assert _schema_differences(url) == []
+
+
+def test_the_submissions_of_a_base_revision_database_get_the_team_the_board_named(tmp_path: Path) -> None:
+    """The board named the team a participant had joined by the time their submission was accepted; once a
+    submission records its team, the rows made before get that team (a later phase's row too)."""
+    engine = create_engine(f"sqlite:///{tmp_path / 'base.db'}")
+    joined = datetime(2026, 1, 2, tzinfo=timezone.utc)
+    common = {"status": "scored", "pred_filename": "r.pkl", "pred_sha256": "0" * 64, "pred_size": 1}
+    flags = {"published": True, "anonymous": False, "disqualified": False, "baseline": False}
+    made = {
+        "before": ("bench", "bob", joined - timedelta(seconds=1)),
+        "after": ("bench", "bob", joined),
+        "later-phase": ("bench~test", "bob", joined + timedelta(days=1)),
+        "alone": ("bench", "carol", joined + timedelta(days=1)),
+        "other-benchmark": ("other", "bob", joined + timedelta(days=1)),
+    }
+    try:
+        with engine.begin() as conn:
+            upgrade_schema(conn, "0001")  # the frozen base revision
+            conn.execute(
+                team_members.insert().values(benchmark="bench", participant="bob", team="Two", joined_at=joined)
+            )
+            for sid, (bench, who, at) in made.items():
+                row = {"id": sid, "benchmark": bench, "participant": who, "created_at": at, **common, **flags}
+                conn.execute(submissions.insert().values(**row))
+        with engine.begin() as conn:
+            upgrade_schema(conn)
+            teams = dict(conn.execute(text("SELECT id, team FROM submissions")).all())
+    finally:
+        engine.dispose()
+    assert teams == {"before": None, "after": "Two", "later-phase": "Two", "alone": None, "other-benchmark": None}
 
 
 def _previous_sqlite(data_dir: Path) -> Path:
