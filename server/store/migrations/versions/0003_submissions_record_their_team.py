@@ -5,8 +5,8 @@ The rows already there get the team the board named until now: their participant
 they had joined it by the time the submission was accepted (no one could leave a team before this revision).
 A phase's row is ``NAME`` or ``NAME~PHASE``; teams are the benchmark's (``NAME``).
 
-Revision ID: 0002
-Revises: 0001
+Revision ID: 0003
+Revises: 0002
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from datetime import datetime, timezone
 import sqlalchemy as sa
 from alembic import op
 
-revision = "0002"
-down_revision = "0001"
+revision = "0003"
+down_revision = "0002"
 branch_labels = None
 depends_on = None
 
