@@ -33,7 +33,6 @@ from .benchmarks import Benchmarks
 from .data_folder import check_writable
 from .errors import StartupRefused
 from .evaluations.evaluations import EvaluationFrames, Evaluations, sealed_document
-from .evaluations.uploads import FileIn
 from .ground_truths.cache import GroundTruthCache, GroundTruths
 from .ground_truths.catalog import GroundTruthCatalog
 from .idempotency import Idempotency
@@ -46,6 +45,7 @@ from .jobs.workers import Workers, await_outcome
 from .observability import AdmissionState
 from .settings import Settings
 from .store import IdempotencyRecord, JobInput, Store, UnusableDatabase
+from .uploads import FileIn
 
 __all__ = ["Service", "FileIn", "DEMO_NAME", "sealed_document", "release_memory"]
 

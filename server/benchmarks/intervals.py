@@ -42,9 +42,9 @@ from kitti_eval.io.reading import LoadOptions
 from kitti_eval.io.upload import UploadLimits, read_upload
 
 from ..errors import Conflict
-from ..evaluations.uploads import stored_upload
 from ..jobs.queue import JobQueue, JobRecord
 from ..store import BenchmarkStore, GroundTruthStore, JobInputStore, ResampledKey, SubmissionRecord
+from ..uploads import stored_upload
 from .catalog import BenchmarkCatalog
 from .rules import Benchmark, key_value, part_frames
 

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 from ..access.policy import Caller, require_open_labels
 from ..errors import Conflict
 from ..evaluations.evaluator import frame_listing
-from ..evaluations.uploads import stored_upload
+from ..uploads import stored_upload
 
 if TYPE_CHECKING:
     from . import Benchmarks

@@ -22,7 +22,6 @@ from ..access.policy import Caller, Policy
 from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
 from ..evaluations.evaluations import sealed_document
 from ..evaluations.evaluator import evaluate_document, evaluate_document_resampled
-from ..evaluations.uploads import FileIn, Upload, receive_content, stored_upload
 from ..idempotency import Idempotency, RequestKey, fingerprint, submissions_scope
 from ..jobs.queue import JobQueue, JobRecord
 from ..jobs.workers import JobFailed, error_of
@@ -39,6 +38,7 @@ from ..store import (
     SubmissionRecord,
     new_id,
 )
+from ..uploads import FileIn, Upload, receive_content, stored_upload
 from .catalog import BenchmarkCatalog
 from .intervals import Intervals
 from .phases import current_row

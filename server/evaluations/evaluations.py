@@ -41,8 +41,8 @@ from ..store import (
     KeyTaken,
     new_id,
 )
+from ..uploads import FileIn, receive_content, stored_upload
 from .evaluator import EvalOptions, evaluate_document, frame_listing, summarize
-from .uploads import FileIn, receive_content, stored_upload
 
 __all__ = ["Evaluations", "EvaluationFrames", "FileIn", "sealed_document", "MAX_INSPECTED"]
 
