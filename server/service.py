@@ -28,7 +28,7 @@ from kitti_eval.io.upload import UploadLimits
 from .access.accounts import Accounts, admin_token
 from .access.audit import Audit
 from .access.auth import FailureLimiter
-from .access.policy import AuthMode, Policy
+from .access.policy import Policy
 from .benchmarks import Benchmarks
 from .data_folder import check_writable
 from .errors import StartupRefused
@@ -43,7 +43,7 @@ from .jobs.runner import Runner, release_memory
 from .jobs.scratch import ScratchSpace
 from .jobs.workers import Workers, await_outcome
 from .observability import AdmissionState
-from .settings import Settings
+from .settings import AuthMode, Settings
 from .store import IdempotencyRecord, JobInput, Store, UnusableDatabase
 from .uploads import FileIn
 
