@@ -15,10 +15,10 @@ from ..access.policy import Caller
 from ..benchmarks import DEFAULT_KEY, Benchmarks
 from ..benchmarks.rules import PHASE_SEPARATOR
 from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
+from ..params import CurrentPhase, SubmissionPhase
 from ..schemas import ErrorResponse
 from ..service import FileIn
 from .jobs import still_pending
-from .phase_names import CurrentPhase, SubmissionPhase
 
 router = APIRouter(
     prefix="/v1/benchmarks",

@@ -33,7 +33,7 @@ from ..benchmarks.rules import PHASE_SEPARATOR
 from ..errors import ApiError, BadRequest, NotFound, clip, fault_of
 from ..idempotency import FORM_FIELD, new_form_key, parse_key
 from ..jobs.workers import JobFailed
-from ..routes.phase_names import SubmissionPhase
+from ..params import SubmissionPhase
 from ..service import FileIn, Service
 from .boards import board_entries, board_header, bootstrap_line, column_label, comparison_rows, full_time, number
 from .routes import _render, _status, queued_text

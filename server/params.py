@@ -8,8 +8,8 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
-from ..benchmarks import Benchmarks
-from ..benchmarks.phases import current_row, submission_row
+from .benchmarks import Benchmarks
+from .benchmarks.phases import current_row, submission_row
 
 __all__ = ["CurrentPhase", "SubmissionPhase", "current_phase", "submission_phase"]
 
