@@ -11,11 +11,12 @@ from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from kitti_eval.core.result import EvalResult
 from kitti_eval.report.render import OutputFormat, render
 
-from ..access.deps import FormatDep, ReaderCaller, ServiceDep, WriterCaller
+from ..access.deps import FormatDep, ReaderCaller, WriterCaller
 from ..errors import BadRequest
 from ..evaluations.compare import compare, render_comparison_markdown
 from ..evaluations.evaluator import EvalOptions, parse_labels
 from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
+from ..params import ServiceDep
 from ..schemas import (
     Comparison,
     ErrorResponse,

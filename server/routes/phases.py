@@ -10,12 +10,12 @@ from fastapi import APIRouter, File, Header, Query, UploadFile
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
-from ..access.deps import AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.deps import AnyoneCaller, ReaderCaller, WriterCaller
 from ..benchmarks.open_labels import submission_frames as frames_of
 from ..benchmarks.phases import phase_views, row_of
 from ..errors import NotFound, echo
 from ..idempotency import IDEMPOTENCY_DESCRIPTION
-from ..params import SubmissionPhase
+from ..params import ServiceDep, SubmissionPhase
 from ..schemas import ErrorResponse
 from . import benchmarks as single
 from .benchmarks import BenchmarksDep

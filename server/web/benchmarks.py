@@ -24,7 +24,7 @@ from starlette.exceptions import HTTPException
 
 from kitti_eval.errors import KittiEvalError
 
-from ..access.deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, WriterCaller
 from ..access.policy import Caller
 from ..benchmarks import Benchmarks, InvalidSubmission, render_markdown
 from ..benchmarks.lifecycle import past_closing
@@ -33,7 +33,7 @@ from ..benchmarks.rules import PHASE_SEPARATOR
 from ..errors import ApiError, BadRequest, NotFound, clip, fault_of
 from ..idempotency import FORM_FIELD, new_form_key, parse_key
 from ..jobs.workers import JobFailed
-from ..params import SubmissionPhase
+from ..params import ServiceDep, SubmissionPhase
 from ..service import FileIn, Service
 from .boards import board_entries, board_header, bootstrap_line, column_label, comparison_rows, full_time, number
 from .routes import _render, _status, queued_text

@@ -27,7 +27,7 @@ from kitti_eval.core.protocol import ALL_METRICS, KNOWN_CLASSES, PROTOCOLS
 from kitti_eval.errors import KittiEvalError
 
 from ..access.auth import CALLER_KEY, check_token, over_https, session_cookie, signin_cookie
-from ..access.deps import FORM_MAX_FIELDS, PublicCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.deps import FORM_MAX_FIELDS, PublicCaller, ReaderCaller, WriterCaller
 from ..access.policy import SIGNIN_CSRF_S, Caller, Policy
 from ..errors import (
     MAX_ECHO_CHARS,
@@ -44,7 +44,7 @@ from ..evaluations.evaluator import ERRORS_SET, EvalOptions, parse_labels
 from ..idempotency import FORM_FIELD, new_form_key, parse_key
 from ..jobs.queue import JobRecord
 from ..jobs.workers import JobFailed
-from ..routes.frames import MAX_SCORE
+from ..params import MAX_SCORE, ServiceDep
 from ..schemas import iso
 from ..service import FileIn, Service
 from ..store import EvaluationRecord
