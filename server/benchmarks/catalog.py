@@ -15,9 +15,9 @@ from ..access.accounts import Accounts
 from ..access.audit import Audit
 from ..access.policy import Caller, Policy
 from ..errors import BadRequest, Conflict, NotFound, echo
-from ..evaluations.evaluator import EvalOptions
 from ..ground_truths.cache import GroundTruths
 from ..jobs.queue import JobQueue
+from ..scoring import EvalOptions
 from ..store import BenchmarkRecord, BenchmarkStore, GroundTruthRecord
 from .lifecycle import check_change
 from .phases import PhaseOf, current_phase_of, phase_views

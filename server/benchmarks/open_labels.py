@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..access.policy import Caller, require_open_labels
 from ..errors import Conflict
-from ..evaluations.evaluator import frame_listing
+from ..scoring import frame_listing
 from ..uploads import stored_upload
 
 if TYPE_CHECKING:

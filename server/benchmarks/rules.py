@@ -14,7 +14,7 @@ from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.core.protocol import DEFAULT_OSET, DEFAULT_RECALL, DIFFICULTIES, METRICS, RECALL_MODES
 
 from ..errors import BadRequest, echo
-from ..evaluations.evaluator import EvalOptions
+from ..scoring import EvalOptions
 from ..store import BenchmarkRecord
 from .lifecycle import PhaseState, has_opened, state_of
 

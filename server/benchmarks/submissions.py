@@ -21,10 +21,10 @@ from ..access.audit import Audit
 from ..access.policy import Caller, Policy
 from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
 from ..evaluations.evaluations import sealed_document
-from ..evaluations.evaluator import evaluate_document, evaluate_document_resampled
 from ..idempotency import Idempotency, RequestKey, fingerprint, submissions_scope
 from ..jobs.queue import JobQueue, JobRecord
 from ..jobs.workers import JobFailed, error_of
+from ..scoring import evaluate_document, evaluate_document_resampled
 from ..store import (
     BenchmarkStore,
     GroundTruthRecord,

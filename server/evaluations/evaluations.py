@@ -28,6 +28,7 @@ from ..ground_truths.cache import GroundTruthCache
 from ..ground_truths.catalog import GroundTruthCatalog
 from ..idempotency import EVALUATIONS, Idempotency, RequestKey, fingerprint
 from ..jobs.queue import JobQueue
+from ..scoring import EvalOptions, evaluate_document, frame_listing, summarize
 from ..store import (
     AccountStore,
     EvaluationRecord,
@@ -42,7 +43,6 @@ from ..store import (
     new_id,
 )
 from ..uploads import FileIn, receive_content, stored_upload
-from .evaluator import EvalOptions, evaluate_document, frame_listing, summarize
 
 __all__ = ["Evaluations", "EvaluationFrames", "FileIn", "sealed_document", "MAX_INSPECTED"]
 

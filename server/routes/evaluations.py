@@ -14,7 +14,6 @@ from kitti_eval.report.render import OutputFormat, render
 from ..access.deps import FormatDep, ReaderCaller, WriterCaller
 from ..errors import BadRequest
 from ..evaluations.compare import compare, render_comparison_markdown
-from ..evaluations.evaluator import EvalOptions, parse_labels
 from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
 from ..params import ServiceDep
 from ..schemas import (
@@ -25,6 +24,7 @@ from ..schemas import (
     evaluation_response,
     evaluation_summary,
 )
+from ..scoring import EvalOptions, parse_labels
 from ..service import FileIn
 from ..store import EvaluationRecord
 from .jobs import still_pending

@@ -20,9 +20,9 @@ from kitti_eval.errors import ConfigError
 
 from ..access.deps import ReaderCaller
 from ..errors import BadRequest, NotFound
-from ..evaluations.evaluator import parse_labels
 from ..params import ServiceDep
 from ..schemas import ErrorResponse
+from ..scoring import parse_labels
 
 router = APIRouter(
     prefix="/v1/gates",

@@ -40,12 +40,12 @@ from ..errors import (
     library_error_status,
 )
 from ..evaluations.compare import compare
-from ..evaluations.evaluator import ERRORS_SET, EvalOptions, parse_labels
 from ..idempotency import FORM_FIELD, new_form_key, parse_key
 from ..jobs.queue import JobRecord
 from ..jobs.workers import JobFailed
 from ..params import MAX_SCORE, ServiceDep
 from ..schemas import iso
+from ..scoring import ERRORS_SET, EvalOptions, parse_labels
 from ..service import FileIn, Service
 from ..store import EvaluationRecord
 from .svg import bar_chart, bev_view, points_text, pr_chart

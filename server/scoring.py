@@ -26,7 +26,7 @@ from kitti_eval.core.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig
 from kitti_eval.errors import InputError
 from kitti_eval.report.render import render_json
 
-from ..errors import BadRequest, echo
+from .errors import BadRequest, echo
 
 __all__ = [
     "EvalOptions",
