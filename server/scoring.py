@@ -1,4 +1,6 @@
-"""Request options to an :class:`~kitti_eval.core.protocol.EvalConfig`, and the calls of ``evaluate`` here.
+"""The service's scoring, which users' evaluations and benchmark submissions share: request options to an
+:class:`~kitti_eval.core.protocol.EvalConfig`, the calls of ``evaluate`` and the documents they make (a sealed
+ground truth's withheld details), the frame listing, the labels.
 
 Evaluations run on several threads at once: the library's kernels are compiled ``nogil`` and keep no
 state, so that is safe.
@@ -34,6 +36,7 @@ __all__ = [
     "evaluate_document_resampled",
     "check_image_fields",
     "summarize",
+    "sealed_document",
     "frame_listing",
     "parse_labels",
     "LABEL_KEY_PATTERN",
@@ -180,6 +183,18 @@ def frame_listing(
         gt, dt, config, cls=cls, metric=metric, difficulty=difficulty, oset=oset, score_threshold=score_threshold
     )
     return frames_document(stats, worst=worst)
+
+
+def sealed_document(doc: dict[str, Any]) -> dict[str, Any]:
+    """An evaluation document against a sealed ground truth: the aggregates only. The frames without
+    predictions (ids of the sealed set) and the warnings (which may name its frames) are withheld."""
+    out = dict(doc)
+    withheld = len(doc.get("frames_without_predictions") or ())
+    out["frames_without_predictions"] = []
+    notes = [f"the ground truth is sealed: per-frame details are withheld ({len(doc.get('warnings') or ())} warnings"]
+    notes[0] += f", {withheld} frames without predictions)" if withheld else ")"
+    out["warnings"] = notes
+    return out
 
 
 def summarize(doc: Mapping[str, Any]) -> dict[str, dict[str, float | None]]:

@@ -32,7 +32,7 @@ from .access.policy import Policy
 from .benchmarks import Benchmarks
 from .data_folder import check_writable
 from .errors import StartupRefused
-from .evaluations.evaluations import EvaluationFrames, Evaluations, sealed_document
+from .evaluations.evaluations import EvaluationFrames, Evaluations
 from .ground_truths.cache import GroundTruthCache, GroundTruths
 from .ground_truths.catalog import GroundTruthCatalog
 from .idempotency import Idempotency
@@ -43,6 +43,7 @@ from .jobs.runner import Runner, release_memory
 from .jobs.scratch import ScratchSpace
 from .jobs.workers import Workers, await_outcome
 from .observability import AdmissionState
+from .scoring import sealed_document
 from .settings import AuthMode, Settings
 from .store import IdempotencyRecord, JobInput, Store, UnusableDatabase
 from .uploads import FileIn

@@ -20,11 +20,10 @@ from kitti_eval.io.upload import UploadLimits, read_upload
 from ..access.audit import Audit
 from ..access.policy import Caller, Policy
 from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
-from ..evaluations.evaluations import sealed_document
 from ..idempotency import Idempotency, RequestKey, fingerprint, submissions_scope
 from ..jobs.queue import JobQueue, JobRecord
 from ..jobs.workers import JobFailed, error_of
-from ..scoring import evaluate_document, evaluate_document_resampled
+from ..scoring import evaluate_document, evaluate_document_resampled, sealed_document
 from ..store import (
     BenchmarkStore,
     GroundTruthRecord,
