@@ -9,7 +9,6 @@ state, so that is safe.
 from __future__ import annotations
 
 import dataclasses
-import json
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -26,7 +25,7 @@ from kitti_eval.core.evaluation import evaluate
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
 from kitti_eval.errors import InputError
-from kitti_eval.report.render import render_json
+from kitti_eval.report.render import json_document
 
 from .errors import BadRequest, echo
 
@@ -129,8 +128,7 @@ def evaluate_document(
         extra = errors_document(decomposition, full=False)
     else:
         result = evaluate(gt, dt, config, keep_curves=curves)
-    doc: dict[str, Any] = json.loads(render_json(result, include_curves=curves, extra=extra))
-    return doc
+    return json_document(result, include_curves=curves, extra=extra)
 
 
 def evaluate_document_resampled(
@@ -140,8 +138,7 @@ def evaluate_document_resampled(
     frame ``weights`` (:func:`kitti_eval.analysis.ranking.evaluate_resampled`), from one planned evaluation."""
     check_image_fields(gt, dt, config, gt_frames_shown=False)
     result, values = evaluate_resampled(gt, dt, config, keys, weights)
-    doc: dict[str, Any] = json.loads(render_json(result))
-    return doc, values
+    return json_document(result), values
 
 
 def check_image_fields(gt: Annotations, dt: Annotations, config: EvalConfig, *, gt_frames_shown: bool) -> None:
