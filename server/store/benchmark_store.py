@@ -288,11 +288,6 @@ class BenchmarkStore(Area):
         return [self._submission(r) for r in rows]
 
     @staticmethod
-    def delete_resampled_keys_in(conn: Connection, submission_id: str) -> None:
-        """Within the transaction that scores the submission again: its resampled keys are of the last scoring."""
-        conn.execute(delete(submission_resamples).where(submission_resamples.c.submission_id == submission_id))
-
-    @staticmethod
     def replace_resampled_keys_in(
         conn: Connection, submission_id: str, scored_at: datetime, keys: Sequence[ResampledKey]
     ) -> bool:

@@ -39,11 +39,6 @@ class EvaluationRecord:
 class EvaluationStore(Area):
     """Stored evaluations: their results, summaries and labels."""
 
-    @retry_when_locked
-    def add_evaluation(self, record: EvaluationRecord) -> None:
-        with self.engine.begin() as conn:
-            self.add_evaluation_in(conn, record)
-
     @staticmethod
     def add_evaluation_in(conn: Connection, record: EvaluationRecord) -> None:
         """Within a transaction of the caller's (a job's, committed with the job's end)."""
