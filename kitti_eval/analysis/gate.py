@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import operator
 import re
-import sys
+import tomllib
 import xml.etree.ElementTree as ET
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -41,11 +41,6 @@ from ..core.protocol import (
 )
 from ..errors import ConfigError, InputError
 from .decomposition import AOS_TYPES
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
 
 __all__ = [
     "ValueKey",

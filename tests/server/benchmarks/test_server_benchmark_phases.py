@@ -5,11 +5,11 @@ current one; a team's members share each phase's quota, exactly under parallel s
 
 from __future__ import annotations
 
+import tomllib
 from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timedelta, timezone
 
 import pytest
-import tomllib
 from server_benchmarks import bearer, host, ok
 from server_helpers import ADMIN, app_client, golden_bytes
 from server_phases import HOST, TWO_PHASES, phased_world
