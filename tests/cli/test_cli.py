@@ -23,6 +23,14 @@ def run(capsys, *argv):
     return code, out, err
 
 
+def test_version_is_printed_not_refused(capsys):
+    """``kitti-eval --version`` prints the program and its version and exits 0 (it was a usage error)."""
+    import kitti_eval
+
+    assert run(capsys, "--version") == (0, f"kitti-eval {kitti_eval.__version__}\n", "")
+    assert kitti_eval.__version__ == "0.1.0"
+
+
 def test_table_reproduces_openpcdet_layout(capsys):
     code, out, _ = run(capsys, "--gt", GT, "--pred", PRED, "--protocol", "openpcdet")
     assert code == 0
