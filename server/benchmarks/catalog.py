@@ -131,7 +131,7 @@ class BenchmarkCatalog:
         return [Benchmark.from_record(r) for r in self.benchmark_store.benchmarks_using(name)]
 
     def ground_truth_of(self, bench: Benchmark) -> tuple[GroundTruthRecord, Annotations]:
-        """The benchmark's test set as registered now, loaded (see :meth:`_ground_truth_record`)."""
+        """The benchmark's test set as registered now, loaded (see :meth:`ground_truth_record_of`)."""
         record = self.ground_truth_record_of(bench)
         return record, self.ground_truths.load(record)
 

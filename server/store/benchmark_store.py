@@ -23,7 +23,19 @@ from .database import (
 )
 from .idempotency_store import IdempotencyRecord, IdempotencyStore
 
-__all__ = ["BenchmarkRecord", "SubmissionRecord", "ResampledKey", "QuotaRefused", "PublishRefused", "BenchmarkStore"]
+__all__ = [
+    "BenchmarkRecord",
+    "SubmissionRecord",
+    "SUBMISSION_STATUSES",
+    "ResampledKey",
+    "QuotaRefused",
+    "PublishRefused",
+    "BenchmarkStore",
+]
+
+#: a submission's status, in the order of its life: accepted (its scoring job queued or running), then scored
+#: or failed (with the reason); docs/service/benchmarks.md names these (a test compares)
+SUBMISSION_STATUSES = ("accepted", "scored", "failed")
 
 
 class QuotaRefused(Exception):
@@ -71,7 +83,7 @@ class SubmissionRecord:
     benchmark: str
     participant: str
     created_at: datetime
-    status: str  # accepted | scored | failed
+    status: str  # one of SUBMISSION_STATUSES
     pred_filename: str
     pred_sha256: str
     pred_size: int
