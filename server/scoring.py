@@ -19,11 +19,11 @@ import numpy.typing as npt
 
 from kitti_eval.analysis.decomposition import errors_document, evaluate_with_errors
 from kitti_eval.analysis.diagnostics import frame_stats, frames_document
-from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.analysis.ranking import evaluate_resampled
 from kitti_eval.core.evaluation import evaluate
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
+from kitti_eval.core.result import ValueKey
 from kitti_eval.errors import InputError
 from kitti_eval.report.render import json_document
 

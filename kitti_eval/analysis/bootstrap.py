@@ -21,8 +21,7 @@ from ..core.frames import Annotations
 from ..core.kernel_cache import njit
 from ..core.matching import FrameEvents, default_workers, threshold_step
 from ..core.protocol import N_SAMPLE_PTS, EvalConfig, Metric
-from ..core.result import EvalResult
-from .gate import ValueKey
+from ..core.result import EvalResult, ValueKey
 
 __all__ = [
     "resampled_ap",

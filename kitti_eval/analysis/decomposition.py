@@ -110,7 +110,7 @@ from ..core.protocol import (
     EvalConfig,
     Metric,
 )
-from ..core.result import EvalResult
+from ..core.result import AOS_TYPES, ERROR_TYPES, EvalResult
 from ..errors import ConfigError
 
 __all__ = [
@@ -132,10 +132,6 @@ __all__ = [
     "render_errors",
 ]
 
-#: the error types of AP (bbox, bev, 3d), in the order they are shown
-ERROR_TYPES: tuple[str, ...] = ("classification", "localization", "both", "duplicate", "background", "missed")
-#: AOS adds orientation
-AOS_TYPES: tuple[str, ...] = (*ERROR_TYPES, "orientation")
 #: nuScenes' true-positive errors
 TP_ERRORS: tuple[str, ...] = ("translation", "scale", "orientation")
 #: below this overlap with every box, a false positive is background (TIDE's background threshold)

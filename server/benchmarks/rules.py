@@ -10,8 +10,8 @@ from dataclasses import dataclass, fields
 from datetime import datetime, timezone
 from typing import Any
 
-from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.core.protocol import DEFAULT_OSET, DEFAULT_RECALL, DIFFICULTIES, METRICS, RECALL_MODES
+from kitti_eval.core.result import ValueKey
 
 from ..errors import BadRequest, echo
 from ..scoring import EvalOptions

@@ -11,8 +11,8 @@ from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any
 
-from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.core.frames import Annotations
+from kitti_eval.core.result import ValueKey
 from kitti_eval.errors import InputError, InvalidSubmissionError
 from kitti_eval.io.submission import SubmissionRules
 from kitti_eval.io.upload import UploadLimits, read_upload

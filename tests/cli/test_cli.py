@@ -303,8 +303,8 @@ def test_demo_where_writes_its_paths_at_once_for_a_reader_that_stops_after_one(m
 def test_a_tiny_negative_difference_prints_as_zero_not_minus_zero():
     from types import SimpleNamespace
 
-    from kitti_eval.analysis.gate import ValueKey
     from kitti_eval.analysis.result_diff import render_comparison
+    from kitti_eval.core.result import ValueKey
 
     key = ValueKey("Car", "3d", "moderate")
     cmp = SimpleNamespace(
