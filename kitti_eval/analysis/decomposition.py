@@ -77,6 +77,7 @@ import numpy.typing as npt
 
 from ..core.ap import average_precision, curve_from_counts
 from ..core.arrays import kernel_input
+from ..core.cpus import default_workers
 from ..core.evaluation import Plan, Totals, plan_evaluation, result_from_counts
 from ..core.frames import Annotations
 from ..core.kernel_cache import njit
@@ -91,7 +92,6 @@ from ..core.matching import (
     best_overlaps,
     checked_inputs,
     checked_layout,
-    default_workers,
     find_candidates,
     frame_events_many,
     frame_pass1,

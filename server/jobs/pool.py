@@ -25,7 +25,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from kitti_eval.core.matching import available_cpus
+from kitti_eval.core.cpus import available_cpus
 
 from .queue import JobQueue
 
