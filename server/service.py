@@ -43,10 +43,10 @@ from .jobs.runner import Runner, release_memory
 from .jobs.scratch import ScratchSpace
 from .jobs.workers import Workers, await_outcome
 from .observability import AdmissionState
-from .scoring import sealed_document
+from .scoring.evaluator import sealed_document
+from .scoring.uploads import FileIn
 from .settings import AuthMode, Settings
 from .store import IdempotencyRecord, JobInput, Store, UnusableDatabase
-from .uploads import FileIn
 
 __all__ = ["Service", "FileIn", "DEMO_NAME", "sealed_document", "release_memory"]
 

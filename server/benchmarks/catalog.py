@@ -17,7 +17,7 @@ from ..access.policy import Caller, Policy
 from ..errors import BadRequest, Conflict, NotFound, echo
 from ..ground_truths.cache import GroundTruths
 from ..jobs.queue import JobQueue
-from ..scoring import EvalOptions
+from ..scoring.evaluator import EvalOptions
 from ..store import BenchmarkRecord, BenchmarkStore, GroundTruthRecord
 from .lifecycle import check_change
 from .phases import PhaseOf, current_phase_of, phase_views

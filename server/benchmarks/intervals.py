@@ -43,8 +43,8 @@ from kitti_eval.io.upload import UploadLimits, read_upload
 
 from ..errors import Conflict
 from ..jobs.queue import JobQueue, JobRecord
+from ..scoring.uploads import stored_upload
 from ..store import BenchmarkStore, GroundTruthStore, JobInputStore, ResampledKey, SubmissionRecord
-from ..uploads import stored_upload
 from .catalog import BenchmarkCatalog
 from .rules import Benchmark, key_value, part_frames
 

@@ -14,7 +14,7 @@ from kitti_eval.core.protocol import DEFAULT_OSET, DEFAULT_RECALL, DIFFICULTIES,
 from kitti_eval.core.result import ValueKey
 
 from ..errors import BadRequest, echo
-from ..scoring import EvalOptions
+from ..scoring.evaluator import EvalOptions
 from ..store import BenchmarkRecord
 from .lifecycle import PhaseState, has_opened, state_of
 

@@ -23,7 +23,8 @@ from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotRea
 from ..idempotency import Idempotency, RequestKey, fingerprint, submissions_scope
 from ..jobs.queue import JobQueue, JobRecord
 from ..jobs.workers import JobFailed, error_of
-from ..scoring import evaluate_document, evaluate_document_resampled, sealed_document
+from ..scoring.evaluator import evaluate_document, evaluate_document_resampled, sealed_document
+from ..scoring.uploads import FileIn, Upload, receive_content, stored_upload
 from ..store import (
     BenchmarkStore,
     GroundTruthRecord,
@@ -37,7 +38,6 @@ from ..store import (
     SubmissionRecord,
     new_id,
 )
-from ..uploads import FileIn, Upload, receive_content, stored_upload
 from .catalog import BenchmarkCatalog
 from .intervals import Intervals
 from .phases import current_row

@@ -28,7 +28,8 @@ from ..ground_truths.cache import GroundTruthCache
 from ..ground_truths.catalog import GroundTruthCatalog
 from ..idempotency import EVALUATIONS, Idempotency, RequestKey, fingerprint
 from ..jobs.queue import JobQueue
-from ..scoring import EvalOptions, evaluate_document, frame_listing, sealed_document, summarize
+from ..scoring.evaluator import EvalOptions, evaluate_document, frame_listing, sealed_document, summarize
+from ..scoring.uploads import FileIn, receive_content, stored_upload
 from ..store import (
     AccountStore,
     EvaluationRecord,
@@ -42,7 +43,6 @@ from ..store import (
     KeyTaken,
     new_id,
 )
-from ..uploads import FileIn, receive_content, stored_upload
 
 __all__ = ["Evaluations", "EvaluationFrames", "FileIn", "MAX_INSPECTED"]
 
@@ -387,8 +387,8 @@ class EvaluationFrames:
         return gt, self.predictions.get_or_load(record.pred_sha256, load_kept), config
 
     def frames(self, evaluation_id: str, *, caller: Caller, **question: Any) -> dict[str, Any]:
-        """TP/FP/FN per frame of a stored evaluation: :func:`~kitti_eval_server.scoring.frame_listing` of its kept
-        inputs, ``question`` its keywords (class, metric, difficulty, set, worst, score threshold)."""
+        """TP/FP/FN per frame of a stored evaluation: :func:`~kitti_eval_server.scoring.evaluator.frame_listing` of
+        its kept inputs, ``question`` its keywords (class, metric, difficulty, set, worst, score threshold)."""
         record = self.evaluations.get(evaluation_id, caller)
         gt, dt, config = self._kept_inputs(record)
         doc = frame_listing(gt, dt, config, **question)

@@ -11,8 +11,8 @@ from pathlib import Path
 from ..access.audit import Audit
 from ..access.policy import Caller, Policy
 from ..errors import NotFound
+from ..scoring.uploads import FileIn, receive_upload
 from ..store import GroundTruthRecord, GroundTruthStore
-from ..uploads import FileIn, receive_upload
 from .cache import GroundTruths
 
 __all__ = ["GroundTruthCatalog"]

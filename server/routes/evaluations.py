@@ -24,7 +24,7 @@ from ..schemas import (
     evaluation_response,
     evaluation_summary,
 )
-from ..scoring import EvalOptions, parse_labels
+from ..scoring.evaluator import EvalOptions, parse_labels
 from ..service import FileIn
 from ..store import EvaluationRecord
 from .jobs import still_pending

@@ -22,7 +22,7 @@ from ..access.deps import ReaderCaller
 from ..errors import BadRequest, NotFound
 from ..params import ServiceDep
 from ..schemas import ErrorResponse
-from ..scoring import parse_labels
+from ..scoring.evaluator import parse_labels
 
 router = APIRouter(
     prefix="/v1/gates",

@@ -30,7 +30,7 @@ class EvaluationRecord:
     summary: Mapping[str, Any]
     result: Mapping[str, Any] | None  # None when listed without results
     labels: Mapping[str, str] = field(default_factory=dict)
-    #: the request's options (:class:`kitti_eval_server.scoring.EvalOptions` as a dict); None for
+    #: the request's options (:class:`kitti_eval_server.scoring.evaluator.EvalOptions` as a dict); None for
     #: older rows
     options: Mapping[str, Any] | None = None
     project: str | None = None

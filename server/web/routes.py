@@ -40,7 +40,7 @@ from ..idempotency import FORM_FIELD, new_form_key, parse_key
 from ..jobs.queue import JobRecord
 from ..jobs.workers import JobFailed
 from ..params import MAX_SCORE, ServiceDep
-from ..scoring import ERRORS_SET, EvalOptions, parse_labels
+from ..scoring.evaluator import ERRORS_SET, EvalOptions, parse_labels
 from ..service import FileIn, Service
 from ..store import EvaluationRecord
 from .pages import queued_text, render_page, status_of

@@ -138,8 +138,8 @@ SERVICE_MAP: tuple[frozenset[str], ...] = tuple(
         "params",
         "service",
         "benchmarks evaluations",
-        "ground_truths idempotency scoring schemas",
-        "jobs uploads",
+        "ground_truths idempotency schemas",
+        "jobs scoring",
         "access data_folder observability",
         "store settings",
         "errors",
@@ -211,7 +211,7 @@ def test_the_bottom_of_the_house_imports_nothing_above_it() -> None:
 def test_the_service_s_folders_import_downwards_only() -> None:
     """Not only no circle of modules: no circle of folders either, nor an import between the two doors (the
     JSON routes and the web pages) or the two wings (benchmarks and evaluations: both score with the scoring
-    module below them). Every folder of ``server/`` and module directly in it is on
+    folder below them). Every folder of ``server/`` and module directly in it is on
     :data:`SERVICE_MAP`, and each imports only rows below its own."""
     graph = import_graph(PACKAGES)
     upward, unplaced = upward_imports(graph, "kitti_eval_server", SERVICE_MAP)

@@ -300,7 +300,7 @@ def test_a_phase_on_open_labels_shows_its_participant_their_frames_and_a_sealed_
 
     from kitti_eval.analysis.diagnostics import frame_stats, frames_document
     from kitti_eval.io.loaders import load_detections, load_ground_truth
-    from kitti_eval_server.scoring import EvalOptions
+    from kitti_eval_server.scoring.evaluator import EvalOptions
 
     c, hosted = world
     alice, bob = hosted.tokens["alice"], hosted.tokens["bob"]

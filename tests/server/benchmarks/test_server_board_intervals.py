@@ -29,7 +29,7 @@ from kitti_eval.io.loaders import load_detections, load_ground_truth
 from kitti_eval.synth import generate, write_infos, write_results
 from kitti_eval_server.benchmarks.intervals import RESAMPLES, board_seed, intervals_job_id
 from kitti_eval_server.benchmarks.rules import part_frames
-from kitti_eval_server.scoring import EvalOptions
+from kitti_eval_server.scoring.evaluator import EvalOptions
 from kitti_eval_server.store.database import benchmarks
 
 KEY = "Car/3d/moderate/R40/strict"

@@ -27,7 +27,7 @@ from kitti_eval.core.result import ValueKey
 from kitti_eval.errors import InputError
 from kitti_eval.report.render import json_document
 
-from .errors import BadRequest, echo
+from ..errors import BadRequest, echo
 
 __all__ = [
     "EvalOptions",
