@@ -9,17 +9,32 @@ from __future__ import annotations
 import dataclasses
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
-from .client import _POST_WAIT_S, Job, Submission, _at, _id
 from .client_config import config_dir
-from .client_http import tar_of_txt
+from .client_http import Transport, tar_of_txt
+from .client_records import _POST_WAIT_S, Job, Submission, _at, _id
 from .errors import ConfigError, SubmissionRefused
 
-if TYPE_CHECKING:
-    from .client import Client
-
 __all__ = ["check_submission", "submit", "upload_sha256"]
+
+
+class Client(Protocol):
+    """What the flow asks of :class:`kitti_eval.client.Client` (named here so the client's module imports this one,
+    not the other way round)."""
+
+    http: Transport
+    service: str
+
+    def frames(self, benchmark: str, *, phase: str | None = None) -> list[str]: ...
+
+    def check_submission(
+        self, predictions: str | os.PathLike[str], benchmark: str, *, phase: str | None = None
+    ) -> None: ...
+
+    def wait_job(self, job_id: str, *, timeout_s: float = 3600.0, poll_s: float = 1.0) -> Job: ...
+
+    def submission(self, benchmark: str, submission_id: str) -> Submission: ...
 
 
 def check_submission(

@@ -103,7 +103,7 @@ def _child(gt_path: str, pred_path: str, repeat: int) -> dict[str, float]:
     render_json(result)
     out["output_s"] = clock() - t
     out["rss_after_eval_mib"] = _peak_rss_mib()
-    from .core.matching import default_workers
+    from .core.cpus import default_workers
 
     out["warm_eval_1core_s"] = min(_timed(lambda: evaluate(gt, dt, workers=1)) for _ in range(repeat))
     out["threads"] = default_workers()

@@ -18,7 +18,7 @@ This script builds, for each Python interpreter given, a wheel that also carries
 Usage::
 
     python scripts/build_wheel.py                          # this interpreter, into dist/
-    python scripts/build_wheel.py --python python3.10 --python python3.12 --out wheelhouse
+    python scripts/build_wheel.py --python python3.12 --python python3.13 --out wheelhouse
 
 An interpreter other than this one (or another ``--numba``) gets its own temporary virtual environment with
 the package's dependencies installed from the package index.
@@ -38,13 +38,9 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import tomllib
 import zipfile
 from pathlib import Path
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 #: what the wheel is built from (as the Dockerfile copies it)

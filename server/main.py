@@ -23,7 +23,7 @@ from starlette.formparsers import MultiPartParser
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from kitti_eval import __version__
-from kitti_eval.core.matching import available_cpus
+from kitti_eval.core.cpus import available_cpus
 
 from .access.auth import CALLER_KEY, AuthMiddleware, Door, access_of, flat_routes
 from .access.headers import SecurityHeaders

@@ -280,11 +280,6 @@ class AdmissionState:
 # ------------------------------------------------------------------------------------------- requests
 
 
-def request_id_of(scope: Scope) -> str:
-    """The id of the request being served (set by :class:`RequestMiddleware`), or ``""`` outside one."""
-    return str(scope.get("state", {}).get("request_id", ""))
-
-
 def _client_request_id(scope: Scope) -> str | None:
     for key, value in scope.get("headers", ()):
         if key == b"x-request-id":

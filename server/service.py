@@ -29,12 +29,11 @@ from .access.accounts import Accounts, admin_token
 from .access.audit import Audit
 from .access.auth import FailureLimiter
 from .access.invitations import Invitations
-from .access.policy import AuthMode, Policy
+from .access.policy import Policy
 from .benchmarks import Benchmarks
 from .data_folder import check_writable
 from .errors import NotFound, StartupRefused, echo
-from .evaluations.evaluations import EvaluationFrames, Evaluations, sealed_document
-from .evaluations.uploads import FileIn
+from .evaluations.evaluations import EvaluationFrames, Evaluations
 from .ground_truths.cache import GroundTruthCache, GroundTruths
 from .ground_truths.catalog import GroundTruthCatalog
 from .idempotency import Idempotency
@@ -45,7 +44,9 @@ from .jobs.runner import Runner, release_memory
 from .jobs.scratch import ScratchSpace
 from .jobs.workers import Workers, await_outcome
 from .observability import AdmissionState
-from .settings import Settings
+from .scoring.evaluator import sealed_document
+from .scoring.uploads import FileIn
+from .settings import AuthMode, Settings
 from .store import IdempotencyRecord, JobInput, Store, UnusableDatabase
 
 __all__ = ["Service", "FileIn", "DEMO_NAME", "sealed_document", "release_memory"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ipaddress
 import os
+from enum import Enum
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -11,12 +12,25 @@ import platformdirs
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from .access.policy import AuthMode
-
-__all__ = ["Settings", "ENV_PREFIX", "NoDataFolder", "default_data_dir", "default_data_dir_text", "settings_error"]
+__all__ = [
+    "Settings",
+    "AuthMode",
+    "ENV_PREFIX",
+    "NoDataFolder",
+    "default_data_dir",
+    "default_data_dir_text",
+    "settings_error",
+]
 
 ENV_PREFIX = "KITTI_EVAL_"
 _MB = 1 << 20
+
+
+class AuthMode(str, Enum):
+    """``KITTI_EVAL_AUTH``: ``open`` (no accounts: everyone is everyone) or ``accounts``."""
+
+    OPEN = "open"
+    ACCOUNTS = "accounts"
 
 
 class NoDataFolder(ValueError):

@@ -26,7 +26,7 @@ from ..errors import ConfigError, InputError
 from ..io.loaders import load_detections
 
 if TYPE_CHECKING:  # imported where used: the main job expands its globs here and needs no gate rules
-    from .gate import ValueKey
+    from ..core.result import ValueKey
 
 __all__ = ["expand_predictions", "Checkpoint", "evaluate_many", "default_ranking", "render_batch", "plot_batch"]
 
@@ -110,7 +110,7 @@ def evaluate_many(
 def _columns(results: Sequence[Checkpoint], keys: Sequence[ValueKey] | None) -> list[ValueKey]:
     if keys:
         return list(keys)
-    from .gate import ValueKey
+    from ..core.result import ValueKey
 
     classes = results[0].result.classes if results else ()
     return [ValueKey(cls, "3d", "moderate") for cls in classes]

@@ -16,13 +16,13 @@ import numpy.typing as npt
 
 from ..core.ap import average_precisions, envelope
 from ..core.arrays import kernel_input
+from ..core.cpus import default_workers
 from ..core.evaluation import Plan, Slot, evaluate, plan_evaluation
 from ..core.frames import Annotations
 from ..core.kernel_cache import njit
-from ..core.matching import FrameEvents, default_workers, threshold_step
+from ..core.matching import FrameEvents, threshold_step
 from ..core.protocol import N_SAMPLE_PTS, EvalConfig, Metric
-from ..core.result import EvalResult
-from .gate import ValueKey
+from ..core.result import EvalResult, ValueKey
 
 __all__ = [
     "resampled_ap",

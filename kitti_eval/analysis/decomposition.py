@@ -77,6 +77,7 @@ import numpy.typing as npt
 
 from ..core.ap import average_precision, curve_from_counts
 from ..core.arrays import kernel_input
+from ..core.cpus import default_workers
 from ..core.evaluation import Plan, Totals, plan_evaluation, result_from_counts
 from ..core.frames import Annotations
 from ..core.kernel_cache import njit
@@ -91,7 +92,6 @@ from ..core.matching import (
     best_overlaps,
     checked_inputs,
     checked_layout,
-    default_workers,
     find_candidates,
     frame_events_many,
     frame_pass1,
@@ -110,7 +110,7 @@ from ..core.protocol import (
     EvalConfig,
     Metric,
 )
-from ..core.result import EvalResult
+from ..core.result import AOS_TYPES, ERROR_TYPES, EvalResult
 from ..errors import ConfigError
 
 __all__ = [
@@ -132,10 +132,6 @@ __all__ = [
     "render_errors",
 ]
 
-#: the error types of AP (bbox, bev, 3d), in the order they are shown
-ERROR_TYPES: tuple[str, ...] = ("classification", "localization", "both", "duplicate", "background", "missed")
-#: AOS adds orientation
-AOS_TYPES: tuple[str, ...] = (*ERROR_TYPES, "orientation")
 #: nuScenes' true-positive errors
 TP_ERRORS: tuple[str, ...] = ("translation", "scale", "orientation")
 #: below this overlap with every box, a false positive is background (TIDE's background threshold)

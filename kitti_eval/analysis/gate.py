@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import operator
 import re
-import sys
+import tomllib
 import xml.etree.ElementTree as ET
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -32,23 +32,16 @@ from pathlib import Path
 from typing import Any
 
 from ..core.protocol import (
-    DEFAULT_OSET,
-    DEFAULT_RECALL,
     DIFFICULTIES,
     METRICS,
     RECALL_MODES,
     THRESHOLD_SETS,
 )
+from ..core.result import ValueKey
 from ..errors import ConfigError, InputError
 from .decomposition import AOS_TYPES
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
-
 __all__ = [
-    "ValueKey",
     "Floor",
     "MaxDrop",
     "GateRules",
@@ -64,86 +57,7 @@ __all__ = [
     "render_junit",
 ]
 
-_ERROR_TYPES = frozenset(AOS_TYPES)
 _OPS = {">=": operator.ge, ">": operator.gt, "<=": operator.le, "<": operator.lt}
-
-
-@dataclass(frozen=True, order=True)
-class ValueKey:
-    """One value of the result: class, metric, difficulty, recall mode, threshold set."""
-
-    cls: str
-    metric: str
-    difficulty: str
-    recall: str = DEFAULT_RECALL
-    oset: str = DEFAULT_OSET
-    #: an error type of the decomposition ("" for the AP itself)
-    error: str = ""
-
-    @classmethod
-    def parse(cls, text: str) -> ValueKey:
-        parts = [p.strip() for p in text.strip().split("/")]
-        if not 3 <= len(parts) <= 5 or not all(parts):
-            raise ConfigError(
-                f"expected Class/metric/difficulty[/R40|R11[/strict|loose]] or Class/metric/difficulty/"
-                f"<error type>[/R40|R11], got {text!r}"
-            )
-        if len(parts) >= 4 and parts[3] in _ERROR_TYPES:
-            if len(parts) == 5 and parts[4] not in RECALL_MODES:
-                raise ConfigError(f"unknown recall mode {parts[4]!r} in {text!r}; expected R40 or R11")
-            if parts[3] == "orientation" and parts[1] != "aos":
-                raise ConfigError(f"orientation errors are an AOS type: write {parts[0]}/aos/{parts[2]}/orientation")
-            key = cls(parts[0], parts[1], parts[2], parts[4] if len(parts) == 5 else "R40", "strict", parts[3])
-        else:
-            key = cls(*parts)
-        if key.metric not in METRICS:
-            raise ConfigError(f"unknown metric {key.metric!r} in {text!r}; expected one of {', '.join(METRICS)}")
-        if key.difficulty not in DIFFICULTIES:
-            raise ConfigError(
-                f"unknown difficulty {key.difficulty!r} in {text!r}; expected one of {', '.join(DIFFICULTIES)}"
-            )
-        if key.recall not in RECALL_MODES:
-            raise ConfigError(f"unknown recall mode {key.recall!r} in {text!r}; expected R40 or R11")
-        if key.oset not in THRESHOLD_SETS:
-            raise ConfigError(f"unknown threshold set {key.oset!r} in {text!r}; expected strict or loose")
-        return key
-
-    def __str__(self) -> str:
-        if self.error:
-            return f"{self.cls}/{self.metric}/{self.difficulty}/{self.error}/{self.recall}"
-        return f"{self.cls}/{self.metric}/{self.difficulty}/{self.recall}/{self.oset}"
-
-    def read(self, doc: Mapping[str, Any]) -> float | None:
-        """The value in a result document; a class or key the document lacks is an error."""
-        if self.error:
-            return self._read_error(doc)
-        try:
-            by_cls = doc["ap"][self.oset][self.recall]
-        except (KeyError, TypeError):
-            raise InputError(f"the result has no AP table for {self.recall}/{self.oset}") from None
-        if self.cls not in by_cls:
-            raise InputError(f"the result has no class {self.cls!r} (it has {', '.join(by_cls) or 'none'})")
-        value = by_cls[self.cls][self.metric][self.difficulty]
-        return None if value is None else float(value)
-
-    def find(self, doc: Mapping[str, Any]) -> float | None:
-        """The value in a result document, None where the document has none (no such class, table or key)."""
-        try:
-            return self.read(doc)
-        except (InputError, KeyError, TypeError, AttributeError):
-            return None
-
-    def _read_error(self, doc: Mapping[str, Any]) -> float | None:
-        table = doc.get("errors" if self.recall == "R40" else "errors_r11")
-        if not isinstance(table, Mapping):
-            raise InputError(
-                f"the result has no error decomposition for {self}: evaluate with --errors (or gate --gt/--pred)"
-            )
-        if self.cls not in table:
-            raise InputError(f"the error decomposition has no class {self.cls!r} (it has {', '.join(table)})")
-        types = table[self.cls][self.metric][self.difficulty]
-        value = None if types is None else types.get(self.error)
-        return None if value is None else float(value)
 
 
 @dataclass(frozen=True)

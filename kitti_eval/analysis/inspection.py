@@ -5,7 +5,7 @@ the ground-truth box it matched and their overlap), a false positive (with why: 
 or the box a better detection took), ignored (too small for the difficulty, or matched to a box that does
 not count), covered by a DontCare region, below the score threshold, or of another class. Each
 ground-truth box is matched, missed, ignored, absorbed (taken by an ignored detection) or of another
-class. The labels come from :func:`kitti_eval.core.matching.label_frame`, the devkit's second pass on the
+class. The labels come from :func:`kitti_eval.core.frame_labels.label_frame`, the devkit's second pass on the
 frame, so the frame's TP/FP/FN are its share of the counts behind the AP at that score threshold.
 """
 
@@ -22,8 +22,9 @@ from typing import Any
 import numpy as np
 
 from ..core.evaluation import Plan, plan_evaluation
+from ..core.frame_labels import DET_LABELS, GT_LABELS, label_frame
 from ..core.frames import Annotations, normalize_frame_id
-from ..core.matching import DET_LABELS, GT_LABELS, MatchJob, label_frame
+from ..core.matching import MatchJob
 from ..core.protocol import DEFAULT_METRIC, DEFAULT_OSET, OVERLAP_METRICS, Difficulty, EvalConfig, Metric
 from ..errors import ConfigError, InputError
 from .diagnostics import parse_slot, slot_job, with_class

@@ -20,10 +20,9 @@ import numpy.typing as npt
 from ..core.evaluation import Plan, Totals, plan_evaluation, result_from_counts
 from ..core.frames import Annotations
 from ..core.protocol import EvalConfig, Metric
-from ..core.result import EvalResult
+from ..core.result import EvalResult, ValueKey
 from ..errors import ConfigError
 from .bootstrap import interval95, resampled_ap
-from .gate import ValueKey
 
 __all__ = [
     "LEVEL",

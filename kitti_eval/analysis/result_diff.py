@@ -7,8 +7,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from ..core.result import ValueKey
 from ..errors import InputError
-from .gate import ValueKey
 
 __all__ = ["Comparison", "compare_documents", "render_comparison"]
 

@@ -275,9 +275,9 @@ def start_warm_up(*, decomposition: bool = False) -> object | None:
     if writable_cache() is None:  # nowhere to keep them: compiled here, in memory (the warning says so)
         return None
     if eval_cold or load_cold:
-        say("compiling the kernels once (about 7 s on two cores; later runs use numba's cache)")
+        say("compiling the kernels once (later runs use numba's cache)")
     if decomposition_cold:
-        say("compiling the error decomposition's kernels once (about 8.5 s on two cores; later runs use numba's cache)")
+        say("compiling the error decomposition's kernels once (later runs use numba's cache)")
     # the scan too when it is not cached: a run that reads only txt files never compiles it itself, and would
     # otherwise find it missing and say "compiling" on every run
     return warm_in_background(loader=load_cold) if eval_cold or load_cold else None

@@ -166,8 +166,8 @@ def run_ranked(args: argparse.Namespace) -> int:
     the frames of ``--gt``, whence its interval, its rank range and its lead over the next."""
     from ..analysis.batch import expand_predictions
     from ..analysis.bootstrap import frame_weights
-    from ..analysis.gate import ValueKey
     from ..analysis.ranking import Ranked, Ranking, evaluate_resampled, key_of, render_ranking
+    from ..core.result import ValueKey
     from ..io.loaders import load_detections, load_ground_truth
 
     if args.errors or args.sharded or args.all:

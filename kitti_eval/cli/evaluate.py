@@ -200,7 +200,7 @@ def run_sharded(args: argparse.Namespace) -> int:
 
 def run_many(gt_path: Path, preds: list[Path], args: argparse.Namespace) -> int:
     from ..analysis.batch import evaluate_many, plot_batch, render_batch
-    from ..analysis.gate import ValueKey
+    from ..core.result import ValueKey
     from ..io.loaders import load_ground_truth
 
     cfg = config(args)

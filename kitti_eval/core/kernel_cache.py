@@ -215,8 +215,8 @@ def _no_place_message() -> str:
     tried = f"NUMBA_CACHE_DIR={custom}" if custom else "NUMBA_CACHE_DIR is unset"
     return (
         f"numba's cache has no writable place ({tried}; {PACKAGE_ROOT}'s __pycache__ and the user's cache folder "
-        "are not writable): the kernels are compiled in memory by every process that uses them (about 7 s of CPU "
-        "each); set NUMBA_CACHE_DIR to a writable folder to keep them"
+        "are not writable): the kernels are compiled in memory by every process that uses them, "
+        "on every run; set NUMBA_CACHE_DIR to a writable folder to keep them"
     )
 
 

@@ -22,15 +22,15 @@ matched once per distinct set of above-threshold detections rather than once per
 
 The public wrappers (:func:`pr_counts`, :func:`pr_counts_many`, :func:`frame_events_many`, ...) take the
 frames' arrays as one :class:`MatchingInputs` and check them; the kernels under them take the checked arrays
-one by one. The kernels that :mod:`kitti_eval.analysis.decomposition` reuses have public names
-(:func:`find_candidates`, :func:`frame_pass1`, :func:`frame_pass2`, :func:`best_overlaps`,
-:func:`rank_descending`, :func:`widest_step`) and validate nothing.
+one by one. The kernels that :mod:`kitti_eval.analysis.decomposition` and :mod:`kitti_eval.core.frame_labels`
+reuse have public names (:func:`find_candidates`, :func:`frame_pass1`, :func:`frame_pass2`, :func:`frame_taken`,
+:func:`best_overlaps`, :func:`rank_descending`, :func:`widest_step`) and validate nothing; they stay in this
+module with the kernels they call. One frame's boxes labelled by the matching are :mod:`.frame_labels`; the
+threads the matchings use, :mod:`.cpus`.
 """
 
 from __future__ import annotations
 
-import math
-import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -40,6 +40,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .arrays import kernel_input
+from .cpus import default_workers
 from .kernel_cache import njit
 
 _T = TypeVar("_T")
@@ -48,19 +49,12 @@ __all__ = [
     "PRCounts",
     "MatchJob",
     "FrameEvents",
-    "FrameLabels",
     "pr_counts",
     "pr_counts_many",
     "first_passes",
     "second_passes",
     "frame_events_many",
-    "label_frame",
     "score_thresholds",
-    "default_workers",
-    "available_cpus",
-    "cgroup_cpu_quota",
-    "DET_LABELS",
-    "GT_LABELS",
     "MatchingInputs",
     "checked_inputs",
     "checked_layout",
@@ -70,6 +64,7 @@ __all__ = [
     "Candidates",
     "best_overlaps",
     "find_candidates",
+    "frame_taken",
     "frame_pass1",
     "frame_pass2",
     "rank_descending",
@@ -524,127 +519,14 @@ def _events(c: Candidates, min_overlap: float, compute_aos: bool):  # noqa: ANN2
 
 
 #: labels of :func:`label_frame`, by code
-DET_LABELS = ("tp", "fp", "ignored", "dontcare", "below_threshold", "other_class")
-GT_LABELS = ("matched", "missed", "ignored", "absorbed", "other_class")
-DET_TP, DET_FP, DET_IGNORED, DET_DONTCARE, DET_BELOW_THRESHOLD, DET_OTHER_CLASS = range(len(DET_LABELS))
-GT_MATCHED, GT_MISSED, GT_IGNORED, GT_ABSORBED, GT_OTHER_CLASS = range(len(GT_LABELS))
-
-
 @njit(cache=True, nogil=True)
-def _frame_taken(c: Candidates, min_overlap: float, thresh: float) -> np.ndarray:
+def frame_taken(c: Candidates, min_overlap: float, thresh: float) -> np.ndarray:
     """Pass 2 on the one frame of ``c``: what each of its detections took (see :func:`frame_pass2`)."""
     n = max(c.d_ptr[1], 1)
     taken = np.empty(n, dtype=np.int64)
     below = np.empty(n, dtype=np.bool_)
     frame_pass2(c, 0, min_overlap, thresh, False, taken, below)
     return taken[: c.d_ptr[1]]
-
-
-@dataclass(frozen=True)
-class FrameLabels:
-    """What the matching made of each box of one frame (codes index :data:`DET_LABELS` / :data:`GT_LABELS`).
-
-    det_label : (N,) int8 ; det_ref : (N,) int64, the ground-truth row a detection matched (tp, ignored) or
-        the DontCare row that covers it (dontcare), else -1 ; det_overlap : (N,) float64, that overlap (NaN
-        without one) ; gt_label : (M,) int8 ; gt_ref : (M,) int64, the detection that took the box, else -1
-    """
-
-    det_label: npt.NDArray[np.int8]
-    det_ref: npt.NDArray[np.int64]
-    det_overlap: npt.NDArray[np.float64]
-    gt_label: npt.NDArray[np.int8]
-    gt_ref: npt.NDArray[np.int64]
-
-    @property
-    def tp(self) -> int:
-        return int(np.count_nonzero(self.det_label == DET_TP))
-
-    @property
-    def fp(self) -> int:
-        return int(np.count_nonzero(self.det_label == DET_FP))
-
-    @property
-    def fn(self) -> int:
-        return int(np.count_nonzero(self.gt_label == GT_MISSED))
-
-
-def label_frame(
-    overlaps: npt.ArrayLike,
-    ignored_gt: npt.ArrayLike,
-    ignored_det: npt.ArrayLike,
-    dontcare: npt.ArrayLike | None,
-    score: npt.ArrayLike,
-    min_overlap: float,
-    score_threshold: float = -np.inf,
-) -> FrameLabels:
-    """Label every box of one frame as the devkit's second pass sees it at ``score_threshold``.
-
-    Parameters
-    ----------
-    overlaps : (N, M) float64, detection j (rows) against ground-truth box i (columns) of the frame, in
-        file order; for DontCare rows the fraction of the detection covered
-    ignored_gt : (M,) int8 in {0, 1, -1} ; ignored_det : (N,) int8 in {0, 1, -1} (see the module docstring)
-    dontcare : (M,) bool, ground-truth rows that suppress false positives, or None for none
-    score : (N,) detection scores ; min_overlap : a match needs overlap strictly above this
-    score_threshold : detections scoring below it take no part (default: all take part)
-
-    The counts (``tp``, ``fp``, ``fn``) are the frame's share of the precision/recall counts at that
-    threshold.
-    """
-    ov = kernel_input(overlaps, np.float64)
-    ig = kernel_input(ignored_gt, np.int8)
-    idet = kernel_input(ignored_det, np.int8)
-    sc = kernel_input(score, np.float64)
-    n_gt = ig.shape[0] if ig.ndim == 1 else -1
-    dc = np.zeros(max(n_gt, 0), dtype=np.bool_) if dontcare is None else kernel_input(dontcare, np.bool_)
-    if ig.ndim != 1 or idet.ndim != 1 or ov.shape != (idet.shape[0], n_gt):
-        raise ValueError(
-            f"Expected `overlaps` (N, M) with `ignored_det` (N,) and `ignored_gt` (M,), got "
-            f"{ov.shape}, {idet.shape} and {ig.shape}"
-        )
-    if dc.shape != (n_gt,) or sc.shape != idet.shape:
-        raise ValueError(f"Expected `dontcare` ({n_gt},) and `score` ({idet.shape[0]},), got {dc.shape} and {sc.shape}")
-    return _labels(ov, ig, idet, dc, sc, float(min_overlap), float(score_threshold))
-
-
-def _labels(
-    ov: np.ndarray, ig: np.ndarray, idet: np.ndarray, dc: np.ndarray, score: np.ndarray, min_overlap: float, thr: float
-) -> FrameLabels:
-    """The frame compacted as for an evaluation, pass 2 (:func:`frame_pass2`, the one the AP counts come
-    from), and each box's label read off what every detection took."""
-    nd, ng = ov.shape
-    part, dcs = np.flatnonzero(ig != OTHER_CLASS), np.flatnonzero(dc)
-    best_gt = ov[:, part].max(axis=1, initial=0.0)
-    best_dc = ov[:, dcs].max(axis=1, initial=0.0)
-    frames = Frames(np.array([0, nd * ng]), np.array([0, ng]), np.array([0, nd]), score, np.zeros(ng), np.zeros(nd))
-    c = find_candidates(frames, ov.reshape(-1), ig, idet, dc, best_gt, best_dc, min_overlap)
-    taken = _frame_taken(c, min_overlap, thr)
-    cand = np.flatnonzero((idet != OTHER_CLASS) & (best_gt > min_overlap))
-    det_label = np.full(nd, DET_FP, dtype=np.int8)
-    det_ref = np.full(nd, -1, dtype=np.int64)
-    det_ov = np.full(nd, np.nan)
-    gt_label = np.where(ig == OTHER_CLASS, GT_OTHER_CLASS, np.where(ig == VALID, GT_MISSED, GT_IGNORED)).astype(np.int8)
-    gt_ref = np.full(ng, -1, dtype=np.int64)
-    det_label[idet == IGNORED] = DET_IGNORED
-    for a, t in zip(cand.tolist(), taken.tolist()):
-        if t >= 0:  # took ground truth part[t]
-            i = int(part[t])
-            det_ref[a], det_ov[a], gt_ref[i] = i, ov[a, i], a
-            if ig[i] == VALID and idet[a] == VALID:
-                det_label[a], gt_label[i] = DET_TP, GT_MATCHED
-            else:
-                det_label[a] = DET_IGNORED
-                gt_label[i] = GT_IGNORED if ig[i] == IGNORED else GT_ABSORBED
-        elif t <= -2:  # a DontCare region covers it
-            det_label[a], det_ref[a], det_ov[a] = DET_DONTCARE, dcs[-2 - t], ov[a, dcs[-2 - t]]
-    rest = np.setdiff1d(np.flatnonzero(idet == VALID), cand)  # valid but matching nothing: FP or under DontCare
-    for a in rest.tolist():
-        covering = np.flatnonzero(ov[a, dcs] > min_overlap)
-        if len(covering) and score[a] >= thr:
-            det_label[a], det_ref[a], det_ov[a] = DET_DONTCARE, dcs[covering[0]], ov[a, dcs[covering[0]]]
-    det_label[(score < thr) & (idet != OTHER_CLASS)] = DET_BELOW_THRESHOLD
-    det_label[idet == OTHER_CLASS] = DET_OTHER_CLASS
-    return FrameLabels(det_label, det_ref, det_ov, gt_label, gt_ref)
 
 
 @dataclass(frozen=True)
@@ -783,45 +665,6 @@ def checked_inputs(inputs: MatchingInputs) -> MatchingInputs:
     if score.shape != (n_dt,) or dt_alpha.shape != (n_dt,):
         raise ValueError(f"Expected detection arrays with shape ({n_dt},)")
     return MatchingInputs(po, ovs, go, do, ig, idet, dc, score, gt_alpha, dt_alpha)
-
-
-def default_workers() -> int:
-    """Threads used for the matchings: ``$KITTI_EVAL_THREADS``, else the CPUs this process may use."""
-    env = os.environ.get("KITTI_EVAL_THREADS", "").strip()
-    if env.isdigit() and int(env) > 0:
-        return int(env)
-    return available_cpus()
-
-
-def available_cpus() -> int:
-    """The CPUs this process may use: those it may run on, and no more than its CPU quota (a container's
-    ``--cpus``, a Kubernetes CPU limit: cgroup v2's ``cpu.max``, or v1's CFS quota), rounded up."""
-    try:
-        cpus = max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
-    quota = cgroup_cpu_quota()
-    return cpus if quota is None else max(1, min(cpus, math.ceil(quota)))
-
-
-def cgroup_cpu_quota(root: str = "/sys/fs/cgroup") -> float | None:
-    """The CPUs the cgroup of this process may use in a period (quota / period), or None when unlimited or
-    unknown."""
-    try:
-        with open(f"{root}/cpu.max", encoding="ascii") as fh:  # cgroup v2: "<quota|max> <period>"
-            quota, period = fh.read().split()[:2]
-        return None if quota == "max" else int(quota) / int(period)
-    except (OSError, ValueError):
-        pass
-    try:  # cgroup v1
-        with (
-            open(f"{root}/cpu/cpu.cfs_quota_us", encoding="ascii") as q,
-            open(f"{root}/cpu/cpu.cfs_period_us", encoding="ascii") as p,
-        ):
-            v1_quota, v1_period = int(q.read()), int(p.read())
-        return None if v1_quota <= 0 or v1_period <= 0 else v1_quota / v1_period
-    except (OSError, ValueError):
-        return None
 
 
 @dataclass(frozen=True, eq=False)

@@ -323,12 +323,8 @@ def load_protocol_file(path: str | os.PathLike[str]) -> dict[str, object]:
         max_occlusion = [0, 1, 2]
         max_truncation = [0.15, 0.3, 0.5]
     """
-    import sys
+    import tomllib
 
-    if sys.version_info >= (3, 11):
-        import tomllib
-    else:  # pragma: no cover - Python 3.10
-        import tomli as tomllib
     name = str(path)
     try:
         with open(path, "rb") as f:

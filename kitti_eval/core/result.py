@@ -8,10 +8,21 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..errors import ConfigError, InputError
 from .ap import Curve
-from .protocol import ALL_METRICS, DEFAULT_OSET, DEFAULT_RECALL, Difficulty, Metric
+from .protocol import (
+    ALL_METRICS,
+    DEFAULT_OSET,
+    DEFAULT_RECALL,
+    DIFFICULTIES,
+    METRICS,
+    RECALL_MODES,
+    THRESHOLD_SETS,
+    Difficulty,
+    Metric,
+)
 
-__all__ = ["EvalResult", "SCHEMA_VERSION"]
+__all__ = ["EvalResult", "SCHEMA_VERSION", "ValueKey", "ERROR_TYPES", "AOS_TYPES"]
 
 #: Version of the JSON layout written by :meth:`EvalResult.to_dict`; bumped on any incompatible change.
 SCHEMA_VERSION = 1
@@ -140,3 +151,87 @@ def _plain(obj: Any) -> Any:
     if isinstance(obj, Mapping):
         return {k: _plain(v) for k, v in obj.items()}
     return obj
+
+
+#: the error types of AP (bbox, bev, 3d), in the order they are shown (kitti_eval.analysis.decomposition counts them)
+ERROR_TYPES: tuple[str, ...] = ("classification", "localization", "both", "duplicate", "background", "missed")
+#: AOS adds orientation
+AOS_TYPES: tuple[str, ...] = (*ERROR_TYPES, "orientation")
+
+
+@dataclass(frozen=True, order=True)
+class ValueKey:
+    """One value of the result: class, metric, difficulty, recall mode, threshold set."""
+
+    cls: str
+    metric: str
+    difficulty: str
+    recall: str = DEFAULT_RECALL
+    oset: str = DEFAULT_OSET
+    #: an error type of the decomposition ("" for the AP itself)
+    error: str = ""
+
+    @classmethod
+    def parse(cls, text: str) -> ValueKey:
+        parts = [p.strip() for p in text.strip().split("/")]
+        if not 3 <= len(parts) <= 5 or not all(parts):
+            raise ConfigError(
+                f"expected Class/metric/difficulty[/R40|R11[/strict|loose]] or Class/metric/difficulty/"
+                f"<error type>[/R40|R11], got {text!r}"
+            )
+        if len(parts) >= 4 and parts[3] in AOS_TYPES:
+            if len(parts) == 5 and parts[4] not in RECALL_MODES:
+                raise ConfigError(f"unknown recall mode {parts[4]!r} in {text!r}; expected R40 or R11")
+            if parts[3] == "orientation" and parts[1] != "aos":
+                raise ConfigError(f"orientation errors are an AOS type: write {parts[0]}/aos/{parts[2]}/orientation")
+            key = cls(parts[0], parts[1], parts[2], parts[4] if len(parts) == 5 else "R40", "strict", parts[3])
+        else:
+            key = cls(*parts)
+        if key.metric not in METRICS:
+            raise ConfigError(f"unknown metric {key.metric!r} in {text!r}; expected one of {', '.join(METRICS)}")
+        if key.difficulty not in DIFFICULTIES:
+            raise ConfigError(
+                f"unknown difficulty {key.difficulty!r} in {text!r}; expected one of {', '.join(DIFFICULTIES)}"
+            )
+        if key.recall not in RECALL_MODES:
+            raise ConfigError(f"unknown recall mode {key.recall!r} in {text!r}; expected R40 or R11")
+        if key.oset not in THRESHOLD_SETS:
+            raise ConfigError(f"unknown threshold set {key.oset!r} in {text!r}; expected strict or loose")
+        return key
+
+    def __str__(self) -> str:
+        if self.error:
+            return f"{self.cls}/{self.metric}/{self.difficulty}/{self.error}/{self.recall}"
+        return f"{self.cls}/{self.metric}/{self.difficulty}/{self.recall}/{self.oset}"
+
+    def read(self, doc: Mapping[str, Any]) -> float | None:
+        """The value in a result document; a class or key the document lacks is an error."""
+        if self.error:
+            return self._read_error(doc)
+        try:
+            by_cls = doc["ap"][self.oset][self.recall]
+        except (KeyError, TypeError):
+            raise InputError(f"the result has no AP table for {self.recall}/{self.oset}") from None
+        if self.cls not in by_cls:
+            raise InputError(f"the result has no class {self.cls!r} (it has {', '.join(by_cls) or 'none'})")
+        value = by_cls[self.cls][self.metric][self.difficulty]
+        return None if value is None else float(value)
+
+    def find(self, doc: Mapping[str, Any]) -> float | None:
+        """The value in a result document, None where the document has none (no such class, table or key)."""
+        try:
+            return self.read(doc)
+        except (InputError, KeyError, TypeError, AttributeError):
+            return None
+
+    def _read_error(self, doc: Mapping[str, Any]) -> float | None:
+        table = doc.get("errors" if self.recall == "R40" else "errors_r11")
+        if not isinstance(table, Mapping):
+            raise InputError(
+                f"the result has no error decomposition for {self}: evaluate with --errors (or gate --gt/--pred)"
+            )
+        if self.cls not in table:
+            raise InputError(f"the error decomposition has no class {self.cls!r} (it has {', '.join(table)})")
+        types = table[self.cls][self.metric][self.difficulty]
+        value = None if types is None else types.get(self.error)
+        return None if value is None else float(value)

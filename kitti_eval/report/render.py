@@ -11,7 +11,7 @@ from typing import Any
 from ..core.protocol import DIFFICULTIES, METRICS
 from ..core.result import EvalResult
 
-__all__ = ["OutputFormat", "render", "render_table", "render_json", "render_markdown"]
+__all__ = ["OutputFormat", "render", "render_table", "render_json", "json_document", "render_markdown"]
 
 
 class OutputFormat(str, enum.Enum):
@@ -81,21 +81,48 @@ def _blocks(result: EvalResult, ap: Any, suffix: str) -> list[str]:
     return lines
 
 
+def _json_key(key: object) -> str:
+    """A dict key as ``json.dumps`` writes it (JSON's keys are strings)."""
+    if isinstance(key, str):
+        return str.__str__(key)
+    if key is None or isinstance(key, bool):
+        return json.dumps(key)
+    if isinstance(key, float):
+        return float.__repr__(key)
+    return int.__repr__(key) if isinstance(key, int) else str(key)
+
+
 def _finite_or_none(obj: object) -> object:
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
+    """``obj`` as ``json.loads(json.dumps(obj))`` would give it back, with every non-finite number None (JSON
+    has no NaN): tuples as lists, keys as strings, a float's or a string's subclass as the plain type."""
+    if isinstance(obj, float):
+        return float(obj) if math.isfinite(obj) else None
     if isinstance(obj, dict):
-        return {k: _finite_or_none(v) for k, v in obj.items()}
-    if isinstance(obj, list):
+        return {_json_key(k): _finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
         return [_finite_or_none(v) for v in obj]
+    if isinstance(obj, str) and type(obj) is not str:
+        return str.__str__(obj)
     return obj
+
+
+def json_document(
+    result: EvalResult, *, include_curves: bool = False, extra: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
+    """The versioned JSON document (see :meth:`EvalResult.to_dict`) as a dict, with the keys of ``extra`` added
+    (e.g. the error decomposition's): what :func:`render_json` writes and ``json.loads`` of it would give back,
+    each non-finite number None, without the text in between."""
+    doc = {**result.to_dict(include_curves=include_curves), **(extra or {})}
+    finite: dict[str, Any] = _finite_or_none(doc)  # type: ignore[assignment]  # a dict's copy is a dict
+    return finite
 
 
 def render_json(result: EvalResult, *, include_curves: bool = False, extra: Mapping[str, Any] | None = None) -> str:
     """The versioned JSON document (see :meth:`EvalResult.to_dict`), with the keys of ``extra`` added (e.g.
-    the error decomposition's)."""
-    doc = {**result.to_dict(include_curves=include_curves), **(extra or {})}
-    return json.dumps(_finite_or_none(doc), indent=2, allow_nan=False) + "\n"
+    the error decomposition's): :func:`json_document`, written."""
+    return (
+        json.dumps(json_document(result, include_curves=include_curves, extra=extra), indent=2, allow_nan=False) + "\n"
+    )
 
 
 def render_markdown(result: EvalResult) -> str:

@@ -1,4 +1,4 @@
-"""Dependencies shared by the routes: the service, the access each route declares (and the caller it is
+"""Dependencies shared by the routes: the access each route declares (and the caller it is
 admitted as, decided by :class:`~kitti_eval_server.access.policy.Policy`), the response format."""
 
 from __future__ import annotations
@@ -14,13 +14,11 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from kitti_eval.report.render import OutputFormat
 
 from ..errors import BadRequest, Forbidden, echo
-from ..service import Service
+from .audit import Audit
 from .auth import CALLER_KEY, client_of
 from .policy import CSRF_HEADER, SAFE_METHODS, Access, Caller, Policy
 
 __all__ = [
-    "get_service",
-    "ServiceDep",
     "get_policy",
     "require_public",
     "require_anyone",
@@ -37,14 +35,6 @@ __all__ = [
     "negotiate_format",
     "FormatDep",
 ]
-
-
-def get_service(request: Request) -> Service:
-    service: Service = request.app.state.service
-    return service
-
-
-ServiceDep = Annotated[Service, Depends(get_service)]
 
 
 def get_policy(request: Request) -> Policy:
@@ -102,9 +92,9 @@ def _decider(access: Access) -> Callable[..., Awaitable[Caller]]:
             )
         except Forbidden as e:
             if policy.audits_refusal(caller):
-                service = get_service(request)
+                audit: Audit = request.app.state.service.audit
                 await anyio.to_thread.run_sync(
-                    partial(service.audit.refused_use, caller, f"{request.method} {request.url.path}", e.message)
+                    partial(audit.refused_use, caller, f"{request.method} {request.url.path}", e.message)
                 )
             raise
         return admitted

@@ -17,9 +17,10 @@ made without saying otherwise is nobody, and a :class:`Policy` is never made wit
 
 A :class:`Caller` is made by the policy alone (:meth:`Policy.everyone`, :meth:`Policy.anonymous`, or
 :meth:`kitti_eval_server.access.accounts.Accounts.resolve` for a token), and the routes receive it from their access
-dependency. ``KITTI_EVAL_AUTH`` is an :class:`AuthMode`: in ``open`` mode everyone is :meth:`Policy.everyone`
-(sees and changes everything, admin actions need the admin token); in ``accounts`` mode the rules below
-apply. The table "Who may do what" of docs/service/accounts.md is checked against :data:`RULES` by a test.
+dependency. ``KITTI_EVAL_AUTH`` is an :class:`~kitti_eval_server.settings.AuthMode`: in ``open`` mode everyone
+is :meth:`Policy.everyone` (sees and changes everything, admin actions need the admin token); in ``accounts``
+mode the rules below apply. The table "Who may do what" of docs/service/accounts.md is checked against
+:data:`RULES` by a test.
 """
 
 from __future__ import annotations
@@ -34,10 +35,10 @@ from enum import Enum
 from typing import Protocol
 
 from ..errors import BadRequest, Forbidden, NotFound, Sealed, Unauthorized, echo
+from ..settings import AuthMode
 
 __all__ = [
     "Access",
-    "AuthMode",
     "Caller",
     "Policy",
     "RULES",
@@ -64,13 +65,6 @@ CSRF_HEADER = "x-csrf-token"
 BUILT_IN_CALLERS = frozenset({"admin-token", "anyone", "anonymous", "metrics-scraper"})
 #: how long a sign-in form's CSRF token is valid
 SIGNIN_CSRF_S = 3600
-
-
-class AuthMode(str, Enum):
-    """``KITTI_EVAL_AUTH``: ``open`` (no accounts: everyone is everyone) or ``accounts``."""
-
-    OPEN = "open"
-    ACCOUNTS = "accounts"
 
 
 class Access(str, Enum):

@@ -9,11 +9,12 @@ reveal and rescore benchmarks, list every submission and disqualify entries; wha
 baseline (counted against no quota, accepted until the close, on the board in its place by the key without a
 rank of its own).
 
-A submission is checked first with :func:`kitti_eval.io.submission.validate_submission` against the test frame
-ids (the sentences ``kitti-eval validate`` prints; a refused submission costs nothing), then counted against
-the quota and accepted in one transaction (``BenchmarkStore.accept_submission``; the acceptance time is the
-submission's), then scored on the sealed set by a job (:mod:`kitti_eval_server.jobs.queue`: a worker of this or
-another process; rescoring queues one job per submission). Its participant sees its aggregate result (on the
+A submission is first counted against the quota and accepted in one transaction with its scoring job
+(``BenchmarkStore.accept_submission``; the acceptance time is the submission's; the file is received and hashed,
+not read), then scored on the sealed set by that job (:mod:`kitti_eval_server.jobs.queue`: a worker of this or another
+process; rescoring queues one job per submission), which checks the file first as
+:func:`kitti_eval.io.submission.validate_submission` does against the test frame ids (the sentences ``kitti-eval
+validate`` prints): a refused submission is deleted and costs nothing. Its participant sees its aggregate result (on the
 public part only while a benchmark with a split is not revealed); nobody else sees it until it is
 published. What is published is frozen when the benchmark closes, and a benchmark may cap the entries a
 participant has published (``max_published``).

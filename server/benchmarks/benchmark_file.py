@@ -37,21 +37,15 @@ from __future__ import annotations
 
 import re
 import secrets
-import sys
+import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from datetime import date, datetime, timezone
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import tomli_w
-import tomllib
 
 from kitti_eval.core.protocol import THRESHOLD_SETS
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
 
 from ..access.accounts import Accounts
 from ..access.policy import Caller

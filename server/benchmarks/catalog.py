@@ -15,9 +15,9 @@ from ..access.accounts import Accounts
 from ..access.audit import Audit
 from ..access.policy import Caller, Policy
 from ..errors import BadRequest, Conflict, NotFound, echo
-from ..evaluations.evaluator import EvalOptions
 from ..ground_truths.cache import GroundTruths
 from ..jobs.queue import JobQueue
+from ..scoring.evaluator import EvalOptions
 from ..store import BenchmarkRecord, BenchmarkStore, GroundTruthRecord
 from .lifecycle import check_change
 from .phases import PhaseOf, current_phase_of, phase_views
@@ -131,7 +131,7 @@ class BenchmarkCatalog:
         return [Benchmark.from_record(r) for r in self.benchmark_store.benchmarks_using(name)]
 
     def ground_truth_of(self, bench: Benchmark) -> tuple[GroundTruthRecord, Annotations]:
-        """The benchmark's test set as registered now, loaded (see :meth:`_ground_truth_record`)."""
+        """The benchmark's test set as registered now, loaded (see :meth:`ground_truth_record_of`)."""
         record = self.ground_truth_record_of(bench)
         return record, self.ground_truths.load(record)
 

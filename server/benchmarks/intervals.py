@@ -34,16 +34,16 @@ import numpy as np
 import numpy.typing as npt
 
 from kitti_eval.analysis.bootstrap import frame_weights, interval95
-from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.analysis.ranking import LEVEL, METHOD, resampled_key
 from kitti_eval.core.evaluation import plan_evaluation
 from kitti_eval.core.frames import Annotations
+from kitti_eval.core.result import ValueKey
 from kitti_eval.io.reading import LoadOptions
 from kitti_eval.io.upload import UploadLimits, read_upload
 
 from ..errors import Conflict
-from ..evaluations.uploads import stored_upload
 from ..jobs.queue import JobQueue, JobRecord
+from ..scoring.uploads import stored_upload
 from ..store import BenchmarkStore, GroundTruthStore, JobInputStore, ResampledKey, SubmissionRecord
 from .catalog import BenchmarkCatalog
 from .rules import Benchmark, key_value, part_frames

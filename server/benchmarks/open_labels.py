@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING, Any
 
 from ..access.policy import Caller, require_open_labels
 from ..errors import Conflict
-from ..evaluations.evaluator import frame_listing
-from ..evaluations.uploads import stored_upload
+from ..scoring.evaluator import frame_listing
+from ..scoring.uploads import stored_upload
 
 if TYPE_CHECKING:
     from . import Benchmarks
@@ -27,7 +27,7 @@ def submission_frames(
 ) -> dict[str, Any]:
     """TP/FP/FN per frame of one of the caller's submissions to the phase ``name`` (a row), when the phase is on
     open labels: the submission's file read as its scoring read it, matched as the AP is
-    (:func:`~kitti_eval_server.evaluations.evaluator.frame_listing`, ``question`` its keywords)."""
+    (:func:`~kitti_eval_server.scoring.evaluator.frame_listing`, ``question`` its keywords)."""
     record = benchmarks.submissions._own(name, submission_id, caller)
     bench = benchmarks.catalog.named(name)
     require_open_labels(open_labels=bench.open_labels, what=f"phase {bench.phase_name!r}")

@@ -10,11 +10,11 @@ from dataclasses import dataclass, fields
 from datetime import datetime, timezone
 from typing import Any
 
-from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.core.protocol import DEFAULT_OSET, DEFAULT_RECALL, DIFFICULTIES, METRICS, RECALL_MODES
+from kitti_eval.core.result import ValueKey
 
 from ..errors import BadRequest, echo
-from ..evaluations.evaluator import EvalOptions
+from ..scoring.evaluator import EvalOptions
 from ..store import BenchmarkRecord
 from .lifecycle import PhaseState, has_opened, state_of
 

@@ -11,8 +11,8 @@ from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any
 
-from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.core.frames import Annotations
+from kitti_eval.core.result import ValueKey
 from kitti_eval.errors import InputError, InvalidSubmissionError
 from kitti_eval.io.submission import SubmissionRules
 from kitti_eval.io.upload import UploadLimits, read_upload
@@ -20,12 +20,11 @@ from kitti_eval.io.upload import UploadLimits, read_upload
 from ..access.audit import Audit
 from ..access.policy import Caller, Policy
 from ..errors import ApiError, BadRequest, Conflict, Forbidden, NotFound, NotReady, echo
-from ..evaluations.evaluations import sealed_document
-from ..evaluations.evaluator import evaluate_document, evaluate_document_resampled
-from ..evaluations.uploads import FileIn, Upload, receive_content, stored_upload
 from ..idempotency import Idempotency, RequestKey, fingerprint, submissions_scope
 from ..jobs.queue import JobQueue, JobRecord
 from ..jobs.workers import JobFailed, error_of
+from ..scoring.evaluator import evaluate_document, evaluate_document_resampled, sealed_document
+from ..scoring.uploads import FileIn, Upload, receive_content, stored_upload
 from ..store import (
     BenchmarkStore,
     GroundTruthRecord,

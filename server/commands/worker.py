@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
             return without_server_extra("worker", e)
         return check_workers(data_dir=args.data_dir, database_url=args.database_url)
     try:
-        from ..jobs.process import run_pool
+        from .process import run_pool
     except ImportError as e:
         return without_server_extra("worker", e)
     return run_pool(

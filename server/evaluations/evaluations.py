@@ -28,6 +28,8 @@ from ..ground_truths.cache import GroundTruthCache
 from ..ground_truths.catalog import GroundTruthCatalog
 from ..idempotency import EVALUATIONS, Idempotency, RequestKey, fingerprint
 from ..jobs.queue import JobQueue
+from ..scoring.evaluator import EvalOptions, evaluate_document, frame_listing, sealed_document, summarize
+from ..scoring.uploads import FileIn, receive_content, stored_upload
 from ..store import (
     AccountStore,
     EvaluationRecord,
@@ -41,27 +43,13 @@ from ..store import (
     KeyTaken,
     new_id,
 )
-from .evaluator import EvalOptions, evaluate_document, frame_listing, summarize
-from .uploads import FileIn, receive_content, stored_upload
 
-__all__ = ["Evaluations", "EvaluationFrames", "FileIn", "sealed_document", "MAX_INSPECTED"]
+__all__ = ["Evaluations", "EvaluationFrames", "FileIn", "MAX_INSPECTED"]
 
 log = logging.getLogger("kitti_eval.server")
 
 #: most evaluations one frame view compares
 MAX_INSPECTED = 8
-
-
-def sealed_document(doc: dict[str, Any]) -> dict[str, Any]:
-    """An evaluation document against a sealed ground truth: the aggregates only. The frames without
-    predictions (ids of the sealed set) and the warnings (which may name its frames) are withheld."""
-    out = dict(doc)
-    withheld = len(doc.get("frames_without_predictions") or ())
-    out["frames_without_predictions"] = []
-    notes = [f"the ground truth is sealed: per-frame details are withheld ({len(doc.get('warnings') or ())} warnings"]
-    notes[0] += f", {withheld} frames without predictions)" if withheld else ")"
-    out["warnings"] = notes
-    return out
 
 
 def _input(name: str, upload: FileIn, *, kept: bool = False) -> JobInput:
@@ -399,8 +387,8 @@ class EvaluationFrames:
         return gt, self.predictions.get_or_load(record.pred_sha256, load_kept), config
 
     def frames(self, evaluation_id: str, *, caller: Caller, **question: Any) -> dict[str, Any]:
-        """TP/FP/FN per frame of a stored evaluation: :func:`.evaluator.frame_listing` of its kept inputs,
-        ``question`` its keywords (class, metric, difficulty, set, worst, score threshold)."""
+        """TP/FP/FN per frame of a stored evaluation: :func:`~kitti_eval_server.scoring.evaluator.frame_listing` of
+        its kept inputs, ``question`` its keywords (class, metric, difficulty, set, worst, score threshold)."""
         record = self.evaluations.get(evaluation_id, caller)
         gt, dt, config = self._kept_inputs(record)
         doc = frame_listing(gt, dt, config, **question)

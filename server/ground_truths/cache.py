@@ -31,7 +31,7 @@ from kitti_eval.io.loaders import load_ground_truth
 from kitti_eval.io.upload import UploadLimits, read_upload
 
 from ..errors import ApiError, BadRequest, Conflict, NotFound, echo
-from ..evaluations.uploads import Upload, receive_upload
+from ..scoring.uploads import Upload, receive_upload
 from ..store import BenchmarkStore, GroundTruthRecord, GroundTruthStore
 
 __all__ = ["GroundTruths", "GroundTruthCache", "NAME_PATTERN", "annotations_nbytes", "display_name"]

@@ -11,7 +11,7 @@ from pathlib import Path
 from ..access.audit import Audit
 from ..access.policy import Caller, Policy
 from ..errors import NotFound
-from ..evaluations.uploads import FileIn, receive_upload
+from ..scoring.uploads import FileIn, receive_upload
 from ..store import GroundTruthRecord, GroundTruthStore
 from .cache import GroundTruths
 

@@ -1,4 +1,4 @@
-"""A pool of worker processes on this machine: each is ``python -m kitti_eval_server.jobs.process``, a fresh
+"""A pool of worker processes on this machine: each is ``python -m kitti_eval_server.commands.process``, a fresh
 interpreter with its own global lock (N processes use N cores), running the service's jobs on the database.
 
 :class:`WorkerPool` starts them, starts one again when it dies (after a pause that grows from 1 s to 60 s while
@@ -25,7 +25,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from kitti_eval.core.matching import available_cpus
+from kitti_eval.core.cpus import available_cpus
 
 from .queue import JobQueue
 
@@ -34,7 +34,7 @@ __all__ = ["WorkerPool", "CHILD_MODULE"]
 log = logging.getLogger("kitti_eval.server")
 
 #: what a worker process runs (``python -m``)
-CHILD_MODULE = "kitti_eval_server.jobs.process"
+CHILD_MODULE = "kitti_eval_server.commands.process"
 #: how it is started: as ``python -m CHILD_MODULE`` would, but without the working folder first on the import path
 #: (``-m`` puts it there: a service started inside another checkout would run that checkout's code in its
 #: workers, not the installed one it runs itself)

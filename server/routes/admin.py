@@ -10,8 +10,9 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
 from ..access.accounts import READ, WRITE
-from ..access.deps import AdminCaller, ServiceDep
+from ..access.deps import AdminCaller
 from ..jobs.workers import admin_job_view
+from ..params import ServiceDep
 from ..schemas import ErrorResponse, iso
 from ..store import TokenRecord, UserRecord
 

@@ -10,15 +10,15 @@ from fastapi import APIRouter, Depends, File, Header, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, Field
 
-from ..access.deps import AdminCaller, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.deps import AdminCaller, AnyoneCaller, ReaderCaller, WriterCaller
 from ..access.policy import Caller
 from ..benchmarks import DEFAULT_KEY, Benchmarks
 from ..benchmarks.rules import PHASE_SEPARATOR
 from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
+from ..params import CurrentPhase, ServiceDep, SubmissionPhase
 from ..schemas import ErrorResponse
 from ..service import FileIn
 from .jobs import still_pending
-from .phase_names import CurrentPhase, SubmissionPhase
 
 router = APIRouter(
     prefix="/v1/benchmarks",

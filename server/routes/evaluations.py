@@ -11,11 +11,11 @@ from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from kitti_eval.core.result import EvalResult
 from kitti_eval.report.render import OutputFormat, render
 
-from ..access.deps import FormatDep, ReaderCaller, ServiceDep, WriterCaller
+from ..access.deps import FormatDep, ReaderCaller, WriterCaller
 from ..errors import BadRequest
 from ..evaluations.compare import compare, render_comparison_markdown
-from ..evaluations.evaluator import EvalOptions, parse_labels
 from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
+from ..params import ServiceDep
 from ..schemas import (
     Comparison,
     ErrorResponse,
@@ -24,6 +24,7 @@ from ..schemas import (
     evaluation_response,
     evaluation_summary,
 )
+from ..scoring.evaluator import EvalOptions, parse_labels
 from ..service import FileIn
 from ..store import EvaluationRecord
 from .jobs import still_pending

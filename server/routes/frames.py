@@ -7,7 +7,8 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Query
 
-from ..access.deps import ReaderCaller, ServiceDep
+from ..access.deps import ReaderCaller
+from ..params import MAX_SCORE, ServiceDep
 from ..schemas import ErrorResponse
 
 router = APIRouter(
@@ -28,8 +29,6 @@ ClassQ = Annotated[str, Query(alias="class", description="the class, e.g. Car")]
 MetricQ = Annotated[Literal["bbox", "bev", "3d", "aos"], Query(description="overlap metric (aos: the 2D matching)")]
 DifficultyQ = Annotated[Literal["easy", "moderate", "hard"], Query()]
 SetQ = Annotated[Literal["strict", "loose"], Query(alias="set", description="IoU threshold set")]
-#: scores are finite numbers; a threshold beyond this bound selects all or nothing
-MAX_SCORE = 1e9
 #: most frames a listing asks for (KITTI val has 3769)
 MAX_WORST = 1_000_000
 

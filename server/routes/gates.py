@@ -18,10 +18,11 @@ from kitti_eval.analysis.gate import (
 )
 from kitti_eval.errors import ConfigError
 
-from ..access.deps import ReaderCaller, ServiceDep
+from ..access.deps import ReaderCaller
 from ..errors import BadRequest, NotFound
-from ..evaluations.evaluator import parse_labels
+from ..params import ServiceDep
 from ..schemas import ErrorResponse
+from ..scoring.evaluator import parse_labels
 
 router = APIRouter(
     prefix="/v1/gates",

@@ -7,8 +7,9 @@ from typing import Annotated, Any
 from fastapi import APIRouter, File, Form, Response, UploadFile
 from fastapi.responses import JSONResponse
 
-from ..access.deps import AdminCaller, ReaderCaller, ServiceDep
+from ..access.deps import AdminCaller, ReaderCaller
 from ..ground_truths.cache import NAME_PATTERN
+from ..params import ServiceDep
 from ..schemas import ErrorResponse, GroundTruthList, GroundTruthOut, ground_truth_out
 from ..service import FileIn
 

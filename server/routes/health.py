@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from ..access.deps import PublicCaller, ServiceDep
+from ..access.deps import PublicCaller
 from ..errors import NotReady
+from ..params import ServiceDep
 from ..schemas import ErrorResponse, Health
 
 router = APIRouter(tags=["health"])

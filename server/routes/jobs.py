@@ -9,11 +9,12 @@ import anyio.to_thread
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
-from ..access.deps import ReaderCaller, ServiceDep
+from ..access.deps import ReaderCaller
 from ..access.policy import Caller
 from ..errors import NotFound, echo
 from ..jobs.queue import JobQueue, JobRecord
 from ..jobs.workers import job_view
+from ..params import ServiceDep
 from ..schemas import ErrorResponse
 from ..service import Service
 

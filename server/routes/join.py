@@ -9,7 +9,8 @@ import anyio.to_thread
 from fastapi import APIRouter, Path
 from pydantic import BaseModel, Field
 
-from ..access.deps import PublicCaller, ServiceDep
+from ..access.deps import PublicCaller
+from ..params import ServiceDep
 from ..schemas import ErrorResponse
 
 router = APIRouter(prefix="/v1/join", tags=["accounts"])

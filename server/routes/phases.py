@@ -1,6 +1,6 @@
 """A benchmark's phases and teams: ``/v1/benchmarks/{name}/phases/{phase}/...`` (each phase's submissions and
 board) and ``/v1/benchmarks/{name}/teams``. The benchmark's routes without a phase address its current phase
-and a submission's routes the phase the submission is in (:mod:`.phase_names`)."""
+and a submission's routes the phase the submission is in (:mod:`kitti_eval_server.params`)."""
 
 from __future__ import annotations
 
@@ -10,16 +10,16 @@ from fastapi import APIRouter, File, Header, Query, UploadFile
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
-from ..access.deps import AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.deps import AnyoneCaller, ReaderCaller, WriterCaller
 from ..benchmarks.open_labels import submission_frames as frames_of
 from ..benchmarks.phases import phase_views, row_of
 from ..errors import NotFound, echo
 from ..idempotency import IDEMPOTENCY_DESCRIPTION
+from ..params import ServiceDep, SubmissionPhase
 from ..schemas import ErrorResponse
 from . import benchmarks as single
 from .benchmarks import BenchmarksDep
 from .frames import FrameCountsQ
-from .phase_names import SubmissionPhase
 
 __all__ = ["router"]
 

@@ -26,12 +26,17 @@ from .idempotency_store import IdempotencyRecord, IdempotencyStore
 __all__ = [
     "BenchmarkRecord",
     "SubmissionRecord",
+    "SUBMISSION_STATUSES",
     "ResampledKey",
     "QuotaRefused",
     "QuotaTeam",
     "PublishRefused",
     "BenchmarkStore",
 ]
+
+#: a submission's status, in the order of its life: accepted (its scoring job queued or running), then scored
+#: or failed (with the reason); docs/service/benchmarks.md names these (a test compares)
+SUBMISSION_STATUSES = ("accepted", "scored", "failed")
 
 
 class QuotaRefused(Exception):
@@ -79,7 +84,7 @@ class SubmissionRecord:
     benchmark: str
     participant: str
     created_at: datetime
-    status: str  # accepted | scored | failed
+    status: str  # one of SUBMISSION_STATUSES
     pred_filename: str
     pred_sha256: str
     pred_size: int
@@ -318,11 +323,6 @@ class BenchmarkStore(Area):
         with self.engine.connect() as conn:
             rows = conn.execute(query).mappings().all()
         return [self._submission(r) for r in rows]
-
-    @staticmethod
-    def delete_resampled_keys_in(conn: Connection, submission_id: str) -> None:
-        """Within the transaction that scores the submission again: its resampled keys are of the last scoring."""
-        conn.execute(delete(submission_resamples).where(submission_resamples.c.submission_id == submission_id))
 
     @staticmethod
     def replace_resampled_keys_in(

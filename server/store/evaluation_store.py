@@ -30,7 +30,7 @@ class EvaluationRecord:
     summary: Mapping[str, Any]
     result: Mapping[str, Any] | None  # None when listed without results
     labels: Mapping[str, str] = field(default_factory=dict)
-    #: the request's options (:class:`kitti_eval_server.evaluations.evaluator.EvalOptions` as a dict); None for
+    #: the request's options (:class:`kitti_eval_server.scoring.evaluator.EvalOptions` as a dict); None for
     #: older rows
     options: Mapping[str, Any] | None = None
     project: str | None = None
@@ -38,11 +38,6 @@ class EvaluationRecord:
 
 class EvaluationStore(Area):
     """Stored evaluations: their results, summaries and labels."""
-
-    @retry_when_locked
-    def add_evaluation(self, record: EvaluationRecord) -> None:
-        with self.engine.begin() as conn:
-            self.add_evaluation_in(conn, record)
 
     @staticmethod
     def add_evaluation_in(conn: Connection, record: EvaluationRecord) -> None:

@@ -31,11 +31,6 @@ class JobInput:
 
 
 class JobInputStore(Area):
-    @retry_when_locked
-    def add_job_inputs(self, job_id: str, inputs: list[JobInput]) -> None:
-        with self.engine.begin() as conn:
-            self.add_job_inputs_in(conn, job_id, inputs)
-
     @staticmethod
     def add_job_inputs_in(conn: Connection, job_id: str, inputs: list[JobInput]) -> None:
         """Within a transaction of the caller's (the one that records the job). A ``kept`` input is written to
@@ -80,8 +75,3 @@ class JobInputStore(Area):
     def delete_job_inputs_in(conn: Connection, job_id: str) -> None:
         """Within a transaction of the caller's (the one that ends the job)."""
         conn.execute(delete(job_inputs).where(job_inputs.c.job_id == job_id))
-
-    @retry_when_locked
-    def delete_job_inputs(self, job_id: str) -> None:
-        with self.engine.begin() as conn:
-            self.delete_job_inputs_in(conn, job_id)

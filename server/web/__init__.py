@@ -1,5 +1,6 @@
 """Server-rendered HTML pages over the same records as the JSON API, with their stylesheet and script."""
 
-from .routes import STATIC_DIR, router
+from .pages import STATIC_DIR
+from .routes import router
 
 __all__ = ["router", "STATIC_DIR"]

@@ -24,7 +24,7 @@ from starlette.exceptions import HTTPException
 
 from kitti_eval.errors import KittiEvalError
 
-from ..access.deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.deps import FORM_MAX_FIELDS, AnyoneCaller, ReaderCaller, WriterCaller
 from ..access.policy import Caller
 from ..benchmarks import Benchmarks, InvalidSubmission, render_markdown
 from ..benchmarks.lifecycle import past_closing
@@ -33,10 +33,10 @@ from ..benchmarks.rules import PHASE_SEPARATOR
 from ..errors import ApiError, BadRequest, NotFound, clip, fault_of
 from ..idempotency import FORM_FIELD, new_form_key, parse_key
 from ..jobs.workers import JobFailed
-from ..routes.phase_names import SubmissionPhase
+from ..params import ServiceDep, SubmissionPhase
 from ..service import FileIn, Service
 from .boards import board_entries, board_header, bootstrap_line, column_label, comparison_rows, full_time, number
-from .routes import _render, _status, queued_text
+from .pages import queued_text, render_page, status_of
 
 __all__ = ["router", "REFRESH_S"]
 
@@ -79,8 +79,8 @@ def _message(failure: ApiError | KittiEvalError | HTTPException) -> str:
 
 
 def _error(request: Request, failure: ApiError | KittiEvalError | HTTPException) -> Response:
-    status = _status(failure)
-    return _render(request, "error.html", status, status=status, message=_message(failure))
+    status = status_of(failure)
+    return render_page(request, "error.html", status, status=status, message=_message(failure))
 
 
 # ----------------------------------------------------------------------------------------------- the list
@@ -142,7 +142,7 @@ def benchmarks_page(request: Request, service: ServiceDep, caller: AnyoneCaller)
         current: dict[str, Any] = next((p for p in described["phases"] if p["current"]), {})
         set_word = "validation set" if current.get("open_labels") else "test set"
         rows.append({"bench": described, "rules": _rules(described), "mine": mine, "set_word": set_word})
-    return _render(request, "benchmarks.html", rows=rows, participant=_participant(service, caller))
+    return render_page(request, "benchmarks.html", rows=rows, participant=_participant(service, caller))
 
 
 # ---------------------------------------------------------------------------------------------- one bench
@@ -246,7 +246,7 @@ def benchmark_page(
         context = _benchmark_context(request, service, caller, _phase_row(request, caller, name, phase), sort, order)
     except ApiError as e:
         return _error(request, e)
-    return _render(request, "benchmark.html", **context)
+    return render_page(request, "benchmark.html", **context)
 
 
 @router.post("/benchmarks/{name}/submissions")
@@ -298,7 +298,7 @@ def _refused(
         context["problems"] = [clip(p) for p in failure.problems]
     else:
         context["error"] = _message(failure)
-    response = _render(request, "benchmark.html", _status(failure), **context)
+    response = render_page(request, "benchmark.html", status_of(failure), **context)
     if isinstance(failure, ApiError):
         response.headers.update(failure.headers)
     return response
@@ -364,7 +364,7 @@ def submission_page(
         return _error(request, e)
     except ApiError as e:
         return _error(request, e)
-    return _render(request, "submission.html", **context)
+    return render_page(request, "submission.html", **context)
 
 
 def _refused_job(service: Service, caller: Caller, submission_id: str) -> ApiError | None:
@@ -435,7 +435,7 @@ def _submission_refused(
     except ApiError as e:
         return _error(request, e)
     context.update(error=_message(failure), form=form)
-    return _render(request, "submission.html", _status(failure), **context)
+    return render_page(request, "submission.html", status_of(failure), **context)
 
 
 # ------------------------------------------------------------------------------------------------ teams
@@ -490,4 +490,4 @@ def _team_refused(request: Request, service: Service, caller: Caller, name: str,
     except ApiError as e:
         return _error(request, e)
     context["team_error"] = _message(failure)
-    return _render(request, "benchmark.html", _status(failure), **context)
+    return render_page(request, "benchmark.html", status_of(failure), **context)

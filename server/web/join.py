@@ -14,11 +14,13 @@ from fastapi.responses import Response
 from starlette.exceptions import HTTPException
 
 from ..access.auth import join_cookie, over_https, session_cookie
-from ..access.deps import PublicCaller, ServiceDep
+from ..access.deps import PublicCaller
 from ..access.policy import SIGNIN_CSRF_S, Caller
 from ..errors import ApiError, Gone, NotFound, clip
+from ..params import ServiceDep
 from ..service import Service
-from .routes import _render, error_page
+from .pages import render_page
+from .routes import error_page
 
 __all__ = ["router"]
 
@@ -30,7 +32,7 @@ def _form(
 ) -> Response:
     """The form, with a fresh CSRF token in it and in its cookie."""
     csrf = service.policy.issue_signin_csrf()
-    response = _render(
+    response = render_page(
         request,
         "join.html",
         status,
@@ -97,7 +99,7 @@ async def join(request: Request, code: str, service: ServiceDep, caller: PublicC
         if isinstance(e, ApiError):
             response.headers.update(e.headers)
         return response
-    response = _render(
+    response = render_page(
         request,
         "joined.html",
         201,

@@ -9,25 +9,22 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from functools import partial
-from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import quote, urlencode
 
 import anyio.to_thread
-import jinja2
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import RedirectResponse, Response
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
-from starlette.templating import Jinja2Templates
 from starlette.types import Scope
 
 from kitti_eval.analysis.decomposition import AOS_TYPES, ERROR_TYPES, TP_ERRORS
 from kitti_eval.core.protocol import ALL_METRICS, KNOWN_CLASSES, PROTOCOLS
 from kitti_eval.errors import KittiEvalError
 
-from ..access.auth import CALLER_KEY, check_token, over_https, session_cookie, signin_cookie
-from ..access.deps import FORM_MAX_FIELDS, PublicCaller, ReaderCaller, ServiceDep, WriterCaller
+from ..access.auth import check_token, over_https, session_cookie, signin_cookie
+from ..access.deps import FORM_MAX_FIELDS, PublicCaller, ReaderCaller, WriterCaller
 from ..access.policy import SIGNIN_CSRF_S, Caller, Policy
 from ..errors import (
     MAX_ECHO_CHARS,
@@ -37,23 +34,20 @@ from ..errors import (
     clip,
     echo,
     fault_of,
-    library_error_status,
 )
 from ..evaluations.compare import compare
-from ..evaluations.evaluator import ERRORS_SET, EvalOptions, parse_labels
 from ..idempotency import FORM_FIELD, new_form_key, parse_key
 from ..jobs.queue import JobRecord
 from ..jobs.workers import JobFailed
-from ..routes.frames import MAX_SCORE
-from ..schemas import iso
+from ..params import MAX_SCORE, ServiceDep
+from ..scoring.evaluator import ERRORS_SET, EvalOptions, parse_labels
 from ..service import FileIn, Service
 from ..store import EvaluationRecord
-from .svg import bar_chart, bev_view, points_text, pr_chart
+from .pages import queued_text, render_page, status_of
+from .svg import bar_chart, bev_view, pr_chart
 
-__all__ = ["router", "templates", "STATIC_DIR", "sign_in_page", "error_page"]
+__all__ = ["router", "sign_in_page", "error_page"]
 
-STATIC_DIR = Path(__file__).resolve().parent / "static"
-_TEMPLATES_DIR = Path(__file__).resolve().parent / "templates"
 
 _RECALLS = ("R40", "R11")
 _DIFFICULTIES = ("easy", "moderate", "hard")
@@ -62,61 +56,6 @@ _HISTORY = 50
 _WORST = 20
 
 router = APIRouter(include_in_schema=False)
-
-
-def ap_digits(metric: str) -> int:
-    """Decimals of an AP as the CLI's table prints it (``kitti_eval.report.render``): 2 for AOS, 4 for the
-    others."""
-    return 2 if metric == "aos" else 4
-
-
-def fmt(value: float | None, metric: str) -> str:
-    """An AP of ``metric`` as the CLI prints it, ``-`` where there is none."""
-    return "-" if value is None else f"{value:.{ap_digits(metric)}f}"
-
-
-def full(value: float | None) -> str:
-    """The exact value for a ``data-value`` attribute (``repr`` round-trips a float); empty for none."""
-    return "" if value is None else repr(float(value))
-
-
-def signed(value: float | None, metric: str) -> str:
-    """A difference of two APs of ``metric``, with its sign and the AP's decimals."""
-    return "-" if value is None else f"{value:+.{ap_digits(metric)}f}"
-
-
-def delta_class(value: float | None) -> str:
-    if value is None:
-        return "delta none"
-    return "delta pos" if value > 0 else "delta neg" if value < 0 else "delta zero"
-
-
-def _env() -> jinja2.Environment:
-    env = jinja2.Environment(
-        loader=jinja2.FileSystemLoader(_TEMPLATES_DIR),
-        autoescape=jinja2.select_autoescape(["html"]),
-        undefined=jinja2.StrictUndefined,
-        trim_blocks=True,
-        lstrip_blocks=True,
-    )
-    env.filters.update(fmt=fmt, full=full, signed=signed, delta_class=delta_class, iso=iso, points=points_text)
-    return env
-
-
-templates = Jinja2Templates(env=_env())
-
-
-def _status(exc: ApiError | KittiEvalError | HTTPException) -> int:
-    """The status the JSON API answers the same failure with (the mapping lives in ``kitti_eval_server.errors``)."""
-    if isinstance(exc, (ApiError, HTTPException)):
-        return exc.status_code
-    return library_error_status(exc)[0]
-
-
-def _render(request: Request, template: str, status_code: int = 200, /, **context: Any) -> Response:
-    caller: Caller | None = request.scope.get(CALLER_KEY)
-    context.setdefault("caller", caller)  # None in open mode: no sign-in, no sign-out
-    return templates.TemplateResponse(request, template, context, status_code=status_code)
 
 
 # ----------------------------------------------------------------------------------------------- sign in
@@ -128,7 +67,7 @@ async def sign_in_page(scope: Scope, status: int = 200, error: str | None = None
     request = Request(scope)
     policy: Policy = request.app.state.policy
     csrf = policy.issue_signin_csrf()
-    response = _render(request, "signin.html", status, status=status, error=error, csrf=csrf, caller=None)
+    response = render_page(request, "signin.html", status, status=status, error=error, csrf=csrf, caller=None)
     name, path = signin_cookie(scope)
     response.set_cookie(
         name, csrf, max_age=SIGNIN_CSRF_S, path=path, httponly=True, samesite="strict", secure=over_https(scope)
@@ -209,7 +148,7 @@ def error_page(request: Request, exc: ApiError | KittiEvalError | HTTPException)
 
 def _error_page(request: Request, exc: ApiError | KittiEvalError | HTTPException) -> Response:
     message = exc.detail if isinstance(exc, HTTPException) else str(exc)
-    return _render(request, "error.html", _status(exc), status=_status(exc), message=clip(str(message)))
+    return render_page(request, "error.html", status_of(exc), status=status_of(exc), message=clip(str(message)))
 
 
 def _url(path: str, **params: Any) -> str:
@@ -243,7 +182,7 @@ def _home(
     error: str | None = None,
     form: Mapping[str, str] | None = None,
 ) -> Response:
-    return _render(
+    return render_page(
         request,
         "home.html",
         status,
@@ -311,7 +250,7 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
         message = failure.detail if isinstance(failure, HTTPException) else str(failure)
         refill = {k: clip(v) for k, v in values.items()}  # the form as sent, within bounds
         return await anyio.to_thread.run_sync(
-            partial(_home, request, service, caller, status=_status(failure), error=clip(str(message)), form=refill)
+            partial(_home, request, service, caller, status=status_of(failure), error=clip(str(message)), form=refill)
         )
     return RedirectResponse(f"/evaluations/{quote(job.id)}", status_code=303)
 
@@ -322,14 +261,6 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
 FORM_WAIT_S = 10.0
 #: how often the page of an evaluation still queued or running reloads itself
 REFRESH_S = 2
-
-
-def queued_text(position: int | None) -> str:
-    """A queued job's state as the pages say it: ``queued (3rd in line)`` (``position``: 1 for the next)."""
-    if position is None:
-        return "queued"
-    suffix = "th" if 10 <= position % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(position % 10, "th")
-    return f"queued ({position}{suffix} in line)"
 
 
 def _job_page(request: Request, job: JobRecord, position: int | None) -> Response:
@@ -343,7 +274,7 @@ def _job_page(request: Request, job: JobRecord, position: int | None) -> Respons
             job.state, job.state
         )
     status = failure.status_code if failure is not None else 409 if job.state == "cancelled" else 200
-    return _render(
+    return render_page(
         request,
         "job.html",
         status,
@@ -486,7 +417,7 @@ async def evaluation_page(
         "difficulty": difficulty,
         "set": oset or ("strict" if "strict" in sets else sets[0]),
     }
-    return _render(
+    return render_page(
         request,
         "evaluation.html",
         record=record,
@@ -561,7 +492,7 @@ def compare_page(
         return _error_page(request, exc)
     assert base.result is not None and other.result is not None
     comparison = compare(base, other)
-    return _render(
+    return render_page(
         request,
         "compare.html",
         base=base,
@@ -671,6 +602,6 @@ async def frame_page(
         )
     except (ApiError, KittiEvalError) as exc:
         context["error"] = clip(str(exc))
-        return _render(request, "frame.html", _status(exc), **context)
+        return render_page(request, "frame.html", status_of(exc), **context)
     context.update(data=data, models=frame_models(data, ids, url))
-    return _render(request, "frame.html", **context)
+    return render_page(request, "frame.html", **context)

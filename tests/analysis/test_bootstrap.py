@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from kitti_eval.analysis.bootstrap import _resampled_values, frame_weights, paired_bootstrap
-from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.core.evaluation import evaluate, plan_evaluation
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import OPENPCDET, EvalConfig
+from kitti_eval.core.result import ValueKey
 from kitti_eval.io.loaders import load_detections, load_ground_truth
 from kitti_eval.synth import generate
 

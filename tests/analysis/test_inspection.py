@@ -16,7 +16,7 @@ from kitti_eval.analysis.diagnostics import frame_stats, parse_slot, slot_job
 from kitti_eval.analysis.inspection import inspect_frame, model_name, render_inspection, unique_names
 from kitti_eval.cli import main
 from kitti_eval.core.evaluation import plan_evaluation
-from kitti_eval.core.matching import DET_LABELS, GT_LABELS, label_frame
+from kitti_eval.core.frame_labels import DET_LABELS, GT_LABELS, label_frame
 from kitti_eval.core.protocol import EvalConfig
 from kitti_eval.demo import demo_paths
 from kitti_eval.errors import ConfigError, InputError

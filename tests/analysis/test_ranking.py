@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from kitti_eval.analysis.bootstrap import _resampled_values, frame_weights, interval95
-from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.analysis.ranking import evaluate_resampled, key_of, rank_order, resampled_key, standings
 from kitti_eval.core.evaluation import evaluate, plan_evaluation
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import EvalConfig
+from kitti_eval.core.result import ValueKey
 from kitti_eval.errors import ConfigError
 from kitti_eval.io.loaders import load_detections, load_ground_truth
 from kitti_eval.synth import generate

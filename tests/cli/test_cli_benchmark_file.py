@@ -4,8 +4,9 @@ and exit code 1, and the service then serves the phases the file defines."""
 
 from __future__ import annotations
 
-import pytest
 import tomllib
+
+import pytest
 from server_helpers import GOLDEN, app_client
 from server_phases import TWO_PHASES as FILE
 

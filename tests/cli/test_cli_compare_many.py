@@ -10,11 +10,11 @@ from pathlib import Path
 import pytest
 
 from kitti_eval.analysis.bootstrap import frame_weights, interval95
-from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.analysis.ranking import resampled_key
 from kitti_eval.cli import main
 from kitti_eval.core.evaluation import plan_evaluation
 from kitti_eval.core.protocol import EvalConfig
+from kitti_eval.core.result import ValueKey
 from kitti_eval.io.loaders import load_detections, load_ground_truth
 from kitti_eval.synth import generate, write_infos, write_results
 

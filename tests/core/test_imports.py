@@ -15,7 +15,7 @@ package itself (``from .. import name`` where ``name`` is not a module).
 from __future__ import annotations
 
 import ast
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -124,6 +124,63 @@ def report(circles: list[list[str]]) -> str:
     return "import circles:\n" + "\n".join(" -> ".join(c) for c in circles)
 
 
+#: the service's map, top to bottom: each row's folders of ``server/`` and modules directly in it (``__init__``
+#: the package itself). A module imports only modules of its own folder and of the rows below its own: not of
+#: its row (the JSON routes and the web pages are side by side, and so are the benchmarks' wing and users'
+#: evaluations: neither imports the other) nor above it.
+SERVICE_MAP: tuple[frozenset[str], ...] = tuple(
+    frozenset(row.split())
+    for row in (
+        "__init__",
+        "commands",
+        "main backup",
+        "routes web shutdown middleware",
+        "params",
+        "service",
+        "benchmarks evaluations",
+        "ground_truths idempotency schemas",
+        "jobs scoring",
+        "access data_folder observability",
+        "store settings",
+        "errors",
+    )
+)
+
+
+def place(module: str, package: str) -> str | None:
+    """The folder of ``package`` (or its module directly in it) that ``module`` belongs to; None outside it."""
+    if module == package:
+        return "__init__"
+    if not module.startswith(package + "."):
+        return None
+    return module[len(package) + 1 :].partition(".")[0]
+
+
+def upward_imports(
+    graph: Mapping[str, Iterable[str]], package: str, layers: Sequence[frozenset[str]]
+) -> tuple[list[str], list[str]]:
+    """The imports of ``package``'s modules that do not point down its map (``layers``, top row first), each as
+    ``"module -> module"``, and the folders or modules of the package that are not on the map."""
+    row = {name: i for i, names in enumerate(layers) for name in names}
+    upward, unplaced = [], set()
+    for module, targets in graph.items():
+        here = place(module, package)
+        if here is None:
+            continue
+        if here not in row:
+            unplaced.add(here)
+            continue
+        for target in sorted(targets):
+            there = place(target, package)
+            if there is None or there == here:
+                continue
+            if there not in row:
+                unplaced.add(there)
+            elif row[there] <= row[here]:
+                upward.append(f"{module} -> {target}")
+    return sorted(upward), sorted(unplaced)
+
+
 def test_no_import_circle() -> None:
     circles = cycles(import_graph(PACKAGES))
     assert circles == [], report(circles)
@@ -149,6 +206,38 @@ def test_the_bottom_of_the_house_imports_nothing_above_it() -> None:
             assert above == set(), module
     importers = {m for m, targets in graph.items() if "kitti_eval._jit" in targets}
     assert importers and all(m.startswith(("kitti_eval.cli", "kitti_eval_server.")) for m in importers), importers
+
+
+def test_the_service_s_folders_import_downwards_only() -> None:
+    """Not only no circle of modules: no circle of folders either, nor an import between the two doors (the
+    JSON routes and the web pages) or the two wings (benchmarks and evaluations: both score with the scoring
+    folder below them). Every folder of ``server/`` and module directly in it is on
+    :data:`SERVICE_MAP`, and each imports only rows below its own."""
+    graph = import_graph(PACKAGES)
+    upward, unplaced = upward_imports(graph, "kitti_eval_server", SERVICE_MAP)
+    assert unplaced == [], f"not on SERVICE_MAP (add each to the row it belongs to): {unplaced}"
+    assert upward == [], "imports that do not point down the service's map:\n" + "\n".join(upward)
+    on_disk = {p.stem if p.is_file() else p.name for p in (ROOT / "server").iterdir()}
+    on_disk = {n for n in on_disk if (ROOT / "server" / n).is_dir() or (ROOT / "server" / f"{n}.py").is_file()}
+    names = set().union(*SERVICE_MAP)
+    assert names - on_disk - {"__init__"} == set(), "on SERVICE_MAP but not in server/"
+
+
+def test_an_import_up_or_across_the_map_is_found() -> None:
+    """The check can fail: an import from a row to the row above, one across a row, and a folder off the map."""
+    graph = {
+        "pkg": {"pkg.top.a"},
+        "pkg.top.a": {"pkg.top.b", "pkg.low", "numpy"},
+        "pkg.top.b": set(),
+        "pkg.side": {"pkg.top.a"},
+        "pkg.low": {"pkg.top.b", "pkg.side.x"},
+        "pkg.stray": {"pkg.low"},
+    }
+    layers = (frozenset({"__init__"}), frozenset({"top", "side"}), frozenset({"low"}))
+    assert upward_imports(graph, "pkg", layers) == (
+        ["pkg.low -> pkg.side.x", "pkg.low -> pkg.top.b", "pkg.side -> pkg.top.a"],
+        ["stray"],
+    )
 
 
 def test_the_library_imports_nothing_of_the_service() -> None:

@@ -3,6 +3,7 @@ checked against what the service answers: every field and column the answers hav
 
 from __future__ import annotations
 
+import ast
 import csv
 import io
 import re
@@ -11,7 +12,11 @@ from pathlib import Path
 from server_benchmarks import host, ok, submit
 from server_helpers import app_client, golden_bytes
 
-PAGE = (Path(__file__).resolve().parents[2] / "docs" / "service" / "benchmarks.md").read_text(encoding="utf-8")
+from kitti_eval_server.store.benchmark_store import SUBMISSION_STATUSES
+
+ROOT = Path(__file__).resolve().parents[2]
+SERVER = ROOT / "server"
+PAGE = (ROOT / "docs" / "service" / "benchmarks.md").read_text(encoding="utf-8")
 
 
 def _paragraph(opening: str) -> str:
@@ -19,6 +24,25 @@ def _paragraph(opening: str) -> str:
     start = PAGE.index(opening)
     end = PAGE.find("\n* ", start)
     return " ".join(PAGE[start:end].split())
+
+
+def test_the_page_names_a_submission_s_statuses_and_the_service_sets_no_other() -> None:
+    """The page's ``status`` values are the store's, in their order, and the service's code writes no other
+    (every ``status="..."`` and ``"status": "..."`` of the benchmarks' wing and the store)."""
+    said = _paragraph("* **Submitting**")
+    listed = re.search(r"`status`\s*\(([^)]*)\)", said)
+    assert listed, "the page no longer lists a submission's statuses"
+    assert tuple(re.findall(r"`([a-z]+)`", listed.group(1).split("with its")[0])) == SUBMISSION_STATUSES
+    written = set()
+    for path in [*sorted((SERVER / "benchmarks").glob("*.py")), SERVER / "store" / "benchmark_store.py"]:
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.keyword) and node.arg == "status" and isinstance(node.value, ast.Constant):
+                written.add(node.value.value)
+            if isinstance(node, ast.Dict):
+                for key, value in zip(node.keys, node.values):
+                    if isinstance(key, ast.Constant) and key.value == "status" and isinstance(value, ast.Constant):
+                        written.add(value.value)
+    assert written and written <= set(SUBMISSION_STATUSES), written
 
 
 def test_the_submissions_list_and_the_csv_are_documented_field_by_field(tmp_path: Path) -> None:

@@ -5,10 +5,10 @@ them on the server's machine."""
 from __future__ import annotations
 
 import shutil
+import tomllib
 from pathlib import Path
 
 import pytest
-import tomllib
 from doc_examples import run_bash, take
 from server_benchmarks import ok
 from server_helpers import ADMIN, app_client, golden_bytes

@@ -29,7 +29,7 @@ import pytest
 from server_helpers import free_port
 
 import kitti_eval
-from kitti_eval.core.matching import available_cpus
+from kitti_eval.core.cpus import available_cpus
 from kitti_eval.demo import demo_paths
 
 pytestmark = pytest.mark.slow

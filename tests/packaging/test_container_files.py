@@ -163,27 +163,27 @@ def test_the_kubernetes_example_is_what_the_smoke_script_runs() -> None:
 def test_the_cpus_are_those_of_the_containers_limit(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``docker run --cpus``, a Kubernetes CPU limit: a quota of the cgroup, not fewer CPUs to run on. The
     worker processes of ``kitti-eval serve`` (one a CPU) and the matching threads follow it, rounded up."""
-    from kitti_eval.core import matching
+    from kitti_eval.core import cpus as cpu_count
 
     v2 = tmp_path / "v2"
     v2.mkdir()
     (v2 / "cpu.max").write_text("150000 100000\n")
-    assert matching.cgroup_cpu_quota(str(v2)) == 1.5
+    assert cpu_count.cgroup_cpu_quota(str(v2)) == 1.5
     (v2 / "cpu.max").write_text("max 100000\n")
-    assert matching.cgroup_cpu_quota(str(v2)) is None
+    assert cpu_count.cgroup_cpu_quota(str(v2)) is None
     v1 = tmp_path / "v1"
     (v1 / "cpu").mkdir(parents=True)
     (v1 / "cpu" / "cpu.cfs_quota_us").write_text("300000\n")
     (v1 / "cpu" / "cpu.cfs_period_us").write_text("100000\n")
-    assert matching.cgroup_cpu_quota(str(v1)) == 3.0
+    assert cpu_count.cgroup_cpu_quota(str(v1)) == 3.0
     (v1 / "cpu" / "cpu.cfs_quota_us").write_text("-1\n")
-    assert matching.cgroup_cpu_quota(str(v1)) is None
-    assert matching.cgroup_cpu_quota(str(tmp_path / "none")) is None
+    assert cpu_count.cgroup_cpu_quota(str(v1)) is None
+    assert cpu_count.cgroup_cpu_quota(str(tmp_path / "none")) is None
 
-    monkeypatch.setattr(matching.os, "sched_getaffinity", lambda pid: set(range(8)))
+    monkeypatch.setattr(cpu_count.os, "sched_getaffinity", lambda pid: set(range(8)))
     for quota, cpus in [(None, 8), (1.5, 2), (0.25, 1), (3.0, 3), (16.0, 8)]:
-        monkeypatch.setattr(matching, "cgroup_cpu_quota", lambda quota=quota: quota)
-        assert matching.available_cpus() == cpus, quota
+        monkeypatch.setattr(cpu_count, "cgroup_cpu_quota", lambda quota=quota: quota)
+        assert cpu_count.available_cpus() == cpus, quota
 
 
 def test_serve_leaves_the_access_log_and_the_forwarded_headers_to_the_service(

@@ -315,9 +315,9 @@ def test_a_worker_process_runs_the_installed_service_whatever_folder_it_starts_i
     """``python -m`` puts the working folder first on the import path: started inside another checkout, a worker
     would run that checkout's service, not the one the web process runs. The pool's command does not."""
     other = tmp_path / "kitti_eval_server"
-    (other / "jobs").mkdir(parents=True)
+    (other / "commands").mkdir(parents=True)
     marker = tmp_path / "the-other-checkout-ran"
-    for name in ("__init__.py", "jobs/__init__.py", "jobs/process.py"):
+    for name in ("__init__.py", "commands/__init__.py", "commands/process.py"):
         (other / name).write_text(f"open({str(marker)!r}, 'w').close()\n")
     pool = WorkerPool(1, threads=1, grace_s=1.0, work_dir=tmp_path / "work", database_url="sqlite://")
     command = [*pool._command()[:3], "--help"]  # the interpreter and how it starts the module, then --help

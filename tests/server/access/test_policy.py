@@ -23,10 +23,10 @@ from server_helpers import ADMIN, app_client
 
 import kitti_eval_server
 from kitti_eval_server.access.deps import PublicCaller
-from kitti_eval_server.access.policy import RULES, Access, AuthMode, Caller, Policy
+from kitti_eval_server.access.policy import RULES, Access, Caller, Policy
 from kitti_eval_server.errors import Forbidden, Unauthorized
 from kitti_eval_server.main import create_app
-from kitti_eval_server.settings import Settings
+from kitti_eval_server.settings import AuthMode, Settings
 
 ROOT = Path(__file__).resolve().parents[3]
 

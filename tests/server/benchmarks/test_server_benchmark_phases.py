@@ -5,11 +5,11 @@ current one; a team's members share each phase's quota, exactly under parallel s
 
 from __future__ import annotations
 
+import tomllib
 from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timedelta, timezone
 
 import pytest
-import tomllib
 from server_benchmarks import bearer, host, ok
 from server_helpers import ADMIN, app_client, golden_bytes
 from server_phases import HOST, TWO_PHASES, phased_world
@@ -346,7 +346,7 @@ def test_a_phase_on_open_labels_shows_its_participant_their_frames_and_a_sealed_
 
     from kitti_eval.analysis.diagnostics import frame_stats, frames_document
     from kitti_eval.io.loaders import load_detections, load_ground_truth
-    from kitti_eval_server.evaluations.evaluator import EvalOptions
+    from kitti_eval_server.scoring.evaluator import EvalOptions
 
     c, hosted = world
     alice, bob = hosted.tokens["alice"], hosted.tokens["bob"]

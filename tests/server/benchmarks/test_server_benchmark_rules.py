@@ -19,7 +19,7 @@ from kitti_eval.cli import main
 from kitti_eval.io.loaders import load_detections, load_ground_truth
 from kitti_eval_server.benchmarks import in_public_part
 from kitti_eval_server.benchmarks.views import RESULT_FIELDS
-from kitti_eval_server.evaluations.evaluator import EvalOptions, evaluate_document
+from kitti_eval_server.scoring.evaluator import EvalOptions, evaluate_document
 from kitti_eval_server.store import ground_truths
 
 

@@ -17,8 +17,8 @@ from kitti_eval.io.loaders import load_detections, load_ground_truth
 from kitti_eval.io.submission import SubmissionRules, validate_submission
 from kitti_eval_server.benchmarks import in_public_part, render_markdown
 from kitti_eval_server.benchmarks.views import RESULT_FIELDS
-from kitti_eval_server.evaluations.evaluator import EvalOptions, evaluate_document
-from kitti_eval_server.evaluations.uploads import receive_upload
+from kitti_eval_server.scoring.evaluator import EvalOptions, evaluate_document
+from kitti_eval_server.scoring.uploads import receive_upload
 
 
 @pytest.fixture()

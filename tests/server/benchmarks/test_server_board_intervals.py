@@ -21,15 +21,15 @@ from server_postgres import PostgresCluster, why_no_postgres
 from sqlalchemy import update
 
 from kitti_eval.analysis.bootstrap import frame_weights, interval95
-from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.analysis.ranking import resampled_key
 from kitti_eval.cli import main
 from kitti_eval.core.evaluation import plan_evaluation
+from kitti_eval.core.result import ValueKey
 from kitti_eval.io.loaders import load_detections, load_ground_truth
 from kitti_eval.synth import generate, write_infos, write_results
 from kitti_eval_server.benchmarks.intervals import RESAMPLES, board_seed, intervals_job_id
 from kitti_eval_server.benchmarks.rules import part_frames
-from kitti_eval_server.evaluations.evaluator import EvalOptions
+from kitti_eval_server.scoring.evaluator import EvalOptions
 from kitti_eval_server.store.database import benchmarks
 
 KEY = "Car/3d/moderate/R40/strict"

@@ -10,7 +10,7 @@ from tempfile import SpooledTemporaryFile
 
 import pytest
 
-from kitti_eval_server.evaluations.uploads import receive_content
+from kitti_eval_server.scoring.uploads import receive_content
 
 MB = 1 << 20
 

@@ -9,7 +9,7 @@ from server_helpers import app_client, upload
 
 from kitti_eval.cli import _config, _parser
 from kitti_eval.errors import ConfigError
-from kitti_eval_server.evaluations.evaluator import EvalOptions
+from kitti_eval_server.scoring.evaluator import EvalOptions
 
 #: (CLI flags, the same as the service's form fields)
 _OPTIONS = [

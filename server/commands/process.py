@@ -28,10 +28,10 @@ from typing import Any
 
 from ..data_folder import check_writable
 from ..errors import StartupRefused
+from ..jobs.pool import WorkerPool
 from ..observability import Metrics, configure_logging
 from ..service import Service
 from ..settings import Settings, settings_error
-from .pool import WorkerPool
 
 __all__ = ["run_pool", "child_main", "default_processes"]
 

@@ -1,4 +1,6 @@
-"""Request options to an :class:`~kitti_eval.core.protocol.EvalConfig`, and the calls of ``evaluate`` here.
+"""The service's scoring, which users' evaluations and benchmark submissions share: request options to an
+:class:`~kitti_eval.core.protocol.EvalConfig`, the calls of ``evaluate`` and the documents they make (a sealed
+ground truth's withheld details), the frame listing, the labels.
 
 Evaluations run on several threads at once: the library's kernels are compiled ``nogil`` and keep no
 state, so that is safe.
@@ -7,7 +9,6 @@ state, so that is safe.
 from __future__ import annotations
 
 import dataclasses
-import json
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -18,13 +19,13 @@ import numpy.typing as npt
 
 from kitti_eval.analysis.decomposition import errors_document, evaluate_with_errors
 from kitti_eval.analysis.diagnostics import frame_stats, frames_document
-from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.analysis.ranking import evaluate_resampled
 from kitti_eval.core.evaluation import evaluate
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
+from kitti_eval.core.result import ValueKey
 from kitti_eval.errors import InputError
-from kitti_eval.report.render import render_json
+from kitti_eval.report.render import json_document
 
 from ..errors import BadRequest, echo
 
@@ -34,6 +35,7 @@ __all__ = [
     "evaluate_document_resampled",
     "check_image_fields",
     "summarize",
+    "sealed_document",
     "frame_listing",
     "parse_labels",
     "LABEL_KEY_PATTERN",
@@ -126,8 +128,7 @@ def evaluate_document(
         extra = errors_document(decomposition, full=False)
     else:
         result = evaluate(gt, dt, config, keep_curves=curves)
-    doc: dict[str, Any] = json.loads(render_json(result, include_curves=curves, extra=extra))
-    return doc
+    return json_document(result, include_curves=curves, extra=extra)
 
 
 def evaluate_document_resampled(
@@ -137,8 +138,7 @@ def evaluate_document_resampled(
     frame ``weights`` (:func:`kitti_eval.analysis.ranking.evaluate_resampled`), from one planned evaluation."""
     check_image_fields(gt, dt, config, gt_frames_shown=False)
     result, values = evaluate_resampled(gt, dt, config, keys, weights)
-    doc: dict[str, Any] = json.loads(render_json(result))
-    return doc, values
+    return json_document(result), values
 
 
 def check_image_fields(gt: Annotations, dt: Annotations, config: EvalConfig, *, gt_frames_shown: bool) -> None:
@@ -180,6 +180,18 @@ def frame_listing(
         gt, dt, config, cls=cls, metric=metric, difficulty=difficulty, oset=oset, score_threshold=score_threshold
     )
     return frames_document(stats, worst=worst)
+
+
+def sealed_document(doc: dict[str, Any]) -> dict[str, Any]:
+    """An evaluation document against a sealed ground truth: the aggregates only. The frames without
+    predictions (ids of the sealed set) and the warnings (which may name its frames) are withheld."""
+    out = dict(doc)
+    withheld = len(doc.get("frames_without_predictions") or ())
+    out["frames_without_predictions"] = []
+    notes = [f"the ground truth is sealed: per-frame details are withheld ({len(doc.get('warnings') or ())} warnings"]
+    notes[0] += f", {withheld} frames without predictions)" if withheld else ")"
+    out["warnings"] = notes
+    return out
 
 
 def summarize(doc: Mapping[str, Any]) -> dict[str, dict[str, float | None]]:

@@ -1,6 +1,8 @@
-"""Which phase a benchmark's route addresses: without a phase, its current one (:data:`CurrentPhase`); a route of
-one of its submissions, the phase the submission is in (:data:`SubmissionPhase`). A benchmark made with
-``benchmark add`` is one phase: its own row (:mod:`kitti_eval_server.benchmarks.phases`)."""
+"""What the JSON routes and the web pages take from a request alike: the service (:data:`ServiceDep`); which phase
+a benchmark's route addresses: without a phase, its current one (:data:`CurrentPhase`), a route of one of its
+submissions the phase the submission is in (:data:`SubmissionPhase`; a benchmark made with ``benchmark add`` is one
+phase: its own row, :mod:`kitti_eval_server.benchmarks.phases`); the bounds of a query's values
+(:data:`MAX_SCORE`)."""
 
 from __future__ import annotations
 
@@ -8,10 +10,30 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
-from ..benchmarks import Benchmarks
-from ..benchmarks.phases import current_row, submission_row
+from .benchmarks import Benchmarks
+from .benchmarks.phases import current_row, submission_row
+from .service import Service
 
-__all__ = ["CurrentPhase", "SubmissionPhase", "current_phase", "submission_phase"]
+__all__ = [
+    "get_service",
+    "ServiceDep",
+    "CurrentPhase",
+    "SubmissionPhase",
+    "current_phase",
+    "submission_phase",
+    "MAX_SCORE",
+]
+
+#: scores are finite numbers; a threshold beyond this bound selects all or nothing
+MAX_SCORE = 1e9
+
+
+def get_service(request: Request) -> Service:
+    service: Service = request.app.state.service
+    return service
+
+
+ServiceDep = Annotated[Service, Depends(get_service)]
 
 
 def _benchmarks(request: Request) -> Benchmarks:
