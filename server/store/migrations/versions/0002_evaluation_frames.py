@@ -19,6 +19,8 @@ depends_on = None
 
 
 def upgrade() -> None:
+    if sa.inspect(op.get_bind()).has_table("evaluation_frames"):
+        return  # already made: a database without versions whose tables were made from the code's
     op.create_table(
         "evaluation_frames",
         sa.Column("evaluation_id", sa.String(length=32), nullable=False),
