@@ -20,10 +20,12 @@ import numpy.typing as npt
 from ..core.evaluation import Facts, Plan, plan_evaluation
 from ..core.frames import Annotations
 from ..core.matching import MatchJob
-from ..core.protocol import DEFAULT_METRIC, DEFAULT_OSET, THRESHOLD_SETS, Difficulty, EvalConfig, Metric
+from ..core.protocol import THRESHOLD_SETS, Difficulty, EvalConfig, Metric
 from ..errors import ConfigError
+from .frame_question import ASKED, FrameQuestion
 
 __all__ = [
+    "FrameQuestion",
     "FrameStats",
     "frame_stats",
     "counts_at",
@@ -112,23 +114,20 @@ def frame_stats(
     gt: Annotations,
     dt: Annotations,
     config: EvalConfig | None = None,
+    question: FrameQuestion = ASKED,
     *,
-    cls: str = "Car",
-    metric: str = DEFAULT_METRIC,
-    difficulty: str = "moderate",
-    oset: str = DEFAULT_OSET,
-    score_threshold: float = 0.0,
     facts: Facts | None = None,
 ) -> FrameStats:
-    """TP, FP and FN of every frame for one (class, metric, difficulty, threshold set) at a score threshold
-    (``facts``: the whole set's, when ``gt`` and ``dt`` are a part of it)."""
-    config = with_class(config, cls)
-    m, d = parse_slot(config, metric, difficulty, oset)
+    """TP, FP and FN of every frame for one (class, metric, difficulty, threshold set) at a score threshold, as
+    ``question`` asks (``facts``: the whole set's, when ``gt`` and ``dt`` are a part of it)."""
+    q = question
+    config = with_class(config, q.cls)
+    m, d = parse_slot(config, q.metric, q.difficulty, q.oset)
     plan = plan_evaluation(gt, dt, config, facts=facts)
-    job = slot_job(plan, cls, m, d, oset)
+    job = slot_job(plan, q.cls, m, d, q.oset)
     (events,) = plan.events([job])
-    tp, fp, fn = counts_at(events.valid, events.ev_frame, events.ev_score, events.ev_delta, score_threshold)
-    return FrameStats(plan.gt.frame_ids, tp, fp, fn, cls, m.value, d.label, oset, float(score_threshold))
+    tp, fp, fn = counts_at(events.valid, events.ev_frame, events.ev_score, events.ev_delta, q.score_threshold)
+    return FrameStats(plan.gt.frame_ids, tp, fp, fn, q.cls, m.value, d.label, q.oset, float(q.score_threshold))
 
 
 def counts_at(

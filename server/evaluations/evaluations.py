@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from kitti_eval.analysis.diagnostics import frames_document
+from kitti_eval.analysis.frame_question import ASKED, FrameQuestion
 from kitti_eval.analysis.inspection import inspect_frame, model_name, unique_names
 from kitti_eval.core.evaluation import Facts
 from kitti_eval.core.frames import Annotations, normalize_frame_id
@@ -43,7 +44,7 @@ from ..store import (
     KeyTaken,
     new_id,
 )
-from .evaluator import EvalOptions, evaluated_plan, frame_listing, summarize
+from .evaluator import EvalOptions, check_worst, evaluated_plan, frame_listing, summarize
 from .frame_rows import facts_of, frame_detections, frame_rows, readable, stats_from_rows
 from .uploads import FileIn, receive_content, stored_upload
 
@@ -411,22 +412,27 @@ class EvaluationFrames:
 
         return gt, self.predictions.get_or_load(record.pred_sha256, load_kept), config
 
-    def frames(self, evaluation_id: str, *, caller: Caller, **question: Any) -> dict[str, Any]:
-        """TP/FP/FN per frame of a stored evaluation: :func:`.evaluator.frame_listing` of its kept inputs,
-        ``question`` its keywords (class, metric, difficulty, set, worst, score threshold)."""
+    def frames(
+        self,
+        evaluation_id: str,
+        question: FrameQuestion = ASKED,
+        *,
+        worst: int | None = 20,
+        caller: Caller,
+    ) -> dict[str, Any]:
+        """TP/FP/FN per frame of a stored evaluation (the ``worst`` n first, or all), as
+        :func:`.evaluator.frame_listing` answers it: from the frames its job stored, else from its kept inputs."""
         record = self.evaluations.get(evaluation_id, caller)
         _, config = self._checked(record)
+        check_worst(worst)
         stats = None
         if self.evaluations.evaluation_store.has_frames(record.id):
-            if question.get("worst") is not None and question["worst"] < 1:
-                raise BadRequest("worst must be at least 1")
-            asked = {k: v for k, v in question.items() if k != "worst"}
-            stats = stats_from_rows(self.evaluations.evaluation_store.frame_events(record.id), config, **asked)
+            stats = stats_from_rows(self.evaluations.evaluation_store.frame_events(record.id), config, question)
         if stats is not None:
-            doc = frames_document(stats, worst=question.get("worst", 20))
+            doc = frames_document(stats, worst=worst)
         else:
             gt, dt, config = self._kept_inputs(record)
-            doc = frame_listing(gt, dt, config, **question)
+            doc = frame_listing(gt, dt, config, question, worst=worst)
         doc["evaluation"] = record.id
         return doc
 

@@ -18,6 +18,7 @@ import numpy.typing as npt
 
 from kitti_eval.analysis.decomposition import decompose_plan, errors_document
 from kitti_eval.analysis.diagnostics import frame_stats, frames_document
+from kitti_eval.analysis.frame_question import ASKED, FrameQuestion
 from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.analysis.ranking import evaluate_resampled
 from kitti_eval.core.evaluation import Plan, Totals, plan_evaluation, result_from_counts
@@ -36,6 +37,7 @@ __all__ = [
     "check_image_fields",
     "summarize",
     "frame_listing",
+    "check_worst",
     "parse_labels",
     "LABEL_KEY_PATTERN",
     "ERRORS_SET",
@@ -175,23 +177,21 @@ def frame_listing(
     gt: Annotations,
     dt: Annotations,
     config: EvalConfig,
+    question: FrameQuestion = ASKED,
     *,
-    cls: str = "Car",
-    metric: str = "3d",
-    difficulty: str = "moderate",
-    oset: str = "strict",
     worst: int | None = 20,
-    score_threshold: float = 0.0,
 ) -> dict[str, Any]:
     """TP/FP/FN per frame (the ``worst`` n first, or all), from the same matching as the AP, as
     :func:`kitti_eval.analysis.diagnostics.frames_document`: what an evaluation's and a submission's frame
     listings answer."""
+    check_worst(worst)
+    return frames_document(frame_stats(gt, dt, config, question), worst=worst)
+
+
+def check_worst(worst: int | None) -> None:
+    """A frame listing's ``worst``: None (every frame) or at least 1."""
     if worst is not None and worst < 1:
         raise BadRequest("worst must be at least 1")
-    stats = frame_stats(
-        gt, dt, config, cls=cls, metric=metric, difficulty=difficulty, oset=oset, score_threshold=score_threshold
-    )
-    return frames_document(stats, worst=worst)
 
 
 def summarize(doc: Mapping[str, Any]) -> dict[str, dict[str, float | None]]:

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from kitti_eval.analysis.diagnostics import FrameStats, counts_at, not_evaluated, parse_slot, with_class
+from kitti_eval.analysis.diagnostics import FrameQuestion, FrameStats, counts_at, not_evaluated, parse_slot, with_class
 from kitti_eval.core.evaluation import Facts, Plan, scored_metrics
 from kitti_eval.core.frames import NUMERIC_FIELDS, Annotations
 from kitti_eval.core.protocol import OVERLAP_METRICS, Difficulty, EvalConfig, Metric
@@ -166,17 +166,13 @@ def facts_of(config: EvalConfig, events: bytes) -> Facts:
 def stats_from_rows(
     rows: Iterable[tuple[int, str, bytes]],
     config: EvalConfig,
-    *,
-    cls: str,
-    metric: str,
-    difficulty: str,
-    oset: str,
-    score_threshold: float,
+    question: FrameQuestion,
 ) -> FrameStats | None:
     """:func:`~kitti_eval.analysis.diagnostics.frame_stats` from the rows (frame index, frame id, events) of an
     evaluation made with ``config``, read one by one; None when they cannot answer (a class it did not evaluate,
     rows of another layout)."""
-    m, d = parse_slot(with_class(config, cls), metric, difficulty, oset)
+    cls, oset, score_threshold = question.cls, question.oset, question.score_threshold
+    m, d = parse_slot(with_class(config, cls), question.metric, question.difficulty, oset)
     s = slot_index(config, cls, m, d, oset)
     if s is None:
         return None

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from server_helpers import app_client, assert_error, golden_bytes, register, upload
 
-from kitti_eval.analysis.diagnostics import frame_stats, frames_document
+from kitti_eval.analysis.diagnostics import FrameQuestion, frame_stats, frames_document
 from kitti_eval.analysis.inspection import inspect_frame
 from kitti_eval.core.protocol import EvalConfig
 from kitti_eval.demo import demo_paths
@@ -60,9 +60,7 @@ def test_worst_frames_equal_the_library(service, demo) -> None:
         f"/v1/evaluations/{a}/frames", params={"class": "Pedestrian", "metric": "bev", "difficulty": "hard", "worst": 5}
     )
     assert r.status_code == 200, r.text
-    want = frames_document(
-        frame_stats(gt, dt, EvalConfig(), cls="Pedestrian", metric="bev", difficulty="hard"), worst=5
-    )
+    want = frames_document(frame_stats(gt, dt, EvalConfig(), FrameQuestion("Pedestrian", "bev", "hard")), worst=5)
     assert r.json() == {**want, "evaluation": a}
     assert len(r.json()["frames"]) == 5 and r.json()["frames"][0]["fp"] + r.json()["frames"][0]["fn"] > 0
     every = c.get(f"/v1/evaluations/{a}/frames", params={"worst": 10_000}).json()["frames"]
