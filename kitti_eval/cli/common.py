@@ -97,13 +97,18 @@ def _add_limit_options(p: argparse.ArgumentParser) -> None:
 @contextlib.contextmanager
 def limits_from(args: argparse.Namespace) -> Iterator[None]:
     """The limit flags given, as the environment variables every loader reads, for the command's duration."""
+    from ..core.budget import set_by_flags
+
     before = {env: os.environ.get(env) for env in _LIMIT_FLAGS.values()}
+    given: dict[str, str] = {}
     try:
         for flag, env in _LIMIT_FLAGS.items():
             value = getattr(args, flag, None)
             if value is not None:
                 os.environ[env] = repr(value)
-        yield
+                given[env] = "--" + flag.replace("_", "-")
+        with set_by_flags(given):
+            yield
     finally:
         for env, value in before.items():
             if value is None:

@@ -19,6 +19,7 @@ from typing import Any, NoReturn
 
 import numpy as np
 
+from ...core.budget import setting_name
 from ...core.frames import Annotations, Kind
 from ...errors import InputError
 from ..archives import (
@@ -99,7 +100,7 @@ def load_kitti_txt_dir(
     max_frames = resolve(None, max_frames)[1]
     if len(files) > max_frames:
         raise InputError(
-            f"{len(files)} txt files, more than the limit of {max_frames} frames ({MAX_FRAMES_ENV})",
+            f"{len(files)} txt files, more than the limit of {max_frames} frames ({setting_name(MAX_FRAMES_ENV)})",
             source=str(root),
         )
 
