@@ -4,10 +4,10 @@ before their jobs stored frames, the only way before), side by side.
 
 The golden ``kitti_val_scale`` case (3769 frames, 151,276 detections as txt) is registered and evaluated once in
 a temporary data folder (the evaluation's time and the size of its stored frames are printed). Then each run is
-a fresh process (``python -c``) on that folder, the two ways alternated: it answers
-``GET /v1/evaluations/ID/frames?worst=20`` and then ``GET /v1/frames/FRAME?evaluation=ID``, timing each
-request, and reports how far its resident memory grew while answering (its peak, from the kernel, less what it
-held before the first request). The old way is the same code with the stored frames ignored.
+a fresh process (``python -c``) on that folder, the ways alternated, that answers one request:
+``GET /v1/evaluations/ID/frames?worst=20`` or ``GET /v1/frames/FRAME?evaluation=ID`` (FRAME: the worst frame),
+timed, and reports how far its resident memory grew while answering (its peak, from the kernel, less what it
+held before the request). The old way is the same code with the stored frames ignored.
 
 ``python scripts/measure_frame_listing.py [--runs 3] [--case DIR]``. Prints the medians; exits 0.
 """
@@ -45,7 +45,9 @@ with TestClient(app) as client:
     files = {{"predictions": ("pred.tar.gz", open({pred!r}, "rb"))}}
     r = client.post("/v1/evaluations", data={{"gt": "val"}}, files=files, headers=headers)
     assert r.status_code == 201, r.text
-    print(json.dumps({{"id": r.json()["id"], "seconds": time.monotonic() - started}}))
+    evaluation = r.json()["id"]
+    worst = client.get(f"/v1/evaluations/{{evaluation}}/frames", params={{"worst": 1}}, headers=headers).json()
+    print(json.dumps({{"id": evaluation, "frame": worst["frames"][0]["frame"]}}))
 """
 
 ANSWER = """
@@ -71,17 +73,15 @@ with TestClient(app) as client:
     client.get("/healthz")
     before = rss_mb()
     t0 = time.perf_counter()
-    r = client.get("/v1/evaluations/{evaluation}/frames", params={{"worst": 20}}, headers=headers)
-    t1 = time.perf_counter()
-    assert r.status_code == 200, r.text
-    listing = r.json()
-    frame = listing["frames"][0]["frame"]
-    r = client.get(f"/v1/frames/{{frame}}", params={{"evaluation": "{evaluation}"}}, headers=headers)
-    t2 = time.perf_counter()
+    if {listing!r}:
+        r = client.get("/v1/evaluations/{evaluation}/frames", params={{"worst": 20}}, headers=headers)
+    else:
+        r = client.get("/v1/frames/{frame}", params={{"evaluation": "{evaluation}"}}, headers=headers)
+    seconds = time.perf_counter() - t0
     assert r.status_code == 200, r.text
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(json.dumps({{"listing_s": t1 - t0, "frame_s": t2 - t1, "grew_mb": peak - before, "peak_mb": peak,
-                      "listing": listing["frames"], "frame_bytes": len(r.content)}}))
+    print(json.dumps({{"s": seconds, "grew_mb": peak - before, "peak_mb": peak, "bytes": len(r.content),
+                      "answer": r.json()}}))
 """
 
 
@@ -107,7 +107,7 @@ def main() -> int:
                 data=str(data), admin=ADMIN, gt=str(args.case / "label_2.tar.gz"), pred=str(args.case / "pred.tar.gz")
             )
         )
-        print(f"registered and evaluated in a fresh process: {time.monotonic() - started:.1f} s")
+        print(f"registered, evaluated and listed once in a fresh process: {time.monotonic() - started:.1f} s")
         db = sqlite3.connect(data / "kitti-eval.db")
         rows, det_bytes, ev_bytes = db.execute(
             "SELECT count(*), sum(length(detections)), sum(length(events)) FROM evaluation_frames"
@@ -119,21 +119,32 @@ def main() -> int:
             f"evaluation job: {duration / 1000:.1f} s; stored frames: {rows} rows, "
             f"detections {det_bytes / 1e6:.1f} MB, steps {ev_bytes / 1e6:.1f} MB (the kept file: {kept / 1e6:.1f} MB)"
         )
-        results: dict[str, list[dict]] = {"stored frames": [], "read whole": []}
+        cases = [
+            (f"{what}, {way}", listing, whole)
+            for what, listing in (("listing (worst=20)", True), (f"frame {setup['frame']}", False))
+            for way, whole in (("stored frames", False), ("read whole", True))
+        ]
+        results: dict[str, list[dict]] = {name: [] for name, _, _ in cases}
         for _ in range(args.runs):
-            for way, whole in (("stored frames", False), ("read whole", True)):
-                code = ANSWER.format(data=str(data), admin=ADMIN, evaluation=setup["id"], whole=whole)
-                results[way].append(run(code))
-        same = all(r["listing"] == results["read whole"][0]["listing"] for rs in results.values() for r in rs)
-        print(f"the two ways' listings are {'identical' if same else 'DIFFERENT'}")
-        print(f"{'way':<14} {'listing s':>10} {'frame s':>9} {'grew MB':>9} {'peak MB':>9} {'frame bytes':>12}")
-        for way, rs in results.items():
-            med = {k: statistics.median(r[k] for r in rs) for k in ("listing_s", "frame_s", "grew_mb", "peak_mb")}
-            print(
-                f"{way:<14} {med['listing_s']:>10.3f} {med['frame_s']:>9.3f} {med['grew_mb']:>9.0f} "
-                f"{med['peak_mb']:>9.0f} {rs[0]['frame_bytes']:>12}"
-            )
-        print(f"(medians of {args.runs} runs each, alternated)")
+            for name, listing, whole in cases:
+                code = ANSWER.format(
+                    data=str(data),
+                    admin=ADMIN,
+                    evaluation=setup["id"],
+                    frame=setup["frame"],
+                    listing=listing,
+                    whole=whole,
+                )
+                results[name].append(run(code))
+        for listing in (True, False):
+            answers = [r["answer"] for name, lst, _ in cases if lst == listing for r in results[name]]
+            same = all(a == answers[0] for a in answers)
+            print(f"{'listings' if listing else 'frame views'}: {'identical' if same else 'DIFFERENT'}")
+        print(f"{'answer, way':<42} {'seconds':>8} {'grew MB':>8} {'peak MB':>8} {'bytes':>8}")
+        for name, rs in results.items():
+            med = {k: statistics.median(r[k] for r in rs) for k in ("s", "grew_mb", "peak_mb")}
+            print(f"{name:<42} {med['s']:>8.3f} {med['grew_mb']:>8.0f} {med['peak_mb']:>8.0f} {rs[0]['bytes']:>8}")
+        print(f"(medians of {args.runs} fresh processes each, alternated)")
     return 0
 
 
