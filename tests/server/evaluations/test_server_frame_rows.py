@@ -139,6 +139,10 @@ def test_the_job_stores_a_row_per_frame_and_the_answers_read_no_kept_file(servic
             assert fresh.get(f"/v1/evaluations/{ids[1]}/frames", params={"worst": 3}).status_code == 200
             r = fresh.get(f"/v1/frames/{FRAME_IDS[2]}", params={"evaluation": ids[:2]})
             assert r.status_code == 200, r.text
+            worst = fresh.get(f"/v1/evaluations/{ids[1]}/frames", params={"worst": 1}).json()["frames"][0]["frame"]
+            page = fresh.get(f"/evaluations/{ids[1]}")  # its worst frames, from the same rows
+            assert page.status_code == 200 and f"/frames/{worst}?" in page.text, page.text[-2000:]
+            assert fresh.get(f"/frames/{worst}", params={"e": ids[1]}).status_code == 200
             assert kept.call_count == 0
             # a class the evaluation did not evaluate is answered the old way, from the kept file
             van = fresh.get(f"/v1/evaluations/{ids[0]}/frames", params={"class": "Van"})
