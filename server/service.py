@@ -148,6 +148,7 @@ class Service:
             self.store,
             lease_s=settings.job_lease_s,
             max_attempts=settings.job_max_attempts,
+            time_limit_s=settings.job_timeout_s,
             limits=QueueLimits(
                 jobs=settings.max_queued_jobs,
                 per_owner=settings.max_queued_per_caller,

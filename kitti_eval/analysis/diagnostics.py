@@ -20,10 +20,22 @@ import numpy.typing as npt
 from ..core.evaluation import Facts, Plan, plan_evaluation
 from ..core.frames import Annotations
 from ..core.matching import MatchJob
-from ..core.protocol import DEFAULT_METRIC, DEFAULT_OSET, THRESHOLD_SETS, Difficulty, EvalConfig, Metric
+from ..core.protocol import THRESHOLD_SETS, Difficulty, EvalConfig, Metric
 from ..errors import ConfigError
+from .frame_question import ASKED, FrameQuestion
 
-__all__ = ["FrameStats", "frame_stats", "frames_document", "render_frames", "with_class", "parse_slot", "slot_job"]
+__all__ = [
+    "FrameQuestion",
+    "FrameStats",
+    "frame_stats",
+    "counts_at",
+    "frames_document",
+    "render_frames",
+    "with_class",
+    "parse_slot",
+    "slot_job",
+    "not_evaluated",
+]
 
 
 @dataclass(frozen=True)
@@ -86,39 +98,55 @@ def slot_job(plan: Plan, cls: str, metric: Metric, difficulty: Difficulty, oset:
         None,
     )
     if job is None:
-        raise ConfigError(
-            f"{cls} is not evaluated in {metric.value} under the {plan.config.protocol.name} "
-            "protocol (no detection of it can be scored there)"
-        )
+        raise not_evaluated(cls, metric, plan.config)
     return plan.jobs[job]
+
+
+def not_evaluated(cls: str, metric: Metric, config: EvalConfig) -> ConfigError:
+    """The refusal of a (class, metric) that the protocol does not evaluate for this set."""
+    return ConfigError(
+        f"{cls} is not evaluated in {metric.value} under the {config.protocol.name} "
+        "protocol (no detection of it can be scored there)"
+    )
 
 
 def frame_stats(
     gt: Annotations,
     dt: Annotations,
     config: EvalConfig | None = None,
+    question: FrameQuestion = ASKED,
     *,
-    cls: str = "Car",
-    metric: str = DEFAULT_METRIC,
-    difficulty: str = "moderate",
-    oset: str = DEFAULT_OSET,
-    score_threshold: float = 0.0,
     facts: Facts | None = None,
 ) -> FrameStats:
-    """TP, FP and FN of every frame for one (class, metric, difficulty, threshold set) at a score threshold
-    (``facts``: the whole set's, when ``gt`` and ``dt`` are a part of it)."""
-    config = with_class(config, cls)
-    m, d = parse_slot(config, metric, difficulty, oset)
+    """TP, FP and FN of every frame for one (class, metric, difficulty, threshold set) at a score threshold, as
+    ``question`` asks (``facts``: the whole set's, when ``gt`` and ``dt`` are a part of it)."""
+    q = question
+    config = with_class(config, q.cls)
+    m, d = parse_slot(config, q.metric, q.difficulty, q.oset)
     plan = plan_evaluation(gt, dt, config, facts=facts)
-    job = slot_job(plan, cls, m, d, oset)
-    n = gt.num_frames
+    job = slot_job(plan, q.cls, m, d, q.oset)
     (events,) = plan.events([job])
-    counts = np.zeros((n, 3))
-    counts[:, 2] = events.valid
-    on = events.ev_score >= score_threshold
-    np.add.at(counts, events.ev_frame[on], events.ev_delta[on, :3])
+    tp, fp, fn = counts_at(events.valid, events.ev_frame, events.ev_score, events.ev_delta, q.score_threshold)
+    return FrameStats(plan.gt.frame_ids, tp, fp, fn, q.cls, m.value, d.label, q.oset, float(q.score_threshold))
+
+
+def counts_at(
+    valid: npt.NDArray[np.int64],
+    ev_frame: npt.NDArray[np.int64],
+    ev_score: npt.NDArray[np.float64],
+    ev_delta: npt.NDArray[np.float64],
+    score_threshold: float,
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """TP, FP and FN per frame at ``score_threshold`` from one matching's steps
+    (:class:`~kitti_eval.core.matching.FrameEvents`: ``valid`` per frame, and each step's frame, score and change
+    of (tp, fp, fn)): every step scoring at least the threshold counts, as every detection scoring at least it
+    takes part in the devkit's second pass."""
+    counts = np.zeros((len(valid), 3))
+    counts[:, 2] = valid
+    on = ev_score >= score_threshold
+    np.add.at(counts, ev_frame[on], ev_delta[on, :3])
     tp, fp, fn = (np.rint(counts[:, k]).astype(np.int64) for k in range(3))
-    return FrameStats(plan.gt.frame_ids, tp, fp, fn, cls, m.value, d.label, oset, float(score_threshold))
+    return tp, fp, fn
 
 
 def frames_document(stats: FrameStats, *, worst: int | None = None) -> dict[str, Any]:

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.evaluation import Plan, plan_evaluation
+from ..core.evaluation import Facts, Plan, plan_evaluation
 from ..core.frame_labels import DET_LABELS, GT_LABELS, label_frame
 from ..core.frames import Annotations, normalize_frame_id
 from ..core.matching import MatchJob
@@ -239,16 +239,21 @@ def inspect_frame(
     difficulty: str = "moderate",
     oset: str = DEFAULT_OSET,
     score_threshold: float | None = None,
+    facts: Sequence[Facts | None] | None = None,
 ) -> dict[str, Any]:
     """Every box of one frame, for each of ``models`` (name, detections), labelled by the matching.
 
     Each model is matched against ``gt`` exactly as :func:`kitti_eval.evaluate` matches it (the same
     protocol, ignore rules and thresholds); ``score_threshold`` drops detections scoring below it (default:
-    none dropped). Returns a JSON-ready dict: the frame's ground truth with its role for the class, and per
-    model the labelled detections, the ground truth's labels, the missed boxes and the counts.
+    none dropped). ``facts``: per model, what its whole set decides (:class:`~kitti_eval.core.evaluation.Facts`)
+    when its detections are a part of it (e.g. the frame alone); None: its own. Returns a JSON-ready dict: the
+    frame's ground truth with its role for the class, and per model the labelled detections, the ground truth's
+    labels, the missed boxes and the counts.
     """
     if not models:
         raise ConfigError("no predictions to inspect")
+    if facts is not None and len(facts) != len(models):
+        raise ConfigError(f"facts for {len(facts)} of {len(models)} models")
     names = [name for name, _ in models]
     if len(set(names)) != len(names):
         raise ConfigError(f"model names repeat: {names}")
@@ -271,8 +276,8 @@ def inspect_frame(
     g0, g1 = int(gt.offsets[f]), int(gt.offsets[f + 1])
     reports: dict[str, Any] = {}
     roles: list[tuple[str, str | None]] = []
-    for name, dt in models:
-        plan = plan_evaluation(gt, dt, config)
+    for k, (name, dt) in enumerate(models):
+        plan = plan_evaluation(gt, dt, config, facts=None if facts is None else facts[k])
         job = slot_job(plan, cls, m, d, oset)
         roles = _gt_roles(plan, cls, d, job, g0, g1)
         reports[name] = _label_model(plan, f, cls, m, d, job, score_threshold, roles)

@@ -43,8 +43,6 @@ from ..core.frames import (
 )
 from ..core.matching import PRCounts, score_thresholds
 from ..core.protocol import (
-    DEFAULT_METRIC,
-    DEFAULT_OSET,
     INVALID_ALPHA,
     OVERLAP_METRICS,
     EvalConfig,
@@ -53,6 +51,7 @@ from ..core.protocol import (
 )
 from ..core.result import EvalResult
 from ..errors import ConfigError, InputError
+from .frame_question import ASKED, FrameQuestion
 
 __all__ = ["Part", "evaluate_sharded", "frame_stats_sharded", "paired_bootstrap_sharded", "parts_of"]
 
@@ -427,39 +426,24 @@ def _run_parts(
 @dataclass(frozen=True)
 class _FramesPhase:
     config: EvalConfig
-    slot: tuple[str, str, str, str]  # class, metric, difficulty, threshold set
-    score_threshold: float
+    question: FrameQuestion
 
     def __call__(self, part: Part) -> tuple[Any, bool]:
         from .diagnostics import frame_stats
 
         gt, dt, _ = _load_part(part)
-        cls, metric, difficulty, oset = self.slot
-        stats = frame_stats(
-            gt,
-            dt,
-            self.config,
-            cls=cls,
-            metric=metric,
-            difficulty=difficulty,
-            oset=oset,
-            score_threshold=self.score_threshold,
-            facts=Facts.every_job(self.config),
-        )
+        stats = frame_stats(gt, dt, self.config, self.question, facts=Facts.every_job(self.config))
+        metric = self.question.metric
         overlap = Metric.BBOX if metric == Metric.AOS.value else Metric(metric)
-        return stats, scored_metrics(dt, cls)[overlap]
+        return stats, scored_metrics(dt, self.question.cls)[overlap]
 
 
 def frame_stats_sharded(
     gt_paths: Sequence[str | Path],
     pred_paths: Sequence[str | Path],
     config: EvalConfig | None = None,
+    question: FrameQuestion = ASKED,
     *,
-    cls: str = "Car",
-    metric: str = DEFAULT_METRIC,
-    difficulty: str = "moderate",
-    oset: str = DEFAULT_OSET,
-    score_threshold: float = 0.0,
     gt_format: str | None = None,
     pred_format: str | None = None,
     mapper: Mapper | None = None,
@@ -469,11 +453,12 @@ def frame_stats_sharded(
     kept."""
     from .diagnostics import FrameStats, parse_slot, with_class
 
+    cls, metric = question.cls, question.metric
     config = with_class(config, cls)
-    parse_slot(config, metric, difficulty, oset)  # bad names fail before any file is read
+    parse_slot(config, metric, question.difficulty, question.oset)  # bad names fail before any file is read
     _, out = _run_parts(
         mapper or _serial,
-        _FramesPhase(config, (cls, metric, difficulty, oset), float(score_threshold)),
+        _FramesPhase(config, question),
         gt_paths,
         pred_paths,
         gt_format,

@@ -10,6 +10,7 @@ import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
+from ..analysis.frame_question import ASKED
 from ..core.protocol import DEFAULT_CLASSES, DIFFICULTIES, KNOWN_CLASSES, PROTOCOLS, THRESHOLD_SETS
 from ..errors import ConfigError, InputError
 from ..report.render import OutputFormat
@@ -96,13 +97,18 @@ def _add_limit_options(p: argparse.ArgumentParser) -> None:
 @contextlib.contextmanager
 def limits_from(args: argparse.Namespace) -> Iterator[None]:
     """The limit flags given, as the environment variables every loader reads, for the command's duration."""
+    from ..core.budget import set_by_flags
+
     before = {env: os.environ.get(env) for env in _LIMIT_FLAGS.values()}
+    given: dict[str, str] = {}
     try:
         for flag, env in _LIMIT_FLAGS.items():
             value = getattr(args, flag, None)
             if value is not None:
                 os.environ[env] = repr(value)
-        yield
+                given[env] = "--" + flag.replace("_", "-")
+        with set_by_flags(given):
+            yield
     finally:
         for env, value in before.items():
             if value is None:
@@ -202,10 +208,10 @@ def add_eval_options(p: argparse.ArgumentParser) -> None:
 
 def add_slot_options(p: argparse.ArgumentParser, metrics: list[str]) -> None:
     """Which matching to look at: class, metric, difficulty and IoU threshold set."""
-    p.add_argument("--class", dest="cls", default="Car", help="the class (default Car)")
-    p.add_argument("--metric", default="3d", choices=metrics, help="default 3d")
-    p.add_argument("--difficulty", default="moderate", choices=list(DIFFICULTIES))
-    p.add_argument("--set", dest="oset", default="strict", choices=list(THRESHOLD_SETS), help="IoU threshold set")
+    p.add_argument("--class", dest="cls", default=ASKED.cls, help=f"the class (default {ASKED.cls})")
+    p.add_argument("--metric", default=ASKED.metric, choices=metrics, help=f"default {ASKED.metric}")
+    p.add_argument("--difficulty", default=ASKED.difficulty, choices=list(DIFFICULTIES))
+    p.add_argument("--set", dest="oset", default=ASKED.oset, choices=list(THRESHOLD_SETS), help="IoU threshold set")
 
 
 def say_defaults(parser: argparse.ArgumentParser) -> None:

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from ..analysis.frame_question import ASKED
 from ..core.protocol import OVERLAP_METRIC_NAMES
 from ..errors import ConfigError
 from .common import EXIT_OK, add_config_options, add_slot_options, config, emit, several_gt
@@ -27,7 +28,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--score-threshold",
         type=float,
-        default=0.0,
+        default=ASKED.score_threshold,
         help="count detections scoring at least this (default 0: every detection)",
     )
     p.add_argument("--worst", type=int, metavar="N", help="only the N frames with most errors (FP + FN)")
@@ -39,29 +40,23 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..analysis.diagnostics import frame_stats, render_frames
+    from ..analysis.diagnostics import FrameQuestion, frame_stats, render_frames
     from ..io.loaders import load_pair
 
     if args.worst is not None and args.worst < 1:
         raise ConfigError("--worst must be >= 1")
-    slot = dict(
-        cls=args.cls,
-        metric=args.metric,
-        difficulty=args.difficulty,
-        oset=args.oset,
-        score_threshold=args.score_threshold,
-    )
+    question = FrameQuestion(args.cls, args.metric, args.difficulty, args.oset, args.score_threshold)
     if args.sharded:
         from ..analysis.batch import expand_predictions
         from ..analysis.sharded import frame_stats_sharded
 
-        stats = frame_stats_sharded(expand_predictions(args.gt), expand_predictions(args.pred), config(args), **slot)
+        stats = frame_stats_sharded(expand_predictions(args.gt), expand_predictions(args.pred), config(args), question)
     else:
         if len(args.gt) > 1:
             raise several_gt(args.gt)
         if len(args.pred) > 1:
             raise ConfigError("one --pred, or --sharded for a set in many files")
-        stats = frame_stats(*load_pair(args.gt[0], Path(args.pred[0])), config(args), **slot)
+        stats = frame_stats(*load_pair(args.gt[0], Path(args.pred[0])), config(args), question)
     text = render_frames(stats, args.format, worst=args.worst)
     emit(text, args.output)
     return EXIT_OK

@@ -9,8 +9,9 @@ environment (the CLI's flags and the service set the same variables), read when 
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -24,6 +25,8 @@ __all__ = [
     "DEFAULT_MAX_PAIRS",
     "overlap_budget",
     "check_overlap_budget",
+    "setting_name",
+    "set_by_flags",
 ]
 
 #: the environment variables of the budget: pairs of one frame, pairs of one evaluation (or one part of it)
@@ -37,6 +40,29 @@ DEFAULT_MAX_FRAME_PAIRS = 4_000_000
 #: boxes and ~40 detections a frame), nuScenes val in KITTI format about 75 million (6,019 frames, ~40 objects,
 #: up to 300 detections)
 DEFAULT_MAX_PAIRS = 100_000_000
+
+
+#: the command-line flag that set each setting of this process, while its command runs (:func:`set_by_flags`)
+_FLAGS: dict[str, str] = {}
+
+
+def setting_name(env: str) -> str:
+    """How a refusal names the setting ``env``: the flag that set it (``--max-boxes``) when the command line did,
+    else the environment variable."""
+    return _FLAGS.get(env, env)
+
+
+@contextlib.contextmanager
+def set_by_flags(flags: Mapping[str, str]) -> Iterator[None]:
+    """While the block runs, the settings ``flags`` maps (variable -> flag) were given as those flags: the
+    refusals name the flag."""
+    before = dict(_FLAGS)
+    _FLAGS.update(flags)
+    try:
+        yield
+    finally:
+        _FLAGS.clear()
+        _FLAGS.update(before)
 
 
 def positive_setting(env: str, default: float, unit: int = 1) -> int:
@@ -78,7 +104,7 @@ def check_overlap_budget(
         f = int(np.argmax(over))
         raise WorkLimitError(
             f"{int(dt_counts[f])} detections x {int(gt_counts[f])} ground-truth boxes = {int(pairs[f])} overlaps "
-            f"in one frame, more than the limit of {per_frame} ({MAX_FRAME_PAIRS_ENV})",
+            f"in one frame, more than the limit of {per_frame} ({setting_name(MAX_FRAME_PAIRS_ENV)})",
             source=source,
             frame=frame_ids[f],
         )
@@ -87,7 +113,7 @@ def check_overlap_budget(
         f = int(np.argmax(total > per_set))
         raise WorkLimitError(
             f"{int(total[-1])} detection x ground-truth overlaps in all, more than the limit of {per_set} for one "
-            f"evaluation ({MAX_PAIRS_ENV}); the limit is passed at this frame",
+            f"evaluation ({setting_name(MAX_PAIRS_ENV)}); the limit is passed at this frame",
             source=source,
             frame=frame_ids[f],
         )

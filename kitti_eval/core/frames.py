@@ -25,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import InputError, WorkLimitError
+from .budget import setting_name
 from .protocol import DONTCARE
 
 __all__ = [
@@ -427,7 +428,9 @@ class _Columns:
                 raise InputError(f"frame appears twice (entries #{seen[fid]} and #{pos})", source=source, frame=fid)
             if max_frames is not None and pos >= max_frames:
                 raise InputError(
-                    f"more than the limit of {max_frames} frames (KITTI_EVAL_MAX_FRAMES)", source=source, frame=fid
+                    f"more than the limit of {max_frames} frames ({setting_name('KITTI_EVAL_MAX_FRAMES')})",
+                    source=source,
+                    frame=fid,
                 )
             if known_frames is not None and fid not in known_frames:
                 raise InputError("predictions for a frame that is not in the ground truth", source=source, frame=fid)

@@ -15,6 +15,7 @@ from ..core.budget import (
     MAX_PAIRS_ENV,
     overlap_budget,
     positive_setting,
+    setting_name,
 )
 from ..core.frames import BoxLimits
 
@@ -77,8 +78,8 @@ def box_limits(per_frame: int | None = None, per_input: int | None = None) -> Bo
     return BoxLimits(
         per_frame=positive_setting(MAX_FRAME_BOXES_ENV, DEFAULT_MAX_FRAME_BOXES) if per_frame is None else per_frame,
         per_input=positive_setting(MAX_BOXES_ENV, DEFAULT_MAX_BOXES) if per_input is None else per_input,
-        per_frame_setting=MAX_FRAME_BOXES_ENV,
-        per_input_setting=MAX_BOXES_ENV,
+        per_frame_setting=setting_name(MAX_FRAME_BOXES_ENV),
+        per_input_setting=setting_name(MAX_BOXES_ENV),
     )
 
 

@@ -38,6 +38,7 @@ from typing import IO, Any, cast
 
 import numpy as np
 
+from ..core.budget import setting_name
 from ..errors import InputError, UnsafePickleError
 from . import _pickle_scan as _ps
 
@@ -609,7 +610,7 @@ def _checked(
         if n > max_entries:
             raise InputError(
                 f"the pickle is a {_ps.KIND_NAMES[kind]} of {n} entries, more than the limit of {max_entries} "
-                "frames (KITTI_EVAL_MAX_FRAMES)",
+                f"frames ({setting_name('KITTI_EVAL_MAX_FRAMES')})",
                 source=source,
             )
     return data, res

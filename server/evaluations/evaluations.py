@@ -15,7 +15,10 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from kitti_eval.analysis.diagnostics import frames_document
+from kitti_eval.analysis.frame_question import ASKED, FrameQuestion
 from kitti_eval.analysis.inspection import inspect_frame, model_name, unique_names
+from kitti_eval.core.evaluation import Facts
 from kitti_eval.core.frames import Annotations, normalize_frame_id
 from kitti_eval.core.protocol import EvalConfig
 from kitti_eval.io.reading import LoadOptions
@@ -28,7 +31,14 @@ from ..ground_truths.cache import GroundTruthCache
 from ..ground_truths.catalog import GroundTruthCatalog
 from ..idempotency import EVALUATIONS, Idempotency, RequestKey, fingerprint
 from ..jobs.queue import JobQueue
-from ..scoring.evaluator import EvalOptions, evaluate_document, frame_listing, sealed_document, summarize
+from ..scoring.evaluator import (
+    EvalOptions,
+    check_worst,
+    evaluated_plan,
+    frame_listing,
+    sealed_document,
+    summarize,
+)
 from ..scoring.uploads import FileIn, receive_content, stored_upload
 from ..store import (
     AccountStore,
@@ -43,6 +53,7 @@ from ..store import (
     KeyTaken,
     new_id,
 )
+from .frame_rows import facts_of, frame_detections, frame_rows, readable, stats_from_rows
 
 __all__ = ["Evaluations", "EvaluationFrames", "FileIn", "MAX_INSPECTED"]
 
@@ -206,7 +217,7 @@ class Evaluations:
                 limits=self.limits,
                 options=LoadOptions(keep_lidar=keep, known_frames=gt.frame_index()),
             )
-            doc = evaluate_document(
+            doc, plan = evaluated_plan(
                 gt,
                 loaded.annotations,
                 config,
@@ -216,6 +227,9 @@ class Evaluations:
             )
             if gt_record is not None and gt_record.sealed:
                 doc = sealed_document(doc)
+            # what the frame listings and views read, for an evaluation whose frames can be looked at
+            rows = list(frame_rows(plan)) if keep and gt_record is not None and not gt_record.sealed else []
+            del plan
         if keep:
             if not pred_input.kept:  # accepted before files were kept at acceptance, or while they were not kept
                 self.ground_truth_store.add_prediction_file(pred.sha256, pred_input.content)
@@ -247,6 +261,7 @@ class Evaluations:
 
         def write(conn: Any) -> None:
             self.evaluation_store.add_evaluation_in(conn, record)
+            self.evaluation_store.add_frames_in(conn, record.id, rows)
             self.job_input_store.delete_job_inputs_in(conn, job_id)
 
         return record, write
@@ -340,8 +355,8 @@ class EvaluationFrames:
         self.limits = limits
         self.scratch = scratch
 
-    def _kept_inputs(self, record: EvaluationRecord) -> tuple[Annotations, Annotations, EvalConfig]:
-        """The ground truth, predictions and options of a stored evaluation, for looking at its frames."""
+    def _checked(self, record: EvaluationRecord) -> tuple[GroundTruthRecord, EvalConfig]:
+        """The ground truth and options of a stored evaluation whose frames may be looked at."""
         if record.gt_name is None:
             raise Conflict(
                 f"evaluation {record.id} used a ground truth uploaded with the request, which is not "
@@ -362,7 +377,13 @@ class EvaluationFrames:
             )
         # a frame view reads no distance bins: an evaluation stored with more than the service now allows is
         # still looked at
-        config = EvalOptions.from_dict({**record.options, "ranges": None}).config()
+        return gt_record, EvalOptions.from_dict({**record.options, "ranges": None}).config()
+
+    def _kept_inputs(self, record: EvaluationRecord) -> tuple[Annotations, Annotations, EvalConfig]:
+        """The ground truth, predictions and options of a stored evaluation, for looking at its frames: the
+        predictions read whole (bounded by ``KITTI_EVAL_FRAMES_MAX_BOXES``), for an evaluation stored without
+        its frames (:mod:`.frame_rows`) or a question they cannot answer."""
+        gt_record, config = self._checked(record)
         gt = self.ground_truths.files.load(gt_record)
 
         def load_kept() -> Annotations:
@@ -386,12 +407,28 @@ class EvaluationFrames:
 
         return gt, self.predictions.get_or_load(record.pred_sha256, load_kept), config
 
-    def frames(self, evaluation_id: str, *, caller: Caller, **question: Any) -> dict[str, Any]:
-        """TP/FP/FN per frame of a stored evaluation: :func:`~kitti_eval_server.scoring.evaluator.frame_listing` of
-        its kept inputs, ``question`` its keywords (class, metric, difficulty, set, worst, score threshold)."""
+    def frames(
+        self,
+        evaluation_id: str,
+        question: FrameQuestion = ASKED,
+        *,
+        worst: int | None = 20,
+        caller: Caller,
+    ) -> dict[str, Any]:
+        """TP/FP/FN per frame of a stored evaluation (the ``worst`` n first, or all), as
+        :func:`~kitti_eval_server.scoring.evaluator.frame_listing` answers it: from the frames its job stored, else
+        from its kept inputs."""
         record = self.evaluations.get(evaluation_id, caller)
-        gt, dt, config = self._kept_inputs(record)
-        doc = frame_listing(gt, dt, config, **question)
+        _, config = self._checked(record)
+        check_worst(worst)
+        stats = None
+        if self.evaluations.evaluation_store.has_frames(record.id):
+            stats = stats_from_rows(self.evaluations.evaluation_store.frame_events(record.id), config, question)
+        if stats is not None:
+            doc = frames_document(stats, worst=worst)
+        else:
+            gt, dt, config = self._kept_inputs(record)
+            doc = frame_listing(gt, dt, config, question, worst=worst)
         doc["evaluation"] = record.id
         return doc
 
@@ -423,14 +460,22 @@ class EvaluationFrames:
             fid = normalize_frame_id(frame_id)
         except (TypeError, ValueError) as e:
             raise BadRequest(f"bad frame id {echo(frame_id)}: {e}") from None
-        inputs = [self._kept_inputs(r) for r in records]
-        gt, _, config = inputs[0]
-        if fid not in gt.frame_index():
-            raise NotFound(f"no frame {clip(fid, MAX_ECHO_CHARS)} in the ground truth {records[0].gt_name!r}")
         names = unique_names([r.labels.get("model") or model_name(r.pred_filename) for r in records])
+        notes: list[str] = []
+        stored = self._stored_frame(records, fid, cls)
+        if stored is not None:
+            gt, config, models, facts = stored
+        else:
+            inputs = [self._kept_inputs(r) for r in records]
+            gt, _, config = inputs[0]
+            if fid not in gt.frame_index():
+                raise NotFound(f"no frame {clip(fid, MAX_ECHO_CHARS)} in the ground truth {records[0].gt_name!r}")
+            models, facts = [dt for _, dt, _ in inputs], None
+            if any(c.protocol.name != config.protocol.name for _, _, c in inputs[1:]):
+                notes = [f"all are matched under the first evaluation's protocol ({config.protocol.name})"]
         report = inspect_frame(
             gt,
-            [(n, dt) for n, (_, dt, _) in zip(names, inputs)],
+            list(zip(names, models)),
             fid,
             config,
             cls=cls,
@@ -438,10 +483,44 @@ class EvaluationFrames:
             difficulty=difficulty,
             oset=oset,
             score_threshold=score_threshold,
+            facts=facts,
         )
         for name, record in zip(names, records):
             report["models"][name]["evaluation"] = record.id
             report["models"][name]["source"] = record.pred_filename
-        if any(c.protocol.name != config.protocol.name for _, _, c in inputs[1:]):
-            report["notes"] = [f"all are matched under the first evaluation's protocol ({config.protocol.name})"]
+        if notes:
+            report["notes"] = notes
         return report
+
+    def _stored_frame(
+        self, records: Sequence[EvaluationRecord], fid: str, cls: str
+    ) -> tuple[Annotations, EvalConfig, list[Annotations], list[Facts]] | None:
+        """The ground truth, the first evaluation's options, and each evaluation's detections of frame ``fid``
+        with what its whole set decided for the matching, from the rows the evaluations stored (one frame each,
+        never the predictions whole). None when they cannot answer: an evaluation stored without its frames,
+        one that did not evaluate ``cls`` or the first one's classes, or evaluations under different
+        protocols (the first one's is used, with facts of its own)."""
+        checked = [self._checked(r) for r in records]
+        config = checked[0][1]
+        for _, c in checked:
+            if (
+                c.protocol.name != config.protocol.name
+                or cls not in c.classes
+                or not set(config.classes) <= set(c.classes)
+            ):
+                return None
+        rows = []
+        for record, (_, c) in zip(records, checked):
+            row = self.evaluations.evaluation_store.frame(record.id, fid)
+            if row is None or not readable(c, row[1]):
+                if self.evaluations.evaluation_store.has_frames(record.id):
+                    break  # stored, but not this frame: the ground truth has none such (refused below)
+                return None
+            rows.append((record, c, row))
+        gt = self.ground_truths.files.load(checked[0][0])
+        if fid not in gt.frame_index():
+            raise NotFound(f"no frame {clip(fid, MAX_ECHO_CHARS)} in the ground truth {records[0].gt_name!r}")
+        if len(rows) < len(records):
+            return None
+        models = [frame_detections(row[0], fid, source=record.pred_filename) for record, _, row in rows]
+        return gt, config, models, [facts_of(c, row[1]) for _, c, row in rows]

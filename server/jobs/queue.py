@@ -9,7 +9,8 @@ A job's life::
       |                  |   \\-cancel--> cancelled
       +--fail (retry) ---+
       +--release---------+  (a draining worker: the attempt is not counted)
-      +--lease run out, claimed by another worker (an attempt more; failed once max_attempts were used)
+      +--lease run out, claimed by another worker (an attempt more, once: failed worker_lost when lost again
+                                                   or max_attempts were used, job_timeout past the time limit)
 
     done | failed | cancelled --rerun--> queued (as new)
 
@@ -129,10 +130,12 @@ class JobQueue:
         max_attempts: int = 3,
         limits: QueueLimits | None = None,
         clock: Callable[[], datetime] = now_utc,
+        time_limit_s: float | None = None,
     ) -> None:
         """``lease_s``: how long a claim or a heartbeat keeps a job its worker's; ``max_attempts``: the claims
         a job enqueued here gets (a failure with retry, or a lost worker, uses one); ``limits``: what
-        :meth:`admit` lets in; ``clock``: the current time (timezone-aware)."""
+        :meth:`admit` lets in; ``clock``: the current time (timezone-aware); ``time_limit_s``: the jobs' time
+        limit (``KITTI_EVAL_JOB_TIMEOUT_S``): a job whose worker was lost after it is failed, not taken over."""
         if lease_s <= 0 or max_attempts < 1:
             raise ValueError("lease_s must be positive and max_attempts at least 1")
         self.job_store = job_store
@@ -144,6 +147,7 @@ class JobQueue:
         self.max_attempts = max_attempts
         self.limits = limits or QueueLimits()
         self.clock = clock
+        self.time_limit_s = time_limit_s
 
     @classmethod
     def of(cls, store: Store, **options: Any) -> JobQueue:
@@ -278,15 +282,18 @@ class JobQueue:
         """Take a job of ``kinds`` (None: any): the oldest (by ``accepted_at``, then ``id``) running one whose
         lease ran out (taken over from a worker that was lost; it was at the head of the queue when first
         claimed), else the oldest queued one. It becomes running, held by ``worker`` for ``lease_s``, with one
-        attempt more (``started_at`` is set at its first claim). None when there is none. A lapsed job that
-        already used its ``max_attempts`` is failed instead ("the worker was lost N times"), and the next is
-        looked at.
+        attempt more (``started_at`` is set at its first claim). None when there is none. A lapsed job is
+        taken over once: one whose worker was lost before, or that already used its ``max_attempts``, is failed
+        instead (``worker_lost``: "the worker was lost N times"), as is one first started longer ago than the
+        time limit (``job_timeout``), and the next is looked at.
 
         Never gives a job to two workers: on PostgreSQL the row is locked with ``SELECT ... FOR UPDATE SKIP
         LOCKED`` (concurrent claims take the next rows), on SQLite the claim holds the write lock from its
         start (``BEGIN IMMEDIATE``: claims run one after another)."""
         now = self._now()
-        job, lost = self.job_store.claim_job(worker, now=now, lease_until=self._lease_from(now), kinds=kinds)
+        job, lost = self.job_store.claim_job(
+            worker, now=now, lease_until=self._lease_from(now), kinds=kinds, time_limit_s=self.time_limit_s
+        )
         _ENDINGS.ended(lost)
         return job
 

@@ -30,6 +30,7 @@ from kitti_eval.errors import KittiEvalError
 
 from ..errors import ApiError, fault_of, library_error_status
 from ..observability import AdmissionState
+from ..store.job_store import timeout_error
 from .queue import ENDED_STATES, JobQueue, JobRecord, now_utc
 from .runner import release_memory
 
@@ -327,14 +328,10 @@ class Workers:
     def _time_out(self, job: JobRecord, name: str) -> None:
         """Fail ``job``, still running on ``name`` past the time limit, with its reason (not tried again), and
         put a new thread in the place of the one it holds."""
-        body = {
-            "status": 422,
-            "code": "job_timeout",
-            "message": f"the {job.kind} ran past the time limit of {self.timeout_s:g} s (KITTI_EVAL_JOB_TIMEOUT_S); "
-            "it is not tried again",
-        }
+        assert self.timeout_s is not None
+        error = timeout_error(job.kind, self.timeout_s)
         try:
-            failed = self._until_recorded(lambda: self.queue.fail(job.id, name, json.dumps(body), retry=False))
+            failed = self._until_recorded(lambda: self.queue.fail(job.id, name, error, retry=False))
         except Exception:  # noqa: BLE001 - stopping: the job's lease lapses and it is taken over
             log.warning("job %s could not be failed past its time limit", job.id, exc_info=True)
             return

@@ -7,6 +7,8 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Query
 
+from kitti_eval.analysis.frame_question import ASKED, FrameQuestion
+
 from ..access.deps import ReaderCaller
 from ..params import MAX_SCORE, ServiceDep
 from ..schemas import ErrorResponse
@@ -34,27 +36,21 @@ MAX_WORST = 1_000_000
 
 
 def frame_counts_question(
-    cls: ClassQ = "Car",
-    metric: MetricQ = "3d",
-    difficulty: DifficultyQ = "moderate",
-    oset: SetQ = "strict",
+    cls: ClassQ = ASKED.cls,
+    metric: MetricQ = ASKED.metric,  # type: ignore[assignment]
+    difficulty: DifficultyQ = ASKED.difficulty,  # type: ignore[assignment]
+    oset: SetQ = ASKED.oset,  # type: ignore[assignment]
     worst: Annotated[
         int | None, Query(ge=1, le=MAX_WORST, description="only the N frames with most errors (FP + FN), 1..10^6")
     ] = 20,
     score_threshold: Annotated[
         float,
         Query(ge=-MAX_SCORE, le=MAX_SCORE, allow_inf_nan=False, description="count detections scoring at least this"),
-    ] = 0.0,
+    ] = ASKED.score_threshold,
 ) -> dict[str, Any]:
-    """The query of a TP/FP/FN-per-frame listing (an evaluation's, a submission's), as keyword arguments."""
-    return {
-        "cls": cls,
-        "metric": metric,
-        "difficulty": difficulty,
-        "oset": oset,
-        "worst": worst,
-        "score_threshold": score_threshold,
-    }
+    """The query of a TP/FP/FN-per-frame listing (an evaluation's, a submission's), as keyword arguments: the
+    question (:class:`~kitti_eval.analysis.diagnostics.FrameQuestion`) and how many frames."""
+    return {"question": FrameQuestion(cls, metric, difficulty, oset, score_threshold), "worst": worst}
 
 
 #: a frame listing's query, for the routes that answer one

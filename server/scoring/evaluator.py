@@ -17,10 +17,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from kitti_eval.analysis.decomposition import errors_document, evaluate_with_errors
+from kitti_eval.analysis.decomposition import decompose_plan, errors_document
 from kitti_eval.analysis.diagnostics import frame_stats, frames_document
+from kitti_eval.analysis.frame_question import ASKED, FrameQuestion
 from kitti_eval.analysis.ranking import evaluate_resampled
-from kitti_eval.core.evaluation import evaluate
+from kitti_eval.core.evaluation import Plan, Totals, plan_evaluation, result_from_counts
 from kitti_eval.core.frames import Annotations
 from kitti_eval.core.protocol import DEFAULT_CLASSES, THRESHOLD_SETS, EvalConfig, config_from_options
 from kitti_eval.core.result import ValueKey
@@ -32,11 +33,13 @@ from ..errors import BadRequest, echo
 __all__ = [
     "EvalOptions",
     "evaluate_document",
+    "evaluated_plan",
     "evaluate_document_resampled",
     "check_image_fields",
     "summarize",
     "sealed_document",
     "frame_listing",
+    "check_worst",
     "parse_labels",
     "LABEL_KEY_PATTERN",
     "ERRORS_SET",
@@ -121,14 +124,26 @@ def evaluate_document(
 
     ``gt_frames_shown``: whether a refusal may name a frame of the ground truth (not for a sealed one, and not
     by default)."""
+    return evaluated_plan(gt, dt, config, curves=curves, errors=errors, gt_frames_shown=gt_frames_shown)[0]
+
+
+def evaluated_plan(
+    gt: Annotations,
+    dt: Annotations,
+    config: EvalConfig,
+    *,
+    curves: bool = False,
+    errors: bool = False,
+    gt_frames_shown: bool = False,
+) -> tuple[dict[str, Any], Plan]:
+    """:func:`evaluate_document`'s document and the plan it was computed from (its overlaps and matchings,
+    for what an evaluation stores of each frame: :func:`.frame_rows.frame_rows`)."""
     check_image_fields(gt, dt, config, gt_frames_shown=gt_frames_shown)
-    extra: dict[str, Any] | None = None
-    if errors:
-        result, decomposition = evaluate_with_errors(gt, dt, config, keep_curves=curves, oset=ERRORS_SET)
-        extra = errors_document(decomposition, full=False)
-    else:
-        result = evaluate(gt, dt, config, keep_curves=curves)
-    return json_document(result, include_curves=curves, extra=extra)
+    plan = plan_evaluation(gt, dt, config)
+    result = result_from_counts(plan, plan.counts(), Totals.of(plan), keep_curves=curves)
+    extra = errors_document(decompose_plan(plan, oset=ERRORS_SET), full=False) if errors else None
+    doc = json_document(result, include_curves=curves, extra=extra)
+    return doc, plan
 
 
 def evaluate_document_resampled(
@@ -163,23 +178,21 @@ def frame_listing(
     gt: Annotations,
     dt: Annotations,
     config: EvalConfig,
+    question: FrameQuestion = ASKED,
     *,
-    cls: str = "Car",
-    metric: str = "3d",
-    difficulty: str = "moderate",
-    oset: str = "strict",
     worst: int | None = 20,
-    score_threshold: float = 0.0,
 ) -> dict[str, Any]:
     """TP/FP/FN per frame (the ``worst`` n first, or all), from the same matching as the AP, as
     :func:`kitti_eval.analysis.diagnostics.frames_document`: what an evaluation's and a submission's frame
     listings answer."""
+    check_worst(worst)
+    return frames_document(frame_stats(gt, dt, config, question), worst=worst)
+
+
+def check_worst(worst: int | None) -> None:
+    """A frame listing's ``worst``: None (every frame) or at least 1."""
     if worst is not None and worst < 1:
         raise BadRequest("worst must be at least 1")
-    stats = frame_stats(
-        gt, dt, config, cls=cls, metric=metric, difficulty=difficulty, oset=oset, score_threshold=score_threshold
-    )
-    return frames_document(stats, worst=worst)
 
 
 def sealed_document(doc: dict[str, Any]) -> dict[str, Any]:

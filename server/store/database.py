@@ -61,6 +61,7 @@ __all__ = [
     "ground_truth_files",
     "evaluations",
     "evaluation_labels",
+    "evaluation_frames",
     "prediction_files",
     "users",
     "projects",
@@ -131,6 +132,19 @@ prediction_files = Table(
     metadata,
     Column("sha256", String(64), primary_key=True),
     Column("content", LargeBinary, nullable=False),
+)
+
+#: what an evaluation's job stores of each frame of its ground truth, for its frame listings and frame views (see
+#: kitti_eval_server.evaluations.frame_rows): the frame's detections, and its share of every matching
+evaluation_frames = Table(
+    "evaluation_frames",
+    metadata,
+    Column("evaluation_id", String(32), ForeignKey("evaluations.id", ondelete="CASCADE"), primary_key=True),
+    Column("frame_index", Integer, primary_key=True),  # the frame's place in the ground truth
+    Column("frame_id", Text, nullable=False),
+    Column("detections", LargeBinary, nullable=False),
+    Column("events", LargeBinary, nullable=False),
+    Index("ix_evaluation_frames_id", "evaluation_id", "frame_id"),
 )
 
 evaluation_labels = Table(

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
@@ -10,7 +10,7 @@ from typing import Any
 from sqlalchemy import exists, insert, or_, select
 from sqlalchemy.engine import Connection, RowMapping
 
-from .database import Area, evaluation_labels, evaluations, retry_when_locked, utc
+from .database import Area, evaluation_frames, evaluation_labels, evaluations, retry_when_locked, utc
 
 __all__ = ["EvaluationRecord", "EvaluationStore"]
 
@@ -49,6 +49,63 @@ class EvaluationStore(Area):
                 insert(evaluation_labels),
                 [{"evaluation_id": record.id, "key": k, "value": v} for k, v in record.labels.items()],
             )
+
+    @staticmethod
+    def add_frames_in(conn: Connection, evaluation_id: str, rows: Iterable[Any], *, batch: int = 512) -> None:
+        """An evaluation's frame rows (:class:`~kitti_eval_server.evaluations.frame_rows.FrameRow`), written in
+        batches within the caller's transaction (the one that stores the evaluation)."""
+        pending: list[dict[str, Any]] = []
+        for row in rows:
+            pending.append(
+                {
+                    "evaluation_id": evaluation_id,
+                    "frame_index": row.frame_index,
+                    "frame_id": row.frame_id,
+                    "detections": row.detections,
+                    "events": row.events,
+                }
+            )
+            if len(pending) >= batch:
+                conn.execute(insert(evaluation_frames), pending)
+                pending = []
+        if pending:
+            conn.execute(insert(evaluation_frames), pending)
+
+    @retry_when_locked
+    def has_frames(self, evaluation_id: str) -> bool:
+        """Whether the evaluation's job stored its frames (not those stored before it did)."""
+        with self.engine.connect() as conn:
+            query = select(evaluation_frames.c.frame_index).where(evaluation_frames.c.evaluation_id == evaluation_id)
+            return conn.execute(query.limit(1)).first() is not None
+
+    def frame_events(self, evaluation_id: str, *, batch: int = 256) -> Iterator[tuple[int, str, bytes]]:
+        """(frame index, frame id, events) of every frame of the evaluation in order, read ``batch`` rows at a
+        time (never the detections, never all at once)."""
+        after = -1
+        while True:
+            with self.engine.connect() as conn:
+                rows = conn.execute(
+                    select(evaluation_frames.c.frame_index, evaluation_frames.c.frame_id, evaluation_frames.c.events)
+                    .where(evaluation_frames.c.evaluation_id == evaluation_id, evaluation_frames.c.frame_index > after)
+                    .order_by(evaluation_frames.c.frame_index)
+                    .limit(batch)
+                ).all()
+            for f, frame_id, events in rows:
+                yield int(f), str(frame_id), bytes(events)
+            if len(rows) < batch:
+                return
+            after = int(rows[-1][0])
+
+    @retry_when_locked
+    def frame(self, evaluation_id: str, frame_id: str) -> tuple[bytes, bytes] | None:
+        """(detections, events) of one frame of the evaluation (None: no such row)."""
+        with self.engine.connect() as conn:
+            row = conn.execute(
+                select(evaluation_frames.c.detections, evaluation_frames.c.events).where(
+                    evaluation_frames.c.evaluation_id == evaluation_id, evaluation_frames.c.frame_id == frame_id
+                )
+            ).first()
+        return None if row is None else (bytes(row[0]), bytes(row[1]))
 
     @retry_when_locked
     def get_evaluation(self, evaluation_id: str) -> EvaluationRecord | None:

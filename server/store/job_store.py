@@ -9,9 +9,10 @@ under the same locks before the change), so a worker that lost its job (taken ov
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import datetime, timedelta
 from typing import Any
 
 from sqlalchemy import Update, and_, case, func, insert, or_, select, update
@@ -19,7 +20,7 @@ from sqlalchemy.engine import Connection, RowMapping
 
 from .database import Area, dated, jobs, retry_when_locked, submissions, utc
 
-__all__ = ["JobRecord", "JobStore", "JOB_STATES", "ENDED_STATES"]
+__all__ = ["JobRecord", "JobStore", "JOB_STATES", "ENDED_STATES", "WORKER_LOST", "lost_error", "timeout_error"]
 
 #: every state of a job, in the order a job goes through them
 JOB_STATES = ("queued", "running", "done", "failed", "cancelled")
@@ -54,6 +55,38 @@ class _NotHeld(Exception):
 
 def lost_message(attempts: int) -> str:
     return f"the worker was lost {attempts} time{'' if attempts == 1 else 's'}"
+
+
+#: the code of a job's error when its worker was lost (killed, out of memory, its machine gone)
+WORKER_LOST = "worker_lost"
+
+
+def lost_error(lost: int, *, again: bool) -> str:
+    """The error of a job whose worker was lost ``lost`` times: kept while it is taken over (``again``), or the
+    one it fails with. Its body is that of an error answer (as :class:`kitti_eval_server.jobs.workers.JobFailed`
+    reads it)."""
+    message = lost_message(lost)
+    if not again:
+        message += (
+            "; a job is taken over once when its worker is lost: an input that makes its worker run out of memory"
+            " would take the next one down too"
+        )
+    return json.dumps({"status": 500, "code": WORKER_LOST, "message": message, "lost": lost})
+
+
+def _times_lost(job: JobRecord) -> int:
+    """How many times the job's worker was lost, as its error says (0: never, or not since its last failure)."""
+    try:
+        body = json.loads(job.error or "")
+    except ValueError:
+        return 0
+    return int(body.get("lost") or 0) if isinstance(body, dict) and body.get("code") == WORKER_LOST else 0
+
+
+def timeout_error(kind: str, limit_s: float) -> str:
+    """The error of a job failed past its time limit (the body of an error answer)."""
+    message = f"the {kind} ran past the time limit of {limit_s:g} s (KITTI_EVAL_JOB_TIMEOUT_S); it is not tried again"
+    return json.dumps({"status": 422, "code": "job_timeout", "message": message})
 
 
 #: why a submission whose scoring an admin cancelled failed
@@ -102,13 +135,20 @@ class JobStore(Area):
 
     @retry_when_locked
     def claim_job(
-        self, worker: str, *, now: datetime, lease_until: datetime, kinds: Sequence[str] | None = None
+        self,
+        worker: str,
+        *,
+        now: datetime,
+        lease_until: datetime,
+        kinds: Sequence[str] | None = None,
+        time_limit_s: float | None = None,
     ) -> tuple[JobRecord | None, list[str]]:
         """Take a job for ``worker`` until ``lease_until``: the oldest (by ``accepted_at``, then ``id``) of those
         running with a lease run out before ``now`` (their workers were lost; they were at the head of the queue
         when first claimed), else the oldest queued one. Answers (the job, or None when there is none; the ids
-        of the jobs failed on the way): a lapsed job whose attempts reached its ``max_attempts`` is failed (its
-        worker was lost that many times) instead of taken, and the next one is looked at.
+        of the jobs failed on the way). A lapsed job is failed instead of taken, and the next one is looked at,
+        when its attempts reached its ``max_attempts``, when its worker was lost before (``worker_lost``: a job
+        is taken over once), or when it was first started more than ``time_limit_s`` ago (``job_timeout``).
 
         Each of the two looks is an ordered scan of the (state, accepted_at, id) index that stops at the first
         row, however long the queue and its history."""
@@ -128,12 +168,20 @@ class JobStore(Area):
                 if row is None:
                     return None, lost
                 job = self._job(row)
-                if job.state == "running" and job.attempts >= job.max_attempts:
-                    ended = dict(state="failed", lease_until=None, finished_at=now, error=lost_message(job.attempts))
-                    conn.execute(update(jobs).where(jobs.c.id == job.id).values(**ended))
-                    _fail_submission_in(conn, job, lost_message(job.attempts))
-                    lost.append(job.id)
-                    continue
+                times_lost = _times_lost(job) + 1 if job.state == "running" else 0
+                if job.state == "running":
+                    error = None
+                    started = job.started_at
+                    if time_limit_s is not None and started and now - started > timedelta(seconds=time_limit_s):
+                        error = timeout_error(job.kind, time_limit_s)
+                    elif job.attempts >= job.max_attempts or times_lost > 1:
+                        error = lost_error(times_lost, again=False)
+                    if error is not None:
+                        ended = dict(state="failed", lease_until=None, finished_at=now, error=error)
+                        conn.execute(update(jobs).where(jobs.c.id == job.id).values(**ended))
+                        _fail_submission_in(conn, job, json.loads(error)["message"])
+                        lost.append(job.id)
+                        continue
                 taken = dict(
                     state="running",
                     worker=worker,
@@ -141,6 +189,8 @@ class JobStore(Area):
                     started_at=job.started_at or now,
                     attempts=job.attempts + 1,
                 )
+                if times_lost:
+                    taken["error"] = lost_error(times_lost, again=True)
                 conn.execute(update(jobs).where(jobs.c.id == job.id).values(**taken))
                 return JobRecord(**{**job.__dict__, **taken}), lost
 

@@ -20,6 +20,7 @@ from starlette.exceptions import HTTPException
 from starlette.types import Scope
 
 from kitti_eval.analysis.decomposition import AOS_TYPES, ERROR_TYPES, TP_ERRORS
+from kitti_eval.analysis.frame_question import FrameQuestion
 from kitti_eval.core.protocol import ALL_METRICS, KNOWN_CLASSES, PROTOCOLS
 from kitti_eval.errors import KittiEvalError
 
@@ -368,10 +369,7 @@ async def _worst_frames(
             partial(
                 service.evaluation_frames.frames,
                 record.id,
-                cls=choice["cls"],
-                metric=choice["metric"],
-                difficulty=choice["difficulty"],
-                oset=choice["set"],
+                FrameQuestion(choice["cls"], choice["metric"], choice["difficulty"], choice["set"]),
                 worst=_WORST,
                 caller=caller,
             )

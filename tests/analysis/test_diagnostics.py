@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from builders import annotations, box, hits, one_car_per_frame
 
-from kitti_eval.analysis.diagnostics import frame_stats, render_frames
+from kitti_eval.analysis.diagnostics import FrameQuestion, frame_stats, render_frames
 from kitti_eval.cli import main
 from kitti_eval.core.evaluation import plan_evaluation
 from kitti_eval.core.matching import MatchingInputs, pr_counts_many
@@ -48,7 +48,7 @@ def test_frame_counts_add_up_to_the_ap_counts_at_each_threshold(cls, metric, dif
     (counts,) = pr_counts_many(inputs, [plan.jobs[job]])
     assert len(counts.thresholds) >= 3
     for k, t in enumerate(counts.thresholds):
-        s = frame_stats(gt, dt, config, cls=cls, metric=metric, difficulty=difficulty, score_threshold=t)
+        s = frame_stats(gt, dt, config, FrameQuestion(cls, metric, difficulty, score_threshold=t))
         assert (s.tp.sum(), s.fp.sum(), s.fn.sum()) == (counts.tp[k], counts.fp[k], counts.fn[k])
 
 
@@ -59,17 +59,15 @@ def test_worst_frames_by_errors_then_misses():
     dets[2].append(box("Car", x=-15.0, z=40.0, x1=900.0, score=0.5))  # frame 2: one false positive
     dets[3] = [box("Car", x=-15.0, z=40.0, x1=900.0, score=0.5)]  # frame 3: a miss and a FP
     s = frame_stats(
-        annotations("ground_truth", gts), annotations("detections", dets), cls="Car", metric="bbox", difficulty="easy"
+        annotations("ground_truth", gts), annotations("detections", dets), None, FrameQuestion("Car", "bbox", "easy")
     )
     assert s.tp.tolist() == [1, 0, 1, 0] and s.fp.tolist() == [0, 0, 1, 1] and s.fn.tolist() == [0, 1, 0, 1]
     assert s.worst(10) == [3, 1, 2]  # frame 0 has no error and is not listed
     above = frame_stats(
         annotations("ground_truth", gts),
         annotations("detections", dets),
-        cls="Car",
-        metric="bbox",
-        difficulty="easy",
-        score_threshold=0.6,
+        None,
+        FrameQuestion("Car", "bbox", "easy", score_threshold=0.6),
     )
     assert above.fp.tolist() == [0, 0, 0, 0] and above.fn.tolist() == [0, 1, 0, 1]
     doc = json.loads(render_frames(s, "json", worst=2))

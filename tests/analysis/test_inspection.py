@@ -12,7 +12,7 @@ from builders import annotations, box, dontcare
 from naive_matching import labels_naive, statistics_naive
 from test_matching import random_frames
 
-from kitti_eval.analysis.diagnostics import frame_stats, parse_slot, slot_job
+from kitti_eval.analysis.diagnostics import FrameQuestion, frame_stats, parse_slot, slot_job
 from kitti_eval.analysis.inspection import inspect_frame, model_name, render_inspection, unique_names
 from kitti_eval.cli import main
 from kitti_eval.core.evaluation import plan_evaluation
@@ -161,7 +161,7 @@ def test_every_frames_labels_add_up_to_its_counts(cls, metric, difficulty, thres
     gt = load_ground_truth(GOLDEN / "kitti_infos_val.pkl")
     dt = load_detections(GOLDEN / "result.pkl")
     config = EvalConfig()
-    stats = frame_stats(gt, dt, config, cls=cls, metric=metric, difficulty=difficulty, score_threshold=thresh)
+    stats = frame_stats(gt, dt, config, FrameQuestion(cls, metric, difficulty, score_threshold=thresh))
     plan = plan_evaluation(gt, dt, config)
     m, d = parse_slot(config, metric, difficulty, "strict")
     job = slot_job(plan, cls, m, d, "strict")
@@ -294,7 +294,7 @@ def test_cli_inspect_two_models_as_json(tmp_path, capsys):
     assert det0["score"] == pytest.approx(first["score"][0], rel=1e-6)
     assert det0["boxes_lidar"] == pytest.approx(dt.boxes_lidar[dt.offsets[dt.frame_index()[fid]]], rel=1e-6)
     assert det0["dimensions"] == pytest.approx(first["dimensions"][0], rel=1e-6)
-    stats = frame_stats(gt, dt, EvalConfig(), score_threshold=-np.inf)
+    stats = frame_stats(gt, dt, EvalConfig(), FrameQuestion(score_threshold=-np.inf))
     f = gt.frame_index()[fid]
     assert a["counts"] == {"tp": stats.tp[f], "fp": stats.fp[f], "fn": stats.fn[f]}
 

@@ -232,7 +232,7 @@ def test_a_worker_lost_mid_run_changes_nothing(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("slot", [("Car", "3d", "moderate", "strict"), ("Pedestrian", "aos", "hard", "loose")])
 def test_the_frames_of_a_set_in_shards_equal_the_whole(tmp_path: Path, slot: tuple[str, str, str, str]) -> None:
-    from kitti_eval.analysis.diagnostics import frame_stats
+    from kitti_eval.analysis.diagnostics import FrameQuestion, frame_stats
     from kitti_eval.analysis.sharded import frame_stats_sharded
 
     infos, results = generate(120, seed=7)
@@ -241,9 +241,9 @@ def test_the_frames_of_a_set_in_shards_equal_the_whole(tmp_path: Path, slot: tup
     (gt,) = dump_all(tmp_path / "whole", "gt", [infos])
     (pred,) = dump_all(tmp_path / "whole", "pred", [results])
     cls, metric, difficulty, oset = slot
-    kw = dict(cls=cls, metric=metric, difficulty=difficulty, oset=oset, score_threshold=0.3)
-    whole = frame_stats(load_ground_truth(gt), load_detections(pred), EvalConfig(), **kw)  # type: ignore[arg-type]
-    parts = frame_stats_sharded(gts, preds, EvalConfig(), **kw)  # type: ignore[arg-type]
+    question = FrameQuestion(cls, metric, difficulty, oset, score_threshold=0.3)
+    whole = frame_stats(load_ground_truth(gt), load_detections(pred), EvalConfig(), question)
+    parts = frame_stats_sharded(gts, preds, EvalConfig(), question)
     assert parts.frame_ids == whole.frame_ids and len(whole.frame_ids) == 120
     for field in ("tp", "fp", "fn"):
         np.testing.assert_array_equal(getattr(parts, field), getattr(whole, field))

@@ -269,12 +269,51 @@ def test_a_non_number_names_the_field(tmp_path: Path) -> None:
     assert "line 1: x1 is not a number: '1O0.0'" in str(err.value)
 
 
-def test_non_finite_values_are_reported_by_from_frames(tmp_path: Path) -> None:
+def test_a_non_finite_value_of_a_txt_file_is_named_by_its_file_and_line(tmp_path: Path) -> None:
+    """The file and the line (1-based, as every other refusal of a txt line), not the folder and a box's place."""
     folder = write_txt(tmp_path / "pred", DET, with_score=True)
-    (folder / "000001.txt").write_text((folder / "000001.txt").read_text().replace("0.1033", "nan"))
+    second = (folder / "000001.txt").read_text().replace("0.1033", "nan")
+    (folder / "000001.txt").write_text(_txt_line(DET["000000"][0], True) + "\n\n" + second)
     with pytest.raises(InputError, match="non-finite") as err:
         load_detections(folder)
     assert err.value.frame == "000001" and err.value.field == "score"
+    assert err.value.source == str(folder / "000001.txt")
+    assert "line 3: score is nan, a non-finite value" in str(err.value) and "box" not in str(err.value)
+    fields = _txt_line(DET["000000"][0], False).split()
+    with pytest.raises(InputError, match="line 1: ry is inf, a non-finite value"):
+        parse_kitti_txt(" ".join([*fields[:-1], "inf"]), "ground_truth", frame="1", source="s")
+
+
+def test_two_files_of_one_frame_are_refused_naming_both(tmp_path: Path) -> None:
+    folder = write_txt(tmp_path / "pred", DET, with_score=True)
+    (folder / "1.txt").write_text((folder / "000001.txt").read_text())
+    with pytest.raises(InputError) as err:
+        load_detections(folder)
+    assert err.value.frame == "000001" and err.value.source == str(folder)
+    assert "two files of frame 000001: 000001.txt and 1.txt" in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("spelled", "said"),
+    [
+        (
+            "0x1p3",
+            "x1 is not a number: '0x1p3'; it is a hexadecimal float, which the official devkit reads (C's strtod) "
+            "as 8.0, and kitti-eval reads decimal numbers only",
+        ),
+        (
+            "587.01\x1c",
+            "x1 is not a number: '587.01\\x1c'; U+001C is not a field separator for the devkit (only space, tab, "
+            "CR, LF, VT and FF are); the devkit would read 587.01, then take '\\x1c' as the next field",
+        ),
+    ],
+)
+def test_a_number_the_devkit_reads_otherwise_is_refused_saying_how_it_reads_it(spelled: str, said: str) -> None:
+    fields = _txt_line(DET["000000"][0], True).split()
+    fields[4] = spelled
+    with pytest.raises(InputError) as err:
+        parse_kitti_txt(" ".join(fields), "detections", frame="1", source="s")
+    assert f"line 1: {said}" in str(err.value) and err.value.field == "x1"
 
 
 def test_parse_kitti_txt_directly() -> None:

@@ -146,13 +146,23 @@ def test_the_cli_refuses_past_its_flags_with_exit_code_1(
     pred = write_txt(tmp_path / "pred", _crowded({"000000": 4, "000001": 1}), with_score=True)
     assert main(["--gt", str(gt), "--pred", str(pred), "--max-boxes-per-frame", "3"]) == 1
     err = capsys.readouterr().err
-    assert "frame 000000: 4 boxes in one frame, more than the limit of 3 (KITTI_EVAL_MAX_BOXES_PER_FRAME)" in err
+    # a limit set by a flag is named by its flag, one set by the environment by its variable
+    assert "frame 000000: 4 boxes in one frame, more than the limit of 3 (--max-boxes-per-frame)" in err
     assert "Traceback" not in err
     assert main(["--gt", str(gt), "--pred", str(pred), "--max-frame-pairs", "11"]) == 1
-    assert "4 detections x 3 ground-truth boxes = 12 overlaps in one frame" in capsys.readouterr().err
+    assert "12 overlaps in one frame, more than the limit of 11 (--max-frame-pairs)" in capsys.readouterr().err
     assert main(["--gt", str(gt), "--pred", str(pred), "--max-pairs", "13"]) == 1
-    assert "14 detection x ground-truth overlaps in all, more than the limit of 13" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert (
+        "14 detection x ground-truth overlaps in all, more than the limit of 13 for one evaluation (--max-pairs)" in err
+    )
     assert main(["--gt", str(gt), "--pred", str(pred), "--max-boxes", "4"]) == 1
-    assert "5 boxes up to this frame, more than the limit of 4 in one input" in capsys.readouterr().err
+    assert "5 boxes up to this frame, more than the limit of 4 in one input (--max-boxes)" in capsys.readouterr().err
+    assert main(["--gt", str(gt), "--pred", str(pred), "--max-frames", "1"]) == 1
+    assert "more than the limit of 1 frames (--max-frames)" in capsys.readouterr().err
+    monkeypatch.setenv("KITTI_EVAL_MAX_BOXES_PER_FRAME", "3")
+    assert main(["--gt", str(gt), "--pred", str(pred)]) == 1
+    assert "more than the limit of 3 (KITTI_EVAL_MAX_BOXES_PER_FRAME)" in capsys.readouterr().err
+    monkeypatch.delenv("KITTI_EVAL_MAX_BOXES_PER_FRAME")
     assert main(["--gt", str(gt), "--pred", str(pred), "--max-pairs", "14", "--max-boxes-per-frame", "4"]) == 0
     assert "KITTI_EVAL_MAX_PAIRS" not in os.environ  # the flags hold for the command only

@@ -17,6 +17,7 @@ from server_helpers import ADMIN, app_client, golden_bytes, register, upload
 from server_postgres import PostgresCluster, why_no_postgres
 
 from kitti_eval.cli import main
+from kitti_eval_server.store.schema import head
 
 NO_PG = why_no_postgres()
 
@@ -103,7 +104,7 @@ def _round_trip(tmp_path: Path, where: list[str], restored_where: list[str], **d
 
     manifest = json.loads((copy_at_rush / "manifest.json").read_text())
     assert ("kitti-eval.db" if not db else "database.dump") in manifest["files"]
-    assert manifest["schema_revision"] == "0001" and manifest["backend"] == ("postgresql" if db else "sqlite")
+    assert manifest["schema_revision"] == head() and manifest["backend"] == ("postgresql" if db else "sqlite")
 
     # the copy taken during the uploads: a moment of the service, its queued jobs finished after the restore
     assert main(["admin", *restored_where(tmp_path / "restored-rush"), "restore", str(copy_at_rush)]) == 0

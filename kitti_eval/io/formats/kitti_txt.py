@@ -12,14 +12,15 @@ import dataclasses
 import os
 import tempfile
 from array import array
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from itertools import chain
 from pathlib import Path
 from typing import Any, NoReturn
 
 import numpy as np
 
-from ...core.frames import Annotations, Kind
+from ...core.budget import setting_name
+from ...core.frames import Annotations, Kind, normalize_frame_id
 from ...errors import InputError
 from ..archives import (
     MAX_TXT_FILE_BYTES,
@@ -99,10 +100,11 @@ def load_kitti_txt_dir(
     max_frames = resolve(None, max_frames)[1]
     if len(files) > max_frames:
         raise InputError(
-            f"{len(files)} txt files, more than the limit of {max_frames} frames ({MAX_FRAMES_ENV})",
+            f"{len(files)} txt files, more than the limit of {max_frames} frames ({setting_name(MAX_FRAMES_ENV)})",
             source=str(root),
         )
 
+    _refuse_one_frame_twice(files, str(root))
     n_values = _N_FIELDS[kind] - 1  # numbers per line that are kept (score dropped for ground truth)
     names: list[str] = []
     values = array("d")  # plain float() parsing, straight into one buffer
@@ -145,6 +147,25 @@ def load_kitti_txt_dir(
             yield fid, fields
 
     return Annotations.from_frames(kind, str(root), frames(), max_frames=max_frames, known_frames=known_frames)
+
+
+def _refuse_one_frame_twice(files: Sequence[Path], source: str) -> None:
+    """Two files of one frame (``0.txt`` and ``000000.txt``: ids are compared zero-padded to six digits) are
+    refused naming both, before any is read; an id that is no id is left to the frames' own refusal."""
+    first: dict[str, Path] = {}
+    for f in files:
+        try:
+            key = normalize_frame_id(f.stem)
+        except (TypeError, ValueError):
+            continue
+        if key in first:
+            raise InputError(
+                f"two files of frame {key}: {first[key].name} and {f.name} (frame ids are compared zero-padded to "
+                "six digits); keep one",
+                source=source,
+                frame=key,
+            )
+        first[key] = f
 
 
 def read_bytes(path: Path) -> bytes:

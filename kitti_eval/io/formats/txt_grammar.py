@@ -23,6 +23,7 @@ agrees with ``strtod`` on those bytes); only a file that fails them is walked fi
 
 from __future__ import annotations
 
+import math
 import operator
 import re
 from collections.abc import Sequence
@@ -58,6 +59,8 @@ INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 
 #: ``strtod``'s decimal numbers (what ``float`` reads of ASCII bytes without ``_`` too)
 _FLOAT = re.compile(rb"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+#: C's hexadecimal floats (``0x1p3``), which ``strtod`` reads and ``float`` does not
+_HEX_FLOAT = re.compile(rb"[+-]?0[xX](?:[0-9a-fA-F]+\.?[0-9a-fA-F]*|\.[0-9a-fA-F]+)(?:[pP][+-]?[0-9]+)?")
 #: ``%d``'s integers
 _INT = re.compile(rb"[+-]?[0-9]+")
 #: spellings ``strtod`` and ``float`` both read as non-finite: left to the finiteness check of the frames
@@ -204,12 +207,19 @@ def _float_problem(token: bytes) -> str | None:
     for a token ``float`` does not read either (refused as not a number, as it always was)."""
     if _FLOAT.fullmatch(token) or _NON_FINITE.fullmatch(token):
         return None
+    if _HEX_FLOAT.fullmatch(token):
+        value = float.fromhex(token.decode())
+        return (
+            f"it is a hexadecimal float, which the official devkit reads (C's strtod) as {value!r}, and kitti-eval "
+            "reads decimal numbers only: write it as one"
+        )
+    sep = foreign_separator(token)
     try:
         float(token.decode("utf-8"))
     except (UnicodeDecodeError, ValueError):
-        return ""
+        if sep is None:
+            return ""
     detail = []
-    sep = foreign_separator(token)
     if sep is not None:
         detail.append(not_a_separator(sep))
     elif not token.isascii():
@@ -262,12 +272,13 @@ def values_problem(values: list[float], kind: Kind) -> tuple[int, str, str] | No
     """:func:`table_problem` of one file's numbers, flat (14 a record in ground truth, 15 in detections),
     with a plain test first: most files have none."""
     n = 14 if kind == "ground_truth" else 15
-    if kind == "ground_truth":
-        occ = values[1::n]
-        if not occ or INT32_MIN <= min(occ) and max(occ) <= INT32_MAX:
+    if all(map(math.isfinite, values)):
+        if kind == "ground_truth":
+            occ = values[1::n]
+            if not occ or INT32_MIN <= min(occ) and max(occ) <= INT32_MAX:
+                return None
+        elif sum(map(abs, map(operator.sub, values[4::n], values[6::n]))) < 2.0**31:
             return None
-    elif sum(map(abs, map(operator.sub, values[4::n], values[6::n]))) < 2.0**31:  # NaN and inf fail it too
-        return None
     return table_problem(np.array(values, dtype=np.float64).reshape(-1, n), kind)
 
 
@@ -277,6 +288,11 @@ def table_problem(table: npt.NDArray[np.float64], kind: Kind) -> tuple[int, str,
     ``int`` it is read into; a detection's height ``|y2 - y1|`` in the ``int32_t`` it is taken as."""
     if not len(table):
         return None
+    finite = np.isfinite(table)
+    if not finite.all():
+        row, col = (int(i) for i in np.argwhere(~finite)[0])
+        field = KITTI_TXT_FIELDS[col + 1]
+        return row, field, f"{field} is {table[row, col]:g}, a non-finite value (every value must be a finite number)"
     if kind == "ground_truth":
         occ = table[:, 1]
         bad = np.flatnonzero((occ < INT32_MIN) | (occ > INT32_MAX))

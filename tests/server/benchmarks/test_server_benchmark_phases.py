@@ -344,7 +344,7 @@ def test_late_submissions_are_scored_after_the_close_and_never_ranked(world) -> 
 def test_a_phase_on_open_labels_shows_its_participant_their_frames_and_a_sealed_one_does_not(world) -> None:
     from server_helpers import GOLDEN
 
-    from kitti_eval.analysis.diagnostics import frame_stats, frames_document
+    from kitti_eval.analysis.diagnostics import FrameQuestion, frame_stats, frames_document
     from kitti_eval.io.loaders import load_detections, load_ground_truth
     from kitti_eval_server.scoring.evaluator import EvalOptions
 
@@ -362,7 +362,7 @@ def test_a_phase_on_open_labels_shows_its_participant_their_frames_and_a_sealed_
         )
     )
     gt, dt = load_ground_truth(GOLDEN / "kitti_infos_val.pkl"), load_detections(GOLDEN / "result.pkl")
-    expected = frames_document(frame_stats(gt, dt, EvalOptions().config(), cls="Car"), worst=5)
+    expected = frames_document(frame_stats(gt, dt, EvalOptions().config(), FrameQuestion("Car")), worst=5)
     assert frames["frames"] == expected["frames"] and len(frames["frames"]) == 5 and frames["submission"] == dev
     sealed = c.get(f"/v1/benchmarks/kitti-phases/submissions/{test}/frames", headers=bearer(alice))
     assert sealed.status_code == 403 and sealed.json()["error"]["code"] == "sealed"

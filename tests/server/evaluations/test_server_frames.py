@@ -12,7 +12,7 @@ import pytest
 from server_helpers import app_client, assert_error, golden_bytes, register, upload
 from unversioned import as_unversioned
 
-from kitti_eval.analysis.diagnostics import frame_stats, frames_document
+from kitti_eval.analysis.diagnostics import FrameQuestion, frame_stats, frames_document
 from kitti_eval.analysis.inspection import inspect_frame
 from kitti_eval.core.protocol import EvalConfig
 from kitti_eval.demo import demo_paths
@@ -61,9 +61,7 @@ def test_worst_frames_equal_the_library(service, demo) -> None:
         f"/v1/evaluations/{a}/frames", params={"class": "Pedestrian", "metric": "bev", "difficulty": "hard", "worst": 5}
     )
     assert r.status_code == 200, r.text
-    want = frames_document(
-        frame_stats(gt, dt, EvalConfig(), cls="Pedestrian", metric="bev", difficulty="hard"), worst=5
-    )
+    want = frames_document(frame_stats(gt, dt, EvalConfig(), FrameQuestion("Pedestrian", "bev", "hard")), worst=5)
     assert r.json() == {**want, "evaluation": a}
     assert len(r.json()["frames"]) == 5 and r.json()["frames"][0]["fp"] + r.json()["frames"][0]["fn"] > 0
     every = c.get(f"/v1/evaluations/{a}/frames", params={"worst": 10_000}).json()["frames"]
@@ -144,8 +142,18 @@ def test_a_database_from_before_options_were_stored_is_upgraded(tmp_path) -> Non
         assert c.get(f"/v1/evaluations/{new}/frames").status_code == 200
 
 
+def forget_frames(data_dir) -> None:
+    """The evaluations of ``data_dir`` as stored before their jobs stored their frames: answered from the kept
+    predictions, read whole."""
+    db = sqlite3.connect(data_dir / "kitti-eval.db")
+    db.execute("DELETE FROM evaluation_frames")
+    db.commit()
+    db.close()
+
+
 def test_kept_predictions_past_the_limits_on_work_are_refused_not_read_whole(tmp_path, monkeypatch) -> None:
-    """Predictions kept under larger limits are looked at under the limits in force: the web process refuses
+    """Predictions kept under larger limits (by an evaluation stored without its frames) are looked at under the
+    limits in force: the web process refuses
     them at the first frame past a limit (413, the frame named), instead of reading them whole and answering a
     frame of any size."""
     import io
@@ -166,6 +174,7 @@ def test_kept_predictions_past_the_limits_on_work_are_refused_not_read_whole(tmp
         r = upload(c, buf.getvalue(), "pred.tar.gz")
         assert r.status_code == 201, r.text
         evaluation = r.json()["id"]
+    forget_frames(data_dir)
     monkeypatch.setenv("KITTI_EVAL_MAX_BOXES_PER_FRAME", "500")
     with app_client(data_dir) as c:  # nothing cached: the kept file is read from the database
         started = time.monotonic()
@@ -179,14 +188,16 @@ def test_kept_predictions_past_the_limits_on_work_are_refused_not_read_whole(tmp
 
 
 def test_kept_predictions_of_more_boxes_than_a_frame_view_reads_are_refused(tmp_path, monkeypatch) -> None:
-    """Frames are looked at from kept predictions read whole by the process that answers: past
-    KITTI_EVAL_FRAMES_MAX_BOXES they are refused 413 at the frame that passes it, though they were evaluated."""
+    """Frames of an evaluation stored without its frames are looked at from kept predictions read whole by the
+    process that answers: past KITTI_EVAL_FRAMES_MAX_BOXES they are refused 413 at the frame that passes it,
+    though they were evaluated."""
     monkeypatch.delenv("KITTI_EVAL_MAX_BOXES", raising=False)
     data_dir = tmp_path / "data"
     with app_client(data_dir) as c:
         r = upload(c, DEMO_PRED, "result.pkl.gz")
         assert r.status_code == 201, r.text
         evaluation = r.json()["id"]
+    forget_frames(data_dir)
     boxes = load_detections(PRED_PATH).counts
     most = int(boxes[:3].sum())  # the fourth frame passes it
     with app_client(data_dir, frames_max_boxes=most) as c:

@@ -7,6 +7,8 @@ the processes racing for jobs use the real one.
 
 from __future__ import annotations
 
+import importlib
+import json
 import multiprocessing
 import queue as queue_module
 import threading
@@ -265,12 +267,10 @@ def test_a_job_whose_worker_is_lost_max_attempts_times_fails(store: Store, clock
     assert third is not None and third.id == later.id and third.attempts == 1
     failed = queue.get(lost.id)
     assert failed is not None
-    assert (failed.state, failed.error, failed.attempts, failed.worker) == (
-        "failed",
-        "the worker was lost 2 times",
-        2,
-        "w2",
-    )
+    assert (failed.state, failed.attempts, failed.worker) == ("failed", 2, "w2")
+    error = json.loads(failed.error or "")
+    assert (error["status"], error["code"]) == (500, "worker_lost")
+    assert error["message"].startswith("the worker was lost 2 times; a job is taken over once")
     assert failed.finished_at == START + timedelta(seconds=23) and failed.lease_until is None
     assert queue.heartbeat(lost.id, "w2") is False
     assert queue.counts() == {"queued": 0, "running": 1, "done": 0, "failed": 1, "cancelled": 0}
@@ -282,7 +282,52 @@ def test_a_job_whose_worker_is_lost_max_attempts_times_fails(store: Store, clock
     clock.advance(11)
     assert one.claim("w5", kinds=["rescore"]) is None
     ended = one.get(alone.id)
-    assert ended is not None and (ended.state, ended.error) == ("failed", "the worker was lost 1 time")
+    assert ended is not None and ended.state == "failed"
+    assert json.loads(ended.error or "")["message"].startswith("the worker was lost 1 time;")
+
+
+def test_a_job_whose_worker_is_lost_is_taken_over_once_whatever_attempts_are_left(store: Store, clock: Clock) -> None:
+    """A lost worker may have been killed by its job (out of memory): the job is taken over once, and failed
+    (``worker_lost``) when the worker that took it over is lost too, though attempts are left."""
+    queue = JobQueue.of(store, lease_s=10, max_attempts=5, clock=clock)
+    job = queue.enqueue("evaluation", {}, owner="alice")
+    assert queue.claim("w1") is not None
+    clock.advance(11)
+    again = queue.claim("w2")
+    assert again is not None and (again.id, again.attempts) == (job.id, 2)
+    last = json.loads(again.error or "")  # shown to admins as the job's last error while it runs
+    assert (last["code"], last["lost"], last["message"]) == ("worker_lost", 1, "the worker was lost 1 time")
+    clock.advance(11)
+    assert queue.claim("w3") is None
+    failed = queue.get(job.id)
+    assert failed is not None and (failed.state, failed.attempts) == ("failed", 2)
+    error = json.loads(failed.error or "")
+    assert (error["status"], error["code"], error["lost"]) == (500, "worker_lost", 2)
+    assert "the worker was lost 2 times; a job is taken over once when its worker is lost" in error["message"]
+    # a job taken over that ends well ends without the note
+    other = queue.enqueue("evaluation", {}, owner="alice")
+    assert queue.claim("w4") is not None
+    clock.advance(11)
+    assert queue.claim("w5") is not None
+    assert queue.finish(other.id, "w5", other.id) is True
+    done = queue.get(other.id)
+    assert done is not None and (done.state, done.error) == ("done", None)
+
+
+def test_a_lost_job_past_its_time_limit_is_failed_not_taken_over(store: Store, clock: Clock) -> None:
+    queue = JobQueue.of(store, lease_s=10, max_attempts=3, clock=clock, time_limit_s=60)
+    job = queue.enqueue("evaluation", {}, owner="alice")
+    assert queue.claim("w1") is not None
+    for _ in range(7):  # its worker beats its lease for 63 s, past the limit, then is lost
+        clock.advance(9)
+        assert queue.heartbeat(job.id, "w1") is True
+    clock.advance(11)
+    assert queue.claim("w2") is None
+    failed = queue.get(job.id)
+    assert failed is not None and (failed.state, failed.attempts) == ("failed", 1)
+    error = json.loads(failed.error or "")
+    assert (error["status"], error["code"]) == (422, "job_timeout")
+    assert "ran past the time limit of 60 s (KITTI_EVAL_JOB_TIMEOUT_S)" in error["message"]
 
 
 # ------------------------------------------------------------------------------------------------ endings
@@ -511,7 +556,9 @@ def test_an_existing_database_gets_the_jobs_table(tmp_path: Path) -> None:
     """A database made before the queue existed: create_schema adds the table and its indexes."""
     address = f"sqlite:///{tmp_path / 'old.db'}"
     engine = create_engine(address)
-    metadata.create_all(engine, tables=[t for t in metadata.sorted_tables if t.name != "jobs"])
+    base = importlib.import_module("kitti_eval_server.store.migrations.versions.0001_base").metadata.tables
+    # the tables of that release: the base revision's, never those of a later revision
+    metadata.create_all(engine, tables=[t for t in metadata.sorted_tables if t.name != "jobs" and t.name in base])
     assert "jobs" not in inspect(engine).get_table_names()
     engine.dispose()
     store = Store(address)
