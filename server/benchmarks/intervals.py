@@ -82,7 +82,9 @@ def intervals_job_id(submission_id: str, scored_at: datetime, seed: int, resampl
 def ranked_rows(bench: Benchmark, rows: Sequence[SubmissionRecord]) -> list[tuple[SubmissionRecord, float | None]]:
     """The scored ones of ``rows`` (oldest first) with their key on the board's part, best first: by the key,
     ties by submission time, those without a key last."""
-    keyed = [(r, key_value((r.scores or {}).get(bench.phase) or {}, bench.key)) for r in rows if r.status == "scored"]
+    keyed = [
+        (r, key_value((r.scores or {}).get(bench.board_part) or {}, bench.key)) for r in rows if r.status == "scored"
+    ]
     return sorted(keyed, key=lambda rk: (rk[1] is None, -(rk[1] or 0.0)))
 
 
@@ -124,7 +126,7 @@ class Intervals:
             "method": METHOD,
             "resamples": RESAMPLES,
             "seed": board_seed(bench.name),
-            "part": part_name(bench.phase),
+            "part": part_name(bench.board_part),
             "level": LEVEL,
         }
 
@@ -195,7 +197,7 @@ class Intervals:
         job of each scored one that has none is queued unless it was (see :func:`intervals_job_id`)."""
         seed = board_seed(bench.name)
         kept = self.benchmark_store.resampled_keys(
-            bench.name, part=bench.phase, seed=seed, resamples=RESAMPLES, ids=[r.id for r in rows]
+            bench.name, part=bench.board_part, seed=seed, resamples=RESAMPLES, ids=[r.id for r in rows]
         )
         found = {sid: np.frombuffer(blob, dtype="<f8") for sid, blob in kept.items()}
         found = {sid: v for sid, v in found.items() if v.shape == (RESAMPLES,)}
@@ -234,7 +236,7 @@ class Intervals:
         published = self.benchmark_store.list_submissions(bench.name, published_only=True)
         board = ranked_rows(bench, [r for r in published if not r.baseline])  # baselines lead no one
         leader = board[0] if board and board[0][1] is not None else None
-        mine = key_value((record.scores or {}).get(bench.phase) or {}, bench.key)
+        mine = key_value((record.scores or {}).get(bench.board_part) or {}, bench.key)
         others = [x for x in (earlier[0] if earlier else None, leader) if x is not None]
         values = self.resampled(bench, [record, *(r for r, _ in others)]) if mine is not None else {}
 

@@ -14,15 +14,15 @@ submissions now; else the last one that has opened; else the first.
 
 from __future__ import annotations
 
-import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import Any, Protocol
 
 from ..access.policy import Caller, Policy
-from ..errors import ApiError, BadRequest, NotFound, echo
+from ..errors import ApiError, NotFound, echo
 from ..store import BenchmarkRecord, BenchmarkStore
+from .phase_settings import check_phase_name
 from .rules import MAIN_PHASE, PHASE_SEPARATOR, Benchmark
 from .views import PHASE_FIELDS, pick
 
@@ -54,18 +54,8 @@ __all__ = [
     "MAX_BENCHMARK_NAME",
 ]
 
-_PHASE_NAME = re.compile(r"^[a-z0-9][a-z0-9_-]{0,19}$")
 #: a benchmark with phases: its name and ``~PHASE`` fit a benchmark row's 64 characters
 MAX_BENCHMARK_NAME = 40
-
-
-def check_phase_name(name: object) -> str:
-    if not isinstance(name, str) or not _PHASE_NAME.fullmatch(name):
-        raise BadRequest(
-            f"a phase's name is 1-20 lower-case letters, digits, '_' or '-', starting with a letter or digit; got "
-            f"{echo(str(name))}"
-        )
-    return name
 
 
 def phase_row(benchmark: str, phase: str, *, first: bool) -> str:
@@ -75,26 +65,12 @@ def phase_row(benchmark: str, phase: str, *, first: bool) -> str:
 
 @dataclass(frozen=True)
 class PhaseOf:
-    """What :meth:`BenchmarkCatalog.create <.catalog.BenchmarkCatalog.create>` stores of a phase beside the
-    benchmark's options: its row, its name, late submissions, and on the first row the phases and team size."""
+    """Where :meth:`BenchmarkCatalog.create <.catalog.BenchmarkCatalog.create>` stores a phase of a benchmark
+    defined by a file: its row, and on the first row the phases in order (its settings, the phase's name among
+    them, are :class:`.phase_settings.PhaseSettings`)."""
 
     row: str
-    name: str
-    late_submissions: bool = False
     phases: tuple[tuple[str, str], ...] = ()  # the first row only: (phase, row) in order
-    team_size: int = 1  # on every row (the teams are the benchmark's)
-
-    def config(self, *, open_labels: bool) -> dict[str, Any]:
-        out: dict[str, Any] = {
-            "phase": self.name,
-            "late_submissions": self.late_submissions,
-            "team_size": self.team_size,
-        }
-        if open_labels:
-            out["open_labels"] = True
-        if self.phases:
-            out["phases"] = [list(p) for p in self.phases]
-        return out
 
 
 def phase_list(first: BenchmarkRecord) -> list[tuple[str, str]]:
@@ -200,7 +176,7 @@ def phase_view(bench: Benchmark, *, current: bool, names_test_set: bool, now: da
         "quota": {"submissions": n, "days": days},
         "split_percent": bench.split_percent,
         "revealed": bench.revealed,
-        "board": bench.phase,
+        "board": bench.board_part,
         "max_published": bench.max_published,
     }
     fields = PHASE_FIELDS if names_test_set else tuple(f for f in PHASE_FIELDS if f != "ground_truth")

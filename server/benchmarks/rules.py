@@ -3,12 +3,13 @@ the public/private split of the test frames, and the parsing of its options (quo
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
 from datetime import datetime, timezone
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from kitti_eval.analysis.gate import ValueKey
 from kitti_eval.core.protocol import DEFAULT_OSET, DEFAULT_RECALL, DIFFICULTIES, METRICS, RECALL_MODES
@@ -18,6 +19,9 @@ from ..evaluations.evaluator import EvalOptions
 from ..store import BenchmarkRecord
 from .lifecycle import PhaseState, has_opened, state_of
 
+if TYPE_CHECKING:
+    from .phase_settings import PhaseSettings
+
 __all__ = [
     "Benchmark",
     "DEFAULT_KEY",
@@ -25,6 +29,7 @@ __all__ = [
     "MAIN_PHASE",
     "DIFFICULTIES",
     "parse_quota",
+    "check_quota",
     "check_split_percent",
     "check_max_published",
     "check_texts",
@@ -86,9 +91,14 @@ def parse_quota(text: str) -> tuple[int, float]:
         count, span = int(n), float(days) if sep else 1.0
     except ValueError:
         raise BadRequest(f"a quota is N/DAYS, e.g. 3/1; got {echo(text)}") from None
-    if not 1 <= count <= 100_000 or not 0 < span <= 3650 or not math.isfinite(span):
+    return check_quota(count, span)
+
+
+def check_quota(count: int, days: float) -> tuple[int, float]:
+    """A quota's range: 1 to 100000 submissions per more than 0 and at most 3650 days."""
+    if not 1 <= count <= 100_000 or not math.isfinite(days) or not 0 < days <= 3650:
         raise BadRequest("a quota is 1 to 100000 submissions per more than 0 and at most 3650 days")
-    return count, span
+    return int(count), float(days)
 
 
 def parse_column(text: str, classes: Sequence[str], sets: Sequence[str]) -> str:
@@ -162,27 +172,33 @@ class Benchmark(BenchmarkRecord):
     def from_record(cls, record: BenchmarkRecord) -> Benchmark:
         return cls(**{f.name: getattr(record, f.name) for f in fields(record)})
 
+    @functools.cached_property
+    def settings(self) -> PhaseSettings:
+        """Its settings, as its row keeps them (:mod:`.phase_settings`: one type, read by one rule)."""
+        from .phase_settings import PhaseSettings  # which reads the rules' checks
+
+        return PhaseSettings.of_row(self)
+
     @property
     def key(self) -> list[str]:
-        return list(self.config["key"])
+        return list(self.settings.key)
 
     @property
     def columns(self) -> list[str]:
-        return list(self.config["columns"])
+        return list(self.settings.columns)
 
     @property
     def quota(self) -> tuple[int, float]:
-        return int(self.config["quota"][0]), float(self.config["quota"][1])
+        return self.settings.quota
 
     @property
     def open_to_all(self) -> bool:
         """Every signed-in account may take part, not only the members of its test set's project."""
-        return bool(self.config.get("open_to_all", False))
+        return self.settings.open_to_all
 
     @property
     def split_percent(self) -> float | None:
-        value = self.config.get("split_percent")
-        return None if value is None else float(value)
+        return self.settings.split_percent
 
     def has_opened(self, now: datetime | None = None) -> bool:
         """Its period has begun (``opens_at`` has passed), whether or not it was closed since."""
@@ -213,12 +229,12 @@ class Benchmark(BenchmarkRecord):
 
     @property
     def phase_name(self) -> str:
-        return str(self.config.get("phase") or MAIN_PHASE)
+        return self.settings.phase
 
     @property
     def late_submissions(self) -> bool:
         """Taking submissions after its close: scored for their participants, never published nor ranked."""
-        return bool(self.config.get("late_submissions", False))
+        return self.settings.late_submissions
 
     @property
     def open_labels(self) -> bool:
@@ -229,7 +245,7 @@ class Benchmark(BenchmarkRecord):
     @property
     def team_size(self) -> int:
         """The most members a team may have (1: no teams). Kept on the benchmark's first row."""
-        return int(self.config.get("team_size") or 1)
+        return self.settings.team_size
 
     def takes_late(self, now: datetime | None = None) -> bool:
         """Closed, and taking late submissions (never ranked)."""
@@ -237,13 +253,13 @@ class Benchmark(BenchmarkRecord):
         return self.late_submissions and self.has_opened(now) and self.state(now) is PhaseState.CLOSED
 
     @property
-    def phase(self) -> str:
-        """Which scores the board shows: ``all`` (no split), ``public`` (the public part) or ``private``."""
+    def board_part(self) -> str:
+        """The part of the test set whose scores the board shows: ``all`` (no split), ``public`` (the public
+        part) or ``private`` (after the reveal). Its JSON field is ``board``; "phase" is the competition's."""
         if self.split_percent is None:
             return "all"
         return "private" if self.revealed else "public"
 
     def options(self) -> EvalOptions:
-        return EvalOptions(
-            protocol=self.config["protocol"], classes=self.config["classes"], threshold_sets=self.config["sets"]
-        )
+        settings = self.settings
+        return EvalOptions(protocol=settings.protocol, classes=settings.classes, threshold_sets=settings.threshold_sets)

@@ -169,9 +169,9 @@ def benchmark_view(
         "title": bench.title,
         "description": bench.description,
         "ground_truth": bench.gt_name,
-        "protocol": bench.config["protocol"],
-        "classes": bench.config["classes"].split(","),
-        "threshold_sets": bench.config["sets"].split(","),
+        "protocol": bench.settings.protocol,
+        "classes": bench.settings.classes.split(","),
+        "threshold_sets": bench.settings.threshold_sets.split(","),
         "key": bench.key,
         "columns": bench.columns,
         "quota": {"submissions": n, "days": days},
@@ -184,7 +184,7 @@ def benchmark_view(
         "closed": bench.closed,
         "split_percent": bench.split_percent,
         "revealed": bench.revealed,
-        "board": bench.phase,
+        "board": bench.board_part,
         "max_published": bench.max_published,
     }
     return pick(values, TEST_SET_FIELDS if names_test_set else BENCHMARK_FIELDS)
@@ -200,7 +200,7 @@ def result_view(record: SubmissionRecord, bench: Benchmark, *, everything: bool 
         return None
     if everything or bench.open_labels:  # an admin's; or a phase on open labels: the participant has the labels
         return dict(whole)
-    shown = record.public_result if bench.phase == "public" else whole
+    shown = record.public_result if bench.board_part == "public" else whole
     if shown is None:
         return None
     values = {**pick(whole, RESULT_FIELDS), "ap": shown.get("ap")}
@@ -217,7 +217,7 @@ def submission_view(
     whole set is the public part. ``reason``: why a failed submission failed (its file refused, its scoring
     cancelled or given up on)."""
     scores = record.scores or {}
-    public_only = bench.phase == "public" and not everything
+    public_only = bench.board_part == "public" and not everything
     shown = "public" if public_only else "all"
     values = {
         "id": record.id,
@@ -240,7 +240,9 @@ def submission_view(
         "scored_at": record.scored_at.isoformat() if record.scored_at else None,
         "scored_on": shown,
         "scores": scores.get(shown),
-        "parts": None if public_only or bench.phase == "all" else {p: scores.get(p) for p in ("public", "private")},
+        "parts": None
+        if public_only or bench.board_part == "all"
+        else {p: scores.get(p) for p in ("public", "private")},
     }
     if not full:
         return pick(values, SUBMISSION_FIELDS)

@@ -13,6 +13,7 @@ from pydantic import BaseModel, Field
 from ..access.deps import AdminCaller, AnyoneCaller, ReaderCaller, ServiceDep, WriterCaller
 from ..access.policy import Caller
 from ..benchmarks import DEFAULT_KEY, Benchmarks
+from ..benchmarks.phase_settings import PhaseSettings
 from ..benchmarks.rules import PHASE_SEPARATOR
 from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
 from ..schemas import ErrorResponse
@@ -80,26 +81,8 @@ class PublishIn(BaseModel):
 
 @router.post("", status_code=201, summary="Create a benchmark on a sealed ground truth (admins)")
 def create(body: BenchmarkIn, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
-    bench = benchmarks.catalog.create(
-        body.name,
-        ground_truth=body.ground_truth,
-        title=body.title,
-        description=body.description,
-        protocol=body.protocol,
-        classes=body.classes,
-        threshold_sets=body.threshold_sets,
-        key=body.key,
-        columns=body.columns,
-        quota=body.quota,
-        public=body.public,
-        opens_at=body.opens_at,
-        closes_at=body.closes_at,
-        split_percent=body.split_percent,
-        max_published=body.max_published,
-        open_to_all=body.open_to_all,
-        share_test_set=body.share_test_set,
-        caller=caller,
-    )
+    settings = PhaseSettings.parse(body.model_dump(exclude={"name", "share_test_set"}), benchmark=body.name)
+    bench = benchmarks.catalog.create(body.name, settings, share_test_set=body.share_test_set, caller=caller)
     return benchmarks.catalog.describe(bench, caller)
 
 

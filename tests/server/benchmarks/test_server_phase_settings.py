@@ -1,14 +1,16 @@
-"""A phase's range checks (its split, its cap on published entries, the title's and description's lengths) live
-in one place: the HTTP route, the admin command and the benchmark file refuse the same value with one sentence."""
+"""A phase's settings are checked in one place (its split, its cap on published entries, the title's and
+description's lengths, its dates): the HTTP route, the admin command and the benchmark file refuse the same value
+with one sentence, and what a file is applied with is exported as it was."""
 
 from __future__ import annotations
 
 import pytest
+import tomllib
 from server_helpers import ADMIN, app_client
 from server_phases import HOST, TWO_PHASES, phased_world
 
 from kitti_eval.cli import main
-from kitti_eval_server.benchmarks.benchmark_file import apply_benchmark_file
+from kitti_eval_server.benchmarks.benchmark_file import apply_benchmark_file, export_benchmark_file
 from kitti_eval_server.errors import BadRequest
 
 SPLIT = "split_percent is the public part of the test frames: more than 0, less than 100"
@@ -46,3 +48,28 @@ def test_the_route_the_admin_command_and_the_file_refuse_a_setting_alike(
         with pytest.raises(BadRequest) as refused:
             apply_benchmark_file(c.app.state.benchmarks.catalog, TWO_PHASES.replace(*edit), caller=HOST, source="f")
         assert refused.value.message.endswith(says)
+
+
+def test_a_phase_made_now_that_closed_before_is_refused_at_its_line_and_nothing_is_written(tmp_path) -> None:
+    """A phase the file does not give an opening opens when it is made: one whose closes_at has passed is
+    refused at that line before any phase is written (the first phase was made before its refusal)."""
+    past = TWO_PHASES.replace("split_percent = 50", "split_percent = 50\ncloses_at = 2020-01-01T00:00:00Z")
+    with app_client(tmp_path / "data", auth="accounts") as c:
+        phased_world(c, users=())
+        with pytest.raises(BadRequest) as refused:
+            apply_benchmark_file(c.app.state.benchmarks.catalog, past, caller=HOST, source="b.toml")
+        assert refused.value.message == "b.toml, line 17: the phase 'test' closes after it opens"
+        assert c.get("/v1/benchmarks/kitti-phases", headers=ADMIN).status_code == 404
+
+
+def test_a_quota_of_any_days_is_exported_as_it_was_applied(tmp_path) -> None:
+    """A quota's days are written back with every digit they were given: ``N/DAYS`` with the shortest form that
+    reads back as the same number (a file exported then applied changes nothing)."""
+    precise = TWO_PHASES.replace('quota = "2/1"', 'quota = "2/1000.875"')
+    with app_client(tmp_path / "data", auth="accounts") as c:
+        phased_world(c, users=())
+        catalog = c.app.state.benchmarks.catalog
+        apply_benchmark_file(catalog, precise, caller=HOST)
+        exported = export_benchmark_file(catalog, "kitti-phases", caller=HOST)
+        assert [p["quota"] for p in tomllib.loads(exported)["phases"]] == ["5/1", "2/1000.875"]
+        assert not apply_benchmark_file(catalog, exported, caller=HOST).changed
