@@ -48,7 +48,7 @@ __all__ = [
     "current_phase_of",
     "last_phase",
     "row_of",
-    "phase_row_or_none",
+    "addressed_row",
     "submission_row",
     "phase_views",
     "MAX_BENCHMARK_NAME",
@@ -149,8 +149,12 @@ def row_of(catalog: BenchmarkCatalog, name: str, phase: str, caller: Caller) -> 
     raise NotFound(f"the benchmark {name!r} has no phase named {echo(phase)}")
 
 
-def phase_row_or_none(catalog: BenchmarkCatalog, name: str, phase: str, caller: Caller) -> str | None:
-    """:func:`row_of`, None where it refuses (whoever asks before a request's body: the route refuses them)."""
+def addressed_row(catalog: BenchmarkCatalog, name: str, phase: str | None, caller: Caller) -> str | None:
+    """The row a route of the benchmark ``name`` addresses, for whoever asks before a request's body: the phase
+    ``phase``'s (:func:`row_of`; None where it refuses: the route refuses them), else the current phase's
+    (:func:`current_row`)."""
+    if phase is None:
+        return current_row(catalog, name)
     try:
         return row_of(catalog, name, phase, caller)
     except ApiError:

@@ -165,8 +165,12 @@ def disqualify(
     return benchmarks.submissions.disqualify(name, submission_id, caller=caller)
 
 
+#: the route of a submission (its refusals before its file: :mod:`kitti_eval_server.main`)
+SUBMISSIONS = "/{name}/submissions"
+
+
 @router.post(
-    "/{name}/submissions",
+    SUBMISSIONS,
     status_code=201,
     summary="Submit predictions on the test set",
     responses={
