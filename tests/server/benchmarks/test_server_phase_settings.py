@@ -4,6 +4,8 @@ with one sentence, and what a file is applied with is exported as it was."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import tomllib
 from server_helpers import ADMIN, app_client
@@ -73,3 +75,43 @@ def test_a_quota_of_any_days_is_exported_as_it_was_applied(tmp_path) -> None:
         exported = export_benchmark_file(catalog, "kitti-phases", caller=HOST)
         assert [p["quota"] for p in tomllib.loads(exported)["phases"]] == ["5/1", "2/1000.875"]
         assert not apply_benchmark_file(catalog, exported, caller=HOST).changed
+
+
+def test_the_route_the_admin_command_and_the_file_make_the_same_settings(tmp_path, monkeypatch, capsys) -> None:
+    """One phase made by each door with the same values holds the same settings (PhaseSettings, read from its
+    row), whatever the door's shapes: a JSON body, the command's options, a file's keys."""
+    data = tmp_path / "data"
+    for key in ("KITTI_EVAL_DATABASE_URL", "KITTI_EVAL_AUTH"):
+        monkeypatch.delenv(key, raising=False)
+    monkeypatch.setenv("KITTI_EVAL_DATA_DIR", str(data))
+    closes = "2031-03-01T12:00:00+00:00"
+    body = {
+        "title": "Doors",
+        "quota": "4/0.5",
+        "key": ["Car/bev/hard"],
+        "columns": ["Car/bev/hard", "Pedestrian/3d/easy/R11"],
+        "split_percent": 25,
+        "max_published": 3,
+        "public": True,
+        "opens_at": "2031-01-01T00:00:00Z",
+        "closes_at": closes,
+    }
+    flags = ["--title", "Doors", "--quota", "4/0.5", "--key", "Car/bev/hard", "--column", "Car/bev/hard"]
+    flags += ["--column", "Pedestrian/3d/easy/R11", "--split-percent", "25", "--max-published", "3", "--public"]
+    flags += ["--opens", "2031-01-01T00:00:00Z", "--closes", closes, "--share-test-set"]
+    phase = (
+        'name = "doors"\ntitle = "Doors"\npublic = true\nkey = "Car/bev/hard"\n'
+        'columns = ["Car/bev/hard", "Pedestrian/3d/easy/R11"]\n\n[[phases]]\nname = "main"\n'
+        'ground_truth = "other_gt"\nquota = "4/0.5"\nsplit_percent = 25\nmax_published = 3\n'
+        f"opens_at = 2031-01-01T00:00:00Z\ncloses_at = {closes}\n"
+    )
+    with app_client(data, auth="accounts", auth_max_failures=1_000_000) as c:
+        phased_world(c, users=())
+        made = c.post("/v1/benchmarks", json={"name": "routed", "ground_truth": "test_gt", **body}, headers=ADMIN)
+        assert made.status_code == 201, made.text
+        assert main(["admin", "benchmark", "add", "commanded", "--ground-truth", "test_gt", *flags]) == 0
+        catalog = c.app.state.benchmarks.catalog
+        apply_benchmark_file(catalog, phase, caller=HOST, source="f")
+        routed, commanded, filed = (catalog.named(n).settings for n in ("routed", "commanded", "doors"))
+        assert routed == commanded == dataclasses.replace(filed, ground_truth="test_gt")
+        assert routed.quota == (4, 0.5) and routed.key == ("Car/bev/hard/R40/strict",) and routed.split_percent == 25
