@@ -14,7 +14,6 @@ submissions now; else the last one that has opened; else the first.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import Any, Protocol
@@ -24,7 +23,7 @@ from ..errors import ApiError, NotFound, echo
 from ..store import BenchmarkRecord, BenchmarkStore
 from .phase_settings import check_phase_name
 from .rules import MAIN_PHASE, PHASE_SEPARATOR, Benchmark
-from .views import PHASE_FIELDS, pick
+from .views import phase_view
 
 
 class BenchmarkCatalog(Protocol):
@@ -159,32 +158,6 @@ def addressed_row(catalog: BenchmarkCatalog, name: str, phase: str | None, calle
         return row_of(catalog, name, phase, caller)
     except ApiError:
         return None
-
-
-def phase_view(bench: Benchmark, *, current: bool, names_test_set: bool, now: datetime | None = None) -> dict[str, Any]:
-    """A phase as those who see its benchmark read it (:data:`.views.PHASE_FIELDS`; its ground truth's name for
-    those the policy lets read it); its ``state`` as :mod:`.lifecycle` says at ``now``."""
-    now = now or datetime.now(timezone.utc)
-    n, days = bench.quota
-    values: Mapping[str, Any] = {
-        "name": bench.phase_name,
-        "current": current,
-        "ground_truth": bench.gt_name,
-        "opens_at": bench.opens_at.isoformat(),
-        "closes_at": bench.closes_at.isoformat() if bench.closes_at else None,
-        "state": bench.state(now).value,
-        "open": bench.is_open(now),
-        "closed": bench.is_closed(now),
-        "late_submissions": bench.late_submissions,
-        "open_labels": bench.open_labels,
-        "quota": {"submissions": n, "days": days},
-        "split_percent": bench.split_percent,
-        "revealed": bench.revealed,
-        "board": bench.board_part,
-        "max_published": bench.max_published,
-    }
-    fields = PHASE_FIELDS if names_test_set else tuple(f for f in PHASE_FIELDS if f != "ground_truth")
-    return pick(values, fields)
 
 
 def phase_views(catalog: BenchmarkCatalog, bench: Benchmark, caller: Caller) -> list[dict[str, Any]]:

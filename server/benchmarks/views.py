@@ -12,6 +12,7 @@ which frames are public (2**k detections in frame k make the count the binary li
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from datetime import datetime, timezone
 from typing import Any
 
 from ..store import SubmissionRecord
@@ -30,6 +31,7 @@ __all__ = [
     "OWN_TEAM_FIELDS",
     "pick",
     "benchmark_view",
+    "phase_view",
     "submission_view",
     "result_view",
 ]
@@ -188,6 +190,32 @@ def benchmark_view(
         "max_published": bench.max_published,
     }
     return pick(values, TEST_SET_FIELDS if names_test_set else BENCHMARK_FIELDS)
+
+
+def phase_view(bench: Benchmark, *, current: bool, names_test_set: bool, now: datetime | None = None) -> dict[str, Any]:
+    """A phase as those who see its benchmark read it (:data:`PHASE_FIELDS`; its ground truth's name for
+    those the policy lets read it); its ``state`` as :mod:`.lifecycle` says at ``now``."""
+    now = now or datetime.now(timezone.utc)
+    n, days = bench.quota
+    values: Mapping[str, Any] = {
+        "name": bench.phase_name,
+        "current": current,
+        "ground_truth": bench.gt_name,
+        "opens_at": bench.opens_at.isoformat(),
+        "closes_at": bench.closes_at.isoformat() if bench.closes_at else None,
+        "state": bench.state(now).value,
+        "open": bench.is_open(now),
+        "closed": bench.is_closed(now),
+        "late_submissions": bench.late_submissions,
+        "open_labels": bench.open_labels,
+        "quota": {"submissions": n, "days": days},
+        "split_percent": bench.split_percent,
+        "revealed": bench.revealed,
+        "board": bench.board_part,
+        "max_published": bench.max_published,
+    }
+    fields = PHASE_FIELDS if names_test_set else tuple(f for f in PHASE_FIELDS if f != "ground_truth")
+    return pick(values, fields)
 
 
 def result_view(record: SubmissionRecord, bench: Benchmark, *, everything: bool = False) -> dict[str, Any] | None:
