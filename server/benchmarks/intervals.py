@@ -145,13 +145,13 @@ class Intervals:
         """The key of the predictions ``dt`` under the benchmark's resamples of each part of its test set (a
         scoring computes the same beside its documents, from the same plans)."""
         config = bench.options().config()
-        keys = [ValueKey.parse(k) for k in bench.key]
+        key_columns = [ValueKey.parse(k) for k in bench.key]  # the ranking key's columns
         out = []
         for part, frames in part_frames(bench.split_seed, gt.frame_ids, bench.split_percent).items():
             if not frames:
                 continue
             g, d = (gt, dt) if part == "all" else (gt.subset(frames), dt.subset(frames))
-            values = resampled_key(plan_evaluation(g, d, config), keys, self.board_weights(bench, len(frames)))
+            values = resampled_key(plan_evaluation(g, d, config), key_columns, self.board_weights(bench, len(frames)))
             out.append(self.resampled_key_record(bench, part, values, len(frames)))
         return out
 
@@ -161,17 +161,17 @@ class Intervals:
         the job; nothing is written when the submission was scored again meanwhile, which kept its own)."""
         sid = str(job.payload["submission_id"])
         scored_at = datetime.fromisoformat(str(job.payload["scored_at"]))
-        row = self.benchmark_store.get_submission(sid)
-        if row is None or row.status != "scored" or row.scored_at != scored_at:
+        submission = self.benchmark_store.get_submission(sid)
+        if submission is None or submission.status != "scored" or submission.scored_at != scored_at:
             return sid, lambda conn: None  # gone, or scored again: that scoring kept its own
-        bench = self.catalog.named(row.benchmark)
+        bench = self.catalog.named(submission.benchmark)
         record, gt = self.catalog.ground_truth_of(bench)
-        if record.sha256 != row.gt_sha256:
+        if record.sha256 != submission.gt_sha256:
             return sid, lambda conn: None  # the test set changed: a rescoring follows
-        keys = self.resampled_keys_of(bench, gt, self.predictions_of(job, row, gt))
+        resampled = self.resampled_keys_of(bench, gt, self.predictions_of(job, submission, gt))
 
         def write(conn: Any) -> None:
-            self.benchmark_store.replace_resampled_keys_in(conn, sid, scored_at, keys)
+            self.benchmark_store.replace_resampled_keys_in(conn, sid, scored_at, resampled)
 
         return sid, write
 

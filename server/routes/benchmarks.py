@@ -207,10 +207,10 @@ async def submit(
 ) -> JSONResponse:
     """Checked, counted against the quota and accepted at once (the acceptance time is the submission's); its
     scoring is a job, run by the next free worker."""
-    key = parse_key(idempotency_key)
+    checked_key = parse_key(idempotency_key)  # the Idempotency-Key header, checked
     file = FileIn(predictions.file, predictions.filename)
     # refusals: 422 problems, 429 retry_at
-    job = await service.accept(lambda: benchmarks.submissions.submit(row, file, caller, idempotency_key=key))
+    job = await service.accept(lambda: benchmarks.submissions.submit(row, file, caller, idempotency_key=checked_key))
     ended = await service.outcome(job.id, wait)
     if ended.state != "done":
         return await still_pending(service.jobs, ended)
