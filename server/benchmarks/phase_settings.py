@@ -27,6 +27,7 @@ from datetime import date, datetime, timezone
 from typing import Any
 
 from kitti_eval.core.protocol import THRESHOLD_SETS
+from kitti_eval.errors import ConfigError
 
 from ..errors import BadRequest, echo
 from ..evaluations.evaluator import EvalOptions
@@ -74,6 +75,8 @@ def scoring_options(
     options = EvalOptions(protocol=protocol, classes=classes, threshold_sets=threshold_sets)
     config = options.config()  # the library's checks of the options
     class_names, sets = list(config.classes), list(config.threshold_sets)
+    if not sets:
+        raise ConfigError(f"no threshold set to evaluate; expected one of {list(THRESHOLD_SETS)}")
     keys = [parse_column(k, class_names, sets) for k in key if k.strip()] or [DEFAULT_KEY]
     wanted = list(columns) or [f"{c}/3d/{d}" for c in class_names for d in DIFFICULTIES]
     cols = list(dict.fromkeys(parse_column(c, class_names, sets) for c in wanted if c.strip()))
@@ -147,7 +150,7 @@ class PhaseSettings:
     ground_truth: str = _setting(_STR, scope="phase", column="gt_name", said="always")
     opens_at: datetime | None = _setting(_TIME, scope="phase", column="opens_at", default=None, said="always")
     closes_at: datetime | None = _setting(_TIME, scope="phase", column="closes_at", default=None)
-    quota: tuple[int, float] = _setting((str, list, tuple), scope="phase", default=(3, 1.0), said="always")
+    quota: tuple[int, float] = _setting(_STR, scope="phase", default=(3, 1.0), said="always")  # N/DAYS
     split_percent: float | None = _setting(_NUMBER, scope="phase", default=None)
     max_published: int | None = _setting(_INT, scope="phase", column="max_published", default=None)
     late_submissions: bool = _setting(bool, scope="phase", default=False)
@@ -163,8 +166,9 @@ class PhaseSettings:
         except BadRequest as e:  # said at the list that holds the column refused
             listed = "columns" if any(echo(c) in e.message for c in self.columns) or "columns" in e.message else "key"
             raise SettingRefused(e.message, listed if "column" in e.message else "classes") from None
-        except ValueError as e:  # the library's refusal of an option
-            raise SettingRefused(str(e), "classes") from None
+        except (ConfigError, ValueError) as e:  # the library's refusal of an option
+            said = "threshold_sets" if "threshold set" in str(e) else "classes"
+            raise SettingRefused(str(e), said) from None
         set_(self, "classes", scoring["classes"])
         set_(self, "threshold_sets", scoring["sets"])
         set_(self, "key", tuple(scoring["key"]))
@@ -210,7 +214,7 @@ class PhaseSettings:
                 if not all(isinstance(k, str) for k in given[name]):
                     raise SettingRefused("key and columns are strings: CLASS/METRIC/DIFFICULTY[/R40|R11[/SET]]", name)
                 given[name] = tuple(given[name])
-        if isinstance(given.get("quota"), str):
+        if "quota" in given:
             with _Checking()("quota"):
                 given["quota"] = parse_quota(given["quota"])
         for name in ("opens_at", "closes_at"):
@@ -218,6 +222,9 @@ class PhaseSettings:
                 d = given[name]
                 given[name] = datetime(d.year, d.month, d.day, tzinfo=timezone.utc)
         given["title"] = given.get("title") or benchmark
+        for f in dataclasses.fields(cls):
+            if f.name not in given and f.default is dataclasses.MISSING:
+                raise SettingRefused(f"{_file_key(f)} is required: {_kind_words(f.metadata['kind'])}", f.name)
         if "split_percent" in given:
             given["split_percent"] = float(given["split_percent"])
         return cls(**given)
@@ -314,7 +321,7 @@ def _field(name: str) -> dataclasses.Field[Any]:
 def _kind_words(kind: type | tuple[type, ...]) -> str:
     names = {str: "a string", bool: "true or false", int: "a whole number", list: "a list", float: "a number"}
     kinds = kind if isinstance(kind, tuple) else (kind,)
-    said = [names[k] for k in kinds if k in names]
+    said = [names[k] for k in kinds if k in names and not (k is int and float in kinds)]
     return " or ".join(dict.fromkeys(said))
 
 

@@ -115,3 +115,18 @@ def test_the_route_the_admin_command_and_the_file_make_the_same_settings(tmp_pat
         routed, commanded, filed = (catalog.named(n).settings for n in ("routed", "commanded", "doors"))
         assert routed == commanded == dataclasses.replace(filed, ground_truth="test_gt")
         assert routed.quota == (4, 0.5) and routed.key == ("Car/bev/hard/R40/strict",) and routed.split_percent == 25
+
+
+def test_a_benchmark_without_threshold_sets_or_classes_is_refused_by_every_door(tmp_path) -> None:
+    """An empty list of threshold sets or classes is a refusal naming the setting (it was an index error, a 500
+    from the route, in the column's parsing)."""
+    with app_client(tmp_path / "data", auth="accounts") as c:
+        phased_world(c, users=())
+        for field, says in (("threshold_sets", "no threshold set to evaluate"), ("classes", "no classes")):
+            body = {"name": "b", "ground_truth": "test_gt", field: ""}
+            refused = c.post("/v1/benchmarks", json=body, headers=ADMIN)
+            assert refused.status_code == 422 and says in refused.json()["error"]["message"], refused.text
+            with pytest.raises(BadRequest) as in_file:
+                edited = TWO_PHASES.replace("team_size = 3", f'team_size = 3\n{field} = ""')
+                apply_benchmark_file(c.app.state.benchmarks.catalog, edited, caller=HOST, source="f")
+            assert in_file.value.message.startswith("f, line 6: ") and says in in_file.value.message

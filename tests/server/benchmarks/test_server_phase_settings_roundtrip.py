@@ -16,7 +16,12 @@ from server_phases import HOST, phased_world
 
 from kitti_eval.core.protocol import DIFFICULTIES, METRICS, RECALL_MODES, THRESHOLD_SETS
 from kitti_eval_server.benchmarks.benchmark_file import apply_benchmark_file, export_benchmark_file
-from kitti_eval_server.benchmarks.phase_settings import BENCHMARK_SETTINGS, PHASE_SETTINGS, PhaseSettings
+from kitti_eval_server.benchmarks.phase_settings import (
+    BENCHMARK_SETTINGS,
+    PHASE_SETTINGS,
+    PhaseSettings,
+    SettingRefused,
+)
 from kitti_eval_server.store import BenchmarkRecord
 
 CLASSES = ("Car", "Pedestrian", "Cyclist")
@@ -130,3 +135,28 @@ def test_a_file_applied_then_exported_is_the_file_applied(tmp_path) -> None:
 
         round_trip()
         assert c.get("/v1/benchmarks/rt", headers=ADMIN).status_code == 200
+
+
+_TOML_VALUES = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(-(2**63), 2**63 - 1)
+    | st.floats()
+    | st.text(max_size=20)
+    | st.sampled_from(["3/1", "Car/3d/easy", "2031-01-01T00:00:00Z", "official", "strict", "0/0", "1/nan"])
+    | st.datetimes(timezones=st.just(timezone.utc))
+    | st.dates(),
+    lambda inner: st.lists(inner, max_size=3),
+    max_leaves=6,
+)
+
+
+@settings(max_examples=300)
+@given(st.dictionaries(st.sampled_from([f.name for f in dataclasses.fields(PhaseSettings)]), _TOML_VALUES))
+def test_any_value_a_door_gives_is_a_setting_or_a_refusal_naming_it(values: dict[str, object]) -> None:
+    """Whatever a file's keys (or a body's fields) hold, the settings are made or refused with SettingRefused
+    naming one of them: never another exception."""
+    try:
+        PhaseSettings.parse({"ground_truth": "g", **values}, benchmark="b")
+    except SettingRefused as refused:
+        assert refused.setting in {f.name for f in dataclasses.fields(PhaseSettings)}
