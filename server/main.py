@@ -28,7 +28,7 @@ from kitti_eval.core.cpus import available_cpus
 from .access.auth import CALLER_KEY, AuthMiddleware, Door, access_of, flat_routes
 from .access.headers import SecurityHeaders
 from .access.policy import Access, Caller
-from .benchmarks.phases import phase_row_or_none
+from .benchmarks.phases import addressed_row
 from .errors import ApiError, StartupRefused, install_error_handlers
 from .idempotency import parse_key
 from .middleware import (
@@ -203,10 +203,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     return app
 
 
-#: the route whose refusals (a used quota, a full queue) are answered before its file
-SUBMISSIONS = "/v1/benchmarks/{name}/submissions"
-#: and a phase's (its quota, the team's in a team)
-PHASE_SUBMISSIONS = "/v1/benchmarks/{name}/phases/{phase}/submissions"
+#: the route whose refusals (a used quota, a full queue) are answered before its file, and a phase's (its quota,
+#: the team's in a team): the routes' own paths
+SUBMISSIONS = benchmarks.router.prefix + benchmarks.SUBMISSIONS
+PHASE_SUBMISSIONS = phases.router.prefix + phases.PHASE_SUBMISSIONS
 
 
 def _declared(app: FastAPI, method: str, path: str) -> Access:
@@ -228,10 +228,9 @@ def _submission_refused(service: Service, access: Callable[[], Access]) -> Befor
             idempotency_key = parse_key(key)
         except ApiError:
             return None  # the route refuses it, as always
-        name = params["name"]
-        if "phase" in params:  # the phase's row, for a caller who sees the benchmark (the route answers the others)
-            name = phase_row_or_none(service.benchmarks.catalog, name, params["phase"], admitted) or ""
-        return service.benchmarks.submissions.refused_now(name, admitted, size, idempotency_key) if name else None
+        # the phase's row, for a caller who sees the benchmark (the route answers the others); else the current one
+        row = addressed_row(service.benchmarks.catalog, params["name"], params.get("phase"), admitted)
+        return service.benchmarks.submissions.refused_now(row, admitted, size, idempotency_key) if row else None
 
     return check
 

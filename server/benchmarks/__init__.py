@@ -37,7 +37,8 @@ admins' actions on them), :mod:`.intervals` (the resampled keys: computed, kept,
 :mod:`.submissions` (accepting, scoring, publishing), :mod:`.leaderboard` (ranking, CSV), :mod:`.views` (what
 a caller is shown, from allow-lists), :mod:`.markdown` (the description as HTML), :mod:`.phases` (a benchmark's
 phases, each a benchmark row of its own, and which one a route addresses), :mod:`.teams` (teams, and the team's
-quota) and :mod:`.benchmark_file` (a benchmark defined by a TOML file: applied, exported).
+quota), :mod:`.phase_settings` (a phase's settings: one frozen type, checked once, stored by one rule) and
+:mod:`.benchmark_file` (a benchmark defined by a TOML file: applied, exported).
 """
 
 from __future__ import annotations
@@ -54,11 +55,12 @@ from ..ground_truths.cache import GroundTruths
 from ..idempotency import Idempotency
 from ..jobs.queue import JobQueue
 from ..store import Store
+from .benchmark import Benchmark
 from .catalog import BenchmarkCatalog
 from .intervals import Intervals
 from .leaderboard import Leaderboard
 from .markdown import render_markdown
-from .rules import DEFAULT_KEY, Benchmark, in_public_part, key_value, parse_column, parse_quota
+from .rules import DEFAULT_KEY, in_public_part, key_value, parse_column, parse_quota
 from .submissions import InvalidSubmission, QuotaExceeded, Scoring, Submissions
 from .teams import Teams
 

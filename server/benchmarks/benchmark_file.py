@@ -40,61 +40,30 @@ import secrets
 import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
-from datetime import date, datetime, timezone
+from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import tomli_w
 
-from kitti_eval.core.protocol import THRESHOLD_SETS
-
 from ..access.accounts import Accounts
 from ..access.policy import Caller
 from ..errors import BadRequest, Conflict, NotFound, echo
-from .catalog import scoring_options
+from .benchmark import Benchmark
 from .lifecycle import PhaseState, check_change, state_of
+from .phase_settings import BENCHMARK_SETTINGS, PHASE_SETTINGS, PhaseSettings, SettingRefused, field_of
 from .phases import MAX_BENCHMARK_NAME, PhaseOf, check_phase_name, phase_list, phase_row
-from .rules import (
-    DEFAULT_KEY,
-    MAIN_PHASE,
-    Benchmark,
-    check_max_published,
-    check_split_percent,
-    check_texts,
-    parse_quota,
-    parse_time,
-)
+from .rules import MAIN_PHASE
 
 if TYPE_CHECKING:
     from .catalog import BenchmarkCatalog
 
 __all__ = ["BENCHMARK_KEYS", "PHASE_KEYS", "Applied", "apply_benchmark_file", "export_benchmark_file"]
 
-BENCHMARK_KEYS = (
-    "name",
-    "title",
-    "description",
-    "public",
-    "open_to_all",
-    "protocol",
-    "classes",
-    "threshold_sets",
-    "key",
-    "columns",
-    "team_size",
-    "phases",
-)
-PHASE_KEYS = (
-    "name",
-    "ground_truth",
-    "opens_at",
-    "closes_at",
-    "quota",
-    "split_percent",
-    "max_published",
-    "late_submissions",
-)
+#: the keys of a benchmark file: the benchmark's name, its settings (:mod:`.phase_settings`) and its phases
+BENCHMARK_KEYS = ("name", *BENCHMARK_SETTINGS, "phases")
+#: the keys of a phase's table
+PHASE_KEYS = PHASE_SETTINGS
 _MAX_PHASES = 10
-_MAX_TEAM = 50
 _KEY_LINE = re.compile(r"""^\s*("(?:[^"\\]|\\.)*"|'[^']*'|[A-Za-z0-9_-]+)\s*=""")
 _PHASES_HEADER = re.compile(r"^\s*\[\[\s*phases\s*\]\]")
 _TABLE_HEADER = re.compile(r"^\s*\[")
@@ -138,28 +107,19 @@ class _Lines:
         return found
 
 
-@dataclass
+@dataclass(frozen=True)
 class _Phase:
     index: int
-    name: str
-    ground_truth: str
-    opens_at: datetime | None
-    closes_at: datetime | None
-    quota: tuple[int, float]
-    split_percent: float | None
-    max_published: int | None
-    late_submissions: bool
+    settings: PhaseSettings
+
+    @property
+    def name(self) -> str:
+        return self.settings.phase
 
 
 @dataclass
 class _Spec:
     name: str
-    title: str
-    description: str
-    public: bool
-    open_to_all: bool
-    scoring: dict[str, Any]
-    team_size: int
     phases: list[_Phase] = field(default_factory=list)
 
 
@@ -206,14 +166,6 @@ class _Reader:
         return value
 
 
-def _time(value: object) -> str | datetime | None:
-    if isinstance(value, datetime):
-        return value if value.tzinfo else value.replace(tzinfo=timezone.utc)
-    if isinstance(value, date):
-        return datetime(value.year, value.month, value.day, tzinfo=timezone.utc)
-    return None if value is None else str(value)
-
-
 def _parse(text: str, source: str) -> tuple[_Spec, _Reader]:
     try:
         doc = tomllib.loads(text)
@@ -229,36 +181,8 @@ def _parse(text: str, source: str) -> tuple[_Spec, _Reader]:
     r.checked(Accounts.check_name, name, "benchmark", key="name")
     if len(name) > MAX_BENCHMARK_NAME:
         raise r.refuse(f"a benchmark defined by a file has a name of at most {MAX_BENCHMARK_NAME} characters", "name")
-    title = r.value(doc, "title", str, None, name) or name
-    description = r.value(doc, "description", str, None, "")
-    r.checked(check_texts, title, description, key="description")
-    key = r.value(doc, "key", (str, list), None, [DEFAULT_KEY])
-    keys = [key] if isinstance(key, str) else key
-    columns = r.value(doc, "columns", list, None, [])
-    if not all(isinstance(k, str) for k in [*keys, *columns]):
-        raise r.refuse("key and columns are strings: CLASS/METRIC/DIFFICULTY[/R40|R11[/SET]]", "key")
-    protocol = r.value(doc, "protocol", str, None, "official")
-    if protocol not in ("official", "openpcdet"):
-        raise r.refuse('protocol is "official" or "openpcdet"', "protocol")
-    classes = r.value(doc, "classes", str, None, "Car,Pedestrian,Cyclist")
-    sets = r.value(doc, "threshold_sets", str, None, ",".join(THRESHOLD_SETS))
-    try:
-        scoring = scoring_options(protocol, classes, sets, keys, columns)
-    except (BadRequest, ValueError) as e:
-        which = "columns" if "column" in str(e) and "columns" in doc else "key" if "column" in str(e) else "classes"
-        raise r.refuse(getattr(e, "message", str(e)), which) from None
-    team_size = r.value(doc, "team_size", int, None, 1)
-    if not 1 <= team_size <= _MAX_TEAM:
-        raise r.refuse(f"team_size is 1 (no teams) to {_MAX_TEAM}", "team_size")
-    spec = _Spec(
-        name=name,
-        title=title,
-        description=description,
-        public=r.value(doc, "public", bool, None, False),
-        open_to_all=r.value(doc, "open_to_all", bool, None, False),
-        scoring=scoring,
-        team_size=team_size,
-    )
+    shared = {field_of("benchmark", k): doc[k] for k in BENCHMARK_SETTINGS if k in doc}
+    spec = _Spec(name=name)
     phases = doc.get("phases")
     if not isinstance(phases, list) or not phases or not all(isinstance(p, dict) for p in phases):
         raise r.refuse("a benchmark file has one [[phases]] table or more", "phases")
@@ -274,42 +198,25 @@ def _parse(text: str, source: str) -> tuple[_Spec, _Reader]:
         r.checked(check_phase_name, phase_name, key="name", phase=i)
         if any(p.name == phase_name for p in spec.phases):
             raise r.refuse(f"two phases are named {phase_name!r}", "name", i)
-        gt = r.value(table, "ground_truth", str, i, None)
-        if gt is None:
+        if "ground_truth" not in table:
             raise r.refuse(f"the phase {phase_name!r} has no ground_truth", None, i)
-        opens = r.checked(parse_time, _time(table.get("opens_at")), "opens_at", key="opens_at", phase=i)
-        closes = r.checked(parse_time, _time(table.get("closes_at")), "closes_at", key="closes_at", phase=i)
-        if opens is not None and closes is not None and closes <= opens:
-            raise r.refuse(f"the phase {phase_name!r} closes after it opens", "closes_at", i)
-        quota = r.checked(parse_quota, r.value(table, "quota", str, i, "3/1"), key="quota", phase=i)
-        split = r.checked(
-            check_split_percent, r.value(table, "split_percent", (int, float), i, None), key="split_percent", phase=i
-        )
-        cap = r.checked(
-            check_max_published, r.value(table, "max_published", int, i, None), key="max_published", phase=i
-        )
-        spec.phases.append(
-            _Phase(
-                index=i,
-                name=phase_name,
-                ground_truth=gt,
-                opens_at=opens,
-                closes_at=closes,
-                quota=quota,
-                split_percent=split,
-                max_published=cap,
-                late_submissions=r.value(table, "late_submissions", bool, i, False),
-            )
-        )
+        own = {field_of("phase", k): v for k, v in table.items()}
+        try:  # the settings' checks, once (:class:`.phase_settings.PhaseSettings`)
+            settings = PhaseSettings.parse({**shared, **own}, benchmark=name)
+        except SettingRefused as e:
+            at = i if e.setting in own else None
+            raise r.refuse(e.message, PhaseSettings.file_key(e.setting), at) from None
+        spec.phases.append(_Phase(index=i, settings=settings))
     for before, after in zip(spec.phases, spec.phases[1:]):
-        if before.closes_at is not None and after.opens_at is not None and after.opens_at < before.closes_at:
+        was, then = before.settings, after.settings
+        if was.closes_at is not None and then.opens_at is not None and then.opens_at < was.closes_at:
             raise r.refuse(
-                f"the phase {after.name!r} opens at {after.opens_at.isoformat()}, before the phase {before.name!r} "
-                f"closes ({before.closes_at.isoformat()}): phases follow one another",
+                f"the phase {after.name!r} opens at {then.opens_at.isoformat()}, before the phase {before.name!r} "
+                f"closes ({was.closes_at.isoformat()}): phases follow one another",
                 "opens_at",
                 after.index,
             )
-        if before.opens_at is not None and after.opens_at is not None and after.opens_at < before.opens_at:
+        if was.opens_at is not None and then.opens_at is not None and then.opens_at < was.opens_at:
             raise r.refuse(f"the phase {after.name!r} opens before the phase {before.name!r}", "opens_at", after.index)
     return spec, r
 
@@ -323,55 +230,33 @@ def _check_against_service(catalog: BenchmarkCatalog, spec: _Spec, r: _Reader) -
     if first is not None:
         own_rows |= {row for _, row in phase_list(first)}
     for p in spec.phases:
+        gt = p.settings.ground_truth
         try:
-            record = catalog.ground_truths.record(p.ground_truth)
+            record = catalog.ground_truths.record(gt)
         except NotFound:
-            raise r.refuse(f"no ground truth named {echo(p.ground_truth)}", "ground_truth", p.index) from None
-        if p.ground_truth in seen:
+            raise r.refuse(f"no ground truth named {echo(gt)}", "ground_truth", p.index) from None
+        if gt in seen:
             raise r.refuse(
-                f"the phases {seen[p.ground_truth]!r} and {p.name!r} are on one ground truth: each phase has a "
-                "set of its own",
+                f"the phases {seen[gt]!r} and {p.name!r} are on one ground truth: each phase has a set of its own",
                 "ground_truth",
                 p.index,
             )
-        seen[p.ground_truth] = p.name
-        if p.split_percent is not None and not record.sealed:
+        seen[gt] = p.name
+        if p.settings.split_percent is not None and not record.sealed:
             raise r.refuse(
-                f"the phase {p.name!r} asks for a split of {p.ground_truth!r}, which is not sealed: a split hides "
+                f"the phase {p.name!r} asks for a split of {gt!r}, which is not sealed: a split hides "
                 "a sealed test set's private part (register it with sealed=true, or drop split_percent)",
                 "split_percent",
                 p.index,
             )
-        others = sorted({b.shown_name for b in catalog.using_ground_truth(p.ground_truth) if b.name not in own_rows})
+        others = sorted({b.shown_name for b in catalog.using_ground_truth(gt) if b.name not in own_rows})
         if others:
             raise r.refuse(
-                f"the ground truth {p.ground_truth!r} is already the test set of {', '.join(others)}: a second "
+                f"the ground truth {gt!r} is already the test set of {', '.join(others)}: a second "
                 "benchmark on it gives every participant a second quota on the same labels",
                 "ground_truth",
                 p.index,
             )
-
-
-def _wanted(spec: _Spec, p: _Phase, row: Benchmark | None) -> dict[str, Any]:
-    """The row's values the file asks for (those a file sets), as the row keeps them."""
-    count, days = p.quota
-    return {
-        "title": spec.title,
-        "description": spec.description,
-        "public": spec.public,
-        "opens_at": p.opens_at or (row.opens_at if row is not None else None),
-        "closes_at": p.closes_at,
-        "max_published": p.max_published,
-        "quota": [count, days],
-        "open_to_all": spec.open_to_all,
-        "team_size": spec.team_size,
-        "late_submissions": p.late_submissions,
-        "phase": p.name,
-    }
-
-
-def _scoring_of(bench: Benchmark) -> dict[str, Any]:
-    return {k: bench.config.get(k) for k in ("protocol", "classes", "sets", "key", "columns")}
 
 
 def apply_benchmark_file(catalog: BenchmarkCatalog, text: str, *, caller: Caller, source: str = "the file") -> Applied:
@@ -403,8 +288,9 @@ def apply_benchmark_file(catalog: BenchmarkCatalog, text: str, *, caller: Caller
     plans: list[tuple[_Phase, str, dict[str, Any]]] = []
     for p, (_, row) in zip(spec.phases, order):
         record = rows[p.name]
-        if record is None:
-            plans.append((p, row, {}))
+        if record is None:  # made opening now unless the file says when: refused here if it closed before
+            opening = p.settings.opens_at or datetime.now(timezone.utc)
+            plans.append((replace(p, settings=_settings(r, p, opens_at=opening)), row, {}))
             continue
         bench = Benchmark.from_record(record)
         changes = _changes(catalog, spec, p, bench, order, r)
@@ -412,32 +298,8 @@ def apply_benchmark_file(catalog: BenchmarkCatalog, text: str, *, caller: Caller
     lines = []
     for p, row, changes in plans:
         if rows[p.name] is None:
-            catalog.create(
-                spec.name,
-                ground_truth=p.ground_truth,
-                title=spec.title,
-                description=spec.description,
-                protocol=spec.scoring["protocol"],
-                classes=spec.scoring["classes"],
-                threshold_sets=spec.scoring["sets"],
-                key=spec.scoring["key"],
-                columns=spec.scoring["columns"],
-                quota=f"{p.quota[0]}/{p.quota[1]:g}",
-                public=spec.public,
-                opens_at=p.opens_at,
-                closes_at=p.closes_at,
-                split_percent=p.split_percent,
-                max_published=p.max_published,
-                open_to_all=spec.open_to_all,
-                caller=caller,
-                phase=PhaseOf(
-                    row=row,
-                    name=p.name,
-                    late_submissions=p.late_submissions,
-                    phases=order if p.index == 0 else (),
-                    team_size=spec.team_size,
-                ),
-            )
+            listed = order if p.index == 0 else ()
+            catalog.create(spec.name, p.settings, caller=caller, phase=PhaseOf(row=row, phases=listed))
             lines.append(f"phase {p.name}: created")
         elif changes:
             catalog.benchmark_store.update_benchmark(row, **changes)
@@ -464,6 +326,15 @@ def _said(changes: dict[str, Any], before: Mapping[str, Any]) -> str:
     return ", ".join(said)
 
 
+def _settings(r: _Reader, p: _Phase, *, opens_at: datetime) -> PhaseSettings:
+    """The phase's settings opening at ``opens_at`` (the file's, or when the file does not say: now for a phase
+    made, its row's for one that exists), refused at the file's line when it closes before."""
+    try:
+        return replace(p.settings, opens_at=opens_at)
+    except SettingRefused as e:
+        raise r.refuse(e.message, PhaseSettings.file_key(e.setting), p.index) from None
+
+
 def _changes(
     catalog: BenchmarkCatalog,
     spec: _Spec,
@@ -472,28 +343,17 @@ def _changes(
     order: tuple[tuple[str, str], ...],
     r: _Reader,
 ) -> dict[str, Any]:
-    """The columns of the phase's row to write (empty: the row is as the file says)."""
-    wanted = _wanted(spec, p, bench)
-    config = dict(bench.config)
-    row: dict[str, Any] = {}
-    for column in ("title", "description", "public", "opens_at", "closes_at", "max_published"):
-        if getattr(bench, column) != wanted[column]:
-            row[column] = wanted[column]
-    # what a row made with ``benchmark add`` holds without saying it: one phase, ``main``, no teams, none late
-    unsaid = {"open_to_all": False, "team_size": 1, "late_submissions": False, "phase": MAIN_PHASE}
-    for k in ("quota", "open_to_all", "team_size", "late_submissions", "phase"):
-        now = config.get(k, unsaid.get(k))
-        if k == "quota":
-            now = [int(now[0]), float(now[1])] if now else None
-        if now != wanted[k]:
-            config[k] = wanted[k]
+    """The columns of the phase's row to write (empty: the row is as the file says): the settings that differ
+    from the row's, stored by their rule (:meth:`.phase_settings.PhaseSettings.stored`)."""
+    wanted = _settings(r, p, opens_at=p.settings.opens_at or bench.opens_at)  # its opening stays unless said
+    changed = set(wanted.changed(PhaseSettings.of_row(bench)))
+    row, settings_config = wanted.stored(changed)
+    config = {**bench.config, **settings_config}
     phases = [list(x) for x in order]
     if p.index == 0 and config.get("phases", [[config.get("phase", MAIN_PHASE), bench.name]]) != phases:
         config["phases"] = phases
-    record = catalog.ground_truths.record(p.ground_truth)
-    scoring_changed = _scoring_of(bench) != spec.scoring
-    split_changed = bench.split_percent != p.split_percent
-    gt_changed = bench.gt_name != p.ground_truth
+    gt_changed, split_changed = "ground_truth" in changed, "split_percent" in changed
+    scoring_changed = bool(changed & {"protocol", "classes", "threshold_sets", "key", "columns"})
     if scoring_changed or split_changed or gt_changed:
         what = "its ground truth" if gt_changed else "its split" if split_changed else "its scoring"
         if catalog.benchmark_store.list_submissions(bench.name):
@@ -501,14 +361,12 @@ def _changes(
             raise r.refuse(
                 f"the phase {p.name!r} has submissions: {what} no longer changes (they were scored on it)", key, p.index
             )
-        config.update(spec.scoring)
-        config["split_percent"] = p.split_percent
-        open_labels = p.split_percent is None and not record.sealed
+        record = catalog.ground_truths.record(wanted.ground_truth)
         config.pop("open_labels", None)
-        if open_labels:
+        if wanted.split_percent is None and not record.sealed:
             config["open_labels"] = True
         if split_changed:
-            row["split_seed"] = secrets.token_hex(16) if p.split_percent is not None else None
+            row["split_seed"] = secrets.token_hex(16) if wanted.split_percent is not None else None
         row["gt_name"] = record.name
         row["project"] = record.project
     if config != dict(bench.config):
@@ -524,41 +382,17 @@ def _changes(
 
 
 def export_benchmark_file(catalog: BenchmarkCatalog, name: str, *, caller: Caller) -> str:
-    """The file that defines the benchmark ``name`` as it is now (applying it changes nothing)."""
+    """The file that defines the benchmark ``name`` as it is now (applying it changes nothing): its settings as
+    :meth:`.phase_settings.PhaseSettings.file_keys` says them, the benchmark's from its first row."""
     catalog.policy.require_admin(caller)
     first = catalog.benchmark_store.get_benchmark(name)
     if first is None or Benchmark.from_record(first).is_later_phase:
         raise NotFound(f"no benchmark named {echo(name)}")
-    bench = Benchmark.from_record(first)
-    doc: dict[str, Any] = {"name": bench.name, "title": bench.title}
-    if bench.description:
-        doc["description"] = bench.description
-    doc["public"] = bench.public
-    if bench.open_to_all:
-        doc["open_to_all"] = True
-    doc["protocol"] = bench.config["protocol"]
-    doc["classes"] = bench.config["classes"]
-    doc["threshold_sets"] = bench.config["sets"]
-    doc["key"] = bench.key
-    doc["columns"] = bench.columns
-    doc["team_size"] = bench.team_size
+    doc: dict[str, Any] = {"name": first.name, **PhaseSettings.of_row(first).file_keys("benchmark")}
     phases = []
-    for phase, row in phase_list(first):
+    for _, row in phase_list(first):
         record = first if row == first.name else catalog.benchmark_store.get_benchmark(row)
-        if record is None:
-            continue
-        b = Benchmark.from_record(record)
-        n, days = b.quota
-        out: dict[str, Any] = {"name": phase, "ground_truth": b.gt_name, "opens_at": b.opens_at}
-        if b.closes_at is not None:
-            out["closes_at"] = b.closes_at
-        out["quota"] = f"{n}/{days:g}"
-        if b.split_percent is not None:
-            out["split_percent"] = int(b.split_percent) if b.split_percent.is_integer() else b.split_percent
-        if b.max_published is not None:
-            out["max_published"] = b.max_published
-        if b.late_submissions:
-            out["late_submissions"] = True
-        phases.append(out)
+        if record is not None:
+            phases.append(PhaseSettings.of_row(record).file_keys("phase"))
     doc["phases"] = phases
     return tomli_w.dumps(doc)

@@ -4,12 +4,11 @@ revealing."""
 from __future__ import annotations
 
 import secrets
-from collections.abc import Sequence
+from dataclasses import replace
 from datetime import datetime, timezone
 from typing import Any
 
 from kitti_eval.core.frames import Annotations
-from kitti_eval.core.protocol import THRESHOLD_SETS
 
 from ..access.accounts import Accounts
 from ..access.audit import Audit
@@ -17,48 +16,14 @@ from ..access.policy import Caller, Policy
 from ..errors import BadRequest, Conflict, NotFound, echo
 from ..ground_truths.cache import GroundTruths
 from ..jobs.queue import JobQueue
-from ..scoring.evaluator import EvalOptions
 from ..store import BenchmarkRecord, BenchmarkStore, GroundTruthRecord
+from .benchmark import Benchmark
 from .lifecycle import check_change
+from .phase_settings import PhaseSettings
 from .phases import PhaseOf, current_phase_of, phase_views
-from .rules import (
-    DEFAULT_KEY,
-    DIFFICULTIES,
-    Benchmark,
-    check_max_published,
-    check_split_percent,
-    check_texts,
-    parse_column,
-    parse_quota,
-    parse_time,
-)
 from .views import benchmark_view
 
-__all__ = ["BenchmarkCatalog", "scoring_options"]
-
-_MAX_COLUMNS = 60
-
-
-def scoring_options(
-    protocol: str, classes: str, threshold_sets: str, key: Sequence[str], columns: Sequence[str]
-) -> dict[str, Any]:
-    """A benchmark's scoring as its row keeps it (``protocol``, ``classes``, ``sets``, ``key``, ``columns``),
-    checked and normalised: the library's checks of the options, each column to its five parts."""
-    options = EvalOptions(protocol=protocol, classes=classes, threshold_sets=threshold_sets)
-    config = options.config()  # the library's checks of the options
-    class_names, sets = list(config.classes), list(config.threshold_sets)
-    keys = [parse_column(k, class_names, sets) for k in key if k.strip()] or [DEFAULT_KEY]
-    wanted = list(columns) or [f"{c}/3d/{d}" for c in class_names for d in DIFFICULTIES]
-    cols = list(dict.fromkeys(parse_column(c, class_names, sets) for c in wanted if c.strip()))
-    if len(cols) > _MAX_COLUMNS:
-        raise BadRequest(f"at most {_MAX_COLUMNS} columns")
-    return {
-        "protocol": protocol,
-        "classes": ",".join(class_names),
-        "sets": ",".join(sets),
-        "key": keys,
-        "columns": cols,
-    }
+__all__ = ["BenchmarkCatalog"]
 
 
 class BenchmarkCatalog:
@@ -149,47 +114,30 @@ class BenchmarkCatalog:
     # -- admin ----------------------------------------------------------------------------------------------
     def create(
         self,
-        name: str,
+        benchmark: str,
+        settings: PhaseSettings,
         *,
-        ground_truth: str,
-        title: str | None = None,
-        description: str = "",
-        protocol: str = "official",
-        classes: str = "Car,Pedestrian,Cyclist",
-        threshold_sets: str = ",".join(THRESHOLD_SETS),
-        key: Sequence[str] = (DEFAULT_KEY,),
-        columns: Sequence[str] = (),
-        quota: str = "3/1",
-        public: bool = False,
-        opens_at: str | datetime | None = None,
-        closes_at: str | datetime | None = None,
-        split_percent: float | None = None,
-        max_published: int | None = None,
-        open_to_all: bool = False,
-        share_test_set: bool = False,
         caller: Caller,
+        share_test_set: bool = False,
         phase: PhaseOf | None = None,
     ) -> Benchmark:
-        """``open_to_all``: every signed-in account may take part (else the members of the test set's project);
-        ``share_test_set``: the test set may already be another benchmark's (refused otherwise: each benchmark
-        gives a participant a quota and a public part of its own on the same labels). ``phase``: the row is a
-        phase of a benchmark defined by a file (:mod:`.phases`): stored under its row's name, with its phase's
-        settings; a phase without a split may be on open labels (a ground truth not sealed)."""
+        """Make the benchmark ``benchmark``'s row with ``settings`` (checked as they were made: the route, the
+        admin command and a benchmark file make them alike, :class:`.phase_settings.PhaseSettings`), stored by
+        their rule. ``share_test_set``: the test set may already be another benchmark's (refused otherwise: each
+        benchmark gives a participant a quota and a public part of its own on the same labels). ``phase``: the
+        row is a phase of a benchmark defined by a file (:mod:`.phases`): stored under its row's name, the first
+        row with the list of phases; a phase without a split may be on open labels (a ground truth not
+        sealed)."""
         self.policy.require_admin(caller)
-        Accounts.check_name(name, "benchmark")
-        name = phase.row if phase is not None else name
-        record = self.ground_truths.record(ground_truth)
-        open_labels = phase is not None and split_percent is None and not record.sealed
+        Accounts.check_name(benchmark, "benchmark")
+        name = phase.row if phase is not None else benchmark
+        record = self.ground_truths.record(settings.ground_truth)
+        open_labels = phase is not None and settings.split_percent is None and not record.sealed
         if not record.sealed and not open_labels:
             raise BadRequest(
-                f"the ground truth {ground_truth!r} is not sealed; a benchmark's test set is registered "
+                f"the ground truth {settings.ground_truth!r} is not sealed; a benchmark's test set is registered "
                 "with sealed=true"
             )
-        scoring = scoring_options(protocol, classes, threshold_sets, key, columns)
-        count, days = parse_quota(quota)
-        split_percent = check_split_percent(split_percent)
-        check_max_published(max_published)
-        check_texts(title or "", description)
         others = [b.name for b in self.using_ground_truth(record.name)]
         if others and not share_test_set:
             named = ", ".join(repr(b) for b in others)
@@ -199,31 +147,23 @@ class BenchmarkCatalog:
                 "labels; register another test set, or say share_test_set=true (--share-test-set) to take it "
                 "anyway"
             )
-        opens = parse_time(opens_at, "opens") or datetime.now(timezone.utc)
-        closes = parse_time(closes_at, "closes")
-        if closes is not None and closes <= opens:
-            raise BadRequest("a benchmark closes after it opens")
+        now = datetime.now(timezone.utc)
+        if settings.opens_at is None:  # a phase opens when it is made unless it says when
+            settings = replace(settings, opens_at=now)
+        columns, config = settings.stored()
+        if open_labels:
+            config["open_labels"] = True
+        if phase is not None and phase.phases:
+            config["phases"] = [list(p) for p in phase.phases]
         bench = BenchmarkRecord(
             name=name,
-            title=title or name,
-            description=description,
-            gt_name=record.name,
             project=record.project,
-            config={
-                **scoring,
-                "quota": [count, days],
-                "split_percent": split_percent,
-                "open_to_all": bool(open_to_all),
-                **(phase.config(open_labels=open_labels) if phase is not None else {}),
-            },
-            split_seed=secrets.token_hex(16) if split_percent is not None else None,
-            public=public,
-            opens_at=opens,
-            closes_at=closes,
+            config=config,
+            split_seed=secrets.token_hex(16) if settings.split_percent is not None else None,
             closed=False,
             revealed=False,
-            created_at=datetime.now(timezone.utc),
-            max_published=max_published,
+            created_at=now,
+            **columns,
         )
         if not self.benchmark_store.add_benchmark(bench):
             raise Conflict(f"a benchmark named {name!r} exists")

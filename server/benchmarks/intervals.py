@@ -45,8 +45,9 @@ from ..errors import Conflict
 from ..jobs.queue import JobQueue, JobRecord
 from ..scoring.uploads import stored_upload
 from ..store import BenchmarkStore, GroundTruthStore, JobInputStore, ResampledKey, SubmissionRecord
+from .benchmark import Benchmark
 from .catalog import BenchmarkCatalog
-from .rules import Benchmark, key_value, part_frames
+from .rules import key_value, part_frames
 
 __all__ = ["Intervals", "RESAMPLES", "METHOD", "board_seed", "intervals_job_id", "ranked_rows", "part_name", "rounded"]
 
@@ -82,7 +83,9 @@ def intervals_job_id(submission_id: str, scored_at: datetime, seed: int, resampl
 def ranked_rows(bench: Benchmark, rows: Sequence[SubmissionRecord]) -> list[tuple[SubmissionRecord, float | None]]:
     """The scored ones of ``rows`` (oldest first) with their key on the board's part, best first: by the key,
     ties by submission time, those without a key last."""
-    keyed = [(r, key_value((r.scores or {}).get(bench.phase) or {}, bench.key)) for r in rows if r.status == "scored"]
+    keyed = [
+        (r, key_value((r.scores or {}).get(bench.board_part) or {}, bench.key)) for r in rows if r.status == "scored"
+    ]
     return sorted(keyed, key=lambda rk: (rk[1] is None, -(rk[1] or 0.0)))
 
 
@@ -124,7 +127,7 @@ class Intervals:
             "method": METHOD,
             "resamples": RESAMPLES,
             "seed": board_seed(bench.name),
-            "part": part_name(bench.phase),
+            "part": part_name(bench.board_part),
             "level": LEVEL,
         }
 
@@ -143,13 +146,13 @@ class Intervals:
         """The key of the predictions ``dt`` under the benchmark's resamples of each part of its test set (a
         scoring computes the same beside its documents, from the same plans)."""
         config = bench.options().config()
-        keys = [ValueKey.parse(k) for k in bench.key]
+        key_columns = [ValueKey.parse(k) for k in bench.key]  # the ranking key's columns
         out = []
         for part, frames in part_frames(bench.split_seed, gt.frame_ids, bench.split_percent).items():
             if not frames:
                 continue
             g, d = (gt, dt) if part == "all" else (gt.subset(frames), dt.subset(frames))
-            values = resampled_key(plan_evaluation(g, d, config), keys, self.board_weights(bench, len(frames)))
+            values = resampled_key(plan_evaluation(g, d, config), key_columns, self.board_weights(bench, len(frames)))
             out.append(self.resampled_key_record(bench, part, values, len(frames)))
         return out
 
@@ -159,17 +162,17 @@ class Intervals:
         the job; nothing is written when the submission was scored again meanwhile, which kept its own)."""
         sid = str(job.payload["submission_id"])
         scored_at = datetime.fromisoformat(str(job.payload["scored_at"]))
-        row = self.benchmark_store.get_submission(sid)
-        if row is None or row.status != "scored" or row.scored_at != scored_at:
+        submission = self.benchmark_store.get_submission(sid)
+        if submission is None or submission.status != "scored" or submission.scored_at != scored_at:
             return sid, lambda conn: None  # gone, or scored again: that scoring kept its own
-        bench = self.catalog.named(row.benchmark)
+        bench = self.catalog.named(submission.benchmark)
         record, gt = self.catalog.ground_truth_of(bench)
-        if record.sha256 != row.gt_sha256:
+        if record.sha256 != submission.gt_sha256:
             return sid, lambda conn: None  # the test set changed: a rescoring follows
-        keys = self.resampled_keys_of(bench, gt, self.predictions_of(job, row, gt))
+        resampled = self.resampled_keys_of(bench, gt, self.predictions_of(job, submission, gt))
 
         def write(conn: Any) -> None:
-            self.benchmark_store.replace_resampled_keys_in(conn, sid, scored_at, keys)
+            self.benchmark_store.replace_resampled_keys_in(conn, sid, scored_at, resampled)
 
         return sid, write
 
@@ -195,7 +198,7 @@ class Intervals:
         job of each scored one that has none is queued unless it was (see :func:`intervals_job_id`)."""
         seed = board_seed(bench.name)
         kept = self.benchmark_store.resampled_keys(
-            bench.name, part=bench.phase, seed=seed, resamples=RESAMPLES, ids=[r.id for r in rows]
+            bench.name, part=bench.board_part, seed=seed, resamples=RESAMPLES, ids=[r.id for r in rows]
         )
         found = {sid: np.frombuffer(blob, dtype="<f8") for sid, blob in kept.items()}
         found = {sid: v for sid, v in found.items() if v.shape == (RESAMPLES,)}
@@ -234,7 +237,7 @@ class Intervals:
         published = self.benchmark_store.list_submissions(bench.name, published_only=True)
         board = ranked_rows(bench, [r for r in published if not r.baseline])  # baselines lead no one
         leader = board[0] if board and board[0][1] is not None else None
-        mine = key_value((record.scores or {}).get(bench.phase) or {}, bench.key)
+        mine = key_value((record.scores or {}).get(bench.board_part) or {}, bench.key)
         others = [x for x in (earlier[0] if earlier else None, leader) if x is not None]
         values = self.resampled(bench, [record, *(r for r, _ in others)]) if mine is not None else {}
 

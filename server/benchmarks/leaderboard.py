@@ -39,7 +39,7 @@ class Leaderboard:
         from the kept resampled keys; None while an entry's are being computed, counted in
         ``bootstrap.pending``), then sorted as asked."""
         bench = self.catalog.get(name, caller)
-        phase = bench.phase
+        part = bench.board_part
         ranked = ranked_rows(bench, self.benchmark_store.list_submissions(name, published_only=True))
         values = self.intervals.resampled(bench, [row for row, key in ranked if key is not None])
         # the participants are ranked among themselves (1, 2, 3, ... without a gap); an admin's baseline stands
@@ -54,7 +54,7 @@ class Leaderboard:
                 standing[row.id] = standings([values.get(row.id)])[0]
         entries: list[dict[str, Any]] = []
         for row, key in ranked:
-            scores = (row.scores or {}).get(phase) or {}
+            scores = (row.scores or {}).get(part) or {}
             place = standing.get(row.id)
             entries.append(
                 pick(
@@ -94,7 +94,7 @@ class Leaderboard:
             "benchmark": bench.shown_name,
             "phase": bench.phase_name,
             "title": bench.title,
-            "board": phase,
+            "board": part,
             "key": bench.key,
             "columns": bench.columns,
             "sort": sort,

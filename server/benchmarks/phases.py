@@ -14,17 +14,17 @@ submissions now; else the last one that has opened; else the first.
 
 from __future__ import annotations
 
-import re
-from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import Any, Protocol
 
 from ..access.policy import Caller, Policy
-from ..errors import ApiError, BadRequest, NotFound, echo
+from ..errors import ApiError, NotFound, echo
 from ..store import BenchmarkRecord, BenchmarkStore
-from .rules import MAIN_PHASE, PHASE_SEPARATOR, Benchmark
-from .views import PHASE_FIELDS, pick
+from .benchmark import Benchmark
+from .phase_settings import check_phase_name
+from .rules import MAIN_PHASE, PHASE_SEPARATOR
+from .views import phase_view
 
 
 class BenchmarkCatalog(Protocol):
@@ -48,24 +48,14 @@ __all__ = [
     "current_phase_of",
     "last_phase",
     "row_of",
-    "phase_row_or_none",
+    "addressed_row",
     "submission_row",
     "phase_views",
     "MAX_BENCHMARK_NAME",
 ]
 
-_PHASE_NAME = re.compile(r"^[a-z0-9][a-z0-9_-]{0,19}$")
 #: a benchmark with phases: its name and ``~PHASE`` fit a benchmark row's 64 characters
 MAX_BENCHMARK_NAME = 40
-
-
-def check_phase_name(name: object) -> str:
-    if not isinstance(name, str) or not _PHASE_NAME.fullmatch(name):
-        raise BadRequest(
-            f"a phase's name is 1-20 lower-case letters, digits, '_' or '-', starting with a letter or digit; got "
-            f"{echo(str(name))}"
-        )
-    return name
 
 
 def phase_row(benchmark: str, phase: str, *, first: bool) -> str:
@@ -75,26 +65,12 @@ def phase_row(benchmark: str, phase: str, *, first: bool) -> str:
 
 @dataclass(frozen=True)
 class PhaseOf:
-    """What :meth:`BenchmarkCatalog.create <.catalog.BenchmarkCatalog.create>` stores of a phase beside the
-    benchmark's options: its row, its name, late submissions, and on the first row the phases and team size."""
+    """Where :meth:`BenchmarkCatalog.create <.catalog.BenchmarkCatalog.create>` stores a phase of a benchmark
+    defined by a file: its row, and on the first row the phases in order (its settings, the phase's name among
+    them, are :class:`.phase_settings.PhaseSettings`)."""
 
     row: str
-    name: str
-    late_submissions: bool = False
     phases: tuple[tuple[str, str], ...] = ()  # the first row only: (phase, row) in order
-    team_size: int = 1  # on every row (the teams are the benchmark's)
-
-    def config(self, *, open_labels: bool) -> dict[str, Any]:
-        out: dict[str, Any] = {
-            "phase": self.name,
-            "late_submissions": self.late_submissions,
-            "team_size": self.team_size,
-        }
-        if open_labels:
-            out["open_labels"] = True
-        if self.phases:
-            out["phases"] = [list(p) for p in self.phases]
-        return out
 
 
 def phase_list(first: BenchmarkRecord) -> list[tuple[str, str]]:
@@ -173,38 +149,16 @@ def row_of(catalog: BenchmarkCatalog, name: str, phase: str, caller: Caller) -> 
     raise NotFound(f"the benchmark {name!r} has no phase named {echo(phase)}")
 
 
-def phase_row_or_none(catalog: BenchmarkCatalog, name: str, phase: str, caller: Caller) -> str | None:
-    """:func:`row_of`, None where it refuses (whoever asks before a request's body: the route refuses them)."""
+def addressed_row(catalog: BenchmarkCatalog, name: str, phase: str | None, caller: Caller) -> str | None:
+    """The row a route of the benchmark ``name`` addresses, for whoever asks before a request's body: the phase
+    ``phase``'s (:func:`row_of`; None where it refuses: the route refuses them), else the current phase's
+    (:func:`current_row`)."""
+    if phase is None:
+        return current_row(catalog, name)
     try:
         return row_of(catalog, name, phase, caller)
     except ApiError:
         return None
-
-
-def phase_view(bench: Benchmark, *, current: bool, names_test_set: bool, now: datetime | None = None) -> dict[str, Any]:
-    """A phase as those who see its benchmark read it (:data:`.views.PHASE_FIELDS`; its ground truth's name for
-    those the policy lets read it); its ``state`` as :mod:`.lifecycle` says at ``now``."""
-    now = now or datetime.now(timezone.utc)
-    n, days = bench.quota
-    values: Mapping[str, Any] = {
-        "name": bench.phase_name,
-        "current": current,
-        "ground_truth": bench.gt_name,
-        "opens_at": bench.opens_at.isoformat(),
-        "closes_at": bench.closes_at.isoformat() if bench.closes_at else None,
-        "state": bench.state(now).value,
-        "open": bench.is_open(now),
-        "closed": bench.is_closed(now),
-        "late_submissions": bench.late_submissions,
-        "open_labels": bench.open_labels,
-        "quota": {"submissions": n, "days": days},
-        "split_percent": bench.split_percent,
-        "revealed": bench.revealed,
-        "board": bench.phase,
-        "max_published": bench.max_published,
-    }
-    fields = PHASE_FIELDS if names_test_set else tuple(f for f in PHASE_FIELDS if f != "ground_truth")
-    return pick(values, fields)
 
 
 def phase_views(catalog: BenchmarkCatalog, bench: Benchmark, caller: Caller) -> list[dict[str, Any]]:

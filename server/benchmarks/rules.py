@@ -1,12 +1,11 @@
-"""A benchmark's definition and its rules: the period it takes submissions in, which scores its board shows,
-the public/private split of the test frames, and the parsing of its options (quota, columns, times)."""
+"""A benchmark's rules, which its record (:class:`.benchmark.Benchmark`) and its settings use: the board's key
+and columns, the public/private split of the test frames, and the parsing of its options (quota, columns, times)."""
 
 from __future__ import annotations
 
 import hashlib
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields
 from datetime import datetime, timezone
 from typing import Any
 
@@ -14,17 +13,14 @@ from kitti_eval.core.protocol import DEFAULT_OSET, DEFAULT_RECALL, DIFFICULTIES,
 from kitti_eval.core.result import ValueKey
 
 from ..errors import BadRequest, echo
-from ..scoring.evaluator import EvalOptions
-from ..store import BenchmarkRecord
-from .lifecycle import PhaseState, has_opened, state_of
 
 __all__ = [
-    "Benchmark",
     "DEFAULT_KEY",
     "PHASE_SEPARATOR",
     "MAIN_PHASE",
     "DIFFICULTIES",
     "parse_quota",
+    "check_quota",
     "check_split_percent",
     "check_max_published",
     "check_texts",
@@ -86,9 +82,14 @@ def parse_quota(text: str) -> tuple[int, float]:
         count, span = int(n), float(days) if sep else 1.0
     except ValueError:
         raise BadRequest(f"a quota is N/DAYS, e.g. 3/1; got {echo(text)}") from None
-    if not 1 <= count <= 100_000 or not 0 < span <= 3650 or not math.isfinite(span):
+    return check_quota(count, span)
+
+
+def check_quota(count: int, days: float) -> tuple[int, float]:
+    """A quota's range: 1 to 100000 submissions per more than 0 and at most 3650 days."""
+    if not 1 <= count <= 100_000 or not math.isfinite(days) or not 0 < days <= 3650:
         raise BadRequest("a quota is 1 to 100000 submissions per more than 0 and at most 3650 days")
-    return count, span
+    return int(count), float(days)
 
 
 def parse_column(text: str, classes: Sequence[str], sets: Sequence[str]) -> str:
@@ -152,98 +153,3 @@ def scores_of(doc: Mapping[str, Any], columns: Sequence[str]) -> dict[str, float
         value = ValueKey(*column.split("/")).find(doc)
         out[column] = None if value is None else round(value, 4)
     return out
-
-
-@dataclass(frozen=True)
-class Benchmark(BenchmarkRecord):
-    """A stored benchmark with its rules read from its row."""
-
-    @classmethod
-    def from_record(cls, record: BenchmarkRecord) -> Benchmark:
-        return cls(**{f.name: getattr(record, f.name) for f in fields(record)})
-
-    @property
-    def key(self) -> list[str]:
-        return list(self.config["key"])
-
-    @property
-    def columns(self) -> list[str]:
-        return list(self.config["columns"])
-
-    @property
-    def quota(self) -> tuple[int, float]:
-        return int(self.config["quota"][0]), float(self.config["quota"][1])
-
-    @property
-    def open_to_all(self) -> bool:
-        """Every signed-in account may take part, not only the members of its test set's project."""
-        return bool(self.config.get("open_to_all", False))
-
-    @property
-    def split_percent(self) -> float | None:
-        value = self.config.get("split_percent")
-        return None if value is None else float(value)
-
-    def has_opened(self, now: datetime | None = None) -> bool:
-        """Its period has begun (``opens_at`` has passed), whether or not it was closed since."""
-        return has_opened(self.opens_at, now)
-
-    def state(self, now: datetime | None = None) -> PhaseState:
-        """Its state (:func:`.lifecycle.state_of`: scheduled, open, closed or revealed)."""
-        return state_of(self, now)
-
-    def is_closed(self, now: datetime | None = None) -> bool:
-        """Closed (by hand, or its ``closes_at`` has passed) or revealed."""
-        return self.state(now) in (PhaseState.CLOSED, PhaseState.REVEALED)
-
-    def is_open(self, now: datetime | None = None) -> bool:
-        """Taking submissions: in the state ``open``."""
-        return self.state(now) is PhaseState.OPEN
-
-    # -- phases and teams (a benchmark defined by a file, :mod:`.phases`; one made with ``add`` is one phase) --
-    @property
-    def shown_name(self) -> str:
-        """The benchmark's name, as its participants address it (a later phase's row is ``NAME~PHASE``)."""
-        return self.name.split(PHASE_SEPARATOR, 1)[0]
-
-    @property
-    def is_later_phase(self) -> bool:
-        """The row of a phase after the first: listed as a phase of its benchmark, not as a benchmark."""
-        return PHASE_SEPARATOR in self.name
-
-    @property
-    def phase_name(self) -> str:
-        return str(self.config.get("phase") or MAIN_PHASE)
-
-    @property
-    def late_submissions(self) -> bool:
-        """Taking submissions after its close: scored for their participants, never published nor ranked."""
-        return bool(self.config.get("late_submissions", False))
-
-    @property
-    def open_labels(self) -> bool:
-        """A phase on a ground truth that is not sealed (a labelled validation set): no split, and its
-        participants see their whole result."""
-        return bool(self.config.get("open_labels", False))
-
-    @property
-    def team_size(self) -> int:
-        """The most members a team may have (1: no teams). Kept on the benchmark's first row."""
-        return int(self.config.get("team_size") or 1)
-
-    def takes_late(self, now: datetime | None = None) -> bool:
-        """Closed, and taking late submissions (never ranked)."""
-        now = now or datetime.now(timezone.utc)
-        return self.late_submissions and self.has_opened(now) and self.state(now) is PhaseState.CLOSED
-
-    @property
-    def phase(self) -> str:
-        """Which scores the board shows: ``all`` (no split), ``public`` (the public part) or ``private``."""
-        if self.split_percent is None:
-            return "all"
-        return "private" if self.revealed else "public"
-
-    def options(self) -> EvalOptions:
-        return EvalOptions(
-            protocol=self.config["protocol"], classes=self.config["classes"], threshold_sets=self.config["sets"]
-        )

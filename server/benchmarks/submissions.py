@@ -38,10 +38,10 @@ from ..store import (
     SubmissionRecord,
     new_id,
 )
+from .benchmark import Benchmark
 from .catalog import BenchmarkCatalog
 from .intervals import Intervals
-from .phases import current_row
-from .rules import Benchmark, part_frames, quota_words, scores_of
+from .rules import part_frames, quota_words, scores_of
 from .teams import quota_team
 from .views import submission_view
 
@@ -177,11 +177,13 @@ class Submissions:
         bench = self.catalog.get(name, caller)
         if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
             raise _not_taking_part(name)
-        upload = key = None
+        upload = request_key = None
         if idempotency_key is not None:  # a retry is answered first, whatever has changed since: the file's hash
             upload = receive_content(predictions.file, predictions.filename, "predictions")
-            key = RequestKey(caller.name, submissions_scope(name), idempotency_key, fingerprint(file=upload.sha256))
-            if (earlier := self.idempotency.earlier(key)) is not None:
+            request_key = RequestKey(
+                caller.name, submissions_scope(name), idempotency_key, fingerprint(file=upload.sha256)
+            )
+            if (earlier := self.idempotency.earlier(request_key)) is not None:
                 return earlier  # accepted before (and counted then)
         baseline = self.policy.is_baseline(caller)  # under no quota, never ranked
         if baseline and bench.is_closed():
@@ -224,7 +226,7 @@ class Submissions:
                 window_start=now - window,
                 window=window,
                 then=with_its_job,
-                key=None if key is None else self.idempotency.record(key, submission_id),
+                key=None if request_key is None else self.idempotency.record(request_key, submission_id),
                 team=None
                 if baseline
                 else quota_team(self.benchmark_store, bench, caller.name),  # counted as the team's
@@ -232,15 +234,16 @@ class Submissions:
         except QuotaRefused as e:
             raise QuotaExceeded.of(count, days, e.retry_at) from None
         except KeyTaken as e:  # a copy of this request was accepted first: its submission, counted once
-            assert key is not None
-            return self.idempotency.taken(key, e)
+            assert request_key is not None
+            return self.idempotency.taken(request_key, e)
         job = self.jobs.get(submission_id)
         assert job is not None
         self.wake(1)
         return job
 
-    def refused_now(self, name: str, caller: Caller, size: int, idempotency_key: str | None = None) -> ApiError | None:
-        """What a participant's submission of ``size`` bytes to ``name`` would be refused with now, found before
+    def refused_now(self, row: str, caller: Caller, size: int, idempotency_key: str | None = None) -> ApiError | None:
+        """What a participant's submission of ``size`` bytes to the phase ``row`` would be refused with now (the
+        row the route addresses, :func:`.phases.addressed_row`), found before
         its file is received: a caller who reads the benchmark but does not take part in it (403), a used quota
         (429 ``quota_exceeded``) or a full queue (:meth:`JobQueue.admit <kitti_eval_server.jobs.queue.JobQueue.admit>`).
         None when it may be accepted, or for any other answer: the route decides those, and the transaction that
@@ -248,13 +251,12 @@ class Submissions:
         refused here: the route answers it with its first job."""
         if not self.policy.counts_quota(caller):
             return None
-        name = current_row(self.catalog, name)  # the phase a submission without one goes to
-        if self.idempotency.known(caller.name, submissions_scope(name), idempotency_key):
+        if self.idempotency.known(caller.name, submissions_scope(row), idempotency_key):
             return None
         try:
-            bench = self.catalog.get(name, caller)
+            bench = self.catalog.get(row, caller)
             if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
-                return _not_taking_part(name)
+                return _not_taking_part(row)
             if not bench.is_open():
                 return None
             self.jobs.admit(caller.name, size)
@@ -264,7 +266,7 @@ class Submissions:
         window = timedelta(days=days)
         team = quota_team(self.benchmark_store, bench, caller.name)
         since = datetime.now(timezone.utc) - window
-        used, oldest = self.benchmark_store.quota_used(name, caller.name, since, team)
+        used, oldest = self.benchmark_store.quota_used(row, caller.name, since, team)
         if used >= count and oldest is not None:
             return QuotaExceeded.of(count, days, oldest + window)
         return None
@@ -424,26 +426,26 @@ class Scoring:
         reader's refusal. A submission whose scoring fails, or whose last attempt failed, is marked failed (and
         no longer counts against the quota)."""
         sid = str(job.payload["submission_id"])
-        row = self.benchmark_store.get_submission(sid)
-        if row is None:
+        submission = self.benchmark_store.get_submission(sid)
+        if submission is None:
             raise Conflict(f"the submission {sid} is gone")
         try:
-            bench = self.catalog.named(row.benchmark)
+            bench = self.catalog.named(submission.benchmark)
             record, gt = self.catalog.ground_truth_of(bench)
             if job.kind == "submission":
                 stored = self.job_input_store.job_input(job.id, "predictions")
                 if stored is None:
-                    raise Conflict(f"the predictions of submission {row.id} are not kept")
+                    raise Conflict(f"the predictions of submission {submission.id} are not kept")
                 try:
-                    upload = stored_upload(stored.content, row.pred_filename, stored.sha256)
+                    upload = stored_upload(stored.content, submission.pred_filename, stored.sha256)
                     dt = self._checked(upload, gt, labels="validation" if bench.open_labels else "test")
                 except (InputError, InvalidSubmission):  # the file is refused: it never counted
                     self.benchmark_store.delete_submission(sid)
                     raise
                 if not stored.kept:  # accepted before files were kept at acceptance
-                    self.ground_truth_store.add_prediction_file(row.pred_sha256, stored.content)
+                    self.ground_truth_store.add_prediction_file(submission.pred_sha256, stored.content)
             else:
-                dt = self.intervals.predictions_of(job, row, gt)  # a rescoring: the kept file
+                dt = self.intervals.predictions_of(job, submission, gt)  # a rescoring: the kept file
             values, resampled = self._scores(bench, record, gt, dt)
         except BaseException as e:
             body, retry = error_of(e)
@@ -494,7 +496,7 @@ class Scoring:
         and its key under the benchmark's resamples of each part a board ranks on (from the same plans)."""
         config = bench.options().config()
         columns = list(dict.fromkeys([*bench.columns, *bench.key]))
-        keys = [ValueKey.parse(k) for k in bench.key]
+        key_columns = [ValueKey.parse(k) for k in bench.key]  # the ranking key's columns
         parts = part_frames(bench.split_seed, gt.frame_ids, bench.split_percent)
         resampled: list[ResampledKey] = []
 
@@ -502,7 +504,7 @@ class Scoring:
             if part not in parts:  # the whole set of a benchmark with a split: no board ranks on it
                 return evaluate_document(g, d, config)
             n = len(parts[part])
-            doc, values = evaluate_document_resampled(g, d, config, keys, self.intervals.board_weights(bench, n))
+            doc, values = evaluate_document_resampled(g, d, config, key_columns, self.intervals.board_weights(bench, n))
             resampled.append(self.intervals.resampled_key_record(bench, part, values, n))
             return doc
 

@@ -23,9 +23,9 @@ from ..access.policy import Caller, may_join_team, sees_teams
 from ..errors import BadRequest, Conflict, Forbidden, NotFound, echo
 from ..store import AccountStore, BenchmarkStore, QuotaTeam, SubmissionRecord
 from ..store.team_store import TeamRecord, TeamRefused, TeamStore
+from .benchmark import Benchmark
 from .lifecycle import PhaseState
 from .phases import last_phase
-from .rules import Benchmark
 from .views import OWN_TEAM_FIELDS, TEAM_FIELDS, pick
 
 if TYPE_CHECKING:

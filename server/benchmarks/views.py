@@ -12,10 +12,11 @@ which frames are public (2**k detections in frame k make the count the binary li
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from datetime import datetime, timezone
 from typing import Any
 
 from ..store import SubmissionRecord
-from .rules import Benchmark
+from .benchmark import Benchmark
 
 __all__ = [
     "BENCHMARK_FIELDS",
@@ -30,6 +31,7 @@ __all__ = [
     "OWN_TEAM_FIELDS",
     "pick",
     "benchmark_view",
+    "phase_view",
     "submission_view",
     "result_view",
 ]
@@ -169,9 +171,9 @@ def benchmark_view(
         "title": bench.title,
         "description": bench.description,
         "ground_truth": bench.gt_name,
-        "protocol": bench.config["protocol"],
-        "classes": bench.config["classes"].split(","),
-        "threshold_sets": bench.config["sets"].split(","),
+        "protocol": bench.settings.protocol,
+        "classes": bench.settings.classes.split(","),
+        "threshold_sets": bench.settings.threshold_sets.split(","),
         "key": bench.key,
         "columns": bench.columns,
         "quota": {"submissions": n, "days": days},
@@ -184,10 +186,36 @@ def benchmark_view(
         "closed": bench.closed,
         "split_percent": bench.split_percent,
         "revealed": bench.revealed,
-        "board": bench.phase,
+        "board": bench.board_part,
         "max_published": bench.max_published,
     }
     return pick(values, TEST_SET_FIELDS if names_test_set else BENCHMARK_FIELDS)
+
+
+def phase_view(bench: Benchmark, *, current: bool, names_test_set: bool, now: datetime | None = None) -> dict[str, Any]:
+    """A phase as those who see its benchmark read it (:data:`PHASE_FIELDS`; its ground truth's name for
+    those the policy lets read it); its ``state`` as :mod:`.lifecycle` says at ``now``."""
+    now = now or datetime.now(timezone.utc)
+    n, days = bench.quota
+    values: Mapping[str, Any] = {
+        "name": bench.phase_name,
+        "current": current,
+        "ground_truth": bench.gt_name,
+        "opens_at": bench.opens_at.isoformat(),
+        "closes_at": bench.closes_at.isoformat() if bench.closes_at else None,
+        "state": bench.state(now).value,
+        "open": bench.is_open(now),
+        "closed": bench.is_closed(now),
+        "late_submissions": bench.late_submissions,
+        "open_labels": bench.open_labels,
+        "quota": {"submissions": n, "days": days},
+        "split_percent": bench.split_percent,
+        "revealed": bench.revealed,
+        "board": bench.board_part,
+        "max_published": bench.max_published,
+    }
+    fields = PHASE_FIELDS if names_test_set else tuple(f for f in PHASE_FIELDS if f != "ground_truth")
+    return pick(values, fields)
 
 
 def result_view(record: SubmissionRecord, bench: Benchmark, *, everything: bool = False) -> dict[str, Any] | None:
@@ -200,7 +228,7 @@ def result_view(record: SubmissionRecord, bench: Benchmark, *, everything: bool 
         return None
     if everything or bench.open_labels:  # an admin's; or a phase on open labels: the participant has the labels
         return dict(whole)
-    shown = record.public_result if bench.phase == "public" else whole
+    shown = record.public_result if bench.board_part == "public" else whole
     if shown is None:
         return None
     values = {**pick(whole, RESULT_FIELDS), "ap": shown.get("ap")}
@@ -217,7 +245,7 @@ def submission_view(
     whole set is the public part. ``reason``: why a failed submission failed (its file refused, its scoring
     cancelled or given up on)."""
     scores = record.scores or {}
-    public_only = bench.phase == "public" and not everything
+    public_only = bench.board_part == "public" and not everything
     shown = "public" if public_only else "all"
     values = {
         "id": record.id,
@@ -240,7 +268,9 @@ def submission_view(
         "scored_at": record.scored_at.isoformat() if record.scored_at else None,
         "scored_on": shown,
         "scores": scores.get(shown),
-        "parts": None if public_only or bench.phase == "all" else {p: scores.get(p) for p in ("public", "private")},
+        "parts": None
+        if public_only or bench.board_part == "all"
+        else {p: scores.get(p) for p in ("public", "private")},
     }
     if not full:
         return pick(values, SUBMISSION_FIELDS)

@@ -451,7 +451,7 @@ def _ground_truth(args: argparse.Namespace, service: Service, caller: Caller) ->
 
 
 def _benchmark(args: argparse.Namespace, service: Service, caller: Caller) -> int:
-    from ..benchmarks import DEFAULT_KEY
+    from ..benchmarks.phase_settings import PhaseSettings
 
     benchmarks = service.benchmarks
     action = args.admin_action
@@ -459,26 +459,25 @@ def _benchmark(args: argparse.Namespace, service: Service, caller: Caller) -> in
         description = args.description
         if description.startswith("@"):
             description = Path(description[1:]).read_text(encoding="utf-8")
-        bench = benchmarks.catalog.create(
-            args.name,
-            ground_truth=args.ground_truth,
-            title=args.title,
-            description=description,
-            protocol=args.protocol,
-            classes=args.classes,
-            threshold_sets=args.threshold_sets,
-            key=args.key or [DEFAULT_KEY],
-            columns=args.column or [],
-            quota=args.quota,
-            public=args.public,
-            opens_at=args.opens,
-            closes_at=args.closes,
-            split_percent=args.split_percent,
-            max_published=args.max_published,
-            open_to_all=args.open_to_all,
-            share_test_set=args.share_test_set,
-            caller=caller,
-        )
+        given = {
+            "ground_truth": args.ground_truth,
+            "title": args.title,
+            "description": description,
+            "protocol": args.protocol,
+            "classes": args.classes,
+            "threshold_sets": args.threshold_sets,
+            "key": args.key,
+            "columns": args.column,
+            "quota": args.quota,
+            "public": args.public,
+            "opens_at": args.opens,
+            "closes_at": args.closes,
+            "split_percent": args.split_percent,
+            "max_published": args.max_published,
+            "open_to_all": args.open_to_all,
+        }
+        settings = PhaseSettings.parse(given, benchmark=args.name)
+        bench = benchmarks.catalog.create(args.name, settings, share_test_set=args.share_test_set, caller=caller)
         n, days = bench.quota
         cap = f", at most {bench.max_published} published per participant" if bench.max_published else ""
         print(
@@ -492,7 +491,7 @@ def _benchmark(args: argparse.Namespace, service: Service, caller: Caller) -> in
     elif action in ("close", "reopen", "reveal"):
         values = {"close": {"closed": True}, "reopen": {"closed": False}, "reveal": {"revealed": True}}[action]
         bench = benchmarks.catalog.set_state(args.name, caller=caller, **values)
-        print(f"benchmark {bench.name}: {bench.state().value}, board {bench.phase}")
+        print(f"benchmark {bench.name}: {bench.state().value}, board {bench.board_part}")
     elif action == "rescore":
         queued = benchmarks.submissions.rescore(args.name, caller=caller)
         ended = _run_jobs(service, queued["jobs"])

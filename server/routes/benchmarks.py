@@ -13,6 +13,7 @@ from pydantic import BaseModel, Field
 from ..access.deps import AdminCaller, AnyoneCaller, ReaderCaller, WriterCaller
 from ..access.policy import Caller
 from ..benchmarks import DEFAULT_KEY, Benchmarks
+from ..benchmarks.phase_settings import PhaseSettings
 from ..benchmarks.rules import PHASE_SEPARATOR
 from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
 from ..params import CurrentPhase, ServiceDep, SubmissionPhase
@@ -80,26 +81,8 @@ class PublishIn(BaseModel):
 
 @router.post("", status_code=201, summary="Create a benchmark on a sealed ground truth (admins)")
 def create(body: BenchmarkIn, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
-    bench = benchmarks.catalog.create(
-        body.name,
-        ground_truth=body.ground_truth,
-        title=body.title,
-        description=body.description,
-        protocol=body.protocol,
-        classes=body.classes,
-        threshold_sets=body.threshold_sets,
-        key=body.key,
-        columns=body.columns,
-        quota=body.quota,
-        public=body.public,
-        opens_at=body.opens_at,
-        closes_at=body.closes_at,
-        split_percent=body.split_percent,
-        max_published=body.max_published,
-        open_to_all=body.open_to_all,
-        share_test_set=body.share_test_set,
-        caller=caller,
-    )
+    settings = PhaseSettings.parse(body.model_dump(exclude={"name", "share_test_set"}), benchmark=body.name)
+    bench = benchmarks.catalog.create(body.name, settings, share_test_set=body.share_test_set, caller=caller)
     return benchmarks.catalog.describe(bench, caller)
 
 
@@ -109,29 +92,29 @@ def list_benchmarks(benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str
 
 
 @router.get("/{name}", summary="One benchmark (admins: with the rescoring jobs by state)")
-def get_benchmark(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
-    return benchmarks.catalog.describe(benchmarks.catalog.get(name, caller), caller, rescoring=True)
+def get_benchmark(row: CurrentPhase, benchmarks: BenchmarksDep, caller: AnyoneCaller) -> dict[str, Any]:
+    return benchmarks.catalog.describe(benchmarks.catalog.get(row, caller), caller, rescoring=True)
 
 
 @router.get("/{name}/frames", summary="The test frame ids (for kitti-eval validate --benchmark)")
 async def frame_ids(
-    name: CurrentPhase, benchmarks: BenchmarksDep, service: ServiceDep, caller: AnyoneCaller
+    row: CurrentPhase, benchmarks: BenchmarksDep, service: ServiceDep, caller: AnyoneCaller
 ) -> dict[str, Any]:
-    frames = await service.run(benchmarks.catalog.frame_ids, name, caller)
-    labels = "validation" if benchmarks.catalog.named(name).open_labels else "test"
-    return {"benchmark": name.split(PHASE_SEPARATOR, 1)[0], "frames": frames, "labels": labels}
+    frames = await service.run(benchmarks.catalog.frame_ids, row, caller)
+    labels = "validation" if benchmarks.catalog.named(row).open_labels else "test"
+    return {"benchmark": row.split(PHASE_SEPARATOR, 1)[0], "frames": frames, "labels": labels}  # its name
 
 
 @router.get("/{name}/leaderboard", summary="The leaderboard (JSON, or CSV with format=csv)")
 def leaderboard(
-    name: CurrentPhase,
+    row: CurrentPhase,
     benchmarks: BenchmarksDep,
     caller: AnyoneCaller,
     sort: Annotated[str | None, Query(max_length=200, description="rank, key, method, date or a column")] = None,
     order: Annotated[Literal["asc", "desc"] | None, Query()] = None,
     format: Annotated[Literal["json", "csv"], Query()] = "json",
 ) -> Response:
-    board = benchmarks.board.leaderboard(name, caller, sort=sort, order=order)
+    board = benchmarks.board.leaderboard(row, caller, sort=sort, order=order)
     if format == "csv":
         return PlainTextResponse(
             benchmarks.board.leaderboard_csv(board),
@@ -141,23 +124,23 @@ def leaderboard(
     return JSONResponse(board)
 
 
-def _admin_state(name: str, benchmarks: Benchmarks, caller: Caller, **values: bool) -> dict[str, Any]:
-    return benchmarks.catalog.describe(benchmarks.catalog.set_state(name, caller=caller, **values), caller)
+def _admin_state(row: str, benchmarks: Benchmarks, caller: Caller, **values: bool) -> dict[str, Any]:
+    return benchmarks.catalog.describe(benchmarks.catalog.set_state(row, caller=caller, **values), caller)
 
 
 @router.post("/{name}/close", summary="Close a benchmark to submissions (admins)")
-def close(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
-    return _admin_state(name, benchmarks, caller, closed=True)
+def close(row: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+    return _admin_state(row, benchmarks, caller, closed=True)
 
 
 @router.post("/{name}/reopen", summary="Reopen a closed benchmark (admins)")
-def reopen(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
-    return _admin_state(name, benchmarks, caller, closed=False)
+def reopen(row: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+    return _admin_state(row, benchmarks, caller, closed=False)
 
 
 @router.post("/{name}/reveal", summary="Show the private ranking of a closed benchmark (admins)")
-def reveal(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
-    return _admin_state(name, benchmarks, caller, revealed=True)
+def reveal(row: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+    return _admin_state(row, benchmarks, caller, revealed=True)
 
 
 @router.post(
@@ -165,25 +148,29 @@ def reveal(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -
     status_code=202,
     summary="Queue one job per submission that evaluates it again on the ground truth as registered (admins)",
 )
-async def rescore(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+async def rescore(row: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
     """Returns at once with the jobs queued; `GET /v1/benchmarks/{name}` shows their progress (`rescoring`)."""
-    return await anyio.to_thread.run_sync(lambda: benchmarks.submissions.rescore(name, caller=caller))
+    return await anyio.to_thread.run_sync(lambda: benchmarks.submissions.rescore(row, caller=caller))
 
 
 @router.get("/{name}/submissions/all", summary="Every submission, published or not (admins)")
-def all_submissions(name: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
-    return {"items": benchmarks.submissions.all_submissions(name, caller)}
+def all_submissions(row: CurrentPhase, benchmarks: BenchmarksDep, caller: AdminCaller) -> dict[str, Any]:
+    return {"items": benchmarks.submissions.all_submissions(row, caller)}
 
 
 @router.post("/{name}/submissions/{submission_id}/disqualify", summary="Hide an entry, keeping it (admins)")
 def disqualify(
-    name: SubmissionPhase, submission_id: str, benchmarks: BenchmarksDep, caller: AdminCaller
+    row: SubmissionPhase, submission_id: str, benchmarks: BenchmarksDep, caller: AdminCaller
 ) -> dict[str, Any]:
-    return benchmarks.submissions.disqualify(name, submission_id, caller=caller)
+    return benchmarks.submissions.disqualify(row, submission_id, caller=caller)
+
+
+#: the route of a submission (its refusals before its file: :mod:`kitti_eval_server.main`)
+SUBMISSIONS = "/{name}/submissions"
 
 
 @router.post(
-    "/{name}/submissions",
+    SUBMISSIONS,
     status_code=201,
     summary="Submit predictions on the test set",
     responses={
@@ -198,7 +185,7 @@ def disqualify(
     },
 )
 async def submit(
-    name: CurrentPhase,
+    row: CurrentPhase,
     benchmarks: BenchmarksDep,
     service: ServiceDep,
     caller: WriterCaller,
@@ -220,36 +207,36 @@ async def submit(
 ) -> JSONResponse:
     """Checked, counted against the quota and accepted at once (the acceptance time is the submission's); its
     scoring is a job, run by the next free worker."""
-    key = parse_key(idempotency_key)
+    checked_key = parse_key(idempotency_key)  # the Idempotency-Key header, checked
     file = FileIn(predictions.file, predictions.filename)
     # refusals: 422 problems, 429 retry_at
-    job = await service.accept(lambda: benchmarks.submissions.submit(name, file, caller, idempotency_key=key))
+    job = await service.accept(lambda: benchmarks.submissions.submit(row, file, caller, idempotency_key=checked_key))
     ended = await service.outcome(job.id, wait)
     if ended.state != "done":
         return await still_pending(service.jobs, ended)
-    body = await anyio.to_thread.run_sync(benchmarks.submissions.submission, name, job.id, caller)
+    body = await anyio.to_thread.run_sync(benchmarks.submissions.submission, row, job.id, caller)
     where = f"/v1/benchmarks/{body['benchmark']}/submissions/{job.id}"  # the benchmark's name, whatever the phase
     return JSONResponse(body, status_code=201, headers={"Location": where})
 
 
 @router.get("/{name}/submissions", summary="Your submissions and your quota")
-def my_submissions(name: CurrentPhase, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[str, Any]:
-    return benchmarks.submissions.mine(name, caller)
+def my_submissions(row: CurrentPhase, benchmarks: BenchmarksDep, caller: ReaderCaller) -> dict[str, Any]:
+    return benchmarks.submissions.mine(row, caller)
 
 
 @router.get("/{name}/submissions/{submission_id}", summary="One of your submissions, with its full result")
 def my_submission(
-    name: SubmissionPhase, submission_id: str, benchmarks: BenchmarksDep, caller: ReaderCaller
+    row: SubmissionPhase, submission_id: str, benchmarks: BenchmarksDep, caller: ReaderCaller
 ) -> dict[str, Any]:
-    return benchmarks.submissions.submission(name, submission_id, caller)
+    return benchmarks.submissions.submission(row, submission_id, caller)
 
 
 @router.post("/{name}/submissions/{submission_id}/publish", summary="Show one of your submissions on the board")
 def publish(
-    name: SubmissionPhase, submission_id: str, body: PublishIn, benchmarks: BenchmarksDep, caller: WriterCaller
+    row: SubmissionPhase, submission_id: str, body: PublishIn, benchmarks: BenchmarksDep, caller: WriterCaller
 ) -> dict[str, Any]:
     return benchmarks.submissions.publish(
-        name,
+        row,
         submission_id,
         caller,
         method=body.method,
@@ -261,6 +248,6 @@ def publish(
 
 @router.post("/{name}/submissions/{submission_id}/withdraw", summary="Take one of your entries off the board")
 def withdraw(
-    name: SubmissionPhase, submission_id: str, benchmarks: BenchmarksDep, caller: WriterCaller
+    row: SubmissionPhase, submission_id: str, benchmarks: BenchmarksDep, caller: WriterCaller
 ) -> dict[str, Any]:
-    return benchmarks.submissions.withdraw(name, submission_id, caller)
+    return benchmarks.submissions.withdraw(row, submission_id, caller)

@@ -77,8 +77,12 @@ def phase_leaderboard(
     return single.leaderboard(row, benchmarks, caller, sort=sort, order=order, format=format)
 
 
+#: the route of a phase's submission (its refusals before its file: :mod:`kitti_eval_server.main`)
+PHASE_SUBMISSIONS = "/{name}/phases/{phase}/submissions"
+
+
 @router.post(
-    "/{name}/phases/{phase}/submissions",
+    PHASE_SUBMISSIONS,
     status_code=201,
     summary="Submit predictions to a phase",
     responses={
