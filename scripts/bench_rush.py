@@ -316,7 +316,7 @@ def readiness(python: str) -> float:
 
 def _sqlite_rush(python: str, gt: bytes, path: Path, args: argparse.Namespace, library: float, label: str):
     with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:
-        proc, url = _serve(Path(tmp) / "data", {}, python)
+        proc, url = _serve(Path(tmp) / "data", dict(v.split("=", 1) for v in args.env), python)
         stack.callback(_stop, proc)
         return _run(label, [url], gt, path, args.participants, args.each, args.spread, library)
 
@@ -364,12 +364,14 @@ def main(argv: list[str] | None = None) -> int:
         "alternated (SQLite), with the time each takes to be ready",
     )
     p.add_argument("--rounds", type=int, default=2, help="with --compare: alternations")
+    p.add_argument("--env", action="append", default=[], metavar="NAME=VALUE", help="a setting of the service (SQLite)")
+    p.add_argument("--skip-library", action="store_true", help="do not measure the library's rate first")
     args = p.parse_args(argv)
     if shutil.which("curl") is None:
         raise SystemExit("the participants send with curl: install it (Debian's curl package)")
     gt, pred = generated(args.dets_per_frame)
     print(f"{os.cpu_count()} cores, load average {_loadavg()}; a {len(pred) / 1e6:.1f} MB result.pkl of 3769 frames")
-    library = in_process_rate(gt, pred)
+    library = float("nan") if args.skip_library else in_process_rate(gt, pred)
     print(f"in-process (the library): {library:.2f} evaluations a second (load + evaluate, a process a CPU)")
     ok = True
     with tempfile.TemporaryDirectory() as files:
