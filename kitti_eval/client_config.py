@@ -34,7 +34,9 @@ _TOKENS_FILE = "services.json"
 
 
 def config_dir() -> Path:
-    """The client's folder: ``$KITTI_EVAL_CONFIG_DIR``, else the user's config folder's ``kitti-eval``."""
+    """The client's folder: ``$KITTI_EVAL_CONFIG_DIR``, else the user's config folder's ``kitti-eval``
+    (``$XDG_CONFIG_HOME/kitti-eval``, else ``~/.config/kitti-eval``); a :class:`~kitti_eval.errors.ConfigError`
+    naming the settings where there is neither (no ``HOME``, as under ``env -i``, and no home for the uid)."""
     env = os.environ.get(CONFIG_ENV, "").strip()
     if env:
         return Path(env)
@@ -42,7 +44,16 @@ def config_dir() -> Path:
         from platformdirs import user_config_dir
     except ImportError:
         raise ConfigError("the client needs platformdirs: pip install 'kitti-eval[client]'") from None
-    return Path(user_config_dir("kitti-eval", appauthor=False))
+    try:
+        found: Path | None = Path(user_config_dir("kitti-eval", appauthor=False))
+    except RuntimeError:  # platformdirs, where ~ cannot be expanded
+        found = None
+    if found is None or not found.is_absolute():
+        raise ConfigError(
+            f"the client has no folder for its saved tokens: HOME is not set and the user has no home folder; "
+            f"set {CONFIG_ENV} to a folder it may write (or XDG_CONFIG_HOME, or HOME)"
+        )
+    return found
 
 
 def service_key(service: str) -> str:

@@ -94,6 +94,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             log.error("%s", e.message)
             service.stop()
             raise
+        except BaseException:  # anything else: the worker processes it started already are stopped with it
+            service.stop()
+            raise
         drainer = Drainer(service)
         drainer.install()  # SIGTERM drains the admitted evaluations before the server stops
         try:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -240,16 +241,7 @@ class Service:
         log.info("data folder %s", self.data_dir)
         self._open_database(upgrade=self.settings.db_upgrade)
         self._check_open_mode()
-        self.admin_token = admin_token(self.settings, self.data_dir)
-        if self.settings.register_demo:
-            with self.scratch() as scratch:
-                self.ground_truths.register_bundled(DEMO_NAME, demo_paths()[0], scratch)
-        if self.settings.warmup:
-            threading.Thread(target=self._warm_up, name="kitti-eval-warmup", daemon=True).start()
-        else:
-            self.warm.set()
-        self.workers.start()
-        if self.settings.worker_processes:
+        if self.settings.worker_processes:  # first: they import and warm up while this process goes on
             self.pool = WorkerPool(
                 self.settings.worker_processes,
                 threads=1,
@@ -258,6 +250,15 @@ class Service:
                 database_url=self.settings.resolved_database_url,
             )
             self.pool.start()
+        if self.settings.warmup:
+            threading.Thread(target=self._warm_up, name="kitti-eval-warmup", daemon=True).start()
+        else:
+            self.warm.set()
+        self.admin_token = admin_token(self.settings, self.data_dir)
+        if self.settings.register_demo:
+            with self.scratch() as scratch:
+                self.ground_truths.register_bundled(DEMO_NAME, demo_paths()[0], scratch)
+        self.workers.start()
         _log_start(self.settings)
 
     def _open_database(self, upgrade: bool = False) -> None:
@@ -280,13 +281,18 @@ class Service:
                 )
             raise StartupRefused(f"cannot use the database {where}: {reason}{hint}") from None
 
-    def run_jobs(self) -> None:
+    def run_jobs(self, nice: int = 0) -> None:
         """Start as a worker process (``kitti-eval worker``): the scratch space, the tables, the kernels, then the
-        workers; no HTTP, no admin token, no demo. :meth:`stop` ends it."""
+        workers; no HTTP, no admin token, no demo. :meth:`stop` ends it. ``nice``: how much the process lowers its
+        scheduling priority once its kernels are warm, before it takes a job (so that accepting comes before
+        evaluating on a machine shared with a web process, but a start, which accepts nothing yet, is not
+        slowed: warming at the lower priority took a loaded machine's workers 14 s instead of 3)."""
         check_writable(self.data_dir, "--work-dir")
         self.scratch_space.open()
         self._open_database()
         warm_up(everything=False)
+        if nice:
+            os.nice(nice)
         self.warm.set()
         self.workers.start()
 

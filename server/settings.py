@@ -122,8 +122,9 @@ class Settings(BaseSettings):
 
     worker_nice: Annotated[int, Field(ge=0, le=19)] = 10
     """How much a worker process (``kitti-eval worker``, and the service's own) lowers its scheduling priority
-    (``nice``): on a machine it shares with a web process, accepting requests comes before evaluating them, so
-    a rush is answered at once and evaluated right after. 0: the same priority."""
+    (``nice``) once its kernels are warm, before it takes a job: on a machine it shares with a web process,
+    accepting requests comes before evaluating them, so a rush is answered at once and evaluated right after,
+    while a start (which accepts nothing yet) is not slowed. 0: the same priority."""
 
     job_lease_s: Annotated[float, Field(gt=0)] = 30.0
     """How long a worker holds a job without a heartbeat (it beats every third of it); a worker that stops

@@ -15,7 +15,6 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from .. import __version__
 from ..errors import ConfigError, KittiEvalError, ServiceError
 from . import (
     board,
@@ -56,7 +55,6 @@ def build_parser() -> argparse.ArgumentParser:
         description="Exact KITTI 3D object detection evaluation (2D, BEV, 3D, AOS; R11 and R40) on a CPU.",
         epilog="Exit codes: 0 ok, 1 bad input, 2 usage error, 3 a gate rule failed, 4 over a quota, 5 no service.",
     )
-    p.add_argument("--version", action="version", version=f"{PROG} {__version__}")
     evaluate.add_arguments(p)
     sub = p.add_subparsers(dest="command", metavar="COMMAND", title="commands (each has its own --help)")
     for add_parser in COMMANDS:

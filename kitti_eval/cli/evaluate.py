@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .. import __version__
 from ..errors import ConfigError
 from ..report.render import OutputFormat
 from .common import (
@@ -27,7 +28,8 @@ from .common import (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The main job's options, on the program's own parser (before the commands)."""
+    """The main job's options, on the program's own parser (before the commands), and the program's version."""
+    p.add_argument("--version", action="version", version=f"{p.prog} {__version__}")
     p.add_argument(
         "--gt",
         nargs="+",

@@ -28,8 +28,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..client import save_token
+    from ..client_config import config_dir, save_token
 
+    config_dir()  # a folder to save it in (or the sentence naming the settings), before the token is asked for
     if sys.stdin.isatty():
         import getpass
 

@@ -137,14 +137,12 @@ def child_main(argv: Sequence[str] | None = None) -> int:
     if settings.database_url is None:
         log.error("a worker process needs KITTI_EVAL_DATABASE_URL")
         return EXIT_USAGE
-    if settings.worker_nice:
-        os.nice(settings.worker_nice)  # accepting (the web process) before evaluating, on a shared machine
     service = Service(settings)
     if os.environ.get("PROMETHEUS_MULTIPROC_DIR"):  # counted with the service's, in its scrape
         service.workers.on_ended = Metrics().job_ended
     try:
         try:
-            service.run_jobs()
+            service.run_jobs(nice=settings.worker_nice)  # accepting before evaluating, once warm
         except StartupRefused as e:  # said in one line of the log, not a traceback
             log.error("worker process %d: %s", os.getpid(), e.message)
             return EXIT_USAGE

@@ -276,3 +276,40 @@ def test_an_id_from_an_answer_goes_into_no_path_unless_it_is_an_id(monkeypatch) 
     with _client(answers, [], monkeypatch) as c, pytest.raises(ServiceError, match="cannot read"):
         c.submit(GOLDEN / "result.pkl", "b", check=False)
     assert len(answers.requests) == 1
+
+
+def _no_home(monkeypatch) -> None:
+    """As under ``env -i`` with a uid that /etc/passwd does not list (a container's ``--user 12345``)."""
+    import pwd
+
+    for name in ("HOME", "XDG_CONFIG_HOME", "KITTI_EVAL_CONFIG_DIR"):
+        monkeypatch.delenv(name, raising=False)
+
+    def unknown(uid: int) -> Any:
+        raise KeyError(f"getpwuid(): uid not found: {uid}")
+
+    monkeypatch.setattr(pwd, "getpwuid", unknown)
+
+
+def test_without_a_home_the_saved_tokens_folder_is_a_sentence_naming_the_settings(tmp_path, monkeypatch) -> None:
+    _no_home(monkeypatch)
+    with pytest.raises(ConfigError, match=r"HOME is not set .* set KITTI_EVAL_CONFIG_DIR to a folder it may write"):
+        save_token("http://a", "t")
+    with pytest.raises(ConfigError, match="KITTI_EVAL_CONFIG_DIR"):
+        token_for("http://a")
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "xdg"))
+    assert save_token("http://a", "t") == tmp_path / "xdg" / "kitti-eval" / "services.json"
+    monkeypatch.setenv("KITTI_EVAL_CONFIG_DIR", str(tmp_path / "own"))
+    assert save_token("http://a", "t") == tmp_path / "own" / "services.json"
+    assert saved_token("http://a") == "t"
+
+
+def test_login_without_a_home_exits_2_with_the_sentence_before_asking_the_service(monkeypatch, capsys) -> None:
+    import io
+
+    _no_home(monkeypatch)
+    monkeypatch.setattr(sys, "stdin", io.StringIO("tok\n"))
+    assert main(["login", "--service", "http://127.0.0.1:9", "--retry-for", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "kitti-eval: error: the client has no folder for its saved tokens" in err
+    assert "KITTI_EVAL_CONFIG_DIR" in err and "Traceback" not in err

@@ -69,7 +69,7 @@ def test_every_problem_is_listed_once(tmp_path: Path, results: list[dict]) -> No
         "got 15",
         "000007.txt, box 1: unknown class 'Bus'; a result names one of Car, Van, Truck, Pedestrian, "
         "Person_sitting, Cyclist, Tram, Misc",
-        "000008.txt, box 1: a number that is not finite (nan)",
+        "000008.txt: line 1: x is nan, a non-finite value (every value must be a finite number)",
         "000009.txt: line 1: score is not a number: 'high'",
         "000010.txt: 101 boxes; a frame may hold at most 100",
     ]
