@@ -1,8 +1,9 @@
 """The service's parts, assembled once, and its life: start, stop, readiness. No HTTP in here.
 
 :class:`Service` builds each part with only what it uses: the store, the audit log, the policy, the accounts,
-the ground truths (their files, and the catalog callers see), the evaluations, and the runner that runs
-blocking work on worker threads. The routes call the parts; no part reaches into another through here.
+the ground truths (their files, ``ground_truths``, and what callers see of them, ``gt_catalog``), the evaluations,
+and the runner that runs blocking work on worker threads. The routes call the parts; no part reaches into another
+through here.
 """
 
 from __future__ import annotations
@@ -132,7 +133,7 @@ class Service:
             self.runner.scratch,
         )
         #: the ground truths as callers see them (the policy's rules and the audit over ``ground_truths``)
-        self.catalog = GroundTruthCatalog(
+        self.gt_catalog = GroundTruthCatalog(
             self.ground_truths,
             self.store.ground_truth_store,
             self.policy,
@@ -163,7 +164,7 @@ class Service:
             self.store.ground_truth_store,
             self.store.job_input_store,
             self.store.account_store,
-            self.catalog,
+            self.gt_catalog,
             self.predictions,
             self.policy,
             self.audit,
@@ -177,7 +178,7 @@ class Service:
         self.evaluation_frames = EvaluationFrames(
             self.evaluations,
             self.store.ground_truth_store,
-            self.catalog,
+            self.gt_catalog,
             self.predictions,
             self.policy,
             self.limits,  # with the frame views' box limits once they are read from the environment (start)

@@ -78,7 +78,7 @@ class Evaluations:
         ground_truth_store: GroundTruthStore,
         job_input_store: JobInputStore,
         account_store: AccountStore,
-        ground_truths: GroundTruthCatalog,
+        gt_catalog: GroundTruthCatalog,
         predictions: GroundTruthCache,
         policy: Policy,
         audit: Audit,
@@ -93,7 +93,7 @@ class Evaluations:
         self.ground_truth_store = ground_truth_store
         self.job_input_store = job_input_store
         self.account_store = account_store  # whether a project exists
-        self.ground_truths = ground_truths
+        self.gt_catalog = gt_catalog
         self.predictions = predictions
         self.policy = policy
         self.audit = audit
@@ -129,7 +129,7 @@ class Evaluations:
                 "/v1/ground-truths lists them) or as a file (form field 'gt_file'), not both"
             )
         options.config()  # bad options fail before any upload is read
-        gt_record = self.ground_truths.get(gt_name, caller) if gt_name is not None else None
+        gt_record = self.gt_catalog.get(gt_name, caller) if gt_name is not None else None
         if gt_record is not None:
             self.policy.may_evaluate_against(caller, gt_record)
         project = self._project_for(caller, project, gt_record)
@@ -193,7 +193,7 @@ class Evaluations:
                         f"the ground truth {gt_name!r} was deleted or replaced after the evaluation was accepted; "
                         "upload the predictions again"
                     )
-                gt = self.ground_truths.files.load(gt_record)
+                gt = self.gt_catalog.files.load(gt_record)
                 gt_sha256 = gt_record.sha256
             else:
                 gt_input = self.job_input_store.job_input(job_id, "gt_file")
@@ -339,7 +339,7 @@ class EvaluationFrames:
         self,
         evaluations: Evaluations,
         ground_truth_store: GroundTruthStore,
-        ground_truths: GroundTruthCatalog,
+        gt_catalog: GroundTruthCatalog,
         predictions: GroundTruthCache,
         policy: Policy,
         limits: UploadLimits,
@@ -349,7 +349,7 @@ class EvaluationFrames:
         kept predictions loaded."""
         self.evaluations = evaluations
         self.ground_truth_store = ground_truth_store
-        self.ground_truths = ground_truths
+        self.gt_catalog = gt_catalog
         self.predictions = predictions
         self.policy = policy
         self.limits = limits
@@ -384,7 +384,7 @@ class EvaluationFrames:
         predictions read whole (bounded by ``KITTI_EVAL_FRAMES_MAX_BOXES``), for an evaluation stored without
         its frames (:mod:`.frame_rows`) or a question they cannot answer."""
         gt_record, config = self._checked(record)
-        gt = self.ground_truths.files.load(gt_record)
+        gt = self.gt_catalog.files.load(gt_record)
 
         def load_kept() -> Annotations:
             content = self.ground_truth_store.prediction_content(record.pred_sha256)
@@ -517,7 +517,7 @@ class EvaluationFrames:
                     break  # stored, but not this frame: the ground truth has none such (refused below)
                 return None
             rows.append((record, c, row))
-        gt = self.ground_truths.files.load(checked[0][0])
+        gt = self.gt_catalog.files.load(checked[0][0])
         if fid not in gt.frame_index():
             raise NotFound(f"no frame {clip(fid, MAX_ECHO_CHARS)} in the ground truth {records[0].gt_name!r}")
         if len(rows) < len(records):

@@ -189,7 +189,7 @@ def _home(
         status,
         error=error,
         form=dict(form or {}),
-        ground_truths=[g.name for g in service.catalog.to_evaluate(caller)],
+        ground_truths=[g.name for g in service.gt_catalog.to_evaluate(caller)],
         projects=_projects(service, caller),
         protocols=sorted(PROTOCOLS),
         history=_history(service, caller),
