@@ -315,9 +315,11 @@ class Service:
         """How an accepted evaluation of ``caller``'s is queued (and the idle workers of this process woken)."""
 
         def enqueue(
-            job_id: str, payload: dict[str, Any], inputs: list[JobInput], key: IdempotencyRecord | None
+            job_id: str, payload: dict[str, Any], inputs: list[JobInput], idempotency_key: IdempotencyRecord | None
         ) -> JobRecord:
-            job = self.jobs.enqueue("evaluation", payload, owner=caller.name, job_id=job_id, inputs=inputs, key=key)
+            job = self.jobs.enqueue(
+                "evaluation", payload, owner=caller.name, job_id=job_id, inputs=inputs, idempotency_key=idempotency_key
+            )
             self.workers.wake()
             return job
 

@@ -147,9 +147,9 @@ class Evaluations:
             "labels": dict(labels),
             "project": project,
         }
-        key = None
+        request_key = None
         if idempotency_key is not None:
-            key = RequestKey(
+            request_key = RequestKey(
                 caller.name,
                 EVALUATIONS,
                 idempotency_key,
@@ -161,14 +161,16 @@ class Evaluations:
                     project=project,
                 ),
             )
-            if (earlier := self.idempotency.earlier(key)) is not None:
+            if (earlier := self.idempotency.earlier(request_key)) is not None:
                 return earlier
         self.jobs.admit(self.policy.job_owner(caller), sum(len(i.content) for i in inputs))
-        try:  # the job, its inputs and its key: one transaction
-            job = enqueue(job_id, payload, inputs, None if key is None else self.idempotency.record(key, job_id))
+        try:  # the job, its inputs and its idempotency key: one transaction
+            job = enqueue(
+                job_id, payload, inputs, None if request_key is None else self.idempotency.record(request_key, job_id)
+            )
         except KeyTaken as e:  # a copy of this request was recorded first (nothing of this one is kept)
-            assert key is not None
-            return self.idempotency.taken(key, e)
+            assert request_key is not None
+            return self.idempotency.taken(request_key, e)
         if gt_record is not None and self.policy.is_test_set(gt_record):
             self.audit.record(caller, "evaluation.test_set", f"{job_id} on {gt_record.name}")
         return job
