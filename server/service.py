@@ -270,16 +270,14 @@ class Service:
         except UnusableDatabase as e:
             raise StartupRefused(e.message) from None
         except sqlalchemy.exc.OperationalError as e:  # not reached, or refused: said in one line, not a traceback
-            url = self.settings.resolved_database_url
-            where = self.settings.database_name
             reason = (str(e.orig or e).strip() or type(e).__name__).splitlines()[0]
             hint = ""
-            if url.partition("://")[2].count("@") > 1:
+            if self.settings.resolved_database_url.partition("://")[2].count("@") > 1:
                 hint = (
                     " (a password holding @, /, # or : must be percent-encoded in KITTI_EVAL_DATABASE_URL, or left "
                     "out of it and given as PGPASSWORD)"
                 )
-            raise StartupRefused(f"cannot use the database {where}: {reason}{hint}") from None
+            raise StartupRefused(f"cannot use the database {self.settings.database_name}: {reason}{hint}") from None
 
     def run_jobs(self) -> None:
         """Start as a worker process (``kitti-eval worker``): the scratch space, the tables, the kernels, then the
