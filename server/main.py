@@ -225,15 +225,15 @@ def _submission_refused(service: Service, access: Callable[[], Access]) -> Befor
     """A submission's refusal before its file: as the route's declared ``access`` would admit the caller, then
     :meth:`Submissions.refused_now <kitti_eval_server.benchmarks.submissions.Submissions.refused_now>`."""
 
-    def check(caller: Caller, params: dict[str, str], size: int, key: str | None) -> ApiError | None:
+    def check(caller: Caller, params: dict[str, str], size: int, idempotency_key: str | None) -> ApiError | None:
         try:
             admitted = service.policy.admit(access(), caller, method="POST", bearer=None, csrf=None)
-            idempotency_key = parse_key(key)
+            checked_key = parse_key(idempotency_key)
         except ApiError:
             return None  # the route refuses it, as always
         # the phase's row, for a caller who sees the benchmark (the route answers the others); else the current one
         row = addressed_row(service.benchmarks.catalog, params["name"], params.get("phase"), admitted)
-        return service.benchmarks.submissions.refused_now(row, admitted, size, idempotency_key) if row else None
+        return service.benchmarks.submissions.refused_now(row, admitted, size, checked_key) if row else None
 
     return check
 

@@ -404,8 +404,8 @@ class BeforeBody:
             if found is not None:
                 declared = _content_length(scope) or 0
                 raw_key = _header(scope, b"idempotency-key")
-                key = raw_key.decode("latin-1") if raw_key is not None else None
-                return await anyio.to_thread.run_sync(check, caller, found.groupdict(), declared, key)
+                idempotency_key = raw_key.decode("latin-1") if raw_key is not None else None
+                return await anyio.to_thread.run_sync(check, caller, found.groupdict(), declared, idempotency_key)
         return None
 
     async def answer(self, error: ApiError, scope: Scope, receive: Receive, send: Send) -> None:

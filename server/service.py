@@ -1,8 +1,9 @@
 """The service's parts, assembled once, and its life: start, stop, readiness. No HTTP in here.
 
 :class:`Service` builds each part with only what it uses: the store, the audit log, the policy, the accounts,
-the ground truths (their files, and the catalog callers see), the evaluations, and the runner that runs
-blocking work on worker threads. The routes call the parts; no part reaches into another through here.
+the ground truths (their files, ``ground_truths``, and what callers see of them, ``gt_catalog``), the evaluations,
+and the runner that runs blocking work on worker threads. The routes call the parts; no part reaches into another
+through here.
 """
 
 from __future__ import annotations
@@ -133,7 +134,7 @@ class Service:
             self.runner.scratch,
         )
         #: the ground truths as callers see them (the policy's rules and the audit over ``ground_truths``)
-        self.catalog = GroundTruthCatalog(
+        self.gt_catalog = GroundTruthCatalog(
             self.ground_truths,
             self.store.ground_truth_store,
             self.policy,
@@ -164,7 +165,7 @@ class Service:
             self.store.ground_truth_store,
             self.store.job_input_store,
             self.store.account_store,
-            self.catalog,
+            self.gt_catalog,
             self.predictions,
             self.policy,
             self.audit,
@@ -178,7 +179,7 @@ class Service:
         self.evaluation_frames = EvaluationFrames(
             self.evaluations,
             self.store.ground_truth_store,
-            self.catalog,
+            self.gt_catalog,
             self.predictions,
             self.policy,
             self.limits,  # with the frame views' box limits once they are read from the environment (start)
@@ -270,16 +271,14 @@ class Service:
         except UnusableDatabase as e:
             raise StartupRefused(e.message) from None
         except sqlalchemy.exc.OperationalError as e:  # not reached, or refused: said in one line, not a traceback
-            url = self.settings.resolved_database_url
-            where = self.settings.database_name
             reason = (str(e.orig or e).strip() or type(e).__name__).splitlines()[0]
             hint = ""
-            if url.partition("://")[2].count("@") > 1:
+            if self.settings.resolved_database_url.partition("://")[2].count("@") > 1:
                 hint = (
                     " (a password holding @, /, # or : must be percent-encoded in KITTI_EVAL_DATABASE_URL, or left "
                     "out of it and given as PGPASSWORD)"
                 )
-            raise StartupRefused(f"cannot use the database {where}: {reason}{hint}") from None
+            raise StartupRefused(f"cannot use the database {self.settings.database_name}: {reason}{hint}") from None
 
     def run_jobs(self, nice: int = 0) -> None:
         """Start as a worker process (``kitti-eval worker``): the scratch space, the tables, the kernels, then the
@@ -320,9 +319,11 @@ class Service:
         """How an accepted evaluation of ``caller``'s is queued (and the idle workers of this process woken)."""
 
         def enqueue(
-            job_id: str, payload: dict[str, Any], inputs: list[JobInput], key: IdempotencyRecord | None
+            job_id: str, payload: dict[str, Any], inputs: list[JobInput], idempotency_key: IdempotencyRecord | None
         ) -> JobRecord:
-            job = self.jobs.enqueue("evaluation", payload, owner=caller.name, job_id=job_id, inputs=inputs, key=key)
+            job = self.jobs.enqueue(
+                "evaluation", payload, owner=caller.name, job_id=job_id, inputs=inputs, idempotency_key=idempotency_key
+            )
             self.workers.wake()
             return job
 

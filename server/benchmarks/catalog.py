@@ -42,26 +42,26 @@ class BenchmarkCatalog:
         self.jobs = jobs
 
     # -- seeing -------------------------------------------------------------------------------------------
-    def named(self, name: str) -> Benchmark:
-        record = self.benchmark_store.get_benchmark(name)
+    def named(self, row: str) -> Benchmark:
+        record = self.benchmark_store.get_benchmark(row)
         if record is None:
-            raise NotFound(f"no benchmark named {echo(name)}")
+            raise NotFound(f"no benchmark named {echo(row)}")
         return Benchmark.from_record(record)
 
     def sees(self, caller: Caller, bench: Benchmark) -> bool:
         return self.policy.sees_benchmark(caller, public=bench.public, project=bench.project)
 
-    def get(self, name: str, caller: Caller) -> Benchmark:
-        bench = self.named(name)
+    def get(self, row: str, caller: Caller) -> Benchmark:
+        bench = self.named(row)
         if not self.sees(caller, bench):
-            raise NotFound(f"no benchmark named {echo(name)}")
+            raise NotFound(f"no benchmark named {echo(row)}")
         return bench
 
-    def taking_part(self, name: str) -> tuple[str | None, bool]:
+    def taking_part(self, row: str) -> tuple[str | None, bool]:
         """Who takes part in the benchmark, for :meth:`Policy.may_take_part
         <kitti_eval_server.access.policy.Policy.may_take_part>`: its test set's project (None: shared, or no such
         benchmark) and whether it is open to all."""
-        record = self.benchmark_store.get_benchmark(name)
+        record = self.benchmark_store.get_benchmark(row)
         if record is None:
             return None, False
         bench = Benchmark.from_record(record)
@@ -86,9 +86,9 @@ class BenchmarkCatalog:
         current = [current_phase_of(self, b) for b in firsts]  # each in its current phase
         return [c if self.sees(caller, c) else b for b, c in zip(firsts, current)]
 
-    def frame_ids(self, name: str, caller: Caller) -> list[str]:
+    def frame_ids(self, row: str, caller: Caller) -> list[str]:
         """The test frame ids (public, as KITTI's: the labels are what is sealed)."""
-        bench = self.get(name, caller)
+        bench = self.get(row, caller)
         return list(self.ground_truth_of(bench)[1].frame_ids)
 
     def using_ground_truth(self, name: str) -> list[Benchmark]:
@@ -130,7 +130,7 @@ class BenchmarkCatalog:
         sealed)."""
         self.policy.require_admin(caller)
         Accounts.check_name(benchmark, "benchmark")
-        name = phase.row if phase is not None else benchmark
+        row = phase.row if phase is not None else benchmark
         record = self.ground_truths.record(settings.ground_truth)
         open_labels = phase is not None and settings.split_percent is None and not record.sealed
         if not record.sealed and not open_labels:
@@ -156,7 +156,7 @@ class BenchmarkCatalog:
         if phase is not None and phase.phases:
             config["phases"] = [list(p) for p in phase.phases]
         bench = BenchmarkRecord(
-            name=name,
+            name=row,
             project=record.project,
             config=config,
             split_seed=secrets.token_hex(16) if settings.split_percent is not None else None,
@@ -166,19 +166,19 @@ class BenchmarkCatalog:
             **columns,
         )
         if not self.benchmark_store.add_benchmark(bench):
-            raise Conflict(f"a benchmark named {name!r} exists")
+            raise Conflict(f"a benchmark named {row!r} exists")
         detail = record.name + (f", shared with {', '.join(others)}" if others else "")
-        self.audit.record(caller, "benchmark.add", name, detail=detail)
-        return self.named(name)
+        self.audit.record(caller, "benchmark.add", row, detail=detail)
+        return self.named(row)
 
-    def set_state(self, name: str, *, caller: Caller, **values: bool) -> Benchmark:
+    def set_state(self, row: str, *, caller: Caller, **values: bool) -> Benchmark:
         """close (closed=True), reopen (closed=False), reveal (revealed=True), as :func:`.lifecycle.check_change`
         allows: a phase is revealed once it has opened and is closed (by hand or by its ``closes_at``), and is
         never reopened after."""
         self.policy.require_admin(caller)
-        bench = self.named(name)
-        check_change(name, bench, values)  # the phase's life allows it (:mod:`.lifecycle`)
-        self.benchmark_store.update_benchmark(name, **values)
+        bench = self.named(row)
+        check_change(row, bench, values)  # the phase's life allows it (:mod:`.lifecycle`)
+        self.benchmark_store.update_benchmark(row, **values)
         action = ",".join(f"{k}={v}" for k, v in sorted(values.items()))
-        self.audit.record(caller, "benchmark.state", name, detail=action)
-        return self.named(name)
+        self.audit.record(caller, "benchmark.state", row, detail=action)
+        return self.named(row)

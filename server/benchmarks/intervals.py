@@ -49,7 +49,16 @@ from .benchmark import Benchmark
 from .catalog import BenchmarkCatalog
 from .rules import key_value, part_frames
 
-__all__ = ["Intervals", "RESAMPLES", "METHOD", "board_seed", "intervals_job_id", "ranked_rows", "part_name", "rounded"]
+__all__ = [
+    "Intervals",
+    "RESAMPLES",
+    "METHOD",
+    "board_seed",
+    "intervals_job_id",
+    "ranked_submissions",
+    "part_name",
+    "rounded",
+]
 
 #: resamples of every board
 RESAMPLES = 1000
@@ -80,11 +89,15 @@ def intervals_job_id(submission_id: str, scored_at: datetime, seed: int, resampl
     return hashlib.sha256(f"intervals:{submission_id}:{moment}:{seed}:{resamples}".encode()).hexdigest()[:32]
 
 
-def ranked_rows(bench: Benchmark, rows: Sequence[SubmissionRecord]) -> list[tuple[SubmissionRecord, float | None]]:
-    """The scored ones of ``rows`` (oldest first) with their key on the board's part, best first: by the key,
+def ranked_submissions(
+    bench: Benchmark, submissions: Sequence[SubmissionRecord]
+) -> list[tuple[SubmissionRecord, float | None]]:
+    """The scored ones of ``submissions`` (oldest first) with their key on the board's part, best first: by the key,
     ties by submission time, those without a key last."""
     keyed = [
-        (r, key_value((r.scores or {}).get(bench.board_part) or {}, bench.key)) for r in rows if r.status == "scored"
+        (r, key_value((r.scores or {}).get(bench.board_part) or {}, bench.key))
+        for r in submissions
+        if r.status == "scored"
     ]
     return sorted(keyed, key=lambda rk: (rk[1] is None, -(rk[1] or 0.0)))
 
@@ -176,49 +189,55 @@ class Intervals:
 
         return sid, write
 
-    def predictions_of(self, job: JobRecord, row: SubmissionRecord, gt: Annotations) -> Annotations:
+    def predictions_of(self, job: JobRecord, submission: SubmissionRecord, gt: Annotations) -> Annotations:
         """The submission's predictions: its job's input (a submission's scoring), else the kept file."""
         stored = self.job_input_store.job_input(job.id, "predictions") if job.kind == "submission" else None
         if stored is not None:
             content: bytes | None = stored.content
         else:
-            content = self.ground_truth_store.prediction_content(row.pred_sha256)
+            content = self.ground_truth_store.prediction_content(submission.pred_sha256)
         if content is None:
-            raise Conflict(f"the predictions of submission {row.id} are not kept")
+            raise Conflict(f"the predictions of submission {submission.id} are not kept")
         with self.scratch() as scratch:
-            upload = stored_upload(content, row.pred_filename, row.pred_sha256)
+            upload = stored_upload(content, submission.pred_filename, submission.pred_sha256)
             options = LoadOptions(known_frames=gt.frame_index())
             return read_upload(
                 upload.file, "detections", source=upload.filename, scratch=scratch, limits=self.limits, options=options
             ).annotations
 
     # -- reading ----------------------------------------------------------------------------------------------
-    def resampled(self, bench: Benchmark, rows: Sequence[SubmissionRecord]) -> dict[str, npt.NDArray[np.float64]]:
-        """Submission id -> its resampled key on the board's part, for those of ``rows`` that have one; the
+    def resampled(
+        self, bench: Benchmark, submissions: Sequence[SubmissionRecord]
+    ) -> dict[str, npt.NDArray[np.float64]]:
+        """Submission id -> its resampled key on the board's part, for those of ``submissions`` that have one; the
         job of each scored one that has none is queued unless it was (see :func:`intervals_job_id`)."""
         seed = board_seed(bench.name)
         kept = self.benchmark_store.resampled_keys(
-            bench.name, part=bench.board_part, seed=seed, resamples=RESAMPLES, ids=[r.id for r in rows]
+            bench.name, part=bench.board_part, seed=seed, resamples=RESAMPLES, ids=[r.id for r in submissions]
         )
         found = {sid: np.frombuffer(blob, dtype="<f8") for sid, blob in kept.items()}
         found = {sid: v for sid, v in found.items() if v.shape == (RESAMPLES,)}
-        missing = [r for r in rows if r.id not in found and r.status == "scored" and r.scored_at is not None]
+        missing = [r for r in submissions if r.id not in found and r.status == "scored" and r.scored_at is not None]
         if missing:
             self._queue_missing(missing, seed)
         return found
 
-    def _queue_missing(self, rows: Sequence[SubmissionRecord], seed: int) -> None:
+    def _queue_missing(self, submissions: Sequence[SubmissionRecord], seed: int) -> None:
         queued = 0
-        for row in rows:
-            assert row.scored_at is not None
-            job_id = intervals_job_id(row.id, row.scored_at, seed, RESAMPLES)
+        for submission in submissions:
+            assert submission.scored_at is not None
+            job_id = intervals_job_id(submission.id, submission.scored_at, seed, RESAMPLES)
             if self.jobs.get(job_id) is not None:
                 continue
             self.jobs.enqueue(
                 "intervals",
-                {"submission_id": row.id, "benchmark": row.benchmark, "scored_at": row.scored_at.isoformat()},
-                owner=row.participant,
-                group=row.benchmark,
+                {
+                    "submission_id": submission.id,
+                    "benchmark": submission.benchmark,
+                    "scored_at": submission.scored_at.isoformat(),
+                },
+                owner=submission.participant,
+                group=submission.benchmark,
                 job_id=job_id,
             )
             queued += 1
@@ -233,9 +252,9 @@ class Intervals:
             return None
         own = self.benchmark_store.list_submissions(bench.name, participant=record.participant)
         before = [r for r in own if r.created_at < record.created_at]
-        earlier = [(r, k) for r, k in ranked_rows(bench, before) if k is not None]
+        earlier = [(r, k) for r, k in ranked_submissions(bench, before) if k is not None]
         published = self.benchmark_store.list_submissions(bench.name, published_only=True)
-        board = ranked_rows(bench, [r for r in published if not r.baseline])  # baselines lead no one
+        board = ranked_submissions(bench, [r for r in published if not r.baseline])  # baselines lead no one
         leader = board[0] if board and board[0][1] is not None else None
         mine = key_value((record.scores or {}).get(bench.board_part) or {}, bench.key)
         others = [x for x in (earlier[0] if earlier else None, leader) if x is not None]
@@ -244,13 +263,13 @@ class Intervals:
         def against(other: tuple[SubmissionRecord, float | None] | None, **shown: Any) -> dict[str, Any] | None:
             if other is None or mine is None:
                 return None
-            row, key = other
+            theirs, key = other
             if key is None:
                 return None
-            a, b = values.get(record.id), values.get(row.id)
+            a, b = values.get(record.id), values.get(theirs.id)
             interval = None if a is None or b is None else interval95(a - b)
             return {
-                "id": row.id,
+                "id": theirs.id,
                 **shown,
                 "key": key,
                 "difference": round(mine - key, 4),

@@ -15,7 +15,7 @@ from ..access.policy import Caller
 from ..errors import BadRequest
 from ..store import BenchmarkStore
 from .catalog import BenchmarkCatalog
-from .intervals import Intervals, ranked_rows, rounded
+from .intervals import Intervals, ranked_submissions, rounded
 from .teams import entry_teams
 from .views import BOARD_FIELDS, ENTRY_FIELDS, pick
 
@@ -32,64 +32,64 @@ class Leaderboard:
         self.benchmark_store = benchmark_store
 
     def leaderboard(
-        self, name: str, caller: Caller, *, sort: str | None = None, order: str | None = None
+        self, row: str, caller: Caller, *, sort: str | None = None, order: str | None = None
     ) -> dict[str, Any]:
         """The published, scored entries ranked by the key (best first; ties by submission time), each with
         its 95% ``interval``, its ``rank_range`` and whether it ``differs_from_next`` (:mod:`.intervals`:
         from the kept resampled keys; None while an entry's are being computed, counted in
         ``bootstrap.pending``), then sorted as asked."""
-        bench = self.catalog.get(name, caller)
+        bench = self.catalog.get(row, caller)
         part = bench.board_part
-        ranked = ranked_rows(bench, self.benchmark_store.list_submissions(name, published_only=True))
-        values = self.intervals.resampled(bench, [row for row, key in ranked if key is not None])
+        ranked = ranked_submissions(bench, self.benchmark_store.list_submissions(row, published_only=True))
+        values = self.intervals.resampled(bench, [submission for submission, key in ranked if key is not None])
         # the participants are ranked among themselves (1, 2, 3, ... without a gap); an admin's baseline stands
         # in its place by the key without a rank, and its interval is its own
-        ranked_ids = [row.id for row, _ in ranked if not row.baseline]
+        ranked_ids = [submission.id for submission, _ in ranked if not submission.baseline]
         rank_of = {sid: i for i, sid in enumerate(ranked_ids, 1)}
-        keyed = [row.id for row, key in ranked if key is not None and not row.baseline]
+        keyed = [submission.id for submission, key in ranked if key is not None and not submission.baseline]
         standing = dict(zip(keyed, standings([values.get(i) for i in keyed])))
-        team_of = entry_teams(bench, [row for row, _ in ranked])
-        for row, key in ranked:
-            if row.baseline and key is not None:
-                standing[row.id] = standings([values.get(row.id)])[0]
+        team_of = entry_teams(bench, [submission for submission, _ in ranked])
+        for submission, key in ranked:
+            if submission.baseline and key is not None:
+                standing[submission.id] = standings([values.get(submission.id)])[0]
         entries: list[dict[str, Any]] = []
-        for row, key in ranked:
-            scores = (row.scores or {}).get(part) or {}
-            place = standing.get(row.id)
+        for submission, key in ranked:
+            scores = (submission.scores or {}).get(part) or {}
+            place = standing.get(submission.id)
             entries.append(
                 pick(
                     {
-                        "id": row.id,
-                        "method": row.method,
-                        "participant": None if row.anonymous else row.participant,
-                        "team": None if row.anonymous else team_of.get(row.id),
-                        "affiliation": None if row.anonymous else row.affiliation,
-                        "link": None if row.anonymous else row.link,
-                        "anonymous": bool(row.anonymous),
-                        "date": row.created_at.isoformat(),
+                        "id": submission.id,
+                        "method": submission.method,
+                        "participant": None if submission.anonymous else submission.participant,
+                        "team": None if submission.anonymous else team_of.get(submission.id),
+                        "affiliation": None if submission.anonymous else submission.affiliation,
+                        "link": None if submission.anonymous else submission.link,
+                        "anonymous": bool(submission.anonymous),
+                        "date": submission.created_at.isoformat(),
                         "key": key,
                         "columns": {c: scores.get(c) for c in bench.columns},
-                        "baseline": bool(row.baseline),
-                        "rank": None if row.baseline else rank_of[row.id],
+                        "baseline": bool(submission.baseline),
+                        "rank": None if submission.baseline else rank_of[submission.id],
                         "interval": rounded(place.interval) if place else None,
                         "rank_range": list(place.rank_range)
-                        if place and place.rank_range and not row.baseline
+                        if place and place.rank_range and not submission.baseline
                         else None,
-                        "differs_from_next": place.differs_from_next if place and not row.baseline else None,
+                        "differs_from_next": place.differs_from_next if place and not submission.baseline else None,
                     },
                     ENTRY_FIELDS,
                 )
             )
-        pending = sum(1 for row, key in ranked if key is not None and row.id not in values)
+        pending = sum(1 for submission, key in ranked if key is not None and submission.id not in values)
         sort = sort or "key"
         if sort not in ("key", "rank", "method", "date", *bench.columns):
             raise BadRequest(f"sort by rank, key, method, date or a column: {', '.join(bench.columns)}")
         order = order or ("asc" if sort in ("rank", "method", "date") else "desc")
         if order not in ("asc", "desc"):
             raise BadRequest("order is asc or desc")
-        rows = entries
+        shown = entries
         if sort not in ("key", "rank") or order != "desc" or sort == "rank":
-            rows = self._sorted(entries, sort, order)
+            shown = self._sorted(entries, sort, order)
         board = {
             "benchmark": bench.shown_name,
             "phase": bench.phase_name,
@@ -99,7 +99,7 @@ class Leaderboard:
             "columns": bench.columns,
             "sort": sort,
             "order": order,
-            "entries": rows,
+            "entries": shown,
             "bootstrap": {**self.intervals.bootstrap_of(bench), "pending": pending},
         }
         return pick(board, BOARD_FIELDS)

@@ -20,16 +20,16 @@ __all__ = ["submission_frames"]
 
 def submission_frames(
     benchmarks: Benchmarks,
-    name: str,
+    row: str,
     submission_id: str,
     caller: Caller,
     **question: Any,
 ) -> dict[str, Any]:
-    """TP/FP/FN per frame of one of the caller's submissions to the phase ``name`` (a row), when the phase is on
+    """TP/FP/FN per frame of one of the caller's submissions to the phase ``row``, when the phase is on
     open labels: the submission's file read as its scoring read it, matched as the AP is
     (:func:`~kitti_eval_server.scoring.evaluator.frame_listing`, ``question`` its keywords)."""
-    record = benchmarks.submissions._own(name, submission_id, caller)
-    bench = benchmarks.catalog.named(name)
+    record = benchmarks.submissions._own(row, submission_id, caller)
+    bench = benchmarks.catalog.named(row)
     require_open_labels(open_labels=bench.open_labels, what=f"phase {bench.phase_name!r}")
     if record.status != "scored":
         raise Conflict(f"the submission {record.id} is {record.status}: its frames are shown once it is scored")

@@ -36,7 +36,7 @@ class BenchmarkCatalog(Protocol):
 
     def sees(self, caller: Caller, bench: Benchmark) -> bool: ...
 
-    def get(self, name: str, caller: Caller) -> Benchmark: ...
+    def get(self, row: str, caller: Caller) -> Benchmark: ...
 
 
 __all__ = [
@@ -81,8 +81,8 @@ def phase_list(first: BenchmarkRecord) -> list[tuple[str, str]]:
     return [(str(p), str(r)) for p, r in listed]
 
 
-def _rows(catalog: BenchmarkCatalog, name: str) -> list[Benchmark]:
-    first = catalog.benchmark_store.get_benchmark(name)
+def _rows(catalog: BenchmarkCatalog, benchmark: str) -> list[Benchmark]:
+    first = catalog.benchmark_store.get_benchmark(benchmark)
     if first is None:
         return []
     rows = []
@@ -101,24 +101,24 @@ def _current(rows: list[Benchmark], now: datetime) -> Benchmark:
     return opened[-1] if opened else rows[0]
 
 
-def current_row(catalog: BenchmarkCatalog, name: str) -> str:
-    """The row the benchmark's routes without a phase address: its current phase's (``name`` itself when it
-    has one phase, is a phase's row or is no benchmark: the route's own answer follows)."""
-    if PHASE_SEPARATOR in name:
-        return name
-    rows = _rows(catalog, name)
+def current_row(catalog: BenchmarkCatalog, benchmark: str) -> str:
+    """The row the benchmark's routes without a phase address: its current phase's (``benchmark`` itself when
+    it has one phase, is a phase's row or is no benchmark: the route's own answer follows)."""
+    if PHASE_SEPARATOR in benchmark:
+        return benchmark
+    rows = _rows(catalog, benchmark)
     if len(rows) < 2:
-        return name
+        return benchmark
     return _current(rows, datetime.now(timezone.utc)).name
 
 
-def submission_row(catalog: BenchmarkCatalog, name: str, submission_id: str) -> str:
-    """The row of the phase a submission of the benchmark ``name`` is in (else its current phase's: whoever
-    asks, the route's own refusal follows for a submission that is not theirs or not there)."""
+def submission_row(catalog: BenchmarkCatalog, benchmark: str, submission_id: str) -> str:
+    """The row of the phase a submission of the benchmark ``benchmark`` is in (else its current phase's:
+    whoever asks, the route's own refusal follows for a submission that is not theirs or not there)."""
     record = catalog.benchmark_store.get_submission(submission_id)
-    if record is not None and record.benchmark.split(PHASE_SEPARATOR, 1)[0] == name:
+    if record is not None and record.benchmark.split(PHASE_SEPARATOR, 1)[0] == benchmark:
         return record.benchmark
-    return current_row(catalog, name)
+    return current_row(catalog, benchmark)
 
 
 def current_phase_of(catalog: BenchmarkCatalog, first: Benchmark) -> Benchmark:
@@ -136,27 +136,27 @@ def last_phase(catalog: BenchmarkCatalog, first: Benchmark) -> Benchmark:
     return rows[-1] if rows else first
 
 
-def row_of(catalog: BenchmarkCatalog, name: str, phase: str, caller: Caller) -> str:
+def row_of(catalog: BenchmarkCatalog, benchmark: str, phase: str, caller: Caller) -> str:
     """The row of the benchmark's phase ``phase``, for a caller who sees the benchmark (404 otherwise, as for a
     benchmark that does not exist)."""
-    if PHASE_SEPARATOR in name:
-        raise NotFound(f"no benchmark named {echo(name)}")
-    catalog.get(name, caller)
-    for bench in _rows(catalog, name):
+    if PHASE_SEPARATOR in benchmark:
+        raise NotFound(f"no benchmark named {echo(benchmark)}")
+    catalog.get(benchmark, caller)
+    for bench in _rows(catalog, benchmark):
         if bench.phase_name == phase:
             catalog.get(bench.name, caller)
             return bench.name
-    raise NotFound(f"the benchmark {name!r} has no phase named {echo(phase)}")
+    raise NotFound(f"the benchmark {benchmark!r} has no phase named {echo(phase)}")
 
 
-def addressed_row(catalog: BenchmarkCatalog, name: str, phase: str | None, caller: Caller) -> str | None:
-    """The row a route of the benchmark ``name`` addresses, for whoever asks before a request's body: the phase
-    ``phase``'s (:func:`row_of`; None where it refuses: the route refuses them), else the current phase's
+def addressed_row(catalog: BenchmarkCatalog, benchmark: str, phase: str | None, caller: Caller) -> str | None:
+    """The row a route of the benchmark ``benchmark`` addresses, for whoever asks before a request's body: the
+    phase ``phase``'s (:func:`row_of`; None where it refuses: the route refuses them), else the current phase's
     (:func:`current_row`)."""
     if phase is None:
-        return current_row(catalog, name)
+        return current_row(catalog, benchmark)
     try:
-        return row_of(catalog, name, phase, caller)
+        return row_of(catalog, benchmark, phase, caller)
     except ApiError:
         return None
 

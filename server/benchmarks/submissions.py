@@ -115,53 +115,51 @@ class Submissions:
         self.wake = wake
 
     # -- admin ----------------------------------------------------------------------------------------------
-    def all_submissions(self, name: str, caller: Caller) -> list[dict[str, Any]]:
+    def all_submissions(self, row: str, caller: Caller) -> list[dict[str, Any]]:
         self.policy.require_admin(caller)
-        bench = self.catalog.named(name)
+        bench = self.catalog.named(row)
         return [
-            submission_view(r, bench, full=False, everything=True) for r in self.benchmark_store.list_submissions(name)
+            submission_view(r, bench, full=False, everything=True) for r in self.benchmark_store.list_submissions(row)
         ]
 
-    def disqualify(self, name: str, submission_id: str, *, caller: Caller) -> dict[str, Any]:
+    def disqualify(self, row: str, submission_id: str, *, caller: Caller) -> dict[str, Any]:
         self.policy.require_admin(caller)
-        bench = self.catalog.named(name)
+        bench = self.catalog.named(row)
         record = self.benchmark_store.get_submission(submission_id)
-        if record is None or record.benchmark != name:
-            raise NotFound(f"no submission {echo(submission_id)} in benchmark {echo(name)}")
+        if record is None or record.benchmark != row:
+            raise NotFound(f"no submission {echo(submission_id)} in benchmark {echo(row)}")
         self.benchmark_store.update_submission(submission_id, disqualified=True)
         self.audit.record(caller, "submission.disqualify", submission_id)
         again = self.benchmark_store.get_submission(submission_id)
         assert again is not None
         return submission_view(again, bench, full=False, everything=True)
 
-    def rescore(self, name: str, *, caller: Caller) -> dict[str, Any]:
+    def rescore(self, row: str, *, caller: Caller) -> dict[str, Any]:
         """Queue one job per stored submission that evaluates it again against the ground truth as registered
         when the job runs; returns at once (``GET /v1/benchmarks/{name}`` shows an admin the jobs' progress)."""
         self.policy.require_admin(caller)
-        bench = self.catalog.named(name)
+        bench = self.catalog.named(row)
         record, _ = self.catalog.ground_truth_of(bench)
-        rows = self.benchmark_store.list_submissions(name)
+        records = self.benchmark_store.list_submissions(row)
         queued = self.jobs.enqueue_many(
-            "rescore", [{"submission_id": r.id, "benchmark": name} for r in rows], owner=caller.name, group=name
+            "rescore", [{"submission_id": r.id, "benchmark": row} for r in records], owner=caller.name, group=row
         )
         self.wake(len(queued))
-        self.audit.record(caller, "benchmark.rescore", name, detail=f"{len(queued)} queued")
+        self.audit.record(caller, "benchmark.rescore", row, detail=f"{len(queued)} queued")
         return {
-            "benchmark": name,
+            "benchmark": row,
             "queued": len(queued),
             "jobs": [j.id for j in queued],
-            "rescoring": self.rescoring(name),
+            "rescoring": self.rescoring(row),
             "ground_truth_sha256": record.sha256,
         }
 
-    def rescoring(self, name: str) -> dict[str, int]:
+    def rescoring(self, row: str) -> dict[str, int]:
         """The rescoring jobs of the benchmark by state (every rescoring so far: queued, running, done, ...)."""
-        return self.jobs.counts(group=name, kind="rescore")
+        return self.jobs.counts(group=row, kind="rescore")
 
     # -- participants -------------------------------------------------------------------------------------
-    def submit(
-        self, name: str, predictions: FileIn, caller: Caller, *, idempotency_key: str | None = None
-    ) -> JobRecord:
+    def submit(self, row: str, predictions: FileIn, caller: Caller, *, idempotency_key: str | None = None) -> JobRecord:
         """Count against the quota and accept (one transaction; the acceptance time is the submission's), keep
         the upload as the job's input and queue its scoring: the job, whose id is the submission's. Never waits
         for an evaluator, and reads nothing of the file: its scoring job checks it as ``kitti-eval validate``
@@ -174,22 +172,22 @@ class Submissions:
             raise Forbidden("benchmarks take submissions in accounts mode (KITTI_EVAL_AUTH=accounts)")
         if not self.policy.is_participant(caller):
             raise Forbidden("a participant submits with their own token (kitti-eval admin token add USER)")
-        bench = self.catalog.get(name, caller)
+        bench = self.catalog.get(row, caller)
         if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
-            raise _not_taking_part(name)
+            raise _not_taking_part(row)
         upload = request_key = None
         if idempotency_key is not None:  # a retry is answered first, whatever has changed since: the file's hash
             upload = receive_content(predictions.file, predictions.filename, "predictions")
             request_key = RequestKey(
-                caller.name, submissions_scope(name), idempotency_key, fingerprint(file=upload.sha256)
+                caller.name, submissions_scope(row), idempotency_key, fingerprint(file=upload.sha256)
             )
             if (earlier := self.idempotency.earlier(request_key)) is not None:
                 return earlier  # accepted before (and counted then)
         baseline = self.policy.is_baseline(caller)  # under no quota, never ranked
         if baseline and bench.is_closed():
-            raise Conflict(f"the benchmark {name!r} is closed: its board is frozen")
+            raise Conflict(f"the benchmark {row!r} is closed: its board is frozen")
         if not baseline and not bench.is_open() and not bench.takes_late():
-            raise Conflict(f"the benchmark {name!r} is not open for submissions")
+            raise Conflict(f"the benchmark {row!r} is not open for submissions")
         self.catalog.ground_truth_record_of(bench)  # registered, and sealed if it is to be
         if upload is None:  # read (and hashed) only once the cheap refusals are past
             upload = receive_content(predictions.file, predictions.filename, "predictions")
@@ -200,7 +198,7 @@ class Submissions:
         submission_id = new_id()
         accepted = SubmissionRecord(
             id=submission_id,
-            benchmark=name,
+            benchmark=row,
             participant=caller.name,
             created_at=now,
             status="accepted",
@@ -210,13 +208,13 @@ class Submissions:
             baseline=baseline,
         )
         inputs = [JobInput("predictions", upload.filename, upload.sha256, upload.content, kept=True)]
-        payload = {"submission_id": submission_id, "benchmark": name}
+        payload = {"submission_id": submission_id, "benchmark": row}
         action = "baseline.add" if baseline else "submission.add"
 
         def with_its_job(conn: Any) -> None:  # the submission, its input, its job and its audit row: one commit
             self.job_input_store.add_job_inputs_in(conn, submission_id, inputs)
-            self.jobs.enqueue_in(conn, "submission", payload, owner=caller.name, group=name, job_id=submission_id)
-            self.audit.record_in(conn, caller, action, f"{name} {submission_id}")
+            self.jobs.enqueue_in(conn, "submission", payload, owner=caller.name, group=row, job_id=submission_id)
+            self.audit.record_in(conn, caller, action, f"{row} {submission_id}")
 
         try:
             limit = None if baseline else count
@@ -226,7 +224,7 @@ class Submissions:
                 window_start=now - window,
                 window=window,
                 then=with_its_job,
-                key=None if request_key is None else self.idempotency.record(request_key, submission_id),
+                idempotency_key=None if request_key is None else self.idempotency.record(request_key, submission_id),
                 team=None
                 if baseline
                 else quota_team(self.benchmark_store, bench, caller.name),  # counted as the team's
@@ -271,34 +269,34 @@ class Submissions:
             return QuotaExceeded.of(count, days, oldest + window)
         return None
 
-    def _own(self, name: str, submission_id: str, caller: Caller) -> SubmissionRecord:
+    def _own(self, row: str, submission_id: str, caller: Caller) -> SubmissionRecord:
         """One of the caller's own submissions (another's is as absent as a missing one; admins list every
         submission with ``all_submissions``)."""
-        self.catalog.get(name, caller)
+        self.catalog.get(row, caller)
         record = self.benchmark_store.get_submission(submission_id)
-        if record is None or record.benchmark != name or not self.policy.owns(caller, record.participant):
+        if record is None or record.benchmark != row or not self.policy.owns(caller, record.participant):
             raise NotFound(f"no submission of yours with id {echo(submission_id)}")
         return record
 
-    def submission(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
+    def submission(self, row: str, submission_id: str, caller: Caller) -> dict[str, Any]:
         """One of the caller's submissions with its full result and its ``comparison`` (:meth:`comparison`: with
         their best earlier submission and the leader, on the part the board shows)."""
-        record = self._own(name, submission_id, caller)
-        bench = self.catalog.named(name)
+        record = self._own(row, submission_id, caller)
+        bench = self.catalog.named(row)
         out = submission_view(record, bench, full=True)
         out["comparison"] = self.intervals.comparison(bench, record)
         return out
 
-    def mine(self, name: str, caller: Caller) -> dict[str, Any]:
-        bench = self.catalog.get(name, caller)
-        records = self.benchmark_store.list_submissions(name, participant=caller.name)
+    def mine(self, row: str, caller: Caller) -> dict[str, Any]:
+        bench = self.catalog.get(row, caller)
+        records = self.benchmark_store.list_submissions(row, participant=caller.name)
         count, days = bench.quota
         since = datetime.now(timezone.utc) - timedelta(days=days)
         team = quota_team(self.benchmark_store, bench, caller.name)  # counted as accept_submission counts them
         pool = (
             [
                 r
-                for r in self.benchmark_store.list_submissions(name)
+                for r in self.benchmark_store.list_submissions(row)
                 if r.participant in team.members or r.team == team.name
             ]
             if team
@@ -323,7 +321,7 @@ class Submissions:
 
     def publish(
         self,
-        name: str,
+        row: str,
         submission_id: str,
         caller: Caller,
         *,
@@ -332,8 +330,8 @@ class Submissions:
         affiliation: str | None = None,
         link: str | None = None,
     ) -> dict[str, Any]:
-        record = self._own(name, submission_id, caller)
-        bench = self._still_selecting(name)
+        record = self._own(row, submission_id, caller)
+        bench = self._still_selecting(row)
         if record.status != "scored":
             raise Conflict("only a scored submission can be published")
         if record.disqualified:
@@ -357,37 +355,37 @@ class Submissions:
             )
         except PublishRefused:
             raise Conflict(
-                f"at most {bench.max_published} published entries per participant in {name!r}, and "
+                f"at most {bench.max_published} published entries per participant in {row!r}, and "
                 f"{record.participant} has them: withdraw one first"
             ) from None
         action = "baseline.publish" if record.baseline else "submission.publish"
-        self.audit.record(caller, action, f"{name} {submission_id}", detail=method)
-        return self.submission(name, submission_id, caller)
+        self.audit.record(caller, action, f"{row} {submission_id}", detail=method)
+        return self.submission(row, submission_id, caller)
 
-    def withdraw(self, name: str, submission_id: str, caller: Caller) -> dict[str, Any]:
-        record = self._own(name, submission_id, caller)
-        self._still_selecting(name)
+    def withdraw(self, row: str, submission_id: str, caller: Caller) -> dict[str, Any]:
+        record = self._own(row, submission_id, caller)
+        self._still_selecting(row)
         self.benchmark_store.update_submission(submission_id, published=False, published_at=None)
         action = "baseline.withdraw" if record.baseline else "submission.withdraw"
-        self.audit.record(caller, action, f"{name} {submission_id}")
-        return self.submission(name, submission_id, caller)
+        self.audit.record(caller, action, f"{row} {submission_id}")
+        return self.submission(row, submission_id, caller)
 
-    def _still_selecting(self, name: str) -> Benchmark:
+    def _still_selecting(self, row: str) -> Benchmark:
         """The benchmark, while its participants may still choose what is published: until it closes. The
         entries published at the close are the ones ranked on the private part after the reveal."""
-        bench = self.catalog.named(name)
+        bench = self.catalog.named(row)
         if bench.is_closed():
             raise Conflict(
-                f"the benchmark {name!r} is closed: the published entries were frozen at the close (they are "
+                f"the benchmark {row!r} is closed: the published entries were frozen at the close (they are "
                 "the ones ranked on the private part)"
             )
         return bench
 
 
-def _not_taking_part(name: str) -> Forbidden:
+def _not_taking_part(row: str) -> Forbidden:
     """The refusal of a submission from a caller who may read the benchmark but not take part in it."""
     return Forbidden(
-        f"the benchmark {name!r} takes part from the members of its test set's project: reading it is not taking "
+        f"the benchmark {row!r} takes part from the members of its test set's project: reading it is not taking "
         "part in it"
     )
 

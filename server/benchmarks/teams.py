@@ -53,12 +53,12 @@ def quota_team(store: BenchmarkStore, bench: Benchmark, participant: str) -> Quo
     return QuotaTeam(team.name, team.members)
 
 
-def entry_teams(bench: Benchmark, rows: Sequence[SubmissionRecord]) -> dict[str, str]:
+def entry_teams(bench: Benchmark, submissions: Sequence[SubmissionRecord]) -> dict[str, str]:
     """Submission id -> the team it counted for, recorded when it was accepted, in the benchmark ``bench`` is a
     phase of (none when it takes no teams): who joins or leaves later relabels none of the entries made."""
     if bench.team_size < 2:
         return {}
-    return {row.id: row.team for row in rows if row.team is not None}
+    return {submission.id: submission.team for submission in submissions if submission.team is not None}
 
 
 def team_view(team: TeamRecord, *, own: bool = False) -> dict[str, Any]:

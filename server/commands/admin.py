@@ -442,7 +442,7 @@ def _ground_truth(args: argparse.Namespace, service: Service, caller: Caller) ->
     from ..service import FileIn
 
     with open(args.file, "rb") as fh:
-        record = service.catalog.add(
+        record = service.gt_catalog.add(
             args.name, FileIn(fh, args.file.name), caller=caller, project=args.project, sealed=args.sealed
         )
     sealed = ", sealed" if record.sealed else ""

@@ -78,7 +78,7 @@ class Evaluations:
         ground_truth_store: GroundTruthStore,
         job_input_store: JobInputStore,
         account_store: AccountStore,
-        ground_truths: GroundTruthCatalog,
+        gt_catalog: GroundTruthCatalog,
         predictions: GroundTruthCache,
         policy: Policy,
         audit: Audit,
@@ -93,7 +93,7 @@ class Evaluations:
         self.ground_truth_store = ground_truth_store
         self.job_input_store = job_input_store
         self.account_store = account_store  # whether a project exists
-        self.ground_truths = ground_truths
+        self.gt_catalog = gt_catalog
         self.predictions = predictions
         self.policy = policy
         self.audit = audit
@@ -129,7 +129,7 @@ class Evaluations:
                 "/v1/ground-truths lists them) or as a file (form field 'gt_file'), not both"
             )
         options.config()  # bad options fail before any upload is read
-        gt_record = self.ground_truths.get(gt_name, caller) if gt_name is not None else None
+        gt_record = self.gt_catalog.get(gt_name, caller) if gt_name is not None else None
         if gt_record is not None:
             self.policy.may_evaluate_against(caller, gt_record)
         project = self._project_for(caller, project, gt_record)
@@ -147,9 +147,9 @@ class Evaluations:
             "labels": dict(labels),
             "project": project,
         }
-        key = None
+        request_key = None
         if idempotency_key is not None:
-            key = RequestKey(
+            request_key = RequestKey(
                 caller.name,
                 EVALUATIONS,
                 idempotency_key,
@@ -161,14 +161,16 @@ class Evaluations:
                     project=project,
                 ),
             )
-            if (earlier := self.idempotency.earlier(key)) is not None:
+            if (earlier := self.idempotency.earlier(request_key)) is not None:
                 return earlier
         self.jobs.admit(self.policy.job_owner(caller), sum(len(i.content) for i in inputs))
-        try:  # the job, its inputs and its key: one transaction
-            job = enqueue(job_id, payload, inputs, None if key is None else self.idempotency.record(key, job_id))
+        try:  # the job, its inputs and its idempotency key: one transaction
+            job = enqueue(
+                job_id, payload, inputs, None if request_key is None else self.idempotency.record(request_key, job_id)
+            )
         except KeyTaken as e:  # a copy of this request was recorded first (nothing of this one is kept)
-            assert key is not None
-            return self.idempotency.taken(key, e)
+            assert request_key is not None
+            return self.idempotency.taken(request_key, e)
         if gt_record is not None and self.policy.is_test_set(gt_record):
             self.audit.record(caller, "evaluation.test_set", f"{job_id} on {gt_record.name}")
         return job
@@ -193,7 +195,7 @@ class Evaluations:
                         f"the ground truth {gt_name!r} was deleted or replaced after the evaluation was accepted; "
                         "upload the predictions again"
                     )
-                gt = self.ground_truths.files.load(gt_record)
+                gt = self.gt_catalog.files.load(gt_record)
                 gt_sha256 = gt_record.sha256
             else:
                 gt_input = self.job_input_store.job_input(job_id, "gt_file")
@@ -339,7 +341,7 @@ class EvaluationFrames:
         self,
         evaluations: Evaluations,
         ground_truth_store: GroundTruthStore,
-        ground_truths: GroundTruthCatalog,
+        gt_catalog: GroundTruthCatalog,
         predictions: GroundTruthCache,
         policy: Policy,
         limits: UploadLimits,
@@ -349,7 +351,7 @@ class EvaluationFrames:
         kept predictions loaded."""
         self.evaluations = evaluations
         self.ground_truth_store = ground_truth_store
-        self.ground_truths = ground_truths
+        self.gt_catalog = gt_catalog
         self.predictions = predictions
         self.policy = policy
         self.limits = limits
@@ -384,7 +386,7 @@ class EvaluationFrames:
         predictions read whole (bounded by ``KITTI_EVAL_FRAMES_MAX_BOXES``), for an evaluation stored without
         its frames (:mod:`.frame_rows`) or a question they cannot answer."""
         gt_record, config = self._checked(record)
-        gt = self.ground_truths.files.load(gt_record)
+        gt = self.gt_catalog.files.load(gt_record)
 
         def load_kept() -> Annotations:
             content = self.ground_truth_store.prediction_content(record.pred_sha256)
@@ -517,7 +519,7 @@ class EvaluationFrames:
                     break  # stored, but not this frame: the ground truth has none such (refused below)
                 return None
             rows.append((record, c, row))
-        gt = self.ground_truths.files.load(checked[0][0])
+        gt = self.gt_catalog.files.load(checked[0][0])
         if fid not in gt.frame_index():
             raise NotFound(f"no frame {clip(fid, MAX_ECHO_CHARS)} in the ground truth {records[0].gt_name!r}")
         if len(rows) < len(records):

@@ -220,16 +220,16 @@ class JobQueue:
         group: str | None = None,
         job_id: str | None = None,
         inputs: builtins.list[JobInput] | None = None,
-        key: IdempotencyRecord | None = None,
+        idempotency_key: IdempotencyRecord | None = None,
     ) -> JobRecord:
         """Record a queued job (committed when this returns), with its uploaded ``inputs`` in the same
         transaction. ``job_id``: the id to give it (a new one when None); when a job already has it, that job
         is returned as it is (enqueueing the same job again, as a retried request does, records it once).
-        ``key``: the request's idempotency key, recorded in the same transaction (with ``inputs`` only);
+        ``idempotency_key``: the request's, recorded in the same transaction (with ``inputs`` only);
         :class:`~kitti_eval_server.store.KeyTaken`, and nothing recorded, when a request recorded it first."""
         record = self._new(kind, payload, owner, group, job_id, self._now())
         if inputs:
-            added = self._add_with_inputs(record, inputs, key)
+            added = self._add_with_inputs(record, inputs, idempotency_key)
         else:
             added = self.job_store.add_job(record)
         if added:
@@ -241,15 +241,15 @@ class JobQueue:
 
     @retry_when_locked
     def _add_with_inputs(
-        self, record: JobRecord, inputs: builtins.list[JobInput], key: IdempotencyRecord | None
+        self, record: JobRecord, inputs: builtins.list[JobInput], idempotency_key: IdempotencyRecord | None
     ) -> bool:
         """The job and its uploaded files in one transaction (one commit: a job is never without its input);
-        False, and nothing added, when the job's id is taken. ``key``: the request's idempotency key, recorded in
+        False, and nothing added, when the job's id is taken. ``idempotency_key``: the request's, recorded in
         the same transaction (:class:`~kitti_eval_server.store.KeyTaken` when another request recorded it first:
         nothing is added)."""
         with self.db.writing() as conn:
-            if key is not None:
-                self.idempotency_store.add_idempotency_key_in(conn, key)
+            if idempotency_key is not None:
+                self.idempotency_store.add_idempotency_key_in(conn, idempotency_key)
             if not self.job_store.add_job_in(conn, record):
                 return False
             self.job_input_store.add_job_inputs_in(conn, record.id, inputs)

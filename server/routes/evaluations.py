@@ -133,7 +133,7 @@ async def create_evaluation(
 ) -> Response:
     """Evaluate `predictions` against a ground truth and store the result with the inputs' sha256 and the
     labels. The JSON is the document `kitti-eval --format json` prints, plus `id` and `evaluation`."""
-    key = parse_key(idempotency_key)
+    checked_key = parse_key(idempotency_key)  # the Idempotency-Key header, checked
     labels = parse_labels({"model": model, "commit": commit, "epoch": epoch}, label or [])
     options = EvalOptions(
         protocol=protocol,
@@ -157,7 +157,7 @@ async def create_evaluation(
             caller,
             project or None,
             enqueue=service.enqueue_evaluation(caller),
-            idempotency_key=key,
+            idempotency_key=checked_key,
         )
     )
     ended = await service.outcome(job.id, wait)

@@ -51,7 +51,7 @@ async def register_ground_truth(
 ) -> JSONResponse:
     """Validate the file by loading it, keep it, and make it available as `gt=<name>`."""
     record = await service.run(
-        lambda: service.catalog.add(
+        lambda: service.gt_catalog.add(
             name, FileIn(file.file, file.filename), caller=admin, project=project or None, sealed=sealed
         )
     )
@@ -62,12 +62,12 @@ async def register_ground_truth(
 
 @router.get("", response_model=GroundTruthList, summary="Registered ground truths")
 def list_ground_truths(service: ServiceDep, caller: ReaderCaller) -> dict[str, Any]:
-    return {"items": [ground_truth_out(r) for r in service.catalog.listed(caller)]}
+    return {"items": [ground_truth_out(r) for r in service.gt_catalog.listed(caller)]}
 
 
 @router.get("/{name}", response_model=GroundTruthOut, summary="One registered ground truth")
 def get_ground_truth(service: ServiceDep, caller: ReaderCaller, name: str) -> dict[str, Any]:
-    return ground_truth_out(service.catalog.get(name, caller))
+    return ground_truth_out(service.gt_catalog.get(name, caller))
 
 
 @router.delete(
@@ -77,5 +77,5 @@ def get_ground_truth(service: ServiceDep, caller: ReaderCaller, name: str) -> di
     summary="Delete a registered ground truth (admin); evaluations made with it stay",
 )
 def delete_ground_truth(service: ServiceDep, admin: AdminCaller, name: str) -> Response:
-    service.catalog.remove(name, caller=admin)
+    service.gt_catalog.remove(name, caller=admin)
     return Response(status_code=204)

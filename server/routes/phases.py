@@ -119,7 +119,7 @@ def phase_submissions(name: str, phase: str, benchmarks: BenchmarksDep, caller: 
     summary="TP, FP and FN per frame of one of your submissions, in a phase on open labels",
 )
 async def submission_frames(
-    name: SubmissionPhase,
+    row: SubmissionPhase,
     submission_id: str,
     benchmarks: BenchmarksDep,
     service: ServiceDep,
@@ -127,7 +127,7 @@ async def submission_frames(
     question: FrameCountsQ,
 ) -> dict[str, Any]:
     """As `GET /v1/evaluations/{id}/frames` for an evaluation; a sealed phase's frames are refused (403 `sealed`)."""
-    return await service.run(lambda: frames_of(benchmarks, name, submission_id, caller, **question))
+    return await service.run(lambda: frames_of(benchmarks, row, submission_id, caller, **question))
 
 
 @router.get("/{name}/teams", summary="The benchmark's teams (for those who take part in it) and yours")

@@ -215,7 +215,7 @@ class BenchmarkStore(Area):
         window_start: datetime,
         window: timedelta,
         then: Callable[[Connection], object] | None = None,
-        key: IdempotencyRecord | None = None,
+        idempotency_key: IdempotencyRecord | None = None,
         team: QuotaTeam | None = None,
     ) -> None:
         """Insert the submission if its participant has fewer than ``limit`` submissions in this benchmark
@@ -223,29 +223,29 @@ class BenchmarkStore(Area):
         uncounted). Counting and inserting are one transaction
         holding the (benchmark, participant) pair's lock, so concurrent submissions, from any number of
         servers on the database, are counted one after another and none is admitted over the limit. ``then``
-        writes what goes with the submission in the same transaction. ``key``: the request's idempotency key,
-        recorded first (:class:`KeyTaken`, nothing written, when a copy of the request recorded it: the copy is
-        not counted again). ``team``: the participant's team, whose submissions count together (the lock is the
-        team's, so its members' parallel submissions are counted one after another); the submission is recorded
-        as the team's (``record.team``)."""
+        writes what goes with the submission in the same transaction. ``idempotency_key``: the request's
+        idempotency key, recorded first (:class:`KeyTaken`, nothing written, when a copy of the request recorded
+        it: the copy is not counted again). ``team``: the participant's team, whose submissions count together
+        (the lock is the team's, so its members' parallel submissions are counted one after another); the
+        submission is recorded as the team's (``record.team``)."""
         lock_as = team.lock if team is not None else record.participant
         count_query = _quota_count(record.benchmark, record.participant, window_start, team)
-        row = {**record.__dict__, "team": team.name if team is not None else None}
-        if limit is None:  # on SQLite the write lock from the start, as the key's record needs
+        values = {**record.__dict__, "team": team.name if team is not None else None}
+        if limit is None:  # on SQLite the write lock from the start, as the idempotency key's record needs
             with self._writing() as conn:
-                if key is not None:
-                    IdempotencyStore.add_idempotency_key_in(conn, key)
-                conn.execute(insert(submissions).values(**row))
+                if idempotency_key is not None:
+                    IdempotencyStore.add_idempotency_key_in(conn, idempotency_key)
+                conn.execute(insert(submissions).values(**values))
                 if then is not None:
                     then(conn)
             return
         with self._holding(record.benchmark, lock_as) as conn:
-            if key is not None:
-                IdempotencyStore.add_idempotency_key_in(conn, key)
+            if idempotency_key is not None:
+                IdempotencyStore.add_idempotency_key_in(conn, idempotency_key)
             used, oldest = conn.execute(count_query).one()
             if used >= limit:
                 raise QuotaRefused(utc(oldest) + window, used)
-            conn.execute(insert(submissions).values(**row))
+            conn.execute(insert(submissions).values(**values))
             if then is not None:  # what is recorded with it (its job and input), in the same commit
                 then(conn)
 

@@ -171,15 +171,15 @@ def _state(service: Service, submission: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _benchmark_context(
-    request: Request, service: Service, caller: Caller, name: str, sort: str | None, order: str | None
+    request: Request, service: Service, caller: Caller, row: str, sort: str | None, order: str | None
 ) -> dict[str, Any]:
     benchmarks = _benchmarks(request)
-    bench = benchmarks.catalog.get(name, caller)
-    board = benchmarks.board.leaderboard(name, caller, sort=sort, order=order)
+    bench = benchmarks.catalog.get(row, caller)
+    board = benchmarks.board.leaderboard(row, caller, sort=sort, order=order)
     described = benchmarks.catalog.describe(bench, caller)
     mine = None
     if _participant(service, caller):
-        mine = benchmarks.submissions.mine(name, caller)
+        mine = benchmarks.submissions.mine(row, caller)
         mine["items"] = _states(service, mine["items"], described["key"])
     phases = sorted(described["phases"], key=lambda p: not p["current"])  # the current one first
     teams = None
@@ -257,16 +257,20 @@ async def submit_form(
     refused file shows the validator's sentences here when the job ran within ``FORM_WAIT_S``, and counts
     nothing); then the submission's page, which follows its scoring."""
     benchmarks = _benchmarks(request)
+    row = name  # a benchmark's name is its first phase's row (the page a refusal shows, when the phase is not found)
     try:
-        name = _phase_row(request, caller, name, phase)
+        row = _phase_row(request, caller, name, phase)
         async with request.form(max_files=1, max_fields=FORM_MAX_FIELDS) as form:
             predictions = form.get("predictions")
             if not isinstance(predictions, UploadFile) or not predictions.filename:
                 raise BadRequest("choose a predictions file (a zip or tar of KITTI result txt files, or a result.pkl)")
             file = FileIn(predictions.file, predictions.filename)
-            key = form.get(FORM_FIELD)
-            key = parse_key(key) if isinstance(key, str) and key else None  # the form's: sent again, one submission
-            job = await service.accept(lambda: benchmarks.submissions.submit(name, file, caller, idempotency_key=key))
+            sent = form.get(FORM_FIELD)
+            # the form's idempotency key: sent again, one submission
+            idempotency_key = parse_key(sent) if isinstance(sent, str) and sent else None
+            job = await service.accept(
+                lambda: benchmarks.submissions.submit(row, file, caller, idempotency_key=idempotency_key)
+            )
         try:
             await service.outcome(job.id, FORM_WAIT_S)  # the file's check runs in its job: a refusal shows here
         except JobFailed:
@@ -278,20 +282,20 @@ async def submit_form(
         failure = _failure(e, service)
         if failure is None:
             raise
-        return await anyio.to_thread.run_sync(partial(_refused, request, service, caller, name, failure))
-    return RedirectResponse(f"/benchmarks/{quote(_shown(name))}/submissions/{quote(job.id)}", status_code=303)
+        return await anyio.to_thread.run_sync(partial(_refused, request, service, caller, row, failure))
+    return RedirectResponse(f"/benchmarks/{quote(_shown(row))}/submissions/{quote(job.id)}", status_code=303)
 
 
 def _refused(
     request: Request,
     service: Service,
     caller: Caller,
-    name: str,
+    row: str,
     failure: ApiError | KittiEvalError | HTTPException,
 ) -> Response:
     """The benchmark's page again, with why the submission was refused (with the status the API answers)."""
     try:
-        context = _benchmark_context(request, service, caller, name, None, None)
+        context = _benchmark_context(request, service, caller, row, None, None)
     except ApiError as e:
         return _error(request, e)
     if isinstance(failure, InvalidSubmission):
@@ -308,11 +312,11 @@ def _refused(
 
 
 def _submission_context(
-    request: Request, service: Service, caller: Caller, name: str, submission_id: str
+    request: Request, service: Service, caller: Caller, row: str, submission_id: str
 ) -> dict[str, Any]:
     benchmarks = _benchmarks(request)
-    submission = benchmarks.submissions.submission(name, submission_id, caller)
-    bench = benchmarks.catalog.get(name, caller)
+    submission = benchmarks.submissions.submission(row, submission_id, caller)
+    bench = benchmarks.catalog.get(row, caller)
     described = benchmarks.catalog.describe(bench, caller)
     state = _state(service, submission)
     columns = described["columns"]
@@ -353,14 +357,14 @@ def _key(scores: Mapping[str, float | None], key: list[str]) -> float | None:
 
 @router.get("/benchmarks/{name}/submissions/{submission_id}")
 def submission_page(
-    request: Request, service: ServiceDep, caller: ReaderCaller, name: SubmissionPhase, submission_id: str
+    request: Request, service: ServiceDep, caller: ReaderCaller, row: SubmissionPhase, submission_id: str
 ) -> Response:
     try:
-        context = _submission_context(request, service, caller, name, submission_id)
+        context = _submission_context(request, service, caller, row, submission_id)
     except NotFound as e:
         refused = _refused_job(service, caller, submission_id)
         if refused is not None:  # its scoring found the file breaks the rules: it was removed, never counted
-            return _refused(request, service, caller, name, refused)
+            return _refused(request, service, caller, row, refused)
         return _error(request, e)
     except ApiError as e:
         return _error(request, e)
@@ -376,7 +380,7 @@ def _refused_job(service: Service, caller: Caller, submission_id: str) -> ApiErr
 
 @router.post("/benchmarks/{name}/submissions/{submission_id}/publish")
 async def publish_form(
-    request: Request, service: ServiceDep, caller: WriterCaller, name: SubmissionPhase, submission_id: str
+    request: Request, service: ServiceDep, caller: WriterCaller, row: SubmissionPhase, submission_id: str
 ) -> Response:
     """Publish one of the caller's scored submissions on the board; then the board, at the entry."""
     benchmarks = _benchmarks(request)
@@ -386,7 +390,7 @@ async def publish_form(
             values = {k: v for k, v in form.items() if isinstance(v, str)}
         await anyio.to_thread.run_sync(
             lambda: benchmarks.submissions.publish(
-                name,
+                row,
                 submission_id,
                 caller,
                 method=values.get("method", ""),
@@ -401,37 +405,37 @@ async def publish_form(
             raise
         refill = {k: clip(v) for k, v in values.items() if k != "csrf"}
         return await anyio.to_thread.run_sync(
-            partial(_submission_refused, request, service, caller, name, submission_id, failure, refill)
+            partial(_submission_refused, request, service, caller, row, submission_id, failure, refill)
         )
-    return RedirectResponse(f"{_page_of(benchmarks, name, caller)}#entry-{quote(submission_id)}", status_code=303)
+    return RedirectResponse(f"{_page_of(benchmarks, row, caller)}#entry-{quote(submission_id)}", status_code=303)
 
 
 @router.post("/benchmarks/{name}/submissions/{submission_id}/withdraw")
 async def withdraw_form(
-    request: Request, service: ServiceDep, caller: WriterCaller, name: SubmissionPhase, submission_id: str
+    request: Request, service: ServiceDep, caller: WriterCaller, row: SubmissionPhase, submission_id: str
 ) -> Response:
     """Take one of the caller's entries off the board; then the submission's page again."""
     benchmarks = _benchmarks(request)
     try:
-        await anyio.to_thread.run_sync(lambda: benchmarks.submissions.withdraw(name, submission_id, caller))
+        await anyio.to_thread.run_sync(lambda: benchmarks.submissions.withdraw(row, submission_id, caller))
     except ApiError as e:
         return await anyio.to_thread.run_sync(
-            partial(_submission_refused, request, service, caller, name, submission_id, e, {})
+            partial(_submission_refused, request, service, caller, row, submission_id, e, {})
         )
-    return RedirectResponse(f"/benchmarks/{quote(_shown(name))}/submissions/{quote(submission_id)}", status_code=303)
+    return RedirectResponse(f"/benchmarks/{quote(_shown(row))}/submissions/{quote(submission_id)}", status_code=303)
 
 
 def _submission_refused(
     request: Request,
     service: Service,
     caller: Caller,
-    name: str,
+    row: str,
     submission_id: str,
     failure: ApiError | KittiEvalError | HTTPException,
     form: dict[str, str],
 ) -> Response:
     try:
-        context = _submission_context(request, service, caller, name, submission_id)
+        context = _submission_context(request, service, caller, row, submission_id)
     except ApiError as e:
         return _error(request, e)
     context.update(error=_message(failure), form=form)

@@ -189,7 +189,7 @@ def _home(
         status,
         error=error,
         form=dict(form or {}),
-        ground_truths=[g.name for g in service.catalog.to_evaluate(caller)],
+        ground_truths=[g.name for g in service.gt_catalog.to_evaluate(caller)],
         projects=_projects(service, caller),
         protocols=sorted(PROTOCOLS),
         history=_history(service, caller),
@@ -225,7 +225,7 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
                 protocol=values.get("protocol", "official"), curves=True, errors=values.get("errors") == "true"
             )
             upload = FileIn(predictions.file, predictions.filename)
-            key = parse_key(values.get(FORM_FIELD) or None)  # the form's own: sent again, one evaluation
+            idempotency_key = parse_key(values.get(FORM_FIELD) or None)  # the form's own: sent again, one evaluation
             job = await service.accept(
                 lambda: service.evaluations.accept(
                     upload,
@@ -236,7 +236,7 @@ async def upload(request: Request, service: ServiceDep, caller: WriterCaller) ->
                     caller,
                     values.get("project") or None,
                     enqueue=service.enqueue_evaluation(caller),
-                    idempotency_key=key,
+                    idempotency_key=idempotency_key,
                 )
             )
         await service.outcome(job.id, min(service.settings.wait_s, FORM_WAIT_S))  # else its page follows it

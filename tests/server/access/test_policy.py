@@ -280,7 +280,7 @@ def _spied_methods(service) -> list[tuple[object, str]]:
     found = []
     hosted = service.benchmarks
     benchmarks = (hosted.catalog, hosted.submissions, hosted.scoring, hosted.board, hosted.intervals)
-    parts = (service.evaluations, service.evaluation_frames, service.catalog, *benchmarks, service.accounts)
+    parts = (service.evaluations, service.evaluation_frames, service.gt_catalog, *benchmarks, service.accounts)
     for part in (*parts, service.job_admin):
         for name, fn in inspect.getmembers(type(part), inspect.isfunction):
             if not name.startswith("_") and "caller" in inspect.signature(fn).parameters:
