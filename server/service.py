@@ -74,6 +74,21 @@ def _frames_view_limits(most: int) -> BoxLimits:
     return dataclasses.replace(bounds, per_input=most, per_input_setting="KITTI_EVAL_FRAMES_MAX_BOXES")
 
 
+def _check_open_mode(policy: Policy, accounts: Accounts, settings: Settings) -> None:
+    """Open mode serves every project's work to anyone: not on a database whose accounts say otherwise,
+    unless ``allow_open_with_accounts``."""
+    if policy.has_accounts() or settings.allow_open_with_accounts:
+        return
+    users, tokens = accounts.holders()
+    if users or tokens:
+        raise StartupRefused(
+            f"the database holds accounts ({users} user{'s' * (users != 1)}, {tokens} token"
+            f"{'s' * (tokens != 1)} not revoked) but KITTI_EVAL_AUTH is open, which would serve every project's "
+            "evaluations and ground truths to anyone who reaches the service: start with KITTI_EVAL_AUTH=accounts, "
+            "or set KITTI_EVAL_ALLOW_OPEN_WITH_ACCOUNTS=true to serve it open anyway"
+        )
+
+
 def _log_start(settings: Settings) -> None:
     log.info(
         "auth %s, database %s, %d worker process%s, %d job thread%s",
@@ -241,7 +256,7 @@ class Service:
         self.scratch_space.open()  # and removes what processes killed meanwhile left
         log.info("data folder %s", self.data_dir)
         self._open_database(upgrade=self.settings.db_upgrade)
-        self._check_open_mode()
+        _check_open_mode(self.policy, self.accounts, self.settings)
         if self.settings.worker_processes:  # first: they import and warm up while this process goes on
             self.pool = WorkerPool(
                 self.settings.worker_processes,
@@ -294,20 +309,6 @@ class Service:
             os.nice(nice)
         self.warm.set()
         self.workers.start()
-
-    def _check_open_mode(self) -> None:
-        """Open mode serves every project's work to anyone: not on a database whose accounts say otherwise,
-        unless ``allow_open_with_accounts``."""
-        if self.policy.has_accounts() or self.settings.allow_open_with_accounts:
-            return
-        users, tokens = self.accounts.holders()
-        if users or tokens:
-            raise StartupRefused(
-                f"the database holds accounts ({users} user{'s' * (users != 1)}, {tokens} token"
-                f"{'s' * (tokens != 1)} not revoked) but KITTI_EVAL_AUTH is open, which would serve every project's "
-                "evaluations and ground truths to anyone who reaches the service: start with KITTI_EVAL_AUTH=accounts, "
-                "or set KITTI_EVAL_ALLOW_OPEN_WITH_ACCOUNTS=true to serve it open anyway"
-            )
 
     def _run_evaluation(self, job: JobRecord) -> tuple[str, Callable[[Any], None]]:
         record, write = self.evaluations.execute(job.id, job.payload)
