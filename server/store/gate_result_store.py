@@ -4,6 +4,7 @@ each read once by its owner, or deleted unread a few minutes after it was made (
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -31,13 +32,17 @@ class GateResultStore(Area):
         conn.execute(insert(gate_results).values(**result.__dict__))
 
     @retry_when_locked
-    def take_gate_result(self, result_id: str, owner: str, *, made_after: datetime) -> GateResult | None:
-        """The result, if it is ``owner``'s and was made after ``made_after``, deleted as it is read (read once:
-        two readers at once get it once); None otherwise (another's result is left as it is)."""
-        mine = and_(gate_results.c.id == result_id, gate_results.c.owner == owner)
+    def take_gate_result(
+        self, result_id: str, may_take: Callable[[str], bool], *, made_after: datetime
+    ) -> GateResult | None:
+        """The result, if ``may_take(its owner)`` and it was made after ``made_after``, deleted as it is read (read
+        once: two readers at once get it once); None otherwise (one another may not take is left as it is)."""
         with self._writing() as conn:
-            row = conn.execute(select(gate_results).where(mine)).mappings().first()
-            if row is None or not conn.execute(delete(gate_results).where(mine)).rowcount:
+            row = conn.execute(select(gate_results).where(gate_results.c.id == result_id)).mappings().first()
+            if row is None or not may_take(str(row["owner"])):
+                return None
+            mine = and_(gate_results.c.id == result_id, gate_results.c.owner == row["owner"])
+            if not conn.execute(delete(gate_results).where(mine)).rowcount:
                 return None
         made = utc(row["created_at"])
         if made <= made_after:
