@@ -276,3 +276,25 @@ def test_an_id_from_an_answer_goes_into_no_path_unless_it_is_an_id(monkeypatch) 
     with _client(answers, [], monkeypatch) as c, pytest.raises(ServiceError, match="cannot read"):
         c.submit(GOLDEN / "result.pkl", "b", check=False)
     assert len(answers.requests) == 1
+
+
+def test_an_evaluation_not_kept_goes_to_the_gates_route_and_is_read_once_from_its_job(monkeypatch) -> None:
+    """keep=False: sent to /v1/gates/evaluations (no labels, no project: nothing stores them), followed through its
+    job to the result's place, read there once; the same key is sent with every try."""
+    doc = {"id": "j1", "ap": {}, "evaluation": {"kept": False}}
+    done = {"id": "j1", "kind": "gate", "state": "done", "result_location": "/v1/gates/evaluations/j1"}
+    answers = _Answers([_drop, _status(202, {**_JOB, "kind": "gate"}), _status(200, done), _status(200, doc)])
+    with _client(answers, [], monkeypatch) as c:
+        evaluation = c.evaluate(GOLDEN / "result.pkl", "small", keep=False, errors=True)
+        with pytest.raises(ConfigError, match="takes no labels nor project"):
+            c.evaluate(GOLDEN / "result.pkl", "small", keep=False, labels={"branch": "x"})
+    assert (evaluation.id, evaluation.document, evaluation.meta) == ("j1", {"ap": {}}, {"kept": False})
+    sent = [(r.method, r.url.path) for r in answers.requests]
+    assert sent == [
+        ("POST", "/v1/gates/evaluations"),
+        ("POST", "/v1/gates/evaluations"),
+        ("GET", "/v1/jobs/j1"),
+        ("GET", "/v1/gates/evaluations/j1"),
+    ]
+    keys = {r.headers["Idempotency-Key"] for r in answers.requests[:2]}
+    assert len(keys) == 1 and b'name="errors"\r\n\r\ntrue' in answers.requests[0].content
