@@ -99,10 +99,10 @@ class GateEvaluations:
             )
         return taken.document
 
-    @staticmethod
-    def why_not_again(job: JobRecord) -> str | None:
-        """Why an ended gate job cannot run again (None: it can): once done, its result was read or dropped; its
-        owner runs the gate again."""
+    def why_not_again(self, job: JobRecord) -> str | None:
+        """Why an ended gate job cannot run again (None: it can): once done, its result was read or dropped (its
+        owner runs the gate again); failed or cancelled, its inputs must still be kept (they go ten minutes
+        after it ended)."""
         if job.state == "done":
             return f"job {job.id} is a gate's evaluation, done and not kept: run the gate again for a new one"
-        return None
+        return self.evaluations.why_not_again(job)

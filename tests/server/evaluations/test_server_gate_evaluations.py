@@ -120,3 +120,4 @@ def test_an_unread_result_is_dropped_after_its_time_with_a_failed_jobs_inputs(tm
         assert count("job_inputs") == 1  # the failed job's, kept while it may be run again
         assert store.drop_gate_results(made_before=datetime.now(timezone.utc) + timedelta(seconds=1)) == 0
         assert count("job_inputs") == 0
+        assert_error(c.post(f"/v1/admin/jobs/{failed['id']}/rerun", headers=ADMIN), 409, "inputs", "are gone")
