@@ -211,14 +211,24 @@ class Client:
         project: str | None = None,
         wait_s: float = 3600.0,
         idempotency_key: str | None = None,
+        keep: bool = True,
     ) -> Evaluation:
         """Evaluates ``predictions`` (a result.pkl, or a zip/tar of KITTI result txt files) against the ground
         truth registered as ``gt``, with the options of ``kitti-eval --gt --pred``; stored with ``labels``.
         ``idempotency_key``: the key sent with every try (default: a new UUID); the same key again (a CI job run
-        again) is answered with the evaluation it made."""
+        again) is answered with the evaluation it made.
+
+        ``keep=False``: evaluated for a gate and kept nowhere (``POST /v1/gates/evaluations``; a read-only token
+        will do): no evaluation is stored, so none shows in the history, and the document is given once (the
+        :class:`Evaluation`'s ``id`` names no stored evaluation, its ``meta`` says ``"kept": false``); it takes
+        no ``labels`` nor ``project``."""
         path = Path(predictions)
         if not path.exists():
             raise ConfigError(f"{path}: no such file (a result.pkl, a zip/tar of txt files, or a folder of them)")
+        if not keep and (labels or project):
+            raise ConfigError(
+                "an evaluation that is not kept (keep=False) takes no labels nor project: nothing stores them"
+            )
         fields: dict[str, Any] = {"gt": gt, "coco": _flag(coco), "lidar_only": _flag(lidar_only)}
         fields.update(curves=_flag(curves), errors=_flag(errors))
         if protocol:
@@ -237,7 +247,7 @@ class Client:
             fields["label"] = [f"{k}={v}" for k, v in labels.items()]
         response = self.http.request(
             "POST",
-            "/v1/evaluations",
+            "/v1/evaluations" if keep else "/v1/gates/evaluations",
             params={"wait": _POST_WAIT_S},
             data=fields,
             files={"predictions": (path.name, path)},

@@ -32,6 +32,7 @@ __all__ = [
     "IDEMPOTENCY_DESCRIPTION",
     "FORM_FIELD",
     "EVALUATIONS",
+    "GATE_EVALUATIONS",
     "Idempotency",
     "RequestKey",
     "KeyReused",
@@ -48,6 +49,8 @@ HEADER = "Idempotency-Key"
 FORM_FIELD = "idempotency_key"
 #: the scope of the evaluations' keys (the API's and the upload form's)
 EVALUATIONS = "POST /v1/evaluations"
+#: the scope of the keys of the evaluations a gate asks for without keeping them
+GATE_EVALUATIONS = "POST /v1/gates/evaluations"
 #: what the API's documentation says of the header
 IDEMPOTENCY_DESCRIPTION = (
     "a unique value of yours (a UUID, say): sending the same request again with the same key (a retry) answers "

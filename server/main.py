@@ -143,7 +143,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # outermost last: a request is admitted to the evaluations once its body has arrived in full
     app.add_middleware(
         AdmissionMiddleware,
-        paths=frozenset({"/v1/evaluations", "/ui/evaluations"}),
+        paths=frozenset({"/v1/evaluations", "/v1/gates/evaluations", "/ui/evaluations"}),
         retry_after_s=lambda: settings.retry_after_s,
         state=service.admission,
         draining=service.draining.is_set,

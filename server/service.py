@@ -36,6 +36,7 @@ from .benchmarks import Benchmarks
 from .data_folder import check_writable
 from .errors import NotFound, StartupRefused, echo
 from .evaluations.evaluations import EvaluationFrames, Evaluations
+from .evaluations.gate_evaluations import GateEvaluations
 from .ground_truths.cache import GroundTruthCache, GroundTruths
 from .ground_truths.catalog import GroundTruthCatalog
 from .idempotency import Idempotency
@@ -114,6 +115,14 @@ def _invited_to(benchmarks: Benchmarks) -> Callable[[str], tuple[str, str | None
     return benchmark
 
 
+def _test_sets(store: Store) -> dict[str, list[str]]:
+    """Ground truth name -> the benchmarks whose test set it is (for the policy)."""
+    found: dict[str, list[str]] = {}
+    for bench in store.benchmark_store.list_benchmarks():
+        found.setdefault(bench.gt_name, []).append(bench.name)
+    return found
+
+
 class Service:
     """The parts of one service process (``create_app`` and ``kitti-eval admin`` make one)."""
 
@@ -127,7 +136,7 @@ class Service:
             AuthMode(settings.auth),
             admin_token=lambda: self.admin_token,
             metrics_token=lambda: settings.metrics_token.get_secret_value() if settings.metrics_token else None,
-            test_sets=self._test_sets,
+            test_sets=lambda: _test_sets(self.store),
         )
         self.accounts = Accounts(self.store.account_store, self.audit, lambda: self.admin_token)
         self.limiter = FailureLimiter(settings.auth_max_failures, settings.auth_failure_window_s)
@@ -190,6 +199,8 @@ class Service:
             keep_predictions=settings.keep_predictions,
             idempotency=self.idempotency,
         )
+        #: the evaluations gates ask for without keeping them (a read-only token's gate)
+        self.gate_evaluations = GateEvaluations(self.evaluations, self.store.gate_result_store)
         #: the frames of stored evaluations (counts, labelled boxes)
         self.evaluation_frames = EvaluationFrames(
             self.evaluations,
@@ -210,6 +221,7 @@ class Service:
             self.jobs,
             {
                 "evaluation": self._run_evaluation,
+                "gate": self.gate_evaluations.execute,
                 "submission": lambda job: self.benchmarks.scoring.score_job(job),
                 "rescore": lambda job: self.benchmarks.scoring.score_job(job),
                 "intervals": lambda job: self.benchmarks.intervals.intervals_job(job),
@@ -223,7 +235,7 @@ class Service:
             self.jobs,
             self.policy,
             self.audit,
-            run_again={"evaluation": self.evaluations.why_not_again},
+            run_again={"evaluation": self.evaluations.why_not_again, "gate": self.gate_evaluations.why_not_again},
             wake=self.workers.wake,
         )
         #: worker processes of the service's own (KITTI_EVAL_WORKER_PROCESSES), started and stopped with it
@@ -315,15 +327,16 @@ class Service:
         return record.id, write
 
     def enqueue_evaluation(
-        self, caller: Any
+        self, caller: Any, kind: str = "evaluation"
     ) -> Callable[[str, dict[str, Any], list[JobInput], IdempotencyRecord | None], JobRecord]:
-        """How an accepted evaluation of ``caller``'s is queued (and the idle workers of this process woken)."""
+        """How an accepted evaluation of ``caller``'s is queued (and the idle workers of this process woken);
+        ``kind``: ``gate`` for one a gate asks for without keeping it."""
 
         def enqueue(
             job_id: str, payload: dict[str, Any], inputs: list[JobInput], idempotency_key: IdempotencyRecord | None
         ) -> JobRecord:
             job = self.jobs.enqueue(
-                "evaluation", payload, owner=caller.name, job_id=job_id, inputs=inputs, idempotency_key=idempotency_key
+                kind, payload, owner=caller.name, job_id=job_id, inputs=inputs, idempotency_key=idempotency_key
             )
             self.workers.wake()
             return job
@@ -397,10 +410,3 @@ class Service:
 
     def scratch(self) -> AbstractContextManager[Path]:
         return self.runner.scratch()
-
-    def _test_sets(self) -> dict[str, list[str]]:
-        """Ground truth name -> the benchmarks whose test set it is (for the policy)."""
-        found: dict[str, list[str]] = {}
-        for bench in self.store.benchmark_store.list_benchmarks():
-            found.setdefault(bench.gt_name, []).append(bench.name)
-        return found

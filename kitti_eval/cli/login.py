@@ -46,6 +46,6 @@ def run(args: argparse.Namespace) -> int:
     with Client(args.service, token, retries=Retries(within_s=args.retry_for), allow_http=allow_http) as client:
         me = client.whoami()  # 401 for a token the service does not know
     path = save_token(args.service, token)
-    read_only = ", read-only (it may read, not submit nor store an evaluation)" if me["read_only"] else ""
+    read_only = ", read-only (it may read and gate, not submit nor store an evaluation)" if me["read_only"] else ""
     say(f"the token is {me['user']}'s{read_only}: saved in {path} for {args.service}")
     return EXIT_OK

@@ -183,8 +183,11 @@ def _unsupported(args: argparse.Namespace, names: dict[str, str]) -> None:
         raise ConfigError(f"{', '.join(given)} cannot be sent to a service (with --service): evaluate here instead")
 
 
-def _evaluate(args: argparse.Namespace, gt: object, pred: object, *, curves: bool, errors: bool) -> Any:
-    """One evaluation done by the service: ``gt`` names its ground truth, ``pred`` is the file sent."""
+def _evaluate(
+    args: argparse.Namespace, gt: object, pred: object, *, curves: bool, errors: bool, keep: bool = True
+) -> Any:
+    """One evaluation done by the service: ``gt`` names its ground truth, ``pred`` is the file sent; ``keep``:
+    stored as an evaluation (else evaluated for a gate and kept nowhere: no labels, no project)."""
     _unsupported(
         args,
         {
@@ -221,8 +224,9 @@ def _evaluate(args: argparse.Namespace, gt: object, pred: object, *, curves: boo
             lidar_only=args.lidar_only,
             curves=curves,
             errors=errors,
-            labels=_labels(args),
-            project=args.project,
+            labels=_labels(args) if keep else None,
+            project=args.project if keep else None,
+            keep=keep,
         )
 
 
@@ -243,10 +247,17 @@ def run_evaluation(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _read_only(args: argparse.Namespace) -> bool:
+    """Whether the token may only read (``GET /v1/me``): then a gate's evaluation is made without keeping it."""
+    with client_of(args) as client:
+        return bool(client.whoami()["read_only"])
+
+
 def run_gate(args: argparse.Namespace, *, errors: bool = False) -> tuple[dict, dict | None]:
-    """``kitti-eval gate --service``: the documents a gate reads, evaluated and kept by the service: the
-    current one from --pred, the baseline the newest evaluation labelled --baseline-label against the same
-    ground truth (the project's history), or a stored evaluation's id (``errors``: with the error
+    """``kitti-eval gate --service``: the documents a gate reads, evaluated by the service: the current one from
+    --pred (stored as an evaluation with a token that may write; with a read-only token evaluated for this gate
+    and kept nowhere, which is said), the baseline the newest evaluation labelled --baseline-label against the
+    same ground truth (the project's history), or a stored evaluation's id (``errors``: with the error
     decomposition, for rules on error types)."""
     from ..errors import ServiceError
 
@@ -256,20 +267,17 @@ def run_gate(args: argparse.Namespace, *, errors: bool = False) -> tuple[dict, d
         raise ConfigError("--service gates --pred against --gt, the name of a ground truth registered there")
     if args.baseline is not None and args.baseline_label:
         raise ConfigError("give --baseline (an evaluation id) or --baseline-label, not both")
-    try:
-        current = _evaluate(args, args.gt, args.pred, curves=False, errors=errors)
-    except ServiceError as e:
-        if e.status == 403 and "read-only" in e.message:
-            raise ServiceError(
-                f"{args.service}: this token is read-only, and gate --service has the service evaluate --pred and "
-                "keep the evaluation, which a read-only token may not; gate with a token that may write, or gate "
-                "an evaluation already stored (POST /v1/gates with its id)",
-                status=403,
-                code=e.code,
-            ) from None
-        raise
-    if not args.quiet:
+    keep = not _read_only(args)
+    if not keep and args.label and not args.quiet:
+        say(f"warning: --label {' '.join(args.label)} is not stored: the evaluation is not kept")
+    current = _evaluate(args, args.gt, args.pred, curves=False, errors=errors, keep=keep)
+    if keep and not args.quiet:
         say(f"stored as evaluation {current.id} ({args.service}/v1/evaluations/{current.id})")
+    elif not args.quiet:
+        say(
+            f"not stored: the token is read-only, so {args.service} evaluated --pred for this gate and kept "
+            "nothing (no evaluation in the history, the predictions not kept)"
+        )
     baseline = None
     with client_of(args) as client:
         if args.baseline_label:

@@ -43,6 +43,8 @@ __all__ = [
     "Policy",
     "RULES",
     "may_join_team",
+    "may_gate_unkept",
+    "owns_gate_result",
     "invited_projects",
     "sees_teams",
     "require_open_labels",
@@ -165,6 +167,13 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
         "all",
     ),
     ("evaluations: upload", Access.WRITER, "into their projects, not against a benchmark's test set", "all"),
+    (
+        "evaluations for a gate, not kept: run, read the result once",
+        Access.READER,
+        "a read-only token too: against the ground truths they see, not a benchmark's test set; the result is "
+        "theirs alone, stored as no evaluation",
+        "their own",
+    ),
     ("frames of an evaluation", Access.READER, "their projects', never of a sealed ground truth", "never sealed"),
     ("ground truths: list, read", Access.READER, "their projects' and shared", "all"),
     ("ground truths: register, delete", Access.ADMIN, "no", "yes"),
@@ -529,6 +538,21 @@ class Policy:
         caller is an admin)."""
         if not caller.is_admin:
             raise Forbidden("this action is for admins")
+
+
+# -- evaluations a gate asks for without keeping them: beside the class (whose size is kept down) ------------------
+def may_gate_unkept(caller: Caller) -> None:
+    """An evaluation a gate asks for without keeping it (stored as no evaluation, its result read once by its owner)
+    is any signed-in caller's to ask for, a read-only token's too: it changes nothing anyone else sees, and it
+    spends the queue's compute under the caller's share as an upload does (:meth:`Policy.may_evaluate_against`
+    still refuses a benchmark's test set)."""
+    if not caller.signed_in:
+        raise Unauthorized("sign in: send 'Authorization: Bearer <token>'")
+
+
+def owns_gate_result(caller: Caller, owner: str) -> bool:
+    """A gate's result is read by the caller who asked for it alone (an admin too reads only their own)."""
+    return caller.signed_in and caller.name == owner
 
 
 # -- invitations, teams and open labels: the benchmarks' rules beside the class (whose size is kept down) ----------

@@ -29,7 +29,7 @@ from ..access.policy import Caller, Policy
 from ..errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, clip, echo
 from ..ground_truths.cache import GroundTruthCache
 from ..ground_truths.catalog import GroundTruthCatalog
-from ..idempotency import EVALUATIONS, Idempotency, RequestKey, fingerprint
+from ..idempotency import EVALUATIONS, GATE_EVALUATIONS, Idempotency, RequestKey, fingerprint
 from ..jobs.queue import JobQueue
 from ..scoring.evaluator import (
     EvalOptions,
@@ -115,6 +115,7 @@ class Evaluations:
         *,
         enqueue: Callable[[str, dict[str, Any], list[JobInput], IdempotencyRecord | None], JobRecord],
         idempotency_key: str | None = None,
+        kept: bool = True,
     ) -> JobRecord:
         """Check what can be checked before the evaluation (the options, the ground truth and the caller's right
         to it, the project), and enqueue the job with the uploaded files as its inputs (``enqueue(job_id,
@@ -122,7 +123,9 @@ class Evaluations:
         evaluation belongs to ``project`` (default: the ground truth's, else the caller's only one), which must
         be the caller's. A benchmark's test set is refused to all but admins (whose evaluations against it are
         audited). ``idempotency_key``: the request's (:mod:`kitti_eval_server.idempotency`): the job an earlier
-        request with the same key made is answered instead of a new one."""
+        request with the same key made is answered instead of a new one. ``kept``: False for an evaluation a gate
+        asks for without keeping it (:mod:`.gate_evaluations`): in no project, its predictions not kept, its
+        result not stored as an evaluation (``payload["kept"]``)."""
         if (gt_name is None) == (gt_file is None):
             raise BadRequest(
                 "give the ground truth either by name (form field 'gt', e.g. 'demo'; GET "
@@ -132,14 +135,18 @@ class Evaluations:
         gt_record = self.gt_catalog.get(gt_name, caller) if gt_name is not None else None
         if gt_record is not None:
             self.policy.may_evaluate_against(caller, gt_record)
-        project = self._project_for(caller, project, gt_record)
+        if kept:
+            project = self._project_for(caller, project, gt_record)
+        else:  # seen by its owner alone, while they see its ground truth
+            project = gt_record.project if gt_record is not None else None
         job_id = new_id()
         # predictions evaluated against a registered ground truth are kept (frames are looked at later): written
         # once, as the job's input; those against an uploaded one go with the job
-        inputs = [_input("predictions", predictions, kept=self.keep_predictions and gt_record is not None)]
+        keep_file = kept and self.keep_predictions and gt_record is not None
+        inputs = [_input("predictions", predictions, kept=keep_file)]
         if gt_file is not None:
             inputs.append(_input("gt_file", gt_file))
-        payload = {
+        payload: dict[str, Any] = {
             "evaluation_id": job_id,
             "gt_name": gt_name,
             "gt_sha256": gt_record.sha256 if gt_record is not None else None,
@@ -147,11 +154,13 @@ class Evaluations:
             "labels": dict(labels),
             "project": project,
         }
+        if not kept:
+            payload["kept"] = False
         request_key = None
         if idempotency_key is not None:
             request_key = RequestKey(
                 caller.name,
-                EVALUATIONS,
+                EVALUATIONS if kept else GATE_EVALUATIONS,
                 idempotency_key,
                 fingerprint(
                     files=[(i.name, i.sha256) for i in inputs],
@@ -178,7 +187,9 @@ class Evaluations:
     def execute(self, job_id: str, payload: Mapping[str, Any]) -> tuple[EvaluationRecord, Callable[[Any], None]]:
         """Run an accepted evaluation: load its inputs, evaluate. Returns the record and the writes that store
         it (the record, the predictions when they are kept, the inputs' removal), for the transaction that
-        ends the job. Raises the library's or the service's errors for an input that cannot be evaluated."""
+        ends the job. Raises the library's or the service's errors for an input that cannot be evaluated. An
+        evaluation accepted not to be kept (``payload["kept"]`` False) keeps nothing: its writes only remove
+        the inputs (its result is the gate's to store, :mod:`.gate_evaluations`)."""
         started = time.perf_counter()
         options = EvalOptions.from_dict(payload["options"])
         config = options.config()
@@ -210,7 +221,8 @@ class Evaluations:
                 ).annotations
                 gt_sha256 = gt_upload.sha256
             pred = stored_upload(pred_input.content, pred_input.filename, pred_input.sha256)
-            keep = self.keep_predictions and gt_record is not None
+            kept = bool(payload.get("kept", True))
+            keep = kept and self.keep_predictions and gt_record is not None
             loaded = read_upload(
                 pred.file,
                 "detections",
@@ -262,6 +274,9 @@ class Evaluations:
         )
 
         def write(conn: Any) -> None:
+            if not kept:
+                self.job_input_store.delete_job_inputs_in(conn, job_id)
+                return
             self.evaluation_store.add_evaluation_in(conn, record)
             self.evaluation_store.add_frames_in(conn, record.id, rows)
             self.job_input_store.delete_job_inputs_in(conn, job_id)

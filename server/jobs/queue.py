@@ -56,9 +56,10 @@ from ..store.job_store import ENDED_STATES, JOB_STATES
 
 __all__ = ["JobQueue", "QueueLimits", "JobRecord", "WorkerRecord", "JOB_KINDS", "JOB_STATES", "ENDED_STATES", "now_utc"]
 
-#: what a job runs: an evaluation, a benchmark submission's scoring, a submission scored again, or a scored
-#: submission's ranking key under its benchmark's bootstrap resamples (queued by its scoring)
-JOB_KINDS = ("evaluation", "submission", "rescore", "intervals")
+#: what a job runs: an evaluation, an evaluation a gate asks for without keeping it, a benchmark submission's
+#: scoring, a submission scored again, or a scored submission's ranking key under its benchmark's bootstrap
+#: resamples (queued by its scoring)
+JOB_KINDS = ("evaluation", "gate", "submission", "rescore", "intervals")
 
 
 def now_utc() -> datetime:

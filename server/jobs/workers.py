@@ -428,6 +428,8 @@ def job_view(record: JobRecord, position: int | None) -> dict[str, Any]:
     if record.kind == "evaluation" and record.result_id:
         out["evaluation"] = record.result_id
         out["result_location"] = f"/v1/evaluations/{record.result_id}"
+    if record.kind == "gate" and record.result_id:  # read once by its owner, not an evaluation
+        out["result_location"] = f"/v1/gates/evaluations/{record.result_id}"
     if record.kind in ("submission", "rescore", "intervals") and record.group:
         sid = record.result_id or record.payload.get("submission_id")
         out["submission"] = sid

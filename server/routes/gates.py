@@ -1,11 +1,14 @@
-"""``/v1/gates``: the CLI's gate rules against stored evaluations, so CI can gate with one request."""
+"""``/v1/gates``: the CLI's gate rules against stored evaluations, so CI can gate with one request; and
+``/v1/gates/evaluations``: an evaluation a gate asks for without keeping it (a read-only token's), whose result
+its owner reads once (:mod:`kitti_eval_server.evaluations.gate_evaluations`)."""
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Query
-from fastapi.responses import JSONResponse, Response
+import anyio.to_thread
+from fastapi import APIRouter, File, Form, Header, Query, UploadFile
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, Field
 
 from kitti_eval.analysis.gate import (
@@ -16,13 +19,18 @@ from kitti_eval.analysis.gate import (
     rules_from_options,
     run_gate,
 )
+from kitti_eval.core.result import EvalResult
 from kitti_eval.errors import ConfigError
+from kitti_eval.report.render import OutputFormat, render
 
-from ..access.deps import ReaderCaller
+from ..access.deps import FormatDep, ReaderCaller
 from ..errors import BadRequest, NotFound
+from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
 from ..params import ServiceDep
-from ..schemas import ErrorResponse
-from ..scoring.evaluator import parse_labels
+from ..schemas import ErrorResponse, EvaluationResponse
+from ..scoring.evaluator import EvalOptions, parse_labels
+from ..service import FileIn
+from .jobs import still_pending
 
 router = APIRouter(
     prefix="/v1/gates",
@@ -133,3 +141,101 @@ def run_gate_request(
         ],
     }
     return JSONResponse(body, status_code=status)
+
+
+_MEDIA = {OutputFormat.TABLE: "text/plain; charset=utf-8", OutputFormat.MARKDOWN: "text/markdown; charset=utf-8"}
+
+
+def _gate_result(document: dict[str, Any], fmt: OutputFormat, status: int) -> Response:
+    headers = {"X-Evaluation-Kept": "false"}
+    if fmt is OutputFormat.JSON:
+        return JSONResponse(document, status_code=status, headers=headers)
+    doc = {k: v for k, v in document.items() if k not in ("id", "evaluation")}
+    return PlainTextResponse(
+        render(EvalResult.from_dict(doc), fmt), status_code=status, headers=headers, media_type=_MEDIA[fmt]
+    )
+
+
+@router.post(
+    "/evaluations",
+    status_code=201,
+    response_model=EvaluationResponse,
+    summary="Evaluate uploaded predictions for a gate, without keeping them (a read-only token will do)",
+    responses={
+        201: {"description": "the result, given this once: no evaluation is stored"},
+        202: {"description": "the job to poll; once done, its result_location gives the result once"},
+        403: {"model": ErrorResponse, "description": "a benchmark's test set"},
+        408: {"model": ErrorResponse, "description": "the upload took longer than KITTI_EVAL_BODY_TIMEOUT_S to arrive"},
+        413: {"model": ErrorResponse, "description": "the upload is larger than KITTI_EVAL_MAX_UPLOAD_MB"},
+        503: {"model": ErrorResponse, "description": "every evaluation slot is taken; see Retry-After"},
+    },
+)
+async def create_gate_evaluation(
+    service: ServiceDep,
+    caller: ReaderCaller,
+    fmt: FormatDep,
+    predictions: Annotated[UploadFile, File(description="as POST /v1/evaluations' predictions")],
+    gt: Annotated[str | None, Form(description="name of a registered ground truth, e.g. demo")] = None,
+    gt_file: Annotated[UploadFile | None, File(description="instead of gt: as POST /v1/evaluations' gt_file")] = None,
+    protocol: Annotated[Literal["official", "openpcdet"], Form()] = "official",
+    classes: Annotated[str, Form(description="comma-separated, e.g. Car,Van")] = "Car,Pedestrian,Cyclist",
+    threshold_sets: Annotated[str, Form(description="strict, loose or strict,loose")] = "strict,loose",
+    iou: Annotated[list[str] | None, Form(description="as POST /v1/evaluations' iou; repeatable")] = None,
+    curves: Annotated[bool, Form()] = False,
+    errors: Annotated[bool, Form(description="also why AP is lost (rules on error types need it)")] = False,
+    ranges: Annotated[str | None, Form(description="also by distance, e.g. 0,30,50,inf")] = None,
+    coco: Annotated[bool, Form()] = False,
+    lidar_only: Annotated[bool, Form()] = False,
+    wait: Annotated[
+        float | None,
+        Query(ge=0, le=3600, description="as POST /v1/evaluations' wait: 201 with the result, else 202 with the job"),
+    ] = None,
+    idempotency_key: Annotated[
+        str | None, Header(alias="Idempotency-Key", description=IDEMPOTENCY_DESCRIPTION, max_length=1000)
+    ] = None,
+) -> Response:
+    """Evaluate `predictions` as `POST /v1/evaluations` does, with the same options, keeping nothing: no evaluation
+    is stored (none shows in any list), the predictions are not kept, and the result is given to the caller once
+    (in this answer, or from the job's `result_location`), then deleted; unread, it is deleted after ten
+    minutes. For a gate with a read-only token: the rules are the client's to check on the document."""
+    key = parse_key(idempotency_key)
+    options = EvalOptions(
+        protocol=protocol,
+        classes=classes,
+        threshold_sets=threshold_sets,
+        iou=tuple(iou or ()),
+        curves=curves,
+        errors=errors,
+        ranges=ranges,
+        coco=coco,
+        lidar_only=lidar_only,
+    )
+    gt_in = FileIn(gt_file.file, gt_file.filename) if gt_file is not None else None
+    job = await service.accept(
+        lambda: service.gate_evaluations.accept(
+            FileIn(predictions.file, predictions.filename),
+            gt or None,
+            gt_in,
+            options,
+            caller,
+            enqueue=service.enqueue_evaluation(caller, "gate"),
+            idempotency_key=key,
+        )
+    )
+    ended = await service.outcome(job.id, wait)
+    if ended.state != "done":
+        return await still_pending(service.jobs, ended)
+    assert ended.result_id is not None
+    document = await anyio.to_thread.run_sync(service.gate_evaluations.take, ended.result_id, caller)
+    return _gate_result(document, fmt, 201)
+
+
+@router.get(
+    "/evaluations/{result_id}",
+    response_model=EvaluationResponse,
+    summary="The result of an evaluation for a gate, once (then it is deleted)",
+    responses={404: {"model": ErrorResponse, "description": "not yours, read already, or older than ten minutes"}},
+)
+def get_gate_evaluation(service: ServiceDep, caller: ReaderCaller, fmt: FormatDep, result_id: str) -> Response:
+    """The result of a gate evaluation of yours, once: read, it is deleted."""
+    return _gate_result(service.gate_evaluations.take(result_id, caller), fmt, 200)

@@ -36,7 +36,7 @@ async def still_pending(queue: JobQueue, record: JobRecord) -> JSONResponse:
 def _sees(service: Service, caller: Caller, record: JobRecord) -> bool:
     """Whether the caller sees the job: an evaluation's while they see its project, a submission's while they
     still take part in its benchmark (:meth:`Policy.sees_job <kitti_eval_server.access.policy.Policy.sees_job>`)."""
-    if record.kind == "evaluation":
+    if record.kind in ("evaluation", "gate"):
         project = record.payload.get("project")
         return service.policy.sees_job(caller, record.owner, project=str(project) if project else None)
     project, open_to_all = service.benchmarks.catalog.taking_part(record.group) if record.group else (None, False)

@@ -1,9 +1,9 @@
 """The database, by area: :mod:`.database` holds what they share (the tables, the engine, the schema, the
 retry of a call that found SQLite locked); :mod:`.ground_truth_store`, :mod:`.evaluation_store`,
 :mod:`.account_store`, :mod:`.benchmark_store`, :mod:`.job_store`, :mod:`.job_input_store`, :mod:`.worker_store`,
-:mod:`.idempotency_store`, :mod:`.team_store` and :mod:`.invitation_store` (these two define their tables
-themselves) each define an area's records (frozen dataclasses) and a class of its reads and writes, an object of
-its own over the shared :class:`Database`; a write that spans areas takes one connection of
+:mod:`.idempotency_store`, :mod:`.gate_result_store`, :mod:`.team_store` and :mod:`.invitation_store` (these two
+define their tables themselves) each define an area's records (frozen dataclasses) and a class of its reads and
+writes, an object of its own over the shared :class:`Database`; a write that spans areas takes one connection of
 :meth:`Database.writing` to each area's ``..._in`` method. :class:`Store` holds one of each area over one
 :class:`Database`; the service hands each of its parts the areas that part uses.
 (The modules are named after their classes, not their tables: a submodule named ``ground_truths`` would replace
@@ -51,6 +51,7 @@ from .database import (
     users,
 )
 from .evaluation_store import EvaluationRecord, EvaluationStore
+from .gate_result_store import GateResult, GateResultStore
 from .ground_truth_store import GroundTruthRecord, GroundTruthStore
 from .idempotency_store import IdempotencyRecord, IdempotencyStore, KeyTaken
 from .invitation_store import InvitationRecord, InvitationStore, JoinRefused, NewAccount
@@ -78,6 +79,8 @@ __all__ = [
     "NewAccount",
     "TeamRecord",
     "IdempotencyStore",
+    "GateResultStore",
+    "GateResult",
     "IdempotencyRecord",
     "KeyTaken",
     "GroundTruthRecord",
@@ -132,6 +135,7 @@ class Store:
         self.job_input_store = JobInputStore(self.db)
         self.worker_store = WorkerStore(self.db)
         self.idempotency_store = IdempotencyStore(self.db)
+        self.gate_result_store = GateResultStore(self.db)
         self.team_store = TeamStore(self.db)
         self.invitation_store = InvitationStore(self.db)
 

@@ -76,6 +76,7 @@ __all__ = [
     "job_inputs",
     "job_workers",
     "idempotency_keys",
+    "gate_results",
 ]
 
 metadata = MetaData()
@@ -295,7 +296,7 @@ jobs = Table(
     "jobs",
     metadata,
     Column("id", String(32), primary_key=True),
-    Column("kind", String(16), nullable=False),  # evaluation | submission | rescore
+    Column("kind", String(16), nullable=False),  # evaluation | gate | submission | rescore | intervals
     Column("state", String(16), nullable=False),  # queued | running | done | failed | cancelled
     Column("attempts", Integer, nullable=False),  # 0 when queued, +1 at each claim
     Column("max_attempts", Integer, nullable=False),
@@ -361,6 +362,20 @@ idempotency_keys = Table(
     Column("created_at", DateTime(timezone=True), nullable=False),
     Column("expires_at", DateTime(timezone=True), nullable=False),
     Index("ix_idempotency_keys_expires", "expires_at"),
+)
+
+
+#: the result of an evaluation a gate asked for without keeping it (a ``gate`` job: a read-only token's gate): the
+#: document its owner reads once (then the row is deleted), or that is deleted a few minutes after it was made
+#: unread; never listed, ranked or looked at by frame as an evaluation is, and no predictions are kept with it
+gate_results = Table(
+    "gate_results",
+    metadata,
+    Column("id", String(32), primary_key=True),  # the job's id
+    Column("owner", String(64), nullable=False),  # the caller's name: only they read it
+    Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("document", _JSON, nullable=False),  # the answer an evaluation's would be, without being stored
+    Index("ix_gate_results_created", "created_at"),
 )
 
 

@@ -20,6 +20,7 @@ from server_helpers import ADMIN, ROOT, LiveServer, app_client, golden_bytes
 from server_phases import HOST, TWO_PHASES, phased_world
 
 from kitti_eval.cli import main
+from kitti_eval.demo import demo_paths
 from kitti_eval_server.benchmarks.benchmark_file import apply_benchmark_file
 
 pytestmark = pytest.mark.slow
@@ -197,30 +198,55 @@ def test_a_teams_whole_path_with_the_command_line_alone(tmp_path, capsys, monkey
         assert code == 2 and "you are in no team of 'kitti-phases'" in err
 
 
-def test_gate_with_a_read_only_token_says_why_it_cannot_and_what_to_do(tmp_path, capsys, monkeypatch) -> None:
+def _evaluations(server: LiveServer) -> list[dict[str, Any]]:
+    with server.client() as c:
+        return list(ok(c.get("/v1/evaluations", headers=ADMIN))["items"])
+
+
+def test_gate_with_a_read_only_token_passes_and_fails_as_with_one_that_writes_and_stores_nothing(
+    tmp_path, capsys, monkeypatch
+) -> None:
+    """The token that writes stores its evaluation (labelled branch=main); the read-only one has --pred evaluated
+    without keeping it, says so, and gives the same verdicts (0 passed, 3 failed) and the same output, against a
+    floor and against the history's baseline; the history holds the writer's evaluations alone. A benchmark's test
+    set is refused to it as to an upload."""
+    demo = demo_paths()[1]
     with LiveServer(tmp_path / "data", auth="accounts") as server:
         with server.client() as c:
-            host(c)
+            hosted = host(c)
+            ok(c.post("/v1/admin/projects", json={"name": "lab"}, headers=ADMIN), 201)
+            ok(c.post("/v1/admin/members", json={"user": "alice", "project": "lab"}, headers=ADMIN), 201)
             body = {"user": "alice", "read_only": True}
             reader = ok(c.post("/v1/admin/tokens", json=body, headers=ADMIN), 201)["token"]
-        monkeypatch.setenv("KITTI_EVAL_TOKEN", reader)
-        pred = tmp_path / "result.pkl"
-        pred.write_bytes(golden_bytes("result.pkl"))
-        argv = [
-            "gate",
-            "--service",
-            server.url,
-            "--gt",
-            "test-set",
-            "--pred",
-            str(pred),
-            "--min",
-            "Car/3d/moderate >= 1",
-        ]
-        code, out, err = _run(argv, capsys)
-        assert code == 2 and out == ""
-        assert "this token is read-only" in err and "gate with a token that may write" in err
         monkeypatch.setenv("KITTI_EVAL_CONFIG_DIR", str(tmp_path / "config"))
+        gate = ["gate", "--service", server.url, "--gt", "demo", "--pred", str(demo)]
+        floors = {0: ["--min", "Car/3d/moderate >= 1"], 3: ["--min", "Car/3d/moderate >= 99.5"]}
+        against_main = ["--baseline-label", "branch=main", "--max-drop", "0"]
+
+        monkeypatch.setenv("KITTI_EVAL_TOKEN", hosted.tokens["alice"])
+        written: dict[int, str] = {}
+        for expected, rules in floors.items():
+            code, written[expected], err = _run([*gate, *rules, "--label", "branch=main"], capsys)
+            assert code == expected and "stored as evaluation" in err, err
+        code, written[-1], err = _run([*gate, *against_main], capsys)
+        assert code == 0 and "baseline: evaluation" in err, err
+        stored = _evaluations(server)
+        assert len(stored) == 3
+
+        monkeypatch.setenv("KITTI_EVAL_TOKEN", reader)
+        for expected, rules in floors.items():
+            code, out, err = _run([*gate, *rules], capsys)
+            assert (code, out) == (expected, written[expected]), err
+            assert "not stored: the token is read-only" in err and "stored as evaluation" not in err
+        code, out, err = _run([*gate, *against_main, "--label", "branch=x"], capsys)
+        assert (code, out) == (0, written[-1]), err
+        assert "--label branch=x is not stored" in err and "baseline: evaluation" in err
+        # a benchmark's test set is refused as an evaluation against it is
+        code, out, err = _run([*gate[:4], "test-set", *gate[5:], *floors[0]], capsys)
+        assert code == 2 and out == "" and "the test set of benchmark 'bench'" in err, err
+        assert _evaluations(server) == stored  # nothing of the read-only gates is in the history
+
+        # the login of a read-only token says what it may do
         monkeypatch.setattr("sys.stdin", io.StringIO(reader + "\n"))
         code, out, err = _run(["login", "--service", server.url], capsys)
-        assert code == 0 and "the token is alice's, read-only (it may read, not submit nor store an evaluation)" in err
+        assert code == 0 and "the token is alice's, read-only (it may read and gate, not submit nor store" in err

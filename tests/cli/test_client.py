@@ -313,3 +313,25 @@ def test_login_without_a_home_exits_2_with_the_sentence_before_asking_the_servic
     err = capsys.readouterr().err
     assert "kitti-eval: error: the client has no folder for its saved tokens" in err
     assert "KITTI_EVAL_CONFIG_DIR" in err and "Traceback" not in err
+
+
+def test_an_evaluation_not_kept_goes_to_the_gates_route_and_is_read_once_from_its_job(monkeypatch) -> None:
+    """keep=False: sent to /v1/gates/evaluations (no labels, no project: nothing stores them), followed through its
+    job to the result's place, read there once; the same key is sent with every try."""
+    doc = {"id": "j1", "ap": {}, "evaluation": {"kept": False}}
+    done = {"id": "j1", "kind": "gate", "state": "done", "result_location": "/v1/gates/evaluations/j1"}
+    answers = _Answers([_drop, _status(202, {**_JOB, "kind": "gate"}), _status(200, done), _status(200, doc)])
+    with _client(answers, [], monkeypatch) as c:
+        evaluation = c.evaluate(GOLDEN / "result.pkl", "small", keep=False, errors=True)
+        with pytest.raises(ConfigError, match="takes no labels nor project"):
+            c.evaluate(GOLDEN / "result.pkl", "small", keep=False, labels={"branch": "x"})
+    assert (evaluation.id, evaluation.document, evaluation.meta) == ("j1", {"ap": {}}, {"kept": False})
+    sent = [(r.method, r.url.path) for r in answers.requests]
+    assert sent == [
+        ("POST", "/v1/gates/evaluations"),
+        ("POST", "/v1/gates/evaluations"),
+        ("GET", "/v1/jobs/j1"),
+        ("GET", "/v1/gates/evaluations/j1"),
+    ]
+    keys = {r.headers["Idempotency-Key"] for r in answers.requests[:2]}
+    assert len(keys) == 1 and b'name="errors"\r\n\r\ntrue' in answers.requests[0].content

@@ -77,19 +77,21 @@ def _yaml_block(recipe: Example, first_line: str) -> dict[str, Any]:
     return dict(yaml.safe_load(recipe.code))
 
 
-def _ci_service(tmp_path: Path) -> tuple[LiveServer, str]:
+def _ci_service(tmp_path: Path) -> tuple[LiveServer, str, str]:
     """A live service in accounts mode: a CI account in the project ``detector``, the demo ground truth
-    registered in that project as ``kitti-val``; the account's token."""
+    registered in that project as ``kitti-val``; the account's token that may write, and a read-only one."""
     server = LiveServer(tmp_path / "data", auth="accounts").start()
     with server.client() as c:
         _ok(c.post("/v1/admin/users", json={"name": "ci"}, headers=ADMIN), 201)
         _ok(c.post("/v1/admin/projects", json={"name": "detector"}, headers=ADMIN), 201)
         _ok(c.post("/v1/admin/members", json={"user": "ci", "project": "detector"}, headers=ADMIN), 201)
         token = _ok(c.post("/v1/admin/tokens", json={"user": "ci"}, headers=ADMIN), 201)["token"]
+        body = {"user": "ci", "read_only": True}
+        reader = _ok(c.post("/v1/admin/tokens", json=body, headers=ADMIN), 201)["token"]
         files = {"file": ("kitti_infos_val.pkl.gz", demo_paths()[0].read_bytes())}
         data = {"name": "kitti-val", "project": "detector"}
         _ok(c.post("/v1/ground-truths", data=data, files=files, headers=ADMIN), 201)
-    return server, token
+    return server, token, reader
 
 
 def _without_pedestrians(path: Path) -> None:
@@ -124,7 +126,12 @@ def test_the_github_actions_recipe_records_main_and_gates_a_pull_request(tmp_pat
     steps = {step.get("name"): step for step in job["steps"]}
     assert 'pip install "kitti-eval[client]' in steps["Install the client"]["run"]
     record, gate = steps["Record main's result"]["run"], steps["Gate against main on the service"]["run"]
-    server, token = _ci_service(tmp_path)
+    # the main branch's step records with the token that may write, the pull request's gates with a read-only one
+    assert steps["Record main's result"]["env"]["KITTI_EVAL_TOKEN"] == "${{ secrets.KITTI_EVAL_TOKEN }}"
+    assert (
+        steps["Gate against main on the service"]["env"]["KITTI_EVAL_TOKEN"] == "${{ secrets.KITTI_EVAL_GATE_TOKEN }}"
+    )
+    server, token, reader = _ci_service(tmp_path)
     try:
         assert job["env"]["KITTI_EVAL_SERVICE"] == _CI_URL
         base = {"KITTI_EVAL_SERVICE": server.url, "KITTI_EVAL_TOKEN": token, "GITHUB_SHA": "0123abc"}
@@ -134,9 +141,11 @@ def test_the_github_actions_recipe_records_main_and_gates_a_pull_request(tmp_pat
         assert "| Car | 3d | 0.70 |" in summary.read_text()  # the AP table, as --format markdown writes it
 
         summary = tmp_path / "summary-pr.md"
+        base["KITTI_EVAL_TOKEN"] = reader
         pr = _run(gate, tmp_path, {**base, "GITHUB_STEP_SUMMARY": str(summary), "GITHUB_HEAD_REF": "feature"})
         assert pr.returncode == 0, pr.stdout + pr.stderr
         assert "gate: PASSED" in pr.stdout and "passed" in summary.read_text()
+        assert "not stored: the token is read-only" in pr.stderr
         assert ET.parse(tmp_path / "gate.xml").getroot().get("failures") == "0"
 
         worse = tmp_path / "worse.pkl"
@@ -150,7 +159,7 @@ def test_the_github_actions_recipe_records_main_and_gates_a_pull_request(tmp_pat
         assert "| ❌ | `Pedestrian/3d/moderate/R40/strict drop <= 0.5` |" in summary.read_text()
         with server.client() as c:
             history = _ok(c.get("/v1/evaluations", headers={"Authorization": f"Bearer {token}"}))["items"]
-        assert sorted(e["evaluation"]["labels"]["branch"] for e in history) == ["feature", "lost", "main"]
+        assert [e["evaluation"]["labels"]["branch"] for e in history] == ["main"]  # the gates stored nothing
     finally:
         server.stop()
 
@@ -163,10 +172,11 @@ def test_the_gitlab_ci_recipe_records_main_and_gates_a_merge_request(tmp_path: P
     def job(name: str) -> str:
         return "\n".join([*common[1:], *pipeline[name]["script"]])
 
-    server, token = _ci_service(tmp_path)
+    server, token, reader = _ci_service(tmp_path)
     try:
         assert pipeline["variables"]["KITTI_EVAL_SERVICE"] == _CI_URL
         base = {"KITTI_EVAL_SERVICE": server.url, "KITTI_EVAL_TOKEN": token, "CI_COMMIT_SHA": "0123abc"}
+        base["KITTI_EVAL_GATE_TOKEN"] = reader  # the merge request's gate reads it
         main = _run(job("kitti-record-main"), tmp_path, {**base, "CI_COMMIT_REF_NAME": "main"})
         assert main.returncode == 0, main.stderr
         assert "Car" in (tmp_path / "result.md").read_text()
@@ -175,5 +185,9 @@ def test_the_gitlab_ci_recipe_records_main_and_gates_a_merge_request(tmp_path: P
         assert "passed" in (tmp_path / "gate.md").read_text()
         assert ET.parse(tmp_path / "gate.xml").getroot().get("failures") == "0"
         assert pipeline["kitti-gate"]["artifacts"]["reports"]["junit"] == "gate.xml"
+        assert "not stored: the token is read-only" in mr.stderr
+        with server.client() as c:
+            history = _ok(c.get("/v1/evaluations", headers={"Authorization": f"Bearer {token}"}))["items"]
+        assert [e["evaluation"]["labels"]["branch"] for e in history] == ["main"]
     finally:
         server.stop()
