@@ -138,6 +138,7 @@ class Accounts:
             session=session,
             csrf=csrf_token(presented) if session else None,
             signed_in=True,
+            invited_to=None if user.is_admin else user.invited_to,
         )
 
     @staticmethod

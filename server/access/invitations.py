@@ -190,7 +190,9 @@ class Invitations:
             return None
         name, project, open_to_all = self._benchmark(benchmark)
         users = self.accounts.users()
-        taking_part = sum(1 for u in users if may_join_team(u, project=project, open_to_all=open_to_all))
+        taking_part = sum(
+            1 for u in users if may_join_team(u, benchmark=name, project=project, open_to_all=open_to_all)
+        )
         return {"accounts": taking_part, "joined": self.store.joined(name)}
 
     # -- the invited's -----------------------------------------------------------------------------------

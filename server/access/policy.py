@@ -104,6 +104,8 @@ class Caller:
     client: str = "local"
     #: False for a reader without a token (accounts mode)
     signed_in: bool = False
+    #: an account made by an invitation: the benchmark it takes part in, the only one (None: any it may)
+    invited_to: str | None = None
 
     @property
     def actor(self) -> str:
@@ -133,6 +135,9 @@ class _User(Protocol):
 
     @property
     def projects(self) -> tuple[str, ...]: ...
+
+    @property
+    def invited_to(self) -> str | None: ...
 
 
 class _GroundTruth(Protocol):
@@ -206,7 +211,7 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
         "joining by an invitation: the page, the JSON route",
         Access.PUBLIC,
         "anyone with the link, while it has uses and has not expired: makes an account that takes part in its "
-        "benchmark (a member of its project), nothing more",
+        "benchmark (a member of its project) and in no other, and uploads no evaluation",
         "yes",
     ),
     ("accounts: users, projects, members, tokens, audit log", Access.ADMIN, "no", "yes"),
@@ -458,6 +463,12 @@ class Policy:
         admins may evaluate against it (their baselines), audited by the caller."""
         if caller.is_admin:
             return
+        if caller.invited_to is not None:
+            raise Forbidden(
+                f"an account made by an invitation takes part in benchmark {caller.invited_to!r} and nothing "
+                f"more: it submits there (POST /v1/benchmarks/{caller.invited_to}/submissions), it uploads no "
+                "evaluation"
+            )
         benchmarks = list(self._test_sets().get(record.name, ()))
         if benchmarks:
             names = ", ".join(repr(b) for b in benchmarks)
@@ -478,12 +489,13 @@ class Policy:
             )
 
     # -- benchmarks --------------------------------------------------------------------------------------
-    def sees_benchmark(self, caller: Caller, *, public: bool, project: str | None) -> bool:
+    def sees_benchmark(self, caller: Caller, *, benchmark: str, public: bool, project: str | None) -> bool:
         """A public benchmark is everyone's (without a token too); a private one its project's members' (every
-        signed-in caller's when it has no project)."""
+        signed-in caller's when it has no project), and of an account made by an invitation, its invitation's
+        alone."""
         if public or caller.is_admin:
             return True
-        if not caller.signed_in:
+        if not caller.signed_in or (caller.invited_to is not None and caller.invited_to != benchmark):
             return False
         return project is None or self.sees_project(caller, project)
 
@@ -493,12 +505,15 @@ class Policy:
         of a public benchmark, or another project's member, never learns that it exists."""
         return caller.is_admin or self._sees_ground_truths_of(caller, project)
 
-    def may_take_part(self, caller: Caller, *, project: str | None, open_to_all: bool) -> bool:
-        """Who may submit to a benchmark they see: a participant (:meth:`is_participant`) who is a member of the
-        test set's project (every signed-in account when the test set is shared), or any participant when the
-        benchmark is open to all. Reading a public benchmark is not taking part in it. An admin submits
-        baselines to every benchmark."""
+    def may_take_part(self, caller: Caller, *, benchmark: str, project: str | None, open_to_all: bool) -> bool:
+        """Who may submit to a benchmark they see (``benchmark``: its name as participants address it, the same
+        for all its phases): a participant (:meth:`is_participant`) who is a member of the test set's project
+        (every signed-in account when the test set is shared), or any participant when the benchmark is open to
+        all; an account made by an invitation, in its invitation's benchmark only. Reading a public benchmark is
+        not taking part in it. An admin submits baselines to every benchmark."""
         if not self.is_participant(caller):
+            return False
+        if caller.invited_to is not None and caller.invited_to != benchmark:
             return False
         return caller.is_admin or open_to_all or project is None or self.sees_project(caller, project)
 
@@ -548,19 +563,24 @@ def invited_projects(*, project: str | None, open_to_all: bool, wanted: str | No
 
 
 # -- teams and open labels ----------------------------------------------------------------------------------------
-def may_join_team(user: _User | None, *, project: str | None, open_to_all: bool) -> bool:
+def may_join_team(user: _User | None, *, benchmark: str, project: str | None, open_to_all: bool) -> bool:
     """Whom a participant may invite to a team: an account that is not an admin's (an admin submits baselines)
     and that may take part in the benchmark (a member of its test set's project, any account when the test set is
-    shared or the benchmark is open to all)."""
+    shared or the benchmark is open to all; an account made by an invitation, in its invitation's benchmark
+    only)."""
     if user is None or user.is_admin:
+        return False
+    if user.invited_to is not None and user.invited_to != benchmark:
         return False
     return open_to_all or project is None or project in user.projects
 
 
-def sees_teams(policy: Policy, caller: Caller, *, project: str | None, open_to_all: bool) -> bool:
+def sees_teams(policy: Policy, caller: Caller, *, benchmark: str, project: str | None, open_to_all: bool) -> bool:
     """A benchmark's teams and their members are seen by those who may take part in it, and by admins (the board
     names the team of each published entry that is not anonymous)."""
-    return caller.is_admin or policy.may_take_part(caller, project=project, open_to_all=open_to_all)
+    return caller.is_admin or policy.may_take_part(
+        caller, benchmark=benchmark, project=project, open_to_all=open_to_all
+    )
 
 
 def require_open_labels(*, open_labels: bool, what: str) -> None:

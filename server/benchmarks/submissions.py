@@ -175,7 +175,9 @@ class Submissions:
         if not self.policy.is_participant(caller):
             raise Forbidden("a participant submits with their own token (kitti-eval admin token add USER)")
         bench = self.catalog.get(name, caller)
-        if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
+        if not self.policy.may_take_part(
+            caller, benchmark=bench.shown_name, project=bench.project, open_to_all=bench.open_to_all
+        ):
             raise _not_taking_part(name)
         upload = request_key = None
         if idempotency_key is not None:  # a retry is answered first, whatever has changed since: the file's hash
@@ -255,7 +257,9 @@ class Submissions:
             return None
         try:
             bench = self.catalog.get(row, caller)
-            if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
+            if not self.policy.may_take_part(
+                caller, benchmark=bench.shown_name, project=bench.project, open_to_all=bench.open_to_all
+            ):
                 return _not_taking_part(row)
             if not bench.is_open():
                 return None
@@ -387,8 +391,8 @@ class Submissions:
 def _not_taking_part(name: str) -> Forbidden:
     """The refusal of a submission from a caller who may read the benchmark but not take part in it."""
     return Forbidden(
-        f"the benchmark {name!r} takes part from the members of its test set's project: reading it is not taking "
-        "part in it"
+        f"the benchmark {name!r} takes part from the members of its test set's project (an account made by an "
+        "invitation, in its invitation's benchmark only): reading it is not taking part in it"
     )
 
 

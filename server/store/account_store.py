@@ -20,6 +20,9 @@ class UserRecord:
     is_admin: bool
     created_at: datetime
     projects: tuple[str, ...] = ()
+    #: the benchmark (its name as participants address it) of the invitation that made the account, which is the
+    #: only one it takes part in; None for an account an admin made (by hand or by an import)
+    invited_to: str | None = None
 
 
 @dataclass(frozen=True)
@@ -62,20 +65,41 @@ class AccountStore(Area):
             if row is None:
                 return None
             member_of = self._projects_of(conn, name)
-        return UserRecord(row["name"], bool(row["is_admin"]), utc(row["created_at"]), member_of)
+            invited_to = self._invited_to(conn, name).get(name)
+        return UserRecord(row["name"], bool(row["is_admin"]), utc(row["created_at"]), member_of, invited_to)
 
     @retry_when_locked
     def list_users(self) -> list[UserRecord]:
         with self.engine.connect() as conn:
             rows = conn.execute(select(users).order_by(users.c.name)).mappings().all()
             pairs = conn.execute(select(memberships).order_by(memberships.c.project)).all()
+            invited_to = self._invited_to(conn)
         member_of: dict[str, list[str]] = {}
         for user_name, project in pairs:
             member_of.setdefault(user_name, []).append(project)
         return [
-            UserRecord(r["name"], bool(r["is_admin"]), utc(r["created_at"]), tuple(member_of.get(r["name"], ())))
+            UserRecord(
+                r["name"],
+                bool(r["is_admin"]),
+                utc(r["created_at"]),
+                tuple(member_of.get(r["name"], ())),
+                invited_to.get(r["name"]),
+            )
             for r in rows
         ]
+
+    @staticmethod
+    def _invited_to(conn: Connection, user_name: str | None = None) -> dict[str, str]:
+        """User -> the benchmark of the invitation that made the account (the invitations' tables are their
+        module's, which builds on this one's records: imported here, where they are read)."""
+        from .invitation_store import invitation_accounts, invitations
+
+        query = select(invitation_accounts.c.user_name, invitations.c.benchmark).join(
+            invitations, invitations.c.id == invitation_accounts.c.invitation
+        )
+        if user_name is not None:
+            query = query.where(invitation_accounts.c.user_name == user_name)
+        return {str(name): str(benchmark) for name, benchmark in conn.execute(query)}
 
     @staticmethod
     def _projects_of(conn: Any, user_name: str) -> tuple[str, ...]:

@@ -9,7 +9,7 @@ import time
 import pytest
 from server_accounts import bearer, make_teams
 from server_benchmarks import ok, submit
-from server_helpers import ADMIN, app_client, golden_bytes
+from server_helpers import ADMIN, app_client, golden_bytes, upload
 
 from kitti_eval_server.access.invitations import GONE
 from kitti_eval_server.access.policy import Policy, invited_projects
@@ -164,3 +164,24 @@ def test_joins_at_once_never_exceed_the_uses(hosted) -> None:
     assert len(made) == 3 and outcomes.count("gone") == 5
     listed = next(i for i in service.invitations.listed(HOST) if i.id == record.id)
     assert listed.uses == 3 and sorted(listed.accounts) == made
+
+
+def test_an_invited_account_takes_part_in_its_invitations_benchmark_and_no_shared_one(hosted) -> None:
+    """A benchmark on a test set shared with every account (no project) takes part from every account, but not
+    from one an invitation made: that takes part in its invitation's benchmark (all its phases) and uploads no
+    evaluation, even against a shared ground truth."""
+    c, teams = hosted
+    files = {"file": ("kitti_infos_val.pkl", golden_bytes("kitti_infos_val.pkl"))}
+    form = {"name": "shared-set", "sealed": "true"}
+    assert ok(c.post("/v1/ground-truths", data=form, files=files, headers=ADMIN), 201)["project"] is None
+    ok(c.post("/v1/benchmarks", json={"name": "sharedbench", "ground_truth": "shared-set"}, headers=ADMIN), 201)
+    _, code = _invite(c, uses=1)
+    token = ok(c.post(f"/v1/join/{code}", json={"name": "ana"}), 201)["token"]
+    assert c.get("/v1/benchmarks/sharedbench", headers=bearer(token)).status_code == 404
+    assert "sharedbench" not in [b["name"] for b in ok(c.get("/v1/benchmarks", headers=bearer(token)))["items"]]
+    assert submit(c, bearer(token), golden_bytes("result.pkl"), name="sharedbench").status_code == 404
+    refused = upload(c, golden_bytes("result.pkl"), gt="demo", headers=bearer(token))
+    assert refused.status_code == 403 and "invitation" in refused.json()["error"]["message"]
+    ok(submit(c, bearer(token), golden_bytes("result.pkl")), 201)  # its own benchmark still takes it
+    # an account an admin made takes part in the shared benchmark as before
+    ok(submit(c, teams.headers("carol"), golden_bytes("result.pkl"), name="sharedbench"), 201)
