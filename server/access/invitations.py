@@ -99,9 +99,9 @@ def parse_import(text: str) -> list[ImportLine]:
                     Accounts.check_name(project, "project")
             except BadRequest as e:
                 raise BadRequest(f"line {number}: {e.message}") from None
-            if name in seen:
-                raise BadRequest(f"line {number}: the user {name!r} is on line {seen[name]} too")
-            seen[name] = number
+            if name.lower() in seen:  # as a name taken already: ignoring case
+                raise BadRequest(f"line {number}: the user {name!r} is on line {seen[name.lower()]} too")
+            seen[name.lower()] = number
             lines.append(ImportLine(number, name, project))
             if len(lines) > MAX_IMPORT_LINES:
                 raise BadRequest(f"line {number}: an import makes at most {MAX_IMPORT_LINES} accounts")

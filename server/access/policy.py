@@ -52,6 +52,7 @@ __all__ = [
     "SAFE_METHODS",
     "CSRF_HEADER",
     "BUILT_IN_CALLERS",
+    "RESERVED_USER_NAMES",
 ]
 
 READ = "read"
@@ -63,6 +64,9 @@ CSRF_HEADER = "x-csrf-token"
 #: the names of the callers the service makes itself (no user may take one: the audit log, a job's owner and a
 #: submission's participant name callers by these)
 BUILT_IN_CALLERS = frozenset({"admin-token", "anyone", "anonymous", "metrics-scraper"})
+#: the names no new user takes, in any case: the built-in callers', and ``admin`` (an account so named would read as
+#: the administrator on a board and in the audit log)
+RESERVED_USER_NAMES = BUILT_IN_CALLERS | {"admin"}
 #: how long a sign-in form's CSRF token is valid
 SIGNIN_CSRF_S = 3600
 

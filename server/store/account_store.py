@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import Any
 
-from sqlalchemy import delete, insert, select, update
+from sqlalchemy import delete, func, insert, select, update
 from sqlalchemy.engine import Connection, RowMapping
+from sqlalchemy.exc import IntegrityError
 
 from .database import Area, audit, memberships, projects, retry_when_locked, tokens, users, utc
 
-__all__ = ["UserRecord", "TokenRecord", "AuditRecord", "AccountStore"]
+__all__ = ["UserRecord", "TokenRecord", "AuditRecord", "AccountStore", "names_taken"]
 
 
 @dataclass(frozen=True)
@@ -50,13 +52,29 @@ class AuditRecord:
     detail: str
 
 
+def names_taken(conn: Connection, names: Sequence[str]) -> list[str]:
+    """Which of ``names`` a new account may not take: those equal to an existing user's name ignoring case (``Ana``
+    beside ``ana`` would read as the same person on a board and in the audit log). Every way an account is made
+    asks this; accounts made before the rule are left as they are."""
+    lowered = sorted({n.lower() for n in names})
+    taken = set(conn.execute(select(func.lower(users.c.name)).where(func.lower(users.c.name).in_(lowered))).scalars())
+    return sorted(n for n in names if n.lower() in taken)
+
+
 class AccountStore(Area):
     """Who may do what: users, projects, memberships, tokens and sessions; and what admins did."""
 
     @retry_when_locked
     def add_user(self, name: str, is_admin: bool) -> bool:
-        """False if the name is taken."""
-        return self._insert(users, name=name, is_admin=is_admin, created_at=datetime.now(timezone.utc))
+        """False if the name is taken (:func:`names_taken`: ignoring case)."""
+        try:
+            with self._writing() as conn:
+                if names_taken(conn, [name]):
+                    return False
+                conn.execute(insert(users).values(name=name, is_admin=is_admin, created_at=datetime.now(timezone.utc)))
+        except IntegrityError:  # made meanwhile
+            return False
+        return True
 
     @retry_when_locked
     def get_user(self, name: str) -> UserRecord | None:

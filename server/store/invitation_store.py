@@ -13,7 +13,7 @@ from sqlalchemy import Column, DateTime, ForeignKey, Index, Integer, String, Tab
 from sqlalchemy.engine import Connection, RowMapping
 from sqlalchemy.exc import IntegrityError
 
-from .account_store import TokenRecord
+from .account_store import TokenRecord, names_taken
 from .database import Area, memberships, metadata, retry_when_locked, tokens, users, utc
 
 __all__ = ["InvitationRecord", "InvitationStore", "NewAccount", "JoinRefused", "invitations", "invitation_accounts"]
@@ -166,7 +166,7 @@ class InvitationStore(Area):
 
     @retry_when_locked
     def taken(self, names: Sequence[str]) -> list[str]:
-        """Which of ``names`` are users' already (compared as the database compares them)."""
+        """Which of ``names`` are users' already, ignoring case (:func:`.account_store.names_taken`)."""
         with self.engine.connect() as conn:
             return self._taken(conn, names)
 
@@ -186,7 +186,7 @@ class InvitationStore(Area):
 
     @staticmethod
     def _taken(conn: Connection, names: Sequence[str]) -> list[str]:
-        return sorted(conn.execute(select(users.c.name).where(users.c.name.in_(list(names)))).scalars().all())
+        return names_taken(conn, names)
 
     @staticmethod
     def _make(conn: Connection, account: NewAccount, at: datetime) -> None:

@@ -94,6 +94,9 @@ def test_an_import_of_three_lines_prints_three_working_tokens(admin, tmp_path) -
         ("name,project\ndee,nope\n", "line 2: no project named 'nope'"),
         ("user,project\ndee,class\n", "line 1: the columns are name"),
         ("name\ndee\nanyone\n", "line 3: the user name 'anyone' is reserved"),
+        ("name\ndee\nAdmin\n", "line 3: the user name 'Admin' is reserved"),
+        ("name\ndee\nANN\n", "line 3: a user named 'ANN' exists"),  # ann's, ignoring case
+        ("name\ndee\nDee\n", "line 3: the user 'Dee' is on line 2 too"),
         ("", "the file is empty"),
     ],
 )

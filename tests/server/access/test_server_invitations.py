@@ -94,6 +94,20 @@ def test_a_taken_name_answers_409_and_uses_nothing(hosted) -> None:
     ok(c.post(f"/v1/join/{code}", json={"name": "ines"}), 201)  # its one use is still there
 
 
+def test_a_name_equal_to_a_users_ignoring_case_is_taken_and_admin_is_reserved(hosted) -> None:
+    c, _ = hosted
+    _, code = _invite(c, uses=1)
+    for name in ("ALICE", "Alice", "aLiCe"):
+        r = c.post(f"/v1/join/{code}", json={"name": name})
+        assert r.status_code == 409 and "taken" in r.json()["error"]["message"], name
+    for name in ("admin", "Admin", "ADMIN"):
+        r = c.post(f"/v1/join/{code}", json={"name": name})
+        assert r.status_code == 422 and "reserved" in r.json()["error"]["message"], name
+    ok(c.post(f"/v1/join/{code}", json={"name": "Nell"}), 201)  # its one use is still there
+    names = [u["name"] for u in ok(c.get("/v1/admin/users", headers=ADMIN))["items"]]
+    assert sorted(n for n in names if n.lower() in ("alice", "admin", "nell")) == ["Nell", "alice"]
+
+
 def test_an_unknown_code_answers_404(hosted) -> None:
     c, _ = hosted
     assert c.post("/v1/join/" + "A" * 43, json={"name": "jo"}).status_code == 404
