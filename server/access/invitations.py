@@ -42,8 +42,11 @@ __all__ = [
     "MAX_IMPORT_LINES",
 ]
 
-#: the one message of a used-up, expired or revoked invitation
-GONE = "this invitation is used up, expired or revoked: ask the host of the benchmark for a new link"
+#: the one message of a used-up, expired or revoked invitation, or of one whose benchmark's last phase has closed
+GONE = (
+    "this invitation is used up, expired or revoked, or its benchmark has closed: ask the host of the benchmark "
+    "for a new link"
+)
 #: most accounts one invitation may make
 MAX_USES = 100_000
 #: most days an invitation may be valid for
@@ -122,14 +125,17 @@ class Invitations:
         policy: Policy,
         audit: Audit,
         benchmark: Callable[[str], tuple[str, str | None, bool]],
+        closed: Callable[[str], bool],
     ) -> None:
         """``benchmark(name)``: the benchmark's name as participants address it, its test set's project and whether
-        it is open to all (NotFound when there is none)."""
+        it is open to all (NotFound when there is none); ``closed(name)``: whether its last phase has closed (as
+        the phases' lifecycle says; NotFound when there is no such benchmark)."""
         self.store = store
         self.accounts = accounts
         self.policy = policy
         self.audit = audit
         self._benchmark = benchmark
+        self._closed = closed
 
     # -- the host's ---------------------------------------------------------------------------------------
     def add(
@@ -202,9 +208,16 @@ class Invitations:
             record = self.store.get_invitation(code_sha256=digest(code))
         if record is None or not self.policy.has_accounts():
             raise NotFound("no such invitation: check the link the host gave you")
-        if not usable(record, datetime.now(timezone.utc)):
+        if not usable(record, datetime.now(timezone.utc)) or self._has_closed(record.benchmark):
             raise Gone(GONE)
         return record
+
+    def _has_closed(self, benchmark: str) -> bool:
+        """Whether the invitation's benchmark takes no one any more: its last phase has closed, or it is gone."""
+        try:
+            return self._closed(benchmark)
+        except NotFound:
+            return True
 
     def invited(self, code: str, *, caller: Caller) -> Invited:
         """What the link's page shows: the benchmark it admits to (404 unknown, 410 used up, expired, revoked)."""
@@ -212,8 +225,8 @@ class Invitations:
 
     def join(self, code: str, name: object, *, caller: Caller) -> tuple[str, str, str]:
         """Make the account ``name`` by the invitation ``code``: (the user, its token, shown once; the
-        benchmark). 404 unknown code, 410 used up, expired or revoked, 409 a taken name, 422 a name that is not
-        valid; audited as the new user's join, from the caller's address."""
+        benchmark). 404 unknown code, 410 used up, expired or revoked (or its benchmark has closed), 409 a taken
+        name, 422 a name that is not valid; audited as the new user's join, from the caller's address."""
         record = self._usable(code)
         if not isinstance(name, str):
             raise BadRequest('send the user name you want: {"name": "..."}')

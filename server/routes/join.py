@@ -30,7 +30,10 @@ class JoinIn(BaseModel):
     responses={
         404: {"model": ErrorResponse, "description": "no such invitation (or the service has no accounts)"},
         409: {"model": ErrorResponse, "description": "the user name is taken"},
-        410: {"model": ErrorResponse, "description": "the invitation is used up, expired or revoked"},
+        410: {
+            "model": ErrorResponse,
+            "description": "the invitation is used up, expired or revoked, or its benchmark has closed",
+        },
         429: {"model": ErrorResponse, "description": "too many attempts to join from this address"},
     },
 )

@@ -131,6 +131,19 @@ def test_joins_are_limited_per_client_address(tmp_path) -> None:
         assert r.status_code == 429 and "join" in r.json()["error"]["message"] and r.headers["retry-after"]
 
 
+def test_an_invitation_to_a_benchmark_whose_last_phase_has_closed_answers_410(tmp_path) -> None:
+    with app_client(tmp_path / "data", auth="accounts", register_demo=False) as c:
+        make_teams(c)
+        ok(c.post("/v1/benchmarks", json={"name": "bench", "ground_truth": "sealed-a"}, headers=ADMIN), 201)
+        _, code = _invite(c, uses=5)
+        ok(c.post("/v1/benchmarks/bench/close", headers=ADMIN))
+        r = c.post(f"/v1/join/{code}", json={"name": "kim"})
+        assert r.status_code == 410 and r.json()["error"]["message"] == GONE
+        assert c.get(f"/join/{code}").status_code == 410
+        ok(c.post("/v1/benchmarks/bench/reopen", headers=ADMIN))  # the lifecycle's state, not a mark on the link
+        ok(c.post(f"/v1/join/{code}", json={"name": "kim"}), 201)
+
+
 def test_open_mode_has_no_invitations(tmp_path) -> None:
     with app_client(tmp_path / "data", register_demo=False) as c:
         assert c.post("/v1/join/" + "A" * 43, json={"name": "jo"}).status_code == 404
