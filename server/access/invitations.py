@@ -39,6 +39,7 @@ __all__ = [
     "usable",
     "GONE",
     "MAX_USES",
+    "DEFAULT_DAYS",
     "MAX_IMPORT_LINES",
 ]
 
@@ -51,6 +52,9 @@ GONE = (
 MAX_USES = 100_000
 #: most days an invitation may be valid for
 MAX_DAYS = 3650
+#: how long an invitation is valid when its host names no time: a link handed out to a class is not a door left
+#: open for good
+DEFAULT_DAYS = 14
 #: most accounts one import makes
 MAX_IMPORT_LINES = 10_000
 _CODE_CHARS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789-_")
@@ -147,12 +151,15 @@ class Invitations:
         project: str | None,
         caller: Caller,
     ) -> tuple[InvitationRecord, str]:
-        """A new invitation to ``benchmark``: its record and its code (shown once, kept nowhere)."""
+        """A new invitation to ``benchmark``: its record and its code (shown once, kept nowhere). It expires after
+        ``expires_days`` (None: :data:`DEFAULT_DAYS`); every invitation expires."""
         self.policy.require_admin(caller)
         name, bench_project, open_to_all = self._benchmark(benchmark)
         if uses is not None and not 0 < uses <= MAX_USES:
             raise BadRequest(f"an invitation is used at least once and at most {MAX_USES} times; got {uses}")
-        if expires_days is not None and not 0 < expires_days <= MAX_DAYS:
+        if expires_days is None:
+            expires_days = DEFAULT_DAYS
+        if not 0 < expires_days <= MAX_DAYS:
             raise BadRequest(f"an invitation expires after more than 0 and at most {MAX_DAYS} days")
         projects = invited_projects(project=bench_project, open_to_all=open_to_all, wanted=project)
         for p in projects:
@@ -168,7 +175,7 @@ class Invitations:
             uses=0,
             created_by=caller.actor[:128],
             created_at=now,
-            expires_at=now + timedelta(days=expires_days) if expires_days is not None else None,
+            expires_at=now + timedelta(days=expires_days),
             revoked_at=None,
         )
         self.store.add_invitation(record)
