@@ -405,16 +405,19 @@ class Policy:
         issued = f"{int((time.time() if now is None else now) + SIGNIN_CSRF_S)}.{secrets.token_urlsafe(16)}"
         return f"{issued}.{self._signin_mac(issued)}"
 
-    def check_signin_csrf(self, sent: object, cookie: str | None, now: float | None = None) -> None:
-        """The sign-in form's token: the one the form's page set in its cookie, issued by this service and not
-        expired. A pair the client made up, however alike, is refused."""
+    def check_signin_csrf(
+        self, sent: object, cookie: str | None, now: float | None = None, *, form: str = "sign-in"
+    ) -> None:
+        """The token of a form shown before there is a session (``form``: ``sign-in``, ``join``, as the refusal
+        names it): the one the form's page set in its cookie, issued by this service and not expired. A pair the
+        client made up, however alike, is refused."""
         if not (isinstance(sent, str) and cookie and hmac.compare_digest(sent.encode(), cookie.encode())):
-            raise Forbidden("the sign-in form is stale or came from another site; try again")
+            raise Forbidden(f"the {form} form is stale or came from another site; try again")
         issued, _, mac = sent.rpartition(".")
         expires, _, _ = issued.partition(".")
         fresh = expires.isdigit() and int(expires) > (time.time() if now is None else now)
         if not (issued and fresh and hmac.compare_digest(mac.encode(), self._signin_mac(issued).encode())):
-            raise Forbidden("the sign-in form is stale or came from another site; try again")
+            raise Forbidden(f"the {form} form is stale or came from another site; try again")
 
     def check_csrf(self, caller: Caller, sent: str | None, *, header: bool = False) -> None:
         """A web session's change carries the session's CSRF token (a form's ``csrf`` field, a script's

@@ -45,6 +45,8 @@ def test_the_page_joins_signs_in_and_shows_the_token_once(hosted) -> None:
     r = c.post(f"/join/{code}", data={"name": "nora", "csrf": _csrf(form.text)})
     assert r.status_code == 201 and r.headers["cache-control"] == "no-store"
     token = re.search(r'<code id="token">(kte_[^<]+)</code>', r.text).group(1)
+    # the command that asks for it, with the service's address as this page was asked at
+    assert f'<code id="login-command">kitti-eval login --service {c.base_url}</code>' in r.text
     assert c.get("/v1/me", headers=bearer(token)).json()["user"] == "nora"
     assert c.cookies.get(SESSION_COOKIE) not in (None, token)
     assert "nora" in c.get("/benchmarks/bench").text  # signed in by the session the join opened
@@ -59,7 +61,7 @@ def test_the_form_without_its_csrf_token_makes_nothing(hosted) -> None:
     c.cookies.clear()
     c.get(f"/join/{code}")
     r = c.post(f"/join/{code}", data={"name": "otto", "csrf": "made-up"})
-    assert r.status_code == 403 and "stale or came from another site" in r.text
+    assert r.status_code == 403 and "the join form is stale or came from another site" in r.text
     c.cookies.clear()
     r = c.post(f"/join/{code}", data={"name": "otto"})
     assert r.status_code == 403
