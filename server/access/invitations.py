@@ -24,7 +24,7 @@ from datetime import datetime, timedelta, timezone
 
 from sqlalchemy.engine import Connection
 
-from ..errors import BadRequest, Conflict, Gone, NotFound, echo
+from ..errors import ApiError, BadRequest, Conflict, Gone, NotFound, echo
 from ..store import InvitationRecord, InvitationStore, JoinRefused, NewAccount
 from .accounts import Accounts, digest
 from .audit import Audit
@@ -48,6 +48,9 @@ GONE = (
     "this invitation is used up, expired or revoked, or its benchmark has closed: ask the host of the benchmark "
     "for a new link"
 )
+#: the refused joins the audit log keeps (an unknown code, 404, names no invitation): spent or closed, a taken name,
+#: a name that is not valid, too many attempts from one address
+AUDITED_REFUSALS = frozenset({410, 409, 422, 429})
 #: most accounts one invitation may make
 MAX_USES = 100_000
 #: most days an invitation may be valid for
@@ -209,11 +212,28 @@ class Invitations:
         return {"accounts": taking_part, "joined": self.store.joined(name)}
 
     # -- the invited's -----------------------------------------------------------------------------------
+    def _named(self, code: str) -> InvitationRecord | None:
+        """The invitation whose code is ``code``, whatever its state (None: none, or no accounts)."""
+        if not (20 <= len(code) <= 100 and set(code) <= _CODE_CHARS) or not self.policy.has_accounts():
+            return None
+        return self.store.get_invitation(code_sha256=digest(code))
+
+    def refused(self, code: str, error: ApiError, *, caller: Caller, name: object = None) -> None:
+        """Audit a refused join (one of :data:`AUDITED_REFUSALS`) by the invitation it named: the invitation's id
+        (never the code), the caller's address, the status, the name asked for and why. Both doors (the page and
+        the JSON route) call it with what they refused; an unknown code leaves no row."""
+        if error.status_code not in AUDITED_REFUSALS:
+            return
+        record = self._named(code)
+        if record is None:
+            return
+        asked = echo(name, 64) if isinstance(name, str) else "-"
+        detail = f"{error.status_code}, name {asked}: {error.message}"
+        self.audit.refused_join(caller, invitation_id=record.id, detail=detail[:1000])
+
     def _usable(self, code: str) -> InvitationRecord:
-        record = None
-        if 20 <= len(code) <= 100 and set(code) <= _CODE_CHARS:
-            record = self.store.get_invitation(code_sha256=digest(code))
-        if record is None or not self.policy.has_accounts():
+        record = self._named(code)
+        if record is None:
             raise NotFound("no such invitation: check the link the host gave you")
         if not usable(record, datetime.now(timezone.utc)) or self._has_closed(record.benchmark):
             raise Gone(GONE)

@@ -83,8 +83,13 @@ async def join(request: Request, code: str, service: ServiceDep, caller: PublicC
         )
         shown = await anyio.to_thread.run_sync(lambda: service.accounts.resolve(session, session=True))
     except (NotFound, Gone) as e:
+        gone = e
+        await anyio.to_thread.run_sync(lambda: service.invitations.refused(code, gone, caller=caller, name=name))
         return error_page(request, e)
     except (ApiError, HTTPException) as e:
+        if isinstance(e, ApiError):  # the refusals the audit log keeps, by the invitation's id
+            refused = e
+            await anyio.to_thread.run_sync(lambda: service.invitations.refused(code, refused, caller=caller, name=name))
         status = e.status_code
         message = e.detail if isinstance(e, HTTPException) else e.message
         response = _form(

@@ -26,8 +26,12 @@ def hosted(tmp_path_factory):
 
 
 def _code(c, uses: int | None = None) -> str:
+    return _invitation(c, uses)[1]
+
+
+def _invitation(c, uses: int | None = None):
     invitations = c.app.state.service.invitations
-    return invitations.add("bench", uses=uses, expires_days=None, project=None, caller=HOST)[1]
+    return invitations.add("bench", uses=uses, expires_days=None, project=None, caller=HOST)
 
 
 def _csrf(html: str) -> str:
@@ -71,11 +75,14 @@ def test_the_form_without_its_csrf_token_makes_nothing(hosted) -> None:
 
 def test_a_taken_name_shows_the_form_again_and_an_unknown_link_is_404(hosted) -> None:
     c = hosted
-    code = _code(c)
+    record, code = _invitation(c)
     c.cookies.clear()
     form = c.get(f"/join/{code}")
     r = c.post(f"/join/{code}", data={"name": "bob", "csrf": _csrf(form.text)})
     assert r.status_code == 409 and "taken" in r.text and 'value="bob"' in r.text and _csrf(r.text)
+    rows = c.get("/v1/admin/audit", headers=ADMIN).json()["items"]
+    refused = [r for r in rows if r["target"] == f"invitation {record.id}" and r["outcome"] == "refused"]
+    assert [r["detail"].split(",")[0] for r in refused] == ["409"] and "'bob'" in refused[0]["detail"]
     assert c.get("/join/" + "B" * 43).status_code == 404
 
 

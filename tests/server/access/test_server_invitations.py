@@ -144,6 +144,25 @@ def test_an_invitation_to_a_benchmark_whose_last_phase_has_closed_answers_410(tm
         ok(c.post(f"/v1/join/{code}", json={"name": "kim"}), 201)
 
 
+def test_refused_joins_are_audited_by_the_invitations_id_never_its_code(tmp_path) -> None:
+    with app_client(tmp_path / "data", auth="accounts", join_max_attempts=4, register_demo=False) as c:
+        make_teams(c)
+        ok(c.post("/v1/benchmarks", json={"name": "bench", "ground_truth": "sealed-a"}, headers=ADMIN), 201)
+        record, code = _invite(c, uses=1)
+        asked = [("alice", 409), ("bad name", 422), ("kim", 201), ("lou", 410), ("max", 429)]
+        for name, status in asked:
+            assert c.post(f"/v1/join/{code}", json={"name": name}).status_code == status, name
+        assert c.post("/v1/join/" + "A" * 43, json={"name": "ned"}).status_code == 429  # an unknown code: no row
+        rows = ok(c.get("/v1/admin/audit", headers=ADMIN))["items"]
+        refused = [r for r in reversed(rows) if r["action"] == "invitation.join" and r["outcome"] == "refused"]
+        assert [(r["detail"].split(",")[0], r["target"]) for r in refused] == [
+            (str(status), f"invitation {record.id}") for name, status in asked if status != 201
+        ]
+        assert [r["detail"].split("'")[1] for r in refused] == ["alice", "bad name", "lou", "max"]
+        assert all(r["client"] == "testclient" and r["actor"] == "anonymous" for r in refused)
+        assert not [r for r in rows if code in str(r)]
+
+
 def test_open_mode_has_no_invitations(tmp_path) -> None:
     with app_client(tmp_path / "data", register_demo=False) as c:
         assert c.post("/v1/join/" + "A" * 43, json={"name": "jo"}).status_code == 404
