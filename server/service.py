@@ -33,6 +33,7 @@ from .access.auth import FailureLimiter
 from .access.invitations import Invitations
 from .access.policy import Policy
 from .benchmarks import Benchmarks
+from .benchmarks.phases import last_phase
 from .data_folder import check_writable
 from .errors import NotFound, StartupRefused, echo
 from .evaluations.evaluations import EvaluationFrames, Evaluations
@@ -121,6 +122,16 @@ def _test_sets(store: Store) -> dict[str, list[str]]:
     for bench in store.benchmark_store.list_benchmarks():
         found.setdefault(bench.gt_name, []).append(bench.name)
     return found
+
+
+def _has_closed(benchmarks: Benchmarks) -> Callable[[str], bool]:
+    """Whether a benchmark's last phase has closed (closed or revealed, as the phases' lifecycle says): its
+    invitations admit no one any more (404 for no such benchmark)."""
+
+    def closed(name: str) -> bool:
+        return last_phase(benchmarks.catalog, benchmarks.catalog.named(name)).is_closed()
+
+    return closed
 
 
 class Service:
@@ -253,7 +264,12 @@ class Service:
             wake=lambda n: self.workers.wake(n),
         )
         self.invitations = Invitations(
-            self.store.invitation_store, self.accounts, self.policy, self.audit, _invited_to(self.benchmarks)
+            self.store.invitation_store,
+            self.accounts,
+            self.policy,
+            self.audit,
+            _invited_to(self.benchmarks),
+            _has_closed(self.benchmarks),
         )
         self.join_limiter = FailureLimiter(settings.join_max_attempts, settings.join_window_s, what="attempts to join")
 

@@ -26,7 +26,7 @@ from ..errors import BadRequest, Conflict, NotFound, Unauthorized, echo
 from ..settings import Settings
 from ..store import AccountStore, TokenRecord, UserRecord
 from .audit import Audit
-from .policy import ALL_SCOPES, BUILT_IN_CALLERS, READ, WRITE, Caller, Policy
+from .policy import ALL_SCOPES, READ, RESERVED_USER_NAMES, WRITE, Caller, Policy
 
 log = logging.getLogger("kitti_eval.server")
 
@@ -138,6 +138,7 @@ class Accounts:
             session=session,
             csrf=csrf_token(presented) if session else None,
             signed_in=True,
+            invited_to=None if user.is_admin else user.invited_to,
         )
 
     @staticmethod
@@ -166,10 +167,10 @@ class Accounts:
         """A new user's name, whoever makes the account (an admin, an invitation, an import): the rules of a name,
         and none of the service's own callers'."""
         cls.check_name(name, "user")
-        if name.lower() in BUILT_IN_CALLERS:
+        if name.lower() in RESERVED_USER_NAMES:
             raise BadRequest(
-                f"the user name {name!r} is reserved: the service names its own callers so "
-                f"({', '.join(sorted(BUILT_IN_CALLERS))})"
+                f"the user name {name!r} is reserved, in any case: the service names its own callers and the "
+                f"administrator so ({', '.join(sorted(RESERVED_USER_NAMES))})"
             )
         return name
 

@@ -47,6 +47,11 @@ class Audit:
         transaction that makes it."""
         self._write(user, "invitation.join", f"{user} ({token_id})", "ok", client, detail, conn=conn)
 
+    def refused_join(self, caller: Caller, *, invitation_id: str, detail: str) -> None:
+        """A join by the invitation ``invitation_id`` (its id, never its code) was refused, from the caller's
+        address."""
+        self._write(caller.actor, "invitation.join", f"invitation {invitation_id}", "refused", caller.client, detail)
+
     def refused_use(self, caller: Caller, target: str, detail: str) -> None:
         """A valid token (or session) was refused what it asked (an admin action, a write with a read-only
         token, a change without the session's CSRF token)."""

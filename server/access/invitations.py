@@ -24,7 +24,7 @@ from datetime import datetime, timedelta, timezone
 
 from sqlalchemy.engine import Connection
 
-from ..errors import BadRequest, Conflict, Gone, NotFound, echo
+from ..errors import ApiError, BadRequest, Conflict, Gone, NotFound, echo
 from ..store import InvitationRecord, InvitationStore, JoinRefused, NewAccount
 from .accounts import Accounts, digest
 from .audit import Audit
@@ -39,15 +39,25 @@ __all__ = [
     "usable",
     "GONE",
     "MAX_USES",
+    "DEFAULT_DAYS",
     "MAX_IMPORT_LINES",
 ]
 
-#: the one message of a used-up, expired or revoked invitation
-GONE = "this invitation is used up, expired or revoked: ask the host of the benchmark for a new link"
+#: the one message of a used-up, expired or revoked invitation, or of one whose benchmark's last phase has closed
+GONE = (
+    "this invitation is used up, expired or revoked, or its benchmark has closed: ask the host of the benchmark "
+    "for a new link"
+)
+#: the refused joins the audit log keeps (an unknown code, 404, names no invitation): spent or closed, a taken name,
+#: a name that is not valid, too many attempts from one address
+AUDITED_REFUSALS = frozenset({410, 409, 422, 429})
 #: most accounts one invitation may make
 MAX_USES = 100_000
 #: most days an invitation may be valid for
 MAX_DAYS = 3650
+#: how long an invitation is valid when its host names no time: a link handed out to a class is not a door left
+#: open for good
+DEFAULT_DAYS = 14
 #: most accounts one import makes
 MAX_IMPORT_LINES = 10_000
 _CODE_CHARS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789-_")
@@ -99,9 +109,9 @@ def parse_import(text: str) -> list[ImportLine]:
                     Accounts.check_name(project, "project")
             except BadRequest as e:
                 raise BadRequest(f"line {number}: {e.message}") from None
-            if name in seen:
-                raise BadRequest(f"line {number}: the user {name!r} is on line {seen[name]} too")
-            seen[name] = number
+            if name.lower() in seen:  # as a name taken already: ignoring case
+                raise BadRequest(f"line {number}: the user {name!r} is on line {seen[name.lower()]} too")
+            seen[name.lower()] = number
             lines.append(ImportLine(number, name, project))
             if len(lines) > MAX_IMPORT_LINES:
                 raise BadRequest(f"line {number}: an import makes at most {MAX_IMPORT_LINES} accounts")
@@ -122,14 +132,17 @@ class Invitations:
         policy: Policy,
         audit: Audit,
         benchmark: Callable[[str], tuple[str, str | None, bool]],
+        closed: Callable[[str], bool],
     ) -> None:
         """``benchmark(name)``: the benchmark's name as participants address it, its test set's project and whether
-        it is open to all (NotFound when there is none)."""
+        it is open to all (NotFound when there is none); ``closed(name)``: whether its last phase has closed (as
+        the phases' lifecycle says; NotFound when there is no such benchmark)."""
         self.store = store
         self.accounts = accounts
         self.policy = policy
         self.audit = audit
         self._benchmark = benchmark
+        self._closed = closed
 
     # -- the host's ---------------------------------------------------------------------------------------
     def add(
@@ -141,12 +154,15 @@ class Invitations:
         project: str | None,
         caller: Caller,
     ) -> tuple[InvitationRecord, str]:
-        """A new invitation to ``benchmark``: its record and its code (shown once, kept nowhere)."""
+        """A new invitation to ``benchmark``: its record and its code (shown once, kept nowhere). It expires after
+        ``expires_days`` (None: :data:`DEFAULT_DAYS`); every invitation expires."""
         self.policy.require_admin(caller)
         name, bench_project, open_to_all = self._benchmark(benchmark)
         if uses is not None and not 0 < uses <= MAX_USES:
             raise BadRequest(f"an invitation is used at least once and at most {MAX_USES} times; got {uses}")
-        if expires_days is not None and not 0 < expires_days <= MAX_DAYS:
+        if expires_days is None:
+            expires_days = DEFAULT_DAYS
+        if not 0 < expires_days <= MAX_DAYS:
             raise BadRequest(f"an invitation expires after more than 0 and at most {MAX_DAYS} days")
         projects = invited_projects(project=bench_project, open_to_all=open_to_all, wanted=project)
         for p in projects:
@@ -162,7 +178,7 @@ class Invitations:
             uses=0,
             created_by=caller.actor[:128],
             created_at=now,
-            expires_at=now + timedelta(days=expires_days) if expires_days is not None else None,
+            expires_at=now + timedelta(days=expires_days),
             revoked_at=None,
         )
         self.store.add_invitation(record)
@@ -190,19 +206,45 @@ class Invitations:
             return None
         name, project, open_to_all = self._benchmark(benchmark)
         users = self.accounts.users()
-        taking_part = sum(1 for u in users if may_join_team(u, project=project, open_to_all=open_to_all))
+        taking_part = sum(
+            1 for u in users if may_join_team(u, benchmark=name, project=project, open_to_all=open_to_all)
+        )
         return {"accounts": taking_part, "joined": self.store.joined(name)}
 
     # -- the invited's -----------------------------------------------------------------------------------
+    def _named(self, code: str) -> InvitationRecord | None:
+        """The invitation whose code is ``code``, whatever its state (None: none, or no accounts)."""
+        if not (20 <= len(code) <= 100 and set(code) <= _CODE_CHARS) or not self.policy.has_accounts():
+            return None
+        return self.store.get_invitation(code_sha256=digest(code))
+
+    def refused(self, code: str, error: ApiError, *, caller: Caller, name: object = None) -> None:
+        """Audit a refused join (one of :data:`AUDITED_REFUSALS`) by the invitation it named: the invitation's id
+        (never the code), the caller's address, the status, the name asked for and why. Both doors (the page and
+        the JSON route) call it with what they refused; an unknown code leaves no row."""
+        if error.status_code not in AUDITED_REFUSALS:
+            return
+        record = self._named(code)
+        if record is None:
+            return
+        asked = echo(name, 64) if isinstance(name, str) else "-"
+        detail = f"{error.status_code}, name {asked}: {error.message}"
+        self.audit.refused_join(caller, invitation_id=record.id, detail=detail[:1000])
+
     def _usable(self, code: str) -> InvitationRecord:
-        record = None
-        if 20 <= len(code) <= 100 and set(code) <= _CODE_CHARS:
-            record = self.store.get_invitation(code_sha256=digest(code))
-        if record is None or not self.policy.has_accounts():
+        record = self._named(code)
+        if record is None:
             raise NotFound("no such invitation: check the link the host gave you")
-        if not usable(record, datetime.now(timezone.utc)):
+        if not usable(record, datetime.now(timezone.utc)) or self._has_closed(record.benchmark):
             raise Gone(GONE)
         return record
+
+    def _has_closed(self, benchmark: str) -> bool:
+        """Whether the invitation's benchmark takes no one any more: its last phase has closed, or it is gone."""
+        try:
+            return self._closed(benchmark)
+        except NotFound:
+            return True
 
     def invited(self, code: str, *, caller: Caller) -> Invited:
         """What the link's page shows: the benchmark it admits to (404 unknown, 410 used up, expired, revoked)."""
@@ -210,8 +252,8 @@ class Invitations:
 
     def join(self, code: str, name: object, *, caller: Caller) -> tuple[str, str, str]:
         """Make the account ``name`` by the invitation ``code``: (the user, its token, shown once; the
-        benchmark). 404 unknown code, 410 used up, expired or revoked, 409 a taken name, 422 a name that is not
-        valid; audited as the new user's join, from the caller's address."""
+        benchmark). 404 unknown code, 410 used up, expired or revoked (or its benchmark has closed), 409 a taken
+        name, 422 a name that is not valid; audited as the new user's join, from the caller's address."""
         record = self._usable(code)
         if not isinstance(name, str):
             raise BadRequest('send the user name you want: {"name": "..."}')

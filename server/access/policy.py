@@ -12,7 +12,7 @@ Two things live here and nowhere else:
 
 Nothing outside this module (and :mod:`kitti_eval_server.access.accounts`, which makes callers from their records)
 reads a caller's rights or the mode: the service asks the policy a question (:meth:`Policy.may_take_part`,
-:meth:`Policy.is_baseline`, :meth:`Policy.default_project`, ...; a test walks the sources). A :class:`Caller`
+:meth:`Policy.is_baseline`, :func:`default_project`, ...; a test walks the sources). A :class:`Caller`
 made without saying otherwise is nobody, and a :class:`Policy` is never made without its test sets.
 
 A :class:`Caller` is made by the policy alone (:meth:`Policy.everyone`, :meth:`Policy.anonymous`, or
@@ -41,6 +41,7 @@ __all__ = [
     "Access",
     "Caller",
     "Policy",
+    "default_project",
     "RULES",
     "may_join_team",
     "may_gate_unkept",
@@ -54,6 +55,7 @@ __all__ = [
     "SAFE_METHODS",
     "CSRF_HEADER",
     "BUILT_IN_CALLERS",
+    "RESERVED_USER_NAMES",
 ]
 
 READ = "read"
@@ -65,6 +67,9 @@ CSRF_HEADER = "x-csrf-token"
 #: the names of the callers the service makes itself (no user may take one: the audit log, a job's owner and a
 #: submission's participant name callers by these)
 BUILT_IN_CALLERS = frozenset({"admin-token", "anyone", "anonymous", "metrics-scraper"})
+#: the names no new user takes, in any case: the built-in callers', and ``admin`` (an account so named would read as
+#: the administrator on a board and in the audit log)
+RESERVED_USER_NAMES = BUILT_IN_CALLERS | {"admin"}
 #: how long a sign-in form's CSRF token is valid
 SIGNIN_CSRF_S = 3600
 
@@ -106,6 +111,8 @@ class Caller:
     client: str = "local"
     #: False for a reader without a token (accounts mode)
     signed_in: bool = False
+    #: an account made by an invitation: the benchmark it takes part in, the only one (None: any it may)
+    invited_to: str | None = None
 
     @property
     def actor(self) -> str:
@@ -135,6 +142,9 @@ class _User(Protocol):
 
     @property
     def projects(self) -> tuple[str, ...]: ...
+
+    @property
+    def invited_to(self) -> str | None: ...
 
 
 class _GroundTruth(Protocol):
@@ -215,7 +225,7 @@ RULES: Sequence[tuple[str, Access, str, str]] = (
         "joining by an invitation: the page, the JSON route",
         Access.PUBLIC,
         "anyone with the link, while it has uses and has not expired: makes an account that takes part in its "
-        "benchmark (a member of its project), nothing more",
+        "benchmark (a member of its project) and in no other, and uploads no evaluation",
         "yes",
     ),
     ("accounts: users, projects, members, tokens, audit log", Access.ADMIN, "no", "yes"),
@@ -316,21 +326,6 @@ class Policy:
             return []
         return list(every()) if caller.projects is None else sorted(caller.projects)
 
-    def default_project(self, caller: Caller, exists: Callable[[str], bool], wanted: str | None) -> str | None:
-        """The project a new evaluation of the caller goes to when its ground truth has none: ``wanted`` if it
-        is one of theirs (404 as a missing one otherwise), their only project, or None in open mode; 400 when
-        they have several and named none."""
-        if not self.accounts:
-            return None
-        if wanted:
-            if not self.sees_project(caller, wanted) or not exists(wanted):
-                raise NotFound(f"no project of yours named {echo(wanted)}")
-            return wanted
-        if caller.projects is not None and len(caller.projects) == 1:
-            return next(iter(caller.projects))
-        mine = ", ".join(sorted(caller.projects)) if caller.projects is not None else "any project"
-        raise BadRequest(f"name the project of the evaluation (form field 'project'): {mine or 'you have none'}")
-
     # -- callers -----------------------------------------------------------------------------------------
     def everyone(self, client: str = "local") -> Caller:
         """Open mode's caller: sees and changes everything but the admin actions."""
@@ -405,16 +400,19 @@ class Policy:
         issued = f"{int((time.time() if now is None else now) + SIGNIN_CSRF_S)}.{secrets.token_urlsafe(16)}"
         return f"{issued}.{self._signin_mac(issued)}"
 
-    def check_signin_csrf(self, sent: object, cookie: str | None, now: float | None = None) -> None:
-        """The sign-in form's token: the one the form's page set in its cookie, issued by this service and not
-        expired. A pair the client made up, however alike, is refused."""
+    def check_signin_csrf(
+        self, sent: object, cookie: str | None, now: float | None = None, *, form: str = "sign-in"
+    ) -> None:
+        """The token of a form shown before there is a session (``form``: ``sign-in``, ``join``, as the refusal
+        names it): the one the form's page set in its cookie, issued by this service and not expired. A pair the
+        client made up, however alike, is refused."""
         if not (isinstance(sent, str) and cookie and hmac.compare_digest(sent.encode(), cookie.encode())):
-            raise Forbidden("the sign-in form is stale or came from another site; try again")
+            raise Forbidden(f"the {form} form is stale or came from another site; try again")
         issued, _, mac = sent.rpartition(".")
         expires, _, _ = issued.partition(".")
         fresh = expires.isdigit() and int(expires) > (time.time() if now is None else now)
         if not (issued and fresh and hmac.compare_digest(mac.encode(), self._signin_mac(issued).encode())):
-            raise Forbidden("the sign-in form is stale or came from another site; try again")
+            raise Forbidden(f"the {form} form is stale or came from another site; try again")
 
     def check_csrf(self, caller: Caller, sent: str | None, *, header: bool = False) -> None:
         """A web session's change carries the session's CSRF token (a form's ``csrf`` field, a script's
@@ -467,6 +465,12 @@ class Policy:
         admins may evaluate against it (their baselines), audited by the caller."""
         if caller.is_admin:
             return
+        if caller.invited_to is not None:
+            raise Forbidden(
+                f"an account made by an invitation takes part in benchmark {caller.invited_to!r} and nothing "
+                f"more: it submits there (POST /v1/benchmarks/{caller.invited_to}/submissions), it uploads no "
+                "evaluation"
+            )
         benchmarks = list(self._test_sets().get(record.name, ()))
         if benchmarks:
             names = ", ".join(repr(b) for b in benchmarks)
@@ -487,12 +491,13 @@ class Policy:
             )
 
     # -- benchmarks --------------------------------------------------------------------------------------
-    def sees_benchmark(self, caller: Caller, *, public: bool, project: str | None) -> bool:
+    def sees_benchmark(self, caller: Caller, *, benchmark: str, public: bool, project: str | None) -> bool:
         """A public benchmark is everyone's (without a token too); a private one its project's members' (every
-        signed-in caller's when it has no project)."""
+        signed-in caller's when it has no project), and of an account made by an invitation, its invitation's
+        alone."""
         if public or caller.is_admin:
             return True
-        if not caller.signed_in:
+        if not caller.signed_in or (caller.invited_to is not None and caller.invited_to != benchmark):
             return False
         return project is None or self.sees_project(caller, project)
 
@@ -502,12 +507,15 @@ class Policy:
         of a public benchmark, or another project's member, never learns that it exists."""
         return caller.is_admin or self._sees_ground_truths_of(caller, project)
 
-    def may_take_part(self, caller: Caller, *, project: str | None, open_to_all: bool) -> bool:
-        """Who may submit to a benchmark they see: a participant (:meth:`is_participant`) who is a member of the
-        test set's project (every signed-in account when the test set is shared), or any participant when the
-        benchmark is open to all. Reading a public benchmark is not taking part in it. An admin submits
-        baselines to every benchmark."""
+    def may_take_part(self, caller: Caller, *, benchmark: str, project: str | None, open_to_all: bool) -> bool:
+        """Who may submit to a benchmark they see (``benchmark``: its name as participants address it, the same
+        for all its phases): a participant (:meth:`is_participant`) who is a member of the test set's project
+        (every signed-in account when the test set is shared), or any participant when the benchmark is open to
+        all; an account made by an invitation, in its invitation's benchmark only. Reading a public benchmark is
+        not taking part in it. An admin submits baselines to every benchmark."""
         if not self.is_participant(caller):
+            return False
+        if caller.invited_to is not None and caller.invited_to != benchmark:
             return False
         return caller.is_admin or open_to_all or project is None or self.sees_project(caller, project)
 
@@ -572,19 +580,24 @@ def invited_projects(*, project: str | None, open_to_all: bool, wanted: str | No
 
 
 # -- teams and open labels ----------------------------------------------------------------------------------------
-def may_join_team(user: _User | None, *, project: str | None, open_to_all: bool) -> bool:
+def may_join_team(user: _User | None, *, benchmark: str, project: str | None, open_to_all: bool) -> bool:
     """Whom a participant may invite to a team: an account that is not an admin's (an admin submits baselines)
     and that may take part in the benchmark (a member of its test set's project, any account when the test set is
-    shared or the benchmark is open to all)."""
+    shared or the benchmark is open to all; an account made by an invitation, in its invitation's benchmark
+    only)."""
     if user is None or user.is_admin:
+        return False
+    if user.invited_to is not None and user.invited_to != benchmark:
         return False
     return open_to_all or project is None or project in user.projects
 
 
-def sees_teams(policy: Policy, caller: Caller, *, project: str | None, open_to_all: bool) -> bool:
+def sees_teams(policy: Policy, caller: Caller, *, benchmark: str, project: str | None, open_to_all: bool) -> bool:
     """A benchmark's teams and their members are seen by those who may take part in it, and by admins (the board
     names the team of each published entry that is not anonymous)."""
-    return caller.is_admin or policy.may_take_part(caller, project=project, open_to_all=open_to_all)
+    return caller.is_admin or policy.may_take_part(
+        caller, benchmark=benchmark, project=project, open_to_all=open_to_all
+    )
 
 
 def require_open_labels(*, open_labels: bool, what: str) -> None:
@@ -595,3 +608,19 @@ def require_open_labels(*, open_labels: bool, what: str) -> None:
             f"the {what} is on a sealed test set: only aggregate results are shown, no per-frame view (a phase on "
             "open labels shows its participants their frames)"
         )
+
+
+def default_project(policy: Policy, caller: Caller, exists: Callable[[str], bool], wanted: str | None) -> str | None:
+    """The project a new evaluation of the caller goes to when its ground truth has none: ``wanted`` if it
+    is one of theirs (404 as a missing one otherwise), their only project, or None in open mode; 400 when
+    they have several and named none."""
+    if not policy.accounts:
+        return None
+    if wanted:
+        if not policy.sees_project(caller, wanted) or not exists(wanted):
+            raise NotFound(f"no project of yours named {echo(wanted)}")
+        return wanted
+    if caller.projects is not None and len(caller.projects) == 1:
+        return next(iter(caller.projects))
+    mine = ", ".join(sorted(caller.projects)) if caller.projects is not None else "any project"
+    raise BadRequest(f"name the project of the evaluation (form field 'project'): {mine or 'you have none'}")

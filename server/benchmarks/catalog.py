@@ -49,7 +49,9 @@ class BenchmarkCatalog:
         return Benchmark.from_record(record)
 
     def sees(self, caller: Caller, bench: Benchmark) -> bool:
-        return self.policy.sees_benchmark(caller, public=bench.public, project=bench.project)
+        return self.policy.sees_benchmark(
+            caller, benchmark=bench.shown_name, public=bench.public, project=bench.project
+        )
 
     def get(self, row: str, caller: Caller) -> Benchmark:
         bench = self.named(row)

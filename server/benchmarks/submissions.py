@@ -173,7 +173,9 @@ class Submissions:
         if not self.policy.is_participant(caller):
             raise Forbidden("a participant submits with their own token (kitti-eval admin token add USER)")
         bench = self.catalog.get(row, caller)
-        if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
+        if not self.policy.may_take_part(
+            caller, benchmark=bench.shown_name, project=bench.project, open_to_all=bench.open_to_all
+        ):
             raise _not_taking_part(row)
         upload = request_key = None
         if idempotency_key is not None:  # a retry is answered first, whatever has changed since: the file's hash
@@ -253,7 +255,9 @@ class Submissions:
             return None
         try:
             bench = self.catalog.get(row, caller)
-            if not self.policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all):
+            if not self.policy.may_take_part(
+                caller, benchmark=bench.shown_name, project=bench.project, open_to_all=bench.open_to_all
+            ):
                 return _not_taking_part(row)
             if not bench.is_open():
                 return None
@@ -331,7 +335,7 @@ class Submissions:
         link: str | None = None,
     ) -> dict[str, Any]:
         record = self._own(row, submission_id, caller)
-        bench = self._still_selecting(row)
+        bench = _still_selecting(self.catalog, row)
         if record.status != "scored":
             raise Conflict("only a scored submission can be published")
         if record.disqualified:
@@ -364,29 +368,30 @@ class Submissions:
 
     def withdraw(self, row: str, submission_id: str, caller: Caller) -> dict[str, Any]:
         record = self._own(row, submission_id, caller)
-        self._still_selecting(row)
+        _still_selecting(self.catalog, row)
         self.benchmark_store.update_submission(submission_id, published=False, published_at=None)
         action = "baseline.withdraw" if record.baseline else "submission.withdraw"
         self.audit.record(caller, action, f"{row} {submission_id}")
         return self.submission(row, submission_id, caller)
 
-    def _still_selecting(self, row: str) -> Benchmark:
-        """The benchmark, while its participants may still choose what is published: until it closes. The
-        entries published at the close are the ones ranked on the private part after the reveal."""
-        bench = self.catalog.named(row)
-        if bench.is_closed():
-            raise Conflict(
-                f"the benchmark {row!r} is closed: the published entries were frozen at the close (they are "
-                "the ones ranked on the private part)"
-            )
-        return bench
+
+def _still_selecting(catalog: BenchmarkCatalog, row: str) -> Benchmark:
+    """The benchmark, while its participants may still choose what is published: until it closes. The
+    entries published at the close are the ones ranked on the private part after the reveal."""
+    bench = catalog.named(row)
+    if bench.is_closed():
+        raise Conflict(
+            f"the benchmark {row!r} is closed: the published entries were frozen at the close (they are "
+            "the ones ranked on the private part)"
+        )
+    return bench
 
 
 def _not_taking_part(row: str) -> Forbidden:
     """The refusal of a submission from a caller who may read the benchmark but not take part in it."""
     return Forbidden(
-        f"the benchmark {row!r} takes part from the members of its test set's project: reading it is not taking "
-        "part in it"
+        f"the benchmark {row!r} takes part from the members of its test set's project (an account made by an "
+        "invitation, in its invitation's benchmark only): reading it is not taking part in it"
     )
 
 

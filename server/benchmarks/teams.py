@@ -93,7 +93,9 @@ class Teams:
         """The benchmark's teams (for those who may take part in it, and admins), and the caller's own."""
         bench = self._benchmark(name, caller)
         policy = self.catalog.policy
-        if not sees_teams(policy, caller, project=bench.project, open_to_all=bench.open_to_all):
+        if not sees_teams(
+            policy, caller, benchmark=bench.shown_name, project=bench.project, open_to_all=bench.open_to_all
+        ):
             raise Forbidden(f"the teams of {name!r} are seen by those who take part in it")
         store = self.team_store
         found = store.teams(bench.name)
@@ -115,9 +117,9 @@ class Teams:
         if not policy.is_participant(caller):
             raise Forbidden(f"a participant {doing} with their own token")
         bench = self._benchmark(name, caller)
-        if not policy.may_take_part(caller, project=bench.project, open_to_all=bench.open_to_all) or (
-            policy.administers(caller)
-        ):
+        if not policy.may_take_part(
+            caller, benchmark=bench.shown_name, project=bench.project, open_to_all=bench.open_to_all
+        ) or (policy.administers(caller)):
             raise Forbidden(f"one who takes part in {name!r} {doing}")
         if teams_taken and bench.team_size < 2:
             raise Conflict(f"the benchmark {name!r} takes no teams (its team size is 1)")
@@ -148,7 +150,9 @@ class Teams:
             raise BadRequest(f"a team of {name!r} has at most {bench.team_size} members, its maker included")
         for member in everyone[1:]:
             user = self.account_store.get_user(member)
-            if not may_join_team(user, project=bench.project, open_to_all=bench.open_to_all) or (
+            if not may_join_team(
+                user, benchmark=bench.shown_name, project=bench.project, open_to_all=bench.open_to_all
+            ) or (
                 self.team_store.team_of(bench.name, member) is not None
             ):  # one refusal whoever it is (missing, an admin, not taking part, in a team): it names no one
                 raise BadRequest(

@@ -89,7 +89,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     i = invite.add_parser("add", help="a link /join/CODE that makes accounts taking part in a benchmark (shown once)")
     i.add_argument("--benchmark", required=True, metavar="NAME")
     i.add_argument("--uses", type=int, metavar="N", help="at most N accounts (default: as many as join)")
-    i.add_argument("--expires-days", type=float, metavar="D", help="valid for D days (default: until revoked)")
+    i.add_argument("--expires-days", type=float, metavar="D", help="valid for D days (default: 14)")
     i.add_argument(
         "--project",
         metavar="P",
@@ -575,7 +575,7 @@ def _invite(args: argparse.Namespace, service: Service, caller: Caller) -> int:
             args.benchmark, uses=args.uses, expires_days=args.expires_days, project=args.project, caller=caller
         )
         uses = f"{record.max_uses} use(s)" if record.max_uses else "any number of uses"
-        expires = record.expires_at.isoformat() if record.expires_at else "never"
+        expires = record.expires_at.isoformat(timespec="seconds") if record.expires_at else "never"
         members = f", members of {record.project}" if record.project else ""
         print(f"invitation {record.id} to {record.benchmark}: {uses}, expires {expires}{members}")
         print("the link follows; it is shown this once (only its code's sha256 is kept):")
@@ -585,7 +585,7 @@ def _invite(args: argparse.Namespace, service: Service, caller: Caller) -> int:
         for r in invitations.listed(caller, args.benchmark):
             left = "-" if r.max_uses is None else str(max(0, r.max_uses - r.uses))
             state = state_of(r, now)
-            expires = r.expires_at.isoformat() if r.expires_at else "never"
+            expires = r.expires_at.isoformat(timespec="seconds") if r.expires_at else "never"
             print(f"{r.id}\t{r.benchmark}\t{state}\tleft {left}\texpires {expires}\t{','.join(r.accounts) or '-'}")
     else:
         invitations.revoke(args.invitation_id, caller=caller)

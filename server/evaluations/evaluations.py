@@ -25,7 +25,7 @@ from kitti_eval.io.reading import LoadOptions
 from kitti_eval.io.upload import UploadLimits, read_upload
 
 from ..access.audit import Audit
-from ..access.policy import Caller, Policy
+from ..access.policy import Caller, Policy, default_project
 from ..errors import MAX_ECHO_CHARS, BadRequest, Conflict, NotFound, clip, echo
 from ..ground_truths.cache import GroundTruthCache
 from ..ground_truths.catalog import GroundTruthCatalog
@@ -294,7 +294,7 @@ class Evaluations:
 
     def _project_for(self, caller: Caller, wanted: str | None, gt_record: GroundTruthRecord | None) -> str | None:
         """The project a new evaluation belongs to (None in open mode): its ground truth's, else the one the
-        policy gives the caller (:meth:`Policy.default_project`)."""
+        policy gives the caller (:func:`~kitti_eval_server.access.policy.default_project`)."""
         if gt_record is not None and gt_record.project is not None and self.policy.has_accounts():
             if wanted and wanted != gt_record.project:
                 raise BadRequest(
@@ -302,7 +302,7 @@ class Evaluations:
                     f"not {echo(wanted)}; evaluations against it belong to its project"
                 )
             return gt_record.project
-        return self.policy.default_project(caller, self.account_store.project_exists, wanted)
+        return default_project(self.policy, caller, self.account_store.project_exists, wanted)
 
     def job_of(self, evaluation_id: str, caller: Caller) -> tuple[JobRecord, int | None] | None:
         """The job of an accepted evaluation not stored yet (queued, running, failed or cancelled) and its place

@@ -10,6 +10,7 @@ from fastapi import APIRouter, Path
 from pydantic import BaseModel, Field
 
 from ..access.deps import PublicCaller
+from ..errors import ApiError
 from ..params import ServiceDep
 from ..schemas import ErrorResponse
 
@@ -30,7 +31,10 @@ class JoinIn(BaseModel):
     responses={
         404: {"model": ErrorResponse, "description": "no such invitation (or the service has no accounts)"},
         409: {"model": ErrorResponse, "description": "the user name is taken"},
-        410: {"model": ErrorResponse, "description": "the invitation is used up, expired or revoked"},
+        410: {
+            "model": ErrorResponse,
+            "description": "the invitation is used up, expired or revoked, or its benchmark has closed",
+        },
         429: {"model": ErrorResponse, "description": "too many attempts to join from this address"},
     },
 )
@@ -42,11 +46,18 @@ async def join(
 ) -> dict[str, str]:
     """An account that takes part in the invitation's benchmark, and a token that may read and write (use it with
     ``kitti-eval login``); it is shown this once and stored only as its sha256."""
-    # on the event loop, as the door's limiter is: its counts are not shared with threads
-    service.join_limiter.check(caller.client)
-    service.join_limiter.fail(caller.client)  # every attempt counts, made or refused
-    user, token, benchmark = await anyio.to_thread.run_sync(
-        lambda: service.invitations.join(code, body.name, caller=caller)
-    )
+    try:
+        # on the event loop, as the door's limiter is: its counts are not shared with threads
+        service.join_limiter.check(caller.client)
+        service.join_limiter.fail(caller.client)  # every attempt counts, made or refused
+        user, token, benchmark = await anyio.to_thread.run_sync(
+            lambda: service.invitations.join(code, body.name, caller=caller)
+        )
+    except ApiError as e:  # the refusals the audit log keeps, by the invitation's id
+        refused = e
+        await anyio.to_thread.run_sync(
+            lambda: service.invitations.refused(code, refused, caller=caller, name=body.name)
+        )
+        raise
     joined = {"user": user, "token": token, "benchmark": benchmark}
     return {k: joined[k] for k in JOINED_FIELDS}

@@ -2,16 +2,29 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import Any
 
-from sqlalchemy import delete, insert, select, update
+from sqlalchemy import delete, func, insert, select, update
 from sqlalchemy.engine import Connection, RowMapping
+from sqlalchemy.exc import IntegrityError
 
-from .database import Area, audit, memberships, projects, retry_when_locked, tokens, users, utc
+from .database import (
+    Area,
+    audit,
+    invitation_accounts,
+    invitations,
+    memberships,
+    projects,
+    retry_when_locked,
+    tokens,
+    users,
+    utc,
+)
 
-__all__ = ["UserRecord", "TokenRecord", "AuditRecord", "AccountStore"]
+__all__ = ["UserRecord", "TokenRecord", "AuditRecord", "AccountStore", "names_taken"]
 
 
 @dataclass(frozen=True)
@@ -20,6 +33,9 @@ class UserRecord:
     is_admin: bool
     created_at: datetime
     projects: tuple[str, ...] = ()
+    #: the benchmark (its name as participants address it) of the invitation that made the account, which is the
+    #: only one it takes part in; None for an account an admin made (by hand or by an import)
+    invited_to: str | None = None
 
 
 @dataclass(frozen=True)
@@ -47,13 +63,29 @@ class AuditRecord:
     detail: str
 
 
+def names_taken(conn: Connection, names: Sequence[str]) -> list[str]:
+    """Which of ``names`` a new account may not take: those equal to an existing user's name ignoring case (``Ana``
+    beside ``ana`` would read as the same person on a board and in the audit log). Every way an account is made
+    asks this; accounts made before the rule are left as they are."""
+    lowered = sorted({n.lower() for n in names})
+    taken = set(conn.execute(select(func.lower(users.c.name)).where(func.lower(users.c.name).in_(lowered))).scalars())
+    return sorted(n for n in names if n.lower() in taken)
+
+
 class AccountStore(Area):
     """Who may do what: users, projects, memberships, tokens and sessions; and what admins did."""
 
     @retry_when_locked
     def add_user(self, name: str, is_admin: bool) -> bool:
-        """False if the name is taken."""
-        return self._insert(users, name=name, is_admin=is_admin, created_at=datetime.now(timezone.utc))
+        """False if the name is taken (:func:`names_taken`: ignoring case)."""
+        try:
+            with self._writing() as conn:
+                if names_taken(conn, [name]):
+                    return False
+                conn.execute(insert(users).values(name=name, is_admin=is_admin, created_at=datetime.now(timezone.utc)))
+        except IntegrityError:  # made meanwhile
+            return False
+        return True
 
     @retry_when_locked
     def get_user(self, name: str) -> UserRecord | None:
@@ -62,20 +94,40 @@ class AccountStore(Area):
             if row is None:
                 return None
             member_of = self._projects_of(conn, name)
-        return UserRecord(row["name"], bool(row["is_admin"]), utc(row["created_at"]), member_of)
+            invited_to = self._invited_to(conn, name).get(name)
+        return UserRecord(row["name"], bool(row["is_admin"]), utc(row["created_at"]), member_of, invited_to)
 
     @retry_when_locked
     def list_users(self) -> list[UserRecord]:
         with self.engine.connect() as conn:
             rows = conn.execute(select(users).order_by(users.c.name)).mappings().all()
             pairs = conn.execute(select(memberships).order_by(memberships.c.project)).all()
+            invited_to = self._invited_to(conn)
         member_of: dict[str, list[str]] = {}
         for user_name, project in pairs:
             member_of.setdefault(user_name, []).append(project)
         return [
-            UserRecord(r["name"], bool(r["is_admin"]), utc(r["created_at"]), tuple(member_of.get(r["name"], ())))
+            UserRecord(
+                r["name"],
+                bool(r["is_admin"]),
+                utc(r["created_at"]),
+                tuple(member_of.get(r["name"], ())),
+                invited_to.get(r["name"]),
+            )
             for r in rows
         ]
+
+    @staticmethod
+    def _invited_to(conn: Connection, user_name: str | None = None) -> dict[str, str]:
+        """User -> the benchmark of the invitation that made the account (the invitations' tables are their
+        module's, which builds on this one's records: imported here, where they are read)."""
+
+        query = select(invitation_accounts.c.user_name, invitations.c.benchmark).join(
+            invitations, invitations.c.id == invitation_accounts.c.invitation
+        )
+        if user_name is not None:
+            query = query.where(invitation_accounts.c.user_name == user_name)
+        return {str(name): str(benchmark) for name, benchmark in conn.execute(query)}
 
     @staticmethod
     def _projects_of(conn: Any, user_name: str) -> tuple[str, ...]:

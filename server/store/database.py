@@ -382,6 +382,32 @@ gate_results = Table(
 #: the PostgreSQL advisory lock held while the schema is created or upgraded (any fixed 64-bit number)
 _SCHEMA_LOCK = 0x6B69747469657661  # "kittieva"
 
+#: a host's invitations to a benchmark: looked up by the sha256 of their code, named by their public id
+invitations = Table(
+    "invitations",
+    metadata,
+    Column("id", String(32), primary_key=True),
+    Column("code_sha256", String(64), nullable=False, unique=True),
+    Column("benchmark", String(64), nullable=False),  # the benchmark's name (its first phase's row)
+    Column("project", String(64), nullable=True),  # the accounts it makes are members of it (None: of none)
+    Column("max_uses", Integer, nullable=True),  # None: as many as join before it expires
+    Column("uses", Integer, nullable=False),
+    Column("created_by", String(128), nullable=False),
+    Column("created_at", DateTime(timezone=True), nullable=False),
+    Column("expires_at", DateTime(timezone=True), nullable=True),
+    Column("revoked_at", DateTime(timezone=True), nullable=True),
+)
+
+#: the accounts an invitation made
+invitation_accounts = Table(
+    "invitation_accounts",
+    metadata,
+    Column("user_name", String(64), ForeignKey("users.name", ondelete="CASCADE"), primary_key=True),
+    Column("invitation", String(32), ForeignKey("invitations.id", ondelete="CASCADE"), nullable=False),
+    Column("joined_at", DateTime(timezone=True), nullable=False),
+    Index("ix_invitation_accounts_invitation", "invitation", "joined_at"),
+)
+
 
 def utc(value: datetime) -> datetime:
     return value if value.tzinfo else value.replace(tzinfo=timezone.utc)  # SQLite keeps no zone

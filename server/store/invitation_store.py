@@ -9,40 +9,14 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 
-from sqlalchemy import Column, DateTime, ForeignKey, Index, Integer, String, Table, func, insert, or_, select, update
+from sqlalchemy import func, insert, or_, select, update
 from sqlalchemy.engine import Connection, RowMapping
 from sqlalchemy.exc import IntegrityError
 
-from .account_store import TokenRecord
-from .database import Area, memberships, metadata, retry_when_locked, tokens, users, utc
+from .account_store import TokenRecord, names_taken
+from .database import Area, invitation_accounts, invitations, memberships, retry_when_locked, tokens, users, utc
 
 __all__ = ["InvitationRecord", "InvitationStore", "NewAccount", "JoinRefused", "invitations", "invitation_accounts"]
-
-#: a host's invitations to a benchmark: looked up by the sha256 of their code, named by their public id
-invitations = Table(
-    "invitations",
-    metadata,
-    Column("id", String(32), primary_key=True),
-    Column("code_sha256", String(64), nullable=False, unique=True),
-    Column("benchmark", String(64), nullable=False),  # the benchmark's name (its first phase's row)
-    Column("project", String(64), nullable=True),  # the accounts it makes are members of it (None: of none)
-    Column("max_uses", Integer, nullable=True),  # None: as many as join before it expires
-    Column("uses", Integer, nullable=False),
-    Column("created_by", String(128), nullable=False),
-    Column("created_at", DateTime(timezone=True), nullable=False),
-    Column("expires_at", DateTime(timezone=True), nullable=True),
-    Column("revoked_at", DateTime(timezone=True), nullable=True),
-)
-
-#: the accounts an invitation made
-invitation_accounts = Table(
-    "invitation_accounts",
-    metadata,
-    Column("user_name", String(64), ForeignKey("users.name", ondelete="CASCADE"), primary_key=True),
-    Column("invitation", String(32), ForeignKey("invitations.id", ondelete="CASCADE"), nullable=False),
-    Column("joined_at", DateTime(timezone=True), nullable=False),
-    Index("ix_invitation_accounts_invitation", "invitation", "joined_at"),
-)
 
 
 class JoinRefused(Exception):
@@ -166,7 +140,7 @@ class InvitationStore(Area):
 
     @retry_when_locked
     def taken(self, names: Sequence[str]) -> list[str]:
-        """Which of ``names`` are users' already (compared as the database compares them)."""
+        """Which of ``names`` are users' already, ignoring case (:func:`.account_store.names_taken`)."""
         with self.engine.connect() as conn:
             return self._taken(conn, names)
 
@@ -186,7 +160,7 @@ class InvitationStore(Area):
 
     @staticmethod
     def _taken(conn: Connection, names: Sequence[str]) -> list[str]:
-        return sorted(conn.execute(select(users.c.name).where(users.c.name.in_(list(names)))).scalars().all())
+        return names_taken(conn, names)
 
     @staticmethod
     def _make(conn: Connection, account: NewAccount, at: datetime) -> None:

@@ -73,7 +73,7 @@ async def join(request: Request, code: str, service: ServiceDep, caller: PublicC
             name, sent_csrf = form.get("name"), form.get("csrf")
         invited = await anyio.to_thread.run_sync(lambda: service.invitations.invited(code, caller=caller))
         benchmark = invited.benchmark
-        service.policy.check_signin_csrf(sent_csrf, request.cookies.get(join_cookie(request.scope)[0]))
+        service.policy.check_signin_csrf(sent_csrf, request.cookies.get(join_cookie(request.scope)[0]), form="join")
         user, token, benchmark = await anyio.to_thread.run_sync(
             lambda: service.invitations.join(code, name, caller=caller)
         )
@@ -83,8 +83,13 @@ async def join(request: Request, code: str, service: ServiceDep, caller: PublicC
         )
         shown = await anyio.to_thread.run_sync(lambda: service.accounts.resolve(session, session=True))
     except (NotFound, Gone) as e:
+        gone = e
+        await anyio.to_thread.run_sync(lambda: service.invitations.refused(code, gone, caller=caller, name=name))
         return error_page(request, e)
     except (ApiError, HTTPException) as e:
+        if isinstance(e, ApiError):  # the refusals the audit log keeps, by the invitation's id
+            refused = e
+            await anyio.to_thread.run_sync(lambda: service.invitations.refused(code, refused, caller=caller, name=name))
         status = e.status_code
         message = e.detail if isinstance(e, HTTPException) else e.message
         response = _form(
@@ -107,6 +112,7 @@ async def join(request: Request, code: str, service: ServiceDep, caller: PublicC
         token=token,
         benchmark=benchmark,
         benchmark_url=f"/benchmarks/{quote(benchmark, safe='')}",
+        service_url=str(request.base_url).rstrip("/"),  # the address this page was asked at
         caller=shown,
     )
     response.headers["Cache-Control"] = "no-store"  # the token is shown this once

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
+from datetime import datetime, timedelta, timezone
 
 import pytest
 from server_accounts import bearer
@@ -43,6 +44,9 @@ def test_an_invitation_from_the_cli_is_listed_with_the_accounts_it_made_and_revo
     _benchmark(admin)
     code, out, _ = admin("invite", "add", "--benchmark", "bench", "--uses", "2", "--url", "https://eval.example/")
     assert code == 0 and "members of class" in out and "2 use(s)" in out
+    # without --expires-days it expires in 14 days, and says when
+    expires = datetime.fromisoformat(out.split("expires ")[1].split(",")[0])
+    assert abs(expires - datetime.now(timezone.utc) - timedelta(days=14)) < timedelta(minutes=5)
     link = out.splitlines()[-1]
     assert link.startswith("https://eval.example/join/")
     code_ = link.rsplit("/", 1)[1]
@@ -51,11 +55,15 @@ def test_an_invitation_from_the_cli_is_listed_with_the_accounts_it_made_and_revo
         assert c.post(f"/v1/join/{code_}", json={"name": "amy"}).status_code == 201
     code, out, _ = admin("invite", "list")
     assert code == 0
-    assert out.splitlines() == [f"{invitation_id}\tbench\topen\tleft 1\texpires never\tamy"]
+    assert out.splitlines() == [f"{invitation_id}\tbench\topen\tleft 1\texpires {expires.isoformat()}\tamy"]
     assert admin("invite", "revoke", invitation_id)[0] == 0
     assert admin("invite", "list")[1].split("\t")[2] == "revoked"
     code, _, err = admin("invite", "revoke", invitation_id)
     assert code == 1 and "no invitation" in err
+    code, out, _ = admin("invite", "add", "--benchmark", "bench", "--expires-days", "2")
+    assert code == 0 and "any number of uses" in out
+    expires = datetime.fromisoformat(out.split("expires ")[1].split(",")[0])
+    assert abs(expires - datetime.now(timezone.utc) - timedelta(days=2)) < timedelta(minutes=5)
     code, _, err = admin("invite", "add", "--benchmark", "nope")
     assert code == 1 and "no benchmark named 'nope'" in err
     code, _, err = admin("invite", "add", "--benchmark", "bench", "--uses", "0")
@@ -94,6 +102,9 @@ def test_an_import_of_three_lines_prints_three_working_tokens(admin, tmp_path) -
         ("name,project\ndee,nope\n", "line 2: no project named 'nope'"),
         ("user,project\ndee,class\n", "line 1: the columns are name"),
         ("name\ndee\nanyone\n", "line 3: the user name 'anyone' is reserved"),
+        ("name\ndee\nAdmin\n", "line 3: the user name 'Admin' is reserved"),
+        ("name\ndee\nANN\n", "line 3: a user named 'ANN' exists"),  # ann's, ignoring case
+        ("name\ndee\nDee\n", "line 3: the user 'Dee' is on line 2 too"),
         ("", "the file is empty"),
     ],
 )

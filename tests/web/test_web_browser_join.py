@@ -54,6 +54,7 @@ def test_join_through_the_page_and_land_signed_in_on_the_benchmark(live, browser
     assert browser.find_element(By.ID, "who").text == "maya"  # signed in
     token = browser.find_element(By.ID, "token").text
     assert token.startswith("kte_")
+    assert browser.find_element(By.ID, "login-command").text == f"kitti-eval login --service {live.url}"
     browser.find_element(By.ID, "copy-token").click()
     wait(browser).until(lambda d: d.find_element(By.ID, "copy-note").text)
     assert browser.find_element(By.ID, "copy-note").text in ("Copied.", "Selected: copy it with Ctrl+C.")

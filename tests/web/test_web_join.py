@@ -26,8 +26,12 @@ def hosted(tmp_path_factory):
 
 
 def _code(c, uses: int | None = None) -> str:
+    return _invitation(c, uses)[1]
+
+
+def _invitation(c, uses: int | None = None):
     invitations = c.app.state.service.invitations
-    return invitations.add("bench", uses=uses, expires_days=None, project=None, caller=HOST)[1]
+    return invitations.add("bench", uses=uses, expires_days=None, project=None, caller=HOST)
 
 
 def _csrf(html: str) -> str:
@@ -45,6 +49,8 @@ def test_the_page_joins_signs_in_and_shows_the_token_once(hosted) -> None:
     r = c.post(f"/join/{code}", data={"name": "nora", "csrf": _csrf(form.text)})
     assert r.status_code == 201 and r.headers["cache-control"] == "no-store"
     token = re.search(r'<code id="token">(kte_[^<]+)</code>', r.text).group(1)
+    # the command that asks for it, with the service's address as this page was asked at
+    assert f'<code id="login-command">kitti-eval login --service {c.base_url}</code>' in r.text
     assert c.get("/v1/me", headers=bearer(token)).json()["user"] == "nora"
     assert c.cookies.get(SESSION_COOKIE) not in (None, token)
     assert "nora" in c.get("/benchmarks/bench").text  # signed in by the session the join opened
@@ -59,7 +65,7 @@ def test_the_form_without_its_csrf_token_makes_nothing(hosted) -> None:
     c.cookies.clear()
     c.get(f"/join/{code}")
     r = c.post(f"/join/{code}", data={"name": "otto", "csrf": "made-up"})
-    assert r.status_code == 403 and "stale or came from another site" in r.text
+    assert r.status_code == 403 and "the join form is stale or came from another site" in r.text
     c.cookies.clear()
     r = c.post(f"/join/{code}", data={"name": "otto"})
     assert r.status_code == 403
@@ -69,11 +75,14 @@ def test_the_form_without_its_csrf_token_makes_nothing(hosted) -> None:
 
 def test_a_taken_name_shows_the_form_again_and_an_unknown_link_is_404(hosted) -> None:
     c = hosted
-    code = _code(c)
+    record, code = _invitation(c)
     c.cookies.clear()
     form = c.get(f"/join/{code}")
     r = c.post(f"/join/{code}", data={"name": "bob", "csrf": _csrf(form.text)})
     assert r.status_code == 409 and "taken" in r.text and 'value="bob"' in r.text and _csrf(r.text)
+    rows = c.get("/v1/admin/audit", headers=ADMIN).json()["items"]
+    refused = [r for r in rows if r["target"] == f"invitation {record.id}" and r["outcome"] == "refused"]
+    assert [r["detail"].split(",")[0] for r in refused] == ["409"] and "'bob'" in refused[0]["detail"]
     assert c.get("/join/" + "B" * 43).status_code == 404
 
 

@@ -9,7 +9,7 @@ import time
 import pytest
 from server_accounts import bearer, make_teams
 from server_benchmarks import ok, submit
-from server_helpers import ADMIN, app_client, golden_bytes
+from server_helpers import ADMIN, app_client, golden_bytes, upload
 
 from kitti_eval_server.access.invitations import GONE
 from kitti_eval_server.access.policy import Policy, invited_projects
@@ -94,6 +94,20 @@ def test_a_taken_name_answers_409_and_uses_nothing(hosted) -> None:
     ok(c.post(f"/v1/join/{code}", json={"name": "ines"}), 201)  # its one use is still there
 
 
+def test_a_name_equal_to_a_users_ignoring_case_is_taken_and_admin_is_reserved(hosted) -> None:
+    c, _ = hosted
+    _, code = _invite(c, uses=1)
+    for name in ("ALICE", "Alice", "aLiCe"):
+        r = c.post(f"/v1/join/{code}", json={"name": name})
+        assert r.status_code == 409 and "taken" in r.json()["error"]["message"], name
+    for name in ("admin", "Admin", "ADMIN"):
+        r = c.post(f"/v1/join/{code}", json={"name": name})
+        assert r.status_code == 422 and "reserved" in r.json()["error"]["message"], name
+    ok(c.post(f"/v1/join/{code}", json={"name": "Nell"}), 201)  # its one use is still there
+    names = [u["name"] for u in ok(c.get("/v1/admin/users", headers=ADMIN))["items"]]
+    assert sorted(n for n in names if n.lower() in ("alice", "admin", "nell")) == ["Nell", "alice"]
+
+
 def test_an_unknown_code_answers_404(hosted) -> None:
     c, _ = hosted
     assert c.post("/v1/join/" + "A" * 43, json={"name": "jo"}).status_code == 404
@@ -115,6 +129,38 @@ def test_joins_are_limited_per_client_address(tmp_path) -> None:
         ok(c.post(f"/v1/join/{code}", json={"name": "kim"}), 201)
         r = c.post(f"/v1/join/{code}", json={"name": "lou"})
         assert r.status_code == 429 and "join" in r.json()["error"]["message"] and r.headers["retry-after"]
+
+
+def test_an_invitation_to_a_benchmark_whose_last_phase_has_closed_answers_410(tmp_path) -> None:
+    with app_client(tmp_path / "data", auth="accounts", register_demo=False) as c:
+        make_teams(c)
+        ok(c.post("/v1/benchmarks", json={"name": "bench", "ground_truth": "sealed-a"}, headers=ADMIN), 201)
+        _, code = _invite(c, uses=5)
+        ok(c.post("/v1/benchmarks/bench/close", headers=ADMIN))
+        r = c.post(f"/v1/join/{code}", json={"name": "kim"})
+        assert r.status_code == 410 and r.json()["error"]["message"] == GONE
+        assert c.get(f"/join/{code}").status_code == 410
+        ok(c.post("/v1/benchmarks/bench/reopen", headers=ADMIN))  # the lifecycle's state, not a mark on the link
+        ok(c.post(f"/v1/join/{code}", json={"name": "kim"}), 201)
+
+
+def test_refused_joins_are_audited_by_the_invitations_id_never_its_code(tmp_path) -> None:
+    with app_client(tmp_path / "data", auth="accounts", join_max_attempts=4, register_demo=False) as c:
+        make_teams(c)
+        ok(c.post("/v1/benchmarks", json={"name": "bench", "ground_truth": "sealed-a"}, headers=ADMIN), 201)
+        record, code = _invite(c, uses=1)
+        asked = [("alice", 409), ("bad name", 422), ("kim", 201), ("lou", 410), ("max", 429)]
+        for name, status in asked:
+            assert c.post(f"/v1/join/{code}", json={"name": name}).status_code == status, name
+        assert c.post("/v1/join/" + "A" * 43, json={"name": "ned"}).status_code == 429  # an unknown code: no row
+        rows = ok(c.get("/v1/admin/audit", headers=ADMIN))["items"]
+        refused = [r for r in reversed(rows) if r["action"] == "invitation.join" and r["outcome"] == "refused"]
+        assert [(r["detail"].split(",")[0], r["target"]) for r in refused] == [
+            (str(status), f"invitation {record.id}") for name, status in asked if status != 201
+        ]
+        assert [r["detail"].split("'")[1] for r in refused] == ["alice", "bad name", "lou", "max"]
+        assert all(r["client"] == "testclient" and r["actor"] == "anonymous" for r in refused)
+        assert not [r for r in rows if code in str(r)]
 
 
 def test_open_mode_has_no_invitations(tmp_path) -> None:
@@ -164,3 +210,24 @@ def test_joins_at_once_never_exceed_the_uses(hosted) -> None:
     assert len(made) == 3 and outcomes.count("gone") == 5
     listed = next(i for i in service.invitations.listed(HOST) if i.id == record.id)
     assert listed.uses == 3 and sorted(listed.accounts) == made
+
+
+def test_an_invited_account_takes_part_in_its_invitations_benchmark_and_no_shared_one(hosted) -> None:
+    """A benchmark on a test set shared with every account (no project) takes part from every account, but not
+    from one an invitation made: that takes part in its invitation's benchmark (all its phases) and uploads no
+    evaluation, even against a shared ground truth."""
+    c, teams = hosted
+    files = {"file": ("kitti_infos_val.pkl", golden_bytes("kitti_infos_val.pkl"))}
+    form = {"name": "shared-set", "sealed": "true"}
+    assert ok(c.post("/v1/ground-truths", data=form, files=files, headers=ADMIN), 201)["project"] is None
+    ok(c.post("/v1/benchmarks", json={"name": "sharedbench", "ground_truth": "shared-set"}, headers=ADMIN), 201)
+    _, code = _invite(c, uses=1)
+    token = ok(c.post(f"/v1/join/{code}", json={"name": "ana"}), 201)["token"]
+    assert c.get("/v1/benchmarks/sharedbench", headers=bearer(token)).status_code == 404
+    assert "sharedbench" not in [b["name"] for b in ok(c.get("/v1/benchmarks", headers=bearer(token)))["items"]]
+    assert submit(c, bearer(token), golden_bytes("result.pkl"), name="sharedbench").status_code == 404
+    refused = upload(c, golden_bytes("result.pkl"), gt="demo", headers=bearer(token))
+    assert refused.status_code == 403 and "invitation" in refused.json()["error"]["message"]
+    ok(submit(c, bearer(token), golden_bytes("result.pkl")), 201)  # its own benchmark still takes it
+    # an account an admin made takes part in the shared benchmark as before
+    ok(submit(c, teams.headers("carol"), golden_bytes("result.pkl"), name="sharedbench"), 201)

@@ -265,10 +265,14 @@ def test_a_public_benchmark_takes_part_from_its_projects_members_unless_it_is_op
 
 def test_no_user_takes_a_built_in_callers_name(tmp_path) -> None:
     with app_client(tmp_path / "data", auth="accounts", auth_max_failures=1_000_000) as c:
-        for name in ("admin-token", "anyone", "Anonymous", "metrics-scraper"):
+        for name in ("admin-token", "anyone", "Anonymous", "metrics-scraper", "admin", "Admin", "ADMIN"):
             r = c.post("/v1/admin/users", json={"name": name}, headers=ADMIN)
             assert r.status_code == 422 and "reserved" in r.text, (name, r.text)
         ok(c.post("/v1/admin/users", json={"name": "anyone-else"}, headers=ADMIN), 201)
+        # a name equal to an existing one ignoring case is taken, as the name itself is
+        for name in ("ANYONE-ELSE", "Anyone-Else"):
+            r = c.post("/v1/admin/users", json={"name": name}, headers=ADMIN)
+            assert r.status_code == 409 and "exists" in r.text, (name, r.text)
 
 
 def test_a_removed_members_jobs_follow_their_current_rights(teams_world) -> None:

@@ -398,3 +398,12 @@ def test_the_client_submits_to_a_phase_it_names_and_checks_against_that_phases_f
             client.frames("kitti-phases", phase="nope")
     assert ok(c.get("/v1/benchmarks/kitti-phases/phases/test/frames"))["phase"] == "test"
     assert c.get("/v1/benchmarks/kitti-phases/phases/nope/frames").status_code == 404
+
+
+def test_an_account_an_invitation_made_takes_part_in_every_phase_of_its_benchmark(world) -> None:
+    c, _ = world
+    invitations = c.app.state.service.invitations
+    code = invitations.add("kitti-phases", uses=1, expires_days=None, project=None, caller=HOST)[1]
+    token = ok(c.post(f"/v1/join/{code}", json={"name": "ivy"}), 201)["token"]
+    for phase in ("dev", "test"):
+        assert _submit(c, token, f"/v1/benchmarks/kitti-phases/phases/{phase}/submissions").status_code == 202
