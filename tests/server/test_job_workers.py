@@ -209,7 +209,10 @@ def test_a_worker_process_killed_mid_batch_loses_nothing_and_stores_nothing_twic
     ids = _accept(data_dir, 20, fields={"errors": "true"}, database_url=database)  # most of a second each
     store = Store(database or f"sqlite:///{data_dir / 'kitti-eval.db'}")
     queue = JobQueue.of(store)
-    proc, log_path = _worker(data_dir, "--processes", "2", database_url=database, KITTI_EVAL_JOB_LEASE_S="1")
+    # a lease of 3 s: short, so the killed process's job is taken over soon, but longer than the moment a job's end
+    # holds SQLite's lock while it stores the evaluation and its frames (a 1 s lease lapsed under a loaded machine's
+    # heartbeats, and a live worker's job was taken over)
+    proc, log_path = _worker(data_dir, "--processes", "2", database_url=database, KITTI_EVAL_JOB_LEASE_S="3")
     try:
 
         def running_after_some_done() -> Any:
