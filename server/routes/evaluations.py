@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
 import anyio.to_thread
-from fastapi import APIRouter, File, Form, Header, Query, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Header, Query, UploadFile
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 
 from kitti_eval.core.result import EvalResult
@@ -46,13 +47,55 @@ _TEXT_RESPONSES: dict[str, Any] = {
 _MEDIA = {OutputFormat.TABLE: "text/plain; charset=utf-8", OutputFormat.MARKDOWN: "text/markdown; charset=utf-8"}
 
 
+def eval_options_form(
+    protocol: Annotated[Literal["official", "openpcdet"], Form()] = "official",
+    classes: Annotated[str, Form(description="comma-separated, e.g. Car,Van")] = "Car,Pedestrian,Cyclist",
+    threshold_sets: Annotated[str, Form(description="strict, loose or strict,loose")] = "strict,loose",
+    iou: Annotated[
+        list[str] | None, Form(description="IoU thresholds as the CLI's --iou: CLASS[:SET]=BBOX,BEV,3D; repeatable")
+    ] = None,
+    curves: Annotated[bool, Form(description="include the 41-point curves in the JSON")] = False,
+    errors: Annotated[
+        bool,
+        Form(
+            description="also why AP is lost, as --errors: 'errors', 'errors_r11' and 'tp_errors' in the JSON "
+            "(the strict IoU thresholds; see 'kitti-eval errors --help')"
+        ),
+    ] = False,
+    ranges: Annotated[str | None, Form(description="also by distance, e.g. 0,30,50,inf (as --ranges)")] = None,
+    coco: Annotated[bool, Form(description="also COCO-style AP over ten IoU thresholds (as --coco)")] = False,
+    lidar_only: Annotated[bool, Form(description="BEV and 3D only, for sets without images (as --lidar-only)")] = False,
+) -> EvalOptions:
+    """An evaluation's options from the form, as the CLI's flags: what ``POST /v1/evaluations`` and a gate's
+    evaluation (``POST /v1/gates/evaluations``) take alike."""
+    return EvalOptions(
+        protocol=protocol,
+        classes=classes,
+        threshold_sets=threshold_sets,
+        iou=tuple(iou or ()),
+        curves=curves,
+        errors=errors,
+        ranges=ranges,
+        coco=coco,
+        lidar_only=lidar_only,
+    )
+
+
+EvalOptionsForm = Annotated[EvalOptions, Depends(eval_options_form)]
+
+
+def text_answer(result: Mapping[str, Any], fmt: OutputFormat, status: int, headers: dict[str, str]) -> Response:
+    """An evaluation's document (``result``) rendered as the table or Markdown ``fmt`` asks for."""
+    text = render(EvalResult.from_dict(result), fmt)
+    return PlainTextResponse(text, status_code=status, headers=headers, media_type=_MEDIA[fmt])
+
+
 def _respond(record: EvaluationRecord, fmt: OutputFormat, status: int = 200) -> Response:
     headers = {"X-Evaluation-Id": record.id, "Location": f"/v1/evaluations/{record.id}"}
     if fmt is OutputFormat.JSON:
         return JSONResponse(evaluation_response(record), status_code=status, headers=headers)
     assert record.result is not None
-    text = render(EvalResult.from_dict(record.result), fmt)
-    return PlainTextResponse(text, status_code=status, headers=headers, media_type=_MEDIA[fmt])
+    return text_answer(record.result, fmt, status, headers)
 
 
 @router.post(
@@ -75,6 +118,7 @@ async def create_evaluation(
     service: ServiceDep,
     caller: WriterCaller,
     fmt: FormatDep,
+    options: EvalOptionsForm,
     predictions: Annotated[
         UploadFile,
         File(
@@ -90,23 +134,6 @@ async def create_evaluation(
             "label_2 folder, used for this evaluation only"
         ),
     ] = None,
-    protocol: Annotated[Literal["official", "openpcdet"], Form()] = "official",
-    classes: Annotated[str, Form(description="comma-separated, e.g. Car,Van")] = "Car,Pedestrian,Cyclist",
-    threshold_sets: Annotated[str, Form(description="strict, loose or strict,loose")] = "strict,loose",
-    iou: Annotated[
-        list[str] | None, Form(description="IoU thresholds as the CLI's --iou: CLASS[:SET]=BBOX,BEV,3D; repeatable")
-    ] = None,
-    curves: Annotated[bool, Form(description="include the 41-point curves in the JSON")] = False,
-    errors: Annotated[
-        bool,
-        Form(
-            description="also why AP is lost, as --errors: 'errors', 'errors_r11' and 'tp_errors' in the JSON "
-            "(the strict IoU thresholds; see 'kitti-eval errors --help')"
-        ),
-    ] = False,
-    ranges: Annotated[str | None, Form(description="also by distance, e.g. 0,30,50,inf (as --ranges)")] = None,
-    coco: Annotated[bool, Form(description="also COCO-style AP over ten IoU thresholds (as --coco)")] = False,
-    lidar_only: Annotated[bool, Form(description="BEV and 3D only, for sets without images (as --lidar-only)")] = False,
     model: Annotated[str | None, Form(description="label: the model's name")] = None,
     commit: Annotated[str | None, Form(description="label: the code commit")] = None,
     epoch: Annotated[str | None, Form(description="label: the training epoch")] = None,
@@ -135,17 +162,6 @@ async def create_evaluation(
     labels. The JSON is the document `kitti-eval --format json` prints, plus `id` and `evaluation`."""
     checked_key = parse_key(idempotency_key)  # the Idempotency-Key header, checked
     labels = parse_labels({"model": model, "commit": commit, "epoch": epoch}, label or [])
-    options = EvalOptions(
-        protocol=protocol,
-        classes=classes,
-        threshold_sets=threshold_sets,
-        iou=tuple(iou or ()),
-        curves=curves,
-        errors=errors,
-        ranges=ranges,
-        coco=coco,
-        lidar_only=lidar_only,
-    )
     gt_in = FileIn(gt_file.file, gt_file.filename) if gt_file is not None else None
     job = await service.accept(
         lambda: service.evaluations.accept(

@@ -8,7 +8,7 @@ from typing import Annotated, Any, Literal
 
 import anyio.to_thread
 from fastapi import APIRouter, File, Form, Header, Query, UploadFile
-from fastapi.responses import JSONResponse, PlainTextResponse, Response
+from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
 from kitti_eval.analysis.gate import (
@@ -19,17 +19,17 @@ from kitti_eval.analysis.gate import (
     rules_from_options,
     run_gate,
 )
-from kitti_eval.core.result import EvalResult
 from kitti_eval.errors import ConfigError
-from kitti_eval.report.render import OutputFormat, render
+from kitti_eval.report.render import OutputFormat
 
 from ..access.deps import FormatDep, ReaderCaller
 from ..errors import BadRequest, NotFound
 from ..idempotency import IDEMPOTENCY_DESCRIPTION, parse_key
 from ..params import ServiceDep
 from ..schemas import ErrorResponse, EvaluationResponse
-from ..scoring.evaluator import EvalOptions, parse_labels
+from ..scoring.evaluator import parse_labels
 from ..service import FileIn
+from .evaluations import EvalOptionsForm, text_answer
 from .jobs import still_pending
 
 router = APIRouter(
@@ -143,17 +143,11 @@ def run_gate_request(
     return JSONResponse(body, status_code=status)
 
 
-_MEDIA = {OutputFormat.TABLE: "text/plain; charset=utf-8", OutputFormat.MARKDOWN: "text/markdown; charset=utf-8"}
-
-
 def _gate_result(document: dict[str, Any], fmt: OutputFormat, status: int) -> Response:
     headers = {"X-Evaluation-Kept": "false"}
     if fmt is OutputFormat.JSON:
         return JSONResponse(document, status_code=status, headers=headers)
-    doc = {k: v for k, v in document.items() if k not in ("id", "evaluation")}
-    return PlainTextResponse(
-        render(EvalResult.from_dict(doc), fmt), status_code=status, headers=headers, media_type=_MEDIA[fmt]
-    )
+    return text_answer({k: v for k, v in document.items() if k not in ("id", "evaluation")}, fmt, status, headers)
 
 
 @router.post(
@@ -174,18 +168,10 @@ async def create_gate_evaluation(
     service: ServiceDep,
     caller: ReaderCaller,
     fmt: FormatDep,
+    options: EvalOptionsForm,
     predictions: Annotated[UploadFile, File(description="as POST /v1/evaluations' predictions")],
     gt: Annotated[str | None, Form(description="name of a registered ground truth, e.g. demo")] = None,
     gt_file: Annotated[UploadFile | None, File(description="instead of gt: as POST /v1/evaluations' gt_file")] = None,
-    protocol: Annotated[Literal["official", "openpcdet"], Form()] = "official",
-    classes: Annotated[str, Form(description="comma-separated, e.g. Car,Van")] = "Car,Pedestrian,Cyclist",
-    threshold_sets: Annotated[str, Form(description="strict, loose or strict,loose")] = "strict,loose",
-    iou: Annotated[list[str] | None, Form(description="as POST /v1/evaluations' iou; repeatable")] = None,
-    curves: Annotated[bool, Form()] = False,
-    errors: Annotated[bool, Form(description="also why AP is lost (rules on error types need it)")] = False,
-    ranges: Annotated[str | None, Form(description="also by distance, e.g. 0,30,50,inf")] = None,
-    coco: Annotated[bool, Form()] = False,
-    lidar_only: Annotated[bool, Form()] = False,
     wait: Annotated[
         float | None,
         Query(ge=0, le=3600, description="as POST /v1/evaluations' wait: 201 with the result, else 202 with the job"),
@@ -199,17 +185,6 @@ async def create_gate_evaluation(
     (in this answer, or from the job's `result_location`), then deleted; unread, it is deleted after ten
     minutes. For a gate with a read-only token: the rules are the client's to check on the document."""
     key = parse_key(idempotency_key)
-    options = EvalOptions(
-        protocol=protocol,
-        classes=classes,
-        threshold_sets=threshold_sets,
-        iou=tuple(iou or ()),
-        curves=curves,
-        errors=errors,
-        ranges=ranges,
-        coco=coco,
-        lidar_only=lidar_only,
-    )
     gt_in = FileIn(gt_file.file, gt_file.filename) if gt_file is not None else None
     job = await service.accept(
         lambda: service.gate_evaluations.accept(
