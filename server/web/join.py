@@ -13,13 +13,13 @@ from fastapi import APIRouter, Request
 from fastapi.responses import Response
 from starlette.exceptions import HTTPException
 
-from ..access.auth import join_cookie, over_https, session_cookie
+from ..access.auth import join_cookie, over_https
 from ..access.deps import PublicCaller
 from ..access.policy import SIGNIN_CSRF_S, Caller
 from ..errors import ApiError, Gone, NotFound, clip
 from ..params import ServiceDep
 from ..service import Service
-from .pages import render_page
+from .pages import render_page, signed_in
 from .routes import error_page
 
 __all__ = ["router"]
@@ -116,15 +116,4 @@ async def join(request: Request, code: str, service: ServiceDep, caller: PublicC
         caller=shown,
     )
     response.headers["Cache-Control"] = "no-store"  # the token is shown this once
-    response.set_cookie(
-        session_cookie(request.scope),
-        session,
-        max_age=int(service.settings.session_hours * 3600),
-        path="/",
-        httponly=True,
-        samesite="strict",
-        secure=over_https(request.scope),
-    )
-    cookie, path = join_cookie(request.scope)
-    response.delete_cookie(cookie, path=path, secure=over_https(request.scope))
-    return response
+    return signed_in(response, request.scope, session, service.settings.session_hours, join_cookie(request.scope))

@@ -11,10 +11,11 @@ from fastapi import Request
 from fastapi.responses import Response
 from starlette.exceptions import HTTPException
 from starlette.templating import Jinja2Templates
+from starlette.types import Scope
 
 from kitti_eval.errors import KittiEvalError
 
-from ..access.auth import CALLER_KEY
+from ..access.auth import CALLER_KEY, over_https, session_cookie
 from ..access.policy import Caller
 from ..errors import ApiError, library_error_status
 from ..schemas import iso
@@ -98,3 +99,20 @@ def queued_text(position: int | None) -> str:
         return "queued"
     suffix = "th" if 10 <= position % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(position % 10, "th")
     return f"queued ({position}{suffix} in line)"
+
+
+def signed_in(response: Response, scope: Scope, session: str, hours: float, form_cookie: tuple[str, str]) -> Response:
+    """``response`` setting the new web session's cookie (``session``, for ``hours``) and clearing the cookie of
+    the form that opened it (``form_cookie``: its name and path): a sign-in's or a join's."""
+    response.set_cookie(
+        session_cookie(scope),
+        session,
+        max_age=int(hours * 3600),
+        path="/",
+        httponly=True,
+        samesite="strict",
+        secure=over_https(scope),
+    )
+    name, path = form_cookie
+    response.delete_cookie(name, path=path, secure=over_https(scope))
+    return response

@@ -44,7 +44,7 @@ from ..params import MAX_SCORE, ServiceDep
 from ..scoring.evaluator import ERRORS_SET, EvalOptions, parse_labels
 from ..service import FileIn, Service
 from ..store import EvaluationRecord
-from .pages import queued_text, render_page, status_of
+from .pages import queued_text, render_page, signed_in, status_of
 from .svg import bar_chart, bev_view, pr_chart
 
 __all__ = ["router", "sign_in_page", "error_page"]
@@ -114,18 +114,7 @@ async def sign_in(request: Request, service: ServiceDep, caller: PublicCaller) -
             response.headers.update(e.headers)
         return response
     response = RedirectResponse("/", status_code=303)
-    response.set_cookie(
-        session_cookie(request.scope),
-        session,
-        max_age=int(service.settings.session_hours * 3600),
-        path="/",
-        httponly=True,
-        samesite="strict",
-        secure=over_https(request.scope),
-    )
-    name, path = signin_cookie(request.scope)
-    response.delete_cookie(name, path=path, secure=over_https(request.scope))
-    return response
+    return signed_in(response, request.scope, session, service.settings.session_hours, signin_cookie(request.scope))
 
 
 @router.post("/signout")
