@@ -119,9 +119,7 @@ class AccountStore(Area):
 
     @staticmethod
     def _invited_to(conn: Connection, user_name: str | None = None) -> dict[str, str]:
-        """User -> the benchmark of the invitation that made the account (the invitations' tables are their
-        module's, which builds on this one's records: imported here, where they are read)."""
-
+        """User -> the benchmark of the invitation that made the account (one user's, or every user's)."""
         query = select(invitation_accounts.c.user_name, invitations.c.benchmark).join(
             invitations, invitations.c.id == invitation_accounts.c.invitation
         )
