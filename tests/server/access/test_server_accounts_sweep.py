@@ -300,10 +300,13 @@ def box_needles() -> list[str]:
 
 
 NEEDLES = box_needles()
+# A needle counts where it stands as a number of its own, not inside a longer run of letters, digits or dots: a
+# form's CSRF token ("<expiry>.<nonce>.<hex mac>") once held "...176.71..." across its first dot.
+_ALONE = {n: re.compile(r"(?<![\w.])(?<!\w-)" + re.escape(n) + r"(?![\w.])") for n in NEEDLES}
 
 
 def leaked(text: str) -> list[str]:
-    return [n for n in NEEDLES if n in text]
+    return [n for n in NEEDLES if n in text and _ALONE[n].search(text)]
 
 
 def test_the_needles_find_the_boxes_of_an_open_set(world) -> None:
