@@ -171,6 +171,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         retry_after_s=lambda: settings.retry_after_s,
         spool_dir=service.data_dir / "tmp",
         memory_bytes=settings.body_memory_bytes,
+        memory_wait_s=settings.body_memory_wait_s,
         state=service.admission,
         wait_s=settings.receive_wait_s,
         before_body=before_body,

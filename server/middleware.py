@@ -20,9 +20,16 @@ evaluation place while it sends:
 * a client that goes away mid-body gets nothing, and the app is not called.
 
 Bodies are kept in memory, as the chunks that arrived, while all the bodies in memory together stay within a
-budget (``KITTI_EVAL_BODY_MEMORY_MB``); a body that would pass it goes to an unnamed temporary file in the
-service's scratch folder (the operating system removes it when it is closed, or when the process dies). The
-app then reads it through a ``receive`` that replays it. Starlette spools uploaded files to disk too but puts
+budget (``KITTI_EVAL_BODY_MEMORY_MB``). A body that declares its length (``Content-Length``, as curl, httpx and
+browsers send a file) and fits in the budget waits, its turn taken and its body unread, until the bodies before
+it give back enough of the budget, first come first served, for up to ``memory_wait_s``
+(``KITTI_EVAL_BODY_MEMORY_WAIT_S``); only past that, or when it is larger than the whole budget, or when its
+length is not declared and the budget is full, does a body go to an unnamed temporary file in the service's
+scratch folder (the operating system removes it when it is closed, or when the process dies). A body on disk is
+written once by this middleware, read back, and its uploaded file written again by the form parser and read
+back again (it is past ``PART_MEMORY_BYTES``): at a deadline, 64 val-sized bodies received at once spilled so,
+and the answers took twice as long as with every body in memory. A body of up to ``_CHUNK`` never waits. The
+app then reads the body through a ``receive`` that replays it. Starlette spools uploaded files to disk too but puts
 no cap on their total size (its ``max_part_size`` covers plain form fields only), and FastAPI parses the whole
 form before a route runs, which is why the cap is enforced on the byte stream here.
 
@@ -145,20 +152,54 @@ async def _read_body(
 
 
 class _Memory:
-    """The bytes of request bodies held in memory, all bodies together, against a budget."""
+    """The bytes of request bodies held in memory, all bodies together, against a budget; the bodies waiting for
+    room in it, first come first served."""
 
     def __init__(self, budget: int) -> None:
         self.budget = budget
         self.held = 0
+        #: bodies waiting for room: (bytes wanted, set once they are granted, and counted in ``held``)
+        self.waiting: deque[tuple[int, anyio.Event]] = deque()
 
     def take(self, n: int) -> bool:
+        """Take ``n`` bytes now if they fit (a chunk of a body that did not declare its length)."""
         if self.held + n > self.budget:
             return False
         self.held += n
         return True
 
+    async def reserve(self, n: int, wait_s: float) -> tuple[int, bool]:
+        """Take ``n`` bytes (at most the budget) once they fit, after the bodies that asked before, waiting up to
+        ``wait_s``: the bytes taken (``n``, or 0 when no room came in time) and whether it had to wait. Bytes
+        granted are counted in ``held`` until given back, however the wait ends (a cancelled waiter that had
+        just been granted gives them back itself)."""
+        if not self.waiting and self.take(n):
+            return n, False
+        granted = anyio.Event()
+        entry = (n, granted)
+        self.waiting.append(entry)
+        try:
+            with anyio.move_on_after(wait_s):
+                await granted.wait()
+        except BaseException:
+            if granted.is_set():
+                self.give(n)
+            raise
+        finally:
+            if not granted.is_set():
+                self.waiting.remove(entry)
+                self._grant()  # those behind it may fit now
+        return (n if granted.is_set() else 0), True
+
     def give(self, n: int) -> None:
         self.held -= n
+        self._grant()
+
+    def _grant(self) -> None:
+        while self.waiting and self.held + self.waiting[0][0] <= self.budget:
+            n, granted = self.waiting.popleft()
+            self.held += n
+            granted.set()
 
 
 class _Body:
@@ -171,12 +212,26 @@ class _Body:
         self.size = 0
         self.chunks: deque[bytes] = deque()  # in memory, not yet handed over (while there is no file)
         self.held = 0  # bytes of the memory budget this body holds, until it is closed
+        self.unfilled = 0  # of them, reserved for its declared length and not yet arrived
         self.pending = bytearray()  # not yet written to the file
         self.file: IO[bytes] | None = None
+
+    async def reserve(self, n: int, wait_s: float) -> bool:
+        """Wait for room in the memory budget for the whole body, ``n`` bytes as declared (see
+        :meth:`_Memory.reserve`); whether it had to wait. Without room in time, the body goes to a file as it
+        arrives."""
+        taken, waited = await self.memory.reserve(n, wait_s)
+        self.held += taken
+        self.unfilled += taken
+        return waited
 
     async def add(self, data: bytes) -> None:
         self.size += len(data)
         if self.file is None:
+            if self.unfilled >= len(data):
+                self.unfilled -= len(data)
+                self.chunks.append(data)
+                return
             if self.memory.take(len(data)):
                 self.held += len(data)
                 self.chunks.append(data)
@@ -186,7 +241,7 @@ class _Body:
             self.pending += b"".join(self.chunks)
             self.chunks.clear()
             self.memory.give(self.held)
-            self.held = 0
+            self.held = self.unfilled = 0
         self.pending += data
         if len(self.pending) >= _CHUNK:
             await self._flush()
@@ -228,7 +283,7 @@ class _Body:
     def close(self) -> None:
         self.chunks.clear()
         self.memory.give(self.held)
-        self.held = 0
+        self.held = self.unfilled = 0
         self.pending = bytearray()
         if self.file is not None:
             self.file.close()
@@ -248,6 +303,7 @@ class BodyMiddleware:
         retry_after_s: Callable[[], int],
         spool_dir: Path | None = None,
         memory_bytes: int = MEMORY_BYTES,
+        memory_wait_s: float = 60.0,
         state: AdmissionState | None = None,
         wait_s: float = 300.0,
         before_body: BeforeBody | None = None,
@@ -255,6 +311,7 @@ class BodyMiddleware:
         self.app = app
         self.limit = limit
         self.memory = _Memory(memory_bytes)
+        self.memory_wait_s = memory_wait_s
         self.timeout_s = timeout_s
         self.max_receiving = max_receiving
         self.retry_after_s = retry_after_s
@@ -298,8 +355,9 @@ class BodyMiddleware:
     async def _receive_and_run(
         self, turns: anyio.Semaphore, body: _Body, scope: Scope, receive: Receive, send: Send
     ) -> None:
-        """Wait for a turn to receive (bounded by ``wait_s``), ask a waiting request's refusals again, receive the
-        body, give the turn back, then run the app on it."""
+        """Wait for a turn to receive (bounded by ``wait_s``), then for room in memory for a body of declared length
+        (bounded by ``memory_wait_s``), ask a waiting request's refusals again, receive the body, give the turn
+        back, then run the app on it."""
         waited = turns.value == 0
         if waited:
             self.state.body_waiting += 1
@@ -320,6 +378,13 @@ class BodyMiddleware:
         else:
             await turns.acquire()
         try:  # the turn is given back once, whatever happens before the body is read or while it is
+            declared = _content_length(scope)
+            if declared is not None and _CHUNK < declared <= self.memory.budget:
+                self.state.body_waiting += 1
+                try:
+                    waited = await body.reserve(declared, self.memory_wait_s) or waited
+                finally:
+                    self.state.body_waiting -= 1
             # after a wait, the refusals known before a body are asked again (e.g. the quota was used meanwhile)
             refused = await self.before_body.refusal(scope) if waited and self.before_body is not None else None
             if refused is None:

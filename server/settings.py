@@ -163,9 +163,15 @@ class Settings(BaseSettings):
     only a receiving one (``max_receiving_bodies``) and for this long at most. 120 s is 200 MB at 1.7 MB/s."""
 
     body_memory_mb: Annotated[float, Field(ge=0)] = 256.0
-    """Request bodies kept in memory, all together, while they arrive and are read; a body that would pass it
-    goes to a temporary file in the data folder instead. An uploaded file of up to 16 MB stays in memory while
-    its request is stored (KITTI val's result.pkl is 6.6 MB); a larger one goes to a temporary file."""
+    """Request bodies kept in memory, all together, while they arrive and until their request is answered. A body
+    that declares its length waits for room (``body_memory_wait_s``); one that would pass it still goes to a
+    temporary file in the data folder. An uploaded file whose body was kept in memory stays in memory; of one on
+    disk, a file of up to 16 MB (KITTI val's result.pkl is 6.6 MB)."""
+
+    body_memory_wait_s: Annotated[float, Field(ge=0)] = 60.0
+    """How long a body of declared length (up to ``body_memory_mb``) waits, unread, for the bodies before it to
+    give back room in memory before it goes to a temporary file instead (0: never waits). Received from memory,
+    a val-sized upload costs the web process half what one written to disk and read back twice costs."""
 
     max_receiving_bodies: Annotated[int | None, Field(gt=0)] = None
     """Request bodies received at the same time; a request past that waits its turn, its body unread, for up to

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import anyio
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from server_helpers import ROOT, LiveServer
 
 from kitti_eval_server.middleware import PART_MEMORY_BYTES, BodyMiddleware, BodyTooLarge, part_memory_bytes
@@ -596,3 +598,235 @@ def test_an_uploaded_file_stays_in_memory_when_its_body_was_held_in_memory(spool
         assert app.part_memory >= len(content) and spools == []
     else:  # the body spooled, and the file past PART_MEMORY_BYTES spooled by the parser as before
         assert app.part_memory == PART_MEMORY_BYTES and len(spools) == 2
+
+
+# ------------------------------------------------------------------ bodies of declared length wait for memory
+
+
+class Holding:
+    """An app that reads the whole body, then holds its request (and so its body's memory) until told to end it."""
+
+    def __init__(self) -> None:
+        self.bodies: dict[str, bytes] = {}
+        self.arrived: dict[str, anyio.Event] = {}
+        self.release: dict[str, anyio.Event] = {}
+
+    def expect(self, *paths: str) -> None:
+        for path in paths:
+            self.arrived[path], self.release[path] = anyio.Event(), anyio.Event()
+
+    async def __call__(self, scope, receive, send) -> None:
+        data = b""
+        while True:
+            message = await receive()
+            data += message.get("body", b"")
+            if not message.get("more_body", False):
+                break
+        self.bodies[scope["path"]] = data
+        self.arrived[scope["path"]].set()
+        await self.release[scope["path"]].wait()
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"ok"})
+
+
+async def post_declared(app, path: str, data: bytes, sent: list[dict] | None = None) -> None:
+    """One POST of ``data`` with its Content-Length, as curl sends a file."""
+    pending = chunks_of(data)
+
+    async def receive() -> dict:
+        if pending:
+            return pending.pop(0)
+        await anyio.sleep_forever()
+        raise AssertionError("unreachable")
+
+    async def send(message: dict) -> None:
+        if sent is not None:
+            sent.append(message)
+
+    head = [(b"content-length", str(len(data)).encode())]
+    await app({"type": "http", "method": "POST", "path": path, "headers": head}, receive, send)
+
+
+def holding_middleware(app, tmp_path: Path, **kwargs) -> BodyMiddleware:
+    options = {"limit": 64 * MB, "timeout_s": 5, "max_receiving": 4, "retry_after_s": lambda: 2}
+    return BodyMiddleware(app, spool_dir=tmp_path, **{**options, **kwargs})
+
+
+def test_a_body_of_declared_length_waits_for_room_in_memory_instead_of_going_to_disk(spools, tmp_path) -> None:
+    """Budget 4 MB; a 3 MB body is held by its request. A 2 MB body that declares its length is not read (and
+    not written to a file) while it would pass the budget: it waits, counted among the bodies waiting, and is
+    received in memory once the first request ends. No temporary file at all."""
+    first, second = os.urandom(3 * MB), os.urandom(2 * MB)
+    app = Holding()
+    app.expect("/first", "/second")
+    middleware = holding_middleware(app, tmp_path, memory_bytes=4 * MB, memory_wait_s=30)
+    seen: dict[str, object] = {}
+
+    async def main() -> None:
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(post_declared, middleware, "/first", first)
+            await app.arrived["/first"].wait()
+            tg.start_soon(post_declared, middleware, "/second", second)
+            await anyio.sleep(0.2)
+            seen["while"] = (middleware.memory.held, middleware.state.body_waiting, "/second" in app.bodies)
+            app.release["/first"].set()
+            await app.arrived["/second"].wait()
+            seen["after"] = middleware.memory.held
+            app.release["/second"].set()
+
+    anyio.run(main)
+    assert seen["while"] == (3 * MB, 1, False)  # the first's 3 MB held; the second waits, unread
+    assert seen["after"] == 2 * MB  # the first gave its 3 MB back; the second holds its own
+    assert app.bodies == {"/first": first, "/second": second}
+    assert spools == []  # neither went to disk
+    assert middleware.memory.held == 0 and not middleware.memory.waiting
+
+
+def test_a_body_that_waited_for_memory_too_long_goes_to_a_file(spools, tmp_path) -> None:
+    """The same, with ``memory_wait_s`` 0.2 s and the first request held past it: the second goes to a file after
+    0.2 s and is answered while the first still holds its memory."""
+    first, second = os.urandom(3 * MB), os.urandom(2 * MB)
+    app = Holding()
+    app.expect("/first", "/second")
+    middleware = holding_middleware(app, tmp_path, memory_bytes=4 * MB, memory_wait_s=0.2)
+
+    async def main() -> None:
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(post_declared, middleware, "/first", first)
+            await app.arrived["/first"].wait()
+            tg.start_soon(post_declared, middleware, "/second", second)
+            with anyio.fail_after(5):
+                await app.arrived["/second"].wait()
+            assert middleware.memory.held == 3 * MB  # the first's alone: the second is on disk
+            app.release["/second"].set()
+            app.release["/first"].set()
+
+    anyio.run(main)
+    assert app.bodies == {"/first": first, "/second": second}
+    assert len(spools) == 1 and spools[0].closed
+    assert middleware.memory.held == 0 and not middleware.memory.waiting
+
+
+@pytest.mark.parametrize("size", [5 * MB, 64 * 1024])
+def test_a_body_larger_than_the_budget_or_a_small_one_does_not_wait(spools, tmp_path, size) -> None:
+    """A body larger than the whole budget could never fit: it goes to a file at once. A body of up to 1 MB (a
+    JSON request) never waits behind uploads: in memory if it fits, else in a file at once."""
+    app = Holding()
+    app.expect("/first", "/big")
+    middleware = holding_middleware(app, tmp_path, memory_bytes=4 * MB, memory_wait_s=30)
+    data = os.urandom(size)
+
+    async def main() -> None:
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(post_declared, middleware, "/first", os.urandom(4 * MB))  # the whole budget
+            await app.arrived["/first"].wait()
+            tg.start_soon(post_declared, middleware, "/big", data)
+            with anyio.fail_after(5):
+                await app.arrived["/big"].wait()
+            app.release["/big"].set()
+            app.release["/first"].set()
+
+    anyio.run(main)
+    assert app.bodies["/big"] == data and len(spools) == 1
+    assert middleware.memory.held == 0
+
+
+def test_a_submission_that_waited_for_memory_is_asked_its_refusals_again() -> None:
+    """A submission whose body waited for room in memory is checked again before it is read (the quota may have
+    been used meanwhile), as one that waited for its turn."""
+    from kitti_eval_server.errors import ApiError
+    from kitti_eval_server.middleware import BeforeBody
+
+    class Used(ApiError):
+        status_code = 429
+        code = "quota_exceeded"
+
+    asked: list[str] = []
+
+    def check(caller, params, size, key) -> ApiError | None:
+        asked.append(params["name"])
+        return Used("the quota is used")
+
+    app = Holding()
+    app.expect("/first")
+    before_body = BeforeBody([("POST", "/b/{name}", check)], caller_key="caller", limit=64 * MB, timeout_s=5)
+    middleware = BodyMiddleware(
+        app, limit=64 * MB, timeout_s=5, max_receiving=4, retry_after_s=lambda: 3, memory_bytes=4 * MB,
+        before_body=before_body,
+    )  # fmt: skip
+    sent: list[dict] = []
+    data = os.urandom(2 * MB)
+    head = [(b"content-length", str(len(data)).encode()), (b"expect", b"100-continue")]
+    read: list[int] = []
+
+    async def receive() -> dict:
+        read.append(1)
+        return {"type": "http.request", "body": data}
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+
+    async def main() -> None:
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(post_declared, middleware, "/first", os.urandom(3 * MB))
+            await app.arrived["/first"].wait()
+            scope = {"type": "http", "method": "POST", "path": "/b/bench", "headers": head, "caller": object()}
+            tg.start_soon(middleware, scope, receive, send)
+            await anyio.sleep(0.1)
+            assert asked == [] and middleware.state.body_waiting == 1
+            app.release["/first"].set()
+
+    anyio.run(main)
+    assert asked == ["bench"] and read == []  # asked after its wait; not a byte of it read
+    assert [m["status"] for m in sent if m["type"] == "http.response.start"] == [429]
+    assert middleware.memory.held == 0 and not middleware.memory.waiting
+
+
+waiter = st.tuples(
+    st.integers(1, 100),  # bytes wanted, of a budget of 100 (each waiter's own number: it names it)
+    st.integers(0, 4),  # ms held once granted
+    st.integers(0, 20),  # ms it may wait
+    st.booleans(),  # whether its client goes away (its task is cancelled) within 3 ms
+)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(waiter, min_size=1, max_size=12, unique_by=lambda w: w[0]))
+def test_the_memory_budget_is_never_passed_and_grants_come_first_come_first_served(waiters) -> None:
+    """Bodies asking for room in turn, holding it, timing out or going away in any order: what is held never
+    passes the budget; those that waited are granted in the order they asked; afterwards nothing is held and
+    no one waits (a waiter cancelled just after its grant gave its bytes back)."""
+    from kitti_eval_server.middleware import _Memory
+
+    class Recorded(_Memory):
+        def _grant(self) -> None:
+            before = [n for n, _ in self.waiting]
+            super()._grant()
+            still = {n for n, _ in self.waiting}
+            granted.extend(n for n in before if n not in still)
+            assert self.held <= self.budget
+
+    memory = Recorded(100)
+    asked: list[int] = []
+    granted: list[int] = []
+
+    async def one(n: int, hold_ms: int, wait_ms: int, goes_away: bool) -> None:
+        with anyio.move_on_after(0.003 if goes_away else 60):
+            asked.append(n)
+            taken, _ = await memory.reserve(n, wait_ms / 1000)
+            assert memory.held <= memory.budget
+            if taken:
+                try:
+                    await anyio.sleep(hold_ms / 1000)
+                finally:
+                    memory.give(taken)
+
+    async def main() -> None:
+        async with anyio.create_task_group() as tg:
+            for w in waiters:
+                tg.start_soon(one, *w)
+                await anyio.sleep(0.001)
+
+    anyio.run(main)
+    assert memory.held == 0 and not memory.waiting
+    assert granted == sorted(granted, key=asked.index)
