@@ -23,7 +23,6 @@ from starlette.formparsers import MultiPartParser
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from kitti_eval import __version__
-from kitti_eval.core.cpus import available_cpus
 
 from .access.auth import CALLER_KEY, AuthMiddleware, Door, access_of, flat_routes
 from .access.headers import SecurityHeaders
@@ -55,7 +54,7 @@ from .routes import (
     phases,
 )
 from .service import Service
-from .settings import Settings, default_data_dir_text, settings_error
+from .settings import Settings, default_data_dir_text, serve_overrides, settings_error
 from .shutdown import Drainer
 from .web import STATIC_DIR
 from .web import router as web_router
@@ -301,20 +300,7 @@ def serve(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
     except SystemExit as e:
         return int(e.code) if isinstance(e.code, int) else 2
-    overrides: dict[str, Any] = {
-        k: v
-        for k, v in (
-            ("data_dir", args.data_dir),
-            ("database_url", args.database_url),
-            ("auth", args.auth),
-            ("db_upgrade", args.upgrade),
-        )
-        if v
-    }
-    if "KITTI_EVAL_WORKER_PROCESSES" not in os.environ and "KITTI_EVAL_JOB_THREADS" not in os.environ:
-        # one command uses the machine: a worker process a CPU (evaluations in parallel processes, not threads
-        # of one, whose pickle loading shares one interpreter lock), none of the web process's own
-        overrides.update(worker_processes=available_cpus(), job_threads=0)
+    overrides = serve_overrides(args.data_dir, args.database_url, args.auth, args.upgrade, os.environ)
     try:
         settings = Settings(**overrides)
     except ValueError as e:  # pydantic's ValidationError, or no data folder (NoDataFolder)

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import ipaddress
 import os
+from collections.abc import Mapping
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import platformdirs
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from kitti_eval.core.cpus import available_cpus
 
 __all__ = [
     "Settings",
@@ -20,6 +23,7 @@ __all__ = [
     "default_data_dir",
     "default_data_dir_text",
     "settings_error",
+    "serve_overrides",
 ]
 
 ENV_PREFIX = "KITTI_EVAL_"
@@ -65,6 +69,20 @@ def settings_error(error: ValueError) -> str:
     if isinstance(error, NoDataFolder):
         return f"error: {error}"
     return f"error: invalid settings:\n{error}"
+
+
+def serve_overrides(
+    data_dir: str | None, database_url: str | None, auth: str | None, upgrade: bool, environ: Mapping[str, str]
+) -> dict[str, Any]:
+    """What ``kitti-eval serve``'s options change in the settings. Unless ``KITTI_EVAL_WORKER_PROCESSES`` or
+    ``KITTI_EVAL_JOB_THREADS`` is set, one command uses the machine: a worker process a CPU (evaluations in
+    parallel processes, not threads of one, whose pickle loading shares one interpreter lock), none of the web
+    process's own."""
+    given = (("data_dir", data_dir), ("database_url", database_url), ("auth", auth), ("db_upgrade", upgrade))
+    overrides: dict[str, Any] = {k: v for k, v in given if v}
+    if "KITTI_EVAL_WORKER_PROCESSES" not in environ and "KITTI_EVAL_JOB_THREADS" not in environ:
+        overrides.update(worker_processes=available_cpus(), job_threads=0)
+    return overrides
 
 
 class Settings(BaseSettings):

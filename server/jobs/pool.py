@@ -14,34 +14,22 @@ command line, where ``ps`` would show its password.
 from __future__ import annotations
 
 import logging
-import os
 import signal
 import socket
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from kitti_eval.core.cpus import available_cpus
-
 from .queue import JobQueue
+from .spawn import CHILD_MODULE, child_command, child_env, take_early
 
-__all__ = ["WorkerPool", "CHILD_MODULE"]
+__all__ = ["WorkerPool", "CHILD_MODULE"]  # CHILD_MODULE: from .spawn, where it is kept
 
 log = logging.getLogger("kitti_eval.server")
 
-#: what a worker process runs (``python -m``)
-CHILD_MODULE = "kitti_eval_server.commands.process"
-#: how it is started: as ``python -m CHILD_MODULE`` would, but without the working folder first on the import path
-#: (``-m`` puts it there: a service started inside another checkout would run that checkout's code in its
-#: workers, not the installed one it runs itself)
-_START = (
-    "import runpy, sys; sys.path[:] = [p for p in sys.path if p not in ('', '.')]; "
-    f"runpy.run_module({CHILD_MODULE!r}, run_name='__main__', alter_sys=True)"
-)
 #: a process that died sooner than this after its start counts as failing (its next start waits longer)
 _QUICK_DEATH_S = 60.0
 _LONGEST_PAUSE_S = 60.0
@@ -79,29 +67,14 @@ class WorkerPool:
         self.threads = threads
         self.grace_s = grace_s
         self.work_dir = work_dir
-        self.env = {**(os.environ if env is None else env), "KITTI_EVAL_DATABASE_URL": database_url}
-        # each process matches on its share of the CPUs (unless told otherwise): N processes on N cores, one
-        # evaluation each, with no more matching threads than cores
-        self.env.setdefault("KITTI_EVAL_THREADS", str(max(1, available_cpus() // (processes * threads))))
+        self.env = child_env(processes, threads, database_url, env)
         self._slots = [_Slot() for _ in range(processes)]
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._watch: threading.Thread | None = None
 
     def _command(self) -> list[str]:
-        return [
-            sys.executable,
-            "-c",
-            _START,
-            "--work-dir",
-            str(self.work_dir),
-            "--threads",
-            str(self.threads),
-            "--grace",
-            repr(self.grace_s),
-            "--parent",
-            str(os.getpid()),
-        ]
+        return child_command(self.work_dir, self.threads, self.grace_s)
 
     def _spawn(self, slot: _Slot) -> None:
         slot.proc = subprocess.Popen(self._command(), env=self.env, stdin=subprocess.DEVNULL)
@@ -109,14 +82,22 @@ class WorkerPool:
         slot.restart_at = None
 
     def start(self) -> None:
+        """Start the processes; those the command started early (:func:`~.spawn.start_early`) for a pool like
+        this one are taken over instead (watched, started again and stopped as the pool's own)."""
         self.work_dir.mkdir(parents=True, exist_ok=True)
         self._stopping.clear()
+        early, ago = take_early(self.processes, self.threads, self.grace_s, self.work_dir, self.env)
+        adopted = len(early)
         with self._lock:
             for slot in self._slots:
-                self._spawn(slot)
+                if early:
+                    slot.proc, slot.started, slot.restart_at = early.pop(0), time.monotonic() - ago, None
+                else:
+                    self._spawn(slot)
         self._watch = threading.Thread(target=self._watch_loop, name="kitti-eval-worker-pool", daemon=True)
         self._watch.start()
-        log.info("started %d worker processes of %d thread(s): %s", self.processes, self.threads, self.pids)
+        how = f" ({adopted} started with the command, {ago:.1f} s ago)" if adopted else ""
+        log.info("started %d worker processes of %d thread(s): %s%s", self.processes, self.threads, self.pids, how)
 
     def _watch_loop(self) -> None:
         while not self._stopping.wait(_TICK_S):
