@@ -54,12 +54,14 @@ def _start_workers_early(argv: Sequence[str]) -> None:
 def run_argv(argv: Sequence[str]) -> int:
     try:
         from ..jobs.spawn import discard_early
-
-        _start_workers_early(argv)
-        from ..main import serve
     except ImportError as e:
         return without_server_extra(NAME, e)
-    try:
+    try:  # the worker process started early goes whichever way this ends but a service taking it over
+        try:
+            _start_workers_early(argv)
+            from ..main import serve
+        except ImportError as e:
+            return without_server_extra(NAME, e)
         return serve(list(argv))
     finally:
         discard_early()
