@@ -270,20 +270,12 @@ def run_gate(args: argparse.Namespace, *, errors: bool = False) -> tuple[dict, d
     keep = not _read_only(args)
     if not keep and args.label and not args.quiet:
         say(f"warning: --label {' '.join(args.label)} is not stored: the evaluation is not kept")
-    current = _evaluate(args, args.gt, args.pred, curves=False, errors=errors, keep=keep)
-    if keep and not args.quiet:
-        say(f"stored as evaluation {current.id} ({args.service}/v1/evaluations/{current.id})")
-    elif not args.quiet:
-        say(
-            f"not stored: the token is read-only, so {args.service} evaluated --pred for this gate and kept "
-            "nothing (no evaluation in the history, the predictions not kept)"
-        )
+    # the baseline first: a label with no evaluation is said before --pred is sent and evaluated
     baseline = None
     with client_of(args) as client:
         if args.baseline_label:
             key, _, value = args.baseline_label.partition("=")
-            history = client.evaluations(gt=str(args.gt), labels={key: value}, limit=2)
-            found = [e for e in history if e["id"] != current.id]
+            found = client.evaluations(gt=str(args.gt), labels={key: value}, limit=1)
             if not found:
                 raise ServiceError(
                     f"{args.service}: no evaluation labelled {args.baseline_label} against {args.gt}",
@@ -293,6 +285,14 @@ def run_gate(args: argparse.Namespace, *, errors: bool = False) -> tuple[dict, d
             baseline = client.evaluation(found[0]["id"])
         elif args.baseline is not None:
             baseline = client.evaluation(str(args.baseline))
+    current = _evaluate(args, args.gt, args.pred, curves=False, errors=errors, keep=keep)
+    if keep and not args.quiet:
+        say(f"stored as evaluation {current.id} ({args.service}/v1/evaluations/{current.id})")
+    elif not args.quiet:
+        say(
+            f"not stored: the token is read-only, so {args.service} evaluated --pred for this gate and kept "
+            "nothing (no evaluation in the history, the predictions not kept)"
+        )
     if baseline is not None and not args.quiet:
         say(f"baseline: evaluation {baseline.id}")
     return current.document, None if baseline is None else baseline.document

@@ -448,3 +448,28 @@ def test_gate_against_the_services_history(open_service, tmp_path, capsys) -> No
     assert verdict.startswith("#") and "Pedestrian/3d/moderate" in verdict  # the failed rule, where CI shows it
     history = ok(open_service.client().get("/v1/evaluations", params={"label": "branch=feature"}))["items"]
     assert len(history) == 1 and history[0]["evaluation"]["labels"] == {"branch": "feature"}
+
+
+def test_a_baseline_label_with_no_evaluation_is_said_before_anything_is_evaluated(open_service, capsys) -> None:
+    """``--baseline-label`` naming a label no evaluation has: refused in one line before --pred is sent, so nothing
+    is evaluated or stored (--pred used to be evaluated and kept first, and only then was the label looked up)."""
+    before = ok(open_service.client().get("/v1/evaluations", params={"limit": 500}))["items"]
+    code = main(
+        [
+            "gate",
+            "--service",
+            open_service.url,
+            "--gt",
+            "small",
+            "--pred",
+            str(GOLDEN / "result.pkl"),
+            "--baseline-label",
+            "branch=never-labelled",
+            "--max-drop",
+            "0",
+        ]
+    )
+    err = capsys.readouterr().err
+    assert code == 2 and "no evaluation labelled branch=never-labelled against small" in err, err
+    after = ok(open_service.client().get("/v1/evaluations", params={"limit": 500}))["items"]
+    assert len(after) == len(before)
