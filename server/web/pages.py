@@ -114,5 +114,5 @@ def signed_in(response: Response, scope: Scope, session: str, hours: float, form
         secure=over_https(scope),
     )
     name, path = form_cookie
-    response.delete_cookie(name, path=path, secure=over_https(scope))
+    response.delete_cookie(name, path=path, httponly=True, samesite="strict", secure=over_https(scope))
     return response

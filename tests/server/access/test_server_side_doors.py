@@ -303,6 +303,12 @@ def test_behind_https_the_cookies_are_host_prefixed(tmp_path) -> None:
         assert r.status_code == 303, r.text[:300]
         session = next(v for k, v in r.headers.multi_items() if k == "set-cookie" and "session" in v)
         assert session.startswith("__Host-kitti_eval_session=") and "Secure" in session and "Path=/;" in session
+        # the form's cookie is cleared with the attributes it was set with (it was cleared SameSite=lax)
+        cleared = next(v for k, v in r.headers.multi_items() if k == "set-cookie" and "signin" in v)
+        set_with = form.headers["set-cookie"]
+        for attribute in ("HttpOnly", "SameSite=strict", "Secure", "Path=/"):
+            assert attribute in set_with and attribute in cleared, (attribute, set_with, cleared)
+        assert "Max-Age=0" in cleared
         assert '<span class="who" id="who">bob</span>' in c.get("/").text
         value = c.cookies.get("__Host-kitti_eval_session")
         c.cookies.clear()
