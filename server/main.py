@@ -201,7 +201,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.add_middleware(_PlainStartupRefusal)
     # every request gets its id, its log line and its metrics, whoever answers it
-    app.add_middleware(RequestMiddleware, metrics=app_metrics, log_json=lambda: log_json)
+    app.add_middleware(RequestMiddleware, metrics=app_metrics, log_json=lambda: log_json, route_template=door.template)
     app.add_middleware(SecurityHeaders)  # on every response, a refusal's and a failure's too
     return app
 

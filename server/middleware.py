@@ -127,15 +127,62 @@ def _content_length(scope: Scope) -> int | None:
         return None
 
 
+#: a body holding room in memory for bytes yet to come keeps it while at least this many arrive in each
+#: ``_SLOW_WINDOW_S`` (64 KB/s, half a megabit a second); a slower sender gives the room back (see ``_Body.slow``)
+_SLOW_WINDOW_S = 5.0
+_SLOW_BYTES = 320 << 10
+
+
+class _Pace:
+    """Whether a body's bytes keep arriving at least as fast as ``min_bytes`` each ``window_s``; ``slow`` is
+    called once when a window ends short of it."""
+
+    def __init__(self, window_s: float, min_bytes: int, slow: Callable[[], None]) -> None:
+        self.window_s, self.min_bytes, self.slow = window_s, min_bytes, slow
+        self.ends = anyio.current_time() + window_s
+        self.got = 0
+        self.done = False
+
+    def remaining(self) -> float:
+        return max(0.0, self.ends - anyio.current_time())
+
+    def arrived(self, n: int) -> None:
+        self.got += n
+        self.check()
+
+    def check(self) -> None:
+        now = anyio.current_time()
+        if self.done or now < self.ends:
+            return
+        if self.got < self.min_bytes or now >= self.ends + self.window_s:  # short, or a whole window since empty
+            self.done = True
+            self.slow()
+            return
+        self.ends, self.got = now + self.window_s, 0
+
+
 async def _read_body(
-    receive: Receive, add: Callable[[bytes], Awaitable[None]] | None, limit: int, timeout_s: float
+    receive: Receive,
+    add: Callable[[bytes], Awaitable[None]] | None,
+    limit: int,
+    timeout_s: float,
+    pace: _Pace | None = None,
 ) -> str:
     """Read a request body, each chunk handed to ``add`` (None: dropped): complete, too_large (not read past the
-    ``limit``), late (not all there within ``timeout_s``) or gone (the client disconnected)."""
+    ``limit``), late (not all there within ``timeout_s``) or gone (the client disconnected). ``pace`` is told of
+    the bytes as they come, and of a window that ends with none (waiting for a chunk no longer than it lasts)."""
     size = 0
     with anyio.move_on_after(timeout_s):
         while True:
-            message = await receive()
+            if pace is not None and not pace.done:
+                with anyio.move_on_after(pace.remaining()) as quiet:
+                    message = await receive()
+                if quiet.cancelled_caught:  # nothing in this window (nothing taken from the connection)
+                    pace.check()
+                    continue
+                pace.arrived(len(message.get("body", b"")) if message["type"] == "http.request" else 0)
+            else:
+                message = await receive()
             if message["type"] == "http.disconnect":
                 return "gone"
             if message["type"] != "http.request":
@@ -225,6 +272,16 @@ class _Body:
         self.unfilled += taken
         return waited
 
+    def slow(self) -> None:
+        """Its bytes come too slowly to hold room for the rest: the room reserved and not yet filled goes back to
+        the budget (and to the bodies waiting for it); what arrives next is kept in memory if it fits, else the
+        body goes to a file. A sender that declares a large body and sends nothing holds the room for one pace
+        window (``_SLOW_WINDOW_S``), not for the whole ``KITTI_EVAL_BODY_TIMEOUT_S``."""
+        if self.unfilled:
+            self.memory.give(self.unfilled)
+            self.held -= self.unfilled
+            self.unfilled = 0
+
     async def add(self, data: bytes) -> None:
         self.size += len(data)
         if self.file is None:
@@ -312,6 +369,8 @@ class BodyMiddleware:
         self.limit = limit
         self.memory = _Memory(memory_bytes)
         self.memory_wait_s = memory_wait_s
+        #: the pace below which a body gives back the room it holds for bytes yet to come (see ``_Body.slow``)
+        self.slow_window_s, self.slow_bytes = _SLOW_WINDOW_S, _SLOW_BYTES
         self.timeout_s = timeout_s
         self.max_receiving = max_receiving
         self.retry_after_s = retry_after_s
@@ -369,7 +428,8 @@ class BodyMiddleware:
             if waiting.cancelled_caught:  # still no turn after wait_s
                 retry = self.retry_after_s()
                 message = (
-                    f"too many request bodies are being received ({self.receiving}) for {self.wait_s:g} s "
+                    f"every one of the {self.max_receiving} turns to send a request body "
+                    f"(KITTI_EVAL_MAX_RECEIVING_BODIES) stayed taken for {self.wait_s:g} s "
                     f"(KITTI_EVAL_RECEIVE_WAIT_S); retry in {retry} s"
                 )
                 headers = {"retry-after": str(retry), "connection": "close"}
@@ -390,7 +450,8 @@ class BodyMiddleware:
             if refused is None:
                 self.receiving += 1
                 try:
-                    outcome = await _read_body(receive, body.add, self.limit, self.timeout_s)
+                    pace = _Pace(self.slow_window_s, self.slow_bytes, body.slow) if body.unfilled else None
+                    outcome = await _read_body(receive, body.add, self.limit, self.timeout_s, pace)
                     if outcome == "complete":
                         await body.finish()
                 except OSError as e:  # the spool's disk is full: 507, and the partial file goes with body.close()
@@ -425,7 +486,10 @@ class BodyMiddleware:
             await self.app(scope, self._too_large, send)
         elif outcome == "late":
             body.close()
-            message = f"the request body did not arrive within {self.timeout_s:g} s (KITTI_EVAL_BODY_TIMEOUT_S)"
+            message = (
+                f"the request body did not arrive within {self.timeout_s:g} s of its turn to be read "
+                "(KITTI_EVAL_BODY_TIMEOUT_S)"
+            )
             await _send_json(send, 408, error_body("request_timeout", message), {"connection": "close"})
         # "gone": the client disconnected; there is no one to answer
 

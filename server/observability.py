@@ -296,25 +296,37 @@ def _method_label(method: str) -> str:
     return method if method in _METHODS else "other"
 
 
-def _route_of(scope: Scope) -> str:
+def _route_of(scope: Scope, template: Callable[[Scope], str | None] | None = None) -> str:
     """The matched route's template (``/v1/evaluations/{evaluation_id}``), a mount's prefix, or ``unmatched``:
-    never the path as sent, so that clients cannot make new series."""
+    never the path as sent, so that clients cannot make new series. A request answered before the router ran (a
+    408, 413 or 503 ``busy`` about its body) is matched by ``template`` (the door's table of the app's routes),
+    so that it counts under its route: ``unmatched`` is a path no route serves."""
     route = scope.get("route")
     path = getattr(route, "path_format", None) or getattr(route, "path", None)
     if isinstance(path, str):
         return path
     if str(scope.get("path", "")).startswith("/static/"):
         return "/static"
-    return "unmatched"
+    found = template(scope) if template is not None else None
+    return found or "unmatched"
 
 
 class RequestMiddleware:
     """Request ids, the access log and the request metrics (see the module's docstring)."""
 
-    def __init__(self, app: ASGIApp, *, metrics: Metrics | None, log_json: Callable[[], bool]) -> None:
+    def __init__(
+        self,
+        app: ASGIApp,
+        *,
+        metrics: Metrics | None,
+        log_json: Callable[[], bool],
+        route_template: Callable[[Scope], str | None] | None = None,
+    ) -> None:
         self.app = app
         self.metrics = metrics
         self.log_json = log_json
+        #: the template of the route serving a request the router did not see (answered before it)
+        self.route_template = route_template
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -380,7 +392,7 @@ class RequestMiddleware:
             self._done(scope, rid, seen, time.perf_counter() - started)
 
     def _done(self, scope: Scope, rid: str, seen: dict[str, int], seconds: float) -> None:
-        route, method, status = _route_of(scope), str(scope.get("method", "")), seen["status"]
+        route, method, status = _route_of(scope, self.route_template), str(scope.get("method", "")), seen["status"]
         evaluation = scope.get("state", {}).get("evaluation_id")
         if self.metrics is not None:
             m = self.metrics
@@ -394,10 +406,10 @@ class RequestMiddleware:
                 outcome = "ok" if status < 400 else "refused" if status < 500 or status == 503 else "failed"
                 m.evaluations.labels(outcome).inc()
                 m.evaluation_seconds.labels(outcome).observe(seconds)
-                if status == 503:
-                    m.rejected.labels("evaluations").inc()
-            elif status == 503 and route == "unmatched":
+            if status == 503 and code == "busy":  # every turn to send a body taken, whichever the route
                 m.rejected.labels("bodies").inc()
+            elif status == 503 and method == "POST" and str(scope.get("path", "")).rstrip("/") in EVALUATION_PATHS:
+                m.rejected.labels("evaluations").inc()
         record = {
             "request_id": rid,
             "method": method,

@@ -138,6 +138,19 @@ class Door:
             self._table = table
         return self._table
 
+    def template(self, scope: Scope) -> str | None:
+        """The path template of the route that serves ``scope``'s path (None: none does), for the request metrics
+        of an answer given before the router ran."""
+        partial: str | None = None
+        for route, _ in self.table():
+            match, _ = route.matches(scope)
+            path = getattr(route, "path_format", None) or getattr(route, "path", None)
+            if match is Match.FULL and isinstance(path, str):
+                return path
+            if match is Match.PARTIAL and partial is None and isinstance(path, str) and not isinstance(route, Mount):
+                partial = path
+        return partial
+
     def access(self, scope: Scope) -> tuple[bool, Access | None]:
         """(whether a route serves the path, its access); a method the route does not take still finds it."""
         partial_match: tuple[bool, Access | None] | None = None

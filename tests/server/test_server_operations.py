@@ -85,6 +85,59 @@ def test_the_counters_match_the_requests_made(service_client: Any) -> None:
     assert value(after, "kitti_eval_bodies_receiving") == 0
 
 
+def test_an_answer_given_before_the_router_counts_under_its_route(service_client: Any) -> None:
+    """A body refused before the application ran (413 for a declared length past the cap) is counted under the
+    route it was sent to; ``unmatched`` is kept for paths no route serves."""
+    with service_client(max_upload_mb=1) as client:
+        before = scrape(client)
+        big = client.post("/v1/evaluations", content=b"x" * (2 << 20), headers={"content-type": "text/plain"})
+        assert big.status_code == 413
+        assert client.post("/v1/no-such-route", content=b"{}").status_code == 404
+        after = scrape(client)
+
+    def delta(**labels: str) -> float:
+        name = "kitti_eval_http_requests_total"
+        return value(after, name, **labels) - value(before, name, **labels)
+
+    assert delta(route="/v1/evaluations", method="POST", status="413") == 1
+    assert delta(route="unmatched", method="POST", status="413") == 0
+    assert delta(route="unmatched", method="POST", status="404") == 1
+
+
+def test_a_busy_answer_is_a_rejection_for_want_of_body_turns_not_of_evaluation_places() -> None:
+    """A 503 ``busy`` (every turn to send a body taken) is counted as ``reason="bodies"`` even on the evaluation
+    route; a 503 of the evaluation route for another reason (the queue full) as ``evaluations``."""
+    import anyio
+
+    from kitti_eval_server.observability import Metrics, RequestMiddleware
+
+    def answering(code: str):
+        async def app(scope, receive, send) -> None:
+            body = json.dumps({"error": {"code": code, "message": "m"}}).encode()
+            await send(
+                {"type": "http.response.start", "status": 503, "headers": [(b"content-type", b"application/json")]}
+            )
+            await send({"type": "http.response.body", "body": body})
+
+        return app
+
+    async def post(app) -> None:
+        async def receive() -> dict:
+            return {"type": "http.request", "body": b""}
+
+        async def send(message: dict) -> None:
+            pass
+
+        await app({"type": "http", "method": "POST", "path": "/v1/evaluations", "headers": []}, receive, send)
+
+    metrics = Metrics()
+    for code in ("busy", "busy", "queue_full"):
+        anyio.run(post, RequestMiddleware(answering(code), metrics=metrics, log_json=lambda: True))
+    rejected = {s.labels["reason"]: s.value for f in metrics.registry.collect() for s in f.samples
+                if s.name == "kitti_eval_admission_rejected_total"}  # fmt: skip
+    assert rejected == {"bodies": 2.0, "evaluations": 1.0}
+
+
 def test_metrics_can_be_off_or_need_their_token(service_client: Any) -> None:
     with service_client(metrics="off") as client:
         r = client.get("/metrics")

@@ -830,3 +830,69 @@ def test_the_memory_budget_is_never_passed_and_grants_come_first_come_first_serv
     anyio.run(main)
     assert memory.held == 0 and not memory.waiting
     assert granted == sorted(granted, key=asked.index)
+
+
+def test_a_body_that_sends_too_slowly_gives_back_the_room_it_held(spools, tmp_path) -> None:
+    """Budget 4 MB. A request declares 3 MB, sends 64 KB and then nothing: once a pace window (0.2 s here) ends
+    with too few bytes, the room reserved for the rest goes back, and a 2 MB body waiting for it is received in
+    memory at once, long before the silent one's body deadline (408)."""
+    second = os.urandom(2 * MB)
+    app = Holding()
+    app.expect("/second")
+    middleware = holding_middleware(app, tmp_path, memory_bytes=4 * MB, memory_wait_s=30, timeout_s=3)
+    middleware.slow_window_s = 0.2
+    sent: list[dict] = []
+    took: dict[str, float] = {}
+
+    async def silent() -> None:
+        pending = [{"type": "http.request", "body": b"x" * (64 * 1024), "more_body": True}]
+
+        async def receive() -> dict:
+            if pending:
+                return pending.pop(0)
+            await anyio.sleep_forever()
+            raise AssertionError("unreachable")
+
+        async def send(message: dict) -> None:
+            sent.append(message)
+
+        head = [(b"content-length", str(3 * MB).encode())]
+        await middleware({"type": "http", "method": "POST", "path": "/silent", "headers": head}, receive, send)
+
+    async def main() -> None:
+        started = anyio.current_time()
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(silent)
+            await anyio.sleep(0.05)
+            assert middleware.memory.held == 3 * MB  # the silent one's reservation
+            tg.start_soon(post_declared, middleware, "/second", second)
+            await app.arrived["/second"].wait()
+            took["second"] = anyio.current_time() - started
+            app.release["/second"].set()
+
+    anyio.run(main)
+    assert took["second"] < 1.5  # within a pace window or two, not the 3 s deadline
+    assert app.bodies == {"/second": second} and spools == []
+    assert [m["status"] for m in sent if m["type"] == "http.response.start"] == [408]
+    assert middleware.memory.held == 0 and not middleware.memory.waiting
+
+
+def test_a_body_arriving_at_pace_keeps_its_room() -> None:
+    """A body whose bytes keep coming (each window above the pace) is never told it is slow; one window short is
+    told once."""
+    from kitti_eval_server.middleware import _Pace
+
+    told: list[int] = []
+
+    async def main() -> None:
+        pace = _Pace(1.0, 500, lambda: told.append(1))
+        for _ in range(30):
+            await anyio.sleep(0.05)
+            pace.arrived(600)  # about 20 arrivals a window: any one of them is enough
+        assert told == []
+        await anyio.sleep(2.5)
+        pace.check()
+        pace.check()
+
+    anyio.run(main)
+    assert told == [1]
