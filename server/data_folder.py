@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
-from .errors import StartupRefused
-
-__all__ = ["check_writable"]
+__all__ = ["check_writable", "private_files"]
 
 
 #: the folders under the data folder the service writes to (scratch space, its locks, unpacked ground truths):
@@ -31,6 +31,8 @@ def _check(place: Path, folder: Path, setting: str) -> None:
         with tempfile.NamedTemporaryFile(dir=place, prefix=".write-check-"):
             pass
     except OSError as e:
+        from .errors import StartupRefused  # here: ``kitti-eval serve`` imports this module before FastAPI
+
         uid, gid = os.getuid(), os.getgid()
         reason = e.strerror or type(e).__name__
         what = f"the data folder {folder}" if place == folder else f"{place} in the data folder"
@@ -39,3 +41,18 @@ def _check(place: Path, folder: Path, setting: str) -> None:
             f"folder or volume this uid may write (chown {uid}:{gid} it, or in Kubernetes set the pod's "
             f"securityContext.fsGroup to {gid}), or point {setting} at one"
         ) from None
+
+
+@contextlib.contextmanager
+def private_files() -> Iterator[None]:
+    """While it lasts, what this process makes (the database, the unpacked ground truths, sealed ones among them,
+    backups, scratch files) is not readable by other users: the umask gains ``007``, whatever it was (a umask of
+    022 made them 0644 in 0755 folders, so any local user of a shared host read the sealed labels). The group's
+    permissions stay as the umask gives them: the image's ``/data`` is the root group's, which OpenShift's random
+    uids belong to. ``kitti-eval serve``, ``worker`` and ``admin`` run in it; the umask is given back after."""
+    before = os.umask(0o077)
+    os.umask(before | 0o007)
+    try:
+        yield
+    finally:
+        os.umask(before)

@@ -28,6 +28,7 @@ from .access.auth import CALLER_KEY, AuthMiddleware, Door, access_of, flat_route
 from .access.headers import SecurityHeaders
 from .access.policy import Access, Caller
 from .benchmarks.phases import addressed_row
+from .data_folder import private_files
 from .errors import ApiError, StartupRefused, install_error_handlers
 from .idempotency import parse_key
 from .middleware import (
@@ -313,16 +314,17 @@ def serve(argv: Sequence[str] | None = None) -> int:
     # proxy's X-Forwarded-For is believed is KITTI_EVAL_TRUSTED_PROXIES' alone: uvicorn's own proxy headers
     # (on by default, trusting 127.0.0.1 or FORWARDED_ALLOW_IPS) would rewrite the client's address before it
     try:
-        uvicorn.run(
-            app,
-            host=args.host,
-            port=args.port,
-            log_level=args.log_level,
-            access_log=False,
-            log_config=None,  # its loggers keep the service's handler (route_uvicorn_logs)
-            proxy_headers=False,
-            timeout_graceful_shutdown=10,
-        )
+        with private_files():  # the database and the unpacked ground truths are not readable by other users
+            uvicorn.run(
+                app,
+                host=args.host,
+                port=args.port,
+                log_level=args.log_level,
+                access_log=False,
+                log_config=None,  # its loggers keep the service's handler (route_uvicorn_logs)
+                proxy_headers=False,
+                timeout_graceful_shutdown=10,
+            )
     except SystemExit:  # uvicorn's exit when the startup failed
         if app.state.startup_refused:  # the settings do not fit the database: the log line says which to change
             return 2

@@ -223,6 +223,17 @@ def _say(msg: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """``kitti-eval admin ...``: what it writes (a backup, a database it creates, ground truths it unpacks) is not
+    readable by other users (:func:`~kitti_eval_server.data_folder.private_files`)."""
+    try:
+        from ..data_folder import private_files
+    except ImportError as e:
+        return without_server_extra("admin", e)
+    with private_files():
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         from sqlalchemy.exc import SQLAlchemyError
 

@@ -26,7 +26,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from ..data_folder import check_writable
+from ..data_folder import check_writable, private_files
 from ..errors import StartupRefused
 from ..jobs.pool import WorkerPool
 from ..observability import Metrics, configure_logging
@@ -159,4 +159,5 @@ def child_main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(child_main())
+    with private_files():  # what it unpacks and writes is not readable by other users
+        sys.exit(child_main())

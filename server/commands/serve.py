@@ -53,15 +53,18 @@ def _start_workers_early(argv: Sequence[str]) -> None:
 
 def run_argv(argv: Sequence[str]) -> int:
     try:
+        from ..data_folder import private_files
         from ..jobs.spawn import discard_early
     except ImportError as e:
         return without_server_extra(NAME, e)
-    try:  # the worker process started early goes whichever way this ends but a service taking it over
-        try:
-            _start_workers_early(argv)
-            from ..main import serve
-        except ImportError as e:
-            return without_server_extra(NAME, e)
-        return serve(list(argv))
-    finally:
-        discard_early()
+    # the data folder, the database and what the workers unpack are not readable by other users, from the start
+    with private_files():
+        try:  # the worker process started early goes whichever way this ends but a service taking it over
+            try:
+                _start_workers_early(argv)
+                from ..main import serve
+            except ImportError as e:
+                return without_server_extra(NAME, e)
+            return serve(list(argv))
+        finally:
+            discard_early()

@@ -103,6 +103,21 @@ def _children_of(pid: int) -> list[int]:
     return found
 
 
+def test_private_files_hides_what_is_made_from_other_users_and_gives_the_umask_back(tmp_path) -> None:
+    from kitti_eval_server.data_folder import private_files
+
+    before = os.umask(0o022)
+    try:
+        with private_files():
+            (tmp_path / "folder").mkdir()
+            (tmp_path / "folder" / "file").write_text("sealed")
+        assert os.umask(0o022) == 0o022  # given back
+    finally:
+        os.umask(before)
+    assert (tmp_path / "folder").stat().st_mode & 0o777 == 0o750
+    assert (tmp_path / "folder" / "file").stat().st_mode & 0o777 == 0o640
+
+
 def _serve(tmp_path: Path, *args: str) -> tuple[subprocess.Popen[bytes], Path]:
     env = {**os.environ, "KITTI_EVAL_LOG_FORMAT": "json", "KITTI_EVAL_ADMIN_TOKEN": "t" * 32}
     for name in ("KITTI_EVAL_WORKER_PROCESSES", "KITTI_EVAL_JOB_THREADS"):
@@ -110,7 +125,11 @@ def _serve(tmp_path: Path, *args: str) -> tuple[subprocess.Popen[bytes], Path]:
     log = tmp_path / "serve.log"
     with open(log, "wb") as out:
         argv = [sys.executable, "-m", "kitti_eval.cli", "serve", *args]
-        return subprocess.Popen(argv, env=env, stdout=out, stderr=subprocess.STDOUT, cwd=tmp_path), log
+        umask = os.umask(0o022)  # as a login shell's
+        try:
+            return subprocess.Popen(argv, env=env, stdout=out, stderr=subprocess.STDOUT, cwd=tmp_path), log
+        finally:
+            os.umask(umask)
 
 
 def test_serve_starts_a_worker_with_the_command_and_its_pool_runs_it(tmp_path) -> None:
@@ -138,6 +157,12 @@ def test_serve_starts_a_worker_with_the_command_and_its_pool_runs_it(tmp_path) -
     pids = json.loads(started[0].split(": ", 1)[1].split(" (")[0])
     assert len(pids) >= 1 and sorted(pids) == sorted(children)  # the pool's, all of them its service's
     assert _children_of(proc.pid) == []
+    # what the service wrote is not readable by other users, whatever the umask it was started with (022 here)
+    data = tmp_path / "data"
+    made = [data / "kitti-eval.db", data / "ground-truths", *(data / "ground-truths").rglob("*")]
+    assert len(made) >= 3 and all(p.stat().st_mode & 0o007 == 0 for p in made), [
+        (str(p), oct(p.stat().st_mode)) for p in made
+    ]
 
 
 def test_a_service_that_does_not_start_leaves_no_worker_behind(tmp_path) -> None:
