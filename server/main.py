@@ -24,7 +24,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from kitti_eval import __version__
 
-from .access.auth import CALLER_KEY, AuthMiddleware, Door, access_of, flat_routes
+from .access.auth import CALLER_KEY, AuthMiddleware, Door, access_of, client_of, flat_routes
 from .access.headers import SecurityHeaders
 from .access.policy import Access, Caller
 from .benchmarks.phases import addressed_row
@@ -175,6 +175,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         state=service.admission,
         wait_s=settings.receive_wait_s,
         before_body=before_body,
+        per_client=settings.max_receiving_per_client,
+        client_of=client_of,
     )
     app.add_middleware(RefuseBeforeBody, before_body=before_body)
     # the door: each route's declared access before its body is read (a request without a valid token sends

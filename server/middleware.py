@@ -260,6 +260,7 @@ class _Body:
         self.chunks: deque[bytes] = deque()  # in memory, not yet handed over (while there is no file)
         self.held = 0  # bytes of the memory budget this body holds, until it is closed
         self.unfilled = 0  # of them, reserved for its declared length and not yet arrived
+        self.client_turn_given = False  # its client's turn to send a body, given back once it was read
         self.pending = bytearray()  # not yet written to the file
         self.file: IO[bytes] | None = None
 
@@ -347,6 +348,43 @@ class _Body:
             self.file = None
 
 
+class _ClientTurns:
+    """Turns to send a body, ``per_client`` for each client address: a client holding them all waits for one of
+    its own before it may take one of everyone's. Entries go when no request of their client holds or waits."""
+
+    def __init__(self, per_client: int) -> None:
+        self.per_client = per_client
+        self._turns: dict[str, tuple[anyio.Semaphore, list[int]]] = {}
+
+    async def take(self, client: str, wait_s: float) -> tuple[bool, bool]:
+        """(whether a turn of ``client``'s was taken within ``wait_s``, whether it had to wait)."""
+        turns, users = self._turns.setdefault(client, (anyio.Semaphore(self.per_client), [0]))
+        users[0] += 1
+        waited = turns.value == 0
+        taken = False
+        try:
+            with anyio.move_on_after(wait_s):
+                await turns.acquire()
+                taken = True
+        finally:
+            if not taken:
+                self._leave(client)
+        return taken, waited
+
+    def give(self, client: str) -> None:
+        self._turns[client][0].release()
+        self._leave(client)
+
+    def _leave(self, client: str) -> None:
+        users = self._turns[client][1]
+        users[0] -= 1
+        if users[0] == 0:
+            del self._turns[client]
+
+    def __len__(self) -> int:
+        return len(self._turns)
+
+
 class BodyMiddleware:
     """Receive each request body in full before the app runs: capped, on a deadline, a bounded number at once."""
 
@@ -364,9 +402,15 @@ class BodyMiddleware:
         state: AdmissionState | None = None,
         wait_s: float = 300.0,
         before_body: BeforeBody | None = None,
+        per_client: int | None = None,
+        client_of: Callable[[Scope], str] | None = None,
     ) -> None:
         self.app = app
         self.limit = limit
+        #: turns of each client address (``client_of``), at most ``per_client`` of everyone's at once: 64
+        #: connections of one client that send nothing would otherwise hold every turn until their deadline
+        self.client_turns = _ClientTurns(per_client) if per_client and client_of is not None else None
+        self.client_of = client_of
         self.memory = _Memory(memory_bytes)
         self.memory_wait_s = memory_wait_s
         #: the pace below which a body gives back the room it holds for bytes yet to come (see ``_Body.slow``)
@@ -416,9 +460,45 @@ class BodyMiddleware:
     ) -> None:
         """Wait for a turn to receive (bounded by ``wait_s``), then for room in memory for a body of declared length
         (bounded by ``memory_wait_s``), ask a waiting request's refusals again, receive the body, give the turn
-        back, then run the app on it."""
-        waited = turns.value == 0
-        if waited:
+        back, then run the app on it. A client with ``per_client`` bodies being received waits for one of them to
+        be first (within the same ``wait_s``)."""
+        client = self.client_of(scope) if self.client_turns is not None and self.client_of is not None else None
+        waited = False
+        if client is not None and self.client_turns is not None:
+            self.state.body_waiting += 1
+            try:
+                taken, waited = await self.client_turns.take(client, self.wait_s)
+            finally:
+                self.state.body_waiting -= 1
+            if not taken:
+                retry = self.retry_after_s()
+                message = (
+                    f"this client has {self.client_turns.per_client} request bodies being received "
+                    f"(KITTI_EVAL_MAX_RECEIVING_PER_CLIENT), and none ended within {self.wait_s:g} s "
+                    f"(KITTI_EVAL_RECEIVE_WAIT_S); retry in {retry} s"
+                )
+                headers = {"retry-after": str(retry), "connection": "close"}
+                await _send_json(send, 503, error_body("busy", message), headers)
+                return
+        try:
+            await self._take_turn_and_run(turns, body, scope, receive, send, waited, client)
+        finally:
+            if client is not None and self.client_turns is not None and not body.client_turn_given:
+                self.client_turns.give(client)
+
+    async def _take_turn_and_run(
+        self,
+        turns: anyio.Semaphore,
+        body: _Body,
+        scope: Scope,
+        receive: Receive,
+        send: Send,
+        waited: bool,
+        client: str | None,
+    ) -> None:
+        waited_here = turns.value == 0
+        waited = waited or waited_here
+        if waited_here:
             self.state.body_waiting += 1
             try:
                 with anyio.move_on_after(self.wait_s) as waiting:
@@ -470,6 +550,9 @@ class BodyMiddleware:
                     self.receiving -= 1
         finally:
             turns.release()
+            if client is not None and self.client_turns is not None:  # the client's with everyone's
+                self.client_turns.give(client)
+                body.client_turn_given = True
         if refused is not None:  # answered before the body, as outside
             await self.before_body.answer(refused, scope, receive, send)  # type: ignore[union-attr]
             return

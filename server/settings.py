@@ -195,6 +195,11 @@ class Settings(BaseSettings):
     """Request bodies received at the same time; a request past that waits its turn, its body unread, for up to
     ``receive_wait_s``. Unset: 64, or four times ``max_concurrent_evals`` when that is more."""
 
+    max_receiving_per_client: Annotated[int, Field(ge=0)] = 16
+    """Of those, the bodies one client address (as ``KITTI_EVAL_TRUSTED_PROXIES`` tells it) may send at once; its
+    next waits, unread, for one of its own to end (within ``receive_wait_s``), so that one client's connections that
+    send nothing cannot hold every turn until their deadline. 0: no limit of a client's own."""
+
     receive_wait_s: Annotated[float, Field(ge=0)] = 300.0
     """How long a request waits for its turn to send its body (past ``max_receiving_bodies``) before it is answered
     503 ``busy`` with Retry-After. A benchmark submission over its quota never waits: it is answered at once."""

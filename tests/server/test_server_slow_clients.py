@@ -896,3 +896,56 @@ def test_a_body_arriving_at_pace_keeps_its_room() -> None:
 
     anyio.run(main)
     assert told == [1]
+
+
+def test_one_client_cannot_hold_every_turn_to_send_a_body() -> None:
+    """Four turns, two a client. Client A opens three uploads that send nothing: its third waits, unread, for one
+    of its own (counted among the bodies waiting), while client B's upload takes a turn at once and is answered;
+    past ``wait_s`` A's third is answered 503 ``busy`` naming the setting. Nothing is held afterwards."""
+    app = Recorder()
+    middleware = BodyMiddleware(
+        app, limit=MB, timeout_s=30, max_receiving=4, retry_after_s=lambda: 3, wait_s=1.0,
+        per_client=2, client_of=lambda scope: scope["client"][0],
+    )  # fmt: skip
+    answers: dict[str, list[dict]] = {}
+    read: dict[str, int] = {}
+
+    def request(name: str, address: str, chunks: list[dict]):
+        pending = list(chunks)
+        answers[name], read[name] = [], 0
+
+        async def receive() -> dict:
+            read[name] += 1
+            if pending:
+                return pending.pop(0)
+            await anyio.sleep_forever()
+            raise AssertionError("unreachable")
+
+        async def send(message: dict) -> None:
+            answers[name].append(message)
+
+        head = [(b"content-length", b"5")]
+        scope = {"type": "http", "method": "POST", "path": "/x", "headers": head, "client": (address, 1)}
+        return middleware(scope, receive, send)
+
+    async def main() -> None:
+        async with anyio.create_task_group() as tg:
+            for i in range(3):
+                tg.start_soon(request, f"a{i}", "10.0.0.1", [])  # sends nothing
+                await anyio.sleep(0.02)
+            assert middleware.state.body_waiting == 1 and read["a2"] == 0
+            tg.start_soon(request, "b", "10.0.0.2", [{"type": "http.request", "body": b"12345"}])
+            await anyio.sleep(0.1)
+            assert app.body == b"12345"  # B was not held behind A
+            await anyio.sleep(1.2)  # past wait_s: A's third is answered
+            tg.cancel_scope.cancel()
+
+    anyio.run(main)
+    statuses = {
+        name: [m["status"] for m in sent if m["type"] == "http.response.start"] for name, sent in answers.items()
+    }
+    assert statuses == {"a0": [], "a1": [], "a2": [503], "b": [200]}, statuses
+    body = json.loads(next(m["body"] for m in answers["a2"] if m["type"] == "http.response.body"))
+    assert body["error"]["code"] == "busy" and "KITTI_EVAL_MAX_RECEIVING_PER_CLIENT" in body["error"]["message"]
+    assert read["a2"] == 0  # not a byte of it read
+    assert middleware.receiving == 0 and len(middleware.client_turns) == 0  # type: ignore[arg-type]
