@@ -36,9 +36,12 @@ def _check(place: Path, folder: Path, setting: str) -> None:
         uid, gid = os.getuid(), os.getgid()
         reason = e.strerror or type(e).__name__
         what = f"the data folder {folder}" if place == folder else f"{place} in the data folder"
+        # the folder to give the uid: this one, or, where it could not be made, the nearest that exists
+        target = next((p for p in (place, *place.parents) if p.exists()), place)
+        mine = "it" if target == place else str(target)
         raise StartupRefused(
             f"{what} cannot be written by uid {uid} (gid {gid}): {reason}; give the service a "
-            f"folder or volume this uid may write (chown {uid}:{gid} it, or in Kubernetes set the pod's "
+            f"folder or volume this uid may write (chown {uid}:{gid} {mine}, or in Kubernetes set the pod's "
             f"securityContext.fsGroup to {gid}), or point {setting} at one"
         ) from None
 

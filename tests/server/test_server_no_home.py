@@ -89,6 +89,8 @@ def test_an_unwritable_data_folder_is_one_sentence_naming_it_the_uid_and_the_fix
     message = e.value.message
     assert message.startswith(f"the data folder {folder} cannot be written by uid {os.getuid()} (gid {os.getgid()})")
     assert "fsGroup" in message and "KITTI_EVAL_DATA_DIR" in message and "\n" not in message
+    # the folder could not be made: the one to give the uid is the nearest that exists (here a file in the way)
+    assert f"(chown {os.getuid()}:{os.getgid()} {blocker}," in message
     service = Service(Settings(data_dir=folder, register_demo=False, warmup=False, job_threads=0))
     with pytest.raises(StartupRefused, match="cannot be written by uid"):
         service.start()
