@@ -147,30 +147,31 @@ def child_main(argv: Sequence[str] | None = None) -> int:
     if settings.database_url is None:
         log.error("a worker process needs KITTI_EVAL_DATABASE_URL")
         return EXIT_USAGE
-    service = Service(settings)
-    if os.environ.get("PROMETHEUS_MULTIPROC_DIR"):  # counted with the service's, in its scrape
-        service.workers.on_ended = Metrics().job_ended
     starting = threading.Event()
     starting.set()
+    service: Service | None = None
     try:
-        stop = _stop_on_signals(starting)
-        try:
-            service.run_jobs(nice=settings.worker_nice)  # accepting before evaluating, once warm
-            starting.clear()
-        except StartupRefused as e:  # said in one line of the log, not a traceback
-            log.error("worker process %d: %s", os.getpid(), e.message)
-            return EXIT_USAGE
-        except _StoppedWhileStarting:
-            log.info("worker process %d: stopped while starting", os.getpid())
-            return EXIT_OK
+        stop = _stop_on_signals(starting)  # until then, SIGTERM ends the process (the pool counts that as clean)
+        service = Service(settings)
+        if os.environ.get("PROMETHEUS_MULTIPROC_DIR"):  # counted with the service's, in its scrape
+            service.workers.on_ended = Metrics().job_ended
+        service.run_jobs(nice=settings.worker_nice)  # accepting before evaluating, once warm
+        starting.clear()
         log.info("worker process %d: %d thread(s) on %s", os.getpid(), args.threads, _where(settings.database_url))
         while not stop.wait(0.5):
             if args.parent is not None and os.getppid() != args.parent:
                 log.warning("worker process %d: the process that started it is gone", os.getpid())
                 break
         released = service.workers.stop(args.grace)
+    except StartupRefused as e:  # said in one line of the log, not a traceback
+        log.error("worker process %d: %s", os.getpid(), e.message)
+        return EXIT_USAGE
+    except _StoppedWhileStarting:
+        log.info("worker process %d: stopped while starting", os.getpid())
+        return EXIT_OK
     finally:
-        service.stop(grace_s=0)
+        if service is not None:
+            service.stop(grace_s=0)
     log.info("worker process %d: stopped (%d running job(s) released)", os.getpid(), released)
     return EXIT_OK
 

@@ -345,6 +345,20 @@ def test_an_idle_worker_or_one_still_warming_its_kernels_ends_within_seconds_of_
         store.dispose()
 
 
+def test_a_worker_stopped_as_its_processes_start_exits_0_at_once(tmp_path) -> None:
+    """SIGTERM as soon as ``kitti-eval worker`` has started its process, still importing (no handler of its own
+    yet): the process ends by that signal, holding no job, and the command exits 0 within seconds, not 1 for
+    a process that "did not stop cleanly"."""
+    data_dir = tmp_path / "data"
+    with app_client(data_dir, ready=False, job_threads=0, warmup=False):
+        pass  # the service's database, with its tables
+    proc, log_path = _worker(data_dir, "--processes", "1")
+    _until(lambda: "worker processes of 1 thread(s)" in log_path.read_text(), 120, "the worker process", log_path)
+    assert _stopped_within(proc, log_path, 5.0) < 5.0
+    assert "kitti-eval worker: stopped" in log_path.read_text()
+    assert "did not exit cleanly" not in log_path.read_text()
+
+
 def test_an_idle_serve_ends_within_seconds_of_sigterm(tmp_path) -> None:
     """``kitti-eval serve`` (the image's command) with a worker process of its own, nothing running: SIGTERM
     ends it, its drain and its worker process's, within seconds (``docker stop`` waits for it)."""
