@@ -4,10 +4,12 @@
     python scripts/container_smoke.py                     # build, start, check, clean up
     python scripts/container_smoke.py --no-build --image kitti-eval:latest
     python scripts/container_smoke.py --build-network host --network host   # Docker without a bridge
+    python scripts/container_smoke.py --build-arg BASE=kitti-base:bookworm  # another base image
     python scripts/container_smoke.py --database-url postgresql://user:pw@host:5432/empty_db
     python scripts/container_smoke.py --user 12345:0 --read-only     # as a cluster runs it (see below)
     python scripts/container_smoke.py --user 12345:12345 --read-only --no-home   # any uid, no HOME
     python scripts/container_smoke.py --compose           # compose.yaml: up -d --wait exits 0, down is quick
+    python scripts/container_smoke.py --compose --compose-command docker-compose --compose-file override.yaml
 
 It starts a container on a fresh volume, waits for ``/readyz``, uploads the bundled demo predictions
 against the ``demo`` ground truth and checks the numbers against ``kitti-eval demo --format json`` (run in
@@ -24,7 +26,9 @@ compile nothing (no warning about numba's cache in its log) and pass every check
 
 ``--user UID:GID`` with a group other than root's first starts the image on a fresh volume the uid may not
 write, which must exit 2 with one line naming the folder and the uid (no traceback), then gives the volume to the
-uid as Kubernetes' ``fsGroup`` would (a one-off ``chown`` as root) and runs every check. ``--no-home`` starts
+uid as Kubernetes' ``fsGroup`` would (a one-off ``chown`` as root) and runs every check, the volume mounted
+``:nocopy`` (while a named volume is empty, Docker copies the image's ``/data``, its owner too, onto it at every
+mount, which would undo the ``chown``). ``--no-home`` starts
 the service (and ``kitti-eval demo``) with no HOME in its environment (``env -u HOME``), as ``env -i`` and some
 init systems do.
 
@@ -33,7 +37,13 @@ request and none for the probes (``/healthz``, ``/readyz``, ``/metrics``), and n
 cache.
 
 ``--compose`` checks compose.yaml instead: ``docker compose up -d --wait`` (the image built, PostgreSQL, the
-service and a worker) exits 0 once every service is healthy, and ``docker compose down`` ends within 20 s.
+service and a worker) exits 0 once every service is healthy, and ``docker compose down`` ends within 20 s, each
+container within 10 s of its stop signal (Docker's events say when each was signalled and when it exited).
+It needs Compose v2 (``docker compose``) and says so when it is missing; ``--compose-command docker-compose``
+runs Compose v1 (1.29) instead, which has no ``--wait``: ``up -d``, then every container's health polled until
+all are healthy, which is what ``--wait`` does (v1 builds the image only when ``kitti-eval:local`` is not there
+yet). ``--compose-file FILE`` (repeatable) is read after compose.yaml: an override for a test run, e.g. another
+image for ``db`` where ``postgres:16`` cannot be pulled.
 
 On ``--network host`` there is no port mapping, so the image's command (port 8000) is replaced by
 ``kitti-eval serve`` on the chosen port and its HEALTHCHECK (which probes port 8000) is not run.
@@ -47,6 +57,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import shutil
 import socket
 import subprocess
@@ -56,6 +67,7 @@ import urllib.error
 import urllib.request
 import uuid
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO_PREDICTIONS = ROOT / "kitti_eval" / "data" / "demo" / "result.pkl.gz"
@@ -198,7 +210,8 @@ def smoke(args: argparse.Namespace) -> dict[str, str]:
         say(f"...   docker build -t {args.image} {ROOT}")
         start = time.monotonic()
         network = ["--network", args.build_network] if args.build_network else []
-        build = ["build", "-t", args.image, *network, str(ROOT)]
+        build_args = [arg for value in args.build_arg for arg in ("--build-arg", value)]
+        build = ["build", "-t", args.image, *network, *build_args, str(ROOT)]
         docker(*build, timeout=3600)
         figures["image build"] = f"{time.monotonic() - start:.1f} s"
         check(True, f"the image builds ({figures['image build']})")
@@ -233,6 +246,9 @@ def smoke(args: argparse.Namespace) -> dict[str, str]:
         docker(
             "run", "--rm", "--user", "0:0", "-v", f"{volume}:/data", "--entrypoint", "chown", args.image, owner, "/data"
         )
+        # and mounted without Docker's copy of the image's /data: while the volume is empty, Docker (20.10) copies
+        # the image's folder, its owner too, onto it at every mount, which would undo the chown
+        run[run.index(f"{volume}:/data")] = f"{volume}:/data:nocopy"
     try:
         start = time.monotonic()
         docker(*run)
@@ -345,37 +361,144 @@ def refused_on_a_volume_it_may_not_write(args: argparse.Namespace, volume: str) 
     say(f"      {json.loads(lines[0])['message'] if lines[0].startswith('{') else lines[0]}")
 
 
+def compose_command(args: argparse.Namespace) -> tuple[list[str], bool]:
+    """The compose command (``--compose-command``, default ``docker compose``) and whether it is v2 (it has
+    ``up --wait``); fails with what to do when it is not there."""
+    command = shlex.split(args.compose_command)
+    try:
+        version = subprocess.run([*command, "version"], capture_output=True, text=True, timeout=60)
+    except OSError as e:
+        version = subprocess.CompletedProcess(command, 127, "", str(e))
+    if version.returncode != 0:
+        raise SmokeFailure(
+            f"{args.compose_command} is not there ({(version.stderr or version.stdout).strip()[-300:]}): install "
+            "Docker Compose v2 (the docker-compose-plugin package), or give --compose-command docker-compose "
+            "(v1, which has no --wait: the script then polls every container's health as --wait does)"
+        )
+    first = version.stdout.strip().splitlines()[0] if version.stdout.strip() else ""
+    v1 = first.startswith("docker-compose version 1.")
+    say(f"...   {args.compose_command}: {first}" + (" (v1: up -d, then the health polled as --wait does)" * v1))
+    return command, not v1
+
+
+def project_containers(project: str) -> list[dict[str, Any]]:
+    """``docker inspect`` of every container of the compose project (by compose's label: v1 and v2 set it)."""
+    ids = docker("ps", "-a", "-q", "--filter", f"label=com.docker.compose.project={project}").stdout.split()
+    return list(json.loads(docker("inspect", *ids).stdout)) if ids else []
+
+
+def health_of(containers: list[dict[str, Any]]) -> dict[str, str]:
+    """Each container's name and its health (or its state when it has no healthcheck or stopped)."""
+    states = {}
+    for c in containers:
+        state = c["State"]
+        health = (state.get("Health") or {}).get("Status")
+        states[c["Name"].lstrip("/")] = health if state.get("Running") and health else f"{state.get('Status')}"
+    return states
+
+
+def wait_all_healthy(project: str, timeout: float) -> dict[str, str]:
+    """What ``up --wait`` does: until every container of the project is healthy, or one is unhealthy or not
+    running, or time runs out; the last states."""
+    deadline = time.monotonic() + timeout
+    while True:
+        states = health_of(project_containers(project))
+        settled = states and all(s != "starting" for s in states.values())
+        if settled or time.monotonic() > deadline:
+            return states
+        time.sleep(1)
+
+
+def stop_times(project: str, since: float, until: float) -> dict[str, float]:
+    """Seconds from Docker's first signal to each container of the project (its stop signal, or the SIGKILL
+    at the end of its grace period) to its exit, from Docker's events between ``since`` and ``until``."""
+    events = docker(
+        "events",
+        "--since",
+        f"{since:.3f}",
+        "--until",
+        f"{until + 1:.3f}",
+        "--format",
+        "{{json .}}",
+        "--filter",
+        "type=container",
+        "--filter",
+        f"label=com.docker.compose.project={project}",
+        "--filter",
+        "event=kill",
+        "--filter",
+        "event=die",
+        timeout=60,
+    ).stdout
+    signalled: dict[str, float] = {}
+    stopped: dict[str, float] = {}
+    for line in events.splitlines():
+        event = json.loads(line)
+        name = str(event["Actor"]["Attributes"].get("com.docker.compose.service", event["Actor"]["ID"][:12]))
+        at = int(event["timeNano"]) / 1e9
+        if event["Action"] == "kill":
+            signalled.setdefault(name, at)
+        elif event["Action"] == "die":
+            stopped.setdefault(name, at)
+    return {name: stopped[name] - signalled.get(name, stopped[name]) for name in sorted(stopped)}
+
+
 def compose_smoke(args: argparse.Namespace) -> dict[str, str]:
     """compose.yaml as an operator scripts it: ``up -d --wait`` exits 0 with every service healthy (the worker's
     healthcheck too), and ``down`` is quick with nothing running."""
     figures: dict[str, str] = {}
+    command, v2 = compose_command(args)
     project = f"kitti-eval-smoke-{uuid.uuid4().hex[:8]}"
     env = {**os.environ, "POSTGRES_PASSWORD": uuid.uuid4().hex, "KITTI_EVAL_PORT": str(args.port or free_port())}
-    compose = ["docker", "compose", "--project-directory", str(ROOT), "-p", project]
+    files = [arg for f in [ROOT / "compose.yaml", *args.compose_file] for arg in ("-f", str(f))]
+    compose = [*command, "--project-directory", str(ROOT), *files, "-p", project]
 
     def run(*more: str, timeout: float) -> subprocess.CompletedProcess[str]:
         return subprocess.run([*compose, *more], env=env, capture_output=True, text=True, timeout=timeout)
 
+    wait_s = args.ready_timeout + 120
     try:
         start = time.monotonic()
-        up = run("up", "-d", "--wait", "--wait-timeout", str(int(args.ready_timeout) + 120), timeout=3600)
-        figures["compose up --wait"] = f"{time.monotonic() - start:.1f} s"
+        if v2:
+            up = run("up", "-d", "--wait", "--wait-timeout", str(int(wait_s)), timeout=3600)
+            what = "docker compose up -d --wait exits 0 with every service healthy"
+        else:
+            up = run("up", "-d", timeout=3600)
+            if up.returncode == 0:
+                states = wait_all_healthy(project, wait_s)
+                if any(s != "healthy" for s in states.values()):
+                    up = subprocess.CompletedProcess(up.args, 1, up.stdout, f"not healthy: {states}")
+            what = f"{args.compose_command} up -d, then every container healthy (as --wait)"
+        figures["compose up, all healthy"] = f"{time.monotonic() - start:.1f} s"
         check(
             up.returncode == 0,
-            f"docker compose up -d --wait exits 0 with every service healthy ({figures['compose up --wait']})",
+            f"{what} ({figures['compose up, all healthy']})",
             f"exit {up.returncode}: {up.stderr[-1500:]}",
         )
-        states = run("ps", "--format", "json", timeout=60).stdout
-        services = [json.loads(line) for line in states.splitlines() if line.strip().startswith("{")]
-        unhealthy = [f"{s.get('Service')}: {s.get('Health')}" for s in services if s.get("Health") != "healthy"]
-        check(bool(services) and not unhealthy, "every service reports healthy", "; ".join(unhealthy))
+        states = health_of(project_containers(project))
+        unhealthy = [f"{name}: {state}" for name, state in states.items() if state != "healthy"]
+        services = ", ".join(sorted(states))
+        check(len(states) >= 3 and not unhealthy, f"every service reports healthy ({services})", "; ".join(unhealthy))
     finally:
+        since = time.time()
         start = time.monotonic()
         down = run("down", "-v", timeout=300)
-        figures["compose down"] = f"{time.monotonic() - start:.1f} s"
+        down_s = time.monotonic() - start
+        figures["compose down"] = f"{down_s:.1f} s"
+        stops = stop_times(project, since, time.time())
+        if stops:
+            figures["each container, signal to exit"] = ", ".join(f"{n} {s:.1f} s" for n, s in stops.items())
+    slow = [f"{name} {took:.1f} s" for name, took in stops.items() if took >= 10]
     check(
-        down.returncode == 0 and time.monotonic() - start < 20,
-        f"docker compose down ends within 20 s ({figures['compose down']})",
+        bool(stops) and not slow,
+        f"every container ends within 10 s of its stop signal ({figures.get('each container, signal to exit')})",
+        f"{', '.join(slow) or 'no stop events'} (compose waits for each, dependents first, up to its "
+        "stop_grace_period)",
+    )
+    check(
+        down.returncode == 0 and down_s < 20,
+        f"{args.compose_command} down ends within 20 s ({figures['compose down']}; "
+        f"{figures.get('each container, signal to exit', 'no stop events')})",
         down.stderr[-800:],
     )
     return figures
@@ -393,6 +516,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--build-network", default="", help="docker build's --network, e.g. host")
     parser.add_argument(
+        "--build-arg",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="docker build's --build-arg, e.g. BASE=kitti-base:bookworm (the image both stages start from); repeatable",
+    )
+    parser.add_argument(
         "--database-url",
         default="",
         help="KITTI_EVAL_DATABASE_URL for the container (default: its SQLite database in the volume); "
@@ -409,6 +539,20 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--compose", action="store_true", help="check compose.yaml instead: up -d --wait exits 0, down is quick"
+    )
+    parser.add_argument(
+        "--compose-command",
+        default="docker compose",
+        help="with --compose: the compose command (default 'docker compose', v2); 'docker-compose' (v1) has no "
+        "--wait, so the script runs up -d and polls every container's health as --wait does",
+    )
+    parser.add_argument(
+        "--compose-file",
+        action="append",
+        default=[],
+        type=Path,
+        metavar="FILE",
+        help="with --compose: a file read after compose.yaml (an override, e.g. another image for db); repeatable",
     )
     parser.add_argument("--ready-timeout", type=float, default=180, help="seconds to wait for /readyz")
     parser.add_argument("--keep", action="store_true", help="leave the container and its volume")

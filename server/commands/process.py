@@ -48,12 +48,23 @@ def default_processes() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _stop_on_signals() -> threading.Event:
-    """An event set by SIGTERM or SIGINT (any number of them: each drains, none stops at once)."""
+class _StoppedWhileStarting(BaseException):
+    """SIGTERM or SIGINT while a worker process was still starting: it holds no job, so nothing is drained (a
+    BaseException, as KeyboardInterrupt: no `except Exception` on the way swallows it)."""
+
+
+def _stop_on_signals(starting: threading.Event | None = None) -> threading.Event:
+    """An event set by SIGTERM or SIGINT (any number of them: each drains, none stops at once). While
+    ``starting`` is set (a worker process opening the database and warming its kernels, which takes a minute
+    where every core of a machine compiles them), a signal also raises :class:`_StoppedWhileStarting` in the main
+    thread: the process has no job to drain and ends at once, instead of after its warm-up."""
     stop = threading.Event()
 
     def on_signal(sig: int, frame: FrameType | None) -> None:
         stop.set()
+        if starting is not None and starting.is_set():
+            starting.clear()  # raised once
+            raise _StoppedWhileStarting
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
@@ -131,29 +142,36 @@ def child_main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--grace", type=float, default=30.0)
     p.add_argument("--parent", type=int, help="drain when this process is gone")
     args = p.parse_args(argv)
-    stop = _stop_on_signals()
     settings = Settings(data_dir=args.work_dir, job_threads=args.threads, register_demo=False, warmup=False)
     configure_logging(settings.log_format)
     if settings.database_url is None:
         log.error("a worker process needs KITTI_EVAL_DATABASE_URL")
         return EXIT_USAGE
-    service = Service(settings)
-    if os.environ.get("PROMETHEUS_MULTIPROC_DIR"):  # counted with the service's, in its scrape
-        service.workers.on_ended = Metrics().job_ended
+    starting = threading.Event()
+    starting.set()
+    service: Service | None = None
     try:
-        try:
-            service.run_jobs(nice=settings.worker_nice)  # accepting before evaluating, once warm
-        except StartupRefused as e:  # said in one line of the log, not a traceback
-            log.error("worker process %d: %s", os.getpid(), e.message)
-            return EXIT_USAGE
+        stop = _stop_on_signals(starting)  # until then, SIGTERM ends the process (the pool counts that as clean)
+        service = Service(settings)
+        if os.environ.get("PROMETHEUS_MULTIPROC_DIR"):  # counted with the service's, in its scrape
+            service.workers.on_ended = Metrics().job_ended
+        service.run_jobs(nice=settings.worker_nice)  # accepting before evaluating, once warm
+        starting.clear()
         log.info("worker process %d: %d thread(s) on %s", os.getpid(), args.threads, _where(settings.database_url))
         while not stop.wait(0.5):
             if args.parent is not None and os.getppid() != args.parent:
                 log.warning("worker process %d: the process that started it is gone", os.getpid())
                 break
         released = service.workers.stop(args.grace)
+    except StartupRefused as e:  # said in one line of the log, not a traceback
+        log.error("worker process %d: %s", os.getpid(), e.message)
+        return EXIT_USAGE
+    except _StoppedWhileStarting:
+        log.info("worker process %d: stopped while starting", os.getpid())
+        return EXIT_OK
     finally:
-        service.stop(grace_s=0)
+        if service is not None:
+            service.stop(grace_s=0)
     log.info("worker process %d: stopped (%d running job(s) released)", os.getpid(), released)
     return EXIT_OK
 

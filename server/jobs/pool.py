@@ -130,7 +130,7 @@ class WorkerPool:
     def stop(self, grace_s: float | None = None) -> bool:
         """Drain every process (SIGTERM) and wait for it to exit: ``grace_s`` (default the pool's) for its
         running jobs, and a little more for its exit; one still there after that is killed. True when every
-        process exited 0."""
+        process exited 0, or was ended by that SIGTERM before it had a handler for it (it was still starting)."""
         grace = self.grace_s if grace_s is None else grace_s
         self._stopping.set()
         if self._watch is not None:
@@ -155,7 +155,8 @@ class WorkerPool:
                 log.error("worker process %d did not exit within %.0f s of SIGTERM: killed", proc.pid, grace)
                 proc.kill()
                 code = proc.wait()
-            clean = clean and code == 0
+            # ended by this SIGTERM before it caught it (still importing): it held no job, it stopped as asked
+            clean = clean and code in (0, -signal.SIGTERM)
         return clean
 
     @property

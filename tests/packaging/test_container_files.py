@@ -65,6 +65,21 @@ def test_the_smoke_script_fails_when_docker_does(tmp_path: Path, monkeypatch: py
     assert capsys.readouterr().out == "FAIL  no docker command\n"
 
 
+def test_the_compose_check_says_what_to_do_without_compose_v2(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys
+) -> None:
+    """Docker without its compose plugin answers ``docker compose`` with "unknown command": the check fails with
+    one line naming v2's package and v1's path (``--compose-command docker-compose``), not a compose traceback."""
+    fake = tmp_path / "docker"
+    fake.write_text('#!/bin/sh\necho "docker: unknown command: docker $1" >&2\nexit 1\n')
+    fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    assert smoke.main(["--compose"]) == 1
+    out = capsys.readouterr().out
+    assert out.startswith("FAIL  docker compose is not there (docker: unknown command: docker compose)")
+    assert "--compose-command docker-compose" in out and out.count("\n") == 1
+
+
 def _compose() -> dict[str, Any]:
     yaml = pytest.importorskip("yaml")
     return dict(yaml.safe_load((ROOT / "compose.yaml").read_text()))

@@ -1,7 +1,8 @@
 """Workers and worker processes under faults: a job that fails again and again is failed with its reason after
 its attempts; a draining worker lets its running job finish, or past its grace gives it back to the queue; a
 worker process killed mid-batch loses nothing and stores nothing twice; SIGTERM drains ``kitti-eval worker``,
-which exits 0 with nothing left running."""
+which exits 0 with nothing left running, and ends an idle one, warm or still warming its kernels, and an idle
+``kitti-eval serve`` within seconds."""
 
 from __future__ import annotations
 
@@ -282,6 +283,99 @@ def test_sigterm_drains_a_worker_and_it_exits_0(tmp_path, grace: str) -> None:
         assert f"job {first} evaluation released" in text
     assert "kitti-eval worker: stopped" in text and f"worker process {pid}: stopped" in text
     store.dispose()
+
+
+def _catches_sigterm(pid: int) -> bool:
+    """The process has a handler of its own for SIGTERM (its SigCgt mask in /proc)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    caught = next(int(line.split()[1], 16) for line in status.splitlines() if line.startswith("SigCgt:"))
+    return bool(caught & (1 << (signal.SIGTERM - 1)))
+
+
+def _stopped_within(proc: subprocess.Popen[bytes], log_path: Path, limit_s: float) -> float:
+    """SIGTERM to ``proc``: the seconds until it exited 0, at most ``limit_s`` (``docker stop`` and compose's
+    ``down`` wait for this, then kill)."""
+    sent = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    try:
+        code = proc.wait(limit_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        raise AssertionError(f"still running {limit_s} s after SIGTERM:\n{log_path.read_text()[-3000:]}") from None
+    assert code == 0, log_path.read_text()[-3000:]
+    return time.monotonic() - sent
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads a process's signal handlers in /proc")
+def test_an_idle_worker_or_one_still_warming_its_kernels_ends_within_seconds_of_sigterm(tmp_path) -> None:
+    """``docker stop`` of a worker container, and compose's ``down``, send SIGTERM and wait: with no job running
+    the worker must end within seconds, polling or still warming its kernels (a worker process compiling them,
+    where no cache fits, went on for the whole warm-up, a minute where every core compiles, before it drained)."""
+    data_dir = tmp_path / "data"
+    with app_client(data_dir, ready=False, job_threads=0, warmup=False):
+        pass  # the service's database, with its tables
+    store = Store(f"sqlite:///{data_dir / 'kitti-eval.db'}")
+    queue = JobQueue.of(store)
+    try:
+        # polling for jobs: recorded on the database, then SIGTERM
+        proc, log_path = _worker(data_dir, "--processes", "1")
+        _until(lambda: queue.workers_seen(60), 120, "a worker process on the database", log_path)
+        assert _stopped_within(proc, log_path, 5.0) < 5.0
+        # still warming: an empty kernel cache, SIGTERM once the worker process catches it (it is starting)
+        cold = tmp_path / "empty-numba-cache"
+        cold.mkdir()
+        proc, log_path = _worker(data_dir, "--processes", "1", NUMBA_CACHE_DIR=str(cold))
+        started = _until(
+            lambda: re.search(r"worker processes of 1 thread\(s\): \[(\d+)\]", log_path.read_text()),
+            120,
+            "the worker process",
+            log_path,
+        )
+        pid = int(started.group(1))
+        _until(lambda: _catches_sigterm(pid), 120, "the worker process's SIGTERM handler", log_path)
+        assert not queue.workers_seen(60), "warm already: the test needs a worker process still starting"
+        assert _stopped_within(proc, log_path, 5.0) < 5.0
+        assert not _alive(pid)
+        assert f"worker process {pid}: stopped while starting" in log_path.read_text()
+    finally:
+        store.dispose()
+
+
+def test_a_worker_stopped_as_its_processes_start_exits_0_at_once(tmp_path) -> None:
+    """SIGTERM as soon as ``kitti-eval worker`` has started its process, still importing (no handler of its own
+    yet): the process ends by that signal, holding no job, and the command exits 0 within seconds, not 1 for
+    a process that "did not stop cleanly"."""
+    data_dir = tmp_path / "data"
+    with app_client(data_dir, ready=False, job_threads=0, warmup=False):
+        pass  # the service's database, with its tables
+    proc, log_path = _worker(data_dir, "--processes", "1")
+    _until(lambda: "worker processes of 1 thread(s)" in log_path.read_text(), 120, "the worker process", log_path)
+    assert _stopped_within(proc, log_path, 5.0) < 5.0
+    assert "kitti-eval worker: stopped" in log_path.read_text()
+    assert "did not exit cleanly" not in log_path.read_text()
+
+
+def test_an_idle_serve_ends_within_seconds_of_sigterm(tmp_path) -> None:
+    """``kitti-eval serve`` (the image's command) with a worker process of its own, nothing running: SIGTERM
+    ends it, its drain and its worker process's, within seconds (``docker stop`` waits for it)."""
+    from server_helpers import LiveServer
+
+    server = LiveServer(tmp_path / "data", via_serve=True, job_threads=0, worker_processes=1).start()
+    try:
+        assert server.proc is not None
+        sent = time.monotonic()
+        server.proc.send_signal(signal.SIGTERM)
+        code = server.proc.wait(60)
+        took = time.monotonic() - sent
+    finally:
+        server.stop()
+    assert code in (0, -signal.SIGTERM), server.log()  # uvicorn raises the signal again once it has stopped
+    assert took < 5.0, f"{took:.1f} s after SIGTERM:\n{server.log()[-3000:]}"
+    assert "worker process" in server.log() and "stopped (0 running job(s) released)" in server.log()
 
 
 @pytest.mark.slow
