@@ -208,7 +208,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     )
     jl = jobs.add_parser("list", help="jobs of every owner, newest first (the counts by state on stderr)")
     jl.add_argument("--state", choices=["queued", "running", "done", "failed", "cancelled"])
-    jl.add_argument("--limit", type=int, default=50, help="at most this many rows (default 50; the counts are of all)")
+    jl.add_argument("--limit", type=int, default=50)
     jobs.add_parser("cancel", help="cancel a queued or running job (its result is not stored)").add_argument("job_id")
     jobs.add_parser("rerun", help="queue an ended job again (a failed or cancelled evaluation)").add_argument("job_id")
 
