@@ -36,8 +36,9 @@ def _check(place: Path, folder: Path, setting: str) -> None:
         uid, gid = os.getuid(), os.getgid()
         reason = e.strerror or type(e).__name__
         what = f"the data folder {folder}" if place == folder else f"{place} in the data folder"
-        # the folder to give the uid: this one, or, where it could not be made, the nearest that exists
-        target = next((p for p in (place, *place.parents) if p.exists()), place)
+        # the folder to give the uid: this one, or, where it could not be made, the nearest that exists (os.path's
+        # exists: a folder the uid may not even look into is not one it could be told to fix, and raises no error)
+        target = next((p for p in (place, *place.parents) if os.path.exists(p)), place)
         mine = "it" if target == place else str(target)
         raise StartupRefused(
             f"{what} cannot be written by uid {uid} (gid {gid}): {reason}; give the service a "
