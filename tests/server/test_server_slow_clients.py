@@ -244,9 +244,9 @@ def call(
     return sent
 
 
-async def post(app, path: str, messages: list[dict], sent: list[dict]) -> None:
-    """One chunked POST to ``path`` through ``app`` whose body arrives as ``messages`` (then nothing, ever); what
-    it sends back is appended to ``sent``."""
+async def post(app, path: str, messages: list[dict], sent: list[dict], declared: int | None = None) -> None:
+    """One POST to ``path`` through ``app`` whose body arrives as ``messages`` (then nothing, ever), chunked, or
+    with a Content-Length of ``declared``; what it sends back is appended to ``sent``."""
     pending = list(messages)
 
     async def receive() -> dict:
@@ -258,8 +258,8 @@ async def post(app, path: str, messages: list[dict], sent: list[dict]) -> None:
     async def send(message: dict) -> None:
         sent.append(message)
 
-    scope = {"type": "http", "method": "POST", "path": path, "headers": [(b"transfer-encoding", b"chunked")]}
-    await app(scope, receive, send)
+    head = [(b"transfer-encoding", b"chunked")] if declared is None else [(b"content-length", str(declared).encode())]
+    await app({"type": "http", "method": "POST", "path": path, "headers": head}, receive, send)
 
 
 def chunks_of(data: bytes, size: int = 64 * 1024) -> list[dict]:
@@ -629,22 +629,9 @@ class Holding:
         await send({"type": "http.response.body", "body": b"ok"})
 
 
-async def post_declared(app, path: str, data: bytes, sent: list[dict] | None = None) -> None:
+async def post_declared(app, path: str, data: bytes) -> None:
     """One POST of ``data`` with its Content-Length, as curl sends a file."""
-    pending = chunks_of(data)
-
-    async def receive() -> dict:
-        if pending:
-            return pending.pop(0)
-        await anyio.sleep_forever()
-        raise AssertionError("unreachable")
-
-    async def send(message: dict) -> None:
-        if sent is not None:
-            sent.append(message)
-
-    head = [(b"content-length", str(len(data)).encode())]
-    await app({"type": "http", "method": "POST", "path": path, "headers": head}, receive, send)
+    await post(app, path, chunks_of(data), [], declared=len(data))
 
 
 def holding_middleware(app, tmp_path: Path, **kwargs) -> BodyMiddleware:
@@ -844,25 +831,12 @@ def test_a_body_that_sends_too_slowly_gives_back_the_room_it_held(spools, tmp_pa
     sent: list[dict] = []
     took: dict[str, float] = {}
 
-    async def silent() -> None:
-        pending = [{"type": "http.request", "body": b"x" * (64 * 1024), "more_body": True}]
-
-        async def receive() -> dict:
-            if pending:
-                return pending.pop(0)
-            await anyio.sleep_forever()
-            raise AssertionError("unreachable")
-
-        async def send(message: dict) -> None:
-            sent.append(message)
-
-        head = [(b"content-length", str(3 * MB).encode())]
-        await middleware({"type": "http", "method": "POST", "path": "/silent", "headers": head}, receive, send)
+    start = [{"type": "http.request", "body": b"x" * (64 * 1024), "more_body": True}]  # then nothing
 
     async def main() -> None:
         started = anyio.current_time()
         async with anyio.create_task_group() as tg:
-            tg.start_soon(silent)
+            tg.start_soon(post, middleware, "/silent", start, sent, 3 * MB)
             await anyio.sleep(0.05)
             assert middleware.memory.held == 3 * MB  # the silent one's reservation
             tg.start_soon(post_declared, middleware, "/second", second)
