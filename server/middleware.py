@@ -260,7 +260,6 @@ class _Body:
         self.chunks: deque[bytes] = deque()  # in memory, not yet handed over (while there is no file)
         self.held = 0  # bytes of the memory budget this body holds, until it is closed
         self.unfilled = 0  # of them, reserved for its declared length and not yet arrived
-        self.client_turn_given = False  # its client's turn to send a body, given back once it was read
         self.pending = bytearray()  # not yet written to the file
         self.file: IO[bytes] | None = None
 
@@ -458,47 +457,72 @@ class BodyMiddleware:
     async def _receive_and_run(
         self, turns: anyio.Semaphore, body: _Body, scope: Scope, receive: Receive, send: Send
     ) -> None:
-        """Wait for a turn to receive (bounded by ``wait_s``), then for room in memory for a body of declared length
-        (bounded by ``memory_wait_s``), ask a waiting request's refusals again, receive the body, give the turn
-        back, then run the app on it. A client with ``per_client`` bodies being received waits for one of them to
-        be first (within the same ``wait_s``)."""
-        client = self.client_of(scope) if self.client_turns is not None and self.client_of is not None else None
+        """Receive the body in its turns (:meth:`_receive_in_turn`), then answer a refusal asked again after a
+        wait, or run the app on the body, or answer why there is none."""
+        received = await self._receive_in_turn(turns, body, scope, receive, send)
+        if received is None:  # answered already
+            return
+        outcome, refused = received
+        if refused is not None:  # answered before the body, as outside
+            await self.before_body.answer(refused, scope, receive, send)  # type: ignore[union-attr]
+            return
+        if outcome == "complete":
+            # a body held in memory keeps its uploaded files in memory too (part_memory_bytes)
+            token = _PART_MEMORY.set(max(PART_MEMORY_BYTES, body.size)) if body.file is None else None
+            try:
+                await self.app(scope, body.replay(receive), send)
+            finally:
+                if token is not None:
+                    _PART_MEMORY.reset(token)
+        elif outcome == "too_large":
+            body.close()
+            await self.app(scope, self._too_large, send)
+        elif outcome == "late":
+            body.close()
+            message = (
+                f"the request body did not arrive within {self.timeout_s:g} s of its turn to be read "
+                "(KITTI_EVAL_BODY_TIMEOUT_S)"
+            )
+            await _send_json(send, 408, error_body("request_timeout", message), {"connection": "close"})
+        # "gone": the client disconnected; there is no one to answer
+
+    async def _receive_in_turn(
+        self, turns: anyio.Semaphore, body: _Body, scope: Scope, receive: Receive, send: Send
+    ) -> tuple[str, ApiError | None] | None:
+        """Wait for a turn of the client's (``per_client`` of them, bounded by ``wait_s``), then receive the body in
+        a turn of everyone's (:meth:`_receive_in_shared_turn`); the client's turn is given back with everyone's,
+        before the app runs. The outcome and a refusal asked again, or None when the request was answered."""
+        client_turns = self.client_turns
+        client = self.client_of(scope) if client_turns is not None and self.client_of is not None else None
         waited = False
-        if client is not None and self.client_turns is not None:
+        if client is not None and client_turns is not None:
             self.state.body_waiting += 1
             try:
-                taken, waited = await self.client_turns.take(client, self.wait_s)
+                taken, waited = await client_turns.take(client, self.wait_s)
             finally:
                 self.state.body_waiting -= 1
             if not taken:
-                retry = self.retry_after_s()
-                message = (
-                    f"this client has {self.client_turns.per_client} request bodies being received "
+                await self._busy(
+                    send,
+                    f"this client has {client_turns.per_client} request bodies being received "
                     f"(KITTI_EVAL_MAX_RECEIVING_PER_CLIENT), and none ended within {self.wait_s:g} s "
-                    f"(KITTI_EVAL_RECEIVE_WAIT_S); retry in {retry} s"
+                    "(KITTI_EVAL_RECEIVE_WAIT_S)",
                 )
-                headers = {"retry-after": str(retry), "connection": "close"}
-                await _send_json(send, 503, error_body("busy", message), headers)
-                return
+                return None
         try:
-            await self._take_turn_and_run(turns, body, scope, receive, send, waited, client)
+            return await self._receive_in_shared_turn(turns, body, scope, receive, send, waited)
         finally:
-            if client is not None and self.client_turns is not None and not body.client_turn_given:
-                self.client_turns.give(client)
+            if client is not None and client_turns is not None:
+                client_turns.give(client)
 
-    async def _take_turn_and_run(
-        self,
-        turns: anyio.Semaphore,
-        body: _Body,
-        scope: Scope,
-        receive: Receive,
-        send: Send,
-        waited: bool,
-        client: str | None,
-    ) -> None:
-        waited_here = turns.value == 0
-        waited = waited or waited_here
-        if waited_here:
+    async def _receive_in_shared_turn(
+        self, turns: anyio.Semaphore, body: _Body, scope: Scope, receive: Receive, send: Send, waited: bool
+    ) -> tuple[str, ApiError | None] | None:
+        """Wait for a turn to receive (bounded by ``wait_s``), then for room in memory for a body of declared length
+        (bounded by ``memory_wait_s``), ask a request that waited its refusals again, receive the body and give the
+        turn back. The outcome and the refusal, or None when the request was answered."""
+        if turns.value == 0:
+            waited = True
             self.state.body_waiting += 1
             try:
                 with anyio.move_on_after(self.wait_s) as waiting:
@@ -506,17 +530,16 @@ class BodyMiddleware:
             finally:
                 self.state.body_waiting -= 1
             if waiting.cancelled_caught:  # still no turn after wait_s
-                retry = self.retry_after_s()
-                message = (
+                await self._busy(
+                    send,
                     f"every one of the {self.max_receiving} turns to send a request body "
                     f"(KITTI_EVAL_MAX_RECEIVING_BODIES) stayed taken for {self.wait_s:g} s "
-                    f"(KITTI_EVAL_RECEIVE_WAIT_S); retry in {retry} s"
+                    "(KITTI_EVAL_RECEIVE_WAIT_S)",
                 )
-                headers = {"retry-after": str(retry), "connection": "close"}
-                await _send_json(send, 503, error_body("busy", message), headers)
-                return
+                return None
         else:
             await turns.acquire()
+        outcome = ""
         try:  # the turn is given back once, whatever happens before the body is read or while it is
             declared = _content_length(scope)
             if declared is not None and _CHUNK < declared <= self.memory.budget:
@@ -545,36 +568,18 @@ class BodyMiddleware:
                         error_body(fault.code, fault.message),
                         {**fault.headers, "connection": "close"},
                     )
-                    return
+                    return None
                 finally:
                     self.receiving -= 1
         finally:
             turns.release()
-            if client is not None and self.client_turns is not None:  # the client's with everyone's
-                self.client_turns.give(client)
-                body.client_turn_given = True
-        if refused is not None:  # answered before the body, as outside
-            await self.before_body.answer(refused, scope, receive, send)  # type: ignore[union-attr]
-            return
-        if outcome == "complete":
-            # a body held in memory keeps its uploaded files in memory too (part_memory_bytes)
-            token = _PART_MEMORY.set(max(PART_MEMORY_BYTES, body.size)) if body.file is None else None
-            try:
-                await self.app(scope, body.replay(receive), send)
-            finally:
-                if token is not None:
-                    _PART_MEMORY.reset(token)
-        elif outcome == "too_large":
-            body.close()
-            await self.app(scope, self._too_large, send)
-        elif outcome == "late":
-            body.close()
-            message = (
-                f"the request body did not arrive within {self.timeout_s:g} s of its turn to be read "
-                "(KITTI_EVAL_BODY_TIMEOUT_S)"
-            )
-            await _send_json(send, 408, error_body("request_timeout", message), {"connection": "close"})
-        # "gone": the client disconnected; there is no one to answer
+        return outcome, refused
+
+    async def _busy(self, send: Send, why: str) -> None:
+        """Answer 503 ``busy``: ``why``, and when to retry (Retry-After); the connection is closed."""
+        retry = self.retry_after_s()
+        headers = {"retry-after": str(retry), "connection": "close"}
+        await _send_json(send, 503, error_body("busy", f"{why}; retry in {retry} s"), headers)
 
     async def _too_large(self) -> Message:
         raise BodyTooLarge(self.limit)
