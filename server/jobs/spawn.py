@@ -86,19 +86,15 @@ def start_early(processes: int, threads: int, grace_s: float, work_dir: Path, da
     if _early is not None or processes < 1:
         return
     env = child_env(processes, threads, database_url)
+    procs: list[subprocess.Popen[bytes]] = []
     try:
         work_dir.mkdir(parents=True, exist_ok=True)
         if not os.access(work_dir, os.W_OK | os.X_OK):
             return
-        procs: list[subprocess.Popen[bytes]] = []
-        try:
-            for _ in range(min(now, processes)):
-                cmd = child_command(work_dir, threads, grace_s)
-                procs.append(subprocess.Popen(cmd, env=env, stdin=subprocess.DEVNULL))
-        except OSError:
-            _stop(procs)
-            return
+        for _ in range(min(now, processes)):
+            procs.append(subprocess.Popen(child_command(work_dir, threads, grace_s), env=env, stdin=subprocess.DEVNULL))
     except OSError:
+        _stop(procs)
         return
     _early = _Early(_key(processes, threads, grace_s, work_dir, env), procs, time.monotonic())
 
